@@ -1,0 +1,126 @@
+"""The CoRL-2017 CIL HDF5 layout: the one format cicfw reads and writes.
+
+A file holds ``rgb`` uint8 (N, 88, 200, 3) and ``targets`` float32 (N, 28); other datasets
+(``depth``, ``labels`` ...) are ignored. The ``T`` class names every index of ``targets``.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+IMAGE_SHAPE = (88, 200, 3)  # rows, columns, RGB
+N_TARGETS = 28
+SAMPLES_PER_FILE = 200
+COMMAND_CODES = (2, 3, 4, 5)  # follow, left, right, straight -> branch = code - 2
+
+
+class T:
+    """Indices into ``targets`` (CIL CoRL-2017)."""
+
+    STEER, GAS, BRAKE, HAND_BRAKE, REVERSE = 0, 1, 2, 3, 4
+    STEER_NOISE, GAS_NOISE, BRAKE_NOISE = 5, 6, 7
+    POS_X, POS_Y = 8, 9
+    SPEED = 10  # km/h
+    COLLISION_OTHER, COLLISION_PEDESTRIAN, COLLISION_CAR = 11, 12, 13
+    OPPOSITE_LANE, SIDEWALK = 14, 15
+    ACC_X, ACC_Y, ACC_Z = 16, 17, 18
+    PLATFORM_TIME, GAME_TIME = 19, 20
+    ORIENT_X, ORIENT_Y, ORIENT_Z = 21, 22, 23
+    COMMAND = 24  # 2 follow, 3 left, 4 right, 5 straight
+    NOISE_FLAG = 25
+    CAMERA_ID = 26  # 0 centre, 1 left, 2 right in files cicfw writes
+    CAMERA_YAW = 27  # degrees, positive to the right (left camera -30, right camera +30)
+
+
+class CILFormatError(ValueError):
+    """A file that is not in the CIL HDF5 layout; the message names the file and the problem."""
+
+
+def find_files(path: str | os.PathLike) -> list[Path]:
+    """HDF5 files under a folder (recursively) or matching a glob, sorted; error if none."""
+    p = str(path)
+    p = os.path.expanduser(p)
+    if os.path.isdir(p):
+        files = sorted(Path(p).rglob("*.h5")) + sorted(Path(p).rglob("*.hdf5"))
+    else:
+        files = sorted(Path(f) for f in glob.glob(p, recursive=True) if os.path.isfile(f))
+    if not files:
+        raise FileNotFoundError(
+            f"data.path={path!r} matches no HDF5 file; give a folder that holds *.h5 / *.hdf5 "
+            f"files (searched recursively) or a glob such as 'data/**/*.h5'"
+        )
+    return files
+
+
+@dataclass
+class FileInfo:
+    path: Path
+    n: int
+
+
+def check_file(path: Path) -> FileInfo:
+    """Open ``path`` and check it is in the CIL layout; raise CILFormatError naming what is wrong."""
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise CILFormatError(f"{path}: not a readable HDF5 file ({err})") from None
+    with f:
+        for key in ("rgb", "targets"):
+            if key not in f:
+                raise CILFormatError(
+                    f"{path}: no {key!r} dataset; a CIL file needs 'rgb' uint8 (N, 88, 200, 3) "
+                    f"and 'targets' float32 (N, 28) (found: {', '.join(sorted(f.keys())) or 'nothing'})"
+                )
+        rgb, targets = f["rgb"], f["targets"]
+        if rgb.ndim != 4 or tuple(rgb.shape[1:]) != IMAGE_SHAPE or rgb.dtype != np.uint8:
+            raise CILFormatError(
+                f"{path}: 'rgb' is {rgb.dtype} {tuple(rgb.shape)}; expected uint8 (N, 88, 200, 3)"
+            )
+        if targets.ndim != 2 or targets.shape[1] != N_TARGETS or targets.dtype.kind != "f":
+            raise CILFormatError(
+                f"{path}: 'targets' is {targets.dtype} {tuple(targets.shape)}; expected float32 (N, 28)"
+            )
+        if rgb.shape[0] != targets.shape[0]:
+            raise CILFormatError(
+                f"{path}: 'rgb' has {rgb.shape[0]} samples but 'targets' has {targets.shape[0]}"
+            )
+        return FileInfo(path, int(rgb.shape[0]))
+
+
+def read_targets(path: Path) -> np.ndarray:
+    with h5py.File(path, "r") as f:
+        return np.asarray(f["targets"], dtype=np.float32)
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    with h5py.File(path, "r") as f:
+        return np.asarray(f["rgb"])
+
+
+def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) -> Path:
+    """Write one CIL file atomically (temporary name in the same folder, then rename)."""
+    path = Path(path)
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    targets = np.ascontiguousarray(targets, dtype=np.float32)
+    if rgb.ndim != 4 or rgb.shape[1:] != IMAGE_SHAPE:
+        raise ValueError(f"rgb must be (N, 88, 200, 3), got {rgb.shape}")
+    if targets.shape != (rgb.shape[0], N_TARGETS):
+        raise ValueError(f"targets must be ({rgb.shape[0]}, 28), got {targets.shape}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
+            f.create_dataset("targets", data=targets)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return path

@@ -1,0 +1,1 @@
+"""The model: a shared encoder, a branch mixer and an output head, composed by CICModule."""

@@ -1,0 +1,51 @@
+"""Image + speed encoders; ``cil`` is the CIL perception stack (Codevilla et al. 2018)."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cicfw.registry import ENCODERS
+
+IMAGE_HW = (88, 200)
+
+# (out_channels, kernel, stride) of CIL's eight conv layers, no padding.
+CIL_CONVS = ((32, 5, 2), (32, 3, 1), (64, 3, 2), (64, 3, 1), (128, 3, 2), (128, 3, 1), (256, 3, 1), (256, 3, 1))
+
+
+class Encoder(nn.Module):
+    """Contract: ``forward(image uint8 (B, 3, 88, 200), speed (B,) normalised) -> h (B, out_dim)``."""
+
+    out_dim: int
+
+
+def _fc(i: int, o: int, dropout: float) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(i, o), nn.ReLU(inplace=True), nn.Dropout(dropout))
+
+
+@ENCODERS.register("cil")
+class CILEncoder(Encoder):
+    """8 conv (BN, ReLU) -> 8192 -> FC 512 -> FC 512; speed FC 128 -> 128; concat -> FC 512."""
+
+    def __init__(self, dropout_conv: float = 0.2, dropout_fc: float = 0.5, out_dim: int = 512) -> None:
+        super().__init__()
+        if not (0 <= dropout_conv < 1 and 0 <= dropout_fc < 1):
+            raise ValueError(f"encoder dropouts must be in [0, 1), got {dropout_conv}, {dropout_fc}")
+        layers: list[nn.Module] = []
+        c_in = 3
+        for c_out, k, s in CIL_CONVS:
+            layers += [nn.Conv2d(c_in, c_out, k, s, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+            if dropout_conv:
+                layers.append(nn.Dropout2d(dropout_conv))
+            c_in = c_out
+        self.convs = nn.Sequential(*layers)
+        with torch.no_grad():
+            flat = self.convs(torch.zeros(1, 3, *IMAGE_HW)).numel()  # 256 x 2 x 16 = 8192
+        self.image_fc = nn.Sequential(_fc(flat, 512, dropout_fc), _fc(512, 512, dropout_fc))
+        self.speed_fc = nn.Sequential(_fc(1, 128, dropout_fc), _fc(128, 128, dropout_fc))
+        self.join = _fc(512 + 128, out_dim, dropout_fc)
+        self.out_dim = out_dim
+
+    def forward(self, image: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+        x = image.float() / 255.0  # pixels /255, as CIL
+        x = self.convs(x).flatten(1)
+        return self.join(torch.cat([self.image_fc(x), self.speed_fc(speed[:, None])], dim=1))

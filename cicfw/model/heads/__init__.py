@@ -1,0 +1,6 @@
+"""Output heads, one file each; importing this package registers the built-ins in HEADS."""
+from cicfw.model.heads.base import Head
+from cicfw.model.heads.bins import SteeringBins
+from cicfw.model.heads import regression  # noqa: F401  (registers)
+
+__all__ = ["Head", "SteeringBins"]

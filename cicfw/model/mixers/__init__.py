@@ -1,0 +1,5 @@
+"""Branch mixers, one file each; importing this package registers the built-ins in MIXERS."""
+from cicfw.model.mixers.base import Mixer
+from cicfw.model.mixers import independent  # noqa: F401  (registers)
+
+__all__ = ["Mixer"]

@@ -1,0 +1,1 @@
+# The Hydra config tree, installed as the package ``cicfw.conf`` (see setup.py).
