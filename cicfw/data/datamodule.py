@@ -1,0 +1,161 @@
+"""CILDataModule: the paper's data choices on CIL HDF5 files.
+
+70/30 split by episode (seeded), |steer| <= 0.8, command-balanced batches of 120 (30 per
+command), side cameras with a steering correction, CIL augmentation for training only.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any, Sequence
+
+import h5py
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from cicfw import COMMANDS
+from cicfw.data.augment import AugmentConfig, augment_batch
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE
+from cicfw.data.frames import Frames, load_frames, split_by_episode
+from cicfw.data.sampler import CommandBalancedBatchSampler
+
+log = logging.getLogger(__name__)
+
+
+class ImageStore:
+    """Images of a Frames table, in RAM (one uint8 array) or read from the files on demand."""
+
+    def __init__(self, frames: Frames, in_memory: bool) -> None:
+        self.frames = frames
+        self.array: np.ndarray | None = None
+        self._handles: dict[int, h5py.File] = {}
+        if in_memory:
+            self.array = np.empty((len(frames), *IMAGE_SHAPE), np.uint8)
+            for fi in np.unique(frames.file_idx):
+                where = np.flatnonzero(frames.file_idx == fi)
+                with h5py.File(frames.files[fi], "r") as f:
+                    self.array[where] = f["rgb"][()][frames.row[where]]
+
+    def get(self, idx: np.ndarray) -> np.ndarray:
+        if self.array is not None:
+            return self.array[idx]  # fancy indexing copies, so augmentation never edits the store
+        out = np.empty((len(idx), *IMAGE_SHAPE), np.uint8)
+        fidx, rows = self.frames.file_idx[idx], self.frames.row[idx]
+        for fi in np.unique(fidx):
+            sel = np.flatnonzero(fidx == fi)
+            order = np.argsort(rows[sel])  # h5py wants increasing row indices
+            if fi not in self._handles:
+                self._handles[fi] = h5py.File(self.frames.files[fi], "r")
+            out[sel[order]] = self._handles[fi]["rgb"][rows[sel][order]]
+        return out
+
+    def __getstate__(self) -> dict:  # open HDF5 handles do not cross into worker processes
+        return {**self.__dict__, "_handles": {}}
+
+
+class FrameDataset(Dataset):
+    """Batches as dicts of tensors, fetched whole through ``__getitems__`` (one vectorised pass)."""
+
+    def __init__(self, frames: Frames, store: ImageStore, augment: AugmentConfig | None, seed: int) -> None:
+        self.frames, self.store, self.augment = frames, store, augment
+        self.rng = np.random.default_rng(seed)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitems__(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
+        idx = np.asarray(indices)
+        images = self.store.get(idx)
+        if self.augment is not None:
+            augment_batch(images, self.augment, self.rng)
+        fr = self.frames
+        return {
+            "image": torch.from_numpy(images).permute(0, 3, 1, 2).contiguous(),
+            "speed": torch.from_numpy(fr.speed[idx]),
+            "command": torch.from_numpy(fr.command[idx]),
+            "steer": torch.from_numpy(fr.steer[idx]),
+        }
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v[0] for k, v in self.__getitems__([i]).items()}
+
+
+def _as_batch(batch: Any) -> Any:
+    """``__getitems__`` already returns the collated batch."""
+    return batch
+
+
+class CILDataModule(L.LightningDataModule):
+    def __init__(
+        self,
+        path: str,
+        batch_size: int = 120,
+        val_batch_size: int = 256,
+        val_fraction: float = 0.3,
+        seed: int = 0,
+        max_abs_steer: float = 0.8,
+        side_camera_correction: float = 0.15,
+        cameras: Sequence[int] | None = (0, 1, 2),
+        val_cameras: Sequence[int] | None = (0,),
+        balanced: bool = True,
+        batches_per_epoch: int | None = None,
+        augment: dict | bool | None = True,
+        in_memory: bool = True,
+        num_workers: int = 0,
+    ) -> None:
+        super().__init__()
+        if batch_size < 1 or val_batch_size < 1:
+            raise ValueError(f"batch sizes must be >= 1, got {batch_size} / {val_batch_size}")
+        if not 0.0 < max_abs_steer <= 1.0:
+            raise ValueError(f"data.max_abs_steer must be in (0, 1], got {max_abs_steer}")
+        self.path = str(path)
+        self.batch_size, self.val_batch_size = batch_size, val_batch_size
+        self.val_fraction, self.seed = val_fraction, seed
+        self.max_abs_steer, self.side_camera_correction = max_abs_steer, side_camera_correction
+        self.cameras = tuple(cameras) if cameras is not None else None
+        self.val_cameras = tuple(val_cameras) if val_cameras is not None else None
+        self.balanced, self.batches_per_epoch = balanced, batches_per_epoch
+        if augment is True or augment is None:
+            self.augment = AugmentConfig()
+        elif augment is False:
+            self.augment = None
+        else:
+            self.augment = AugmentConfig.from_dict(augment)
+        self.in_memory, self.num_workers = in_memory, num_workers
+        self.train_set: FrameDataset | None = None
+        self.val_set: FrameDataset | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        frames = load_frames(self.path, self.max_abs_steer, self.side_camera_correction, self.cameras)
+        train, val = split_by_episode(frames, self.val_fraction, self.seed)
+        if self.val_cameras is not None:
+            val = val.subset(np.isin(val.camera, self.val_cameras))
+        counts = dict(zip(COMMANDS, np.bincount(train.command, minlength=4).tolist()))
+        log.info("data: %d train / %d val samples from %d files; train per command %s",
+                 len(train), len(val), len(frames.files), counts)
+        self.train_set = FrameDataset(train, ImageStore(train, self.in_memory), self.augment, self.seed)
+        self.val_set = FrameDataset(val, ImageStore(val, self.in_memory), None, self.seed)
+
+    def _rank(self) -> tuple[int, int]:
+        trainer = getattr(self, "trainer", None)
+        return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train_set is not None, "call setup() first"
+        rank, world = self._rank()
+        if self.balanced:
+            sampler = CommandBalancedBatchSampler(
+                self.train_set.frames.command, self.batch_size, self.batches_per_epoch, self.seed, rank, world)
+            return DataLoader(self.train_set, batch_sampler=sampler, collate_fn=_as_batch,
+                              num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+        gen = torch.Generator().manual_seed(self.seed + rank)
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, generator=gen,
+                          drop_last=True, collate_fn=_as_batch, num_workers=self.num_workers)
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val_set is not None, "call setup() first"
+        return DataLoader(self.val_set, batch_size=self.val_batch_size, shuffle=False,
+                          collate_fn=_as_batch, num_workers=self.num_workers)

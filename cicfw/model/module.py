@@ -1,0 +1,126 @@
+"""CICModule: encoder -> branch mixer -> head, as one LightningModule built from registry names.
+
+Every constructor argument is a name or plain data, so ``save_hyperparameters()`` holds the whole
+model and ``CICModule.load_from_checkpoint(path)`` rebuilds it without Hydra.
+
+Batches are dicts: ``image`` uint8 (B, 3, 88, 200), ``speed`` km/h (B,), ``command`` branch index
+(B,) in 0..3 (= CIL code - 2, order ``cicfw.COMMANDS``), ``steer`` (B,) in [-1, 1].
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import lightning as L
+import torch
+from torchmetrics import MeanAbsoluteError, MeanMetric
+from torchmetrics.classification import MulticlassAccuracy
+
+from cicfw import COMMANDS
+from cicfw.registry import ENCODERS, HEADS, MIXERS
+
+
+class CICModule(L.LightningModule):
+    """A thin LightningModule: the agent is ``encoder``, ``mixer``, ``head``; this adds training."""
+
+    def __init__(
+        self,
+        encoder: str = "cil",
+        encoder_kwargs: Mapping[str, Any] | None = None,
+        mixer: str = "independent",
+        mixer_kwargs: Mapping[str, Any] | None = None,
+        head: str = "regression",
+        head_kwargs: Mapping[str, Any] | None = None,
+        lr: float = 2e-4,
+        betas: tuple[float, float] = (0.7, 0.85),
+        weight_decay: float = 0.0,
+        speed_norm_kmh: float = 40.0,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        if lr <= 0:
+            raise ValueError(f"lr must be > 0, got {lr}")
+        if speed_norm_kmh <= 0:
+            raise ValueError(f"speed_norm_kmh must be > 0, got {speed_norm_kmh}")
+        self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
+        self.head = HEADS.get(head)(**dict(head_kwargs or {}))
+        self.mixer = MIXERS.get(mixer)(
+            in_dim=self.encoder.out_dim, out_dim=self.head.out_dim, **dict(mixer_kwargs or {})
+        )
+        self.speed_norm_kmh = speed_norm_kmh
+        self.channels_last = False
+        for stage in ("train", "val"):
+            setattr(self, f"{stage}_mae", MeanAbsoluteError())
+        self.val_mae_per_command = torch.nn.ModuleList(MeanAbsoluteError() for _ in COMMANDS)
+        self.val_loss = MeanMetric()
+        self.val_bin_acc = (
+            MulticlassAccuracy(num_classes=self.head.bins.n, average="micro") if self.head.bins else None
+        )
+
+    def use_channels_last(self) -> "CICModule":
+        """NHWC layout for the encoder's convolutions (a speed switch; outputs are unchanged)."""
+        self.channels_last = True
+        return self.to(memory_format=torch.channels_last)
+
+    # ---- the agent ---------------------------------------------------------------------------
+    def branch_outputs(self, image: torch.Tensor, speed_kmh: torch.Tensor) -> torch.Tensor:
+        """All four branches' outputs (B, 4, K)."""
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        h = self.encoder(image, speed_kmh.float() / self.speed_norm_kmh)
+        return self.mixer(h)
+
+    def forward(self, image: torch.Tensor, speed_kmh: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+        """The output (B, K) of each sample's own branch: ``out[b, command[b]]``."""
+        out = self.branch_outputs(image, speed_kmh)
+        return out[torch.arange(out.shape[0], device=out.device), command.long()]
+
+    @torch.no_grad()
+    def predict_steer(self, image: torch.Tensor, speed_kmh: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+        """Steering (B,) in [-1, 1]; ``command`` is the branch index (CIL code - 2)."""
+        return self.head.decode(self(image, speed_kmh, command))
+
+    # ---- training ----------------------------------------------------------------------------
+    def _losses(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = self(batch["image"], batch["speed"], batch["command"])
+        task = self.head.loss(out, batch["steer"])
+        return task, task + self.mixer.regularizer(), out
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        task, loss, out = self._losses(batch)
+        n = batch["steer"].shape[0]
+        self.train_mae(self.head.decode(out.detach()), batch["steer"].contiguous())
+        self.log("train/loss", loss, prog_bar=True, batch_size=n)
+        self.log("train/task_loss", task, batch_size=n)
+        self.log("train/steer_mae", self.train_mae, on_step=False, on_epoch=True, batch_size=n)
+        return loss
+
+    def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
+        task, _, out = self._losses(batch)
+        steer, command = batch["steer"].contiguous(), batch["command"]
+        pred = self.head.decode(out)
+        n = steer.shape[0]
+        self.val_loss.update(task, weight=n)
+        self.val_mae.update(pred, steer)
+        for i, metric in enumerate(self.val_mae_per_command):
+            mask = command == i
+            if mask.any():
+                metric.update(pred[mask], steer[mask].contiguous())
+        if self.val_bin_acc is not None:
+            self.val_bin_acc.update(self.head.predict_class(out), self.head.bins.to_class(steer))
+
+    def on_validation_epoch_end(self) -> None:
+        self.log("val/loss", self.val_loss.compute())
+        self.log("val/steer_mae", self.val_mae.compute(), prog_bar=True)
+        self.val_loss.reset()
+        self.val_mae.reset()
+        for name, metric in zip(COMMANDS, self.val_mae_per_command):
+            if metric.update_called:
+                self.log(f"val/steer_mae/{name}", metric.compute())
+            metric.reset()
+        if self.val_bin_acc is not None:
+            self.log("val/bin_acc", self.val_bin_acc.compute())
+            self.val_bin_acc.reset()
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        hp = self.hparams
+        return torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay)
