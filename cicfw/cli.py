@@ -1,0 +1,38 @@
+"""The ``cicfw`` console script: ``cicfw <command> [args]`` runs ``python -m <module> [args]``."""
+from __future__ import annotations
+
+import runpy
+import sys
+
+# command -> (module run as __main__, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("cicfw.train", "train a model (Hydra app: cicfw train mixer=gtu head=hybrid)"),
+    "collect": ("cicfw.collect", "collect CIL HDF5 data with the embedded simulator (Hydra app)"),
+    "evaluate": ("cicfw.evaluate", "closed-loop evaluation on the single-turn suite (Hydra app)"),
+    "preview": ("cicfw.sim.preview", "write the camera contact sheet and town maps as PNGs"),
+    "report": ("cicfw.bench.report", "join evaluation runs into one table with plots"),
+    "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
+}
+
+
+def usage() -> str:
+    lines = ["usage: cicfw <command> [args...]", "", "commands:"]
+    lines += [f"  {name:<10} {help_}" for name, (_, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return
+    if argv[0] not in COMMANDS:
+        print(f"cicfw: unknown command {argv[0]!r}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
+        sys.exit(2)
+    module, _ = COMMANDS[argv[0]]
+    sys.argv = [f"cicfw {argv[0]}", *argv[1:]]
+    runpy.run_module(module, run_name="__main__", alter_sys=True)
+
+
+if __name__ == "__main__":
+    main()
