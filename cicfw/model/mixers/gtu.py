@@ -1,0 +1,52 @@
+"""``gtu``: conditional imitation co-learning (the paper's CIC, Sec. "Specialist Branches Co-learning").
+
+Each branch computes its own output Â_k as in CIL; a per-sample co-learning matrix
+``C = I + offdiag(tanh(W_a h) * sigmoid(W_g h))`` (gated tanh units, Dauphin et al. 2017) then
+mixes them: ``A = C Â``. The gate lets the network switch a branch-to-branch link off per scene.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cicfw.model.mixers.base import Mixer
+from cicfw.model.mixers.common import check_branch_kwargs
+from cicfw.model.mixers.independent import branch_mlp
+from cicfw.registry import MIXERS
+
+
+def offdiag_mask(n: int) -> torch.Tensor:
+    """Boolean (n, n) mask, True off the diagonal."""
+    return ~torch.eye(n, dtype=torch.bool)
+
+
+def colearn(coefs: torch.Tensor, outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``C = I + offdiag(coefs)`` from per-sample off-diagonal coefficients (B, n(n-1)) and
+    ``A = C Â`` for branch outputs Â (B, n, K). Returns (A, C)."""
+    b, n = outputs.shape[0], outputs.shape[1]
+    c = torch.eye(n, dtype=outputs.dtype, device=outputs.device).repeat(b, 1, 1)
+    c[:, offdiag_mask(n).to(outputs.device)] = coefs.to(outputs.dtype)  # row-major: c[i, j], i != j
+    return torch.bmm(c, outputs), c
+
+
+@MIXERS.register("gtu")
+class GTUMixer(Mixer):
+    """CIL branches, then ``A = C Â`` with ``C = I + offdiag(tanh(W_a h) * sigmoid(W_g h))`` per sample."""
+
+    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, dropout: float = 0.5) -> None:
+        super().__init__(in_dim, out_dim)
+        check_branch_kwargs(hidden, dropout)
+        n = self.n_branches
+        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
+        self.coef = nn.Linear(in_dim, n * (n - 1))  # W_a: the co-learning coefficient, tanh -> [-1, 1]
+        self.gate = nn.Linear(in_dim, n * (n - 1))  # W_g: the gate, sigmoid -> [0, 1]
+        self._c: torch.Tensor | None = None
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
+        coefs = torch.tanh(self.coef(h)) * torch.sigmoid(self.gate(h))
+        mixed, self._c = colearn(coefs, outputs)
+        return mixed
+
+    def inspect(self) -> dict[str, torch.Tensor]:
+        return {} if self._c is None else {"C": self._c.detach()}

@@ -1,0 +1,72 @@
+"""``re``: the paper's "fine tuning" co-learning, ``C = R ∘ E`` (Sec. "Specialist Branches Co-learning").
+
+R is a hand-set binary 4x4 relationship matrix (a hyperparameter: which branch may use which);
+E comes from a small dedicated MLP with a tanh output. As the paper keeps C's diagonal at 1:
+``C = I + R ∘ offdiag(tanh(MLP(h)))``, ``A = C Â``. R's diagonal is therefore ignored.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from cicfw import COMMANDS
+from cicfw.model.mixers.base import Mixer
+from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int
+from cicfw.model.mixers.gtu import colearn, offdiag_mask
+from cicfw.model.mixers.independent import branch_mlp
+from cicfw.registry import MIXERS
+
+# Every pair of branches related: the paper does not publish the R it tuned.
+DEFAULT_R = [[0 if i == j else 1 for j in range(len(COMMANDS))] for i in range(len(COMMANDS))]
+
+
+def check_relationship(R: Sequence[Sequence[int]], n: int) -> torch.Tensor:
+    """R as a float (n, n) tensor, or one ValueError saying what is accepted."""
+    accepted = (f"accepted: a {n}x{n} list of lists of 0/1 (rows and columns in branch order "
+                f"{', '.join(COMMANDS)}; R[i][j] = 1 lets branch i use branch j's output)")
+    try:
+        rows = [list(r) for r in R]
+        ok = len(rows) == n and all(len(r) == n for r in rows) and all(
+            not isinstance(v, str) and v in (0, 1) for r in rows for v in r)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"mixer.R={R!r} is not a binary {n}x{n} matrix; {accepted}")
+    return torch.tensor(rows, dtype=torch.float32)
+
+
+@MIXERS.register("re")
+class REMixer(Mixer):
+    """CIL branches, then ``A = C Â`` with ``C = I + R ∘ offdiag(tanh(MLP(h)))``, R fixed and binary."""
+
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        R: Sequence[Sequence[int]] = DEFAULT_R,
+        coef_hidden: int = 128,
+        hidden: int = 256,
+        dropout: float = 0.5,
+    ) -> None:
+        super().__init__(in_dim, out_dim)
+        n = self.n_branches
+        r = check_relationship(R, n)
+        check_branch_kwargs(hidden, dropout)
+        check_positive_int("coef_hidden", coef_hidden, "the width of the coefficient MLP")
+        self.register_buffer("R", r)  # persistent: a checkpoint remembers its R
+        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
+        # E: the "dedicated neural network" of the paper, one tanh coefficient per off-diagonal entry.
+        self.coef = nn.Sequential(nn.Linear(in_dim, coef_hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(coef_hidden, n * (n - 1)))
+        self._c: torch.Tensor | None = None
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
+        r_off = self.R[offdiag_mask(self.n_branches).to(h.device)]  # (n(n-1),), same order as colearn
+        mixed, self._c = colearn(r_off * torch.tanh(self.coef(h)), outputs)
+        return mixed
+
+    def inspect(self) -> dict[str, torch.Tensor]:
+        return {} if self._c is None else {"C": self._c.detach()}

@@ -1,0 +1,42 @@
+"""``soft_sharing``: soft parameter sharing (Duong et al. 2015; the paper's Table 4 "Parameter soft sharing").
+
+Each branch keeps its own parameters, as in CIL; the loss gets ``λ Σ_{i<j} ||θ_i − θ_j||²`` over
+every pair of branches, pulling the branches towards each other instead of sharing one network.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from cicfw.model.mixers.base import Mixer
+from cicfw.model.mixers.common import check_branch_kwargs
+from cicfw.model.mixers.independent import branch_mlp
+from cicfw.registry import MIXERS
+
+
+@MIXERS.register("soft_sharing")
+class SoftSharingMixer(Mixer):
+    """Four CIL branches; regularizer ``λ Σ_{i<j} ||θ_i − θ_j||²`` (all weights and biases of a branch)."""
+
+    def __init__(self, in_dim: int, out_dim: int, lam: float = 1e-4, hidden: int = 256, dropout: float = 0.5) -> None:
+        super().__init__(in_dim, out_dim)
+        if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam >= 0):
+            raise ValueError(f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a number >= 0")
+        check_branch_kwargs(hidden, dropout)
+        self.lam = float(lam)
+        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(self.n_branches))
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return torch.stack([branch(h) for branch in self.branches], dim=1)
+
+    def distance(self) -> torch.Tensor:
+        """``Σ_{i<j} ||θ_i − θ_j||²`` (unweighted)."""
+        flat = torch.stack([torch.cat([p.reshape(-1) for p in b.parameters()]) for b in self.branches])  # (4, P)
+        total = flat.new_zeros(())
+        for i in range(len(flat)):
+            for j in range(i + 1, len(flat)):
+                total = total + (flat[i] - flat[j]).pow(2).sum()
+        return total
+
+    def regularizer(self) -> torch.Tensor:
+        return self.lam * self.distance()
