@@ -1,0 +1,106 @@
+"""Every mixer x head trains: built by CICModule from names, one Lightning fast_dev_run step, a falling
+loss on a fixed batch; MixerDiagnostics writes its heatmaps."""
+from __future__ import annotations
+
+import itertools
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from cicfw.model.diagnostics import MixerDiagnostics
+from cicfw.model.module import CICModule
+
+MIXERS = ["independent", "gtu", "re", "moe", "soft_sharing", "cross_stitch", "sluice"]
+HEADS = ["regression", "softmax", "hybrid", "coexistence", "sine"]
+PAIRS = list(itertools.product(MIXERS, HEADS))
+NO_DROPOUT = {"dropout_conv": 0.0, "dropout_fc": 0.0}
+
+
+def _batch(n: int = 4, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "image": torch.randint(0, 256, (n, 3, 88, 200), dtype=torch.uint8, generator=g),
+        "speed": torch.rand(n, generator=g) * 30,  # km/h
+        "command": torch.arange(n) % 4,
+        "steer": torch.rand(n, generator=g) * 1.6 - 0.8,
+    }
+
+
+def _model(mixer: str, head: str, **kw) -> CICModule:
+    torch.manual_seed(0)
+    return CICModule(encoder_kwargs=NO_DROPOUT, mixer=mixer, mixer_kwargs={"dropout": 0.0, **kw},
+                     head=head, lr=1e-3)
+
+
+def _loader(n_batches: int, n: int = 4) -> DataLoader:
+    return DataLoader([_batch(n, seed=i) for i in range(n_batches)], batch_size=None)
+
+
+def _trainer(**kw) -> L.Trainer:
+    return L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                     enable_model_summary=False, **kw)
+
+
+@pytest.mark.parametrize("mixer, head", PAIRS)
+def test_pair_trains_one_fast_dev_run_step_and_fits_a_fixed_batch(mixer, head):
+    model = _model(mixer, head)
+    assert type(model.mixer).__module__.endswith(mixer) and model.hparams.head == head
+    enc_before = [p.detach().clone() for p in model.encoder.parameters()]
+    _trainer(fast_dev_run=1).fit(model, _loader(1), _loader(1))
+    # The step reached the encoder through the mixer and head (nothing detached on the way).
+    assert any(not torch.equal(a, b) for a, b in zip(enc_before, model.encoder.parameters()))
+
+    batch = _batch()
+    opt = model.configure_optimizers()
+    model.train()
+
+    def loss() -> torch.Tensor:
+        out = model(batch["image"], batch["speed"], batch["command"])
+        return model.head.loss(out, batch["steer"]) + model.mixer.regularizer()
+
+    first = loss()
+    for _ in range(20):
+        opt.zero_grad()
+        value = loss()
+        value.backward()
+        opt.step()
+    last = loss().item()
+    assert torch.isfinite(first) and last < first.item() - 0.2 * abs(first.item()), (first.item(), last)
+
+
+def test_mixer_diagnostics_writes_the_colearning_heatmaps(tmp_path):
+    model = _model("gtu", "regression")
+    diag = MixerDiagnostics()
+    trainer = _trainer(default_root_dir=str(tmp_path), max_epochs=2, limit_train_batches=1,
+                       num_sanity_val_steps=0, callbacks=[diag])
+    trainer.fit(model, _loader(1, n=8), _loader(2, n=8))
+    pngs = sorted(p.name for p in (tmp_path / "diagnostics").glob("*.png"))
+    assert pngs == ["epoch_000_C.png", "epoch_001_C.png"]
+    assert all(p.stat().st_size > 5000 for p in (tmp_path / "diagnostics").glob("*.png"))
+    # Mean |off-diagonal C| logged per validation epoch, and within tanh * sigmoid's range.
+    value = trainer.callback_metrics["diagnostics/C_offdiag_abs"]
+    assert 0 < value < 1
+    assert {f"diagnostics/C_offdiag_abs/{c}" for c in ("follow", "left", "right", "straight")} <= set(
+        trainer.callback_metrics)
+    # The per-command average is the mean of the last epoch's per-sample C over that command's samples.
+    sums, counts = diag.sums["C"], diag.counts["C"]
+    assert torch.equal(counts, torch.full((4,), 4.0, dtype=torch.float64))
+    assert torch.allclose(torch.diagonal(sums / counts[:, None, None], dim1=1, dim2=2), torch.ones(4, 4,
+                          dtype=torch.float64))
+
+
+def test_mixer_diagnostics_sends_images_to_tensorboard(tmp_path):
+    from lightning.pytorch.loggers import TensorBoardLogger
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    model = _model("moe", "softmax", experts=3)
+    logger = TensorBoardLogger(str(tmp_path), name="tb", version="")
+    trainer = L.Trainer(accelerator="cpu", logger=logger, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, max_epochs=1, limit_train_batches=1, num_sanity_val_steps=0,
+                        callbacks=[MixerDiagnostics()])
+    trainer.fit(model, _loader(1, n=8), _loader(1, n=8))
+    assert (tmp_path / "tb" / "diagnostics" / "epoch_000_gates.png").exists()  # under the logger's log_dir
+    events = EventAccumulator(str(tmp_path / "tb")).Reload()
+    assert "diagnostics/gates" in events.Tags()["images"]
