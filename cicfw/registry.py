@@ -112,3 +112,94 @@ HEADS: Registry = Registry("head", "cicfw.heads", "cicfw.model.heads")
 SIM_BACKENDS: Registry = Registry("sim backend", "cicfw.sim_backends", "cicfw.sim.backends")
 
 ALL = {"encoders": ENCODERS, "mixers": MIXERS, "heads": HEADS, "sim backends": SIM_BACKENDS}
+
+# ---- `python -m cicfw.registry` / `cicfw plugins` ------------------------------------------------
+
+CONFIG_GROUPS = {"encoders": "encoder", "mixers": "mixer", "heads": "head", "sim backends": "sim"}
+"""The Hydra config group whose option selects an entry of each registry (``mixer=<name>``)."""
+
+
+def _version(dist: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(dist)
+    except PackageNotFoundError:
+        return "?"
+
+
+def _config_options() -> dict[str, set[str]]:
+    """Options of each config group on cicfw's search path (SearchPathPlugins included)."""
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    try:
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            loader = GlobalHydra.instance().config_loader()
+            return {g: set(loader.get_group_options(g)) for g in CONFIG_GROUPS.values()}
+    except Exception:  # a broken Hydra plugin must not stop the listing
+        return {}
+
+
+def listing() -> tuple[list[tuple[str, str, str, str, str]], list[tuple[str, str, str]]]:
+    """Every registered entry as (kind, name, distribution, class, config option) and every
+    failure as (kind, plugin, error). Loads all plugins; their warnings are returned as failures."""
+    rows, failures = [], []
+    options = _config_options()
+    for kind, reg in ALL.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # failures are listed below rather than warned twice
+            try:
+                names = reg.names()
+            except Exception as err:
+                failures.append((kind, f"cicfw built-ins ({reg._builtins})", f"{type(err).__name__}: {err}"))
+                names = sorted(reg._entries)
+        group = CONFIG_GROUPS[kind]
+        for name in names:
+            obj = reg._entries[name]
+            dist = reg._origin[name]
+            config = f"{group}={name}" if name in options.get(group, ()) else "-"
+            rows.append((kind, name, f"{dist} {_version(dist)}",
+                         f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', obj)}", config))
+        failures += [(kind, label, error) for label, error in reg.failed.items()]
+    return rows, failures
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the registered encoders, mixers, heads and sim backends with the distribution each came
+    from, and the plugins that failed to load. ``--strict``: exit 1 if any failed."""
+    import argparse
+
+    from rich.console import Console
+    from rich.table import Table
+
+    parser = argparse.ArgumentParser(prog="cicfw plugins", description=main.__doc__)
+    parser.add_argument("--strict", action="store_true", help="exit with status 1 if a plugin failed to load")
+    args = parser.parse_args(argv)
+    rows, failures = listing()
+    console = Console()
+    table = Table(title="cicfw registry", title_justify="left")
+    for col in ("kind", "name", "distribution", "class", "config"):
+        table.add_column(col, overflow="fold")
+    for row in rows:
+        table.add_row(*row)
+    console.print(table)
+    if failures:
+        bad = Table(title="plugins that failed to load (skipped; everything above works)",
+                    title_justify="left", title_style="bold red")
+        for col in ("kind", "plugin (distribution:entry point)", "error"):
+            bad.add_column(col, overflow="fold")
+        for row in failures:
+            bad.add_row(*row)
+        console.print(bad)
+    else:
+        console.print("no plugin failed to load")
+    return 1 if failures and args.strict else 0
+
+
+if __name__ == "__main__":
+    # Run as a script this file is ``__main__``, a second copy of the module: the built-ins register
+    # into ``cicfw.registry``'s registries, so list those.
+    from cicfw.registry import main as _main
+
+    raise SystemExit(_main())

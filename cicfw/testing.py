@@ -1,0 +1,130 @@
+"""The checks a plugin author runs: the Mixer and Head contracts, and one tiny end-to-end training.
+
+    from cicfw.testing import check_head, check_mixer, fast_dev_run
+
+    def test_contract():
+        check_mixer("attention")          # by registered name: also proves the entry point works
+
+    def test_trains(tmp_path):
+        assert fast_dev_run(tmp_path, "mixer=attention") >= 0  # also proves the config is found
+
+Each check raises ``AssertionError`` with a message that says which rule was broken.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cicfw import N_COMMANDS
+from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
+from cicfw.model.heads import Head
+from cicfw.model.mixers import Mixer
+from cicfw.registry import HEADS, MIXERS
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise AssertionError(message)
+
+
+def check_mixer(name: str, in_dim: int = 64, batch: int = 5, **kwargs) -> Mixer:
+    """Build the registered mixer ``name`` with ``kwargs`` and check the Mixer contract:
+    (B, in_dim) -> (B, 4, K) for K = 1 and 9, finite, no mixing across samples, a scalar
+    regularizer, a gradient for every parameter (DDP needs that), well-shaped ``inspect()``,
+    and a state_dict that rebuilds the same mixer. Returns the last mixer built."""
+    cls = MIXERS.get(name)
+    torch.manual_seed(0)
+    h = torch.randn(batch, in_dim)
+    for out_dim in (1, 9):
+        mixer = cls(in_dim=in_dim, out_dim=out_dim, **kwargs)
+        _require(isinstance(mixer, Mixer), f"mixer {name!r}: {cls.__name__} must subclass cicfw.model.mixers.Mixer")
+        mixer.train()
+        out = mixer(h)
+        shape = (batch, N_COMMANDS, out_dim)
+        _require(tuple(out.shape) == shape, f"mixer {name!r}: forward gave {tuple(out.shape)}, expected {shape}")
+        _require(bool(torch.isfinite(out).all()), f"mixer {name!r}: forward gave non-finite values")
+        reg = mixer.regularizer()
+        _require(isinstance(reg, torch.Tensor) and reg.dim() == 0 and bool(torch.isfinite(reg)),
+                 f"mixer {name!r}: regularizer() must return a finite scalar tensor, got {reg!r}")
+        (out.square().mean() + reg).backward()
+        unused = [n for n, p in mixer.named_parameters() if p.requires_grad and p.grad is None]
+        _require(not unused, f"mixer {name!r}: parameters without a gradient (DDP would fail): {unused}")
+        for key, m in mixer.inspect().items():
+            _require(isinstance(m, torch.Tensor) and (m.dim() == 2 or (m.dim() == 3 and m.shape[0] == batch)),
+                     f"mixer {name!r}: inspect()[{key!r}] must be (r, c) or (B={batch}, r, c), got "
+                     f"{getattr(m, 'shape', m)!r}")
+        mixer.eval()
+        with torch.no_grad():
+            full = mixer(h)
+            _require(torch.allclose(full[:2], mixer(h[:2]), atol=1e-5),
+                     f"mixer {name!r}: in eval mode a sample's output depends on the rest of the batch")
+            twin = cls(in_dim=in_dim, out_dim=out_dim, **kwargs)
+            twin.load_state_dict(mixer.state_dict())
+            twin.eval()
+            _require(torch.allclose(full, twin(h), atol=1e-6),
+                     f"mixer {name!r}: a copy built from its state_dict gives other outputs")
+    return mixer
+
+
+def check_head(name: str, batch: int = 6, **kwargs) -> Head:
+    """Build the registered head ``name`` with ``kwargs`` and check the Head contract: a positive
+    ``out_dim``, a finite differentiable scalar loss, decoded steering (B,) in [-1, 1], and for
+    classification heads ``predict_class`` within the bins. Returns the head."""
+    cls = HEADS.get(name)
+    head = cls(**kwargs)
+    _require(isinstance(head, Head), f"head {name!r}: {cls.__name__} must subclass cicfw.model.heads.Head")
+    k = getattr(head, "out_dim", None)
+    _require(isinstance(k, int) and k >= 1, f"head {name!r}: out_dim must be a positive int set in __init__, got {k!r}")
+    torch.manual_seed(0)
+    out = torch.randn(batch, k, requires_grad=True)
+    steer = torch.linspace(-0.8, 0.8, batch)
+    loss = head.loss(out, steer)
+    _require(isinstance(loss, torch.Tensor) and loss.dim() == 0 and bool(torch.isfinite(loss)),
+             f"head {name!r}: loss() must return a finite scalar tensor, got {loss!r}")
+    loss.backward()
+    _require(out.grad is not None and bool(out.grad.abs().sum() > 0), f"head {name!r}: the loss has no gradient")
+    with torch.no_grad():
+        steer_hat = head.decode(out)
+    _require(tuple(steer_hat.shape) == (batch,), f"head {name!r}: decode() gave {tuple(steer_hat.shape)}, expected ({batch},)")
+    _require(bool(((steer_hat >= -1) & (steer_hat <= 1)).all()), f"head {name!r}: decode() left [-1, 1]")
+    if head.bins is not None:
+        cls_hat = head.predict_class(out.detach())
+        _require(tuple(cls_hat.shape) == (batch,) and not cls_hat.is_floating_point(),
+                 f"head {name!r}: predict_class() must give integer classes (B,), got {cls_hat!r}")
+        _require(bool(((cls_hat >= 0) & (cls_hat < head.bins.n)).all()), f"head {name!r}: predict_class() left the bins")
+    return head
+
+
+def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0) -> Path:
+    """``n_files`` CIL HDF5 files of ``n`` random samples, every command and camera present."""
+    folder = Path(folder)
+    rng = np.random.default_rng(seed)
+    for i in range(n_files):
+        t = np.zeros((n, N_TARGETS), np.float32)
+        t[:, T.STEER] = rng.uniform(-0.6, 0.6, n)
+        t[:, T.SPEED] = rng.uniform(0, 30, n)
+        t[:, T.COMMAND] = np.resize(np.array([2, 3, 4, 5], np.float32), n)
+        t[:, T.CAMERA_ID] = np.resize(np.array([0, 1, 2], np.float32), n)
+        t[:, T.CAMERA_YAW] = np.resize(np.array([0, -30, 30], np.float32), n)
+        write_file(folder / f"data_{i:05d}.h5", rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8), t)
+    return folder
+
+
+def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
+    """Compose the train config with ``overrides`` on a tiny dataset written under ``tmp_path`` and
+    run one training and one validation batch; returns the validation metric (finite)."""
+    from hydra import compose, initialize_config_module
+
+    from cicfw.train import train
+
+    tmp_path = Path(tmp_path)
+    data = write_tiny_dataset(tmp_path / "data")
+    base = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+            "debug=fast", "progress_bar=false"]
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=[*base, *overrides])
+    value = train(cfg, tmp_path / "run")
+    _require(bool(np.isfinite(value)), f"fast_dev_run with {list(overrides)} gave {cfg.optimized_metric} = {value}")
+    return value
