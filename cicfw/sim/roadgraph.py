@@ -294,8 +294,8 @@ class RoadGraph:
     def random_route(self, rng: np.random.Generator, min_length: float, name: str = "random",
                      counts: dict | None = None) -> Route:
         """A random route of at least ``min_length`` m from a random lane point; at each junction the
-        exit is drawn favouring the commands seen least so far (``counts``: command -> metres driven,
-        updated in place), so turns stay balanced across a dataset."""
+        exit is drawn favouring the commands driven least so far (``counts``: command -> metres under
+        that command, updated in place; weight 1 / (1 + metres / 10)^2), so turns stay balanced across a dataset."""
         lane_ids = sorted(self.lanes)
         first = lane_ids[int(rng.integers(len(lane_ids)))]
         s0 = float(rng.uniform(0.0, max(self.lanes[first].length - 1.0, 0.5)))
@@ -304,13 +304,13 @@ class RoadGraph:
             outs = sorted(self.out[lanes[-1]])
             cmds = [self.connectors[(lanes[-1], o)].command for o in outs]
             if counts is not None:
-                w = np.array([1.0 / (1.0 + counts.get(c, 0.0)) for c in cmds]) ** 2
+                w = np.array([1.0 / (1.0 + counts.get(c, 0.0) / 10.0) for c in cmds]) ** 2
             else:
                 w = np.ones(len(outs))
             nxt = outs[int(rng.choice(len(outs), p=w / w.sum()))]
-            if counts is not None:
-                c = self.connectors[(lanes[-1], nxt)].command
-                counts[c] = counts.get(c, 0.0) + 1.0
+            if counts is not None:  # metres under each command: right turns are short, so count length
+                con = self.connectors[(lanes[-1], nxt)]
+                counts[con.command] = counts.get(con.command, 0.0) + con.length + self.command_distance
             total += self.connectors[(lanes[-1], nxt)].length + self.lanes[nxt].length
             lanes.append(nxt)
         last = self.lanes[lanes[-1]]
