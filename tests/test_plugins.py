@@ -1,0 +1,143 @@
+"""Third-party plugins: the example package trains by name, is listed with its distribution, and a
+broken plugin is reported and skipped while the built-ins keep working.
+
+Needs the example plugin installed: ``pip install ./plugins/cicfw-attention-mixer`` (.ci/run does).
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from cicfw.model.mixers import Mixer
+from cicfw.registry import MIXERS, listing, main
+from cicfw.testing import check_head, check_mixer
+from cicfw.train import train
+from conftest import compose_train
+
+PLUGIN_DIST = "cicfw-attention-mixer"
+INSTALL = "pip install ./plugins/cicfw-attention-mixer"
+
+
+@pytest.fixture(scope="module")
+def plugin_installed() -> None:
+    if "attention" not in MIXERS:
+        pytest.fail(f"the example plugin is not installed in this environment; run `{INSTALL}`")
+
+
+def test_example_plugin_is_registered_with_its_distribution(plugin_installed):
+    assert MIXERS.origin("attention") == PLUGIN_DIST
+    assert MIXERS.origin("gtu") == "cicfw"
+    rows = {(kind, name): (dist, config) for kind, name, dist, _, config in listing()[0]}
+    assert rows[("mixers", "attention")] == (f"{PLUGIN_DIST} 0.1.0", "mixer=attention")
+    assert rows[("heads", "hybrid")][0].startswith("cicfw ")
+
+
+def test_fast_dev_run_trains_with_the_plugin_mixer_by_name(plugin_installed, tiny_data, tmp_path):
+    cfg = compose_train(
+        "mixer=attention", "mixer.hidden=64", "head=hybrid", "data=cil_hdf5", f"data.path={tiny_data}",
+        "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false",
+    )
+    assert cfg.mixer.name == "attention" and cfg.mixer.heads == 4  # the plugin's own yaml, via its SearchPathPlugin
+    value = train(cfg, tmp_path / "run")
+    assert 0.0 <= value < 2.0
+
+
+def _fake_dist(site: Path, name: str, entry_points: str, module: str, source: str) -> None:
+    """An installed distribution as pip leaves it: a dist-info folder with entry_points.txt."""
+    info = site / f"{name.replace('-', '_')}-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(textwrap.dedent(entry_points))
+    (site / f"{module}.py").write_text(textwrap.dedent(source))
+
+
+@pytest.fixture
+def broken_plugins(tmp_path: Path) -> Path:
+    """Two bad plugins: one whose module raises on import, one that takes the built-in name 'gtu'."""
+    site = tmp_path / "site"
+    _fake_dist(site, "broken-mixer", "[cicfw.mixers]\nbroken = broken_mixer:BrokenMixer\n",
+               "broken_mixer", "raise ImportError('needs libfoo, which is not installed')\n")
+    _fake_dist(site, "clashing-mixer", "[cicfw.mixers]\ngtu = clashing_mixer:OtherGTU\n",
+               "clashing_mixer", "from cicfw.model.mixers import Mixer\nclass OtherGTU(Mixer):\n    pass\n")
+    return site
+
+
+def test_broken_plugins_warn_by_name_and_builtins_still_work(broken_plugins, monkeypatch):
+    from cicfw.model.mixers.gtu import GTUMixer
+
+    monkeypatch.syspath_prepend(str(broken_plugins))
+    # A fresh discovery pass over the real MIXERS registry (state restored after the test).
+    monkeypatch.setattr(MIXERS, "_loaded", False)
+    monkeypatch.setattr(MIXERS, "_entries", dict(MIXERS._entries))
+    monkeypatch.setattr(MIXERS, "_origin", dict(MIXERS._origin))
+    monkeypatch.setattr(MIXERS, "failed", {})
+    with pytest.warns(UserWarning) as caught:
+        names = MIXERS.names()
+    messages = "\n".join(str(w.message) for w in caught)
+    assert "'broken' from distribution 'broken-mixer'" in messages and "needs libfoo" in messages
+    assert "'gtu' from distribution 'clashing-mixer'" in messages and "already registered by 'cicfw'" in messages
+    assert "broken" not in names and MIXERS.get("gtu") is GTUMixer and MIXERS.origin("gtu") == "cicfw"
+    assert set(MIXERS.failed) == {"broken-mixer:broken", "clashing-mixer:gtu"}
+    assert main([]) == 0 and main(["--strict"]) == 1  # `cicfw plugins --strict` fails CI on a broken plugin
+
+
+def test_cicfw_plugins_lists_everything_and_the_failures(plugin_installed, broken_plugins):
+    env = {**os.environ, "PYTHONPATH": str(broken_plugins), "COLUMNS": "250"}
+    run = subprocess.run([sys.executable, "-m", "cicfw.registry"], env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    out = run.stdout
+    lines = {line.split("│")[2].strip(): line for line in out.splitlines() if line.count("│") == 6}
+    assert PLUGIN_DIST in lines["attention"] and "mixer=attention" in lines["attention"]
+    assert "cicfw 0.1.0" in lines["gtu"] and "cicfw 0.1.0" in lines["cil"] and "cicfw 0.1.0" in lines["regression"]
+    failed = out[out.index("failed to load"):]
+    assert "broken-mixer:broken" in failed and "needs libfoo" in failed
+    assert "clashing-mixer:gtu" in failed and "already registered" in failed
+
+
+class _WrongShape(Mixer):
+    def __init__(self, in_dim: int, out_dim: int) -> None:
+        super().__init__(in_dim, out_dim)
+        self.lin = torch.nn.Linear(in_dim, out_dim)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.lin(h)  # (B, K): forgot the branches
+
+
+class _UnusedParameter(_WrongShape):
+    def __init__(self, in_dim: int, out_dim: int) -> None:
+        super().__init__(in_dim, out_dim)
+        self.spare = torch.nn.Linear(3, 3)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.lin(h).unsqueeze(1).expand(-1, 4, -1)
+
+
+class _MixesSamples(_UnusedParameter):
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return (self.lin(h) + self.spare(h[:, :3]).sum() + h.mean()).unsqueeze(1).expand(-1, 4, -1)
+
+
+@pytest.mark.parametrize("cls, complaint", [
+    (_WrongShape, "expected (5, 4, 1)"),
+    (_UnusedParameter, "without a gradient"),
+    (_MixesSamples, "depends on the rest of the batch"),
+])
+def test_contract_checks_catch_a_broken_mixer(cls, complaint, monkeypatch):
+    monkeypatch.setitem(MIXERS._entries, "bad", cls)
+    with pytest.raises(AssertionError, match=complaint.replace("(", r"\(").replace(")", r"\)")):
+        check_mixer("bad")
+
+
+def test_contract_checks_pass_for_every_registered_part():
+    for name in MIXERS.names():
+        check_mixer(name)
+    from cicfw.registry import HEADS
+
+    for name in HEADS.names():
+        check_head(name)
