@@ -146,13 +146,14 @@ class DrivingEnv:
 
 def run_expert(env: DrivingEnv, noise_rng: np.random.Generator | None = None) -> dict:
     """Drive ``env``'s route with the expert (and CIL noise when ``noise_rng`` is given) until done;
-    the final info plus the number of steps and noisy steps."""
+    the final info plus ``steps``, ``noisy_steps`` and the worst ``max_route_deviation``,
+    ``max_opposite_lane``, ``max_off_road`` of the episode."""
     from cicfw.sim.expert import Noiser
 
     env.reset()
     noiser = Noiser(noise_rng, enabled=True) if noise_rng is not None else None
     info: dict = {}
-    noisy = 0
+    noisy, worst = 0, {"route_deviation": 0.0, "opposite_lane": 0.0, "off_road": 0.0}
     while not env.done:
         steer, v = env.expert_action()
         applied = steer
@@ -160,5 +161,7 @@ def run_expert(env: DrivingEnv, noise_rng: np.random.Generator | None = None) ->
             applied, flag = noiser.step(steer, env.vehicle.s.speed_kmh)
             noisy += flag
         _, _, info = env.step(applied, target_speed_kmh=v)
-    info.update(steps=env.steps, noisy_steps=noisy)
+        for k in worst:
+            worst[k] = max(worst[k], info[k])
+    info.update(steps=env.steps, noisy_steps=noisy, **{f"max_{k}": v for k, v in worst.items()})
     return info
