@@ -1,0 +1,139 @@
+"""Loading a cicfw checkpoint safely, and the policy that drives with it.
+
+Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain containers are
+ever unpickled, never an arbitrary class. The hyper-parameters saved by ``CICModule`` (registry names
+and plain kwargs) rebuild the model exactly as ``CICModule.load_from_checkpoint`` would, after checking
+that every part it names is installed. Each way a checkpoint can be wrong is one clear error.
+"""
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from cicfw.bench.policy import Observations, Policy
+
+#: the CICModule arguments that name registered parts, with the registry that must know each
+PART_KEYS = ("encoder", "mixer", "head")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used; the message says why and what is accepted."""
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
+    best checkpoint (``last.ckpt`` aside)."""
+    p = Path(str(path)).expanduser()
+    if p.is_dir():
+        found = sorted(f for f in p.rglob("*.ckpt") if f.name != "last.ckpt")
+        if len(found) == 1:
+            return found[0].resolve()
+        if not found and (p / "checkpoints" / "last.ckpt").is_file():
+            return (p / "checkpoints" / "last.ckpt").resolve()
+        listing = ", ".join(str(f) for f in found[:8]) or "none"
+        raise CheckpointError(
+            f"checkpoint={path!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
+            f"give one .ckpt file")
+    if not p.is_file():
+        raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
+                                f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    return p.resolve()
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one."""
+    import torch
+
+    p = resolve_checkpoint(path)
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        if "weights_only" in str(err) or "Unsupported global" in str(err):
+            raise CheckpointError(
+                f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers, so "
+                f"cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold only those") from None
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint ({err})") from None
+    except Exception as err:  # torch raises many types (KeyError, RuntimeError, EOFError ...) for non-checkpoints
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated "
+                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    return check_cicfw_checkpoint(ckpt, str(p))
+
+
+def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
+    """Check ``ckpt`` is a cicfw CICModule checkpoint whose encoder, mixer and head are installed."""
+    from cicfw.registry import ENCODERS, HEADS, MIXERS
+
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, Mapping) else None
+    if not isinstance(hp, Mapping) or not isinstance(ckpt.get("state_dict"), Mapping) \
+            or not all(isinstance(hp.get(k), str) for k in PART_KEYS):
+        what = f"keys {sorted(map(str, ckpt))[:8]}" if isinstance(ckpt, Mapping) else type(ckpt).__name__
+        raise CheckpointError(
+            f"{where!r} is not a cicfw checkpoint: it needs Lightning's 'state_dict' and the CICModule "
+            f"'hyper_parameters' naming an encoder, mixer and head (found {what}); checkpoints come from "
+            f"cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    for key, reg in zip(PART_KEYS, (ENCODERS, MIXERS, HEADS)):
+        if hp[key] not in reg:
+            raise CheckpointError(
+                f"checkpoint {where!r} was trained with {key} {hp[key]!r}, which is not installed here; "
+                f"installed {key}s: {', '.join(reg.names())} (install the plugin that provides {hp[key]!r})")
+    return dict(ckpt)
+
+
+def load_model(path: str | Path):
+    """A ``CICModule`` in eval mode rebuilt from a checkpoint, on the CPU (what
+    ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
+    from cicfw.model.module import CICModule
+
+    ckpt = read_checkpoint(path)
+    hp = dict(ckpt["hyper_parameters"])
+    try:
+        model = CICModule(**hp)
+    except TypeError as err:
+        raise CheckpointError(f"checkpoint {str(path)!r}: its hyper_parameters do not fit this cicfw's "
+                              f"CICModule ({err})") from None
+    model.on_load_checkpoint(ckpt)
+    try:
+        model.load_state_dict(ckpt["state_dict"], strict=True)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0]
+        raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its "
+                              f"hyper_parameters describe ({first})") from None
+    return model.eval()
+
+
+def describe(hp: Mapping[str, Any]) -> str:
+    """A short model label from hyper-parameters, e.g. ``gtu+hybrid``."""
+    return f"{hp.get('mixer')}+{hp.get('head')}"
+
+
+class CheckpointPolicy(Policy):
+    """A trained CICModule steering from the centre camera (as in the paper), in eval mode, no grad.
+
+    The CIL command code selects the branch (index = code - 2).
+    """
+
+    def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
+                 label: str | None = None) -> None:
+        import torch
+
+        if not checkpoint:
+            raise ValueError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.path = str(checkpoint)
+        self.model = load_model(checkpoint)
+        self.cameras = (camera,)
+        self.label = label or describe(self.model.hparams)
+
+    def act(self, obs: Observations) -> np.ndarray:
+        import torch
+
+        img = torch.from_numpy(np.ascontiguousarray(obs.images[self.cameras[0]])).permute(0, 3, 1, 2)
+        speed = torch.from_numpy(np.asarray(obs.speed_kmh, np.float32))
+        branch = torch.from_numpy(np.asarray(obs.command, np.int64) - 2)
+        with torch.inference_mode():
+            steer = self.model.predict_steer(img, speed, branch)
+        return steer.float().clamp(-1.0, 1.0).numpy()

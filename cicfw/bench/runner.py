@@ -1,0 +1,291 @@
+"""The lockstep runner: every episode of a run advances together, one batched policy call per step.
+
+Each step gathers the observations of all running episodes, calls ``policy.act`` once per chunk of
+``batch_size`` episodes, then advances every episode's simulator by one 0.1 s step with that steering
+and the speed controller's throttle/brake (so the suite measures steering only). Episodes end on
+success (within the backend's success radius of the goal), at their timeout, far off their route,
+or once the car has spent more than ``off_road_s`` seconds (in total) with its centre off the road. ``workers > 1`` splits the episodes over processes
+(spawned, each builds its own policy and simulator from plain config); results are merged in
+episode order, so a run is deterministic for a seed, batch size and worker count.
+"""
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import queue as queue_mod
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from cicfw.bench.policy import Observations, Policy, make_policy
+from cicfw.bench.suite import Episode, make_backend, suite_routes
+
+#: the simulator's reasons mapped to the report's (the embedded env calls "far off route" "lost")
+REASONS = {"success": "success", "timeout": "timeout", "lost": "off_route", "off_route": "off_route",
+           "off_road": "off_road"}
+#: per-step trajectory channels recorded for every episode (maps, videos)
+TRAJ_FIELDS = ("x", "y", "yaw", "speed_kmh", "steer", "command", "off_road", "opposite_lane")
+
+
+@dataclass
+class RunnerConfig:
+    batch_size: int = 64  # episodes per policy call (a chunk); the network's batch
+    workers: int = 1  # processes; each takes every workers-th episode
+    seed: int = 0  # renderer seed (rain animation); the rest is deterministic
+    off_road_s: float = 3.0  # end as "off_road" after more than this many seconds off the road in total
+    off_road_level: float = 0.5  # off-road fraction of the car's width that counts (0.5: its centre is off)
+    target_speed_kmh: float | None = None  # None: the planner's speed profile (slows for the turn)
+    threads: int | None = None  # torch threads per worker (None: cores // workers)
+    progress_bar: bool = True
+
+    def __post_init__(self) -> None:
+        if int(self.batch_size) < 1:
+            raise ValueError(f"runner.batch_size must be >= 1, got {self.batch_size}")
+        if int(self.workers) < 1:
+            raise ValueError(f"runner.workers must be >= 1, got {self.workers}")
+        if self.off_road_s <= 0:
+            raise ValueError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
+        if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
+            raise ValueError(f"runner.target_speed_kmh must be > 0 (or null), got {self.target_speed_kmh}")
+
+
+@dataclass
+class RunResult:
+    rows: list[dict[str, Any]]  # one per episode, in episode order
+    trajectories: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # key -> channel -> (T,)
+    wall_s: float = 0.0
+    steps: int = 0  # policy observations served (sum of episode lengths)
+
+
+# ------------------------------------------------------------------------------------------------
+# the lockstep core (one process)
+
+
+class _Track:
+    """What the runner keeps per running episode."""
+
+    __slots__ = ("env", "obs", "route", "rec", "off_time", "dist", "last_xy")
+
+    def __init__(self, env: Any, route: Any) -> None:
+        self.env, self.route = env, route
+        self.rec: list[tuple] = []
+        self.off_time = 0.0
+        self.dist = 0.0
+
+
+def drive(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: RunnerConfig,
+          on_done: Callable[[dict], None] | None = None) -> RunResult:
+    """Run ``episodes`` in lockstep with ``policy`` in this process."""
+    t0 = time.perf_counter()
+    cams = tuple(policy.cameras)
+    tracks: list[_Track] = []
+    for ep in episodes:
+        route = suite_routes(backend, ep.town)[ep.pair]
+        env = backend.make_env(ep.town, route, ep.weather, seed=cfg.seed, cameras=cams or ("centre",),
+                               renderer=bool(cams))
+        tr = _Track(env, route)
+        tr.obs = env.reset()
+        tr.last_xy = tr.obs["pose"][:2]
+        tracks.append(tr)
+    policy.reset([ep.index for ep in episodes])
+    active = list(range(len(episodes)))
+    rows: dict[int, dict] = {}
+    trajs: dict[str, dict[str, np.ndarray]] = {}
+    steps = 0
+    bs = int(cfg.batch_size)
+    while active:
+        steer = np.empty(len(episodes))
+        for c0 in range(0, len(active), bs):
+            chunk = active[c0:c0 + bs]
+            steer[chunk] = _act(policy, [tracks[i] for i in chunk], [episodes[i].index for i in chunk], cams)
+        steps += len(active)
+        still = []
+        for i in active:
+            tr, ep = tracks[i], episodes[i]
+            o = tr.obs
+            target = cfg.target_speed_kmh if cfg.target_speed_kmh is not None else o["target_speed_kmh"]
+            new, done, info = tr.env.step(float(steer[i]), target_speed_kmh=float(target))
+            x, y, yaw = o["pose"]
+            tr.rec.append((x, y, yaw, o["speed_kmh"], steer[i], o["command"],
+                           info.get("off_road", 0.0), info.get("opposite_lane", 0.0)))
+            nx, ny = new["pose"][:2]
+            tr.dist += math.hypot(nx - tr.last_xy[0], ny - tr.last_xy[1])
+            tr.last_xy = (nx, ny)
+            tr.obs = new
+            reason = REASONS.get(info["reason"], info["reason"]) if done else None
+            if reason is None:
+                if info.get("off_road", 0.0) >= cfg.off_road_level:
+                    tr.off_time += 0.1
+                if tr.off_time > cfg.off_road_s + 1e-9:
+                    reason = "off_road"
+            if reason is None:
+                still.append(i)
+                continue
+            rows[i], trajs[ep.key] = _finish(ep, tr, info, reason)
+            tr.env = None  # free the episode's simulator
+            if on_done is not None:
+                on_done(rows[i])
+        active = still
+    return RunResult(rows=[rows[i] for i in range(len(episodes))], trajectories=trajs,
+                     wall_s=time.perf_counter() - t0, steps=steps)
+
+
+def _act(policy: Policy, tracks: list[_Track], indices: list[int], cams: tuple) -> np.ndarray:
+    obs = Observations(
+        images={c: np.stack([t.obs["images"][c] for t in tracks]) for c in cams},
+        speed_kmh=np.array([t.obs["speed_kmh"] for t in tracks], np.float32),
+        command=np.array([t.obs["command"] for t in tracks], np.int64),
+        pose=np.array([t.obs["pose"] for t in tracks], np.float64),
+        routes=[t.route for t in tracks],
+        episode=np.array(indices, np.int64),
+    )
+    steer = np.asarray(policy.act(obs), dtype=np.float64).reshape(-1)
+    if steer.shape != (len(tracks),):
+        raise ValueError(f"policy {policy.label!r}: act() returned {steer.size} values for a batch of "
+                         f"{len(tracks)}; it must return one steering value per observation")
+    if not np.all(np.isfinite(steer)):
+        raise ValueError(f"policy {policy.label!r}: act() returned non-finite steering {steer[~np.isfinite(steer)][:3]}")
+    return np.clip(steer, -1.0, 1.0)
+
+
+def _finish(ep: Episode, tr: _Track, info: Mapping[str, Any], reason: str) -> tuple[dict, dict]:
+    rec = np.array(tr.rec, np.float64).reshape(-1, len(TRAJ_FIELDS))
+    traj = {name: rec[:, k].astype(np.float32) for k, name in enumerate(TRAJ_FIELDS)}
+    traj["command"] = rec[:, 5].astype(np.int8)
+    nx, ny = tr.last_xy
+    traj["end"] = np.array([nx, ny], np.float32)
+    row = {
+        "episode": ep.index, "key": ep.key, "town": ep.key.split("/")[0], "weather": ep.weather,
+        "town_set": ep.town_set, "weather_set": ep.weather_set, "pair": ep.pair, "route": ep.route,
+        "command": ep.command, "success": reason == "success", "reason": reason,
+        "time_s": round(float(info.get("t", len(rec) * 0.1)), 2),
+        "timeout_s": round(float(tr.route.timeout()), 2),
+        "distance_m": round(tr.dist, 2), "route_length_m": round(float(tr.route.length), 2),
+        "goal_distance_m": round(float(info.get("distance_to_goal", float("nan"))), 2),
+        "progress": round(float(info.get("progress", float("nan"))), 4),
+        "offroad_fraction": round(float(rec[:, 6].mean()) if len(rec) else 0.0, 4),
+        "opposite_lane_fraction": round(float(rec[:, 7].mean()) if len(rec) else 0.0, 4),
+        "steps": len(rec),
+    }
+    return row, traj
+
+
+# ------------------------------------------------------------------------------------------------
+# progress, processes
+
+
+class Progress:
+    """A rich progress bar over episodes with the running success rate (or nothing when disabled)."""
+
+    def __init__(self, total: int, label: str, enabled: bool = True) -> None:
+        self.total, self.done, self.ok = total, 0, 0
+        self._bar = None
+        if enabled:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn,
+                                       TimeElapsedColumn, TimeRemainingColumn)
+
+            self._bar = RichProgress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                     TextColumn("episodes, success {task.fields[rate]}"), TimeElapsedColumn(),
+                                     TextColumn("eta"), TimeRemainingColumn())
+            self._task = self._bar.add_task(label, total=total, rate="-")
+            self._bar.start()
+
+    def update(self, success: bool) -> None:
+        self.done += 1
+        self.ok += bool(success)
+        if self._bar is not None:
+            self._bar.update(self._task, advance=1, rate=f"{100.0 * self.ok / self.done:.1f}%")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+
+
+def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Mapping[str, Any] | None,
+        cfg: RunnerConfig, label: str | None = None) -> RunResult:
+    """Run the episodes with a policy (an instance, or its config spec ``{name:, ...}``).
+
+    With ``cfg.workers > 1`` the policy must be given as a spec: each process builds its own.
+    """
+    episodes = list(episodes)
+    workers = min(int(cfg.workers), max(len(episodes), 1))
+    if workers > 1 and not isinstance(policy, Mapping):
+        raise ValueError("runner.workers > 1 needs the policy as a config spec ({name: ..., ...}) so each "
+                         "process can build its own")
+    name = label or (policy.label if isinstance(policy, Policy) else str(policy.get("name")))
+    bar = Progress(len(episodes), name, cfg.progress_bar)
+    try:
+        if workers <= 1:
+            pol = policy if isinstance(policy, Policy) else make_policy(policy)
+            if cfg.threads:
+                import torch
+
+                torch.set_num_threads(int(cfg.threads))
+            return drive(episodes, pol, make_backend(sim), cfg, on_done=lambda row: bar.update(row["success"]))
+        return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar)
+    finally:
+        bar.close()
+
+
+def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: RunnerConfig,
+                   workers: int, bar: Progress) -> RunResult:
+    t0 = time.perf_counter()
+    ctx = mp.get_context("spawn")  # fork after torch's thread pools started can deadlock
+    q = ctx.Queue()
+    threads = int(cfg.threads) if cfg.threads else max((os.cpu_count() or 1) // workers, 1)
+    shards = [episodes[k::workers] for k in range(workers)]
+    procs = [ctx.Process(target=_worker, args=(k, shards[k], policy_spec, sim_spec, asdict(cfg), threads, q),
+                         daemon=True) for k in range(workers)]
+    for p in procs:
+        p.start()
+    results: dict[int, RunResult] = {}
+    try:
+        while len(results) < workers:
+            try:
+                msg = q.get(timeout=1.0)
+            except queue_mod.Empty:
+                dead = [k for k, p in enumerate(procs) if not p.is_alive() and k not in results]
+                if dead and q.empty():
+                    raise RuntimeError(f"evaluation worker {dead[0]} died (exit code "
+                                       f"{procs[dead[0]].exitcode}) without a result")
+                continue
+            if msg[0] == "done":
+                bar.update(msg[2])
+            elif msg[0] == "result":
+                results[msg[1]] = msg[2]
+            elif msg[0] == "error":
+                kind, text, tb = msg[2], msg[3], msg[4]
+                if kind in ("ValueError", "FileNotFoundError", "CheckpointError", "UnknownNameError"):
+                    raise ValueError(text)
+                raise RuntimeError(f"evaluation worker {msg[1]} failed:\n{tb}")
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+            p.join(timeout=5)
+    rows = sorted((r for res in results.values() for r in res.rows), key=lambda r: r["episode"])
+    trajs: dict[str, dict] = {}
+    for res in results.values():
+        trajs.update(res.trajectories)
+    return RunResult(rows=rows, trajectories=trajs, wall_s=time.perf_counter() - t0,
+                     steps=sum(res.steps for res in results.values()))
+
+
+def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: dict, threads: int,
+            q: Any) -> None:
+    try:
+        import cv2
+        import torch
+
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(1)
+        rc = RunnerConfig(**{**cfg, "workers": 1, "progress_bar": False})
+        res = drive(episodes, make_policy(policy_spec), make_backend(sim_spec), rc,
+                    on_done=lambda row: q.put(("done", k, row["success"])))
+        q.put(("result", k, res))
+    except BaseException as err:  # report everything, the parent decides
+        q.put(("error", k, type(err).__name__, str(err), traceback.format_exc()))

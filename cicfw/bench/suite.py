@@ -1,0 +1,121 @@
+"""The paper's single-turn suite: every junction manoeuvre of each town, under each weather.
+
+The start/goal pairs come from the simulator backend's ``single_turn_routes(town)`` (one route per
+possible turn at every junction, each needing exactly one turn decision; stable for a given town
+file). An ``Episode`` is plain data (town, weather, pair index) so worker processes rebuild the route
+themselves. Towns and weathers are grouped as in the paper's table: training vs new.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from cicfw.registry import SIM_BACKENDS
+
+#: the paper's four weathers: two seen in training, two new
+PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
+TRAINING_WEATHERS = ("ClearNoon", "ClearSunset")
+#: the paper's table columns, in its order: (town set, weather set)
+CELLS = (("training", "training"), ("training", "new"), ("new", "training"), ("new", "new"))
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode of the suite: the ``pair``-th single-turn route of ``town`` under ``weather``."""
+
+    index: int  # position in the run (0..N-1)
+    town: str  # town name (or path) as the backend takes it
+    weather: str
+    pair: int  # index into the town's single-turn routes
+    route: str  # the route's name, e.g. town_a/c1/c1-n1>s1-c1/straight
+    command: str  # the turn: left | right | straight
+    town_set: str  # "training" | "new"
+    weather_set: str  # "training" | "new"
+
+    @property
+    def key(self) -> str:
+        """A stable id independent of which subset was run: ``town/weather/pair``."""
+        return f"{town_label(self.town)}/{self.weather}/{self.pair:03d}"
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def town_label(town: str) -> str:
+    """The short name of a town given by name or by a path to its YAML file."""
+    s = str(town)
+    return Path(s).stem if s.endswith((".yaml", ".yml")) else s
+
+
+def make_backend(spec: Mapping[str, Any] | None):
+    """The simulator backend from its config node (``name:`` + kwargs; default: embedded)."""
+    kwargs = dict(spec or {"name": "embedded"})
+    name = kwargs.pop("name", "embedded")
+    return SIM_BACKENDS.get(str(name))(**kwargs)
+
+
+@functools.lru_cache(maxsize=32)
+def _routes_cached(backend: Any, town: str) -> tuple:
+    return tuple(backend.single_turn_routes(town))
+
+
+def suite_routes(backend: Any, town: str) -> tuple:
+    """The backend's single-turn routes of ``town`` (cached per backend object)."""
+    return _routes_cached(backend, town)
+
+
+def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: bool = False) -> list[str]:
+    """``given`` as a list, or one error naming the first unknown entry and listing the known ones."""
+    out = [str(g) for g in given]
+    if not out:
+        raise ValueError(f"the suite needs at least one {kind}; known {kind}s: {', '.join(known)}")
+    for g in out:
+        if g in known or (path_ok and g.endswith((".yaml", ".yml")) and Path(g).expanduser().is_file()):
+            continue
+        extra = " (or a path to a town .yaml file)" if path_ok else ""
+        raise ValueError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}")
+    return out
+
+
+def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
+                training_towns: Sequence[str] = (), training_weathers: Sequence[str] = TRAINING_WEATHERS,
+                pairs: Sequence[int] | None = None, limit: int | None = None) -> list[Episode]:
+    """Every (town, weather, pair) of the suite, ordered by town, weather, pair.
+
+    ``pairs`` keeps only those pair indices (per town); ``limit`` keeps the first ``limit`` pairs of each
+    town. Unknown town or weather names raise one error listing the known ones.
+    """
+    towns = check_names("town", towns, backend.towns(), path_ok=True)
+    weathers = check_names("weather", weathers, backend.weathers())
+    episodes: list[Episode] = []
+    for town in towns:
+        routes = suite_routes(backend, town)
+        chosen = range(len(routes)) if pairs is None else [int(p) for p in pairs]
+        bad = [p for p in chosen if not 0 <= p < len(routes)]
+        if bad:
+            raise ValueError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
+                             f"{len(routes)} pairs (0..{len(routes) - 1})")
+        if limit is not None:
+            if int(limit) < 1:
+                raise ValueError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
+            chosen = list(chosen)[: int(limit)]
+        town_set = "training" if town in training_towns or town_label(town) in training_towns else "new"
+        for weather in weathers:
+            for p in chosen:
+                r = routes[p]
+                episodes.append(Episode(
+                    index=len(episodes), town=town, weather=weather, pair=p, route=r.name,
+                    command=_turn_name(r), town_set=town_set,
+                    weather_set="training" if weather in training_weathers else "new"))
+    return episodes
+
+
+def _turn_name(route: Any) -> str:
+    from cicfw.sim.roadgraph import COMMAND_NAMES
+
+    code = (route.meta or {}).get("command")
+    if code is None and route.turns:
+        code = route.turns[0][1]
+    return COMMAND_NAMES.get(int(code), "?") if code is not None else "?"
