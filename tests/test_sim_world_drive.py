@@ -166,3 +166,19 @@ def test_backends_registered_and_carla_error_is_clear():
     except ImportError:
         with pytest.raises(ImportError, match=r"pip install cicfw\[carla\].*server"):
             SIM_BACKENDS.get("carla")()
+
+
+def test_sim_and_town_configs_are_valid_hydra_options():
+    from hydra import compose, initialize_config_module
+
+    from cicfw.sim.town import load_town, town_names
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        for name in ("embedded", "carla"):
+            cfg = compose("collect", overrides=[f"+sim={name}"])
+            assert cfg.sim.name in SIM_BACKENDS
+        b = SIM_BACKENDS.get("embedded")(**{k: v for k, v in compose("collect", overrides=["+sim=embedded"]).sim.items()
+                                            if k != "name"})
+        assert b.command_distance == 12.0
+        for town in town_names():
+            assert compose("collect", overrides=[f"+town={town}"]).town.name == load_town(town).name

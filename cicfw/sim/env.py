@@ -110,14 +110,17 @@ class DrivingEnv:
         self.vehicle.step(steer, throttle, brake or 0.0)
         self.t += DT
         self.steps += 1
-        obs = self._obs()
-        info = self.info()
+        s = self.vehicle.s
+        i = self.expert.locate(s.x, s.y)  # once per step; _obs and info reuse it
+        obs = self._obs(i)
+        info = self.info(i)
         self.done = info["reason"] is not None
         return obs, self.done, info
 
-    def info(self) -> dict:
+    def info(self, i: int | None = None) -> dict:
         s = self.vehicle.s
-        i = self.expert.locate(s.x, s.y)
+        if i is None:
+            i = self.expert.locate(s.x, s.y)
         gx, gy = self.route.goal
         dist_goal = math.hypot(gx - s.x, gy - s.y)
         px, py = self.route.points[i]
@@ -135,9 +138,10 @@ class DrivingEnv:
                 "opposite_lane": opp, "off_road": off, "in_junction": in_j,
                 "success": reason == "success", "reason": reason, "t": self.t}
 
-    def _obs(self) -> dict:
+    def _obs(self, i: int | None = None) -> dict:
         s = self.vehicle.s
-        i = self.expert.locate(s.x, s.y)
+        if i is None:
+            i = self.expert.locate(s.x, s.y)
         images = self.renderer.render(s.x, s.y, s.yaw, self.t) if self.renderer is not None else {}
         return {"images": images, "speed_kmh": s.speed * 3.6, "command": int(self.route.commands[i]),
                 "pose": (s.x, s.y, s.yaw), "t": self.t,
