@@ -4,9 +4,10 @@ Each step gathers the observations of all running episodes, calls ``policy.act``
 ``batch_size`` episodes, then advances every episode's simulator by one 0.1 s step with that steering
 and the speed controller's throttle/brake (so the suite measures steering only). Episodes end on
 success (within the backend's success radius of the goal), at their timeout, far off their route,
-or once the car has spent more than ``off_road_s`` seconds (in total) with its centre off the road. ``workers > 1`` splits the episodes over processes
-(spawned, each builds its own policy and simulator from plain config); results are merged in
-episode order, so a run is deterministic for a seed, batch size and worker count.
+or once the car has spent more than ``off_road_s`` seconds (in total) with its centre off the road.
+``workers > 1`` splits the episodes over processes (spawned; each builds its own policy and
+simulator from plain config); results are merged in episode order, so a run is deterministic for a
+seed, batch size and worker count.
 """
 from __future__ import annotations
 
@@ -205,17 +206,16 @@ class Progress:
             self._bar.stop()
 
 
-def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Mapping[str, Any] | None,
-        cfg: RunnerConfig, label: str | None = None) -> RunResult:
-    """Run the episodes with a policy (an instance, or its config spec ``{name:, ...}``).
-
-    With ``cfg.workers > 1`` the policy must be given as a spec: each process builds its own.
+def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Any, cfg: RunnerConfig,
+        label: str | None = None) -> RunResult:
+    """Run the episodes with a policy and a simulator backend, each an instance or its config spec
+    (``{name:, ...}``). With ``cfg.workers > 1`` both must be specs: each process builds its own.
     """
     episodes = list(episodes)
     workers = min(int(cfg.workers), max(len(episodes), 1))
-    if workers > 1 and not isinstance(policy, Mapping):
-        raise ValueError("runner.workers > 1 needs the policy as a config spec ({name: ..., ...}) so each "
-                         "process can build its own")
+    if workers > 1 and not (isinstance(policy, Mapping) and (sim is None or isinstance(sim, Mapping))):
+        raise ValueError("runner.workers > 1 needs the policy and the simulator as config specs "
+                         "({name: ..., ...}) so each process can build its own")
     name = label or (policy.label if isinstance(policy, Policy) else str(policy.get("name")))
     bar = Progress(len(episodes), name, cfg.progress_bar)
     try:
@@ -225,7 +225,8 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Ma
                 import torch
 
                 torch.set_num_threads(int(cfg.threads))
-            return drive(episodes, pol, make_backend(sim), cfg, on_done=lambda row: bar.update(row["success"]))
+            backend = make_backend(sim) if sim is None or isinstance(sim, Mapping) else sim
+            return drive(episodes, pol, backend, cfg, on_done=lambda row: bar.update(row["success"]))
         return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar)
     finally:
         bar.close()

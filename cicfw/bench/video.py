@@ -1,0 +1,101 @@
+"""Short MP4 videos of chosen episodes: the centre camera as the policy saw it, with the command,
+the steering and the speed overlaid. Frames are re-rendered from the recorded poses (the renderer is
+deterministic for a seed and time), so any episode of a finished run can be filmed afterwards."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import cv2
+import numpy as np
+
+
+COMMAND_TEXT = {2: ("FOLLOW", (200, 200, 200)), 3: ("LEFT", (80, 170, 255)), 4: ("RIGHT", (255, 110, 90)),
+                5: ("STRAIGHT", (120, 230, 120))}
+SCALE = 3  # 200x88 -> 600x264
+PANEL = 64  # px of text panel under the image
+
+
+def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], limit: int) -> list[Mapping]:
+    """The rows named by ``wanted`` (episode indices, keys ``town/weather/pair``, or ``"failures"``);
+    an unknown one raises an error listing a few valid keys."""
+    by_index = {int(r["episode"]): r for r in rows}
+    by_key = {str(r["key"]): r for r in rows}
+    out: list[Mapping] = []
+    for w in wanted:
+        if isinstance(w, str) and w in ("failures", "failed"):
+            out += [r for r in rows if not r["success"]]
+        elif isinstance(w, str) and w in ("successes", "all"):
+            out += [r for r in rows if r["success"] or w == "all"]
+        elif isinstance(w, int) or (isinstance(w, str) and w.isdigit()):
+            if int(w) not in by_index:
+                raise ValueError(f"video: no episode {w} in this run (episodes 0..{len(rows) - 1})")
+            out.append(by_index[int(w)])
+        elif str(w) in by_key:
+            out.append(by_key[str(w)])
+        else:
+            some = ", ".join(list(by_key)[:3])
+            raise ValueError(f"video: unknown episode {w!r}; give episode indices, keys such as {some}, "
+                             f"or 'failures'")
+    seen, uniq = set(), []
+    for r in out:
+        if r["key"] not in seen:
+            seen.add(r["key"])
+            uniq.append(r)
+    return uniq[: max(int(limit), 0)]
+
+
+def _overlay(img: np.ndarray, step: int, tr: Mapping[str, np.ndarray], title: str) -> np.ndarray:
+    """The upscaled frame (BGR) with a panel: command, steering bar, speed, time."""
+    h, w = img.shape[0] * SCALE, img.shape[1] * SCALE
+    big = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2BGR), (w, h), interpolation=cv2.INTER_NEAREST)
+    canvas = np.zeros((h + PANEL, w, 3), np.uint8)
+    canvas[:h] = big
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.putText(canvas, title, (6, 18), font, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(canvas, title, (6, 18), font, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    cmd = int(tr["command"][step])
+    text, rgb = COMMAND_TEXT.get(cmd, (str(cmd), (255, 255, 255)))
+    y0 = h + 24
+    cv2.putText(canvas, text, (10, y0), font, 0.7, rgb[::-1], 2, cv2.LINE_AA)
+    steer = float(tr["steer"][step])
+    # steering bar: centre tick, bar from the centre towards the steering side (left = negative)
+    bx0, bx1, by = 170, w - 20, y0 - 8
+    cx = (bx0 + bx1) // 2
+    cv2.rectangle(canvas, (bx0, by - 7), (bx1, by + 7), (90, 90, 90), 1)
+    cv2.line(canvas, (cx, by - 10), (cx, by + 10), (200, 200, 200), 1)
+    tip = int(cx + steer * (bx1 - bx0) / 2)
+    cv2.rectangle(canvas, (min(cx, tip), by - 6), (max(cx, tip), by + 6), (0, 200, 255), -1)
+    info = f"steer {steer:+.2f}   speed {float(tr['speed_kmh'][step]):4.1f} km/h   t {step / 10:4.1f} s"
+    cv2.putText(canvas, info, (10, h + PANEL - 12), font, 0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    return canvas
+
+
+def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray], town: Any, weather: str,
+                seed: int = 0, fps: float = 10.0) -> Path:
+    """Film one episode to ``path`` (MP4, written to a temporary name first)."""
+    from cicfw.sim.env import get_renderer
+
+    renderer = get_renderer(town, weather, seed, ("centre",))
+    outcome = "reached the goal" if row["success"] else f"failed: {row['reason'].replace('_', ' ')}"
+    title = f"{row['key']}  {row['command']}  -  {outcome}"
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.mp4")
+    writer = None
+    try:
+        for k in range(len(tr["x"])):
+            img = renderer.render(float(tr["x"][k]), float(tr["y"][k]), float(tr["yaw"][k]), k * 0.1)["centre"]
+            frame = _overlay(img, k, tr, title)
+            if writer is None:
+                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                         (frame.shape[1], frame.shape[0]))
+                if not writer.isOpened():
+                    raise RuntimeError("OpenCV could not open an MP4 writer (codec mp4v)")
+            writer.write(frame)
+    finally:
+        if writer is not None:
+            writer.release()
+    os.replace(tmp, path)
+    return path

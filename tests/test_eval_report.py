@@ -1,0 +1,91 @@
+"""The report: the paper's table from episode rows, run folders, joining runs, pictures."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cicfw.bench import report
+from cicfw.bench.report import Run, find_runs, latex_table, markdown_table, summary, write_run
+
+
+def rows(successes: dict[tuple[str, str], tuple[int, int]]) -> list[dict]:
+    """Synthetic episode rows: (town_set, weather_set) -> (successes, episodes)."""
+    out = []
+    for (ts, ws), (ok, n) in successes.items():
+        for k in range(n):
+            town = "town_a" if ts == "training" else "town_b"
+            weather = "ClearNoon" if ws == "training" else "MidRainyNoon"
+            out.append({"episode": len(out), "key": f"{town}/{weather}/{k:03d}", "town": town, "weather": weather,
+                        "town_set": ts, "weather_set": ws, "pair": k, "route": f"{town}/j/a>b/left",
+                        "command": "left", "success": k < ok, "reason": "success" if k < ok else "off_route",
+                        "time_s": 10.0, "timeout_s": 30.0, "distance_m": 50.0, "route_length_m": 60.0,
+                        "goal_distance_m": 1.0, "progress": 1.0, "offroad_fraction": 0.0,
+                        "opposite_lane_fraction": 0.0, "steps": 100})
+    return out
+
+
+CIL = Run("Regression (CIL)", rows({("training", "training"): (36, 38), ("training", "new"): (33, 38),
+                                    ("new", "training"): (21, 40), ("new", "new"): (37, 80)}))
+GTU = Run("Co-learning (GTU)", rows({("training", "training"): (38, 38), ("new", "new"): (60, 80)}))
+
+
+def test_markdown_table_has_the_papers_layout():
+    md = markdown_table([CIL, GTU]).splitlines()
+    assert md[0] == "**Reach destination success rate (%)**"
+    # rows are models; columns Training town / New town, each split Training weathers / New weathers
+    assert md[2] == "| Model | Training town | | New town | |"
+    assert md[4] == "| | *Training weathers* | *New weathers* | *Training weathers* | *New weathers* |"
+    assert md[5] == "| Regression (CIL) | 94.74 | 86.84 | 52.50 | 46.25 |"  # the paper's own first row
+    assert md[6] == "| Co-learning (GTU) | 100.00 | – | – | 75.00 |"  # cells a run did not cover
+    assert "Episodes per column differ" in md[-1]
+    assert markdown_table([CIL]).splitlines()[-1] == "Episodes per column: 38, 38, 40, 80."
+
+
+def test_latex_table_and_summary():
+    tex = latex_table([CIL])
+    assert r"\multicolumn{2}{c|}{Training town} & \multicolumn{2}{c|}{New town}" in tex
+    assert r"Regression (CIL) & 94.74 & 86.84 & 52.50 & 46.25 \\ \hline" in tex
+    s = summary(CIL)
+    assert s["episodes"] == 196 and s["success"] == pytest.approx(100 * 127 / 196, abs=0.01)
+    assert list(s["cells"]) == ["training_town/training_weathers", "training_town/new_weathers",
+                                "new_town/training_weathers", "new_town/new_weathers"]
+    assert s["cells"]["new_town/training_weathers"] == {"name": "New town / Training weathers", "success": 21,
+                                                        "episodes": 40, "rate": 52.5}
+    assert s["reasons"] == {"off_route": 69, "success": 127}
+
+
+def test_runs_are_written_read_back_and_joined(tmp_path: Path):
+    for name, run in (("job0", CIL), ("job1", GTU), ("job2", Run("Regression (CIL)", CIL.rows[:40]))):
+        write_run(tmp_path / "sweep" / name, Run(run.label, run.rows, {"checkpoint": f"/ck/{name}.ckpt"}))
+    run_dir = tmp_path / "sweep" / "job0"
+    assert {p.name for p in run_dir.iterdir()} == {"episodes.json", "episodes.csv", "summary.json", "table.md",
+                                                   "table.tex"}
+    csv_lines = (run_dir / "episodes.csv").read_text().splitlines()
+    assert csv_lines[0].split(",")[:6] == ["model", "episode", "key", "town", "weather", "town_set"]
+    assert len(csv_lines) == 1 + len(CIL.rows)
+    assert json.loads((run_dir / "summary.json").read_text())["success"] == summary(CIL)["success"]
+    runs = find_runs([tmp_path / "sweep"])
+    # sweep order; equal labels told apart by their checkpoint
+    assert [r.label for r in runs] == ["Regression (CIL) (job0)", "Co-learning (GTU)", "Regression (CIL) (job2)"]
+    assert runs[0].rows[0]["model"] == "Regression (CIL)"
+    # the command line joins them into one table with its bar chart
+    out = tmp_path / "joined"
+    assert report.main([str(tmp_path / "sweep"), "--out", str(out)]) == 0
+    md = (out / "table.md").read_text()
+    assert md.count("\n| Regression (CIL) (job") == 2 and "| Co-learning (GTU) | 100.00 |" in md
+    assert (out / "success_bars.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "table.csv").read_text().splitlines()[2].startswith("Co-learning (GTU),100.00,,,75.00")
+
+
+def test_report_command_errors_are_one_line(tmp_path: Path):
+    proc = subprocess.run([sys.executable, "-m", "cicfw.bench.report", str(tmp_path / "nope")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (f"cicfw: error: report: {str(tmp_path / 'nope')!r} is not a folder; give "
+                                   f"evaluation run folders (holding episodes.json) or folders that contain them")
+    (tmp_path / "empty").mkdir()
+    assert report.main([str(tmp_path / "empty")]) == 2

@@ -1,0 +1,156 @@
+"""The single-turn suite: stable, covers every junction manoeuvre, clear errors for unknown names;
+the runner's lockstep batching, its failure reasons, determinism and worker processes."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cicfw.bench.policies import ConstantPolicy, ExpertPolicy
+from cicfw.bench.policy import Observations, Policy
+from cicfw.bench.runner import RunnerConfig, run
+from cicfw.bench.suite import build_suite, make_backend
+from cicfw.sim.town import load_town
+
+TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
+FAST = RunnerConfig(progress_bar=False)
+
+
+class Backend:
+    """The embedded backend with the paper's weathers, whether or not the renderer is installed
+    (these tests never render: their policies read no camera)."""
+
+    def __init__(self) -> None:
+        self._b = make_backend({"name": "embedded"})
+
+    def towns(self):
+        return self._b.towns()
+
+    def weathers(self):
+        return ["ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset"]
+
+    def __getattr__(self, name):
+        return getattr(self._b, name)
+
+
+@pytest.fixture(scope="module")
+def backend():
+    return Backend()
+
+
+def test_suite_covers_every_junction_turn_of_the_test_town_and_is_stable(backend):
+    town = load_town(TOWN)
+    eps = build_suite(backend, [TOWN], ["ClearNoon", "MidRainyNoon"], training_towns=["bench_town"])
+    assert eps == build_suite(backend, [TOWN], ["ClearNoon", "MidRainyNoon"], training_towns=["bench_town"])
+    one_weather = [e for e in eps if e.weather == "ClearNoon"]
+    # every ordered pair of distinct arms at every junction, exactly once (X: 12, T: 6)
+    expected = {(j.id, a, b) for j in town.junctions for a in j.arms for b in j.arms if a != b}
+    got = [(e.route.split("/")[1], *e.route.split("/")[2].split(">")) for e in one_weather]
+    assert len(got) == len(set(got)) == len(expected) == 12 + 4 * 6
+    assert set(got) == expected
+    assert sorted({e.command for e in one_weather}) == ["left", "right", "straight"]
+    # each pair under each weather; ids in order; keys unique; table groups from the config
+    assert len(eps) == 2 * len(expected) and [e.index for e in eps] == list(range(len(eps)))
+    assert len({e.key for e in eps}) == len(eps)
+    assert {(e.weather, e.weather_set) for e in eps} == {("ClearNoon", "training"), ("MidRainyNoon", "new")}
+    assert {e.town_set for e in eps} == {"training"}
+
+
+def test_subsets_by_town_weather_and_pair(backend):
+    eps = build_suite(backend, ["town_a", "town_b"], ["ClearSunset"], training_towns=["town_a"], pairs=[0, 3])
+    assert [(e.town, e.pair) for e in eps] == [("town_a", 0), ("town_a", 3), ("town_b", 0), ("town_b", 3)]
+    assert [e.town_set for e in eps] == ["training", "training", "new", "new"]
+    assert len(build_suite(backend, ["town_b"], ["ClearNoon"], limit=5)) == 5
+    with pytest.raises(ValueError, match=r"pair 999 does not exist in town 'town_b', which has \d+ pairs"):
+        build_suite(backend, ["town_b"], ["ClearNoon"], pairs=[999])
+
+
+@pytest.mark.parametrize("kind, kwargs, known", [
+    ("town", dict(towns=["Town07"], weathers=["ClearNoon"]), "town_a, town_b"),
+    ("weather", dict(towns=["town_a"], weathers=["ClearNoon", "Foggy"]), "ClearNoon, ClearSunset, MidRainyNoon"),
+])
+def test_unknown_town_or_weather_lists_the_known_ones(backend, kind, kwargs, known):
+    with pytest.raises(ValueError) as err:
+        build_suite(backend, **kwargs)
+    msg = str(err.value)
+    assert msg.startswith(f"unknown {kind} ") and f"known {kind}s: {known}" in msg
+
+
+def test_always_hard_left_fails_off_road_before_the_timeout(backend):
+    eps = build_suite(backend, [TOWN], ["ClearNoon"], pairs=[0, 7, 20])
+    res = run(eps, ConstantPolicy(steer=-1.0), backend, FAST)
+    for row in res.rows:
+        assert not row["success"] and row["reason"] == "off_road", row
+        assert row["time_s"] < row["timeout_s"]
+        assert row["offroad_fraction"] > 0.1  # the car circles across the road edge
+        off = res.trajectories[row["key"]]["off_road"]
+        assert (off >= 0.5).sum() * 0.1 > FAST.off_road_s  # more than 3 s with its centre off the road
+
+
+def test_expert_reaches_the_goal_and_straight_ahead_fails_turns_off_route(backend):
+    eps = build_suite(backend, [TOWN], ["ClearNoon"])
+    res = run(eps, ExpertPolicy(), backend, FAST)
+    assert all(r["success"] and r["reason"] == "success" for r in res.rows)
+    assert all(r["goal_distance_m"] <= 2.0 and r["offroad_fraction"] == 0.0 for r in res.rows)
+    assert all(0 < r["time_s"] < r["timeout_s"] for r in res.rows)
+    # steering straight ahead only completes the straight pairs; turns end far off the route
+    res = run(eps, ConstantPolicy(steer=0.0), backend, FAST)
+    turns = [r for r in res.rows if r["command"] != "straight"]
+    assert turns and all(r["reason"] == "off_route" for r in turns)
+
+
+class Recording(Policy):
+    """Steers like the expert and records the size of every call."""
+
+    def __init__(self) -> None:
+        self.expert = ExpertPolicy()
+        self.calls: list[int] = []
+        self.label = "recording"
+
+    def reset(self, episodes):
+        self.expert.reset(episodes)
+
+    def act(self, obs: Observations) -> np.ndarray:
+        assert obs.images == {} and obs.command.dtype == np.int64 and set(obs.command) <= {2, 3, 4, 5}
+        self.calls.append(len(obs))
+        return self.expert.act(obs)
+
+
+def test_lockstep_one_call_per_chunk_per_step_and_deterministic(backend):
+    eps = build_suite(backend, [TOWN], ["ClearNoon"], limit=7)
+    pol = Recording()
+    res = run(eps, pol, backend, RunnerConfig(batch_size=3, progress_bar=False))
+    steps = [r["steps"] for r in res.rows]
+    # step k serves every episode still running, in ceil(active / 3) calls of at most 3
+    expected = []
+    for k in range(max(steps)):
+        active = sum(s > k for s in steps)
+        expected += [3] * (active // 3) + ([active % 3] if active % 3 else [])
+    assert pol.calls == expected and res.steps == sum(steps)
+    again = run(eps, ExpertPolicy(), backend, RunnerConfig(batch_size=64, progress_bar=False))
+    assert again.rows == res.rows  # the expert is batch-independent: same rows, same bytes
+    for k in res.trajectories:
+        assert all(np.array_equal(res.trajectories[k][c], again.trajectories[k][c]) for c in res.trajectories[k])
+
+
+def test_worker_processes_give_the_same_rows():
+    sim = {"name": "embedded"}
+    eps = build_suite(Backend(), ["town_b"], ["ClearNoon"], limit=6)
+    one = run(eps, {"name": "expert"}, sim, FAST)
+    two = run(eps, {"name": "expert"}, sim, RunnerConfig(workers=2, progress_bar=False))
+    assert two.rows == one.rows and set(two.trajectories) == set(one.trajectories)
+    with pytest.raises(ValueError, match="config specs"):
+        run(eps, ExpertPolicy(), sim, RunnerConfig(workers=2, progress_bar=False))
+
+
+def test_a_policy_returning_garbage_is_named():
+    class Bad(Policy):
+        label = "bad"
+
+        def act(self, obs):
+            return np.full(len(obs) + 1, 0.0)
+
+    eps = build_suite(Backend(), [TOWN], ["ClearNoon"], limit=2)
+    with pytest.raises(ValueError, match="policy 'bad': act\\(\\) returned 3 values for a batch of 2"):
+        run(eps, Bad(), Backend(), FAST)
