@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import report_user_errors
+from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 
 log = logging.getLogger("cicfw.train")
@@ -79,6 +80,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
         ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
                         save_last=True, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
                         auto_insert_metric_name=False),
+        MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
     ]
     if cfg.get("progress_bar", True):
         callbacks.append(RichProgressBar())
