@@ -108,3 +108,43 @@ def test_mixer_diagnostics_sends_images_to_tensorboard(tmp_path):
     assert (tmp_path / "tb" / "diagnostics" / "epoch_000_gates.png").exists()  # under the logger's log_dir
     events = EventAccumulator(str(tmp_path / "tb")).Reload()
     assert "diagnostics/gates" in events.Tags()["images"]
+
+
+PAPER_GRID = {  # experiment -> (mixer, head, head values the paper fixes)
+    "paper_cil": ("independent", "regression", {}),
+    "paper_gtu": ("gtu", "regression", {}),
+    "paper_re": ("re", "regression", {}),
+    "paper_soft_sharing": ("soft_sharing", "regression", {}),
+    "paper_moe": ("moe", "regression", {}),
+    "paper_sluice": ("sluice", "regression", {}),
+    "paper_cross_stitch": ("cross_stitch", "regression", {}),
+    "paper_classification": ("independent", "softmax", {}),
+    "paper_coexistence": ("independent", "coexistence", {"W": 0.6, "sigma2": 1.0}),
+    "paper_hybrid": ("independent", "hybrid", {"W": 10}),
+    "paper_sine": ("independent", "sine", {}),
+}
+
+
+def test_the_paper_grid_glob_selects_every_paper_experiment():
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        parser = OverridesParser.create(config_loader=GlobalHydra.instance().config_loader())
+        (override,) = parser.parse_overrides(["experiment=glob(paper_*)"])
+        assert sorted(override.sweep_string_iterator()) == sorted(PAPER_GRID)
+
+
+@pytest.mark.parametrize("experiment", sorted(PAPER_GRID))
+def test_paper_experiment_composes_to_its_model(experiment):
+    from conftest import compose_train
+    from cicfw.train import build_model
+
+    cfg = compose_train(f"experiment={experiment}")
+    mixer, head, values = PAPER_GRID[experiment]
+    assert (cfg.mixer.name, cfg.head.name) == (mixer, head)
+    for key, value in values.items():
+        assert cfg.head[key] == value
+    model = build_model(cfg)
+    assert model.hparams.mixer == mixer and model.hparams.head == head
