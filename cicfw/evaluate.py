@@ -159,6 +159,30 @@ def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: 
     return evaluate(cfg, Path(run_dir))
 
 
+def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
+    """``cicfw train evaluate_after=true``: the suite on the run's best checkpoint (else its last one,
+    else the final weights saved now), into ``<run_dir>/evaluate``. Logs ``closed_loop/success`` and
+    one ``closed_loop/success/<cell>`` per table column to the trainer's logger and to the job's
+    ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary."""
+    run_dir = Path(run_dir)
+    cb = trainer.checkpoint_callback
+    path = (cb.best_model_path or cb.last_model_path) if cb is not None else ""
+    if not path or not Path(path).is_file():
+        path = str(run_dir / "checkpoints" / "final.ckpt")
+        trainer.save_checkpoint(path)
+    log.info("closed-loop evaluation of %s", path)
+    summary = evaluate_checkpoint(path, run_dir / "evaluate", list(cfg.get("evaluate_overrides") or []))
+    metrics = {"closed_loop/success": summary["success"],
+               **{f"closed_loop/success/{k}": v["rate"] for k, v in summary["cells"].items()}}
+    if trainer.logger is not None:
+        trainer.logger.log_metrics(metrics, step=trainer.global_step)
+        trainer.logger.save()
+    from cicfw.sweeps import write_job_metrics
+
+    write_job_metrics(run_dir, metrics)
+    return summary
+
+
 def _quote(s: str) -> str:
     return "'" + s.replace("\\", "\\\\").replace("'", "\\'") + "'"
 

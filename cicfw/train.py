@@ -103,7 +103,9 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
 
 
 def train(cfg: DictConfig, run_dir: Path) -> float:
-    """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default)."""
+    """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
+    ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
+    ``return_closed_loop``)."""
     run_dir = Path(run_dir)
     L.seed_everything(cfg.seed, workers=True)
     model = build_model(cfg)  # a bad mixer/head/encoder name fails here, before any data work
@@ -118,6 +120,12 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else float("nan")
     log.info("%s = %.4f; checkpoints in %s", cfg.optimized_metric, metric, run_dir / "checkpoints")
+    if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
+        from cicfw.evaluate import evaluate_after_training
+
+        success = evaluate_after_training(cfg, trainer, run_dir)["success"]
+        if cfg.get("return_closed_loop"):
+            return float(success)
     return metric
 
 

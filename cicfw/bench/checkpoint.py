@@ -8,6 +8,7 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 from __future__ import annotations
 
 import pickle
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -51,11 +52,14 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
-        if "weights_only" in str(err) or "Unsupported global" in str(err):
+        found = re.search(r"GLOBAL ([\w.]+)", str(err))
+        if found:  # a class or function the safe unpickler will not build
+            name = found.group(1)
             raise CheckpointError(
-                f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers, so "
-                f"cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold only those") from None
-        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint ({err})") from None
+                f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers "
+                f"({name}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "
+                f"only those") from None
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is damaged") from None
     except Exception as err:  # torch raises many types (KeyError, RuntimeError, EOFError ...) for non-checkpoints
         raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated "
                               f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None

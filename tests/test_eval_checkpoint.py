@@ -1,0 +1,177 @@
+"""Checkpoints: loaded safely (weights_only), each bad input gives its one clear message, and a
+checkpoint trained for a few steps drives a two-episode suite end to end."""
+from __future__ import annotations
+
+import collections
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from cicfw.bench.checkpoint import CheckpointError, CheckpointPolicy, load_model, read_checkpoint
+from cicfw.bench.policy import Observations
+from cicfw.model.module import CICModule
+
+TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
+
+
+class Frames(Dataset):
+    def __len__(self):
+        return 8
+
+    def __getitem__(self, i):
+        return {"image": torch.full((3, 88, 200), i * 20, dtype=torch.uint8), "speed": torch.tensor(10.0 + i),
+                "command": torch.tensor(i % 4), "steer": torch.tensor(0.1 * (i % 3) - 0.1)}
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    """A CIL-size checkpoint trained for two steps, saved by a Lightning Trainer."""
+    L.seed_everything(0)
+    model = CICModule(mixer="gtu", head="hybrid")
+    trainer = L.Trainer(max_steps=2, limit_val_batches=0, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
+    trainer.fit(model, DataLoader(Frames(), batch_size=4))
+    path = tmp_path_factory.mktemp("ckpt") / "two_steps.ckpt"
+    trainer.save_checkpoint(path)
+    return path
+
+
+def test_checkpoint_round_trip_and_policy_uses_the_commands_branch(ckpt: Path):
+    model = load_model(ckpt)
+    assert not model.training and model.hparams.mixer == "gtu" and model.hparams.head == "hybrid"
+    ref = CICModule.load_from_checkpoint(ckpt, weights_only=True).eval()
+    for a, b in zip(model.state_dict().values(), ref.state_dict().values()):
+        assert torch.equal(a, b)
+    pol = CheckpointPolicy(checkpoint=str(ckpt))
+    assert pol.cameras == ("centre",) and pol.label == "gtu+hybrid"
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (4, 88, 200, 3), dtype=np.uint8)
+    speed = np.array([5.0, 10.0, 15.0, 20.0], np.float32)
+    cmd = np.array([2, 3, 4, 5])
+    obs = Observations(images={"centre": img}, speed_kmh=speed, command=cmd, pose=np.zeros((4, 3)),
+                       routes=[None] * 4, episode=np.arange(4))
+    steer = pol.act(obs)
+    with torch.no_grad():
+        want = ref.predict_steer(torch.from_numpy(img).permute(0, 3, 1, 2), torch.from_numpy(speed),
+                                 torch.from_numpy(cmd - 2))
+    assert steer.shape == (4,) and np.allclose(steer, want.numpy(), atol=1e-6)
+    assert np.all(np.abs(steer) <= 1.0)
+
+
+class Boom:
+    def __reduce__(self):
+        return (os.system, ("touch /tmp/cicfw_test_unpickled_me",))
+
+
+def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
+    with pytest.raises(FileNotFoundError, match=r"checkpoint '.*missing\.ckpt' does not exist; give the path"):
+        read_checkpoint(tmp_path / "missing.ckpt")
+    (tmp_path / "notes.ckpt").write_text("not a checkpoint")
+    with pytest.raises(CheckpointError, match="is not a PyTorch checkpoint"):
+        read_checkpoint(tmp_path / "notes.ckpt")
+    torch.save(collections.OrderedDict(w=torch.zeros(2)), tmp_path / "state_dict.pt")
+    with pytest.raises(CheckpointError, match=r"is not a cicfw checkpoint: it needs Lightning's 'state_dict' "
+                                              r"and the CICModule 'hyper_parameters'.*found keys \['w'\]"):
+        read_checkpoint(tmp_path / "state_dict.pt")
+    # a pickle that would run code is refused, and nothing ran
+    marker = Path("/tmp/cicfw_test_unpickled_me")
+    marker.unlink(missing_ok=True)
+    torch.save({"state_dict": {}, "hyper_parameters": {"payload": Boom()}}, tmp_path / "evil.ckpt")
+    with pytest.raises(CheckpointError, match="refuses to unpickle it"):
+        read_checkpoint(tmp_path / "evil.ckpt")
+    assert not marker.exists()
+    # trained with parts that are not installed here
+    data = torch.load(ckpt, weights_only=True)
+    for key, registered in (("mixer", "gtu, independent"), ("head", "hybrid"), ("encoder", "cil")):
+        bad = {**data, "hyper_parameters": {**data["hyper_parameters"], key: "their_plugin"}}
+        torch.save(bad, tmp_path / f"no_{key}.ckpt")
+        with pytest.raises(CheckpointError) as err:
+            read_checkpoint(tmp_path / f"no_{key}.ckpt")
+        msg = str(err.value)
+        assert f"was trained with {key} 'their_plugin', which is not installed here; installed {key}s:" in msg
+        assert all(n in msg for n in registered.split(", "))
+    # a folder: its single best checkpoint is taken; two are ambiguous
+    run = tmp_path / "run" / "checkpoints"
+    run.mkdir(parents=True)
+    (run / "epoch001.ckpt").write_bytes(ckpt.read_bytes())
+    (run / "last.ckpt").write_bytes(ckpt.read_bytes())
+    assert read_checkpoint(tmp_path / "run")["hyper_parameters"]["mixer"] == "gtu"
+    (run / "epoch002.ckpt").write_bytes(ckpt.read_bytes())
+    with pytest.raises(CheckpointError, match="is a folder with 2 .ckpt files besides last.ckpt"):
+        read_checkpoint(tmp_path / "run")
+
+
+def test_evaluate_errors_are_one_line(tmp_path: Path):
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    cmd = [sys.executable, "-m", "cicfw.evaluate", f"hydra.run.dir={tmp_path}/run"]
+    proc = subprocess.run(cmd + [f"checkpoint={tmp_path}/nope.ckpt"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1] == (
+        f"cicfw: error: checkpoint '{tmp_path}/nope.ckpt' does not exist; give the path to a .ckpt file "
+        f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    proc = subprocess.run(cmd + ["policy=expert", "suite.towns=[town_z]"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].startswith("cicfw: error: unknown town 'town_z'; known towns: "
+                                                           "town_a, town_b")
+
+
+def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, tmp_path: Path):
+    pytest.importorskip("cicfw.sim.render", reason="needs the camera renderer")
+    from cicfw.evaluate import compose_config, evaluate, load_trajectories
+
+    cfg = compose_config([f"checkpoint={ckpt}", f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]",
+                          "suite.training_towns=[]", "suite.pairs=[0,13]", "runner.batch_size=2",
+                          "progress_bar=false", "video=[1]", "name=two steps"])
+    out = tmp_path / "eval"
+    s = evaluate(cfg, out)
+    assert s["model"] == "two steps" and s["episodes"] == 2
+    assert list(s["cells"]) == ["new_town/new_weathers"]
+    data = json.loads((out / "episodes.json").read_text())
+    assert [r["key"] for r in data["episodes"]] == ["bench_town/MidRainyNoon/000", "bench_town/MidRainyNoon/013"]
+    assert data["meta"]["checkpoint"] == str(ckpt) and data["meta"]["policy"] == "checkpoint"
+    for r in data["episodes"]:
+        assert r["reason"] in ("success", "timeout", "off_road", "off_route") and r["steps"] > 0
+    assert "| two steps | – | – | – |" in (out / "table.md").read_text()
+    trajs = load_trajectories(out)
+    assert sorted(trajs) == ["bench_town/MidRainyNoon/000", "bench_town/MidRainyNoon/013"]
+    assert len(trajs["bench_town/MidRainyNoon/000"]["x"]) == data["episodes"][0]["steps"]
+    assert (out / "map_bench_town.png").stat().st_size > 10_000
+    video = out / "videos" / "bench_town_MidRainyNoon_013.mp4"
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    ok, frame = cap.read()
+    cap.release()
+    assert ok and n == data["episodes"][1]["steps"] and frame.shape == (88 * 3 + 64, 600, 3)
+
+
+def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
+    pytest.importorskip("cicfw.sim.render", reason="needs the camera renderer")
+    from cicfw.train import train
+    from conftest import compose_train
+
+    overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]", "suite.pairs=[4]", "progress_bar=false",
+                 "maps=false"]
+    cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.val_batch_size=8",
+                        "debug=fast", "progress_bar=false", "evaluate_after=true",
+                        f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
+    mae = train(cfg, tmp_path / "run")
+    assert 0.0 <= mae < 2.0  # still the validation metric by default
+    # fast_dev_run keeps no checkpoint: the final weights are saved and evaluated
+    assert (tmp_path / "run" / "checkpoints" / "final.ckpt").is_file()
+    s = json.loads((tmp_path / "run" / "evaluate" / "summary.json").read_text())
+    assert s["episodes"] == 1 and s["checkpoint"].endswith("final.ckpt")
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["closed_loop/success"] == s["success"]
+    assert metrics["closed_loop/success/new_town/training_weathers"] == s["success"]  # not a training town
+    cfg.return_closed_loop = True
+    assert train(cfg, tmp_path / "run2") == json.loads((tmp_path / "run2" / "evaluate" / "summary.json")
+                                                       .read_text())["success"]
