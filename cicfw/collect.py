@@ -135,8 +135,11 @@ def run_episode(cfg: dict, ep: dict, out_dir: Path) -> dict:
     noiser = Noiser(np.random.default_rng(rng.integers(2**63)), frequency=int(nz["frequency"]),
                     intensity=float(nz["intensity"]), enabled=noisy_episode)
     cams = list(cfg["cameras"])
-    env = DrivingEnv(town, route, weather=ep["weather"], seed=ep["seed"] % (2**31), cameras=tuple(cams),
-                     renderer=True, expert=params, timeout=1e9, max_deviation=1e9, success_radius=-1.0)
+    # one renderer per (town, weather) for the whole dataset (baking its textures takes seconds);
+    # episodes differ in their rain phase through the time offset
+    env = DrivingEnv(town, route, weather=ep["weather"], seed=int(cfg["seed"]), cameras=tuple(cams),
+                     renderer=True, expert=params, timeout=1e9, max_deviation=1e9, success_radius=-1.0,
+                     time_offset=float(ep["seed"] % 100_000) * 0.1)
     obs = env.reset()
     nc = len(cams)
     rgb = np.empty((steps * nc, *IMAGE_SHAPE), np.uint8)

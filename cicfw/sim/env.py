@@ -7,6 +7,8 @@ obs: ``images`` (camera -> (88, 200, 3) uint8, empty without a renderer), ``spee
 info: ``distance_to_goal``, ``route_deviation``, ``progress`` (0-1), ``opposite_lane`` and ``off_road``
 (fractions of the car's width, CIL targets 14/15), ``in_junction``, ``success``, ``reason``
 ("success" | "timeout" | "lost" | None).
+``seed`` selects the renderer (textures are baked per renderer, seconds, and cached), ``time_offset``
+shifts the time the renderer sees (animated rain), so episodes can differ while sharing a renderer.
 An episode ends when the rear axle is within ``success_radius`` (2 m) of the goal (success), at
 the route's timeout (length at 10 km/h + 10 s), or when the car is ``max_deviation`` m off the route
 (it can no longer reach the goal; stopping early only saves time).
@@ -25,12 +27,20 @@ from cicfw.sim.townmap import town_map
 from cicfw.sim.vehicle import DT, SpeedController, Vehicle, VehicleParams, VehicleState
 
 _RENDERERS: dict[tuple, Any] = {}
+MAX_RENDERERS = 8  # a renderer bakes its textures once (seconds); keep the last few
 
 
 def get_renderer(town: Town, weather: str, seed: int = 0, cameras: tuple = ("centre",)):
-    """A cached ``cicfw.sim.render.Renderer`` (imported lazily: the world runs without it)."""
+    """A cached ``cicfw.sim.render.Renderer`` (imported lazily: the world runs without it).
+
+    Building one bakes textures (seconds), so share them: vary ``DrivingEnv(time_offset=...)`` rather
+    than the renderer seed from episode to episode."""
     key = (id(town), weather, seed, tuple(cameras))
-    if key not in _RENDERERS:
+    if key in _RENDERERS:
+        _RENDERERS[key] = _RENDERERS.pop(key)  # most recently used last
+    else:
+        while len(_RENDERERS) >= MAX_RENDERERS:
+            _RENDERERS.pop(next(iter(_RENDERERS)))
         try:
             from cicfw.sim.render import Renderer
         except ImportError as err:
@@ -49,7 +59,7 @@ class DrivingEnv:
                  seed: int = 0, cameras: tuple = ("centre",), renderer: bool | Any = True,
                  vehicle: VehicleParams | None = None, expert: ExpertParams | None = None,
                  success_radius: float = 2.0, max_deviation: float = 10.0, timeout: float | None = None,
-                 start_speed_kmh: float = 0.0) -> None:
+                 start_speed_kmh: float = 0.0, time_offset: float = 0.0) -> None:
         self.town = load_town(town) if isinstance(town, str) else town
         self.route = route
         self.weather = weather
@@ -61,6 +71,7 @@ class DrivingEnv:
         self.max_deviation = max_deviation
         self._timeout = timeout
         self.start_speed = start_speed_kmh / 3.6
+        self.time_offset = time_offset  # added to the time the renderer sees (rain phase per episode)
         self.map = town_map(self.town)
         if renderer is True:
             self.renderer = get_renderer(self.town, weather, seed, self.cameras)
@@ -142,7 +153,8 @@ class DrivingEnv:
         s = self.vehicle.s
         if i is None:
             i = self.expert.locate(s.x, s.y)
-        images = self.renderer.render(s.x, s.y, s.yaw, self.t) if self.renderer is not None else {}
+        images = (self.renderer.render(s.x, s.y, s.yaw, self.t + self.time_offset)
+                  if self.renderer is not None else {})
         return {"images": images, "speed_kmh": s.speed * 3.6, "command": int(self.route.commands[i]),
                 "pose": (s.x, s.y, s.yaw), "t": self.t,
                 "target_speed_kmh": float(self.expert.profile[min(i + 4, len(self.expert.profile) - 1)]) * 3.6}
