@@ -1,0 +1,252 @@
+"""One summary row per multirun job, in ``<sweep dir>/summary.csv``.
+
+``SweepSummary`` is a Hydra callback (configured under ``hydra.callbacks`` in conf/train.yaml). At
+the end of every job of a multirun it writes that job's row to ``<sweep dir>/.summary/<job>.json``
+(atomically; jobs may run in parallel processes or on other machines) and then rebuilds
+``summary.csv`` from all row files under a file lock, so the CSV is complete and current while the
+sweep runs, and after a sweep that stops early. Columns: ``job status value metric
+closed_loop_success``, one column per swept override (``mixer``, ``head.W`` ...), ``overrides``
+(all of the job's), ``error`` (for failed jobs), ``output_dir``, then every key of the job's
+``metrics.json`` (see ``write_job_metrics``).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig
+
+log = logging.getLogger(__name__)
+
+ROWS_DIR = ".summary"
+SWEEP_FILE = "sweep.json"  # the sweep's command-line overrides, to tell swept keys from fixed ones
+METRICS_FILE = "metrics.json"
+CLOSED_LOOP_KEY = "closed_loop/success"  # what an evaluation writes into metrics.json
+FIRST = ["job", "status", "value", "metric", "closed_loop_success"]
+LAST = ["overrides", "error", "output_dir"]
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write to a temporary file beside ``path``, then rename: readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_job_metrics(output_dir: str | Path, metrics: Mapping[str, Any]) -> None:
+    """Merge ``metrics`` (name -> number) into ``<output_dir>/metrics.json``; the sweep summary
+    adds every key as a column. An evaluation writes ``closed_loop/success`` here."""
+    path = Path(output_dir) / METRICS_FILE
+    merged = read_job_metrics(path.parent)
+    merged.update({str(k): _number(v) for k, v in metrics.items()})
+    write_text_atomic(path, json.dumps(merged, indent=1, sort_keys=True))
+
+
+def read_job_metrics(output_dir: str | Path) -> dict[str, Any]:
+    path = Path(output_dir) / METRICS_FILE
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        log.warning("sweep summary: ignored unreadable %s (%s)", path, err)
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _number(value: Any) -> Any:
+    """Tensors and numpy scalars as plain floats; everything else unchanged."""
+    if hasattr(value, "item") and callable(value.item):
+        try:
+            return float(value.item())
+        except (TypeError, ValueError):
+            pass
+    return value
+
+
+def _one_line(err: BaseException) -> str:
+    return f"{type(err).__name__}: {' '.join(str(err).split())}"
+
+
+def job_row(config: DictConfig, job_return: JobReturn) -> dict[str, Any]:
+    """The summary row of one finished job."""
+    hc = config.hydra
+    output_dir = hc.runtime.output_dir
+    metrics = read_job_metrics(output_dir)
+    failed = job_return.status == JobStatus.FAILED
+    value: Any = ""
+    error = ""
+    if failed:
+        error = _one_line(job_return._return_value)  # .return_value would re-raise it
+    else:
+        value = _number(job_return.return_value)
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            value = str(value)
+    return {
+        "job": int(hc.job.num),
+        "status": "failed" if failed else "ok",
+        "value": value,
+        "metric": config.get("optimized_metric", ""),
+        "closed_loop_success": metrics.get(CLOSED_LOOP_KEY, ""),
+        "overrides": list(job_return.overrides or hc.overrides.task),
+        "error": error,
+        "output_dir": str(output_dir),
+        "metrics": metrics,
+    }
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """An exclusive advisory lock on ``path`` (no lock where fcntl is missing, e.g. Windows)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _split(override: str) -> tuple[str, str]:
+    key, _, value = override.partition("=")
+    return key.lstrip("+~"), value
+
+
+def _values(overrides: list[str]) -> dict[str, Any]:
+    """key -> value as Hydra parses it (so ``false`` and ``False`` compare equal; a sweep stays a
+    sweep object); the raw text where parsing fails."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    out: dict[str, Any] = {}
+    for text in overrides:
+        key, raw = _split(text)
+        try:
+            out[key] = parser.parse_override(text).value()
+        except Exception:
+            out[key] = raw
+    return out
+
+
+def summary_table(rows: list[dict[str, Any]], command_line: list[str] | None = None
+                  ) -> tuple[list[str], list[dict[str, Any]]]:
+    """Columns and flat rows for the CSV: swept overrides and metrics become columns.
+
+    An override is swept when a job's value differs from the command line's (``head.W=5`` vs
+    ``head.W=5,10,15``) or the command line lacks it (a sweeper's parameter); without the command
+    line, when its value varies across jobs."""
+    rows = sorted(rows, key=lambda r: r["job"])
+    per_job = [dict(_split(o) for o in r["overrides"]) for r in rows]
+    keys = list(dict.fromkeys(k for d in per_job for k in d))
+    if command_line is not None:
+        given = _values(command_line)
+        parsed = [_values(r["overrides"]) for r in rows]
+        swept = [k for k in keys if any(p.get(k) != given.get(k) for p in parsed)]
+    else:
+        swept = [k for k in keys if len({d.get(k) for d in per_job}) > 1]
+    swept = [k for k in swept if not k.startswith("hydra.")]
+    metric_keys = sorted({k for r in rows for k in r["metrics"]})
+    columns = list(dict.fromkeys([*FIRST, *swept, *LAST, *metric_keys]))
+    flat = []
+    for r, d in zip(rows, per_job):
+        out = {k: r[k] for k in FIRST + LAST if k != "overrides"}
+        out["overrides"] = " ".join(r["overrides"])
+        out.update({k: d.get(k, "") for k in swept})
+        out.update({k: r["metrics"].get(k, "") for k in metric_keys if k not in out})
+        flat.append(out)
+    return columns, flat
+
+
+def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Path:
+    """(Re)write ``<sweep_dir>/<filename>`` from the row files of every job finished so far."""
+    sweep_dir = Path(sweep_dir)
+    rows_dir = sweep_dir / ROWS_DIR
+    with _locked(rows_dir / ".lock"):
+        rows, command_line = [], None
+        if (rows_dir / SWEEP_FILE).is_file():
+            command_line = json.loads((rows_dir / SWEEP_FILE).read_text())["overrides"]
+        for path in sorted(rows_dir.glob("[0-9]*.json")):
+            try:
+                rows.append(json.loads(path.read_text()))
+            except (OSError, ValueError) as err:
+                log.warning("sweep summary: skipped unreadable row %s (%s)", path, err)
+        columns, flat = summary_table(rows, command_line)
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(flat)
+        target = sweep_dir / filename
+        write_text_atomic(target, buf.getvalue())
+    return target
+
+
+RANK_VARIABLES = ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK")
+
+
+def is_worker_process() -> bool:
+    """True in a DDP worker other than global rank 0 (Lightning's re-launched ranks re-run the
+    job, SLURM runs one task per GPU): only rank 0 writes the job's row."""
+    return any(os.environ.get(v, "0") not in ("", "0") for v in RANK_VARIABLES)
+
+
+class SweepSummary(Callback):
+    """Hydra callback: ``<sweep dir>/summary.csv``, one row per job (ok or failed) of a multirun."""
+
+    def __init__(self, filename: str = "summary.csv") -> None:
+        self.filename = filename
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if is_worker_process():
+            return
+        rows_dir = Path(config.hydra.sweep.dir) / ROWS_DIR
+        write_text_atomic(rows_dir / SWEEP_FILE, json.dumps({"overrides": list(config.hydra.overrides.task)}))
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        if config.hydra.mode != RunMode.MULTIRUN or is_worker_process():
+            return
+        row = job_row(config, job_return)
+        sweep_dir = Path(config.hydra.sweep.dir)
+        write_text_atomic(sweep_dir / ROWS_DIR / f"{row['job']:06d}.json", json.dumps(row, default=str))
+        target = rebuild_summary(sweep_dir, self.filename)
+        shown = row["value"] if row["status"] == "ok" else row["error"]
+        log.info("sweep summary: job %d %s (%s) -> %s", row["job"], row["status"], shown, target)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        if not is_worker_process() and (sweep_dir / ROWS_DIR).is_dir():
+            target = rebuild_summary(sweep_dir, self.filename)
+            with open(target, newline="") as f:
+                rows = list(csv.DictReader(f))
+            failed = [r for r in rows if r["status"] == "failed"]
+            log.info("sweep summary: %d jobs, %d failed: %s", len(rows), len(failed), target)
+
+
+def is_finite_number(value: Any) -> bool:
+    try:
+        return math.isfinite(float(_number(value)))
+    except (TypeError, ValueError):
+        return False

@@ -1,0 +1,142 @@
+"""Sweeps: a basic multirun and an Optuna search on tiny data write one summary row per job; a
+failing job is recorded as failed and the others run; launcher configs compose."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+from hydra import compose, initialize_config_module
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+
+from cicfw import errors
+from cicfw.registry import MIXERS
+from cicfw.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
+
+TINY = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false"]
+
+
+def _multirun(tmp_path: Path, tiny_data: Path, *args: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "cicfw.train", *args, *TINY, f"data.path={tiny_data}", f"hydra.sweep.dir={sweep}"]
+    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    summary = sweep / "summary.csv"
+    assert summary.is_file(), run.stdout[-3000:] + run.stderr[-3000:]
+    with open(summary, newline="") as f:
+        return run, list(csv.DictReader(f))
+
+
+def test_basic_multirun_records_a_failed_job_and_runs_the_others(tmp_path, tiny_data):
+    run, rows = _multirun(tmp_path, tiny_data, "-m", "mixer=independent", "mixer.hidden=0,16,32")
+    assert [r["job"] for r in rows] == ["0", "1", "2"]
+    assert [r["status"] for r in rows] == ["failed", "ok", "ok"]
+    assert [r["mixer.hidden"] for r in rows] == ["0", "16", "32"]  # the swept key is a column
+    assert "mixer" not in rows[0]  # fixed on the command line: in `overrides`, not a column
+    assert rows[0]["error"].startswith("ValueError: mixer.hidden") and rows[0]["value"] == ""
+    for r in rows[1:]:
+        assert r["error"] == "" and 0.0 <= float(r["value"]) < 2.0 and r["metric"] == "val/steer_mae"
+        assert f"mixer.hidden={r['mixer.hidden']}" in r["overrides"].split()
+    assert "job failed: mixer.hidden" in (tmp_path / "sweep" / "0" / "train.log").read_text()
+    assert run.returncode == 1  # Hydra's basic sweeper exits non-zero when a job failed, after all ran
+
+
+def test_optuna_two_trials_write_the_summary(tmp_path, tiny_data):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra: pip install -e .[sweeps]")
+    run, rows = _multirun(tmp_path, tiny_data, "hparams_search=optuna", "hydra.sweeper.n_trials=2")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    for r in rows:
+        assert 2e-5 <= float(r["model.lr"]) <= 2e-3 and r["head.W"] in {"5", "10", "15"} and r["mixer"] in MIXERS
+    best = yaml.safe_load((tmp_path / "sweep" / "optimization_results.yaml").read_text())
+    assert math.isclose(best["best_value"], min(float(r["value"]) for r in rows))
+
+
+def test_summary_columns_are_the_swept_overrides_and_metrics(tmp_path):
+    rows = [
+        {"job": 1, "status": "ok", "value": 0.2, "metric": "val/steer_mae", "closed_loop_success": 0.75,
+         "overrides": ["mixer=gtu", "head.W=10", "seed=1", "model.lr=0.001"], "error": "", "output_dir": "b",
+         "metrics": {"closed_loop/success": 0.75}},
+        {"job": 0, "status": "failed", "value": "", "metric": "val/steer_mae", "closed_loop_success": "",
+         "overrides": ["mixer=gtu", "head.W=5", "seed=1", "model.lr=0.002"], "error": "ValueError: x", "output_dir": "a",
+         "metrics": {}},
+    ]
+    columns, flat = summary_table(rows, command_line=["mixer=gtu", "head.W=5,10", "seed=1"])
+    assert columns[:5] == ["job", "status", "value", "metric", "closed_loop_success"]
+    assert {"head.W", "model.lr"} <= set(columns) and "seed" not in columns and "mixer" not in columns
+    assert [f["job"] for f in flat] == [0, 1] and flat[1]["closed_loop/success"] == 0.75
+    assert flat[0]["overrides"] == "mixer=gtu head.W=5 seed=1 model.lr=0.002"
+
+
+def test_concurrent_jobs_all_land_in_the_summary(tmp_path):
+    rows_dir = tmp_path / ROWS_DIR
+
+    def job(i: int) -> None:
+        row = {"job": i, "status": "ok", "value": i / 10, "metric": "m", "closed_loop_success": "",
+               "overrides": [f"x={i}"], "error": "", "output_dir": str(i), "metrics": {}}
+        write_text_atomic(rows_dir / f"{i:06d}.json", json.dumps(row))
+        rebuild_summary(tmp_path)
+
+    threads = [threading.Thread(target=job, args=(i,)) for i in range(12)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    with open(tmp_path / "summary.csv", newline="") as f:
+        got = list(csv.DictReader(f))
+    assert [int(r["x"]) for r in got] == list(range(12))
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # no temporary left behind
+
+
+def test_job_metrics_merge(tmp_path):
+    write_job_metrics(tmp_path, {"val/steer_mae": 0.1})
+    write_job_metrics(tmp_path, {"closed_loop/success": 0.5})
+    assert json.loads((tmp_path / "metrics.json").read_text()) == {"closed_loop/success": 0.5, "val/steer_mae": 0.1}
+
+
+def test_multirun_jobs_fail_instead_of_returning_nan(monkeypatch):
+    monkeypatch.setattr(errors, "_in_multirun", lambda: True)
+    assert errors.report_user_errors(lambda: 0.5)() == 0.5
+    with pytest.raises(errors.NonFiniteResult, match="nan"):
+        errors.report_user_errors(lambda: float("nan"))()  # Optuna's sweeper would crash on a nan
+    with pytest.raises(ValueError, match="bad value"):  # re-raised: Hydra marks the job FAILED
+        errors.report_user_errors(lambda: (_ for _ in ()).throw(ValueError("bad value")))()
+    monkeypatch.setattr(errors, "_in_multirun", lambda: False)
+    with pytest.raises(SystemExit) as exit_:
+        errors.report_user_errors(lambda: (_ for _ in ()).throw(ValueError("bad value")))()
+    assert exit_.value.code == 2
+
+
+def _hydra_cfg(*overrides: str):
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        return compose("train", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_optuna_search_space_names_real_options():
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra")
+    cfg = _hydra_cfg("hparams_search=optuna")
+    sweeper = cfg.hydra.sweeper
+    assert "OptunaSweeper" in sweeper._target_ and sweeper.direction == "minimize"
+    assert cfg.head.name == "hybrid" and "W" in cfg.head
+    params = sweeper.params
+    assert set(params) == {"model.lr", "head.W", "mixer"}
+    mixers = params["mixer"][len("choice("):-1].split(",")
+    assert mixers and all(m.strip() in MIXERS for m in mixers)
+
+
+def test_launcher_configs_compose():
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="needs the sweeps extra")
+    cfg = _hydra_cfg("launcher=joblib")
+    assert "JoblibLauncher" in cfg.hydra.launcher._target_ and cfg.hydra.launcher.n_jobs == 2
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="needs the slurm extra")
+    cfg = _hydra_cfg("launcher=slurm", "trainer=ddp", "hydra.launcher.gpus_per_node=4", "hydra.launcher.nodes=2")
+    assert "SlurmLauncher" in cfg.hydra.launcher._target_
+    HydraConfig.instance().set_config(cfg)  # what Hydra does in each job: the trainer follows the launcher
+    trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
+    assert trainer["devices"] == 4 and trainer["num_nodes"] == 2 and cfg.hydra.launcher.tasks_per_node == 4
