@@ -138,4 +138,6 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    main()
+    from cicfw.override_hints import run_app
+
+    run_app(main, "train")  # a mistyped key also prints the keys that exist (did you mean ...?)

@@ -1,0 +1,103 @@
+"""Hints for a mistyped override key: Hydra says ``Key 'trainr' is not in struct``; this adds what
+is there (``did you mean 'trainer'?`` and the keys and config groups at that level).
+
+Hydra already lists a group's options for a bad choice (``mixer=gtuu``), so only keys are handled.
+Apps call ``run_app(main, "train")`` instead of ``main()``; the hints cost a second config
+composition, on the failure path only.
+"""
+from __future__ import annotations
+
+import difflib
+import sys
+from typing import Any, Callable
+
+from omegaconf import DictConfig
+
+CONFIG_MODULE = "cicfw.conf"
+
+
+def _parse(args: list[str]) -> list[Any]:
+    """Hydra overrides among command-line ``args`` (flags like ``-m`` or ``--cfg job`` skipped)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    out = []
+    for arg in args:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            out.append(parser.parse_override(arg))
+        except Exception:
+            continue  # Hydra reports unparsable overrides itself
+    return out
+
+
+def _describe(path: str, missing: str, keys: list[str], groups: list[str]) -> str:
+    where = f"'{path}'" if path else "the top level of the config"
+    close = difflib.get_close_matches(missing, list(dict.fromkeys(keys + groups)), n=3, cutoff=0.6)
+    msg = f"cicfw: hint: {where} has no key '{missing}'"
+    if close:
+        msg += "; did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    if keys:
+        msg += f"\n  keys there: {', '.join(sorted(keys))}"
+    if groups:
+        msg += f"\n  config groups there (choose with group=option): {', '.join(sorted(groups))}"
+    return msg
+
+
+def override_hints(config_name: str, args: list[str], config_module: str = CONFIG_MODULE) -> list[str]:
+    """One hint per override in ``args`` whose key the composed config lacks (added ``+key`` and
+    ``hydra.*`` keys excepted)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    overrides = _parse(args)
+    if not overrides:
+        return []
+    hints: list[str] = []
+    with initialize_config_module(config_module, version_base="1.3"):
+        loader = GlobalHydra.instance().config_loader()
+
+        def groups_at(path: str) -> list[str]:
+            try:
+                return [g for g in loader.list_groups(path.replace(".", "/")) if g != "hydra"]
+            except Exception:
+                return []
+
+        def is_group(key: str) -> bool:
+            return bool(loader.get_group_options(key.replace(".", "/")))
+
+        choices = [o.input_line for o in overrides if is_group(o.key_or_group) and not o.is_sweep_override()]
+        try:
+            cfg = compose(config_name, overrides=choices)
+        except Exception:
+            return []  # a bad group choice: Hydra's own message lists the options
+        for o in overrides:
+            key = o.key_or_group
+            if o.is_add() or o.is_force_add() or key.startswith("hydra.") or key == "hydra" or is_group(key):
+                continue
+            node: Any = cfg
+            parts = key.split(".")
+            for i, part in enumerate(parts):
+                if not isinstance(node, DictConfig) or part not in node:
+                    path = ".".join(parts[:i])
+                    keys = [str(k) for k in node.keys()] if isinstance(node, DictConfig) else []
+                    hints.append(_describe(path, part, keys, groups_at(path)))
+                    break
+                node = node[part]
+    return hints
+
+
+def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:
+    """Run a ``@hydra.main`` app; if it exits with an error, print hints for mistyped keys."""
+    try:
+        main()
+    except SystemExit as exit_:
+        if exit_.code not in (None, 0):
+            try:
+                hints = override_hints(config_name, sys.argv[1:], config_module)
+            except Exception:  # hints are a courtesy: never hide the real error
+                hints = []
+            for hint in hints:
+                print(hint, file=sys.stderr)
+        raise

@@ -1,0 +1,38 @@
+"""A mistyped override key gets Hydra's message plus the keys that exist; a bad group option is
+left to Hydra, which lists the group's options itself."""
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from cicfw.override_hints import override_hints, run_app
+
+
+def test_top_level_typo_suggests_the_key_and_lists_keys_and_groups():
+    (hint,) = override_hints("train", ["trainr.max_epochs=1"])
+    assert "no key 'trainr'; did you mean 'trainer'?" in hint
+    assert "keys there:" in hint and " seed" in hint and "launcher" in hint and "hydra," not in hint
+
+
+def test_nested_typo_in_the_chosen_group_option():
+    (hint,) = override_hints("train", ["head=hybrid", "head.WW=5"])
+    assert "'head' has no key 'WW'; did you mean 'W'?" in hint and "bin_width" in hint
+
+
+def test_valid_overrides_and_group_choices_give_no_hint():
+    assert override_hints("train", ["-m", "mixer=gtu,re", "head=hybrid", "head.W=5,10", "+extra=1", "hydra.job.chdir=false"]) == []
+    assert override_hints("train", ["mixer=gtuu"]) == []  # Hydra's own message lists the options
+
+
+def test_run_app_prints_hints_only_on_failure(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["cicfw.train", "data.batchsize=3"])
+
+    def failing_app() -> None:
+        sys.exit(1)
+
+    with pytest.raises(SystemExit):
+        run_app(failing_app, "train")
+    assert "did you mean 'batch_size'" in capsys.readouterr().err
+    run_app(lambda: None, "train")
+    assert capsys.readouterr().err == ""
