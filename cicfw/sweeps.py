@@ -105,7 +105,8 @@ def job_row(config: DictConfig, job_return: JobReturn) -> dict[str, Any]:
         "job": int(hc.job.num),
         "status": "failed" if failed else "ok",
         "value": value,
-        "metric": config.get("optimized_metric", ""),
+        "metric": CLOSED_LOOP_KEY if config.get("evaluate_after") and config.get("return_closed_loop")
+        else config.get("optimized_metric", ""),
         "closed_loop_success": metrics.get(CLOSED_LOOP_KEY, ""),
         "overrides": list(job_return.overrides or hc.overrides.task),
         "error": error,

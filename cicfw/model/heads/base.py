@@ -8,10 +8,20 @@ from torch import nn
 class Head(nn.Module):
     """Turns the selected branch output ``out`` (B, out_dim) into a loss and a steering value.
 
-    Steering lives in [-1, 1]. Subclasses are built as ``cls(**kwargs_from_config)``, set
-    ``out_dim`` in ``__init__`` and validate their kwargs there with a clear ``ValueError``.
-    Classification heads also set ``self.bins`` (a ``SteeringBins``) and implement
-    ``predict_class`` so the module can log bin accuracy.
+    The contract every head keeps, built-in or plugin (``cicfw.testing.check_head`` checks it):
+
+    - **Construction.** ``cls(**kwargs)``, ``kwargs`` being the config node ``head/<name>.yaml``
+      minus its ``name:`` key (plain data: checkpoints rebuild the head from them). ``__init__``
+      sets ``self.out_dim`` (K, a positive int: the mixer is built with it) and validates the
+      kwargs with one ``ValueError`` that names the key and what is accepted.
+    - **loss(out, steer) -> scalar tensor**, differentiable, for outputs (B, K) and steering
+      targets (B,) in [-1, 1].
+    - **decode(out) -> steering (B,)** in [-1, 1]; used for the metrics and for driving.
+    - **Classification heads** also set ``self.bins`` (a ``SteeringBins``) and implement
+      ``predict_class(out) -> (B,)`` integer bins, so the module logs bin accuracy.
+    - **Registration.** Built-ins: ``@HEADS.register("name")``. Plugins: an entry point in the
+      group ``cicfw.heads`` and a config ``head/<name>.yaml`` on Hydra's search path; see
+      docs/plugins.md.
     """
 
     out_dim: int
