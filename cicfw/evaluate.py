@@ -77,10 +77,10 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     sim = OmegaConf.to_container(cfg.sim, resolve=True)
     runner_cfg = RunnerConfig(**OmegaConf.to_container(cfg.runner, resolve=True), seed=int(cfg.seed),
                               progress_bar=bool(cfg.get("progress_bar", True)))
+    policy = make_policy(spec)  # a bad checkpoint fails here, before any driving
     backend = make_backend(sim)
     suite = OmegaConf.to_container(cfg.suite, resolve=True)
-    episodes = build_suite(backend, **suite)
-    policy = make_policy(spec)  # a bad checkpoint fails here, before any driving
+    episodes = build_suite(backend, **suite)  # unknown towns and weathers fail here
     label = str(cfg.name) if cfg.get("name") else policy.label
     log.info("evaluating %s on %d episodes (%s x %s)", label, len(episodes), ", ".join(suite["towns"]),
              ", ".join(suite["weathers"]))

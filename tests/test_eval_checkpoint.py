@@ -22,6 +22,13 @@ from cicfw.model.module import CICModule
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 
 
+def needs_renderer() -> None:
+    try:
+        from cicfw.sim.render import WEATHERS, Renderer  # noqa: F401
+    except ImportError:
+        pytest.skip("the camera renderer (cicfw.sim.render) is not importable yet")
+
+
 class Frames(Dataset):
     def __len__(self):
         return 8
@@ -109,21 +116,42 @@ def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
         read_checkpoint(tmp_path / "run")
 
 
-def test_evaluate_errors_are_one_line(tmp_path: Path):
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    cmd = [sys.executable, "-m", "cicfw.evaluate", f"hydra.run.dir={tmp_path}/run"]
-    proc = subprocess.run(cmd + [f"checkpoint={tmp_path}/nope.ckpt"], capture_output=True, text=True, env=env)
-    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1] == (
-        f"cicfw: error: checkpoint '{tmp_path}/nope.ckpt' does not exist; give the path to a .ckpt file "
-        f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
-    proc = subprocess.run(cmd + ["policy=expert", "suite.towns=[town_z]"], capture_output=True, text=True, env=env)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1].startswith("cicfw: error: unknown town 'town_z'; known towns: "
-                                                           "town_a, town_b")
+def test_evaluate_config_errors(tmp_path: Path):
+    from cicfw.evaluate import compose_config, evaluate
+
+    cases = [
+        ([f"checkpoint={tmp_path}/nope.ckpt"], FileNotFoundError,
+         f"checkpoint '{tmp_path}/nope.ckpt' does not exist; give the path to a .ckpt file written by cicfw train"),
+        ([], ValueError, "no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), or "
+                         "policy=expert for the reference driver"),
+        (["policy=expert", f"checkpoint={tmp_path}/a.ckpt"], ValueError,
+         "checkpoint= is only read by policy=checkpoint, but policy=expert"),
+        (["policy=expert", "suite.towns=[town_z]"], ValueError, "unknown town 'town_z'; known towns: town_a, town_b"),
+        (["policy=constant", "policy.steer=-3"], ValueError, "policy.steer must be in [-1, 1]"),
+        (["policy=expert", "runner.batch_size=0"], ValueError, "runner.batch_size must be >= 1"),
+    ]
+    for overrides, kind, message in cases:
+        with pytest.raises(kind) as err:
+            evaluate(compose_config(overrides + ["progress_bar=false"]), tmp_path / "run")
+        assert str(err.value).startswith(message), (overrides, str(err.value))
+    assert not (tmp_path / "run").exists()  # nothing half-written
+
+
+def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
+    needs_renderer()  # for the weather names
+    sweep = tmp_path / "sweep"
+    proc = subprocess.run(
+        [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert,constant", f"suite.towns=[{TOWN}]",
+         "suite.weathers=[ClearNoon]", "suite.pairs=[0,1,2]", "progress_bar=false", "maps=false",
+         f"hydra.sweep.dir={sweep}"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    md = (sweep / "table.md").read_text()
+    assert "| Expert | – | – | 100.00 | – |" in md and "| constant steer +0.00 | – | – |" in md
+    assert (sweep / "success_bars.png").is_file() and (sweep / "0" / "episodes.csv").is_file()
 
 
 def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, tmp_path: Path):
-    pytest.importorskip("cicfw.sim.render", reason="needs the camera renderer")
+    needs_renderer()
     from cicfw.evaluate import compose_config, evaluate, load_trajectories
 
     cfg = compose_config([f"checkpoint={ckpt}", f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]",
@@ -150,11 +178,11 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
     n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     ok, frame = cap.read()
     cap.release()
-    assert ok and n == data["episodes"][1]["steps"] and frame.shape == (88 * 3 + 64, 600, 3)
+    assert ok and n == data["episodes"][1]["steps"] and frame.shape == (88 * 3 + 84, 600, 3)
 
 
 def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
-    pytest.importorskip("cicfw.sim.render", reason="needs the camera renderer")
+    needs_renderer()
     from cicfw.train import train
     from conftest import compose_train
 

@@ -238,7 +238,7 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
     ctx = mp.get_context("spawn")  # fork after torch's thread pools started can deadlock
     q = ctx.Queue()
     threads = int(cfg.threads) if cfg.threads else max((os.cpu_count() or 1) // workers, 1)
-    shards = [episodes[k::workers] for k in range(workers)]
+    shards = shard(episodes, workers)
     procs = [ctx.Process(target=_worker, args=(k, shards[k], policy_spec, sim_spec, asdict(cfg), threads, q),
                          daemon=True) for k in range(workers)]
     for p in procs:
@@ -274,6 +274,21 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
         trajs.update(res.trajectories)
     return RunResult(rows=rows, trajectories=trajs, wall_s=time.perf_counter() - t0,
                      steps=sum(res.steps for res in results.values()))
+
+
+def shard(episodes: Sequence[Episode], workers: int) -> list[list[Episode]]:
+    """Split episodes over workers. Whole (town, weather) cells go to one worker when there are at
+    least as many cells as workers (a renderer bakes its textures per cell, seconds each), largest
+    first onto the least loaded worker; otherwise episodes are dealt round-robin."""
+    cells: dict[tuple[str, str], list[Episode]] = {}
+    for e in episodes:
+        cells.setdefault((e.town, e.weather), []).append(e)
+    if len(cells) < workers:
+        return [list(episodes[k::workers]) for k in range(workers)]
+    shards: list[list[Episode]] = [[] for _ in range(workers)]
+    for cell in sorted(cells.values(), key=len, reverse=True):
+        min(shards, key=len).extend(cell)
+    return [sorted(s, key=lambda e: e.index) for s in shards]
 
 
 def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: dict, threads: int,

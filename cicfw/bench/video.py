@@ -14,7 +14,7 @@ import numpy as np
 COMMAND_TEXT = {2: ("FOLLOW", (200, 200, 200)), 3: ("LEFT", (80, 170, 255)), 4: ("RIGHT", (255, 110, 90)),
                 5: ("STRAIGHT", (120, 230, 120))}
 SCALE = 3  # 200x88 -> 600x264
-PANEL = 64  # px of text panel under the image
+PANEL = 84  # px of text panel under the image
 
 
 def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], limit: int) -> list[Mapping]:
@@ -47,28 +47,28 @@ def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], li
 
 
 def _overlay(img: np.ndarray, step: int, tr: Mapping[str, np.ndarray], title: str) -> np.ndarray:
-    """The upscaled frame (BGR) with a panel: command, steering bar, speed, time."""
+    """The upscaled frame (BGR) above a panel: the episode, the command, a steering bar, speed, time."""
     h, w = img.shape[0] * SCALE, img.shape[1] * SCALE
-    big = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2BGR), (w, h), interpolation=cv2.INTER_NEAREST)
     canvas = np.zeros((h + PANEL, w, 3), np.uint8)
-    canvas[:h] = big
+    canvas[:h] = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2BGR), (w, h), interpolation=cv2.INTER_NEAREST)
     font = cv2.FONT_HERSHEY_SIMPLEX
-    cv2.putText(canvas, title, (6, 18), font, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(canvas, title, (6, 18), font, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(canvas, title, (10, h + 18), font, 0.45, (200, 200, 200), 1, cv2.LINE_AA)
     cmd = int(tr["command"][step])
     text, rgb = COMMAND_TEXT.get(cmd, (str(cmd), (255, 255, 255)))
-    y0 = h + 24
-    cv2.putText(canvas, text, (10, y0), font, 0.7, rgb[::-1], 2, cv2.LINE_AA)
+    y0 = h + 48
+    cv2.putText(canvas, text, (10, y0), font, 0.75, rgb[::-1], 2, cv2.LINE_AA)
     steer = float(tr["steer"][step])
     # steering bar: centre tick, bar from the centre towards the steering side (left = negative)
-    bx0, bx1, by = 170, w - 20, y0 - 8
+    bx0, bx1, by = 170, w - 20, y0 - 9
     cx = (bx0 + bx1) // 2
-    cv2.rectangle(canvas, (bx0, by - 7), (bx1, by + 7), (90, 90, 90), 1)
-    cv2.line(canvas, (cx, by - 10), (cx, by + 10), (200, 200, 200), 1)
+    cv2.rectangle(canvas, (bx0, by - 8), (bx1, by + 8), (90, 90, 90), 1)
+    cv2.line(canvas, (cx, by - 11), (cx, by + 11), (200, 200, 200), 1)
     tip = int(cx + steer * (bx1 - bx0) / 2)
-    cv2.rectangle(canvas, (min(cx, tip), by - 6), (max(cx, tip), by + 6), (0, 200, 255), -1)
-    info = f"steer {steer:+.2f}   speed {float(tr['speed_kmh'][step]):4.1f} km/h   t {step / 10:4.1f} s"
-    cv2.putText(canvas, info, (10, h + PANEL - 12), font, 0.5, (230, 230, 230), 1, cv2.LINE_AA)
+    cv2.rectangle(canvas, (min(cx, tip), by - 7), (max(cx, tip), by + 7), (0, 200, 255), -1)
+    cv2.putText(canvas, "L", (bx0 - 16, by + 5), font, 0.45, (160, 160, 160), 1, cv2.LINE_AA)
+    cv2.putText(canvas, "R", (bx1 + 5, by + 5), font, 0.45, (160, 160, 160), 1, cv2.LINE_AA)
+    info = f"steer {steer:+.2f}    speed {float(tr['speed_kmh'][step]):4.1f} km/h    t {step / 10:4.1f} s"
+    cv2.putText(canvas, info, (10, h + PANEL - 10), font, 0.5, (230, 230, 230), 1, cv2.LINE_AA)
     return canvas
 
 
@@ -79,7 +79,7 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
 
     renderer = get_renderer(town, weather, seed, ("centre",))
     outcome = "reached the goal" if row["success"] else f"failed: {row['reason'].replace('_', ' ')}"
-    title = f"{row['key']}  {row['command']}  -  {outcome}"
+    title = f"{row['key']}  ({row['route']}):  {outcome}"
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.mp4")

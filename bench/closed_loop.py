@@ -1,0 +1,186 @@
+"""Closed-loop evaluation speed and the expert's reference scores, printed.
+
+    python bench/closed_loop.py                      # everything (about 10-15 minutes on 2 cores)
+    python bench/closed_loop.py --skip-suite         # expert table + batched vs one-by-one only
+
+1. The expert on the whole suite (both towns x the four paper weathers): success per table column.
+2. The whole suite for one CIL-size checkpoint (an untrained CICModule with the CIL encoder,
+   ``independent`` branches and the ``regression`` head, saved through a Lightning Trainer), with
+   rendering and batched inference, timed. An untrained network drives badly and its episodes end
+   early, so the default times it as a *competent* model: the network runs on every frame at full
+   cost but the car is steered by the expert (``--steer model`` steers with the network instead).
+3. Lockstep-batched vs one-by-one (each episode alone, batch-1 inference) on the same episodes, both
+   in one process, and the network alone at batch 1 vs the batch size, to show where time goes.
+
+Timings on a shared machine are noisy: the load average is printed before and after.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cicfw.bench.policy import POLICIES, Policy
+
+
+def load() -> str:
+    try:
+        return "load average %.2f %.2f %.2f" % os.getloadavg()
+    except OSError:
+        return "load average unknown"
+
+
+def make_checkpoint(folder: Path) -> Path:
+    import lightning as L
+
+    from cicfw.model.module import CICModule
+
+    L.seed_everything(0)
+    model = CICModule()  # CIL: cil encoder, independent branches, regression head
+    trainer = L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, max_epochs=0,
+                        accelerator="cpu", enable_model_summary=False)
+    trainer.strategy.connect(model)
+    path = folder / "cil_untrained.ckpt"
+    trainer.save_checkpoint(path)
+    return path
+
+
+@POLICIES.register("bench_expert_steered")  # top level: spawned workers re-import this script
+class ExpertSteeredNetwork(Policy):
+    """Runs the checkpoint's network on every observation (full inference cost) but returns the
+    expert's steering, so episodes last as long as a competent model's. Timing only."""
+
+    def __init__(self, checkpoint: str) -> None:
+        from cicfw.bench.policies import CheckpointPolicy, ExpertPolicy
+
+        self.net = CheckpointPolicy(checkpoint=checkpoint)
+        self.expert = ExpertPolicy()
+        self.cameras = self.net.cameras
+        self.label = "CIL-size network, expert-steered"
+
+    def reset(self, episodes):
+        self.expert.reset(episodes)
+
+    def act(self, obs):
+        self.net.act(obs)
+        return self.expert.act(obs)
+
+
+def cells_line(rows) -> str:
+    from cicfw.bench.report import Run, summary
+
+    s = summary(Run("x", rows))
+    return ", ".join(f"{v['name']}: {v['rate']:.2f}% ({v['success']}/{v['episodes']})" for v in s["cells"].values())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workers", type=int, default=2, help="processes for the whole-suite run")
+    ap.add_argument("--batch-size", type=int, default=64)
+    ap.add_argument("--compare", type=int, default=48, help="episodes for batched vs one-by-one")
+    ap.add_argument("--steer", choices=("expert", "model"), default="expert",
+                    help="who steers during the timed whole-suite run (the network always runs)")
+    ap.add_argument("--skip-suite", action="store_true", help="skip the whole-suite checkpoint run")
+    args = ap.parse_args()
+
+    import torch
+
+    from cicfw.bench.policies import CheckpointPolicy, ExpertPolicy
+    from cicfw.bench.report import Run, markdown_table
+    from cicfw.bench.runner import RunnerConfig, run
+    from cicfw.bench.suite import PAPER_WEATHERS, build_suite, make_backend
+
+    print(f"closed-loop bench: {os.cpu_count()} cores, torch {torch.__version__}, {load()}")
+    sim = {"name": "embedded"}
+    backend = make_backend(sim)
+    episodes = build_suite(backend, ["town_a", "town_b"], PAPER_WEATHERS, training_towns=["town_a"])
+    print(f"suite: {len(episodes)} episodes (town_a {sum(e.town == 'town_a' for e in episodes) // 4} pairs, "
+          f"town_b {sum(e.town == 'town_b' for e in episodes) // 4} pairs, x {len(PAPER_WEATHERS)} weathers)")
+
+    # 1. the expert, every cell
+    t = time.perf_counter()
+    res = run(episodes, ExpertPolicy(), backend, RunnerConfig(progress_bar=False))
+    print(f"\n[1] expert on the whole suite: {time.perf_counter() - t:.1f} s, {res.steps} steps "
+          f"(no rendering: the expert reads no camera)")
+    print(markdown_table([Run("Expert", res.rows)]))
+    print("expert per cell:", cells_line(res.rows))
+    fails = [r for r in res.rows if not r["success"]]
+    for r in fails[:10]:
+        print(f"  expert failure: {r['key']} {r['route']} {r['reason']} at {r['time_s']} s")
+    expert_steps = res.steps
+
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt = str(make_checkpoint(Path(tmp)))
+        print(f"\ncheckpoint: untrained CIL-size CICModule, "
+              f"{sum(p.numel() for p in CheckpointPolicy(checkpoint=ckpt).model.parameters()) / 1e6:.2f} M parameters")
+
+        # 2. the whole suite with the checkpoint
+        if not args.skip_suite:
+            name = "bench_expert_steered" if args.steer == "expert" else "checkpoint"
+            spec = {"name": name, "checkpoint": ckpt}
+            cfg = RunnerConfig(batch_size=args.batch_size, workers=args.workers, progress_bar=True)
+            print(f"\n[2] whole suite, checkpoint policy ({'expert' if args.steer == 'expert' else 'network'} "
+                  f"steering), workers={cfg.workers}, batch {cfg.batch_size}, {load()}")
+            t = time.perf_counter()
+            res = run(episodes, spec, sim, cfg)
+            wall = time.perf_counter() - t
+            print(f"whole suite: {wall:.1f} s = {wall / 60:.2f} min for {len(episodes)} episodes, {res.steps} steps "
+                  f"({1e3 * wall / res.steps:.2f} ms/step overall), success {Run('x', res.rows).success_rate():.1f}%")
+            worst = sum(int(np.ceil(r['timeout_s'] * 10)) for r in res.rows)
+            print(f"  if every episode ran to its timeout ({worst} steps): ~{wall * worst / res.steps / 60:.1f} min "
+                  f"at the same cost per step; {load()}")
+
+        # 3. lockstep-batched vs one-by-one, same episodes, one process each
+        sub = [e for k, e in enumerate(episodes) if k % max(len(episodes) // args.compare, 1) == 0][: args.compare]
+        policy = ExpertSteeredNetwork(ckpt)
+        cfg1 = RunnerConfig(batch_size=args.batch_size, progress_bar=False)
+        print(f"\n[3] {len(sub)} episodes, one process ({torch.get_num_threads()} torch threads), {load()}")
+        run(sub[:2], policy, backend, cfg1)  # warm-up: renderers built, weights paged in
+        t = time.perf_counter()
+        batched = run(sub, policy, backend, cfg1)
+        tb = time.perf_counter() - t
+        t = time.perf_counter()
+        one_rows = []
+        for e in sub:
+            one_rows += run([e], policy, backend, RunnerConfig(batch_size=1, progress_bar=False)).rows
+        to = time.perf_counter() - t
+        same = [(a["reason"], a["steps"]) for a in batched.rows] == [(b["reason"], b["steps"]) for b in one_rows]
+        print(f"lockstep batched (batch {args.batch_size}): {tb:.1f} s, {1e3 * tb / batched.steps:.2f} ms/step")
+        print(f"one by one (batch 1):           {to:.1f} s, {1e3 * to / batched.steps:.2f} ms/step")
+        print(f"speed-up: {to / tb:.2f}x (same episodes, same outcomes: {same}); {load()}")
+
+        # where the time goes: the network alone, and one render
+        net = policy.net.model
+        for b in (1, args.batch_size):
+            x = torch.randint(0, 255, (b, 3, 88, 200), dtype=torch.uint8)
+            s, c = torch.rand(b) * 30, torch.randint(0, 4, (b,))
+            with torch.inference_mode():
+                net.predict_steer(x, s, c)
+                ts = []
+                for _ in range(max(5, 256 // b)):
+                    t = time.perf_counter()
+                    net.predict_steer(x, s, c)
+                    ts.append(time.perf_counter() - t)
+            print(f"network alone, batch {b:3d}: {1e3 * statistics.median(ts) / b:.2f} ms/frame (median)")
+        from cicfw.sim.env import get_renderer
+        from cicfw.sim.town import load_town
+
+        r = get_renderer(load_town("town_a"), "MidRainyNoon", 0, ("centre",))
+        route = batched.trajectories[batched.rows[0]["key"]]
+        ts = []
+        for k in range(len(route["x"])):
+            t = time.perf_counter()
+            r.render(float(route["x"][k]), float(route["y"][k]), float(route["yaw"][k]), k * 0.1)
+            ts.append(time.perf_counter() - t)
+        print(f"render centre camera: {1e3 * statistics.median(ts):.2f} ms/frame (median); {load()}")
+    print(f"\nexpert suite steps for reference: {expert_steps}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
