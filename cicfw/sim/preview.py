@@ -1,0 +1,193 @@
+"""Pictures of the embedded simulator: ``python -m cicfw.sim.preview --out DIR``.
+
+Writes ``contact_sheet.png`` (the three cameras x the weathers x the towns, a dozen metres before a
+junction), ``turn_sheet.png`` (the cameras in the middle of a left turn) and ``map_<town>.png`` (a
+top-down map drawn from the renderer's ground texture with buildings, trees and a few routes
+coloured by their high-level command).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
+from cicfw.sim.render.camera import MOUNT_FORWARD
+
+CAMERA_ORDER = ("left", "centre", "right")
+# CIL command code -> (label, RGB)
+COMMAND_STYLE = {2: ("follow", (150, 150, 150)), 3: ("left", (40, 120, 230)), 4: ("right", (230, 50, 50)),
+                 5: ("straight", (40, 190, 70))}
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> Path:
+    """Write atomically (temporary name, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+        raise OSError(f"could not write {path}")
+    os.replace(tmp, path)
+    return path
+
+
+def _label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42, colour=(0, 0, 0)) -> None:
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+
+
+def pose_on_route(route, s: float) -> tuple[float, float, float]:
+    """Vehicle pose (rear axle) at arc length ``s`` of a route."""
+    i = int(np.clip(np.searchsorted(route.s, s), 0, len(route.s) - 1))
+    return float(route.points[i, 0]), float(route.points[i, 1]), float(route.heading[i])
+
+
+def approach_pose(town, before: float = 12.0, command: int = 3):
+    """A pose whose cameras are ``before`` metres ahead of a junction's entry, on a route that turns
+    ``command`` there (an X junction if the town has one), and that route."""
+    from cicfw.sim.roadgraph import single_turn_routes
+
+    routes = single_turn_routes(town)
+    arms = {j.id: len(j.arms) for j in town.junctions}
+    routes.sort(key=lambda r: (-arms[r.meta["junction"]], r.meta["command"] != command, r.name))
+    for r in routes:
+        s_entry = r.turns[0][2]
+        s = s_entry - before - MOUNT_FORWARD
+        if s >= 0:
+            return pose_on_route(r, s), r
+    r = routes[0]
+    return pose_on_route(r, 0.0), r
+
+
+def _grid(rows: list[tuple[str, dict]], scale: int, title: str) -> np.ndarray:
+    """Rows of (label, {camera: image}) -> one labelled sheet (RGB)."""
+    pad, lab_w = 3, 150
+    h, w = 88 * scale, 200 * scale
+    head = 22
+    out = np.full((head + len(rows) * (h + pad) + pad, lab_w + 3 * (w + pad) + pad, 3), 255, np.uint8)
+    _label(out, title, (4, 15), 0.4)
+    for k, cam in enumerate(CAMERA_ORDER):
+        _label(out, f"{cam} ({CAMERAS[cam].yaw_deg:+.0f} deg)", (lab_w + k * (w + pad) + w // 2 - 45, 15), 0.42)
+    for r, (label, ims) in enumerate(rows):
+        y = head + r * (h + pad) + pad
+        for i, line in enumerate(label.split("\n")):
+            _label(out, line, (4, y + h // 2 - 6 + 16 * i), 0.42)
+        for k, cam in enumerate(CAMERA_ORDER):
+            im = ims[cam]
+            if scale != 1:
+                im = cv2.resize(im, (w, h), interpolation=cv2.INTER_NEAREST)
+            x = lab_w + k * (w + pad) + pad
+            out[y:y + h, x:x + w] = im
+    return out
+
+
+def contact_sheet(towns: list, weathers: list[str], scale: int = 1, seed: int = 0, t: float = 0.3,
+                  before: float = 12.0) -> np.ndarray:
+    rows = []
+    for town in towns:
+        pose, _ = approach_pose(town, before)
+        for wx in weathers:
+            ims = Renderer(town, wx, seed=seed).render(*pose, t=t)
+            rows.append((f"{town.name}\n{wx}", ims))
+    return _grid(rows, scale, f"{before:.0f} m before a junction (camera to junction entry)")
+
+
+def turn_sheet(towns: list, weathers: list[str], scale: int = 1, seed: int = 0) -> np.ndarray:
+    rows = []
+    for town in towns:
+        _, route = approach_pose(town, command=3)
+        s_entry, s_exit = route.turns[0][2], route.turns[0][3]
+        pose = pose_on_route(route, 0.5 * (s_entry + s_exit) - MOUNT_FORWARD)
+        for wx in weathers:
+            rows.append((f"{town.name}\n{wx}", Renderer(town, wx, seed=seed).render(*pose, t=0.3)))
+    return _grid(rows, scale, "in the middle of a left turn")
+
+
+def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon") -> np.ndarray:
+    """Top-down RGB map from the ground texture, with buildings, props and routes by command."""
+    r = Renderer(town, weather, cameras=("centre",))
+    base = r.ground.base
+    lvl = int(np.clip(round(math.log2(1 / (base.res * px_per_m))), 0, len(r.ground.pyramid) - 1))
+    img = np.ascontiguousarray(r.ground.pyramid[lvl][..., :3])
+    f = 1 / (base.res * 2 ** lvl)  # px per metre
+    img = np.ascontiguousarray(img)
+
+    def px(p):
+        p = np.asarray(p, float).reshape(-1, 2)
+        return np.round(np.stack([(p[:, 0] - base.x0) * f - 0.5, (base.y1 - p[:, 1]) * f - 0.5], 1) * 16
+                        ).astype(np.int32)
+
+    st = town.style
+    for b in town.buildings:
+        col = tuple(int(v * 0.9) for v in st.facades[b.facade % len(st.facades)])
+        cv2.fillPoly(img, [px(b.footprint)], col, cv2.LINE_AA, 4)
+        cv2.polylines(img, [px(b.footprint)], True, (40, 40, 40), 1, cv2.LINE_AA, 4)
+    for p in town.props:
+        c = tuple(int(v) for v in px(p.position)[0])
+        if p.kind == "tree":
+            cv2.circle(img, c, int(p.radius * f * 16), tuple(int(v * 0.8) for v in st.vegetation), -1, cv2.LINE_AA, 4)
+        else:
+            cv2.circle(img, c, int(0.4 * f * 16), (30, 30, 30), -1, cv2.LINE_AA, 4)
+    for route in routes:
+        pts, cmd = px(route.points), np.asarray(route.commands)
+        cut = np.nonzero(np.diff(cmd))[0] + 1
+        for a, b in zip(np.r_[0, cut], np.r_[cut, len(cmd)]):
+            seg = pts[max(a - 1, 0):b]
+            cv2.polylines(img, [seg], False, COMMAND_STYLE[int(cmd[a])][1], 2, cv2.LINE_AA, 4)
+        s, g = tuple(int(v) for v in pts[0]), tuple(int(v) for v in pts[-1])
+        cv2.circle(img, s, 5 * 16, (255, 255, 255), -1, cv2.LINE_AA, 4)
+        cv2.circle(img, s, 5 * 16, (0, 0, 0), 1, cv2.LINE_AA, 4)
+        cv2.drawMarker(img, (g[0] // 16, g[1] // 16), (0, 0, 0), cv2.MARKER_TILTED_CROSS, 10, 2)
+    # legend
+    y = 16
+    cv2.rectangle(img, (4, 4), (112, 14 + 16 * len(COMMAND_STYLE)), (255, 255, 255), -1)
+    for code, (name, col) in COMMAND_STYLE.items():
+        cv2.line(img, (10, y), (30, y), col, 3, cv2.LINE_AA)
+        _label(img, f"{code} {name}", (36, y + 4), 0.4)
+        y += 16
+    _label(img, f"{town.name}: o start, x goal; 10 m = {10 * f:.0f} px", (4, img.shape[0] - 6), 0.45, (255, 255, 255))
+    return img
+
+
+def sample_routes(town, n: int, seed: int = 0, min_length: float = 150.0) -> list:
+    """``n`` random routes of the town (helper A's router), balanced over commands."""
+    from cicfw.sim.roadgraph import road_graph
+
+    g = road_graph(town)
+    rng = np.random.default_rng(seed)
+    counts: dict = {}
+    return [g.random_route(rng, min_length, name=f"{town.name}/preview{k}", counts=counts) for k in range(n)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from cicfw.sim.town import load_town, town_names
+
+    ap = argparse.ArgumentParser(prog="python -m cicfw.sim.preview", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="sim_preview", help="output folder (created; default: %(default)s)")
+    ap.add_argument("--towns", nargs="+", default=None, help=f"towns (default: all shipped: {town_names()})")
+    ap.add_argument("--weathers", nargs="+", default=list(WEATHERS), help="weathers (default: all)")
+    ap.add_argument("--scale", type=int, default=2, help="image upscale in the sheets (default: %(default)s)")
+    ap.add_argument("--routes", type=int, default=4, help="routes drawn on each map (default: %(default)s)")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    for wx in a.weathers:
+        if wx not in WEATHERS:
+            ap.error(f"unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
+    if a.scale < 1:
+        ap.error("--scale must be >= 1")
+    towns = [load_town(n) for n in (a.towns or town_names())]
+    out = Path(a.out).expanduser().resolve()
+    written = [_write_png(out / "contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed)),
+               _write_png(out / "turn_sheet.png", turn_sheet(towns, ["ClearNoon", "WetCloudySunset"], a.scale, a.seed))]
+    for town in towns:
+        written.append(_write_png(out / f"map_{town.name}.png", town_map(town, sample_routes(town, a.routes, a.seed))))
+    for p in written:
+        print(p)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

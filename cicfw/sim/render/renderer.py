@@ -1,0 +1,321 @@
+"""``Renderer(town, weather, seed, cameras).render(x, y, yaw, t) -> {camera: (88, 200, 3) uint8 RGB}``.
+
+Per step: the scene's items in view are culled, ordered and given surface planes once for all
+cameras (they share the optical centre). Per camera: the ground is warped from the town texture
+by homography (rows below the horizon only, one mip level per band of rows), the sky is looked up
+in a world-fixed panorama, items are filled into an id buffer (one fill each), then depth, texture
+coordinates and fog come out of one vectorised pass over that buffer (light is baked into the
+atlas); wet roads blend in a rough mirror image, one fog pass covers the frame, rain slides down.
+Everything that does not depend on the pose (pixel rays, ground distance and fog, mip bands,
+Fresnel weights) is computed once per renderer.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from cicfw.sim.render import camera as cam_mod
+from cicfw.sim.render.atlas import PPM, TW, Atlas, build_atlas
+from cicfw.sim.render.camera import (CAMERAS, CX, CY, FIRST_GROUND_ROW, FX, FY, HORIZON_ROW, IMAGE_H, IMAGE_W,
+                                     MOUNT_FORWARD, MOUNT_HEIGHT, NEAR, Camera, get_camera)
+from cicfw.sim.render.ground import LEVELS, GroundTexture, bake_ground, ground_base
+from cicfw.sim.render.noise import smooth_noise, stable_seed
+from cicfw.sim.render.scene import C, NX, NY, S0, TABLE, Y0, Items, Scene
+from cicfw.sim.render.sky import heading_shift, pano_maps, rain_streaks, sky_panorama
+from cicfw.sim.render.weather import Weather, get_weather
+
+MIN_BAND = 3  # rows per mip band at least
+MAX_ITEMS = 255  # per camera (the id buffer is uint8); the farthest are dropped beyond
+RAIN_SPEED = 700.0  # rain texture rows per second
+V0 = FIRST_GROUND_ROW
+NG = IMAGE_H - V0  # ground rows
+
+_TEXTURES: dict = {}
+
+
+def _ground_texture(town, weather: Weather) -> GroundTexture:
+    """The baked ground of (town, weather), shared by every renderer of that pair."""
+    key = (id(town), weather)
+    hit = _TEXTURES.get(key)
+    if hit is None or hit[0] is not town:
+        hit = (town, bake_ground(town, weather, ground_base(town)))
+        _TEXTURES[key] = hit
+    return hit[1]
+
+
+def clear_caches() -> None:
+    """Forget baked ground textures (frees memory; the next Renderer bakes again)."""
+    from cicfw.sim.render import ground
+
+    _TEXTURES.clear()
+    ground._BASE_CACHE.clear()
+
+
+class _CameraTables:
+    """Pose-independent per-camera data."""
+
+    def __init__(self, cam: Camera, rng: np.random.Generator) -> None:
+        self.cam = cam
+        self.rot_t = np.ascontiguousarray(cam.rotation.T)  # local row vectors @ rot_t -> camera
+        self.kr_inv = np.linalg.inv(cam_mod.K @ cam.rotation)  # image -> local direction
+        rays = cam_mod.pixel_rays(cam)
+        dx, dy, dz = (np.ascontiguousarray(rays[..., k]) for k in range(3))
+        dn = np.linalg.norm(rays, axis=-1).astype(np.float32)
+        self.dx, self.dy = dx, dy
+        self.dx_ppm, self.dy_ppm = dx * PPM, dy * PPM
+        self.dz_ppm = (-dz * PPM).astype(np.float32)  # atlas rows per unit of depth
+        self.dn = dn
+        self.pano_x, self.pano_y = pano_maps(rays[:V0])
+        gdz = rays[V0:, :, 2]
+        self.ground_dist = (MOUNT_HEIGHT / -gdz * dn[V0:]).astype(np.float32)
+        dep = np.arcsin(np.clip(-gdz / dn[V0:], 0, 1))  # depression angle, for the Fresnel weight
+        self.fresnel8 = np.round(255 * (0.12 + 0.55 * (1 - np.sin(dep)) ** 6)).astype(np.uint8)
+        # the mirror lookup of wet reflections, jittered (rough water film, not a mirror)
+        self.rough_x = np.clip(np.arange(IMAGE_W, dtype=np.float32)[None, :]
+                               + 0.9 * smooth_noise((NG, IMAGE_W), 2.0, rng), 0, IMAGE_W - 1).astype(np.float32)
+        self.rough_y = (np.arange(V0, IMAGE_H, dtype=np.float32)[:, None]
+                        - 2.5 * np.abs(smooth_noise((NG, IMAGE_W), 1.5, rng))).astype(np.float32)
+        az = np.arctan2(rays[..., 1], rays[..., 0])
+        self.az_lo, self.az_hi = float(az.min()), float(az.max())
+
+
+def mip_bands(levels: int, res: float) -> list[tuple[int, int, int]]:
+    """(row0, row1, level) bands: the level whose texels match the ground footprint of each row
+    (geometric mean of the along- and across-row footprints, centre column); pose independent on
+    flat ground, the same for all three cameras."""
+    dist = cam_mod.ground_distance_rows()
+    bands: list[list[int]] = []
+    for r in range(V0, IMAGE_H):
+        d0 = dist[r]
+        d1 = dist[r - 1] if r - 1 >= V0 else 2 * d0
+        along = abs(d1 - d0)
+        across = math.hypot(d0, MOUNT_HEIGHT) / FX * math.hypot(1, (r - CY) / FY)
+        foot = math.sqrt(max(along, 1e-6) * across)
+        lvl = int(np.clip(math.floor(math.log2(max(foot / res, 1.0)) + 0.5), 0, levels - 1))
+        if bands and bands[-1][2] == lvl:
+            bands[-1][1] = r + 1
+        else:
+            bands.append([r, r + 1, lvl])
+    # merge bands thinner than MIN_BAND rows into the next (finer) one, keeping the coarser level:
+    # every warp call costs a few microseconds, and the far rows are fogged anyway
+    merged: list[list[int]] = []
+    for band in bands:
+        if merged and merged[-1][1] - merged[-1][0] < MIN_BAND:
+            merged[-1][1] = band[1]
+        else:
+            merged.append(list(band))
+    return [tuple(b) for b in merged]
+
+
+class Renderer:
+    """Camera images of ``town`` under ``weather`` (a name from WEATHERS, or a Weather).
+
+    ``render(x, y, yaw, t)`` takes the vehicle pose (rear axle, as cicfw.sim.vehicle; the cameras sit
+    MOUNT_FORWARD m ahead of it) and returns {camera name: (88, 200, 3) uint8 RGB}. The same seed,
+    pose and t give the same bytes; t (seconds) animates the rain.
+    """
+
+    def __init__(self, town, weather: str | Weather, seed: int = 0,
+                 cameras: tuple[str, ...] | list[str] = ("centre", "left", "right")) -> None:
+        self.town = town
+        self.weather = weather if isinstance(weather, Weather) else get_weather(weather)
+        cams = (cameras,) if isinstance(cameras, str) else tuple(cameras)
+        if not cams:
+            raise ValueError(f"Renderer needs at least one camera; known cameras: {', '.join(CAMERAS)}")
+        self.cameras = tuple(get_camera(c).name for c in cams)
+        self.seed = int(seed)
+        w = self.weather
+        rng = np.random.default_rng(stable_seed("renderer", self.seed, w.name))
+
+        self.ground = _ground_texture(town, w)
+        self.atlas: Atlas = build_atlas(town.style, w)
+        self.scene = Scene(town, w, self.atlas)
+        self.tables = {c: _CameraTables(get_camera(c), rng) for c in self.cameras}
+        self.az_lo = min(t.az_lo for t in self.tables.values())
+        self.az_hi = max(t.az_hi for t in self.tables.values())
+        self.bands = mip_bands(LEVELS, self.ground.base.res)
+        w2t = self.ground.base.world_to_texel()
+        lvl = [np.array([[2.0 ** -k, 0, 0.5 * 2.0 ** -k - 0.5], [0, 2.0 ** -k, 0.5 * 2.0 ** -k - 0.5],
+                         [0, 0, 1.0]]) @ w2t for k in range(LEVELS)]
+        self._band_pre = np.stack([lvl[k] for _, _, k in self.bands])  # world -> texel of the band's level
+        self._band_post = np.stack([np.array([[1.0, 0, 0], [0, 1.0, a], [0, 0, 1.0]]) for a, _, _ in self.bands])
+
+        sky = sky_panorama(w, town.style.vegetation, stable_seed("sky", self.seed, w.name))
+        self.sky = np.zeros(sky.shape[:2] + (4,), np.uint8)
+        self.sky[..., :3] = np.clip(sky * 255 + 0.5, 0, 255)
+        fog = np.asarray(w.fog_colour, np.float64) * 255
+        self._fog_img = np.zeros((IMAGE_H, IMAGE_W, 4), np.uint8)
+        self._fog_img[..., :3] = np.round(fog)
+        self.inv_fog = -1.0 / w.fog_distance
+        # fog of the flat ground is pose independent; the sky gets none
+        ct0 = next(iter(self.tables.values()))
+        self.keep_fixed = np.ones((IMAGE_H, IMAGE_W), np.float32)
+        self.keep_fixed[V0:] = np.exp(ct0.ground_dist * self.inv_fog)
+        for ct in self.tables.values():
+            ct.dn_fog = (ct.dn * self.inv_fog).astype(np.float32)
+        self.wet = w.wetness > 0 or w.puddles > 0
+        streaks = rain_streaks(w, stable_seed("rain", self.seed, w.name), IMAGE_H, IMAGE_W)
+        self.rain = None
+        if streaks is not None:
+            self.rain = np.zeros(streaks.shape[:2] + (4,), np.uint8)
+            self.rain[..., :3] = streaks
+
+        self._ids = np.zeros((IMAGE_H, IMAGE_W), np.uint8)
+        self._lut = np.zeros((len(TABLE), 256), np.float32)
+        self.last_items: dict[str, int] = {}  # items drawn per camera in the last render (diagnostics)
+
+    # ------------------------------------------------------------------------------------------
+    def render(self, x: float, y: float, yaw: float, t: float = 0.0) -> dict[str, np.ndarray]:
+        """Images of every camera for the vehicle pose (x, y, yaw) at time ``t`` (s, animates rain)."""
+        x, y, yaw = float(x), float(y), float(yaw)
+        cx, cy = x + MOUNT_FORWARD * math.cos(yaw), y + MOUNT_FORWARD * math.sin(yaw)
+        items = self.scene.items(cx, cy, yaw, self.az_lo, self.az_hi)
+        minv = self._ground_inverse(x, y, yaw)
+        shift = heading_shift(yaw)
+        return {name: self._render_camera(self.tables[name], items, minv, shift, t, k)
+                for k, name in enumerate(self.cameras)}
+
+    @staticmethod
+    def _ground_inverse(x: float, y: float, yaw: float) -> np.ndarray:
+        """Inverse of M, the map from world ground points (X, Y, 1) to camera-centred local points,
+        M = [[c, s, -(c x + s y) - F], [-s, c, s x - c y], [0, 0, -H]] (image = K R_cam M)."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        tx, ty = -(c * x + s * y) - MOUNT_FORWARD, s * x - c * y
+        h = MOUNT_HEIGHT
+        return np.array([[c, -s, (c * tx - s * ty) / h], [s, c, (s * tx + c * ty) / h], [0, 0, -1.0 / h]])
+
+    def _draw_ids(self, ct: _CameraTables, items: Items) -> np.ndarray:
+        """Fill the id buffer (1..n in draw order); returns the surface-table columns of ids 0..n."""
+        ids = self._ids
+        ids.fill(0)
+        if len(items) == 0:
+            return np.zeros(1, np.intp)
+        pc = items.poly @ ct.rot_t  # (N, P, 3) camera coordinates
+        z = pc[..., 2]
+        zmin = z.min(1)
+        zs = np.maximum(z, NEAR)
+        u = pc[..., 0] * (FX / zs)
+        v = pc[..., 1] * (FY / zs)
+        u += CX
+        v += CY
+        inside = ((z.max(1) > NEAR) & (u.max(1) >= -0.5) & (u.min(1) <= IMAGE_W - 0.5)
+                  & (v.max(1) >= -0.5) & (v.min(1) <= IMAGE_H - 0.5))
+        idx = np.nonzero(inside)[0]
+        if len(idx) > MAX_ITEMS:
+            idx = idx[-MAX_ITEMS:]  # keep the nearest (drawn last)
+        uv = np.stack([u[idx], v[idx]], -1)
+        uv *= 16
+        pts = np.clip(uv, -2 ** 24, 2 ** 24).round().astype(np.int32)
+        polys = list(pts)
+        for j in np.nonzero(zmin[idx] <= NEAR)[0].tolist():  # crossing the near plane: clip exactly
+            i = idx[j]
+            polys[j] = _clip_near(pc[i, :items.nv[i]].tolist())
+        fill = cv2.fillConvexPoly
+        for j, q in enumerate(polys, 1):
+            if q is not None:
+                fill(ids, q, j, cv2.LINE_8, 4)
+        self.last_items[ct.cam.name] = len(idx)
+        cols = np.empty(len(idx) + 1, np.intp)
+        cols[0] = 0
+        cols[1:] = idx + 1
+        return cols
+
+    def _render_camera(self, ct: _CameraTables, items: Items, minv: np.ndarray, shift: float, t: float,
+                       k: int) -> np.ndarray:
+        frame = np.empty((IMAGE_H, IMAGE_W, 4), np.uint8)
+        # sky: the world-fixed panorama, turned by the heading
+        cv2.remap(self.sky, ct.pano_x + shift, ct.pano_y, cv2.INTER_LINEAR, dst=frame[:V0],
+                  borderMode=cv2.BORDER_WRAP)
+        # ground: image -> texture homography per band of rows, each from its mip level
+        mats = self._band_pre @ (minv @ ct.kr_inv) @ self._band_post
+        pyr, borders = self.ground.pyramid, self.ground.borders
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        for (a, b, lvl), mat in zip(self.bands, mats):
+            cv2.warpPerspective(pyr[lvl], mat, (IMAGE_W, b - a), dst=frame[a:b], flags=flags,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=borders[lvl])
+
+        # items: id buffer -> depth -> atlas lookup (lit) -> composited over sky and ground
+        cols = self._draw_ids(ct, items)
+        n = len(cols)
+        keep = self.keep_fixed
+        if n > 1:
+            ids = self._ids
+            lut = self._lut
+            lut[:, :n] = items.table[:, cols]
+            lut[:, n:] = 0
+            LUT = cv2.LUT
+            nx, ny = LUT(ids, lut[NX]), LUT(ids, lut[NY])
+            den = nx * ct.dx
+            den += ny * ct.dy
+            dep = LUT(ids, lut[C])
+            dep /= den  # ray parameter: distance / |ray|
+            sx = nx * ct.dy_ppm
+            sx -= ny * ct.dx_ppm
+            sx *= dep
+            sx += LUT(ids, lut[S0])
+            wrap = sx * (1 / TW)  # the tile repeats along the surface: sx mod TW
+            np.floor(wrap, out=wrap)
+            wrap *= TW
+            sx -= wrap
+            sy = dep * ct.dz_ppm
+            sy += LUT(ids, lut[Y0])
+            alb = cv2.remap(self.atlas.image, sx, sy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            mask = cv2.compare(ids, 0, cv2.CMP_GT)
+            cv2.copyTo(alb, mask, frame)
+            dep *= ct.dn_fog
+            keep = self.keep_fixed.copy()
+            cv2.copyTo(cv2.exp(dep), mask, keep)
+        if self.wet:
+            self._reflect(ct, frame, n > 1)
+        # fog over everything: frame * keep + fog * (1 - keep), in 8 bits
+        k8 = cv2.convertScaleAbs(keep, alpha=255.0)
+        k4 = cv2.merge([k8, k8, k8, k8])
+        out = cv2.multiply(frame, k4, scale=1 / 255)
+        out += cv2.multiply(self._fog_img, cv2.bitwise_not(k4), scale=1 / 255)
+        if self.rain is not None:
+            th = self.rain.shape[0]
+            off = (int(t * RAIN_SPEED) + 97 * k + 31 * self.seed) % (th - IMAGE_H)
+            cv2.add(out, self.rain[off:off + IMAGE_H], dst=out)
+        return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
+
+    def _reflect(self, ct: _CameraTables, frame: np.ndarray, has_items: bool) -> None:
+        """Blend into the ground rows of ``frame`` a rough mirror image of what stands above them
+        (mirrored about the base of the lowest item in each column, or the horizon), weighted by
+        the ground's wetness (texture alpha; 0 on items) and a Fresnel term."""
+        if has_items:
+            m = self._ids > 0
+            low = IMAGE_H - 1 - np.argmax(m[::-1], axis=0)  # lowest item row per column
+            base = np.where(m.any(0), np.maximum(low + 0.5, HORIZON_ROW), HORIZON_ROW).astype(np.float32)
+        else:
+            base = np.full(IMAGE_W, HORIZON_ROW, np.float32)
+        my = 2 * base[None, :] - ct.rough_y
+        np.maximum(my, 0, out=my)
+        refl = cv2.remap(frame, ct.rough_x, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        refl = cv2.blur(refl, (3, 7))
+        w8 = cv2.multiply(frame[V0:, :, 3], ct.fresnel8, scale=1 / 255)
+        w4 = cv2.merge([w8, w8, w8, w8])
+        g = frame[V0:]
+        g2 = cv2.multiply(g, cv2.bitwise_not(w4), scale=1 / 255)
+        g2 += cv2.multiply(refl, w4, scale=1 / 255)
+        g[:] = g2
+
+
+def _clip_near(q: list) -> np.ndarray | None:
+    """Clip a camera-space polygon (list of [x, y, z]) to z >= NEAR and project it (fixed point, shift 4)."""
+    out = []
+    m = len(q)
+    for i in range(m):
+        a, b = q[i], q[(i + 1) % m]
+        ia, ib = a[2] >= NEAR, b[2] >= NEAR
+        if ia:
+            out.append(a)
+        if ia != ib:
+            f = (NEAR - a[2]) / (b[2] - a[2])
+            out.append([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), NEAR])
+    if len(out) < 3:
+        return None
+    lim = 2.0 ** 24
+    return np.array([[round(max(-lim, min(lim, (FX * x / z + CX) * 16))),
+                      round(max(-lim, min(lim, (FY * y / z + CY) * 16)))] for x, y, z in out], np.int32)
