@@ -1,7 +1,8 @@
 """Hints for a mistyped override key: Hydra says ``Key 'trainr' is not in struct``; this adds what
 is there (``did you mean 'trainer'?`` and the keys and config groups at that level).
 
-Hydra already lists a group's options for a bad choice (``mixer=gtuu``), so only keys are handled.
+Hydra already lists a group's options for a bad choice (``mixer=gtuu``), so only keys are handled,
+plus options that need an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``).
 Apps call ``run_app(main, "train")`` instead of ``main()``; the hints cost a second config
 composition, on the failure path only.
 """
@@ -11,9 +12,35 @@ import difflib
 import sys
 from typing import Any, Callable
 
-from omegaconf import DictConfig
+from omegaconf import OmegaConf
 
 CONFIG_MODULE = "cicfw.conf"
+
+# Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
+NEEDS_EXTRA = {
+    "hparams_search=optuna": ("hydra_plugins.hydra_optuna_sweeper", "sweeps"),
+    "launcher=joblib": ("hydra_plugins.hydra_joblib_launcher", "sweeps"),
+    "launcher=slurm": ("hydra_plugins.hydra_submitit_launcher", "slurm"),
+}
+
+
+def missing_extras(args: list[str]) -> list[str]:
+    """A hint per chosen option whose Hydra plugin is not installed."""
+    from importlib.util import find_spec
+
+    hints = []
+    for arg in args:
+        module, extra = NEEDS_EXTRA.get(arg.replace(" ", ""), (None, None))
+        if module is None:
+            continue
+        try:
+            found = find_spec(module) is not None
+        except ModuleNotFoundError:
+            found = False
+        if not found:
+            hints.append(f"cicfw: hint: {arg} needs the '{extra}' extra: pip install \"cicfw[{extra}]\" "
+                         f"(or pip install -e \".[{extra}]\" in a clone)")
+    return hints
 
 
 def _parse(args: list[str]) -> list[Any]:
@@ -72,16 +99,17 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
             cfg = compose(config_name, overrides=choices)
         except Exception:
             return []  # a bad group choice: Hydra's own message lists the options
+        tree = OmegaConf.to_container(cfg, resolve=False)  # plain dicts: '???' values count as present
         for o in overrides:
             key = o.key_or_group
             if o.is_add() or o.is_force_add() or key.startswith("hydra.") or key == "hydra" or is_group(key):
                 continue
-            node: Any = cfg
+            node: Any = tree
             parts = key.split(".")
             for i, part in enumerate(parts):
-                if not isinstance(node, DictConfig) or part not in node:
+                if not isinstance(node, dict) or part not in node:
                     path = ".".join(parts[:i])
-                    keys = [str(k) for k in node.keys()] if isinstance(node, DictConfig) else []
+                    keys = [str(k) for k in node] if isinstance(node, dict) else []
                     hints.append(_describe(path, part, keys, groups_at(path)))
                     break
                 node = node[part]
@@ -94,10 +122,11 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
         main()
     except SystemExit as exit_:
         if exit_.code not in (None, 0):
+            hints = missing_extras(sys.argv[1:])
             try:
-                hints = override_hints(config_name, sys.argv[1:], config_module)
+                hints += override_hints(config_name, sys.argv[1:], config_module)
             except Exception:  # hints are a courtesy: never hide the real error
-                hints = []
+                pass
             for hint in hints:
                 print(hint, file=sys.stderr)
         raise

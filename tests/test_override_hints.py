@@ -36,3 +36,19 @@ def test_run_app_prints_hints_only_on_failure(monkeypatch, capsys):
     assert "did you mean 'batch_size'" in capsys.readouterr().err
     run_app(lambda: None, "train")
     assert capsys.readouterr().err == ""
+
+
+def test_an_option_whose_plugin_is_missing_names_the_extra(monkeypatch):
+    import importlib.util
+
+    from cicfw import override_hints as hints_module
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name.startswith("hydra_plugins.hydra_optuna") else real(name, *a))
+    (hint,) = hints_module.missing_extras(["hparams_search=optuna", "launcher=joblib", "mixer=gtu"])
+    assert "hparams_search=optuna needs the 'sweeps' extra" in hint and 'cicfw[sweeps]' in hint
+
+
+def test_mandatory_values_count_as_present():
+    assert override_hints("train", ["data=cil_hdf5", "data.path=/x", "data.batch_size=8"]) == []
