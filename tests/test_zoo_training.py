@@ -148,3 +148,17 @@ def test_paper_experiment_composes_to_its_model(experiment):
         assert cfg.head[key] == value
     model = build_model(cfg)
     assert model.hparams.mixer == mixer and model.hparams.head == head
+
+
+@pytest.mark.parametrize("mixer, head", [("re", "coexistence"), ("sluice", "sine"), ("moe", "hybrid")])
+def test_zoo_checkpoint_round_trip_gives_identical_outputs(tmp_path, mixer, head):
+    kwargs = {"R": [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1], [0, 0, 1, 0]]} if mixer == "re" else {}
+    model = _model(mixer, head, **kwargs).eval()
+    trainer = _trainer(max_epochs=0)
+    trainer.strategy.connect(model)
+    trainer.save_checkpoint(tmp_path / "m.ckpt")
+    loaded = CICModule.load_from_checkpoint(tmp_path / "m.ckpt", weights_only=True).eval()
+    b = _batch()
+    args = (b["image"], b["speed"], b["command"])
+    assert torch.equal(model(*args), loaded(*args))
+    assert torch.equal(model.predict_steer(*args), loaded.predict_steer(*args))
