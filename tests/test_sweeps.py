@@ -49,11 +49,13 @@ def test_basic_multirun_records_a_failed_job_and_runs_the_others(tmp_path, tiny_
 
 def test_optuna_two_trials_write_the_summary(tmp_path, tiny_data):
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra: pip install -e .[sweeps]")
-    run, rows = _multirun(tmp_path, tiny_data, "hparams_search=optuna", "hydra.sweeper.n_trials=2")
+    # the mixer dimension narrowed to `independent` to keep the test fast (no mixer heatmaps)
+    run, rows = _multirun(tmp_path, tiny_data, "hparams_search=optuna", "hydra.sweeper.n_trials=2",
+                          "hydra.sweeper.params.mixer='choice(independent)'")
     assert run.returncode == 0, run.stderr[-3000:]
     assert [r["status"] for r in rows] == ["ok", "ok"]
     for r in rows:
-        assert 2e-5 <= float(r["model.lr"]) <= 2e-3 and r["head.W"] in {"5", "10", "15"} and r["mixer"] in MIXERS
+        assert 2e-5 <= float(r["model.lr"]) <= 2e-3 and r["head.W"] in {"5", "10", "15"} and r["mixer"] == "independent"
     best = yaml.safe_load((tmp_path / "sweep" / "optimization_results.yaml").read_text())
     assert math.isclose(best["best_value"], min(float(r["value"]) for r in rows))
 
