@@ -45,8 +45,9 @@ class GTUMixer(Mixer):
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
         coefs = torch.tanh(self.coef(h)) * torch.sigmoid(self.gate(h))
-        mixed, self._c = colearn(coefs, outputs)
+        mixed, c = colearn(coefs, outputs)
+        self._c = c.detach()  # for inspect(); detached so it does not hold the graph
         return mixed
 
     def inspect(self) -> dict[str, torch.Tensor]:
-        return {} if self._c is None else {"C": self._c.detach()}
+        return {} if self._c is None else {"C": self._c}

@@ -47,8 +47,8 @@ class MoEMixer(Mixer):
         experts = self.experts(h).view(b, self.n_experts, -1)  # (B, E, D)
         gates = torch.softmax(self.gates(h).view(b, self.n_branches, self.n_experts), dim=-1)  # (B, 4, E)
         inputs = torch.bmm(gates, experts)  # (B, 4, D): branch k reads Σ_e g_ke expert_e
-        self._gates = gates
+        self._gates = gates.detach()  # for inspect()
         return torch.stack([branch(inputs[:, k]) for k, branch in enumerate(self.branches)], dim=1)
 
     def inspect(self) -> dict[str, torch.Tensor]:
-        return {} if self._gates is None else {"gates": self._gates.detach()}
+        return {} if self._gates is None else {"gates": self._gates}

@@ -65,8 +65,9 @@ class REMixer(Mixer):
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
         r_off = self.R[offdiag_mask(self.n_branches).to(h.device)]  # (n(n-1),), same order as colearn
-        mixed, self._c = colearn(r_off * torch.tanh(self.coef(h)), outputs)
+        mixed, c = colearn(r_off * torch.tanh(self.coef(h)), outputs)
+        self._c = c.detach()  # for inspect(); detached so it does not hold the graph
         return mixed
 
     def inspect(self) -> dict[str, torch.Tensor]:
-        return {} if self._c is None else {"C": self._c.detach()}
+        return {} if self._c is None else {"C": self._c}
