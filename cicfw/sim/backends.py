@@ -207,6 +207,19 @@ class CarlaEnv:
         tf = carla.Transform(carla.Location(x=x, y=-y, z=0.5), carla.Rotation(yaw=-math.degrees(yaw)))
         self.car = self.world.spawn_actor(car_bp, tf)
         self.actors.append(self.car)
+        # the expert's steering scale must be this car's: CARLA cars steer up to ~70 deg, ours 40
+        try:
+            from cicfw.sim.expert import Expert
+            from cicfw.sim.vehicle import VehicleParams
+
+            wheels = self.car.get_physics_control().wheels
+            max_deg = float(wheels[0].max_steer_angle)
+            wheelbase = abs(wheels[0].position.x - wheels[2].position.x) / 100.0  # cm -> m (heading +x)
+            if not 1.5 < wheelbase < 5.0:
+                wheelbase = 2.9
+            self.expert = Expert(self.route, vehicle=VehicleParams(wheelbase=wheelbase, max_wheel_angle_deg=max_deg))
+        except (RuntimeError, IndexError, AttributeError):
+            pass
         cam_bp = bp.find("sensor.camera.rgb")
         cam_bp.set_attribute("image_size_x", "800")
         cam_bp.set_attribute("image_size_y", "600")
