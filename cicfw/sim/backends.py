@@ -214,7 +214,7 @@ class CarlaEnv:
 
             wheels = self.car.get_physics_control().wheels
             max_deg = float(wheels[0].max_steer_angle)
-            wheelbase = abs(wheels[0].position.x - wheels[2].position.x) / 100.0  # cm -> m (heading +x)
+            wheelbase = wheels[0].position.distance(wheels[2].position) / 100.0  # front-left to rear-left, cm -> m
             if not 1.5 < wheelbase < 5.0:
                 wheelbase = 2.9
             self.expert = Expert(self.route, vehicle=VehicleParams(wheelbase=wheelbase, max_wheel_angle_deg=max_deg))
