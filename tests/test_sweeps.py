@@ -142,3 +142,22 @@ def test_launcher_configs_compose():
     HydraConfig.instance().set_config(cfg)  # what Hydra does in each job: the trainer follows the launcher
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
     assert trainer["devices"] == 4 and trainer["num_nodes"] == 2 and cfg.hydra.launcher.tasks_per_node == 4
+
+
+def test_job_row_reads_status_error_and_closed_loop_success(tmp_path):
+    from hydra.core.utils import JobReturn, JobStatus
+
+    from cicfw.sweeps import job_row
+
+    def config(num: int, out: Path, **top):
+        return OmegaConf.create({"optimized_metric": "val/steer_mae", **top, "hydra": {
+            "job": {"num": num}, "runtime": {"output_dir": str(out)}, "overrides": {"task": ["mixer=gtu"]}}})
+
+    write_job_metrics(tmp_path / "0", {"closed_loop/success": 81.25})  # what evaluate_after writes
+    ok = JobReturn(overrides=["mixer=gtu"], status=JobStatus.COMPLETED, _return_value=0.25)
+    row = job_row(config(0, tmp_path / "0"), ok)
+    assert (row["status"], row["value"], row["closed_loop_success"], row["error"]) == ("ok", 0.25, 81.25, "")
+    bad = JobReturn(overrides=["mixer=gtu"], status=JobStatus.FAILED, _return_value=RuntimeError("out of\nmemory"))
+    row = job_row(config(1, tmp_path / "1", evaluate_after=True, return_closed_loop=True), bad)
+    assert (row["status"], row["value"], row["error"]) == ("failed", "", "RuntimeError: out of memory")
+    assert row["metric"] == "closed_loop/success"
