@@ -68,8 +68,8 @@ def test_noiser_follows_cil_and_never_touches_the_label():
     rng = np.random.default_rng(0)
     nz = Noiser(rng)
     assert 8 <= nz.intensity <= 12
-    steer, applied, flags = [], [], []
-    for k in range(6000):  # 10 minutes at 15 km/h, constant expert steering 0.1
+    applied, flags = [], []
+    for _ in range(6000):  # 10 minutes at 15 km/h, constant expert steering 0.1
         a, f = nz.step(0.1, 15.0)
         applied.append(a)
         flags.append(f)
