@@ -31,8 +31,8 @@ DASH, DASH_GAP = 3.0, 3.0
 
 # per-class wetness response: how much darker when soaked, base reflectivity when wet
 _TERRAIN, _SIDEWALK, _ROAD, _MARK = range(4)
-_WET_DARK = {_TERRAIN: 0.35, _SIDEWALK: 0.35, _ROAD: 0.5, _MARK: 0.25}
-_WET_REFL = {_TERRAIN: 0.04, _SIDEWALK: 0.3, _ROAD: 0.55, _MARK: 0.4}
+_WET_DARK = {_TERRAIN: 0.3, _SIDEWALK: 0.3, _ROAD: 0.4, _MARK: 0.15}
+_WET_REFL = {_TERRAIN: 0.04, _SIDEWALK: 0.35, _ROAD: 0.65, _MARK: 0.45}
 
 
 @dataclass(eq=False)

@@ -23,7 +23,7 @@ from cicfw.sim.render.camera import (CAMERAS, CX, CY, FIRST_GROUND_ROW, FX, FY, 
 from cicfw.sim.render.ground import LEVELS, GroundTexture, bake_ground, ground_base
 from cicfw.sim.render.noise import smooth_noise, stable_seed
 from cicfw.sim.render.scene import C, NX, NY, S0, TABLE, Y0, Items, Scene
-from cicfw.sim.render.sky import heading_shift, pano_maps, rain_streaks, sky_panorama
+from cicfw.sim.render.sky import heading_shift, pad_panorama, pano_maps, rain_streaks, sky_panorama
 from cicfw.sim.render.weather import Weather, get_weather
 
 MIN_BAND = 3  # rows per mip band at least
@@ -33,6 +33,7 @@ V0 = FIRST_GROUND_ROW
 NG = IMAGE_H - V0  # ground rows
 
 _TEXTURES: dict = {}
+_ROW_INDEX = np.repeat(np.arange(IMAGE_H, dtype=np.uint8)[:, None], IMAGE_W, axis=1)
 
 
 def _ground_texture(town, weather: Weather) -> GroundTexture:
@@ -71,7 +72,7 @@ class _CameraTables:
         gdz = rays[V0:, :, 2]
         self.ground_dist = (MOUNT_HEIGHT / -gdz * dn[V0:]).astype(np.float32)
         dep = np.arcsin(np.clip(-gdz / dn[V0:], 0, 1))  # depression angle, for the Fresnel weight
-        self.fresnel8 = np.round(255 * (0.12 + 0.55 * (1 - np.sin(dep)) ** 6)).astype(np.uint8)
+        self.fresnel8 = np.round(255 * (0.2 + 0.7 * (1 - np.sin(dep)) ** 4)).astype(np.uint8)
         # the mirror lookup of wet reflections, jittered (rough water film, not a mirror)
         self.rough_x = np.clip(np.arange(IMAGE_W, dtype=np.float32)[None, :]
                                + 0.9 * smooth_noise((NG, IMAGE_W), 2.0, rng), 0, IMAGE_W - 1).astype(np.float32)
@@ -98,12 +99,12 @@ def mip_bands(levels: int, res: float) -> list[tuple[int, int, int]]:
             bands[-1][1] = r + 1
         else:
             bands.append([r, r + 1, lvl])
-    # merge bands thinner than MIN_BAND rows into the next (finer) one, keeping the coarser level:
-    # every warp call costs a few microseconds, and the far rows are fogged anyway
+    # merge bands thinner than MIN_BAND rows into the next one at the finer level (every warp call
+    # costs a few microseconds; the thin bands are the far rows next to the horizon)
     merged: list[list[int]] = []
     for band in bands:
         if merged and merged[-1][1] - merged[-1][0] < MIN_BAND:
-            merged[-1][1] = band[1]
+            merged[-1][1], merged[-1][2] = band[1], min(merged[-1][2], band[2])
         else:
             merged.append(list(band))
     return [tuple(b) for b in merged]
@@ -133,6 +134,7 @@ class Renderer:
         self.atlas: Atlas = build_atlas(town.style, w)
         self.scene = Scene(town, w, self.atlas)
         self.tables = {c: _CameraTables(get_camera(c), rng) for c in self.cameras}
+        self._rot_all = np.concatenate([t.rot_t for t in self.tables.values()], axis=1)  # (3, 3 * cams)
         self.az_lo = min(t.az_lo for t in self.tables.values())
         self.az_hi = max(t.az_hi for t in self.tables.values())
         self.bands = mip_bands(LEVELS, self.ground.base.res)
@@ -143,8 +145,9 @@ class Renderer:
         self._band_post = np.stack([np.array([[1.0, 0, 0], [0, 1.0, a], [0, 0, 1.0]]) for a, _, _ in self.bands])
 
         sky = sky_panorama(w, town.style.vegetation, stable_seed("sky", self.seed, w.name))
-        self.sky = np.zeros(sky.shape[:2] + (4,), np.uint8)
-        self.sky[..., :3] = np.clip(sky * 255 + 0.5, 0, 255)
+        sky4 = np.zeros(sky.shape[:2] + (4,), np.uint8)
+        sky4[..., :3] = np.clip(sky * 255 + 0.5, 0, 255)
+        self.sky = pad_panorama(sky4)
         fog = np.asarray(w.fog_colour, np.float64) * 255
         self._fog_img = np.zeros((IMAGE_H, IMAGE_W, 4), np.uint8)
         self._fog_img[..., :3] = np.round(fog)
@@ -172,9 +175,10 @@ class Renderer:
         x, y, yaw = float(x), float(y), float(yaw)
         cx, cy = x + MOUNT_FORWARD * math.cos(yaw), y + MOUNT_FORWARD * math.sin(yaw)
         items = self.scene.items(cx, cy, yaw, self.az_lo, self.az_hi)
+        polys = self._project(items)
         minv = self._ground_inverse(x, y, yaw)
         shift = heading_shift(yaw)
-        return {name: self._render_camera(self.tables[name], items, minv, shift, t, k)
+        return {name: self._render_camera(self.tables[name], items, polys[k], minv, shift, t, k)
                 for k, name in enumerate(self.cameras)}
 
     @staticmethod
@@ -186,32 +190,41 @@ class Renderer:
         h = MOUNT_HEIGHT
         return np.array([[c, -s, (c * tx - s * ty) / h], [s, c, (s * tx + c * ty) / h], [0, 0, -1.0 / h]])
 
-    def _draw_ids(self, ct: _CameraTables, items: Items) -> np.ndarray:
+    def _project(self, items: Items) -> list[tuple[np.ndarray, list]]:
+        """Project the items into every camera at once: per camera, the indices of the items in view
+        (draw order, at most MAX_ITEMS: the nearest) and their image polygons (fixed point, shift 4)."""
+        nc = len(self.cameras)
+        if len(items) == 0:
+            return [(np.zeros(0, np.intp), [])] * nc
+        pc = (items.poly @ self._rot_all).reshape(len(items), -1, nc, 3)  # (N, P, cams, 3)
+        z = pc[..., 2]
+        zs = np.maximum(z, NEAR)
+        uv = pc[..., :2] / zs[..., None]
+        uv *= (FX, FY)
+        uv += (CX, CY)
+        lo, hi = uv.min(1), uv.max(1)  # (N, cams, 2)
+        inside = ((z.max(1) > NEAR) & (hi[..., 0] >= -0.5) & (lo[..., 0] <= IMAGE_W - 0.5)
+                  & (hi[..., 1] >= -0.5) & (lo[..., 1] <= IMAGE_H - 0.5))
+        part = z.min(1) <= NEAR  # crossing the near plane: (u, v) above are wrong there, clip exactly
+        uv *= 16
+        np.clip(uv, -2 ** 24, 2 ** 24, out=uv)
+        fixed = uv.round().astype(np.int32)
+        out = []
+        for k in range(nc):
+            idx = np.nonzero(inside[:, k])[0]
+            if len(idx) > MAX_ITEMS:
+                idx = idx[-MAX_ITEMS:]  # keep the nearest (drawn last)
+            polys = list(np.ascontiguousarray(fixed[idx, :, k]))
+            for j in np.nonzero(part[idx, k])[0].tolist():
+                i = idx[j]
+                polys[j] = _clip_near(pc[i, :items.nv[i], k].tolist())
+            out.append((idx, polys))
+        return out
+
+    def _draw_ids(self, ct: _CameraTables, idx: np.ndarray, polys: list) -> np.ndarray:
         """Fill the id buffer (1..n in draw order); returns the surface-table columns of ids 0..n."""
         ids = self._ids
         ids.fill(0)
-        if len(items) == 0:
-            return np.zeros(1, np.intp)
-        pc = items.poly @ ct.rot_t  # (N, P, 3) camera coordinates
-        z = pc[..., 2]
-        zmin = z.min(1)
-        zs = np.maximum(z, NEAR)
-        u = pc[..., 0] * (FX / zs)
-        v = pc[..., 1] * (FY / zs)
-        u += CX
-        v += CY
-        inside = ((z.max(1) > NEAR) & (u.max(1) >= -0.5) & (u.min(1) <= IMAGE_W - 0.5)
-                  & (v.max(1) >= -0.5) & (v.min(1) <= IMAGE_H - 0.5))
-        idx = np.nonzero(inside)[0]
-        if len(idx) > MAX_ITEMS:
-            idx = idx[-MAX_ITEMS:]  # keep the nearest (drawn last)
-        uv = np.stack([u[idx], v[idx]], -1)
-        uv *= 16
-        pts = np.clip(uv, -2 ** 24, 2 ** 24).round().astype(np.int32)
-        polys = list(pts)
-        for j in np.nonzero(zmin[idx] <= NEAR)[0].tolist():  # crossing the near plane: clip exactly
-            i = idx[j]
-            polys[j] = _clip_near(pc[i, :items.nv[i]].tolist())
         fill = cv2.fillConvexPoly
         for j, q in enumerate(polys, 1):
             if q is not None:
@@ -222,12 +235,12 @@ class Renderer:
         cols[1:] = idx + 1
         return cols
 
-    def _render_camera(self, ct: _CameraTables, items: Items, minv: np.ndarray, shift: float, t: float,
-                       k: int) -> np.ndarray:
+    def _render_camera(self, ct: _CameraTables, items: Items, proj: tuple, minv: np.ndarray, shift: float,
+                       t: float, k: int) -> np.ndarray:
         frame = np.empty((IMAGE_H, IMAGE_W, 4), np.uint8)
         # sky: the world-fixed panorama, turned by the heading
         cv2.remap(self.sky, ct.pano_x + shift, ct.pano_y, cv2.INTER_LINEAR, dst=frame[:V0],
-                  borderMode=cv2.BORDER_WRAP)
+                  borderMode=cv2.BORDER_REPLICATE)
         # ground: image -> texture homography per band of rows, each from its mip level
         mats = self._band_pre @ (minv @ ct.kr_inv) @ self._band_post
         pyr, borders = self.ground.pyramid, self.ground.borders
@@ -237,36 +250,40 @@ class Renderer:
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=borders[lvl])
 
         # items: id buffer -> depth -> atlas lookup (lit) -> composited over sky and ground
-        cols = self._draw_ids(ct, items)
+        cols = self._draw_ids(ct, *proj)
         n = len(cols)
         keep = self.keep_fixed
-        if n > 1:
-            ids = self._ids
+        filled = np.flatnonzero(cv2.reduce(self._ids, 1, cv2.REDUCE_MAX)) if n > 1 else ()
+        if len(filled) == 0:
+            n = 1  # nothing in view covers a pixel
+        else:
+            rows = int(filled[-1]) + 1  # only the rows down to the lowest item pixel
+            ids = self._ids[:rows]
             lut = self._lut
             lut[:, :n] = items.table[:, cols]
             lut[:, n:] = 0
             LUT = cv2.LUT
             nx, ny = LUT(ids, lut[NX]), LUT(ids, lut[NY])
-            den = nx * ct.dx
-            den += ny * ct.dy
+            den = nx * ct.dx[:rows]
+            den += ny * ct.dy[:rows]
             dep = LUT(ids, lut[C])
             dep /= den  # ray parameter: distance / |ray|
-            sx = nx * ct.dy_ppm
-            sx -= ny * ct.dx_ppm
+            sx = nx * ct.dy_ppm[:rows]
+            sx -= ny * ct.dx_ppm[:rows]
             sx *= dep
             sx += LUT(ids, lut[S0])
             wrap = sx * (1 / TW)  # the tile repeats along the surface: sx mod TW
             np.floor(wrap, out=wrap)
             wrap *= TW
             sx -= wrap
-            sy = dep * ct.dz_ppm
+            sy = dep * ct.dz_ppm[:rows]
             sy += LUT(ids, lut[Y0])
             alb = cv2.remap(self.atlas.image, sx, sy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             mask = cv2.compare(ids, 0, cv2.CMP_GT)
-            cv2.copyTo(alb, mask, frame)
-            dep *= ct.dn_fog
+            cv2.copyTo(alb, mask, frame[:rows])
+            dep *= ct.dn_fog[:rows]
             keep = self.keep_fixed.copy()
-            cv2.copyTo(cv2.exp(dep), mask, keep)
+            cv2.copyTo(cv2.exp(dep), mask, keep[:rows])
         if self.wet:
             self._reflect(ct, frame, n > 1)
         # fog over everything: frame * keep + fog * (1 - keep), in 8 bits
@@ -284,17 +301,16 @@ class Renderer:
         """Blend into the ground rows of ``frame`` a rough mirror image of what stands above them
         (mirrored about the base of the lowest item in each column, or the horizon), weighted by
         the ground's wetness (texture alpha; 0 on items) and a Fresnel term."""
-        if has_items:
-            m = self._ids > 0
-            low = IMAGE_H - 1 - np.argmax(m[::-1], axis=0)  # lowest item row per column
-            base = np.where(m.any(0), np.maximum(low + 0.5, HORIZON_ROW), HORIZON_ROW).astype(np.float32)
+        if has_items:  # lowest item row of each column (0 where none)
+            low = cv2.reduce(cv2.min(cv2.compare(self._ids, 0, cv2.CMP_GT), _ROW_INDEX), 0, cv2.REDUCE_MAX)
+            base = np.maximum(low.astype(np.float32) + 0.5, HORIZON_ROW)
         else:
-            base = np.full(IMAGE_W, HORIZON_ROW, np.float32)
-        my = 2 * base[None, :] - ct.rough_y
+            base = np.full((1, IMAGE_W), HORIZON_ROW, np.float32)
+        my = 2 * base - ct.rough_y
         np.maximum(my, 0, out=my)
         refl = cv2.remap(frame, ct.rough_x, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        refl = cv2.blur(refl, (3, 7))
-        w8 = cv2.multiply(frame[V0:, :, 3], ct.fresnel8, scale=1 / 255)
+        refl = cv2.blur(refl, (5, 5))
+        w8 = cv2.multiply(cv2.extractChannel(frame[V0:], 3), ct.fresnel8, scale=1 / 255)
         w4 = cv2.merge([w8, w8, w8, w8])
         g = frame[V0:]
         g2 = cv2.multiply(g, cv2.bitwise_not(w4), scale=1 / 255)

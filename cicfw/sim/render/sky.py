@@ -16,7 +16,8 @@ from cicfw.sim.render.noise import smooth_noise
 from cicfw.sim.render.weather import Weather
 
 PANO_W = 1440  # 0.25 deg per column
-SKY_TOP, SKY_BOTTOM = 50.0, -30.0  # elevation range of the panorama rows, degrees
+PANO_PAD = 480  # columns repeated on each side, so camera lookups never need wrapping
+SKY_TOP, SKY_BOTTOM = 20.0, -2.0  # elevation range of the panorama rows (the cameras see 0.3-13.6 deg)
 PANO_H = int((SKY_TOP - SKY_BOTTOM) * 4)
 CLOUD_HEIGHT = 1500.0  # m
 RAIN_PERIOD = 4  # rain texture height in image heights
@@ -29,8 +30,7 @@ def _elev_az() -> tuple[np.ndarray, np.ndarray]:
 
 
 def sky_panorama(weather: Weather, vegetation: tuple, seed: int = 0) -> np.ndarray:
-    """(PANO_H, PANO_W, 3) float32 RGB in 0-1 for ``weather``; below the horizon it mirrors the sky
-    (what a wet road reflects) with a dark distant tree line at the horizon."""
+    """(PANO_H, PANO_W, 3) float32 RGB in 0-1 for ``weather``, with a distant tree line at the horizon."""
     rng = np.random.default_rng(seed)
     el, az = _elev_az()
     e = np.abs(el)
@@ -81,7 +81,7 @@ def sky_panorama(weather: Weather, vegetation: tuple, seed: int = 0) -> np.ndarr
     # a distant tree line, 0.5-2.2 deg tall, hazed towards the horizon colour
     prof = 1.2 + 0.7 * smooth_noise((1, PANO_W * 3), 14, rng)[0, PANO_W:2 * PANO_W] + \
         0.3 * smooth_noise((1, PANO_W * 3), 3, rng)[0, PANO_W:2 * PANO_W]
-    tree = np.clip((np.maximum(prof, 0.4)[None, :] - el) * 4.0, 0, 1) * (el > -0.1)
+    tree = np.clip((np.maximum(prof, 0.4)[None, :] - el) * 4.0, 0, 1)
     veg = np.asarray(vegetation, np.float32) / 255 * np.asarray(weather.ambient, np.float32)
     far = veg + 0.6 * (hor - veg)
     sky = sky + tree[..., None] * (far - sky)
@@ -97,21 +97,21 @@ def rain_streaks(weather: Weather, seed: int, height: int, width: int) -> np.nda
     th = RAIN_PERIOD * height
     ss = 2  # draw at twice the resolution, then shrink (soft, anti-aliased streaks)
     img = np.zeros((th * ss, width * ss), np.float32)
-    count = int(900 * weather.rain)
+    count = int(1000 * weather.rain)
     slant = 0.18
     for _ in range(count):
         x, y = rng.uniform(0, width * ss), rng.uniform(0, th * ss)
-        near = rng.random() ** 3  # few big near drops, many thin far ones
-        length = (5 + 22 * near) * ss
-        bright = (0.25 + 0.45 * rng.random()) * (0.6 + 0.4 * near)
-        thick = 1 + int(near * 2.5)
+        near = rng.random() ** 4  # few big near drops, many thin far ones
+        length = (4 + 16 * near) * ss
+        bright = (0.2 + 0.4 * rng.random()) * (0.6 + 0.4 * near)
+        thick = 1 + int(near * 2.2)
         for dy in (0, -th * ss, th * ss):  # draw wrapped copies so the texture tiles
             p0 = (int((x) * 16), int((y + dy) * 16))
             p1 = (int((x + slant * length) * 16), int((y + dy + length) * 16))
             cv2.line(img, p0, p1, bright, thick, cv2.LINE_AA, 4)
     img = cv2.resize(img, (width, th), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), 0.6)
-    streak = np.clip(img * (110 * (0.5 + 0.5 * weather.rain)), 0, 255)
+    streak = np.clip(img * (100 * (0.4 + 0.6 * weather.rain)), 0, 255)
     tint = np.array([0.95, 0.97, 1.0], np.float32)
     return np.ascontiguousarray(np.clip(streak[..., None] * tint, 0, 255).astype(np.uint8))
 
@@ -126,5 +126,11 @@ def pano_maps(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def heading_shift(yaw: float) -> float:
-    """Panorama columns to add for a vehicle heading ``yaw`` (rad, CCW from east)."""
-    return (math.degrees(yaw) % 360.0) * PANO_W / 360.0
+    """Panorama columns to add for a vehicle heading ``yaw`` (rad, CCW from east), for a panorama
+    padded by ``pad_panorama``."""
+    return (math.degrees(yaw) % 360.0) * PANO_W / 360.0 + PANO_PAD
+
+
+def pad_panorama(pano: np.ndarray) -> np.ndarray:
+    """Repeat PANO_PAD columns of the panorama on both sides (lookups stay inside it)."""
+    return np.ascontiguousarray(np.concatenate([pano[:, -PANO_PAD:], pano, pano[:, :PANO_PAD]], axis=1))
