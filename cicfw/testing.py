@@ -97,17 +97,23 @@ def check_head(name: str, batch: int = 6, **kwargs) -> Head:
     return head
 
 
-def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0) -> Path:
-    """``n_files`` CIL HDF5 files of ``n`` random samples, every command and camera present."""
+def make_targets(n: int, rng: np.random.Generator, commands=(2, 3, 4, 5)) -> np.ndarray:
+    """CIL ``targets`` (n, 28): random steer and speed, the commands and the three cameras cycled."""
+    t = np.zeros((n, N_TARGETS), np.float32)
+    t[:, T.STEER] = rng.uniform(-0.6, 0.6, n)
+    t[:, T.SPEED] = rng.uniform(0, 30, n)
+    t[:, T.COMMAND] = np.resize(np.asarray(commands, np.float32), n)
+    t[:, T.CAMERA_ID] = np.resize(np.array([0, 1, 2], np.float32), n)
+    t[:, T.CAMERA_YAW] = np.resize(np.array([0, -30, 30], np.float32), n)
+    return t
+
+
+def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, commands=(2, 3, 4, 5)) -> Path:
+    """``n_files`` CIL HDF5 files of ``n`` random samples, every given command and camera present."""
     folder = Path(folder)
     rng = np.random.default_rng(seed)
     for i in range(n_files):
-        t = np.zeros((n, N_TARGETS), np.float32)
-        t[:, T.STEER] = rng.uniform(-0.6, 0.6, n)
-        t[:, T.SPEED] = rng.uniform(0, 30, n)
-        t[:, T.COMMAND] = np.resize(np.array([2, 3, 4, 5], np.float32), n)
-        t[:, T.CAMERA_ID] = np.resize(np.array([0, 1, 2], np.float32), n)
-        t[:, T.CAMERA_YAW] = np.resize(np.array([0, -30, 30], np.float32), n)
+        t = make_targets(n, rng, commands)
         write_file(folder / f"data_{i:05d}.h5", rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8), t)
     return folder
 

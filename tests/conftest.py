@@ -3,31 +3,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
-
-
-def make_targets(n: int, rng: np.random.Generator, commands=(2, 3, 4, 5)) -> np.ndarray:
-    t = np.zeros((n, N_TARGETS), np.float32)
-    t[:, T.STEER] = rng.uniform(-0.6, 0.6, n)
-    t[:, T.SPEED] = rng.uniform(0, 30, n)
-    t[:, T.COMMAND] = np.resize(np.asarray(commands, np.float32), n)
-    t[:, T.CAMERA_ID] = np.resize(np.array([0, 1, 2], np.float32), n)
-    t[:, T.CAMERA_YAW] = np.resize(np.array([0, -30, 30], np.float32), n)
-    return t
-
-
-def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, **kw) -> Path:
-    """``n_files`` CIL files of ``n`` samples; images carry a pattern that depends on the steer."""
-    rng = np.random.default_rng(seed)
-    for i in range(n_files):
-        t = make_targets(n, rng, **kw)
-        rgb = rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8)
-        write_file(folder / f"data_{i:05d}.h5", rgb, t)
-    return folder
+from cicfw.testing import make_targets, write_tiny_dataset  # noqa: F401  (tests import them from here)
 
 
 @pytest.fixture
