@@ -106,18 +106,19 @@ def pictures(cfg: DictConfig, report, trajectories: dict, run_dir: Path, filmed:
     """The map per town, the bar chart, and the requested videos."""
     from cicfw.bench.plots import bar_chart, town_maps
 
+    from cicfw.bench.suite import town_label
+
+    towns = {town_label(t): str(t) for t in cfg.suite.towns}
     if cfg.get("maps", True):
-        town_maps(report, trajectories, run_dir)
+        town_maps(report, trajectories, run_dir, towns)
     bar_chart([report], run_dir / "success_bars.png")
     if filmed:
-        from cicfw.bench.suite import town_label
         from cicfw.bench.video import write_video
         from cicfw.sim.town import load_town
 
         if cfg.sim.name != "embedded":
             log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", cfg.sim.name)
             return
-        towns = {town_label(t): str(t) for t in cfg.suite.towns}
         for r in filmed:
             path = run_dir / "videos" / f"{r['key'].replace('/', '_')}.mp4"
             write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], int(cfg.seed))

@@ -32,10 +32,11 @@ def _save(fig, path: Path) -> Path:
 
 
 def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], out_dir: Path,
-              town_loader=None) -> list[Path]:
+              towns: Mapping[str, str] | None = None, town_loader=None) -> list[Path]:
     """``map_<town>.png`` per town of the run: the town drawn from its data, every driven path on it
     (green = reached the goal, red = failed, with a marker where it ended: X off road, + off route,
-    square timeout), one panel per weather. Towns the loader cannot draw (e.g. CARLA's) are skipped."""
+    square timeout), one panel per weather. ``towns`` maps a row's town name to what the loader takes
+    (a path for towns outside conf/town/). Towns the loader cannot draw (e.g. CARLA's) are skipped."""
     from cicfw.sim.mapplot import draw_town
 
     if town_loader is None:
@@ -47,7 +48,7 @@ def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], ou
         by_town.setdefault(r["town"], []).append(r)
     for town_name, rows in by_town.items():
         try:
-            town = town_loader(rows[0].get("town_path") or town_name)
+            town = town_loader((towns or {}).get(town_name, town_name))
         except (ValueError, OSError):
             continue
         weathers = list(dict.fromkeys(r["weather"] for r in rows))

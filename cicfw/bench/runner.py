@@ -11,6 +11,7 @@ seed, batch size and worker count.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing as mp
 import os
@@ -221,15 +222,28 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
     try:
         if workers <= 1:
             pol = policy if isinstance(policy, Policy) else make_policy(policy)
-            if cfg.threads:
-                import torch
-
-                torch.set_num_threads(int(cfg.threads))
             backend = make_backend(sim) if sim is None or isinstance(sim, Mapping) else sim
-            return drive(episodes, pol, backend, cfg, on_done=lambda row: bar.update(row["success"]))
+            with _torch_threads(cfg.threads):
+                return drive(episodes, pol, backend, cfg, on_done=lambda row: bar.update(row["success"]))
         return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar)
     finally:
         bar.close()
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """Use ``n`` torch threads inside the block (if given), then restore the caller's setting."""
+    if not n:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: RunnerConfig,
