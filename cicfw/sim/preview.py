@@ -21,15 +21,21 @@ from cicfw.sim.render.camera import MOUNT_FORWARD
 
 CAMERA_ORDER = ("left", "centre", "right")
 # CIL command code -> (label, RGB)
-COMMAND_STYLE = {2: ("follow", (150, 150, 150)), 3: ("left", (40, 120, 230)), 4: ("right", (230, 50, 50)),
+COMMAND_STYLE = {2: ("follow", (255, 255, 255)), 3: ("left", (40, 120, 230)), 4: ("right", (230, 50, 50)),
                  5: ("straight", (40, 190, 70))}
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> Path:
-    """Write atomically (temporary name, then rename)."""
+def _write_png(path: Path, rgb: np.ndarray, colours: int = 0) -> Path:
+    """Write atomically (temporary name, then rename); ``colours`` > 0 quantises to a palette (small
+    files for docs)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")
-    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+    if colours:
+        from PIL import Image
+
+        Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
+                                      dither=Image.Dither.NONE).save(tmp, optimize=True)
+    elif not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
         raise OSError(f"could not write {path}")
     os.replace(tmp, path)
     return path
@@ -64,13 +70,13 @@ def approach_pose(town, before: float = 12.0, command: int = 3):
 
 def _grid(rows: list[tuple[str, dict]], scale: int, title: str) -> np.ndarray:
     """Rows of (label, {camera: image}) -> one labelled sheet (RGB)."""
-    pad, lab_w = 3, 150
+    pad, lab_w = 3, 130
     h, w = 88 * scale, 200 * scale
-    head = 22
+    head = 40
     out = np.full((head + len(rows) * (h + pad) + pad, lab_w + 3 * (w + pad) + pad, 3), 255, np.uint8)
-    _label(out, title, (4, 15), 0.4)
+    _label(out, title, (4, 15), 0.42)
     for k, cam in enumerate(CAMERA_ORDER):
-        _label(out, f"{cam} ({CAMERAS[cam].yaw_deg:+.0f} deg)", (lab_w + k * (w + pad) + w // 2 - 45, 15), 0.42)
+        _label(out, f"{cam} ({CAMERAS[cam].yaw_deg:+.0f} deg)", (lab_w + k * (w + pad) + w // 2 - 45, 34), 0.42)
     for r, (label, ims) in enumerate(rows):
         y = head + r * (h + pad) + pad
         for i, line in enumerate(label.split("\n")):
@@ -133,6 +139,7 @@ def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon")
             cv2.circle(img, c, int(0.4 * f * 16), (30, 30, 30), -1, cv2.LINE_AA, 4)
     for route in routes:
         pts, cmd = px(route.points), np.asarray(route.commands)
+        cv2.polylines(img, [pts], False, (20, 20, 20), 4, cv2.LINE_AA, 4)  # outline
         cut = np.nonzero(np.diff(cmd))[0] + 1
         for a, b in zip(np.r_[0, cut], np.r_[cut, len(cmd)]):
             seg = pts[max(a - 1, 0):b]
@@ -143,8 +150,9 @@ def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon")
         cv2.drawMarker(img, (g[0] // 16, g[1] // 16), (0, 0, 0), cv2.MARKER_TILTED_CROSS, 10, 2)
     # legend
     y = 16
-    cv2.rectangle(img, (4, 4), (112, 14 + 16 * len(COMMAND_STYLE)), (255, 255, 255), -1)
+    cv2.rectangle(img, (4, 4), (112, 14 + 16 * len(COMMAND_STYLE)), (235, 235, 235), -1)
     for code, (name, col) in COMMAND_STYLE.items():
+        cv2.line(img, (10, y), (30, y), (20, 20, 20), 5, cv2.LINE_AA)
         cv2.line(img, (10, y), (30, y), col, 3, cv2.LINE_AA)
         _label(img, f"{code} {name}", (36, y + 4), 0.4)
         y += 16
@@ -172,18 +180,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale", type=int, default=2, help="image upscale in the sheets (default: %(default)s)")
     ap.add_argument("--routes", type=int, default=4, help="routes drawn on each map (default: %(default)s)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--colours", type=int, default=0,
+                    help="quantise the PNGs to this many colours (e.g. 256 for small files; default: full colour)")
+    ap.add_argument("--prefix", default="", help="prefix of the file names (e.g. sim_)")
     a = ap.parse_args(argv)
     for wx in a.weathers:
         if wx not in WEATHERS:
             ap.error(f"unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
     if a.scale < 1:
         ap.error("--scale must be >= 1")
+    if not 0 <= a.colours <= 256:
+        ap.error("--colours must be 0 (full colour) or 2..256")
     towns = [load_town(n) for n in (a.towns or town_names())]
     out = Path(a.out).expanduser().resolve()
-    written = [_write_png(out / "contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed)),
-               _write_png(out / "turn_sheet.png", turn_sheet(towns, ["ClearNoon", "WetCloudySunset"], a.scale, a.seed))]
+    q, pre = a.colours, a.prefix
+    written = [_write_png(out / f"{pre}contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed), q),
+               _write_png(out / f"{pre}turn_sheet.png",
+                          turn_sheet(towns, ["ClearNoon", "WetCloudySunset"], a.scale, a.seed), q)]
     for town in towns:
-        written.append(_write_png(out / f"map_{town.name}.png", town_map(town, sample_routes(town, a.routes, a.seed))))
+        written.append(_write_png(out / f"{pre}map_{town.name}.png",
+                                  town_map(town, sample_routes(town, a.routes, a.seed)), q))
     for p in written:
         print(p)
     return 0

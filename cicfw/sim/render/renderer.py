@@ -253,37 +253,37 @@ class Renderer:
         cols = self._draw_ids(ct, *proj)
         n = len(cols)
         keep = self.keep_fixed
-        filled = np.flatnonzero(cv2.reduce(self._ids, 1, cv2.REDUCE_MAX)) if n > 1 else ()
-        if len(filled) == 0:
+        bx, by, bw, bh = cv2.boundingRect(self._ids) if n > 1 else (0, 0, 0, 0)
+        if bw == 0:
             n = 1  # nothing in view covers a pixel
-        else:
-            rows = int(filled[-1]) + 1  # only the rows down to the lowest item pixel
-            ids = self._ids[:rows]
+        else:  # the per-pixel pass runs over the items' bounding box only
+            box = (slice(by, by + bh), slice(bx, bx + bw))
+            ids = self._ids[box]
             lut = self._lut
             lut[:, :n] = items.table[:, cols]
             lut[:, n:] = 0
             LUT = cv2.LUT
             nx, ny = LUT(ids, lut[NX]), LUT(ids, lut[NY])
-            den = nx * ct.dx[:rows]
-            den += ny * ct.dy[:rows]
+            den = nx * ct.dx[box]
+            den += ny * ct.dy[box]
             dep = LUT(ids, lut[C])
             dep /= den  # ray parameter: distance / |ray|
-            sx = nx * ct.dy_ppm[:rows]
-            sx -= ny * ct.dx_ppm[:rows]
+            sx = nx * ct.dy_ppm[box]
+            sx -= ny * ct.dx_ppm[box]
             sx *= dep
             sx += LUT(ids, lut[S0])
             wrap = sx * (1 / TW)  # the tile repeats along the surface: sx mod TW
             np.floor(wrap, out=wrap)
             wrap *= TW
             sx -= wrap
-            sy = dep * ct.dz_ppm[:rows]
+            sy = dep * ct.dz_ppm[box]
             sy += LUT(ids, lut[Y0])
             alb = cv2.remap(self.atlas.image, sx, sy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             mask = cv2.compare(ids, 0, cv2.CMP_GT)
-            cv2.copyTo(alb, mask, frame[:rows])
-            dep *= ct.dn_fog[:rows]
+            cv2.copyTo(alb, mask, frame[box])
+            dep *= ct.dn_fog[box]
             keep = self.keep_fixed.copy()
-            cv2.copyTo(cv2.exp(dep), mask, keep[:rows])
+            cv2.copyTo(cv2.exp(dep), mask, keep[box])
         if self.wet:
             self._reflect(ct, frame, n > 1)
         # fog over everything: frame * keep + fog * (1 - keep), in 8 bits
@@ -302,7 +302,7 @@ class Renderer:
         (mirrored about the base of the lowest item in each column, or the horizon), weighted by
         the ground's wetness (texture alpha; 0 on items) and a Fresnel term."""
         if has_items:  # lowest item row of each column (0 where none)
-            low = cv2.reduce(cv2.min(cv2.compare(self._ids, 0, cv2.CMP_GT), _ROW_INDEX), 0, cv2.REDUCE_MAX)
+            low = cv2.min(cv2.compare(self._ids, 0, cv2.CMP_GT), _ROW_INDEX).max(0, keepdims=True)
             base = np.maximum(low.astype(np.float32) + 0.5, HORIZON_ROW)
         else:
             base = np.full((1, IMAGE_W), HORIZON_ROW, np.float32)
