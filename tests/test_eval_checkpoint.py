@@ -69,8 +69,12 @@ def test_checkpoint_round_trip_and_policy_uses_the_commands_branch(ckpt: Path):
     with torch.no_grad():
         want = ref.predict_steer(torch.from_numpy(img).permute(0, 3, 1, 2), torch.from_numpy(speed),
                                  torch.from_numpy(cmd - 2))
-    assert steer.shape == (4,) and np.allclose(steer, want.numpy(), atol=1e-6)
+    assert steer.shape == (4,) and np.allclose(steer, want.numpy(), atol=1e-5)
     assert np.all(np.abs(steer) <= 1.0)
+    # inference folds BatchNorm into the convolutions (and drops Dropout): same function, less work
+    kinds = {type(m).__name__ for m in pol.model.modules()}
+    assert "BatchNorm2d" not in kinds and "Dropout2d" not in kinds and "Conv2d" in kinds
+    assert np.array_equal(CheckpointPolicy(checkpoint=str(ckpt), fuse=False).act(obs), want.numpy())
 
 
 class Boom:

@@ -108,6 +108,37 @@ def load_model(path: str | Path):
     return model.eval()
 
 
+def prepare_for_inference(model, fuse: bool = True):
+    """Make an eval-mode model cheaper to run, computing the same function (up to float rounding):
+    each BatchNorm2d is folded into the Conv2d before it, Dropout (the identity in eval) is dropped,
+    and the weights go to the NHWC layout (``use_channels_last``). Done in place; returns the model."""
+    if not fuse:
+        return model
+    from torch import nn
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    assert not model.training, "prepare_for_inference needs an eval-mode model"
+    for seq in [m for m in model.modules() if isinstance(m, nn.Sequential)]:
+        kids, out, i = list(seq.children()), [], 0
+        while i < len(kids):
+            mod = kids[i]
+            if isinstance(mod, nn.Conv2d) and i + 1 < len(kids) and isinstance(kids[i + 1], nn.BatchNorm2d):
+                out.append(fuse_conv_bn_eval(mod, kids[i + 1]))
+                i += 2
+                continue
+            if not isinstance(mod, (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)):
+                out.append(mod)
+            i += 1
+        if len(out) != len(kids):
+            for name in list(seq._modules):
+                del seq._modules[name]
+            for k, mod in enumerate(out):
+                seq.add_module(str(k), mod)
+    if hasattr(model, "use_channels_last"):
+        model.use_channels_last()
+    return model
+
+
 def describe(hp: Mapping[str, Any]) -> str:
     """A short model label from hyper-parameters, e.g. ``gtu+hybrid``."""
     return f"{hp.get('mixer')}+{hp.get('head')}"
@@ -116,11 +147,12 @@ def describe(hp: Mapping[str, Any]) -> str:
 class CheckpointPolicy(Policy):
     """A trained CICModule steering from the centre camera (as in the paper), in eval mode, no grad.
 
-    The CIL command code selects the branch (index = code - 2).
+    The CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
+    inference (``prepare_for_inference``: BatchNorm folded into the convolutions, NHWC layout).
     """
 
     def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
-                 label: str | None = None) -> None:
+                 label: str | None = None, fuse: bool = True) -> None:
         import torch
 
         if not checkpoint:
@@ -128,7 +160,7 @@ class CheckpointPolicy(Policy):
         if threads:
             torch.set_num_threads(int(threads))
         self.path = str(checkpoint)
-        self.model = load_model(checkpoint)
+        self.model = prepare_for_inference(load_model(checkpoint), fuse)
         self.cameras = (camera,)
         self.label = label or describe(self.model.hparams)
 
