@@ -15,7 +15,6 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressB
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
@@ -53,17 +52,15 @@ def build_model(cfg: DictConfig) -> CICModule:
 
 
 def ensure_data(data_cfg: DictConfig) -> None:
-    """Collect the default simulator dataset first when its folder has no HDF5 file yet."""
+    """Collect (or finish collecting) the default simulator dataset; a complete one returns at once.
+
+    Asking the collector every time, rather than testing for files, means a collection that was
+    killed half-way is finished instead of silently training on part of the data.
+    """
     if data_cfg.get("collect") is None:
         return
-    try:
-        find_files(data_cfg.path)
-        return
-    except FileNotFoundError:
-        pass
     from cicfw.collect import collect_dataset  # the simulator is only needed for the default data
 
-    log.info("no data at %s: collecting the default dataset with the embedded simulator", data_cfg.path)
     collect_dataset(data_cfg.collect, Path(data_cfg.path).expanduser())
 
 

@@ -119,6 +119,7 @@ def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) ->
         with h5py.File(tmp, "w") as f:
             f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
             f.create_dataset("targets", data=targets)
+        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only; a dataset is meant to be shared
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
