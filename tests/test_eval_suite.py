@@ -154,3 +154,24 @@ def test_a_policy_returning_garbage_is_named():
     eps = build_suite(Backend(), [TOWN], ["ClearNoon"], limit=2)
     with pytest.raises(ValueError, match="policy 'bad': act\\(\\) returned 3 values for a batch of 2"):
         run(eps, Bad(), Backend(), FAST)
+
+
+def test_workers_get_whole_cells_balanced_and_videos_are_chosen_by_id(backend):
+    from cicfw.bench.runner import shard
+    from cicfw.bench.video import select_episodes
+
+    eps = build_suite(backend, ["town_a", "town_b"], ["ClearNoon", "ClearSunset", "MidRainyNoon"], limit=4)
+    parts = shard(eps, 2)
+    cells = [{(e.town, e.weather) for e in p} for p in parts]
+    assert not cells[0] & cells[1] and len(cells[0] | cells[1]) == 6  # a cell is never split
+    assert sorted(e.index for p in parts for e in p) == list(range(len(eps)))
+    assert [len(p) for p in parts] == [12, 12]
+    assert [len(p) for p in shard(eps[:3], 2)] == [2, 1]  # one cell: dealt round-robin
+    rows = [{"episode": e.index, "key": e.key, "success": e.index % 3 == 0} for e in eps]
+    assert [r["episode"] for r in select_episodes(rows, [5, "town_b/ClearNoon/001", 5], 8)] == [5, 13]
+    assert [r["episode"] for r in select_episodes(rows, ["failures"], 3)] == [1, 2, 4]
+    with pytest.raises(ValueError, match="video: unknown episode 'town_c/x/1'; give episode indices, keys such "
+                                         "as town_a/ClearNoon/000"):
+        select_episodes(rows, ["town_c/x/1"], 8)
+    with pytest.raises(ValueError, match=r"video: no episode 99 in this run \(episodes 0..23\)"):
+        select_episodes(rows, [99], 8)
