@@ -22,7 +22,7 @@ from cicfw.sim.render.camera import (CAMERAS, CX, CY, FIRST_GROUND_ROW, FX, FY, 
                                      MOUNT_FORWARD, MOUNT_HEIGHT, NEAR, Camera, get_camera)
 from cicfw.sim.render.ground import LEVELS, GroundTexture, bake_ground, ground_base
 from cicfw.sim.render.noise import smooth_noise, stable_seed
-from cicfw.sim.render.scene import C, NX, NY, S0, TABLE, Y0, Items, Scene
+from cicfw.sim.render.scene import C, NX, NY, P, S0, TABLE, Y0, Items, Scene
 from cicfw.sim.render.sky import heading_shift, pad_panorama, pano_maps, rain_streaks, sky_panorama
 from cicfw.sim.render.weather import Weather, get_weather
 
@@ -73,11 +73,12 @@ class _CameraTables:
         self.ground_dist = (MOUNT_HEIGHT / -gdz * dn[V0:]).astype(np.float32)
         dep = np.arcsin(np.clip(-gdz / dn[V0:], 0, 1))  # depression angle, for the Fresnel weight
         self.fresnel8 = np.round(255 * (0.2 + 0.7 * (1 - np.sin(dep)) ** 4)).astype(np.uint8)
-        # the mirror lookup of wet reflections, jittered (rough water film, not a mirror)
-        self.rough_x = np.clip(np.arange(IMAGE_W, dtype=np.float32)[None, :]
-                               + 0.9 * smooth_noise((NG, IMAGE_W), 2.0, rng), 0, IMAGE_W - 1).astype(np.float32)
-        self.rough_y = (np.arange(V0, IMAGE_H, dtype=np.float32)[:, None]
-                        - 2.5 * np.abs(smooth_noise((NG, IMAGE_W), 1.5, rng))).astype(np.float32)
+        # the mirror lookup of wet reflections at half resolution, jittered (a rough water film)
+        hs, ws = (NG + 1) // 2, IMAGE_W // 2
+        self.rough_x = np.clip(2 * np.arange(ws, dtype=np.float32)[None, :] + 0.5
+                               + 1.0 * smooth_noise((hs, ws), 1.5, rng), 0, IMAGE_W - 1).astype(np.float32)
+        self.rough_y = (V0 + 2 * np.arange(hs, dtype=np.float32)[:, None] + 0.5
+                        - 2.0 * np.abs(smooth_noise((hs, ws), 1.2, rng))).astype(np.float32)
         az = np.arctan2(rays[..., 1], rays[..., 0])
         self.az_lo, self.az_hi = float(az.min()), float(az.max())
 
@@ -194,30 +195,33 @@ class Renderer:
         """Project the items into every camera at once: per camera, the indices of the items in view
         (draw order, at most MAX_ITEMS: the nearest) and their image polygons (fixed point, shift 4)."""
         nc = len(self.cameras)
-        if len(items) == 0:
+        n = len(items)
+        if n == 0:
             return [(np.zeros(0, np.intp), [])] * nc
-        pc = (items.poly @ self._rot_all).reshape(len(items), -1, nc, 3)  # (N, P, cams, 3)
+        pc = (items.poly @ self._rot_all).reshape(P, n, nc, 3)  # (vertex, item, camera, xyz)
         z = pc[..., 2]
-        zs = np.maximum(z, NEAR)
-        uv = pc[..., :2] / zs[..., None]
+        uv = pc[..., :2] / np.maximum(z, NEAR)[..., None]
         uv *= (FX, FY)
         uv += (CX, CY)
-        lo, hi = uv.min(1), uv.max(1)  # (N, cams, 2)
-        inside = ((z.max(1) > NEAR) & (hi[..., 0] >= -0.5) & (lo[..., 0] <= IMAGE_W - 0.5)
-                  & (hi[..., 1] >= -0.5) & (lo[..., 1] <= IMAGE_H - 0.5))
-        part = z.min(1) <= NEAR  # crossing the near plane: (u, v) above are wrong there, clip exactly
+        lo, hi = uv.min(0), uv.max(0)  # (N, cams, 2); reductions over the leading axis are cheap
+        inside = z.max(0) > NEAR
+        inside &= hi[..., 0] >= -0.5
+        inside &= lo[..., 0] <= IMAGE_W - 0.5
+        inside &= hi[..., 1] >= -0.5
+        inside &= lo[..., 1] <= IMAGE_H - 0.5
+        part = z.min(0) <= NEAR  # crossing the near plane: (u, v) above are wrong there, clip exactly
         uv *= 16
         np.clip(uv, -2 ** 24, 2 ** 24, out=uv)
         fixed = uv.round().astype(np.int32)
         out = []
         for k in range(nc):
-            idx = np.nonzero(inside[:, k])[0]
+            idx = np.flatnonzero(inside[:, k])
             if len(idx) > MAX_ITEMS:
                 idx = idx[-MAX_ITEMS:]  # keep the nearest (drawn last)
-            polys = list(np.ascontiguousarray(fixed[idx, :, k]))
-            for j in np.nonzero(part[idx, k])[0].tolist():
+            polys = list(np.ascontiguousarray(fixed[:, idx, k].transpose(1, 0, 2)))
+            for j in np.flatnonzero(part[idx, k]).tolist():
                 i = idx[j]
-                polys[j] = _clip_near(pc[i, :items.nv[i], k].tolist())
+                polys[j] = _clip_near(pc[:items.nv[i], i, k].tolist())
             out.append((idx, polys))
         return out
 
@@ -284,38 +288,39 @@ class Renderer:
             dep *= ct.dn_fog[box]
             keep = self.keep_fixed.copy()
             cv2.copyTo(cv2.exp(dep), mask, keep[box])
-        if self.wet:
-            self._reflect(ct, frame, n > 1)
-        # fog over everything: frame * keep + fog * (1 - keep), in 8 bits
+        # fog over everything, in 8 bits: out = frame * k + fog * (1 - k); on wet ground part of k goes
+        # to a rough mirror image instead: frame * (k - kw) + mirror * kw
         k8 = cv2.convertScaleAbs(keep, alpha=255.0)
-        k4 = cv2.merge([k8, k8, k8, k8])
-        out = cv2.multiply(frame, k4, scale=1 / 255)
-        out += cv2.multiply(self._fog_img, cv2.bitwise_not(k4), scale=1 / 255)
+        fog_term = cv2.multiply(self._fog_img, cv2.bitwise_not(cv2.merge([k8, k8, k8, k8])), scale=1 / 255)
+        if self.wet:
+            refl, w8 = self._reflection(ct, frame, n > 1)
+            kw = cv2.multiply(k8[V0:], w8, scale=1 / 255)
+            k8[V0:] -= kw
+            fog_term[V0:] += cv2.multiply(refl, cv2.merge([kw, kw, kw, kw]), scale=1 / 255)
+        out = cv2.multiply(frame, cv2.merge([k8, k8, k8, k8]), scale=1 / 255)
+        out += fog_term
         if self.rain is not None:
             th = self.rain.shape[0]
             off = (int(t * RAIN_SPEED) + 97 * k + 31 * self.seed) % (th - IMAGE_H)
             cv2.add(out, self.rain[off:off + IMAGE_H], dst=out)
         return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
 
-    def _reflect(self, ct: _CameraTables, frame: np.ndarray, has_items: bool) -> None:
-        """Blend into the ground rows of ``frame`` a rough mirror image of what stands above them
-        (mirrored about the base of the lowest item in each column, or the horizon), weighted by
-        the ground's wetness (texture alpha; 0 on items) and a Fresnel term."""
-        if has_items:  # lowest item row of each column (0 where none)
-            low = cv2.min(cv2.compare(self._ids, 0, cv2.CMP_GT), _ROW_INDEX).max(0, keepdims=True)
+    def _reflection(self, ct: _CameraTables, frame: np.ndarray, has_items: bool) -> tuple[np.ndarray, np.ndarray]:
+        """A rough mirror image for the ground rows of ``frame`` (what stands above, mirrored about the
+        base of the lowest item in each column, or the horizon; sampled at half resolution with a
+        jitter and upsampled, so it is soft) and its weight: the ground's wetness (texture alpha, 0 on
+        items) x a Fresnel term."""
+        if has_items:  # lowest item row of each column (0 where none), at half resolution
+            low = cv2.min(cv2.compare(self._ids, 0, cv2.CMP_GT), _ROW_INDEX).max(0)[None, 1::2]
             base = np.maximum(low.astype(np.float32) + 0.5, HORIZON_ROW)
         else:
-            base = np.full((1, IMAGE_W), HORIZON_ROW, np.float32)
+            base = np.full((1, IMAGE_W // 2), HORIZON_ROW, np.float32)
         my = 2 * base - ct.rough_y
         np.maximum(my, 0, out=my)
-        refl = cv2.remap(frame, ct.rough_x, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        refl = cv2.blur(refl, (5, 5))
+        small = cv2.remap(frame, ct.rough_x, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        refl = cv2.resize(small, (IMAGE_W, NG), interpolation=cv2.INTER_LINEAR)
         w8 = cv2.multiply(cv2.extractChannel(frame[V0:], 3), ct.fresnel8, scale=1 / 255)
-        w4 = cv2.merge([w8, w8, w8, w8])
-        g = frame[V0:]
-        g2 = cv2.multiply(g, cv2.bitwise_not(w4), scale=1 / 255)
-        g2 += cv2.multiply(refl, w4, scale=1 / 255)
-        g[:] = g2
+        return refl, w8
 
 
 def _clip_near(q: list) -> np.ndarray | None:

@@ -33,16 +33,16 @@ _Y_TOP = (TILE_TOP - MOUNT_HEIGHT) * PPM  # atlas rows from a tile's top to came
 
 @dataclass
 class Items:
-    """Items in view, in draw order: polygons (N, P, 3) in the camera-centred local frame (x forward,
-    y left, z up, origin at the optical centre), vertex counts (N,), and the surface table
-    (len(TABLE), N + 1) whose column 0 is the background."""
+    """Items in view, in draw order: polygons (P, N, 3), vertex-major, in the camera-centred local
+    frame (x forward, y left, z up, origin at the optical centre), vertex counts (N,), and the surface
+    table (len(TABLE), N + 1) whose column 0 is the background."""
 
     poly: np.ndarray
     nv: np.ndarray
     table: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.poly)
+        return self.poly.shape[1]
 
 
 def _ccw(poly: np.ndarray) -> np.ndarray:
@@ -107,7 +107,7 @@ class Scene:
         tpl[:, 1, :, 0] = np.where(tree[:, None], ca * r * jit, np.sign(ca) * 0.35)
         tpl[:, 1, :, 1] = np.where(tree[:, None], h - r + sa * r * jit * 1.1, h - 0.35 * (sa < 0))
         tpl[..., 1] -= MOUNT_HEIGHT
-        self.p_tpl = tpl
+        self.p_tpl = np.ascontiguousarray(tpl.transpose(2, 1, 0, 3))  # (P, 2 items, props, 2)
         y0 = {k: atlas.row0(getattr(atlas, k)) + _Y_TOP for k in ("foliage", "bark", "pole", "lamp")}
         self.p_y0 = np.stack([np.where(tree, y0["bark"], y0["pole"]), np.where(tree, y0["foliage"], y0["lamp"])],
                              1).astype(np.float32)
@@ -115,6 +115,7 @@ class Scene:
         self.far = min(FAR_BUILDINGS, 4.0 * weather.fog_distance)
         self.far_props = min(FAR_PROPS, 3.0 * weather.fog_distance)
         self.w_p01 = np.stack([self.w_p0, self.w_p1], 1)  # (Nw, 2, 2)
+        self.w_len2 = np.maximum((d * d).sum(1), 1e-9)
 
     # ------------------------------------------------------------------------------------------
     def items(self, cx: float, cy: float, yaw: float, az_lo: float, az_hi: float) -> Items:
@@ -124,20 +125,27 @@ class Scene:
         rot = np.array([[c, -s], [s, c]])  # world offset (row vector) @ rot -> local (x fwd, y left)
         cxy = np.array([cx, cy])
 
-        # walls facing the camera, near enough, inside the azimuth range
+        # walls facing the camera, near enough, inside the azimuth range; per-wall values are kept as
+        # columns of one array F so that each selection is one gather:
+        # F = [ax, ay, bx, by (ends, local), wd (nearest distance), lo, hi (azimuth span), wrap, index]
         side = self.w_c - self.w_n @ cxy  # n . (p0 - C) < 0: the camera is in front of the wall
-        wi = np.nonzero(side < 0)[0]
-        ab = (self.w_p01[wi] - cxy) @ rot  # (N, 2, 2) wall ends, local
-        a, b = ab[:, 0], ab[:, 1]
-        d = b - a
-        u = np.clip(-np.einsum("ij,ij->i", a, d) / np.einsum("ij,ij->i", d, d), 0, 1)
-        wd = np.hypot(*(a + u[:, None] * d).T)  # nearest distance of each wall
-        ang = np.arctan2(ab[..., 1], ab[..., 0])
-        lo, hi = ang.min(1), ang.max(1)
-        wrap = hi - lo > np.pi  # passes behind the camera: treat as covering every direction
-        lo[wrap], hi[wrap] = -np.pi, np.pi
-        keep = np.nonzero((wd < self.far) & (hi >= az_lo) & (lo <= az_hi))[0]
-        wi, a, b, wd, lo, hi, wrap = wi[keep], a[keep], b[keep], wd[keep], lo[keep], hi[keep], wrap[keep]
+        wi = np.flatnonzero(side < 0)
+        F = np.empty((len(wi), 9))
+        F[:, :4] = ((self.w_p01[wi] - cxy).reshape(-1, 2) @ rot).reshape(-1, 4)
+        ax, ay, bx, by = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+        dx, dy = bx - ax, by - ay
+        u = (ax * dx + ay * dy) / self.w_len2[wi]
+        np.minimum(np.maximum(-u, 0, out=u), 1, out=u)
+        F[:, 4] = np.hypot(ax + u * dx, ay + u * dy)
+        a0, a1 = np.arctan2(ay, ax), np.arctan2(by, bx)
+        np.minimum(a0, a1, out=F[:, 5])
+        np.maximum(a0, a1, out=F[:, 6])
+        F[:, 7] = F[:, 6] - F[:, 5] > np.pi  # passes behind the camera: covers every direction
+        F[F[:, 7] > 0, 5:7] = (-np.pi, np.pi)
+        F[:, 8] = wi
+        F = F[(F[:, 4] < self.far) & (F[:, 6] >= az_lo) & (F[:, 5] <= az_hi)]
+        wi = F[:, 8].astype(np.intp)
+        a, b, wd, lo, hi = F[:, 0:2], F[:, 2:4], F[:, 4], F[:, 5], F[:, 6]
         n = self.w_n[wi] @ rot
         wc = -side[wi]  # -(n . (p0 - C)) = distance of the camera in front of the wall's plane
         top = self.w_top[wi]
@@ -153,68 +161,76 @@ class Scene:
         # occlusion: drop walls and props entirely hidden behind one of the nearest tall walls
         # (inside its azimuth span, behind its plane, below its lowest top edge)
         if len(wi) > 1:
-            cand = np.nonzero(~wrap & (top > 0))[0]
+            cand = np.flatnonzero((F[:, 7] == 0) & (top > 0))
             occ = cand[np.argsort(wd[cand])[:N_OCCLUDERS]]
             if len(occ):
                 o_n, o_c = n[occ], -wc[occ]  # plane n . X = o_c (local, camera at the origin)
-                o_top = top[occ] / np.sqrt(np.maximum((a[occ] ** 2).sum(1), (b[occ] ** 2).sum(1)))
-                o_lo, o_hi = lo[occ, None], hi[occ, None]
+                fo = F[occ]
+                o_top = top[occ] / np.sqrt(np.maximum(fo[:, 0] ** 2 + fo[:, 1] ** 2, fo[:, 2] ** 2 + fo[:, 3] ** 2))
+                o_lo, o_hi = fo[None, :, 5], fo[None, :, 6]
                 back = np.maximum(a @ o_n.T, b @ o_n.T) < o_c - 0.05  # both ends behind (N, occ)
-                hid = ((o_lo.T <= lo[:, None]) & (o_hi.T >= hi[:, None]) & back
-                       & (o_top >= (top / np.maximum(wd, 0.1))[:, None])).any(1)
+                back &= o_lo <= lo[:, None]
+                back &= o_hi >= hi[:, None]
+                back &= o_top >= (top / np.maximum(wd, 0.1))[:, None]
+                hid = back.any(1)
                 hid[occ] = False
-                vis = np.nonzero(~hid)[0]
-                wi, a, b, wd, lo, hi, n, wc = wi[vis], a[vis], b[vis], wd[vis], lo[vis], hi[vis], n[vis], wc[vis]
+                vis = np.flatnonzero(~hid)
+                F, n, wc = F[vis], n[vis], wc[vis]
+                wi = F[:, 8].astype(np.intp)
+                a, b, wd, lo, hi = F[:, 0:2], F[:, 2:4], F[:, 4], F[:, 5], F[:, 6]
                 if len(pk):
                     pr = self.p_r[pk]
                     back = (pl @ o_n.T) < o_c - (pr + 0.05)[:, None]
-                    hid = ((o_lo.T <= (paz - pw)[:, None]) & (o_hi.T >= (paz + pw)[:, None]) & back
-                           & (o_top >= (self.p_top[pk] / np.maximum(pd - pr, 0.1))[:, None])).any(1)
-                    vis = np.nonzero(~hid)[0]
+                    back &= o_lo <= (paz - pw)[:, None]
+                    back &= o_hi >= (paz + pw)[:, None]
+                    back &= o_top >= (self.p_top[pk] / np.maximum(pd - pr, 0.1))[:, None]
+                    vis = np.flatnonzero(~back.any(1))
                     pk, pl, pd, paz, pw = pk[vis], pl[vis], pd[vis], paz[vis], pw[vis]
         nw, m = len(wi), len(pk)
+        n_items = nw + 2 * m
 
         # painter's order: walls by nearest distance, far first; each prop right after the last wall
         # it stands in front of (overlapping in azimuth); nearer props later
-        keys = np.empty(nw + 2 * m)
+        keys = np.empty(n_items)
         keys[np.argsort(-wd, kind="stable")] = np.arange(nw)
         if m:
             if nw:
-                over = (lo[None, :] <= (paz + pw)[:, None]) & (hi[None, :] >= (paz - pw)[:, None])
-                infront = (pl @ n.T) > -wc[None, :]
-                after = np.where(over & infront, keys[None, :nw], -1.0).max(1)
+                over = lo[None, :] <= (paz + pw)[:, None]
+                over &= hi[None, :] >= (paz - pw)[:, None]
+                over &= (pl @ n.T) > -wc[None, :]  # and the prop stands in front of the wall
+                after = np.where(over, keys[None, :nw], -1.0).max(1)
             else:
                 after = np.full(m, -1.0)
-            keys[nw:nw + m] = after + 0.5 + 0.45 * (1 - pd / (self.far_props + 1))
-            keys[nw + m:] = keys[nw:nw + m] + 1e-4
+            pkey = after + (0.95 - 0.45 / (self.far_props + 1) * pd)
+            keys[nw:nw + m] = pkey
+            keys[nw + m:] = pkey + 1e-4
 
-        poly = np.empty((nw + 2 * m, P, 3))
-        nv = np.full(nw + 2 * m, 4, np.int32)
-        tab = np.zeros((len(TABLE), nw + 2 * m + 1), np.float32)
+        poly = np.empty((P, n_items, 3))  # vertex-major
+        nv = np.full(n_items, 4, np.int32)
+        tab = np.zeros((len(TABLE), n_items + 1), np.float32)
         tab[NX, 0] = 1.0  # background: depth 0
         # walls: (a, 0), (b, 0), (b, top), (a, top), (a, top)...
-        poly[:nw, 0, :2], poly[:nw, 1:3, :2] = a, b[:, None, :]
-        poly[:nw, 3:, :2] = a[:, None, :]
-        poly[:nw, :2, 2] = -MOUNT_HEIGHT
-        poly[:nw, 2:, 2] = self.w_top[wi][:, None]
+        poly[0, :nw, :2] = a
+        poly[1:3, :nw, :2] = b
+        poly[3:, :nw, :2] = a
+        poly[:2, :nw, 2] = -MOUNT_HEIGHT
+        poly[2:, :nw, 2] = self.w_top[wi]
         cols = slice(1, nw + 1)
-        tab[NX, cols], tab[NY, cols] = n.T
+        tab[NX:NY + 1, cols] = n.T
         tab[C, cols] = -wc
         tab[S0, cols] = self.w_s[wi] + PPM * (self.w_t[wi] @ cxy)
         tab[Y0, cols] = np.where(wd > LOD_DIST, self.w_y0_far[wi], self.w_y0[wi])
         if m:
             # billboards facing the camera: along-axis (-n_y, n_x) points to the right
             ux, uy = pl[:, 0] / pd, pl[:, 1] / pd
-            tpl = self.p_tpl[pk].transpose(1, 0, 2, 3)  # (2, m, P, 2)
-            poly[nw:, :, 0] = (pl[None, :, None, 0] + tpl[..., 0] * uy[None, :, None]).reshape(2 * m, P)
-            poly[nw:, :, 1] = (pl[None, :, None, 1] - tpl[..., 0] * ux[None, :, None]).reshape(2 * m, P)
-            poly[nw:, :, 2] = tpl[..., 1].reshape(2 * m, P)
+            tpl = self.p_tpl[:, :, pk]  # (P, 2, m, 2): along-axis offset, height
+            poly[:, nw:, 0] = (pl[:, 0] + tpl[..., 0] * uy).reshape(P, 2 * m)
+            poly[:, nw:, 1] = (pl[:, 1] - tpl[..., 0] * ux).reshape(P, 2 * m)
+            poly[:, nw:, 2] = tpl[..., 1].reshape(P, 2 * m)
             nv[nw + m:] = P
-            pc = slice(nw + 1, nw + 2 * m + 1)
-            tab[NX, pc], tab[NY, pc] = np.tile(-ux, 2), np.tile(-uy, 2)
-            tab[C, pc] = np.tile(-pd, 2)
-            tab[S0, pc] = np.tile(self.p_soff[pk], 2)
-            tab[Y0, pc] = self.p_y0[pk].T.ravel()
+            bb = tab[:, nw + 1:].reshape(len(TABLE), 2, m)  # (rows, lower/upper item, prop)
+            bb[NX], bb[NY], bb[C], bb[S0] = -ux, -uy, -pd, self.p_soff[pk]
+            bb[Y0] = self.p_y0[pk].T
         order = np.argsort(keys, kind="stable")
         tab[:, 1:] = tab[:, 1:][:, order]
-        return Items(poly=poly[order], nv=nv[order], table=tab)
+        return Items(poly=poly[:, order], nv=nv[order], table=tab)
