@@ -200,19 +200,23 @@ class Renderer:
             return [(np.zeros(0, np.intp), [])] * nc
         pc = (items.poly @ self._rot_all).reshape(P, n, nc, 3)  # (vertex, item, camera, xyz)
         z = pc[..., 2]
-        uv = pc[..., :2] / np.maximum(z, NEAR)[..., None]
-        uv *= (FX, FY)
-        uv += (CX, CY)
-        lo, hi = uv.min(0), uv.max(0)  # (N, cams, 2); reductions over the leading axis are cheap
-        inside = z.max(0) > NEAR
-        inside &= hi[..., 0] >= -0.5
-        inside &= lo[..., 0] <= IMAGE_W - 0.5
-        inside &= hi[..., 1] >= -0.5
-        inside &= lo[..., 1] <= IMAGE_H - 0.5
+        rz = 1.0 / np.maximum(z, NEAR)
+        u = pc[..., 0] * rz
+        u *= FX
+        u += CX
+        v = pc[..., 1] * rz
+        v *= FY
+        v += CY
+        inside = z.max(0) > NEAR  # (N, cams); reductions over the leading (vertex) axis are cheap
+        inside &= u.max(0) >= -0.5
+        inside &= u.min(0) <= IMAGE_W - 0.5
+        inside &= v.max(0) >= -0.5
+        inside &= v.min(0) <= IMAGE_H - 0.5
         part = z.min(0) <= NEAR  # crossing the near plane: (u, v) above are wrong there, clip exactly
+        uv = np.stack([u, v], -1)
         uv *= 16
         np.clip(uv, -2 ** 24, 2 ** 24, out=uv)
-        fixed = uv.round().astype(np.int32)
+        fixed = np.rint(uv).astype(np.int32)
         out = []
         for k in range(nc):
             idx = np.flatnonzero(inside[:, k])

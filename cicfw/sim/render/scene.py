@@ -23,7 +23,8 @@ from cicfw.sim.render.weather import Weather
 
 P = 8  # vertices per item polygon (quads repeat their last vertex)
 FAR_BUILDINGS = 200.0  # m; also at most 4 fog distances (farther walls are fog-coloured anyway)
-FAR_PROPS = 80.0  # m; trees and poles beyond are a pixel or two
+FAR_PROPS = 80.0  # m; trees beyond are a few pixels
+FAR_POLES = 50.0  # m; a pole beyond is less than a pixel wide (its lamp plate about one)
 LOD_DIST = 45.0  # m; walls farther than this use the blurred facade tile
 N_OCCLUDERS = 16  # nearest walls tested as occluders of everything else
 TABLE = ("nx", "ny", "c", "s0", "y0")  # surface table rows (the along-surface axis is (-ny, nx))
@@ -114,6 +115,7 @@ class Scene:
         self.p_top = self.p_h - MOUNT_HEIGHT
         self.far = min(FAR_BUILDINGS, 4.0 * weather.fog_distance)
         self.far_props = min(FAR_PROPS, 3.0 * weather.fog_distance)
+        self.p_far = np.where(tree, self.far_props, min(FAR_POLES, self.far_props))
         self.w_p01 = np.stack([self.w_p0, self.w_p1], 1)  # (Nw, 2, 2)
         self.w_len2 = np.maximum((d * d).sum(1), 1e-9)
 
@@ -155,7 +157,7 @@ class Scene:
         pd = np.hypot(pl[:, 0], pl[:, 1])
         paz = np.arctan2(pl[:, 1], pl[:, 0])
         pw = np.arctan2(self.p_r + 0.3, pd)
-        pk = np.nonzero((pd < self.far_props) & (pd > 0.5) & (paz + pw >= az_lo) & (paz - pw <= az_hi))[0]
+        pk = np.flatnonzero((pd < self.p_far) & (pd > 0.5) & (paz + pw >= az_lo) & (paz - pw <= az_hi))
         pl, pd, paz, pw = pl[pk], pd[pk], paz[pk], pw[pk]
 
         # occlusion: drop walls and props entirely hidden behind one of the nearest tall walls

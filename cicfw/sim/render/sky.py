@@ -15,10 +15,10 @@ import numpy as np
 from cicfw.sim.render.noise import smooth_noise
 from cicfw.sim.render.weather import Weather
 
-PANO_W = 1440  # 0.25 deg per column
-PANO_PAD = 480  # columns repeated on each side, so camera lookups never need wrapping
-SKY_TOP, SKY_BOTTOM = 20.0, -2.0  # elevation range of the panorama rows (the cameras see 0.3-13.6 deg)
-PANO_H = int((SKY_TOP - SKY_BOTTOM) * 4)
+PANO_W = 1024  # 0.35 deg per column (the cameras resolve 0.3-0.7 deg per pixel)
+PANO_PAD = 340  # columns repeated on each side, so camera lookups never need wrapping
+SKY_TOP, SKY_BOTTOM = 15.0, -1.0  # elevation range of the panorama rows (the cameras see 0.3-13.6 deg)
+PANO_H = int((SKY_TOP - SKY_BOTTOM) * 4)  # 0.25 deg per row
 CLOUD_HEIGHT = 1500.0  # m
 RAIN_PERIOD = 4  # rain texture height in image heights
 
@@ -79,8 +79,8 @@ def sky_panorama(weather: Weather, vegetation: tuple, seed: int = 0) -> np.ndarr
         sky = sky + disc[..., None] * (np.array([1.0, 0.97, 0.9], np.float32) - sky)
 
     # a distant tree line, 0.5-2.2 deg tall, hazed towards the horizon colour
-    prof = 1.2 + 0.7 * smooth_noise((1, PANO_W * 3), 14, rng)[0, PANO_W:2 * PANO_W] + \
-        0.3 * smooth_noise((1, PANO_W * 3), 3, rng)[0, PANO_W:2 * PANO_W]
+    prof = 1.2 + 0.7 * smooth_noise((1, PANO_W * 3), 10, rng)[0, PANO_W:2 * PANO_W] + \
+        0.3 * smooth_noise((1, PANO_W * 3), 2, rng)[0, PANO_W:2 * PANO_W]
     tree = np.clip((np.maximum(prof, 0.4)[None, :] - el) * 4.0, 0, 1)
     veg = np.asarray(vegetation, np.float32) / 255 * np.asarray(weather.ambient, np.float32)
     far = veg + 0.6 * (hor - veg)
