@@ -194,9 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     towns = [load_town(n) for n in (a.towns or town_names())]
     out = Path(a.out).expanduser().resolve()
     q, pre = a.colours, a.prefix
+    turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
     written = [_write_png(out / f"{pre}contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed), q),
-               _write_png(out / f"{pre}turn_sheet.png",
-                          turn_sheet(towns, ["ClearNoon", "WetCloudySunset"], a.scale, a.seed), q)]
+               _write_png(out / f"{pre}turn_sheet.png", turn_sheet(towns, turn_weathers, a.scale, a.seed), q)]
     for town in towns:
         written.append(_write_png(out / f"{pre}map_{town.name}.png",
                                   town_map(town, sample_routes(town, a.routes, a.seed)), q))

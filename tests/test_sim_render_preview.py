@@ -1,0 +1,25 @@
+"""python -m cicfw.sim.preview: the sheets and the map are written (one town, one weather: fast)."""
+import cv2
+import pytest
+
+from cicfw.sim import preview
+
+
+def test_preview_writes_sheets_and_maps(tmp_path, capsys):
+    out = tmp_path / "pics"
+    assert preview.main(["--out", str(out), "--towns", "town_b", "--weathers", "ClearNoon", "--scale", "1",
+                         "--routes", "2", "--colours", "64", "--prefix", "x_"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["x_contact_sheet.png", "x_map_town_b.png", "x_turn_sheet.png"]  # nothing half-written
+    sheet = cv2.imread(str(out / "x_contact_sheet.png"))
+    assert sheet.shape[0] >= 88 and sheet.shape[1] >= 3 * 200  # one row of three camera images
+    town_map = cv2.imread(str(out / "x_map_town_b.png"))
+    assert min(town_map.shape[:2]) > 300
+    assert str(out / "x_map_town_b.png") in capsys.readouterr().out
+
+
+def test_preview_rejects_unknown_weather(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        preview.main(["--out", str(tmp_path), "--weathers", "Foggy"])
+    err = capsys.readouterr().err
+    assert "unknown weather 'Foggy'" in err and "ClearNoon" in err
