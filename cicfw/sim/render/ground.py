@@ -331,27 +331,56 @@ def _shadow_mask(town, base: GroundBase, weather: Weather) -> np.ndarray:
 def bake_ground(town, weather: Weather, base: GroundBase | None = None) -> GroundTexture:
     """Light ``town``'s ground under ``weather`` and build its RGBA mip pyramid."""
     base = base or ground_base(town)
-    shadow = _shadow_mask(town, base, weather)
     sun_up = max(math.sin(math.radians(weather.sun_elevation)), 0.0)
     direct = np.asarray(weather.sun, np.float32) * sun_up
-    light = np.asarray(weather.ambient, np.float32) + direct * (1 - shadow)[..., None]
-    del shadow
+    ambient = np.asarray(weather.ambient, np.float32)
+    sunlit = 1 - _shadow_mask(town, base, weather)  # (H, W): 1 in the sun, 0 in full shadow
     wet = weather.wetness
-    dark = base.wet_dark.astype(np.float32) * (wet / 255)
-    pud = base.puddle.astype(np.float32) * (1 / 255)
-    pud = np.clip((pud - (1 - weather.puddles)) * 3.0, 0, 1) * wet if weather.puddles > 0 else 0 * pud
-    albedo = base.albedo.astype(np.float32) * (1 / 255)
-    albedo *= (1 - dark - 0.25 * pud)[..., None]
-    col = albedo * light
-    del albedo, light
-    if weather.saturation != 1.0:
-        grey = col.mean(axis=2, keepdims=True)
-        col = grey + weather.saturation * (col - grey)
-    refl = np.clip(base.wet_refl.astype(np.float32) * (wet / 255) + pud, 0, 1)
+    # albedo scale: wet darkening and puddles (2-D; colours are applied per channel below)
+    scale = base.wet_dark.astype(np.float32)
+    scale *= -wet / 255
+    scale += 1
+    if weather.puddles > 0 and wet > 0:
+        pud = base.puddle.astype(np.float32)
+        pud *= 3.0 / 255
+        pud -= 3.0 * (1 - weather.puddles)
+        np.clip(pud, 0, 1, out=pud)
+        pud *= wet
+        scale -= 0.25 * pud
+    else:
+        pud = None
+    scale *= 1 / 255
     rgba = np.empty(base.shape + (4,), np.uint8)
-    rgba[..., :3] = np.clip(col * 255 + 0.5, 0, 255)
-    rgba[..., 3] = np.clip(refl * 255 + 0.5, 0, 255)
-    del col
+    chans = []
+    for k in range(3):  # colour = albedo * (ambient + direct * sunlit)
+        c = base.albedo[..., k].astype(np.float32)
+        c *= scale
+        light = sunlit * float(direct[k])
+        light += float(ambient[k])
+        c *= light
+        chans.append(c)
+    del light, sunlit, scale
+    if weather.saturation != 1.0:
+        grey = (chans[0] + chans[1] + chans[2]) * (1 / 3)
+        for c in chans:
+            c -= grey
+            c *= weather.saturation
+            c += grey
+        del grey
+    for k, c in enumerate(chans):
+        c *= 255
+        c += 0.5
+        np.clip(c, 0, 255, out=c)
+        rgba[..., k] = c
+    del chans
+    refl = base.wet_refl.astype(np.float32)
+    refl *= wet
+    if pud is not None:
+        refl += 255 * pud
+    refl += 0.5
+    np.clip(refl, 0, 255, out=refl)
+    rgba[..., 3] = refl
+    del refl, pud
     border_rgb = np.asarray(town.style.terrain, np.float32) / 255 * np.asarray(weather.ambient, np.float32) + \
         np.asarray(town.style.terrain, np.float32) / 255 * direct
     border = tuple(float(v) for v in np.clip(border_rgb * 255, 0, 255)) + (0.0,)
