@@ -79,6 +79,13 @@ def test_same_seed_same_bytes_and_rain_moves_with_time(town, rainy):
     assert np.array_equal(dry.render(*NORTHBOUND, t=0.0)["centre"], dry.render(*NORTHBOUND, t=5.0)["centre"])
 
 
+def test_a_cameras_image_does_not_depend_on_the_other_cameras(town, rainy):
+    both = rainy.render(*NORTHBOUND, t=0.7)
+    for cam in ("left", "right"):
+        alone = Renderer(town, "MidRainyNoon", seed=3, cameras=(cam,)).render(*NORTHBOUND, t=0.7)
+        assert np.array_equal(alone[cam], both[cam])
+
+
 def test_unknown_names_list_the_known_ones(town):
     with pytest.raises(ValueError) as e:
         Renderer(town, "Foggy")

@@ -129,12 +129,13 @@ class Renderer:
         self.cameras = tuple(get_camera(c).name for c in cams)
         self.seed = int(seed)
         w = self.weather
-        rng = np.random.default_rng(stable_seed("renderer", self.seed, w.name))
 
         self.ground = _ground_texture(town, w)
         self.atlas: Atlas = build_atlas(town.style, w)
         self.scene = Scene(town, w, self.atlas)
-        self.tables = {c: _CameraTables(get_camera(c), rng) for c in self.cameras}
+        # each camera's tables from its own seed: its images do not depend on the other cameras
+        self.tables = {c: _CameraTables(get_camera(c), np.random.default_rng(stable_seed("camera", self.seed, w.name, c)))
+                       for c in self.cameras}
         self._rot_all = np.concatenate([t.rot_t for t in self.tables.values()], axis=1)  # (3, 3 * cams)
         self.az_lo = min(t.az_lo for t in self.tables.values())
         self.az_hi = max(t.az_hi for t in self.tables.values())
@@ -179,7 +180,7 @@ class Renderer:
         polys = self._project(items)
         minv = self._ground_inverse(x, y, yaw)
         shift = heading_shift(yaw)
-        return {name: self._render_camera(self.tables[name], items, polys[k], minv, shift, t, k)
+        return {name: self._render_camera(self.tables[name], items, polys[k], minv, shift, t)
                 for k, name in enumerate(self.cameras)}
 
     @staticmethod
@@ -244,7 +245,7 @@ class Renderer:
         return cols
 
     def _render_camera(self, ct: _CameraTables, items: Items, proj: tuple, minv: np.ndarray, shift: float,
-                       t: float, k: int) -> np.ndarray:
+                       t: float) -> np.ndarray:
         frame = np.empty((IMAGE_H, IMAGE_W, 4), np.uint8)
         # sky: the world-fixed panorama, turned by the heading
         cv2.remap(self.sky, ct.pano_x + shift, ct.pano_y, cv2.INTER_LINEAR, dst=frame[:V0],
@@ -305,7 +306,7 @@ class Renderer:
         out += fog_term
         if self.rain is not None:
             th = self.rain.shape[0]
-            off = (int(t * RAIN_SPEED) + 97 * k + 31 * self.seed) % (th - IMAGE_H)
+            off = (int(t * RAIN_SPEED) + 97 * ct.cam.cam_id + 31 * self.seed) % (th - IMAGE_H)
             cv2.add(out, self.rain[off:off + IMAGE_H], dst=out)
         return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
 
