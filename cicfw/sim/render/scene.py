@@ -203,9 +203,11 @@ class Scene:
                 after = np.where(over, keys[None, :nw], -1.0).max(1)
             else:
                 after = np.full(m, -1.0)
-            pkey = after + (0.95 - 0.45 / (self.far_props + 1) * pd)
+            # exact ties (e.g. poles facing each other across the road) are broken by the prop's rank,
+            # and a prop's upper item (canopy, lamp) follows its lower one (trunk, pole) directly
+            pkey = after + (0.95 - 0.45 / (self.far_props + 1) * pd) + 1e-6 * np.arange(m)
             keys[nw:nw + m] = pkey
-            keys[nw + m:] = pkey + 1e-4
+            keys[nw + m:] = pkey + 1e-7
 
         poly = np.empty((P, n_items, 3))  # vertex-major
         nv = np.full(n_items, 4, np.int32)
