@@ -22,13 +22,6 @@ from cicfw.model.module import CICModule
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 
 
-def needs_renderer() -> None:
-    try:
-        from cicfw.sim.render import WEATHERS, Renderer  # noqa: F401
-    except ImportError:
-        pytest.skip("the camera renderer (cicfw.sim.render) is not importable yet")
-
-
 class Frames(Dataset):
     def __len__(self):
         return 8
@@ -142,7 +135,6 @@ def test_evaluate_config_errors(tmp_path: Path):
 
 
 def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
-    needs_renderer()  # for the weather names
     sweep = tmp_path / "sweep"
     proc = subprocess.run(
         [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert,constant", f"suite.towns=[{TOWN}]",
@@ -155,7 +147,6 @@ def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
 
 
 def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, tmp_path: Path):
-    needs_renderer()
     from cicfw.evaluate import compose_config, evaluate, load_trajectories
 
     cfg = compose_config([f"checkpoint={ckpt}", f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]",
@@ -186,7 +177,6 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
 
 
 def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
-    needs_renderer()
     from cicfw.train import train
     from conftest import compose_train
 
