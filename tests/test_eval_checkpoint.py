@@ -174,6 +174,15 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
     ok, frame = cap.read()
     cap.release()
     assert ok and n == data["episodes"][1]["steps"] and frame.shape == (88 * 3 + 84, 600, 3)
+    # any episode of a finished run can be filmed afterwards, with the same frames
+    from cicfw.bench import video as video_cli
+
+    assert video_cli.main([str(out), "bench_town/MidRainyNoon/013"]) == 0
+    cap = cv2.VideoCapture(str(video))
+    ok, again = cap.read()
+    cap.release()
+    assert ok and np.array_equal(again, frame)
+    assert video_cli.main([str(out), "7"]) == 2  # no such episode: one error line
 
 
 def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):

@@ -99,3 +99,40 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
             writer.release()
     os.replace(tmp, path)
     return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cicfw.bench.video RUN_DIR [EPISODE ...]``: film episodes of a finished run."""
+    import argparse
+    import sys
+
+    from cicfw.bench.report import load_run
+    from cicfw.bench.suite import town_label
+    from cicfw.evaluate import load_trajectories
+    from cicfw.sim.town import load_town
+
+    ap = argparse.ArgumentParser(prog="python -m cicfw.bench.video",
+                                 description="Film episodes of a finished evaluation run (MP4, centre camera).")
+    ap.add_argument("run_dir", help="an evaluation run folder (episodes.json, trajectories.npz)")
+    ap.add_argument("episodes", nargs="*", default=["failures"],
+                    help="episode numbers, keys (town/weather/pair) or 'failures' (default)")
+    ap.add_argument("--max", type=int, default=8, help="at most this many videos")
+    args = ap.parse_args(argv)
+    try:
+        run = load_run(args.run_dir)
+        chosen = select_episodes(run.rows, [int(e) if e.isdigit() else e for e in args.episodes], args.max)
+        trajs = load_trajectories(args.run_dir)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"cicfw: error: {err}", file=sys.stderr)
+        return 2
+    towns = {town_label(t): str(t) for t in run.meta.get("suite", {}).get("towns", [])}
+    for r in chosen:
+        path = Path(args.run_dir) / "videos" / f"{r['key'].replace('/', '_')}.mp4"
+        write_video(path, r, trajs[r["key"]], load_town(towns.get(r["town"], r["town"])), r["weather"],
+                    int(run.meta.get("seed", 0)))
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
