@@ -84,8 +84,8 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     label = str(cfg.name) if cfg.get("name") else policy.label
     log.info("evaluating %s on %d episodes (%s x %s)", label, len(episodes), ", ".join(suite["towns"]),
              ", ".join(suite["weathers"]))
-    if runner_cfg.workers > 1:
-        del policy  # each worker builds its own from the spec
+    if runner_cfg.resolve_workers(episodes, bool(policy.cameras)) > 1:
+        del policy  # each worker process builds its own from the spec
         policy = spec
     res = run(episodes, policy, sim, runner_cfg, label=label)
     meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(cfg.seed),

@@ -175,3 +175,16 @@ def test_workers_get_whole_cells_balanced_and_videos_are_chosen_by_id(backend):
         select_episodes(rows, ["town_c/x/1"], 8)
     with pytest.raises(ValueError, match=r"video: no episode 99 in this run \(episodes 0..23\)"):
         select_episodes(rows, [99], 8)
+
+
+def test_auto_workers(backend):
+    import os
+
+    full = build_suite(backend, ["town_a", "town_b"], ["ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset"])
+    auto = RunnerConfig(workers="auto")
+    assert auto.resolve_workers(full, renders=True) == min(os.cpu_count() or 1, 8)
+    assert auto.resolve_workers(full, renders=False) == 1  # nothing to render: one process is fastest
+    assert auto.resolve_workers(full[:40], renders=True) == 1  # too small to pay for a second process
+    assert RunnerConfig(workers=3).resolve_workers(full[:2], renders=True) == 2
+    with pytest.raises(ValueError, match="runner.workers must be an integer >= 1 or 'auto', got 'many'"):
+        RunnerConfig(workers="many")

@@ -5,7 +5,7 @@ Each step gathers the observations of all running episodes, calls ``policy.act``
 and the speed controller's throttle/brake (so the suite measures steering only). Episodes end on
 success (within the backend's success radius of the goal), at their timeout, far off their route,
 or once the car has spent more than ``off_road_s`` seconds (in total) with its centre off the road.
-``workers > 1`` splits the episodes over processes (spawned; each builds its own policy and
+``workers`` > 1 splits the episodes over processes (spawned; each builds its own policy and
 simulator from plain config); results are merged in episode order, so a run is deterministic for a
 seed, batch size and worker count.
 """
@@ -36,7 +36,7 @@ TRAJ_FIELDS = ("x", "y", "yaw", "speed_kmh", "steer", "command", "off_road", "op
 @dataclass
 class RunnerConfig:
     batch_size: int = 64  # episodes per policy call (a chunk); the network's batch
-    workers: int = 1  # processes; each takes every workers-th episode
+    workers: int | str = 1  # processes, or "auto" (see resolve_workers)
     seed: int = 0  # renderer seed (rain animation); the rest is deterministic
     off_road_s: float = 3.0  # end as "off_road" after more than this many seconds off the road in total
     off_road_level: float = 0.5  # off-road fraction of the car's width that counts (0.5: its centre is off)
@@ -47,12 +47,24 @@ class RunnerConfig:
     def __post_init__(self) -> None:
         if int(self.batch_size) < 1:
             raise ValueError(f"runner.batch_size must be >= 1, got {self.batch_size}")
-        if int(self.workers) < 1:
-            raise ValueError(f"runner.workers must be >= 1, got {self.workers}")
+        if self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
+            raise ValueError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r}")
         if self.off_road_s <= 0:
             raise ValueError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
         if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
             raise ValueError(f"runner.target_speed_kmh must be > 0 (or null), got {self.target_speed_kmh}")
+
+
+    def resolve_workers(self, episodes: Sequence[Episode], renders: bool) -> int:
+        """The process count: as configured, or for "auto" one per core when the policy renders
+        (rendering and inference then use every core), at most one per (town, weather) cell and
+        one per 32 episodes (a process costs seconds to start); 1 for a policy that renders nothing."""
+        if self.workers != "auto":
+            return min(int(self.workers), max(len(episodes), 1))
+        if not renders:
+            return 1
+        cells = len({(e.town, e.weather) for e in episodes})
+        return max(1, min(os.cpu_count() or 1, cells, len(episodes) // 32))
 
 
 @dataclass
@@ -213,8 +225,11 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
     (``{name:, ...}``). With ``cfg.workers > 1`` both must be specs: each process builds its own.
     """
     episodes = list(episodes)
-    workers = min(int(cfg.workers), max(len(episodes), 1))
-    if workers > 1 and not (isinstance(policy, Mapping) and (sim is None or isinstance(sim, Mapping))):
+    workers = cfg.resolve_workers(episodes, renders=not isinstance(policy, Policy) or bool(policy.cameras))
+    specs = isinstance(policy, Mapping) and (sim is None or isinstance(sim, Mapping))
+    if workers > 1 and not specs and cfg.workers == "auto":
+        workers = 1
+    if workers > 1 and not specs:
         raise ValueError("runner.workers > 1 needs the policy and the simulator as config specs "
                          "({name: ..., ...}) so each process can build its own")
     name = label or (policy.label if isinstance(policy, Policy) else str(policy.get("name")))
