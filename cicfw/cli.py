@@ -11,6 +11,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("cicfw.evaluate", "closed-loop evaluation on the single-turn suite (Hydra app)"),
     "preview": ("cicfw.sim.preview", "write the camera contact sheet and town maps as PNGs"),
     "report": ("cicfw.bench.report", "join evaluation runs into one table with plots"),
+    "video": ("cicfw.bench.video", "film episodes of a finished evaluation run (MP4)"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
 }
 
