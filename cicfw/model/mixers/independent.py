@@ -5,6 +5,7 @@ import torch
 from torch import nn
 
 from cicfw.model.mixers.base import Mixer
+from cicfw.model.mixers.common import check_branch_kwargs
 from cicfw.registry import MIXERS
 
 
@@ -23,10 +24,7 @@ class IndependentMixer(Mixer):
 
     def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, dropout: float = 0.5) -> None:
         super().__init__(in_dim, out_dim)
-        if hidden < 1:
-            raise ValueError(f"mixer.hidden must be a positive width, got {hidden}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"mixer.dropout must be in [0, 1), got {dropout}")
+        check_branch_kwargs(hidden, dropout)
         self.branches = nn.ModuleList(
             branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(self.n_branches)
         )
