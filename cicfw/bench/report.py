@@ -58,6 +58,21 @@ class Run:
             c[1] += 1
         return {k: (v[0], v[1]) for k, v in out.items()}
 
+    def manoeuvres(self) -> dict[str, tuple[int, int]]:
+        """command (left/right/straight) -> (successes, episodes), in that order, for those present."""
+        out: dict[str, list[int]] = {}
+        for r in self.rows:
+            c = out.setdefault(str(r["command"]), [0, 0])
+            c[0] += bool(r["success"])
+            c[1] += 1
+        order = {"left": 0, "right": 1, "straight": 2}
+        return {k: (v[0], v[1]) for k, v in sorted(out.items(), key=lambda kv: (order.get(kv[0], 9), kv[0]))}
+
+    def suite_name(self) -> str:
+        """The suite the run drove (``junctions``, ``single_turn``), from its metadata."""
+        suite = self.meta.get("suite") or {}
+        return str(suite.get("name", "junctions")) if isinstance(suite, Mapping) else "junctions"
+
     def success_rate(self) -> float:
         return 100.0 * sum(bool(r["success"]) for r in self.rows) / max(len(self.rows), 1)
 
@@ -73,6 +88,9 @@ def summary(run: Run) -> dict[str, Any]:
         "cells": {cell_key(*c): {"name": cell_name(*c), "success": ok, "episodes": n,
                                  "rate": round(100.0 * ok / n, 2)}
                   for c in CELLS if c in cells for ok, n in [cells[c]]},
+        "manoeuvres": {m: {"success": ok, "episodes": n, "rate": round(100.0 * ok / n, 2)}
+                       for m, (ok, n) in run.manoeuvres().items()},
+        "suite": run.suite_name(),
         "reasons": dict(sorted(reasons.items())),
         **{k: run.meta[k] for k in ("policy", "checkpoint", "seed", "wall_s", "steps") if k in run.meta},
     }
@@ -115,6 +133,24 @@ def markdown_table(runs: Sequence[Run]) -> str:
     else:
         lines += ["", "Episodes per column differ between rows: "
                   + "; ".join(f"{label}: {', '.join(map(str, n))}" for label, _, n in rows) + "."]
+    suites = sorted({run.suite_name() for run in runs})
+    lines += [f"Suite: {', '.join(suites)}" + (" (the paper's single-turn task: turns only)"
+                                               if suites == ["single_turn"] else "") + "."]
+    return "\n".join(lines) + "\n" + manoeuvre_table(runs)
+
+
+def manoeuvre_table(runs: Sequence[Run]) -> str:
+    """Success by manoeuvre (left / right / straight where the suite has it), a row per model."""
+    names = [m for m in ("left", "right", "straight") if any(m in run.manoeuvres() for run in runs)]
+    if not names:
+        return ""
+    lines = ["", "**Success by manoeuvre (%, successes/episodes)**", "",
+             "| Model | " + " | ".join(n.capitalize() for n in names) + " |",
+             "|---|" + "---:|" * len(names)]
+    for run in runs:
+        m = run.manoeuvres()
+        cells = [f"{100.0 * m[n][0] / m[n][1]:.2f} ({m[n][0]}/{m[n][1]})" if n in m else "–" for n in names]
+        lines.append(f"| {_md_escape(run.label)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

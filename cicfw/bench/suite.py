@@ -1,8 +1,11 @@
-"""The paper's single-turn suite: every junction manoeuvre of each town, under each weather.
+"""The closed-loop suites: every junction manoeuvre of each town, under each weather.
 
 The start/goal pairs come from the simulator backend's ``single_turn_routes(town)`` (one route per
-possible turn at every junction, each needing exactly one turn decision; stable for a given town
-file). An ``Episode`` is plain data (town, weather, pair index) so worker processes rebuild the route
+possible way through every junction, each needing exactly one decision; stable for a given town
+file). A suite is named by the manoeuvres it keeps (``SUITES``): the paper's ``single_turn`` task
+forces exactly one turn per episode (left and right turns only, as in the paper), ``junctions``
+also drives straight through each crossing. Pair numbers always index the town's full route list,
+so an episode's key is the same in both suites. An ``Episode`` is plain data (town, weather, pair index) so worker processes rebuild the route
 themselves. Towns and weathers are grouped as in the paper's table: training vs new.
 """
 from __future__ import annotations
@@ -19,6 +22,12 @@ PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
 TRAINING_WEATHERS = ("ClearNoon", "ClearSunset")
 #: the paper's table columns, in its order: (town set, weather set)
 CELLS = (("training", "training"), ("training", "new"), ("new", "training"), ("new", "new"))
+#: the named suites: the manoeuvres each one drives (conf/suite/<name>.yaml selects one)
+SUITES = {
+    "single_turn": ("left", "right"),  # the paper's test: exactly one turn per episode
+    "junctions": ("left", "right", "straight"),  # every way through every junction
+}
+MANOEUVRES = ("left", "right", "straight")
 
 
 @dataclass(frozen=True)
@@ -79,14 +88,26 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
     return out
 
 
+def suite_manoeuvres(name: str) -> tuple[str, ...]:
+    """The manoeuvres of the suite called ``name``, or one error listing the known suites."""
+    if name not in SUITES:
+        raise ValueError(f"unknown suite {name!r}; known suites: "
+                         + ", ".join(f"{k} ({'/'.join(v)})" for k, v in SUITES.items()))
+    return SUITES[name]
+
+
 def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
                 training_towns: Sequence[str] = (), training_weathers: Sequence[str] = TRAINING_WEATHERS,
-                pairs: Sequence[int] | None = None, limit: int | None = None) -> list[Episode]:
-    """Every (town, weather, pair) of the suite, ordered by town, weather, pair.
+                pairs: Sequence[int] | None = None, limit: int | None = None,
+                name: str = "junctions") -> list[Episode]:
+    """Every (town, weather, pair) of the suite ``name`` (``SUITES``), ordered by town, weather, pair.
 
-    ``pairs`` keeps only those pair indices (per town); ``limit`` keeps the first ``limit`` pairs of each
-    town. Unknown town or weather names raise one error listing the known ones.
+    Only the pairs whose manoeuvre belongs to the suite are kept (``single_turn``: left and right);
+    ``pairs`` keeps only those pair indices (per town, numbered over all the town's routes); ``limit``
+    keeps the first ``limit`` kept pairs of each town. Unknown town, weather or suite names raise one
+    error listing the known ones.
     """
+    manoeuvres = suite_manoeuvres(str(name))
     towns = check_names("town", towns, backend.towns(), path_ok=True)
     weathers = check_names("weather", weathers, backend.weathers())
     episodes: list[Episode] = []
@@ -97,6 +118,10 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         if bad:
             raise ValueError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
                              f"{len(routes)} pairs (0..{len(routes) - 1})")
+        chosen = [p for p in chosen if _turn_name(routes[p]) in manoeuvres]
+        if not chosen:
+            raise ValueError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "
+                             f"town {town!r}; pick other suite.pairs or suite=junctions")
         if limit is not None:
             if int(limit) < 1:
                 raise ValueError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
