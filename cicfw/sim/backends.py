@@ -3,19 +3,22 @@
 A backend is built from its config's kwargs (``conf/sim/<name>.yaml``: ``name:`` + kwargs) and gives
 ``towns()``, ``weathers()``, ``single_turn_routes(town)`` and ``make_env(town, route, weather, seed,
 cameras, renderer) -> env`` where env has ``reset() -> obs``, ``step(steer, target_speed_kmh=...) ->
-(obs, done, info)`` and ``expert_action()``, as ``cicfw.sim.env.DrivingEnv``.
+(obs, done, info)`` and ``expert_action()``, as ``cicfw.sim.env.DrivingEnv``. The data collector
+(``cicfw.sim.collection``) needs a little more: ``random_route``, ``make_env(..., expert=, time_offset=,
+endless=)`` and optionally ``resolve_town``; its module docstring lists the whole interface.
 """
 from __future__ import annotations
 
 import math
 import queue
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route, single_turn_routes
-from cicfw.sim.town import load_town, town_names
+from cicfw.sim.town import TownError, load_town, town_names
 
 
 @SIM_BACKENDS.register("embedded")
@@ -41,13 +44,41 @@ class EmbeddedBackend:
     def single_turn_routes(self, town: str) -> list[Route]:
         return single_turn_routes(load_town(town), self.route_before, self.route_after, self.command_distance)
 
-    def make_env(self, town: str, route: Route, weather: str, seed: int = 0, cameras: tuple = ("centre",),
-                 renderer: bool | Any = True):
-        from cicfw.sim.env import DrivingEnv
+    def resolve_town(self, town: str) -> str:
+        """A shipped town's name as it is, or a town file's absolute path (the file is loaded and
+        checked); a TownError naming the shipped towns, the missing file or the file's problem."""
+        s = str(town)
+        if s.endswith((".yaml", ".yml")) or "/" in s or "\\" in s:
+            p = Path(s).expanduser()
+            if not p.is_file():
+                raise TownError(f"no such town file: {s!r} (a town is a shipped name: "
+                                f"{', '.join(town_names())}, or the path to a town .yaml file)")
+            load_town(p)
+            return str(p.resolve())
+        load_town(s)  # an unknown name raises a TownError naming the shipped towns
+        return s
 
+    def random_route(self, town: str, rng: np.random.Generator, min_length: float, name: str = "random",
+                     command_distance: float | None = None) -> Route:
+        """A random multi-junction route of at least ``min_length`` m (turns balanced within it)."""
+        from cicfw.sim.roadgraph import road_graph
+
+        cd = self.command_distance if command_distance is None else float(command_distance)
+        return road_graph(load_town(town), cd).random_route(rng, min_length=min_length, name=name, counts={})
+
+    def make_env(self, town: str, route: Route, weather: str, seed: int = 0, cameras: tuple = ("centre",),
+                 renderer: bool | Any = True, expert: dict | None = None, time_offset: float = 0.0,
+                 endless: bool = False):
+        """``expert``: ExpertParams overrides; ``time_offset``: shifts the renderer's clock (rain phase);
+        ``endless``: the episode never ends by itself (no success, timeout or lost), for collection."""
+        from cicfw.sim.env import DrivingEnv
+        from cicfw.sim.expert import ExpertParams
+
+        stop = (dict(timeout=1e9, max_deviation=1e9, success_radius=-1.0) if endless else
+                dict(success_radius=self.success_radius, max_deviation=self.max_deviation))
         return DrivingEnv(load_town(town), route, weather=weather, seed=seed, cameras=cameras,
-                          renderer=renderer, success_radius=self.success_radius,
-                          max_deviation=self.max_deviation)
+                          renderer=renderer, expert=ExpertParams(**(expert or {})), time_offset=time_offset,
+                          **stop)
 
 
 # ------------------------------------------------------------------------------------------------
