@@ -140,8 +140,10 @@ def prepare_for_inference(model, fuse: bool = True):
 
 
 def describe(hp: Mapping[str, Any]) -> str:
-    """A short model label from hyper-parameters, e.g. ``gtu+hybrid``."""
-    return f"{hp.get('mixer')}+{hp.get('head')}"
+    """A short model label from hyper-parameters, e.g. ``gtu+regression``, ``independent+hybrid/expectation``
+    (a classification head's decoder is part of the label: it changes how the model steers)."""
+    decode = (hp.get("head_kwargs") or {}).get("decode")
+    return f"{hp.get('mixer')}+{hp.get('head')}" + (f"/{decode}" if decode else "")
 
 
 class CheckpointPolicy(Policy):
