@@ -72,6 +72,18 @@ def build_datamodule(cfg: DictConfig) -> CILDataModule:
     return CILDataModule(**kwargs)
 
 
+class EpochCheckpoints(Callback):
+    """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points."""
+
+    def __init__(self, dirpath: Path, epochs) -> None:
+        self.dirpath, self.epochs = Path(dirpath), {int(e) for e in epochs}
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        epoch = trainer.current_epoch + 1
+        if epoch in self.epochs:
+            trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
+
+
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     callbacks: list[Callback] = [
         ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
@@ -79,6 +91,8 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
                         auto_insert_metric_name=False),
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
     ]
+    if cfg.get("keep_epoch_checkpoints"):
+        callbacks.append(EpochCheckpoints(run_dir / "checkpoints", cfg.keep_epoch_checkpoints))
     if cfg.get("progress_bar", True):
         callbacks.append(RichProgressBar())
     return callbacks
