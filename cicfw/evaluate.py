@@ -133,6 +133,8 @@ def join_sweep() -> None:
 
         if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
             return
+        if HydraConfig.get().job.config_name != "evaluate":  # e.g. reproduce's cells: that app reports itself
+            return
         sweep_dir = Path(HydraConfig.get().sweep.dir)
     except Exception:
         return
