@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import hydra
-import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw.bench.runs import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
 from cicfw.errors import report_user_errors
 
 log = logging.getLogger("cicfw.evaluate")
@@ -36,31 +36,6 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("name"):
         spec["label"] = str(cfg.name)
     return spec
-
-
-def save_trajectories(path: Path, rows: Sequence[dict], trajectories: dict) -> None:
-    """Every episode's per-step poses, speed, steering and command (``e<index>.<channel>`` arrays)."""
-    from cicfw.bench.report import atomic_write
-    import io
-
-    arrays = {f"e{r['episode']:05d}.{k}": v for r in rows for k, v in trajectories.get(r["key"], {}).items()}
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    atomic_write(path, buf.getvalue())
-
-
-def load_trajectories(run_dir: Path) -> dict[str, dict[str, np.ndarray]]:
-    """The trajectories of a run folder, keyed by episode key."""
-    from cicfw.bench.report import load_run
-
-    run = load_run(run_dir)
-    keys = {int(r["episode"]): r["key"] for r in run.rows}
-    out: dict[str, dict[str, np.ndarray]] = {}
-    with np.load(Path(run_dir) / "trajectories.npz") as z:
-        for name in z.files:
-            ep, ch = name.split(".", 1)
-            out.setdefault(keys[int(ep[1:])], {})[ch] = z[name]
-    return out
 
 
 def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

@@ -12,13 +12,13 @@ import argparse
 import csv
 import io
 import json
-import os
 import sys
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from cicfw.bench.runs import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
+    SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
+)
 from cicfw.bench.suite import CELLS
 
 ROW_FIELDS = (
@@ -26,55 +26,7 @@ ROW_FIELDS = (
     "success", "reason", "time_s", "timeout_s", "distance_m", "route_length_m", "goal_distance_m", "progress",
     "offroad_fraction", "opposite_lane_fraction", "steps",
 )
-SET_NAMES = {"training": "Training", "new": "New"}
 CAPTION = "Reach destination success rate (%)"
-
-
-def cell_name(town_set: str, weather_set: str) -> str:
-    """``Training town / New weathers`` ..."""
-    return f"{SET_NAMES[town_set]} town / {SET_NAMES[weather_set]} weathers"
-
-
-def cell_key(town_set: str, weather_set: str) -> str:
-    """``training_town/new_weathers`` (JSON keys and metric names)."""
-    return f"{town_set}_town/{weather_set}_weathers"
-
-
-@dataclass
-class Run:
-    """One evaluation run: its label (the table's row name), rows, metadata and folder."""
-
-    label: str
-    rows: list[dict[str, Any]]
-    meta: dict[str, Any] = field(default_factory=dict)
-    path: Path | None = None
-
-    def cells(self) -> dict[tuple[str, str], tuple[int, int]]:
-        """(town_set, weather_set) -> (successes, episodes), for the cells this run has."""
-        out: dict[tuple[str, str], list[int]] = {}
-        for r in self.rows:
-            c = out.setdefault((r["town_set"], r["weather_set"]), [0, 0])
-            c[0] += bool(r["success"])
-            c[1] += 1
-        return {k: (v[0], v[1]) for k, v in out.items()}
-
-    def manoeuvres(self) -> dict[str, tuple[int, int]]:
-        """command (left/right/straight) -> (successes, episodes), in that order, for those present."""
-        out: dict[str, list[int]] = {}
-        for r in self.rows:
-            c = out.setdefault(str(r["command"]), [0, 0])
-            c[0] += bool(r["success"])
-            c[1] += 1
-        order = {"left": 0, "right": 1, "straight": 2}
-        return {k: (v[0], v[1]) for k, v in sorted(out.items(), key=lambda kv: (order.get(kv[0], 9), kv[0]))}
-
-    def suite_name(self) -> str:
-        """The suite the run drove (``junctions``, ``single_turn``), from its metadata."""
-        suite = self.meta.get("suite") or {}
-        return str(suite.get("name", "junctions")) if isinstance(suite, Mapping) else "junctions"
-
-    def success_rate(self) -> float:
-        return 100.0 * sum(bool(r["success"]) for r in self.rows) / max(len(self.rows), 1)
 
 
 def summary(run: Run) -> dict[str, Any]:
@@ -98,16 +50,6 @@ def summary(run: Run) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------------------
 # the table
-
-
-def table_rows(runs: Sequence[Run]) -> list[tuple[str, list[float | None], list[int]]]:
-    """Per run: (label, success % per paper column or None, episodes per column)."""
-    out = []
-    for run in runs:
-        cells = run.cells()
-        rates = [100.0 * cells[c][0] / cells[c][1] if c in cells else None for c in CELLS]
-        out.append((run.label, rates, [cells[c][1] if c in cells else 0 for c in CELLS]))
-    return out
 
 
 def _fmt(v: float | None) -> str:
@@ -190,20 +132,6 @@ def table_csv(runs: Sequence[Run]) -> str:
 # writing and reading run folders
 
 
-def atomic_write(path: Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def episodes_csv(rows: Iterable[Mapping[str, Any]]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=ROW_FIELDS, extrasaction="ignore")
@@ -225,20 +153,6 @@ def write_run(run_dir: Path, run: Run) -> dict[str, Any]:
     atomic_write(run_dir / "table.md", markdown_table([run]))
     atomic_write(run_dir / "table.tex", latex_table([run]))
     return s
-
-
-def load_run(run_dir: Path) -> Run:
-    """A run from its folder (``episodes.json``); a clear error if it is not one."""
-    p = Path(run_dir) / "episodes.json"
-    try:
-        data = json.loads(p.read_text())
-        rows, meta = data["episodes"], data.get("meta", {})
-        label = meta.get("model") or (rows[0]["model"] if rows else Path(run_dir).name)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{str(run_dir)!r} is not an evaluation run folder (no episodes.json)") from None
-    except (json.JSONDecodeError, KeyError, TypeError, IndexError) as err:
-        raise ValueError(f"{str(p)!r} is not an evaluation report written by cicfw ({err})") from None
-    return Run(label=str(label), rows=rows, meta=meta, path=Path(run_dir))
 
 
 def find_runs(paths: Sequence[str | Path]) -> list[Run]:

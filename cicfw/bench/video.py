@@ -106,9 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     import argparse
     import sys
 
-    from cicfw.bench.report import load_run
+    from cicfw.bench.runs import load_run, load_trajectories
     from cicfw.bench.suite import town_label
-    from cicfw.evaluate import load_trajectories
     from cicfw.sim.town import load_town
 
     ap = argparse.ArgumentParser(prog="python -m cicfw.bench.video",
