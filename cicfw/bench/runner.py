@@ -25,6 +25,7 @@ import numpy as np
 
 from cicfw.bench.policy import Observations, Policy, make_policy
 from cicfw.bench.suite import Episode, make_backend, suite_routes
+from cicfw.registry import SIM_BACKENDS
 
 #: the simulator's reasons mapped to the report's (the embedded env calls "far off route" "lost")
 REASONS = {"success": "success", "timeout": "timeout", "lost": "off_route", "off_route": "off_route",
@@ -36,7 +37,7 @@ TRAJ_FIELDS = ("x", "y", "yaw", "speed_kmh", "steer", "command", "off_road", "op
 @dataclass
 class RunnerConfig:
     batch_size: int = 64  # episodes per policy call (a chunk); the network's batch
-    workers: int | str = 1  # processes, or "auto" (see resolve_workers)
+    workers: int | str | list = 1  # processes, or "auto" (see resolve_workers); CARLA: server ports
     seed: int = 0  # renderer seed (rain animation); the rest is deterministic
     off_road_s: float = 3.0  # end as "off_road" after more than this many seconds off the road in total
     off_road_level: float = 0.5  # off-road fraction of the car's width that counts (0.5: its centre is off)
@@ -47,8 +48,14 @@ class RunnerConfig:
     def __post_init__(self) -> None:
         if int(self.batch_size) < 1:
             raise ValueError(f"runner.batch_size must be >= 1, got {self.batch_size}")
-        if self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
-            raise ValueError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r}")
+        if isinstance(self.workers, (list, tuple)):  # one simulator server per worker (sim=carla)
+            if not self.workers or not all(isinstance(p, int) and 0 < p < 65536 for p in self.workers) \
+                    or len(set(self.workers)) < len(self.workers):
+                raise ValueError(f"runner.workers as a list must hold distinct server ports (one CARLA "
+                                 f"server each), e.g. [2000,2002]; got {self.workers!r}")
+        elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
+            raise ValueError(f"runner.workers must be an integer >= 1, 'auto', or (sim=carla) a list of "
+                             f"server ports, got {self.workers!r}")
         if self.off_road_s <= 0:
             raise ValueError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
         if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
@@ -59,6 +66,8 @@ class RunnerConfig:
         """The process count: as configured, or for "auto" one per core when the policy renders
         (rendering and inference then use every core), at most one per (town, weather) cell and
         one per 32 episodes (a process costs seconds to start); 1 for a policy that renders nothing."""
+        if isinstance(self.workers, (list, tuple)):
+            return min(len(self.workers), max(len(episodes), 1))
         if self.workers != "auto":
             return min(int(self.workers), max(len(episodes), 1))
         if not renders:
@@ -93,6 +102,27 @@ class _Track:
 
 def drive(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: RunnerConfig,
           on_done: Callable[[dict], None] | None = None) -> RunResult:
+    """Run ``episodes`` with ``policy`` in this process: all in lockstep, or one after another for a
+    backend whose server runs one episode at a time (``backend.lockstep`` false: CARLA). Such a
+    backend is closed on any exit (its live episode's actors destroyed, its settings restored)."""
+    if getattr(backend, "lockstep", True):
+        return _lockstep(episodes, policy, backend, cfg, on_done)
+    t0 = time.perf_counter()
+    parts: list[RunResult] = []
+    try:
+        for ep in episodes:
+            parts.append(_lockstep([ep], policy, backend, cfg, on_done))
+    finally:
+        close = getattr(backend, "close", None)
+        if close is not None:
+            close()
+    return RunResult(rows=[r for p in parts for r in p.rows],
+                     trajectories={k: v for p in parts for k, v in p.trajectories.items()},
+                     wall_s=time.perf_counter() - t0, steps=sum(p.steps for p in parts))
+
+
+def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: RunnerConfig,
+              on_done: Callable[[dict], None] | None = None) -> RunResult:
     """Run ``episodes`` in lockstep with ``policy`` in this process."""
     t0 = time.perf_counter()
     cams = tuple(policy.cameras)
@@ -226,6 +256,11 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
     """
     episodes = list(episodes)
     workers = cfg.resolve_workers(episodes, renders=not isinstance(policy, Policy) or bool(policy.cameras))
+    servers = server_specs(sim, cfg.workers)  # CARLA: one worker per server
+    if servers is not None:
+        workers = min(len(servers), max(len(episodes), 1))
+        if workers == 1:
+            sim = servers[0]
     specs = isinstance(policy, Mapping) and (sim is None or isinstance(sim, Mapping))
     if workers > 1 and not specs and cfg.workers == "auto":
         workers = 1
@@ -240,9 +275,42 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
             backend = make_backend(sim) if sim is None or isinstance(sim, Mapping) else sim
             with _torch_threads(cfg.threads):
                 return drive(episodes, pol, backend, cfg, on_done=lambda row: bar.update(row["success"]))
-        return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar)
+        return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar,
+                              sims=servers)
     finally:
         bar.close()
+
+
+def server_specs(sim: Any, workers: Any) -> list | None:
+    """The simulator of each worker for a backend whose server runs one episode at a time (class
+    attribute ``lockstep = False``: CARLA), None for the others (their workers are processes).
+
+    Such a backend gets one worker per server: ``runner.workers`` is then a list of ports
+    (``[2000,2002]``: the sim spec with each ``port``); 1 or "auto" is the configured server alone; a
+    larger number would drive one server from several processes and is refused."""
+    if sim is not None and not isinstance(sim, Mapping):
+        cls, name = type(sim), type(sim).__name__
+    else:
+        name = str((sim or {}).get("name", "embedded"))
+        cls = SIM_BACKENDS.get(name)
+    ports = isinstance(workers, (list, tuple))
+    if getattr(cls, "lockstep", True):
+        if ports:
+            raise ValueError(f"runner.workers={list(workers)}: a list of server ports is for a simulator that "
+                             f"runs one episode per server (sim=carla); sim={name} takes a number of processes "
+                             f"or 'auto'")
+        return None
+    if not ports:
+        if workers not in ("auto", 1):
+            raise ValueError(f"runner.workers={workers}: sim={name} runs one episode at a time per server, so "
+                             f"its workers are servers: give their ports, e.g. runner.workers=[2000,2002] (one "
+                             f"server each), or 1")
+        return [sim]
+    if not isinstance(sim, Mapping):
+        if len(workers) == 1:
+            return [sim]
+        raise ValueError("runner.workers as a list of ports needs the simulator as a config spec ({name: ...})")
+    return [{**sim, "port": int(p)} for p in workers]
 
 
 @contextlib.contextmanager
@@ -262,14 +330,14 @@ def _torch_threads(n: int | None):
 
 
 def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: RunnerConfig,
-                   workers: int, bar: Progress) -> RunResult:
+                   workers: int, bar: Progress, sims: list[dict] | None = None) -> RunResult:
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")  # fork after torch's thread pools started can deadlock
     q = ctx.Queue()
     threads = int(cfg.threads) if cfg.threads else max((os.cpu_count() or 1) // workers, 1)
     shards = shard(episodes, workers)
-    procs = [ctx.Process(target=_worker, args=(k, shards[k], policy_spec, sim_spec, asdict(cfg), threads, q),
-                         daemon=True) for k in range(workers)]
+    procs = [ctx.Process(target=_worker, args=(k, shards[k], policy_spec, sims[k] if sims else sim_spec,
+                                               asdict(cfg), threads, q), daemon=True) for k in range(workers)]
     for p in procs:
         p.start()
     results: dict[int, RunResult] = {}
