@@ -1,7 +1,12 @@
-"""The collector: CIL files that read back through cicfw.data.cil_hdf5, determinism, resume."""
+"""The collector: CIL files that read back through cicfw.data.cil_hdf5, determinism, resume, the app's
+one-line errors (collect and preview), and the engine over the backend interface (sim=...).
+
+The integrity guarantees under faults (lock, killed parent, full disk ...) are in test_collect_integrity.py."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +14,11 @@ import pytest
 from hydra import compose, initialize_config_module
 
 import cicfw.collect as collect_mod
+import cicfw.sim.collection as engine
 from cicfw.collect import CollectConfigError, collect_dataset, resolve_config
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
+from cicfw.registry import SIM_BACKENDS
+from cicfw.sim.backends import EmbeddedBackend
 
 SMALL = {"episodes": 2, "seconds": 8, "workers": 0}  # 80 steps x 3 cameras = 240 samples = 2 files each
 
@@ -63,27 +71,32 @@ def test_noise_label_is_the_experts_steer_not_the_noisy_one(tmp_path: Path):
 
 def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path, small_dataset: Path,
                                                                    monkeypatch):
-    real_write = collect_mod.write_file
+    real_write = engine.write_bytes_tmp
     calls = {"n": 0}
+    seen = []
 
-    def dying_write(path, rgb, targets):  # episode 0 finishes, episode 1 dies writing its 2nd file
-        calls["n"] += 1
+    def dying_write(path, data, suffix=".part"):  # episode 0 finishes, episode 1 dies writing its 2nd file
+        calls["n"] += suffix == ".part"  # the HDF5 files (JSON files are written with ".tmp")
         if calls["n"] == 4:
+            seen.extend(p.name for p in out.glob(".*.part"))
             raise KeyboardInterrupt("killed")
-        return real_write(path, rgb, targets)
+        return real_write(path, data, suffix)
 
     out = tmp_path / "resumed"
-    monkeypatch.setattr(collect_mod, "write_file", dying_write)
+    monkeypatch.setattr(engine, "write_bytes_tmp", dying_write)
     with pytest.raises(KeyboardInterrupt):
         collect_dataset(SMALL, out, progress=False)
     visible = sorted(p.name for p in out.glob("*.h5"))
     assert visible == ["ep0000_town_a_ClearNoon_000.h5", "ep0000_town_a_ClearNoon_001.h5"]
-    assert list(out.glob(".*.part"))  # the dead episode's first file, never under its final name
+    # the dead episode's first file existed under a temporary name only, and is gone now
+    assert len(seen) == 1 and seen[0].startswith(".ep0001_town_a_ClearSunset_000.h5.")
+    assert not list(out.glob(".*.part"))
     meta = json.loads((out / "dataset_metadata.json").read_text())
     assert not meta["complete"] and meta["counts"]["episodes"] == 1
-    monkeypatch.setattr(collect_mod, "write_file", real_write)
+    monkeypatch.setattr(engine, "write_bytes_tmp", real_write)
     collect_dataset(SMALL, out, progress=False)
-    assert not [p for p in out.rglob(".*") if p.is_file() and p.parent == out]  # no temporary files left
+    # no temporary files left (the lock file stays: it is how the next collector finds the holder)
+    assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == [engine.LOCK_NAME]
     assert json.loads((out / "dataset_metadata.json").read_text())["complete"]
     for f in find_files(small_dataset):  # same seed, same bytes, whether interrupted or not
         assert (out / f.name).read_bytes() == f.read_bytes(), f.name
@@ -111,6 +124,177 @@ def test_bad_config_values_give_one_clear_error(tmp_path: Path, small_dataset: P
         resolve_config({"expert": {"speed": 3}})
     with pytest.raises(CollectConfigError, match="another config"):
         collect_dataset({**SMALL, "seconds": 9}, small_dataset, progress=False)
+
+
+BAD_TOWN = "name: broken\nroads: [1\n"  # not YAML
+
+
+@pytest.mark.parametrize("override, message", [
+    ("towns=[town_q]", "collect.towns: unknown town 'town_q'; shipped towns: town_a, town_b"),
+    ("weathers=[Foggy]", "collect.weathers: unknown weather 'Foggy'; known weathers (sim=embedded): ClearNoon, "),
+    ("episodes=0", "collect.episodes must be an integer >= 1, got 0"),
+    ("episodes=-3", "collect.episodes must be an integer >= 1, got -3"),
+    ("seconds=0", "collect.seconds must be > 0"),
+    ("seconds=-2.5", "collect.seconds must be > 0"),
+    ("towns=[/no/such/my_town.yaml]", "collect.towns: no such town file: '/no/such/my_town.yaml'"),
+    ("towns=[BAD]", "collect.towns: BAD: not valid YAML"),
+    ("cameras=[top]", "collect.cameras: unknown camera 'top'; known: centre, left, right"),
+    ("workers=-1", "collect.workers must be an integer >= 0"),
+    ("noise.episode_fraction=2", "collect.noise.episode_fraction must be in [0, 1]"),
+    ("lock_wait=-1", "collect.lock_wait must be seconds >= 0"),
+    ("sim.name=nosuch", "collect: unknown sim backend 'nosuch'; registered sim backends: "),
+    ("+frames=3", "collect: unknown key 'frames'; accepted keys: towns, weathers"),
+])
+def test_the_app_prints_one_line_for_every_config_error(tmp_path: Path, capsys, override: str, message: str,
+                                                        monkeypatch):
+    bad = tmp_path / "broken_town.yaml"
+    bad.write_text(BAD_TOWN)
+    override = override.replace("BAD", str(bad))
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("collect", overrides=[f"out_dir={tmp_path / 'out'}", override])
+    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("simulated despite a bad config"))
+    with pytest.raises(SystemExit) as exc:
+        collect_mod.run(cfg)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: "), err
+    assert message.replace("BAD", str(bad)) in lines[0], lines[0]
+    assert not (tmp_path / "out").exists()  # reported before the folder was touched
+
+
+def test_the_real_command_line_prints_one_line(tmp_path: Path):
+    r = subprocess.run([sys.executable, "-m", "cicfw.collect", f"out_dir={tmp_path / 'out'}", "weathers=[Foggy]"],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("cicfw: error: collect.weathers: unknown weather 'Foggy'")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--towns", "town_q"], "unknown town 'town_q'; shipped towns: town_a, town_b"),
+    (["--towns", "/no/such/my_town.yaml"], "no such town file: '/no/such/my_town.yaml'"),
+    (["--towns", "BAD"], "BAD: not valid YAML"),
+    (["--weathers", "Foggy"], "--weathers: unknown weather 'Foggy'; known weathers: ClearNoon, "),
+    (["--scale", "0"], "--scale must be >= 1"),
+    (["--colours", "1"], "--colours must be 0 (full colour) or 2..256"),
+])
+def test_preview_prints_one_line_for_every_config_error(tmp_path: Path, capsys, args: list, message: str):
+    from cicfw.sim import preview
+
+    bad = tmp_path / "broken_town.yaml"
+    bad.write_text(BAD_TOWN)
+    args = [str(bad) if a == "BAD" else a for a in args]
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(tmp_path / "out"), *args])
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: "), lines
+    assert message.replace("BAD", str(bad)) in lines[0], lines[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# the engine over the backend interface
+
+
+class RecordingBackend:
+    """Only the documented interface (no resolve_town: names only), over the embedded simulator; its
+    envs have no ``info()`` and a ``close()``, and stop (done) after ``stop_after`` steps."""
+
+    calls: list = []
+
+    def __init__(self, stop_after: int = 10**9, **kwargs) -> None:
+        self.inner = EmbeddedBackend(**kwargs)
+        self.stop_after = stop_after
+        self.data_version = "recording-7"
+        RecordingBackend.calls.append(("init", kwargs))
+
+    def towns(self):
+        return ["town_a"]
+
+    def weathers(self):
+        return ["ClearNoon"]
+
+    def random_route(self, town, rng, min_length, name="random", command_distance=None):
+        RecordingBackend.calls.append(("route", town, name))
+        return self.inner.random_route(town, rng, min_length, name, command_distance)
+
+    def make_env(self, town, route, weather, seed=0, cameras=("centre",), renderer=True, expert=None,
+                 time_offset=0.0, endless=False):
+        RecordingBackend.calls.append(("make_env", town, weather, endless))
+        return RecordingEnv(self.inner.make_env(town, route, weather, seed, cameras, renderer, expert, time_offset,
+                                                endless), self.stop_after)
+
+
+class RecordingEnv:
+    def __init__(self, env, stop_after: int) -> None:
+        self.env, self.stop_after, self.n = env, stop_after, 0
+        self.speed_ctl = env.speed_ctl
+
+    def reset(self):
+        return self.env.reset()
+
+    def expert_action(self):
+        return self.env.expert_action()
+
+    def step(self, steer, throttle=None, brake=None):
+        obs, done, info = self.env.step(steer, throttle=throttle, brake=brake)
+        self.n += 1
+        return obs, done or self.n >= self.stop_after, info
+
+    def close(self):
+        RecordingBackend.calls.append(("close", self.n))
+
+
+@pytest.fixture
+def recording(monkeypatch):
+    SIM_BACKENDS.names()  # load the registry before replacing an entry
+    monkeypatch.setitem(SIM_BACKENDS._entries, "recording", RecordingBackend)
+    RecordingBackend.calls = []
+    return RecordingBackend
+
+
+def test_the_engine_drives_any_backend_through_its_interface(tmp_path: Path, recording):
+    cfg = {"episodes": 2, "seconds": 1.5, "weathers": ["ClearNoon"], "cameras": ["centre", "right"], "workers": 0,
+           "sim": {"name": "recording", "stop_after": 12, "command_distance": 9.0}}
+    meta = json.loads(collect_dataset(cfg, tmp_path, progress=False).read_text())
+    assert meta["complete"] and meta["sim"] == "recording" and meta["sim_version"] == "recording-7"
+    # an env that is done after 12 steps ends its episode there: 12 steps x 2 cameras
+    assert [check_file(f).n for f in find_files(tmp_path)] == [24, 24]
+    assert meta["counts"] == {"episodes": 2, "samples": 48, "steps": 24, "files": 2, "noisy_steps":
+                              meta["counts"]["noisy_steps"]}
+    kinds = [c[0] for c in recording.calls]
+    assert kinds.count("init") == 1  # one backend for the whole in-process run
+    assert kinds.count("make_env") == 2 and ("make_env", "town_a", "ClearNoon", True) in recording.calls
+    assert [c for c in recording.calls if c[0] == "close"] == [("close", 12), ("close", 12)]  # closed each time
+    t = read_targets(find_files(tmp_path)[0])
+    assert np.array_equal(t[:, T.CAMERA_ID], np.tile([0, 2], 12)) and np.all(t[:, T.OPPOSITE_LANE] >= 0)
+    with pytest.raises(CollectConfigError, match=r"unknown town 'town_b'; known towns \(sim=recording\): town_a"):
+        resolve_config({**cfg, "towns": ["town_b"]})
+    # another simulator is another dataset: the same folder refuses the embedded one
+    with pytest.raises(CollectConfigError, match="another config"):
+        collect_dataset({**cfg, "sim": {"name": "embedded"}}, tmp_path, progress=False)
+
+
+def test_sim_carla_routes_collect_to_the_carla_backend(tmp_path: Path, recording, monkeypatch):
+    """``python -m cicfw.collect sim=carla`` builds SIM_BACKENDS['carla'] with conf/sim/carla.yaml's kwargs
+    (a stand-in here: no server) and collects through it."""
+    made = []
+
+    class StandIn(RecordingBackend):
+        def __init__(self, **kwargs):
+            made.append(kwargs)
+            super().__init__(stop_after=3)
+
+    monkeypatch.setitem(SIM_BACKENDS._entries, "carla", StandIn)
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("collect", overrides=["sim=carla", f"out_dir={tmp_path}", "episodes=1", "workers=0",
+                                            "weathers=[ClearNoon]", "cameras=[centre]"])
+    line = collect_mod.run(cfg)
+    assert "sim=carla" in line and "complete=True" in line
+    from omegaconf import OmegaConf
+
+    assert made and made[0] == {k: v for k, v in OmegaConf.to_container(cfg.sim).items() if k != "name"}
+    assert [check_file(f).n for f in find_files(tmp_path)] == [3]
 
 
 def test_hydra_collect_config_composes_and_resolves():

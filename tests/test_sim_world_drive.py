@@ -175,9 +175,9 @@ def test_sim_and_town_configs_are_valid_hydra_options():
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         for name in ("embedded", "carla"):
-            cfg = compose("collect", overrides=[f"+sim={name}"])
+            cfg = compose("collect", overrides=[f"sim={name}"])
             assert cfg.sim.name in SIM_BACKENDS
-        b = SIM_BACKENDS.get("embedded")(**{k: v for k, v in compose("collect", overrides=["+sim=embedded"]).sim.items()
+        b = SIM_BACKENDS.get("embedded")(**{k: v for k, v in compose("collect", overrides=["sim=embedded"]).sim.items()
                                             if k != "name"})
         assert b.command_distance == 12.0
         for town in town_names():

@@ -3,13 +3,15 @@
 Writes ``contact_sheet.png`` (the three cameras x the weathers x the towns, a dozen metres before a
 junction), ``turn_sheet.png`` (the cameras in the middle of a left turn) and ``map_<town>.png`` (a
 top-down map drawn from the renderer's ground texture with buildings, trees and a few routes
-coloured by their high-level command).
+coloured by their high-level command). A bad value (unknown town or weather, a missing or broken town
+file, an unwritable folder) prints one line, ``cicfw: error: ...``, and exits with status 2.
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import secrets
 import sys
 from pathlib import Path
 
@@ -28,16 +30,20 @@ COMMAND_STYLE = {2: ("follow", (255, 255, 255)), 3: ("left", (40, 120, 230)), 4:
 def _write_png(path: Path, rgb: np.ndarray, colours: int = 0) -> Path:
     """Write atomically (temporary name, then rename); ``colours`` > 0 quantises to a palette (small
     files for docs)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    if colours:
-        from PIL import Image
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp.png")  # unique per process
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if colours:
+            from PIL import Image
 
-        Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
-                                      dither=Image.Dither.NONE).save(tmp, optimize=True)
-    elif not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write {path}")
-    os.replace(tmp, path)
+            Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
+                                          dither=Image.Dither.NONE).save(tmp, optimize=True)
+        elif not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+            raise OSError(0, "the image could not be encoded or written")
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise ValueError(f"cannot write {path} ({err.strerror or err}); give a writable --out folder") from None
     return path
 
 
@@ -170,8 +176,32 @@ def sample_routes(town, n: int, seed: int = 0, min_length: float = 150.0) -> lis
     return [g.random_route(rng, min_length, name=f"{town.name}/preview{k}", counts=counts) for k in range(n)]
 
 
+def load_towns(names: list[str]) -> list:
+    """Towns by shipped name or file path; a ValueError (one line) for an unknown name, a missing file
+    ("no such town file") or a broken one (the file and its problem)."""
+    from cicfw.sim.backends import EmbeddedBackend
+    from cicfw.sim.town import load_town
+
+    backend = EmbeddedBackend()
+    return [load_town(backend.resolve_town(n)) for n in names]
+
+
+def check_weathers(weathers: list[str]) -> list[str]:
+    for wx in weathers:
+        if wx not in WEATHERS:
+            raise ValueError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
+    return weathers
+
+
 def main(argv: list[str] | None = None) -> int:
-    from cicfw.sim.town import load_town, town_names
+    """The command line; every bad value is one line (``cicfw: error: ...``, exit status 2)."""
+    from cicfw.errors import report_user_errors
+
+    return report_user_errors(_main)(argv)
+
+
+def _main(argv: list[str] | None = None) -> int:
+    from cicfw.sim.town import town_names
 
     ap = argparse.ArgumentParser(prog="python -m cicfw.sim.preview", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="sim_preview", help="output folder (created; default: %(default)s)")
@@ -184,14 +214,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="quantise the PNGs to this many colours (e.g. 256 for small files; default: full colour)")
     ap.add_argument("--prefix", default="", help="prefix of the file names (e.g. sim_)")
     a = ap.parse_args(argv)
-    for wx in a.weathers:
-        if wx not in WEATHERS:
-            ap.error(f"unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
+    check_weathers(a.weathers)
     if a.scale < 1:
-        ap.error("--scale must be >= 1")
-    if not 0 <= a.colours <= 256:
-        ap.error("--colours must be 0 (full colour) or 2..256")
-    towns = [load_town(n) for n in (a.towns or town_names())]
+        raise ValueError(f"--scale must be >= 1, got {a.scale}")
+    if not (a.colours == 0 or 2 <= a.colours <= 256):
+        raise ValueError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}")
+    if a.routes < 0:
+        raise ValueError(f"--routes must be >= 0, got {a.routes}")
+    towns = load_towns(a.towns or town_names())
     out = Path(a.out).expanduser().resolve()
     q, pre = a.colours, a.prefix
     turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
