@@ -1,5 +1,5 @@
 """Collection speed, end to end: samples (camera images + targets) written per second by
-cicfw.collect.collect_dataset into a temporary folder, cold (renderers baked in every run, worker
+cicfw.sim.collection.collect_dataset into a temporary folder, cold (renderers baked in every run, worker
 processes started), in-process (workers=1) and with worker processes. ``--default`` times the
 default dataset (43,200 samples, ~2.2 GB in the temporary folder) instead.
 
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import cicfw.sim.env as sim_env
-from cicfw.collect import DEFAULTS, collect_dataset, episode_plan, resolve_config, run_episode
+from cicfw.sim.collection import DEFAULTS, collect_dataset, episode_plan, make_backend, resolve_config, run_episode
 
 
 def main() -> None:
@@ -47,10 +47,11 @@ def main() -> None:
     # where one episode's time goes (in-process, warm caches)
     cfg = resolve_config({"episodes": 1, "seconds": args.seconds, "workers": 0})
     ep = episode_plan(cfg)[0]
+    backend = make_backend(cfg["sim"])
     with tempfile.TemporaryDirectory() as d:
-        run_episode(cfg, ep, Path(d))  # warm: towns, renderer textures
+        run_episode(cfg, ep, Path(d), backend)  # warm: towns, renderer textures
         t0 = time.perf_counter()
-        m = run_episode(cfg, ep, Path(d))
+        m = run_episode(cfg, ep, Path(d), backend)
         dt = time.perf_counter() - t0
     print(f"  one episode in-process, warm renderers: {m['samples'] / dt:.0f} samples/s")
     full = resolve_config({})
