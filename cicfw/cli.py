@@ -13,6 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("cicfw.bench.report", "join evaluation runs into one table with plots"),
     "video": ("cicfw.bench.video", "film episodes of a finished evaluation run (MP4)"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
+    "carla-check": ("cicfw.sim.carla_check", "test a CARLA server in a minute: PASS/FAIL per guarantee"),
 }
 
 

@@ -368,6 +368,8 @@ class CarlaEnv:
         self._state: VehicleState | None = None
         self.frame = -1
         self.images: dict[str, np.ndarray] = {}
+        self.image_frames: dict[str, int] = {}  # camera -> the frame id its current image carries
+        self.spawned_ids: list[int] = []  # every actor this env spawned (for checks after close)
         self.events: dict[str, float] = {}
         self.t, self.steps, self.done, self.live = 0.0, 0, False, False
 
@@ -415,6 +417,7 @@ class CarlaEnv:
                 raise CarlaError(f"could not spawn {be.vehicle} at the start of {self.route.name} "
                                  f"(x={x:.1f}, y={y:.1f}): {err}") from None
             self.actors.append(self.car)
+            self.spawned_ids.append(int(self.car.id))
             self._spawn_sensors(lib)
             for _ in range(max(be.settle_ticks, 0)):  # let the car settle on its wheels, braked
                 self.car.apply_control(carla.VehicleControl(throttle=0.0, steer=0.0, brake=1.0))
@@ -447,6 +450,7 @@ class CarlaEnv:
     def _attach(self, name: str, bp: Any, mount: Any) -> None:
         sensor = self.world.spawn_actor(bp, mount, attach_to=self.car)
         self.actors.append(sensor)
+        self.spawned_ids.append(int(sensor.id))
         q: queue.Queue = queue.Queue()
         sensor.listen(q.put)
         self.sensors[name], self.queues[name] = sensor, q
@@ -512,6 +516,7 @@ class CarlaEnv:
                     f"of the tick (sim.sensor_timeout_s); is the CARLA server overloaded?") from None
             if data.frame < frame:
                 continue  # an older frame: drop it
+            self.image_frames[name] = int(data.frame)
             if data.frame > frame:
                 raise CarlaError(f"camera {name!r} sent frame {data.frame} while frame {frame} was expected: "
                                  f"another client is ticking the server at {self.backend.host}:{self.backend.port}")

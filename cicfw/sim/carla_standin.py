@@ -40,6 +40,16 @@ from cicfw.sim.vehicle import Vehicle, VehicleParams, VehicleState
 DT_DEFAULT = 0.05  # what an asynchronous server would advance per tick (never used by cicfw)
 
 
+def maps_dir() -> Path | None:
+    """Where CARLA's OpenDRIVE files for the tests are: ``$CICFW_CARLA_MAPS``, else ``../shared/carla-maps``
+    beside the repository (they are test data, never copied into it); None when absent."""
+    import os
+
+    env = os.environ.get("CICFW_CARLA_MAPS")
+    p = Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "carla-maps"
+    return p if (p / "Town01.xodr").is_file() and (p / "Town02.xodr").is_file() else None
+
+
 # ------------------------------------------------------------------------------------------------
 # the wheel's stubs as signatures
 
@@ -144,6 +154,7 @@ class StandIn:
         self.on_tick: Callable[[int], None] | None = None
         self.collisions: dict[int, tuple[float, str]] = {}
         self.invasions: dict[int, int] = {}
+        self.geometric_sensors = True  # also emit events from the geometry (see _geometric_events)
         self.timers: list[threading.Timer] = []
         self.client = self._spec(carla.Client)
         self.client.get_server_version.side_effect = lambda: self.version
@@ -205,6 +216,9 @@ class StandIn:
         w.spawn_actor.side_effect = functools.partial(self._spawn, w)
         w.tick.side_effect = lambda seconds=10.0: self._tick(w)
         w.get_snapshot.side_effect = lambda: self._snapshot()
+        w.get_weather.side_effect = lambda: getattr(self.carla.WeatherParameters, self.weather, None)
+        w.get_actors.side_effect = lambda actor_ids=None: [
+            r["actor"] for aid, r in sorted(self.alive.items()) if actor_ids is None or aid in actor_ids]
         return w
 
     def _current(self, w: Any) -> bool:
@@ -349,6 +363,8 @@ class StandIn:
                 rec["vehicle"].step(c.steer, c.throttle, c.brake)
         self.log.append(("tick", self.frame, self.weather, bool(self.settings.synchronous_mode),
                          self.settings.fixed_delta_seconds))
+        if self.geometric_sensors:
+            self._geometric_events(w)
         for aid, rec in list(self.alive.items()):
             cb = rec.get("callback")
             if cb is None:
@@ -366,6 +382,31 @@ class StandIn:
             elif rec["kind"] == "lane_invasion" and self.frame in self.invasions:
                 self._deliver(cb, [self._invasion(self.frame, self.invasions[self.frame])])
         return self.frame
+
+    def _geometric_events(self, w: Any) -> None:
+        """Events a server's sensors would send, from the geometry: a lane invasion when a car's
+        centre moves onto another driving lane outside junctions, a collision when two cars' centres
+        come within 3 m (impulse 1000 N s per m/s of the moving car's speed)."""
+        # (a lane invasion: another lane of the same road; a car off every lane keeps its last lane)
+        cmap = self.map(w.town)
+        cars = {aid: r for aid, r in self.alive.items() if r["kind"] == "vehicle"}
+        for aid, rec in cars.items():
+            x, y, _, v = self._pose(aid)
+            wp = cmap.get_waypoint(self.carla.Location(x=x, y=y, z=rec["z"]), project_to_road=False)
+            lane = None if wp is None or wp.is_junction else (wp.road_id, wp.lane_id)
+            last = rec.get("lane")
+            if lane is not None and last is not None and lane[0] == last[0] and lane[1] != last[1]:
+                self.invasions[self.frame] = self.invasions.get(self.frame, 0) + 1
+            if wp is None or lane is not None:
+                rec["lane"] = lane if lane is not None else last
+            else:
+                rec["lane"] = None  # in a junction: a new road follows
+            for other, orec in cars.items():
+                if other == aid or v < 0.1:
+                    continue
+                ox, oy, _, _ = self._pose(other)
+                if math.hypot(ox - x, oy - y) < 3.0:
+                    self.collisions[self.frame] = (1000.0 * v, orec["actor"].type_id)
 
     def _deliver(self, cb: Callable, items: list) -> None:
         if self.delay_s > 0:
