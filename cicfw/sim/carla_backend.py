@@ -275,7 +275,21 @@ class CarlaBackend:
         if str(town) not in known:
             raise CarlaError(f"unknown CARLA town {town!r}; known: {', '.join(known)} (sim.town_map maps "
                              f"cicfw towns to CARLA maps)")
+        self.check_servers(self.carla_town(town))
         return str(town)
+
+    def check_servers(self, carla_town: str | None = None) -> None:
+        """Connect now to the server (and to every one in ``ports``) and check it has ``carla_town``:
+        the one-line errors come before anything is written or simulated."""
+        clients = [self.client] + [connect(self.host, p, self.connect_timeout_s, self.timeout_s, self.carla)
+                                   for p in (self.ports or []) if p != self.port]
+        if carla_town is None:
+            return
+        for port, client in zip([self.port] + [p for p in (self.ports or []) if p != self.port], clients):
+            available = [m.rsplit("/", 1)[-1] for m in client.get_available_maps()]
+            if carla_town not in available:
+                raise CarlaError(f"map {carla_town!r} is not on the CARLA server at {self.host}:{port}; it has "
+                                 f"{', '.join(sorted(available))} (sim.town_map)")
 
     def random_route(self, town: str, rng: np.random.Generator, min_length: float, name: str = "random",
                      command_distance: float | None = None, counts: dict | None = None) -> Route:
@@ -394,11 +408,11 @@ class CarlaEnv:
         if route is not None:
             self.route = route
         carla, be = self.carla, self.backend
-        be._claim(self)
-        self.live, self.done = True, False
         try:
-            self.world = be.world(self.town)
+            self.world = be.world(self.town)  # CarlaBusy if another episode runs on another map
             self.map = be.map(self.town)
+            be._claim(self)  # CarlaBusy if another episode runs
+            self.live, self.done = True, False
             self._saved_settings = self.world.get_settings()
             settings = self.world.get_settings()
             settings.synchronous_mode = True

@@ -13,7 +13,7 @@ then every listening sensor gets that frame's data: cameras an 800x600 BGRA imag
 the frame id (blue = frame % 256, green = frame // 256 % 256, red = the camera's index), collision and
 lane-invasion sensors the events scripted for that frame. ``load_world`` destroys every actor.
 
-``log`` records what happened, in order: ``("tick", frame, weather, synchronous, fixed_delta)``,
+``log`` records what happened, in order: ``("tick", frame, weather, synchronous, fixed_delta, town)``,
 ``("apply_settings", synchronous, fixed_delta)``, ``("weather", name)``, ``("spawn", id, type_id)``,
 ``("destroy", id)``, ``("control", frame, steer, throttle, brake)``, ``("load_world", name)``.
 
@@ -362,7 +362,7 @@ class StandIn:
                 rec["vehicle"].dt = dt
                 rec["vehicle"].step(c.steer, c.throttle, c.brake)
         self.log.append(("tick", self.frame, self.weather, bool(self.settings.synchronous_mode),
-                         self.settings.fixed_delta_seconds))
+                         self.settings.fixed_delta_seconds, w.town))
         if self.geometric_sensors:
             self._geometric_events(w)
         for aid, rec in list(self.alive.items()):
