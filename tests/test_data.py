@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cicfw.data.augment import AugmentConfig, augment_batch
-from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, write_file
+from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, write_file
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.data.sampler import CommandBalancedBatchSampler
@@ -33,7 +33,7 @@ def test_extra_datasets_are_ignored(tmp_path):
 @pytest.mark.parametrize(
     "datasets, message",
     [
-        ({"targets": np.zeros((4, 28), np.float32)}, "no 'rgb' dataset"),
+        ({"targets": np.zeros((4, 28), np.float32)}, "neither 'rgb' nor 'images_center'"),
         ({"rgb": np.zeros((4, 88, 200, 3), np.uint8)}, "no 'targets' dataset"),
         ({"rgb": np.zeros((4, 88, 200, 3), np.float32), "targets": np.zeros((4, 28), np.float32)}, "'rgb' is float32"),
         ({"rgb": np.zeros((4, 66, 200, 3), np.uint8), "targets": np.zeros((4, 28), np.float32)}, r"expected uint8 \(N, 88, 200, 3\)"),
@@ -49,6 +49,50 @@ def test_bad_file_names_file_and_problem(tmp_path, datasets, message):
     with pytest.raises(CILFormatError, match=message) as err:
         load_frames(str(tmp_path))
     assert "bad.h5" in str(err.value)
+
+
+def _rename_images(path, name="images_center"):
+    with h5py.File(path, "a") as f:
+        f.move("rgb", name)
+
+
+@pytest.mark.parametrize("in_memory", [True, False])
+def test_images_named_images_center_are_read_like_rgb(tmp_path, in_memory):
+    """The CoRL-2017 README names the image dataset 'images_center'; files in circulation use 'rgb'."""
+    files = find_files(write_tiny_dataset(tmp_path, n_files=4, n=12))
+    for f in files[::2]:  # a folder mixing both names
+        _rename_images(f)
+    assert check_file(files[0]).n == 12
+    with h5py.File(files[0], "r") as f:
+        assert "rgb" not in f and np.array_equal(read_rgb(files[0]), f["images_center"][()])
+    dm = CILDataModule(str(tmp_path), batch_size=8, val_batch_size=4, in_memory=in_memory, augment=False,
+                       val_cameras=None)
+    dm.setup("fit")
+    for part in (dm.train_set, dm.val_set):
+        fr = part.frames
+        got = part.__getitems__(list(range(len(fr))))["image"]
+        for i in range(len(fr)):
+            with h5py.File(fr.files[fr.file_idx[i]], "r") as f:
+                stored = f["images_center" if "images_center" in f else "rgb"][fr.row[i]]
+            assert torch.equal(got[i], torch.from_numpy(stored).permute(2, 0, 1))
+
+
+def test_a_file_with_neither_image_name_says_both(tmp_path):
+    files = find_files(write_tiny_dataset(tmp_path, n_files=2, n=4))
+    _rename_images(files[1], "images")
+    with pytest.raises(CILFormatError) as err:
+        load_frames(str(tmp_path))
+    msg = str(err.value)
+    assert files[1].name in msg and "'rgb'" in msg and "'images_center'" in msg and "found: images, targets" in msg
+
+
+def test_a_bad_images_center_dataset_is_named_as_such(tmp_path):
+    p = tmp_path / "bad.h5"
+    with h5py.File(p, "w") as f:
+        f["images_center"] = np.zeros((4, 88, 200, 3), np.float32)
+        f["targets"] = np.zeros((4, 28), np.float32)
+    with pytest.raises(CILFormatError, match="bad.h5: 'images_center' is float32"):
+        check_file(p)
 
 
 def test_not_hdf5_at_all(tmp_path):

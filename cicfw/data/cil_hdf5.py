@@ -1,7 +1,8 @@
 """The CoRL-2017 CIL HDF5 layout: the one format cicfw reads and writes.
 
 A file holds ``rgb`` uint8 (N, 88, 200, 3) and ``targets`` float32 (N, 28); other datasets
-(``depth``, ``labels`` ...) are ignored. The ``T`` class names every index of ``targets``.
+(``depth``, ``labels`` ...) are ignored. The images may also be named ``images_center``, the name the
+CoRL-2017 dataset's own README gives them (the files in circulation use ``rgb``; cicfw writes ``rgb``). The ``T`` class names every index of ``targets``.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ IMAGE_SHAPE = (88, 200, 3)  # rows, columns, RGB
 N_TARGETS = 28
 SAMPLES_PER_FILE = 200
 COMMAND_CODES = (2, 3, 4, 5)  # follow, left, right, straight -> branch = code - 2
+IMAGE_KEYS = ("rgb", "images_center")  # accepted names of the image dataset, in order of preference
 
 
 class T:
@@ -40,6 +42,21 @@ class T:
 
 class CILFormatError(ValueError):
     """A file that is not in the CIL HDF5 layout; the message names the file and the problem."""
+
+
+LAYOUT = ("a CIL file needs its images as 'rgb' (or 'images_center') uint8 (N, 88, 200, 3) and "
+          "'targets' float32 (N, 28)")
+
+
+def image_key(f: h5py.File) -> str:
+    """The name of the image dataset in an open file: the first of IMAGE_KEYS it holds."""
+    for key in IMAGE_KEYS:
+        if key in f:
+            return key
+    raise CILFormatError(
+        f"{f.filename}: no image dataset: neither 'rgb' nor 'images_center'; {LAYOUT} "
+        f"(found: {', '.join(sorted(f.keys())) or 'nothing'})"
+    )
 
 
 def find_files(path: str | os.PathLike) -> list[Path]:
@@ -71,16 +88,15 @@ def check_file(path: Path) -> FileInfo:
     except OSError as err:
         raise CILFormatError(f"{path}: not a readable HDF5 file ({err})") from None
     with f:
-        for key in ("rgb", "targets"):
-            if key not in f:
-                raise CILFormatError(
-                    f"{path}: no {key!r} dataset; a CIL file needs 'rgb' uint8 (N, 88, 200, 3) "
-                    f"and 'targets' float32 (N, 28) (found: {', '.join(sorted(f.keys())) or 'nothing'})"
-                )
-        rgb, targets = f["rgb"], f["targets"]
+        key = image_key(f)
+        if "targets" not in f:
+            raise CILFormatError(
+                f"{path}: no 'targets' dataset; {LAYOUT} (found: {', '.join(sorted(f.keys()))})"
+            )
+        rgb, targets = f[key], f["targets"]
         if rgb.ndim != 4 or tuple(rgb.shape[1:]) != IMAGE_SHAPE or rgb.dtype != np.uint8:
             raise CILFormatError(
-                f"{path}: 'rgb' is {rgb.dtype} {tuple(rgb.shape)}; expected uint8 (N, 88, 200, 3)"
+                f"{path}: {key!r} is {rgb.dtype} {tuple(rgb.shape)}; expected uint8 (N, 88, 200, 3)"
             )
         if targets.ndim != 2 or targets.shape[1] != N_TARGETS or targets.dtype.kind != "f":
             raise CILFormatError(
@@ -88,7 +104,7 @@ def check_file(path: Path) -> FileInfo:
             )
         if rgb.shape[0] != targets.shape[0]:
             raise CILFormatError(
-                f"{path}: 'rgb' has {rgb.shape[0]} samples but 'targets' has {targets.shape[0]}"
+                f"{path}: {key!r} has {rgb.shape[0]} samples but 'targets' has {targets.shape[0]}"
             )
         return FileInfo(path, int(rgb.shape[0]))
 
@@ -99,8 +115,9 @@ def read_targets(path: Path) -> np.ndarray:
 
 
 def read_rgb(path: Path) -> np.ndarray:
+    """All images of a file, whichever accepted name (IMAGE_KEYS) their dataset has."""
     with h5py.File(path, "r") as f:
-        return np.asarray(f["rgb"])
+        return np.asarray(f[image_key(f)])
 
 
 def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) -> Path:

@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from cicfw import COMMANDS
 from cicfw.data.augment import AugmentConfig, augment_batch
-from cicfw.data.cil_hdf5 import IMAGE_SHAPE
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
 from cicfw.data.frames import Frames, load_frames, split_by_episode
 from cicfw.data.sampler import CommandBalancedBatchSampler
 
@@ -35,7 +35,7 @@ class ImageStore:
             for fi in np.unique(frames.file_idx):
                 where = np.flatnonzero(frames.file_idx == fi)
                 with h5py.File(frames.files[fi], "r") as f:
-                    self.array[where] = f["rgb"][()][frames.row[where]]
+                    self.array[where] = f[image_key(f)][()][frames.row[where]]
 
     def get(self, idx: np.ndarray) -> np.ndarray:
         if self.array is not None:
@@ -47,7 +47,8 @@ class ImageStore:
             order = np.argsort(rows[sel])  # h5py wants increasing row indices
             if fi not in self._handles:
                 self._handles[fi] = h5py.File(self.frames.files[fi], "r")
-            out[sel[order]] = self._handles[fi]["rgb"][rows[sel][order]]
+            f = self._handles[fi]
+            out[sel[order]] = f[image_key(f)][rows[sel][order]]
         return out
 
     def __getstate__(self) -> dict:  # open HDF5 handles do not cross into worker processes
