@@ -11,8 +11,9 @@ can use it. ``evaluate_checkpoint`` runs the same from Python (``cicfw train eva
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -40,65 +41,197 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
 
 def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
-    return the summary (overall ``success`` % and per-column ``cells``)."""
-    from cicfw.bench.policy import make_policy
-    from cicfw.bench.report import Run, markdown_table, write_run
-    from cicfw.bench.runner import RunnerConfig, run
+    return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
+    (see ``evaluate_policy``)."""
+    res = evaluate_policy(
+        policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
+        OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
+        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=int(cfg.seed),
+        label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
+        maps=bool(cfg.get("maps", True)), video=list(cfg.get("video") or []), video_max=int(cfg.get("video_max", 8)),
+        new_folder_hint=f"give a new output folder (hydra.run.dir=<new folder>) or delete {str(run_dir)!r} to "
+                        f"start over")
+    join_sweep()
+    return res.summary
+
+
+@dataclass
+class EvalResult:
+    """What ``evaluate_policy`` returns (the run folder holds the same, see docs/evaluation.md)."""
+
+    summary: dict[str, Any]  # summary.json: success % overall and per table column ("cells"), reasons, complete
+    rows: list[dict[str, Any]]  # one per episode of the suite, in episode order (episodes.json's rows)
+    run_dir: Path
+    driven: int  # episodes driven by this call
+    reused: int  # episodes kept from earlier, interrupted calls into the same run_dir
+
+    @property
+    def success(self) -> float:
+        """Overall reach-destination success rate in percent."""
+        return float(self.summary["success"])
+
+
+def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any] | None,
+                    out_dir: str | Path, *, sim: Mapping[str, Any] | None = None, seed: int = 0,
+                    label: str | None = None, progress_bar: bool = False, maps: bool = True,
+                    video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None) -> EvalResult:
+    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
+
+    ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
+    ``{"name": "expert"}``; conf/policy/), ``suite`` the ``suite:`` node of conf/evaluate.yaml
+    (``{"towns": [...], "weathers": [...], "limit": 2, ...}``; build_suite's arguments), ``runner``
+    the ``runner:`` node (RunnerConfig's fields, None for the defaults), ``sim`` the simulator spec
+    (None: the embedded one). ``label`` names the table row (default: the policy's label).
+
+    Each finished episode is appended to ``out_dir/episodes.jsonl`` as it finishes (flushed to disk),
+    so when the process dies, calling again with the same arguments and ``out_dir`` drives only the
+    missing episodes, and the report it writes (episodes.json/.csv rows, summary.json cells,
+    table.md/.tex, trajectories.npz) is the one an uninterrupted call writes: bit for bit for a policy
+    that steers each episode from that episode's observations alone (expert, constant); for a network
+    on the CPU, its steering's last float bits depend on the batch's shape (which episodes are still
+    running), as they already do between uninterrupted runs (docs/evaluation.md, "Resuming").
+    A call on a finished folder drives nothing and rewrites the same report. While episodes are
+    missing, the folder's report says ``"complete": false`` (table.md: a PARTIAL line). Raises
+    ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
+    (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
+    another process is writing it; config errors raise before anything is written.
+    ``runner.batch_size``, ``workers`` and ``threads`` may change between calls.
+
+    Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
+    column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
+    """
+    from cicfw.bench.journal import EpisodeLog
+    from cicfw.bench.policy import Policy, make_policy
+    from cicfw.bench.report import markdown_table
+    from cicfw.bench.runner import RunnerConfig, run, server_specs
     from cicfw.bench.suite import build_suite, make_backend
     from cicfw.bench.video import select_episodes
 
-    run_dir = Path(run_dir)
-    spec = policy_spec(cfg)
-    sim = OmegaConf.to_container(cfg.sim, resolve=True)
-    runner_cfg = RunnerConfig(**OmegaConf.to_container(cfg.runner, resolve=True), seed=int(cfg.seed),
-                              progress_bar=bool(cfg.get("progress_bar", True)))
-    policy = make_policy(spec)  # a bad checkpoint fails here, before any driving
+    out_dir = Path(out_dir)
+    spec = dict(policy)
+    sim = dict(sim) if sim is not None else {"name": "embedded"}
+    runner = dict(runner or {})
+    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
+    server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
+    pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
     backend = make_backend(sim)
-    suite = OmegaConf.to_container(cfg.suite, resolve=True)
+    suite = dict(suite)
     episodes = build_suite(backend, **suite)  # unknown towns and weathers fail here
-    label = str(cfg.name) if cfg.get("name") else policy.label
-    log.info("evaluating %s on %d episodes (%s x %s)", label, len(episodes), ", ".join(suite["towns"]),
-             ", ".join(suite["weathers"]))
-    if runner_cfg.resolve_workers(episodes, bool(policy.cameras)) > 1:
-        del policy  # each worker process builds its own from the spec
-        policy = spec
-    res = run(episodes, policy, sim, runner_cfg, label=label)
-    meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(cfg.seed),
-            "suite": suite, "runner": OmegaConf.to_container(cfg.runner, resolve=True), "sim": sim,
-            "wall_s": round(res.wall_s, 2), "steps": res.steps}
-    report = Run(label=label, rows=res.rows, meta=meta, path=run_dir)
-    summary = write_run(run_dir, report)
-    save_trajectories(run_dir / "trajectories.npz", res.rows, res.trajectories)
-    pictures(cfg, report, res.trajectories, run_dir, select_episodes(res.rows, list(cfg.get("video") or []),
-                                                                     int(cfg.get("video_max", 8))))
-    log.info("%d episodes in %.1f s (%d steps)\n%s", len(res.rows), res.wall_s, res.steps, markdown_table([report]))
-    log.info("success %.2f%%; report in %s", summary["success"], run_dir)
-    join_sweep()
-    return summary
+    label = label or spec.get("label") or pol.label
+    filmed = list(video)
+    fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
+    with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
+                         f"give another output folder, or delete {str(out_dir)!r} to start over") as elog:
+        missing = [e for e in episodes if e.index not in elog.rows]
+        meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(seed), "suite": suite,
+                "runner": runner, "sim": sim, "fingerprint": fp}
+        log.info("evaluating %s on %d episodes (%s x %s)%s", label, len(episodes), ", ".join(map(str, suite["towns"])),
+                 ", ".join(suite["weathers"]), f"; {elog.reused} kept from an earlier run, {len(missing)} to drive"
+                 if elog.reused else "")
+        if missing and runner_cfg.resolve_workers(missing, bool(pol.cameras)) > 1:
+            del pol  # each worker process builds its own from the spec
+            pol = spec
+        wall = 0.0
+        if missing:
+            _write_report(out_dir, label, elog.rows, episodes, meta)  # marked partial until the last episode
+            try:
+                res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
+                wall = res.wall_s
+            except BaseException:
+                try:
+                    _write_report(out_dir, label, elog.rows, episodes, meta)
+                except Exception as err:  # e.g. a full disk: the log still holds every finished episode
+                    log.error("could not write the partial report: %s", err)
+                log.error("stopped with %d of %d episodes finished; run the same command with the same output "
+                          "folder to drive the rest", len(elog.rows), len(episodes))
+                raise
+        meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
+        summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
+        save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
+        pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
+                 int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
+    log.info("%d episodes (%d driven now, %.1f s), %d steps\n%s", len(report.rows), len(missing), wall,
+             summary.get("steps", 0), markdown_table([report]))
+    log.info("success %.2f%%; report in %s", summary["success"], out_dir)
+    return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
 
 
-def pictures(cfg: DictConfig, report, trajectories: dict, run_dir: Path, filmed: Sequence[dict]) -> None:
+#: policy keys that change how fast or where a policy runs, never which episodes it drives
+_POLICY_RUNTIME_KEYS = ("label", "device", "threads")
+#: simulator keys that say how to reach a server, not what it simulates
+_SIM_RUNTIME_KEYS = ("host", "port", "ports")
+
+
+def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapping[str, Any], runner: Any,
+                    episodes: Sequence[Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What decides a run's episodes (a folder resumes only with the same), and readable extras.
+
+    The checkpoint counts by its contents (sha256), not its path; the runner by its episode rules
+    (off-road limits, target speed) and seed, not its batch size or worker count."""
+    import hashlib
+    import json
+
+    pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
+    info: dict[str, Any] = {}
+    if pol.get("checkpoint"):
+        from cicfw.bench.checkpoint import resolve_checkpoint
+
+        path = resolve_checkpoint(pol.pop("checkpoint"))
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        pol["checkpoint_sha256"] = h.hexdigest()
+        info["checkpoint"] = str(path)
+    episode_list = [[e.key, e.route, e.command, e.town_set, e.weather_set] for e in episodes]
+    fp = {
+        "policy": pol,
+        "suite": dict(suite),
+        "episodes": hashlib.sha256(json.dumps(episode_list).encode()).hexdigest()[:16],
+        "seed": int(runner.seed),
+        "sim": {k: v for k, v in sim.items() if k not in _SIM_RUNTIME_KEYS and not str(k).endswith("timeout_s")},
+        "runner": {"off_road_s": runner.off_road_s, "off_road_level": runner.off_road_level,
+                   "target_speed_kmh": runner.target_speed_kmh},
+    }
+    return fp, info
+
+
+def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
+                  meta: dict[str, Any]):
+    """The report of the episodes finished so far, marked complete only when every one is."""
+    from cicfw.bench.report import write_run
+    from cicfw.bench.runs import Run
+
+    rows = [rows_by_index[e.index] for e in episodes if e.index in rows_by_index]
+    complete = len(rows) == len(episodes)
+    meta = {**meta, "complete": complete, "episodes_total": len(episodes),
+            "steps": sum(int(r["steps"]) for r in rows)}
+    report = Run(label=label, rows=rows, meta=meta, path=out_dir)
+    return write_run(out_dir, report), report
+
+
+def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
+             maps: bool, filmed: Sequence[dict]) -> None:
     """The map per town, the bar chart, and the requested videos."""
     from cicfw.bench.plots import bar_chart, town_maps
 
     from cicfw.bench.suite import town_label
 
-    towns = {town_label(t): str(t) for t in cfg.suite.towns}
-    if cfg.get("maps", True):
+    towns = {town_label(t): str(t) for t in towns}
+    if maps:
         town_maps(report, trajectories, run_dir, towns)
     bar_chart([report], run_dir / "success_bars.png")
     if filmed:
         from cicfw.bench.video import write_video
         from cicfw.sim.town import load_town
 
-        if cfg.sim.name != "embedded":
-            log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", cfg.sim.name)
+        if sim_name != "embedded":
+            log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", sim_name)
             return
         for r in filmed:
             path = run_dir / "videos" / f"{r['key'].replace('/', '_')}.mp4"
-            write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], int(cfg.seed))
+            write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed)
             log.info("video: %s", path)
-
 
 def join_sweep() -> None:
     """In a multirun, join every finished run of the sweep into one table in the sweep folder."""
@@ -115,7 +248,7 @@ def join_sweep() -> None:
         return
     from cicfw.bench.report import find_runs, write_joined
 
-    runs = find_runs([sweep_dir])
+    runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
     write_joined(runs, sweep_dir)
     log.info("joined %d run(s) of the sweep into %s", len(runs), sweep_dir / "table.md")
 

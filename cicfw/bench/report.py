@@ -45,7 +45,36 @@ def summary(run: Run) -> dict[str, Any]:
         "suite": run.suite_name(),
         "reasons": dict(sorted(reasons.items())),
         **{k: run.meta[k] for k in ("policy", "checkpoint", "seed", "wall_s", "steps") if k in run.meta},
+        "complete": is_complete(run),
+        **({"episodes_total": run.meta["episodes_total"]} if "episodes_total" in run.meta else {}),
     }
+
+
+# ------------------------------------------------------------------------------------------------
+# partial runs (an evaluation killed before its last episode; rerunning it finishes it)
+
+
+def is_complete(run: Run) -> bool:
+    """False for a run whose evaluation has not driven every episode of its suite yet (runs written
+    before runs were marked are complete: they were only written at the end)."""
+    return run.meta.get("complete", True) is not False
+
+
+def partial_note(run: Run) -> str:
+    """``k of N episodes`` for a partial run."""
+    return f"{len(run.rows)} of {run.meta.get('episodes_total', '?')} episodes"
+
+
+def _marked(runs: Sequence[Run]) -> list[Run]:
+    """The runs with each partial one's row label marked ``(PARTIAL k/N)``."""
+    return [r if is_complete(r) else Run(label=f"{r.label} (PARTIAL {len(r.rows)}/{r.meta.get('episodes_total', '?')})",
+                                         rows=r.rows, meta=r.meta, path=r.path) for r in runs]
+
+
+def _partial_lines(runs: Sequence[Run]) -> list[str]:
+    return [f"**PARTIAL**: {_md_escape(r.label)} has {partial_note(r)} (its evaluation was stopped); the rates "
+            f"cover those only. Run the same evaluate command with the same output folder to finish it."
+            for r in runs if not is_complete(r)]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -57,11 +86,15 @@ def _fmt(v: float | None) -> str:
 
 
 def markdown_table(runs: Sequence[Run]) -> str:
-    """The paper's table as Markdown: a header row for the towns, one for the weathers, a row per model."""
+    """The paper's table as Markdown: a header row for the towns, one for the weathers, a row per model.
+    A partial run's row is marked, with a PARTIAL line under the caption."""
+    notes = _partial_lines(runs)
+    runs = _marked(runs)
     rows = table_rows(runs)
     lines = [
         f"**{CAPTION}**",
         "",
+        *[x for note in notes for x in (note, "")],
         "| Model | Training town | | New town | |",
         "|---|---:|---:|---:|---:|",
         "| | *Training weathers* | *New weathers* | *Training weathers* | *New weathers* |",
@@ -101,7 +134,8 @@ def _md_escape(s: str) -> str:
 
 
 def latex_table(runs: Sequence[Run]) -> str:
-    """The same table as the paper's LaTeX tabular."""
+    """The same table as the paper's LaTeX tabular (a partial run's row marked)."""
+    runs = _marked(runs)
     body = "\n".join(
         f"{_tex_escape(label)} & " + " & ".join(_fmt(v).replace("–", "--") for v in rates) + r" \\ \hline"
         for label, rates, _ in table_rows(runs))
@@ -120,6 +154,7 @@ def _tex_escape(s: str) -> str:
 
 
 def table_csv(runs: Sequence[Run]) -> str:
+    runs = _marked(runs)
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["model"] + [cell_key(*c) for c in CELLS] + [f"n:{cell_key(*c)}" for c in CELLS])
@@ -155,9 +190,36 @@ def write_run(run_dir: Path, run: Run) -> dict[str, Any]:
     return s
 
 
-def find_runs(paths: Sequence[str | Path]) -> list[Run]:
+def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]:
     """Runs in the given folders: each folder is a run, or is searched for run folders (a sweep);
-    order: as given, then by folder name (Hydra's job numbers) within each."""
+    order: as given, then by folder name (Hydra's job numbers) within each. A partial run (an
+    evaluation stopped before its last episode; its rows read from its episode log) raises one error
+    (``partial="refuse"``), is kept and marked in every table (``"include"``), or left out (``"skip"``)."""
+    if partial not in ("refuse", "include", "skip"):
+        raise ValueError(f"find_runs: partial must be refuse, include or skip, got {partial!r}")
+    runs = _find_runs(paths)
+    for r in runs:
+        if not is_complete(r) and partial == "refuse":
+            raise ValueError(f"report: {str(r.path)!r} is a partial evaluation run ({partial_note(r)} finished); "
+                             f"finish it by running its evaluate command again with the same output folder "
+                             f"(hydra.run.dir={r.path}), or pass --partial to include it marked PARTIAL")
+    return _unique_labels([r for r in runs if is_complete(r) or partial == "include"])
+
+
+def load_current_run(run_dir: str | Path) -> Run:
+    """``load_run``, with a partial run's rows read from its episode log (what has finished so far,
+    even when its evaluation was killed after writing the report)."""
+    from cicfw.bench.journal import read_log
+
+    run = load_run(Path(run_dir))
+    if not is_complete(run):
+        _, rows, _, _ = read_log(run_dir, trajectories=False)
+        if rows:
+            run.rows = [{"model": run.label, **rows[i]} for i in sorted(rows)]
+    return run
+
+
+def _find_runs(paths: Sequence[str | Path]) -> list[Run]:
     runs: list[Run] = []
     for p in paths:
         p = Path(p).expanduser()
@@ -165,13 +227,13 @@ def find_runs(paths: Sequence[str | Path]) -> list[Run]:
             raise FileNotFoundError(f"report: {str(p)!r} is not a folder; give evaluation run folders "
                                     f"(holding episodes.json) or folders that contain them")
         if (p / "episodes.json").is_file():
-            runs.append(load_run(p))
+            runs.append(load_current_run(p))
             continue
         found = sorted({f.parent for f in p.rglob("episodes.json")}, key=_natural)
         if not found:
             raise FileNotFoundError(f"report: no evaluation run (episodes.json) under {str(p)!r}")
-        runs.extend(load_run(f) for f in found)
-    return _unique_labels(runs)
+        runs.extend(load_current_run(f) for f in found)
+    return runs
 
 
 def _natural(p: Path) -> list:
@@ -202,7 +264,7 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
     if plots:
         from cicfw.bench.plots import bar_chart
 
-        bar_chart(runs, out_dir / "success_bars.png")
+        bar_chart(_marked(runs), out_dir / "success_bars.png")
     return md
 
 
@@ -214,9 +276,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", help="where to write table.md/.tex/.csv and success_bars.png "
                                       "(default: the folder given, when one; else ./report)")
     parser.add_argument("--no-plots", action="store_true", help="skip the bar chart")
+    parser.add_argument("--partial", action="store_true",
+                        help="include partial runs (evaluations stopped before their last episode), marked PARTIAL; "
+                             "without it they are refused")
     args = parser.parse_args(argv)
     try:
-        runs = find_runs(args.dirs)
+        runs = find_runs(args.dirs, partial="include" if args.partial else "refuse")
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

@@ -101,10 +101,11 @@ class _Track:
 
 
 def drive(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: RunnerConfig,
-          on_done: Callable[[dict], None] | None = None) -> RunResult:
+          on_done: Callable[[dict, dict], None] | None = None) -> RunResult:
     """Run ``episodes`` with ``policy`` in this process: all in lockstep, or one after another for a
     backend whose server runs one episode at a time (``backend.lockstep`` false: CARLA). Such a
-    backend is closed on any exit (its live episode's actors destroyed, its settings restored)."""
+    backend is closed on any exit (its live episode's actors destroyed, its settings restored).
+    ``on_done(row, trajectory)`` is called as each episode finishes."""
     if getattr(backend, "lockstep", True):
         return _lockstep(episodes, policy, backend, cfg, on_done)
     t0 = time.perf_counter()
@@ -122,7 +123,7 @@ def drive(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Runner
 
 
 def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: RunnerConfig,
-              on_done: Callable[[dict], None] | None = None) -> RunResult:
+              on_done: Callable[[dict, dict], None] | None = None) -> RunResult:
     """Run ``episodes`` in lockstep with ``policy`` in this process."""
     t0 = time.perf_counter()
     cams = tuple(policy.cameras)
@@ -172,7 +173,7 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
             rows[i], trajs[ep.key] = _finish(ep, tr, info, reason)
             tr.env = None  # free the episode's simulator
             if on_done is not None:
-                on_done(rows[i])
+                on_done(rows[i], trajs[ep.key])
         active = still
     return RunResult(rows=[rows[i] for i in range(len(episodes))], trajectories=trajs,
                      wall_s=time.perf_counter() - t0, steps=steps)
@@ -250,9 +251,11 @@ class Progress:
 
 
 def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Any, cfg: RunnerConfig,
-        label: str | None = None) -> RunResult:
+        label: str | None = None, on_episode: Callable[[dict, dict], None] | None = None) -> RunResult:
     """Run the episodes with a policy and a simulator backend, each an instance or its config spec
     (``{name:, ...}``). With ``cfg.workers > 1`` both must be specs: each process builds its own.
+    ``on_episode(row, trajectory)`` is called in this process as each episode finishes (whichever
+    worker drove it): the evaluation keeps finished episodes with it, so a killed run resumes.
     """
     episodes = list(episodes)
     workers = cfg.resolve_workers(episodes, renders=not isinstance(policy, Policy) or bool(policy.cameras))
@@ -269,13 +272,19 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
                          "({name: ..., ...}) so each process can build its own")
     name = label or (policy.label if isinstance(policy, Policy) else str(policy.get("name")))
     bar = Progress(len(episodes), name, cfg.progress_bar)
+
+    def done(row: dict, traj: dict) -> None:
+        if on_episode is not None:
+            on_episode(row, traj)
+        bar.update(row["success"])
+
     try:
         if workers <= 1:
             pol = policy if isinstance(policy, Policy) else make_policy(policy)
             backend = make_backend(sim) if sim is None or isinstance(sim, Mapping) else sim
             with _torch_threads(cfg.threads):
-                return drive(episodes, pol, backend, cfg, on_done=lambda row: bar.update(row["success"]))
-        return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, bar,
+                return drive(episodes, pol, backend, cfg, on_done=done)
+        return _run_processes(episodes, dict(policy), dict(sim or {"name": "embedded"}), cfg, workers, done,
                               sims=servers)
     finally:
         bar.close()
@@ -330,7 +339,7 @@ def _torch_threads(n: int | None):
 
 
 def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: RunnerConfig,
-                   workers: int, bar: Progress, sims: list[dict] | None = None) -> RunResult:
+                   workers: int, done: Callable[[dict, dict], None], sims: list[dict] | None = None) -> RunResult:
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")  # fork after torch's thread pools started can deadlock
     q = ctx.Queue()
@@ -352,7 +361,7 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
                                        f"{procs[dead[0]].exitcode}) without a result")
                 continue
             if msg[0] == "done":
-                bar.update(msg[2])
+                done(msg[2], msg[3])
             elif msg[0] == "result":
                 results[msg[1]] = msg[2]
             elif msg[0] == "error":
@@ -396,9 +405,26 @@ def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, 
 
         torch.set_num_threads(threads)
         cv2.setNumThreads(1)
+        _exit_with_parent()
         rc = RunnerConfig(**{**cfg, "workers": 1, "progress_bar": False})
         res = drive(episodes, make_policy(policy_spec), make_backend(sim_spec), rc,
-                    on_done=lambda row: q.put(("done", k, row["success"])))
+                    on_done=lambda row, traj: q.put(("done", k, row, traj)))
         q.put(("result", k, res))
     except BaseException as err:  # report everything, the parent decides
         q.put(("error", k, type(err).__name__, str(err), traceback.format_exc()))
+
+
+def _exit_with_parent(poll_s: float = 1.0) -> None:
+    """End this worker process as soon as its parent is gone (a killed evaluation leaves no workers
+    driving on; the rerun resumes from the episodes the parent kept)."""
+    import threading
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="cicfw-parent-watch", daemon=True).start()

@@ -1,0 +1,199 @@
+"""The episode log of an evaluation run folder: finished episodes are kept as they finish.
+
+``<run>/episodes.jsonl`` holds a header line (the run's *fingerprint*: everything that decides an
+episode's result) and then one line per finished episode: its report row and its trajectory
+(base64 of an ``.npz``). Each line is written with one ``write`` on a file opened for appending, then
+flushed and fsynced, so a killed run loses at most the episode being written; a torn last line is
+dropped (and cut off) when the log is opened again. A run folder is locked for the whole run
+(``.evaluate.lock``, an ``flock``) so two evaluations never append to one log.
+
+``EpisodeLog.open(run_dir, fingerprint)`` returns the log with the episodes already finished, or
+refuses (one line) when they were driven with another fingerprint.
+"""
+from __future__ import annotations
+
+import base64
+import fcntl
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+LOG_NAME = "episodes.jsonl"
+LOCK_NAME = ".evaluate.lock"
+FORMAT = "cicfw-episode-log/1"
+
+
+class RunFolderError(ValueError):
+    """A run folder that cannot be resumed into (another configuration, or another writer)."""
+
+
+def _encode_traj(traj: Mapping[str, np.ndarray]) -> str:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in traj.items()})
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _decode_traj(text: str) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(base64.b64decode(text))) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _first_difference(old: Any, new: Any, where: str = "") -> tuple[str, Any, Any] | None:
+    """The first key (dotted) whose value differs between two fingerprints, with both values."""
+    if isinstance(old, Mapping) and isinstance(new, Mapping):
+        for k in list(old) + [k for k in new if k not in old]:
+            d = _first_difference(old.get(k), new.get(k), f"{where}.{k}" if where else str(k))
+            if d is not None:
+                return d
+        return None
+    return None if old == new else (where, old, new)
+
+
+def read_log(run_dir: str | Path, trajectories: bool = True
+             ) -> tuple[dict[str, Any] | None, dict[int, dict], dict[str, dict], int]:
+    """(header, rows by episode index, trajectories by episode key, bytes of valid lines) of a run's
+    log; a missing log reads as (None, {}, {}, 0). Undecodable lines (a torn last line) are skipped.
+    ``trajectories=False`` skips decoding them (the rows alone)."""
+    path = Path(run_dir) / LOG_NAME
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None, {}, {}, 0
+    header, rows, trajs, good = None, {}, {}, 0
+    pos = 0
+    while pos < len(data):
+        end = data.find(b"\n", pos)
+        if end < 0:  # torn last line: the run was killed while writing it
+            break
+        line = data[pos:end]
+        pos = end + 1
+        try:
+            rec = json.loads(line)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue
+        if not isinstance(rec, dict):
+            continue
+        if rec.get("format") == FORMAT and header is None:
+            header = rec
+        elif "row" in rec and "traj" in rec and header is not None:
+            try:
+                row = rec["row"]
+                traj = _decode_traj(rec["traj"]) if trajectories else None
+                if int(row["episode"]) in rows:
+                    continue
+                rows[int(row["episode"])] = row
+                if traj is not None:
+                    trajs[str(row["key"])] = traj
+            except Exception:  # a damaged line: that episode is driven again
+                continue
+        good = pos
+    return header, rows, trajs, good
+
+
+class EpisodeLog:
+    """The open, locked episode log of one run folder (use ``EpisodeLog.open``; close when done)."""
+
+    def __init__(self, run_dir: Path, header: dict, rows: dict[int, dict], trajs: dict[str, dict],
+                 lock_fd: int) -> None:
+        self.run_dir, self.header = run_dir, header
+        self.rows, self.trajectories = rows, trajs  # episodes finished so far (earlier attempts + this one)
+        self.reused = len(rows)  # finished before this attempt
+        self._lock_fd = lock_fd
+        self._fd = os.open(run_dir / LOG_NAME, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+    @classmethod
+    def open(cls, run_dir: str | Path, fingerprint: Mapping[str, Any], info: Mapping[str, Any] | None = None,
+             hint: str = "") -> "EpisodeLog":
+        """Lock ``run_dir`` and open its log: the finished episodes of an earlier attempt with the same
+        ``fingerprint`` are kept; another fingerprint raises ``RunFolderError`` naming the first
+        difference (``hint`` says how to start a new folder). ``info`` is stored for people (e.g. the
+        checkpoint's path) but not compared."""
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fp = json.loads(json.dumps(fingerprint))  # as it reads back from the file
+        lock_fd = _lock(run_dir)
+        try:
+            header, rows, trajs, good = read_log(run_dir)
+            if header is not None and header.get("fingerprint") != fp:
+                what, old, new = _first_difference(header.get("fingerprint") or {}, fp) or ("fingerprint", "?", "?")
+                raise RunFolderError(
+                    f"{str(run_dir)!r} holds {len(rows)} episode(s) of another evaluation ({what}: "
+                    f"{_short(old)} there, {_short(new)} now), so it cannot resume there; {hint or 'give a new output folder'}")
+            if header is None:
+                _check_no_foreign_report(run_dir, fp, hint)
+                rows, trajs = {}, {}
+                header = {"format": FORMAT, "fingerprint": fp, "info": dict(info or {})}
+                with open(run_dir / LOG_NAME, "wb") as f:  # a new log (or one torn before its header)
+                    f.write((json.dumps(header) + "\n").encode())
+                    f.flush()
+                    os.fsync(f.fileno())
+            elif good < (run_dir / LOG_NAME).stat().st_size:
+                os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
+            return cls(run_dir, header, rows, trajs, lock_fd)
+        except BaseException:
+            os.close(lock_fd)
+            raise
+
+    def add(self, row: Mapping[str, Any], traj: Mapping[str, np.ndarray]) -> None:
+        """Keep one finished episode: one line, written at once, flushed to the disk."""
+        rec = {"row": dict(row), "traj": _encode_traj(traj)}
+        data = (json.dumps(rec) + "\n").encode()
+        n = os.write(self._fd, data)
+        if n != len(data):
+            raise OSError(f"episode log {self.run_dir / LOG_NAME}: short write ({n} of {len(data)} bytes)")
+        os.fsync(self._fd)
+        self.rows[int(row["episode"])] = dict(row)
+        self.trajectories[str(row["key"])] = {k: np.asarray(v) for k, v in traj.items()}
+
+    def close(self) -> None:
+        for fd in (self._fd, self._lock_fd):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> "EpisodeLog":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _short(v: Any) -> str:
+    s = json.dumps(v) if not isinstance(v, str) else repr(v)
+    return s if len(s) <= 80 else s[:77] + "..."
+
+
+def _check_no_foreign_report(run_dir: Path, fp: Mapping[str, Any], hint: str) -> None:
+    """A folder with a report but no log (written by an older cicfw, or its log deleted) is only
+    overwritten when the report says it was the same evaluation."""
+    p = run_dir / "episodes.json"
+    if not p.is_file():
+        return
+    try:
+        old = json.loads(p.read_text()).get("meta", {}).get("fingerprint")
+    except (OSError, ValueError, AttributeError):
+        old = None
+    if old != fp:
+        raise RunFolderError(f"{str(run_dir)!r} already holds an evaluation report of another (or an unknown) "
+                             f"configuration and no episode log to resume from; {hint or 'give a new output folder'}")
+
+
+def _lock(run_dir: Path) -> int:
+    """An exclusive lock on the run folder for this process, or one error naming the holder."""
+    path = run_dir / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise RunFolderError(f"another evaluation (pid {holder}) is writing {str(run_dir)!r}; wait for it to "
+                             f"finish or give another output folder") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
