@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import runpy
 import sys
+from pathlib import Path
 
 # command -> (module run as __main__, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -10,7 +11,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "collect": ("cicfw.collect", "collect CIL HDF5 data with the embedded simulator (Hydra app)"),
     "evaluate": ("cicfw.evaluate", "closed-loop evaluation on the single-turn suite (Hydra app)"),
     "preview": ("cicfw.sim.preview", "write the camera contact sheet and town maps as PNGs"),
-    "report": ("cicfw.bench.report", "join evaluation runs into one table with plots"),
+    "reproduce": ("cicfw.reproduce", "the paper's Table 4: rows x seeds x a budget, intervals and verdicts"),
+    "report": ("cicfw.bench.report", "join evaluation runs into one table (or report a reproduction folder)"),
     "video": ("cicfw.bench.video", "film episodes of a finished evaluation run (MP4)"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
     "carla-check": ("cicfw.sim.carla_check", "test a CARLA server in a minute: PASS/FAIL per guarantee"),
@@ -19,7 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def usage() -> str:
     lines = ["usage: cicfw <command> [args...]", "", "commands:"]
-    lines += [f"  {name:<10} {help_}" for name, (_, help_) in COMMANDS.items()]
+    lines += [f"  {name:<11} {help_}" for name, (_, help_) in COMMANDS.items()]
     return "\n".join(lines)
 
 
@@ -32,6 +34,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"cicfw: unknown command {argv[0]!r}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
         sys.exit(2)
     module, _ = COMMANDS[argv[0]]
+    if argv[0] == "report" and len(argv) > 1 and (Path(argv[1]) / "reproduce.json").is_file():
+        module = "cicfw.bench.results"  # a reproduction's folder: its Table 4 with intervals and verdicts
     sys.argv = [f"cicfw {argv[0]}", *argv[1:]]
     runpy.run_module(module, run_name="__main__", alter_sys=True)
 

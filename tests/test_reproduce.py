@@ -1,0 +1,130 @@
+"""``python -m cicfw.reproduce`` end to end on the smoke budget: two rows x two seeds, a rerun that skips
+every finished cell, a killed run that resumes without recomputing, a failed cell recorded while the
+others go on, configurations that refuse to mix, and one clear line for every bad input."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cicfw import reproduce
+
+SMOKE = ["budget=smoke", "seeds=2"]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    """One dataset cache for the module: the smoke budget's data is collected once."""
+    path = tmp_path_factory.mktemp("cache")
+    old = os.environ.get("CICFW_CACHE")
+    os.environ["CICFW_CACHE"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("CICFW_CACHE", None)
+    else:
+        os.environ["CICFW_CACHE"] = old
+
+
+@pytest.fixture(scope="module")
+def smoke_run(cache, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("smoke") / "results"
+    assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"results_dir={out}"]) == 0
+    return out
+
+
+def cells(out: Path) -> dict[str, dict]:
+    return {f"{p.parent.parent.name}/{p.parent.name}": json.loads(p.read_text())
+            for p in sorted(out.glob("cells/*/seed*/cell.json"))}
+
+
+def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
+    got = cells(smoke_run)
+    assert sorted(got) == ["cil/seed0", "cil/seed1", "gtu/seed0", "gtu/seed1"]
+    assert {c["status"] for c in got.values()} == {"ok"}, [c.get("error") for c in got.values()]
+    one = got["gtu/seed0"]
+    assert one["mixer"] == "gtu" and one["samples_seen"] == 2 * 2 * 8  # 2 epochs x 2 batches x 8
+    assert len(one["episodes"]) == 4 and {e["command"] for e in one["episodes"].values()} <= {"left", "right"}
+    assert [p["epoch"] for p in one["curve"]] == [1, 2]  # the learning curve: epoch 1, then the final weights
+    assert one["wall_s"]["train"] > 0 and one["wall_s"]["evaluate"] > 0
+    assert "curve" not in got["gtu/seed1"] or got["gtu/seed1"]["curve"] == []  # curve_seeds: [0]
+    data = json.loads((smoke_run / "results.json").read_text())
+    assert [r["row"] for r in data["rows"]] == ["cil", "gtu"]
+    assert {c["claim"] for c in data["claims"]} >= {"GTU (co-learning) beats CIL"}
+    md = (smoke_run / "RESULTS.md").read_text()
+    assert "| Regression (CIL) | – | 2 |" in md and "*94.7*" in md
+    assert (smoke_run / "results.png").read_bytes()[:4] == b"\x89PNG"
+    manifest = json.loads((smoke_run / "reproduce.json").read_text())
+    assert manifest["budget"] == "smoke" and manifest["suite"]["name"] == "single_turn" and manifest["episodes"] == 4
+
+
+def test_rerun_skips_every_finished_cell(smoke_run, caplog):
+    before = {k: (p.stat().st_mtime_ns, p.read_text()) for k, p in
+              ((str(p), p) for p in smoke_run.glob("cells/*/seed*/cell.json"))}
+    with caplog.at_level("INFO", logger="cicfw.reproduce"):
+        assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"results_dir={smoke_run}"]) == 0
+    after = {str(p): (p.stat().st_mtime_ns, p.read_text()) for p in smoke_run.glob("cells/*/seed*/cell.json")}
+    assert after == before
+    assert caplog.text.count("finished before, skipped") == 4
+
+
+def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
+    out = tmp_path / "results"
+    env = {**os.environ, "CICFW_CACHE": str(cache)}
+    cmd = [sys.executable, "-m", "cicfw.reproduce", *SMOKE, "rows=[cil]", "seeds=2", f"results_dir={out}"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    first = out / "cells" / "cil" / "seed0" / "cell.json"
+    deadline = time.time() + 240
+    while not first.is_file() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole run, mid-way through the second cell (or just after)
+    proc.wait()
+    assert first.is_file()
+    kept = first.read_text()
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=2", f"results_dir={out}"]) == 0
+    assert first.read_text() == kept  # the finished cell was not recomputed
+    got = cells(out)
+    assert sorted(got) == ["cil/seed0", "cil/seed1"] and {c["status"] for c in got.values()} == {"ok"}
+    assert not list(out.rglob("*.tmp"))
+
+
+def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run, caplog):
+    """A row whose training raises (batch size 6: not a multiple of the 4 commands) fails its cells with
+    a one-line error in cell.json; the finished cells are kept and the report lists the failures."""
+    broken = "+catalogue.broken={experiment:paper_cil,overrides:[data.batch_size=6],label:Broken}"
+    assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 0
+    got = cells(smoke_run)
+    assert [got[f"broken/seed{s}"]["status"] for s in (0, 1)] == ["failed", "failed"]
+    assert {got[k]["status"] for k in got if not k.startswith("broken")} == {"ok"}
+    err = got["broken/seed0"]["error"]
+    assert err.startswith("ValueError: ") and "batch_size" in err and "\n" not in err
+    assert "- broken seed 0: ValueError: " in (smoke_run / "RESULTS.md").read_text()
+
+
+def test_results_folder_of_another_configuration_is_refused(cache, smoke_run, capsys):
+    assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={smoke_run}", "budget.suite=['suite=single_turn','suite.limit=2']"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"cicfw: error: results folder '{smoke_run}' was made with budget=smoke "
+                                               f"and another suite; start a new folder (results_dir=<new path>)")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["rows=[cil,gtx]"], "unknown row 'gtx'; known rows: cil, gtu, soft_sharing, moe, sluice, classification, "
+                         "coexistence, hybrid, sine, re, cross_stitch, classification_argmax"),
+    (["seeds=0"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got 0"),
+    (["seeds=-2"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got -2"),
+    (["seeds=two"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got 'two'"),
+    (["budget=huge"], "unknown budget 'huge'; known budgets: laptop, paper, smoke"),
+    (["rows=[]"], "rows is empty; known rows: cil, gtu"),
+])
+def test_bad_input_is_one_clear_line_and_writes_nothing(args, message, tmp_path, capsys):
+    out = tmp_path / "results"
+    assert reproduce.main([*args, f"results_dir={out}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"cicfw: error: {message}"), err
+    assert not out.exists()
