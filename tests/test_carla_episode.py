@@ -35,29 +35,11 @@ def make(**standin) -> tuple[StandIn, CarlaBackend]:
 
 
 def episodes_in_log(si: StandIn) -> list[dict]:
-    """The log cut into episodes: from a car's spawn to its destruction, with the ticks in between."""
-    out, cur = [], None
-    for e in si.log:
-        if e[0] == "spawn" and e[2].startswith("vehicle."):
-            assert cur is None, "a car was spawned while another episode's car was alive"
-            cur = {"car": e[1], "ticks": [], "controls": []}
-        elif e[0] == "tick" and cur is not None:
-            cur["ticks"].append(e)
-        elif e[0] == "control" and cur is not None:
-            cur["controls"].append(e)
-        elif e[0] == "destroy" and cur is not None and e[1] == cur["car"]:
-            out.append(cur)
-            cur = None
-    assert cur is None, "an episode's car was never destroyed"
-    return out
+    return si.episodes()  # raises if two cars were alive at once or one was never destroyed
 
 
 def assert_clean(si: StandIn) -> None:
-    assert si.alive == {}, f"actors left in the world: {[r['actor'].type_id for r in si.alive.values()]}"
-    assert si.settings_now() == (False, None), "the world's settings were not restored"
-    assert si.check_calls() == []
-    for _, _, steer, throttle, brake in si.controls():
-        assert all(math.isfinite(v) for v in (steer, throttle, brake)) and abs(steer) <= 1.0
+    assert si.leftovers() == []
 
 
 class CameraExpert(ExpertPolicy):

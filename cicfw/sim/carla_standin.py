@@ -477,6 +477,38 @@ class StandIn:
     def settings_now(self) -> tuple[bool, float | None]:
         return bool(self.settings.synchronous_mode), self.settings.fixed_delta_seconds
 
+    def episodes(self) -> list[dict]:
+        """The log cut into episodes, from a car's spawn to its destruction: ``car`` (its id), ``ticks`` and
+        ``controls`` in between. Raises AssertionError if a car was spawned while another was alive or
+        was never destroyed."""
+        out, cur = [], None
+        for e in self.log:
+            if e[0] == "spawn" and e[2].startswith("vehicle."):
+                if cur is not None:
+                    raise AssertionError("a car was spawned while another episode's car was alive")
+                cur = {"car": e[1], "ticks": [], "controls": []}
+            elif e[0] == "tick" and cur is not None:
+                cur["ticks"].append(e)
+            elif e[0] == "control" and cur is not None:
+                cur["controls"].append(e)
+            elif e[0] in ("destroy", "destroyed_by_load") and cur is not None and e[1] == cur["car"]:
+                out.append(cur)
+                cur = None
+        if cur is not None:
+            raise AssertionError("an episode's car was never destroyed")
+        return out
+
+    def leftovers(self) -> list[str]:
+        """What a client left wrong: live actors, settings not restored, calls that bind to no stub
+        signature, non-finite or out-of-range controls; [] when all is well."""
+        out = [f"actor left: {r['actor'].type_id} ({aid})" for aid, r in sorted(self.alive.items())]
+        if self.settings_now() != (False, None):
+            out.append(f"settings not restored: synchronous, fixed_delta = {self.settings_now()}")
+        out += self.check_calls()
+        out += [f"control {c[2:]} at frame {c[1]}" for c in self.controls()
+                if not all(math.isfinite(v) for v in c[2:]) or abs(c[2]) > 1.0]
+        return out
+
     @staticmethod
     def decode_frame(image: np.ndarray) -> int:
         """The frame id a stand-in camera image encodes (after cicfw's crop, resize and BGRA -> RGB)."""
