@@ -19,11 +19,12 @@ from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
+from cicfw.model.speed import apply_speed_from_config
 
 log = logging.getLogger("cicfw.train")
 
 # Trainer-config keys that are cicfw switches rather than Lightning Trainer arguments.
-SPEED_SWITCHES = ("compile", "channels_last")
+SPEED_SWITCHES = ("compile", "channels_last", "adam")
 
 LOGGERS: dict[str, Callable[[Path], Logger]] = {
     "csv": lambda run_dir: CSVLogger(str(run_dir), name="csv", version=""),
@@ -122,8 +123,8 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     model = build_model(cfg)  # a bad mixer/head/encoder name fails here, before any data work
     datamodule = build_datamodule(cfg)
     datamodule.setup("fit")  # bad files and empty splits fail here, before training starts
-    if cfg.trainer.get("compile"):
-        model.compile()
+    apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
+                            len(datamodule.train_dataloader()))      # channels_last, Adam's step
     trainer = build_trainer(cfg, run_dir)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     ckpt = trainer.checkpoint_callback

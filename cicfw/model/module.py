@@ -48,6 +48,8 @@ class CICModule(L.LightningModule):
         )
         self.speed_norm_kmh = speed_norm_kmh
         self.channels_last = False
+        self.adam_impl = "for-loop"  # speed switches (cicfw/model/speed.py): not hyper-parameters
+        self._compiled_step = None
         for stage in ("train", "val"):
             setattr(self, f"{stage}_mae", MeanAbsoluteError())
         self.val_mae_per_command = torch.nn.ModuleList(MeanAbsoluteError() for _ in COMMANDS)
@@ -60,6 +62,20 @@ class CICModule(L.LightningModule):
         """NHWC layout for the encoder's convolutions (a speed switch; outputs are unchanged)."""
         self.channels_last = True
         return self.to(memory_format=torch.channels_last)
+
+    def enable_compile(self) -> "CICModule":
+        """torch.compile the training step (forward + loss, with its backward); validation and
+        inference stay eager. The compiled function is not a submodule, so ``state_dict`` keys are
+        unchanged (no ``_orig_mod.`` prefix). Compilation happens on the first training step."""
+        self._compiled_step = torch.compile(self._step_outputs)
+        return self
+
+    def disable_compile(self) -> "CICModule":
+        self._compiled_step = None
+        return self
+
+    def __getstate__(self) -> dict:  # a compiled function does not pickle; recompile after unpickling
+        return {**super().__getstate__(), "_compiled_step": None}
 
     # ---- the agent ---------------------------------------------------------------------------
     def branch_outputs(self, image: torch.Tensor, speed_kmh: torch.Tensor) -> torch.Tensor:
@@ -80,10 +96,15 @@ class CICModule(L.LightningModule):
         return self.head.decode(self(image, speed_kmh, command))
 
     # ---- training ----------------------------------------------------------------------------
-    def _losses(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        out = self(batch["image"], batch["speed"], batch["command"])
-        task = self.head.loss(out, batch["steer"])
+    def _step_outputs(self, image: torch.Tensor, speed: torch.Tensor, command: torch.Tensor,
+                      steer: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = self(image, speed, command)
+        task = self.head.loss(out, steer)
         return task, task + self.mixer.regularizer(), out
+
+    def _losses(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        step = self._compiled_step if self._compiled_step is not None and self.training else self._step_outputs
+        return step(batch["image"], batch["speed"], batch["command"], batch["steer"])
 
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         task, loss, out = self._losses(batch)
@@ -123,4 +144,6 @@ class CICModule(L.LightningModule):
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         hp = self.hparams
-        return torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay)
+        impl = {"fused": {"fused": True}, "foreach": {"foreach": True}}.get(self.adam_impl, {"foreach": False})
+        return torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay,
+                                **impl)
