@@ -1,0 +1,148 @@
+"""CARLA's errors are one line each (no server, the client missing, versions differing), found fast with the
+real ``carla.Client``; and ``python -m cicfw.sim.carla_check`` reports PASS / FAIL per guarantee (here
+against the recording stand-in; against a real server it is the user's one-minute self-test)."""
+from __future__ import annotations
+
+import io
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
+
+from cicfw.sim import carla_check  # noqa: E402
+from cicfw.sim.carla_backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
+                                     CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
+from cicfw.sim.carla_standin import StandIn, maps_dir  # noqa: E402
+
+MAPS = maps_dir()
+needs_maps = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
+                                                     "../shared/carla-maps (or $CICFW_CARLA_MAPS)")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def unused_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_real_client_at_an_unused_port_fails_fast_with_one_line():
+    port = unused_port()
+    t0 = time.monotonic()
+    with pytest.raises(CarlaServerUnavailable) as err:
+        connect("127.0.0.1", port, connect_timeout_s=1.0)
+    assert time.monotonic() - t0 < 4.0
+    msg = str(err.value)
+    assert "\n" not in msg and f"no CARLA server answered at 127.0.0.1:{port} within 1 s" in msg
+    assert "sim.connect_timeout_s" in msg and "sim=embedded" in msg
+    assert isinstance(err.value, ValueError)  # the apps print user errors as one line
+    # the backend connects lazily, on the first call that needs the server, with the same error
+    be = CarlaBackend(host="127.0.0.1", port=port, connect_timeout_s=1.0)
+    with pytest.raises(CarlaServerUnavailable, match="no CARLA server answered"):
+        be.single_turn_routes("town_a")
+
+
+@needs_maps
+def test_server_and_client_versions_must_match():
+    si = StandIn(MAPS, version="0.9.15")
+    fake = SimpleNamespace(Client=lambda host, port: si.client)
+    with pytest.raises(CarlaVersionMismatch) as err:
+        connect("localhost", 2000, carla=fake)
+    msg = str(err.value)
+    assert "runs 0.9.15" in msg and "client is 0.9.16" in msg and "\n" not in msg
+    si.version = "0.9.16"
+    assert connect("localhost", 2000, carla=fake) is si.client
+
+
+def test_a_missing_client_is_one_line_with_the_install_command(monkeypatch):
+    monkeypatch.setitem(sys.modules, "carla", None)  # as if it were not installed
+    with pytest.raises(CarlaNotInstalled) as err:
+        import_carla()
+    msg = str(err.value)
+    assert 'pip install "cicfw[carla]"' in msg and "carla==0.9.16" in msg and "\n" not in msg
+    assert isinstance(err.value, ImportError) and isinstance(err.value, ValueError)
+    with pytest.raises(CarlaNotInstalled):
+        CarlaBackend()
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(CarlaError, match="sim.weathers: 'Sunny' is no CARLA weather preset"):
+        CarlaBackend(weathers=["Sunny"], client=object())
+    with pytest.raises(CarlaError, match="sim.sensor_timeout_s must be > 0"):
+        CarlaBackend(sensor_timeout_s=0, client=object())
+    with pytest.raises(CarlaError, match="unknown CARLA town 'town_z'"):
+        CarlaBackend(client=object()).resolve_town("town_z")
+
+
+@pytest.mark.parametrize("case", ["evaluate", "collect", "evaluate-no-client"])
+def test_the_apps_print_one_line(case, tmp_path):
+    port = unused_port()
+    sim = [f"sim.host=127.0.0.1", f"sim.port={port}", "sim.connect_timeout_s=1"]
+    if case == "collect":
+        args = ["cicfw.collect", "sim=carla", *sim, f"out_dir={tmp_path / 'data'}"]
+    else:
+        args = ["cicfw.evaluate", "policy=expert", "sim=carla", *sim, f"hydra.run.dir={tmp_path / 'run'}"]
+    hide = "sys.modules['carla'] = None; " if case == "evaluate-no-client" else ""
+    code = (f"import runpy, sys; {hide}sys.argv = ['cicfw'] + {args[1:]!r}; "
+            f"runpy.run_module({args[0]!r}, run_name='__main__')")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert "Traceback" not in p.stderr and len(lines) == 1, p.stderr[-2000:]
+    want = 'pip install "cicfw[carla]"' if case == "evaluate-no-client" else f"no CARLA server answered at 127.0.0.1:{port}"
+    assert lines[0].startswith("cicfw: error: ") and want in lines[0]
+    assert not (tmp_path / "data").exists()
+
+
+@needs_maps
+def test_carla_check_passes_on_a_good_server():
+    si = StandIn(MAPS, image_size_override=(200, 150))
+    out = io.StringIO()
+    rep = carla_check.Report(out)
+    carla_check.run_checks(client=si.client, report=rep, collect_seconds=3.0)
+    text = out.getvalue()
+    names = [n for _, n, _ in rep.lines]
+    for guarantee in ("error: no server", "server", "map and routes", "expert episode of the suite",
+                      "synchronous stepping, one tick per step", "every image is its tick's frame",
+                      "steering scaled to the spawned car", "infractions: none while the expert drives",
+                      "weather per episode", "infractions: opposite lane, off road, lane invasion sensor",
+                      "infractions: collision sensor", "collection episode",
+                      "cleanup: no actor left, settings restored"):
+        assert guarantee in names, text
+    assert rep.failed == 0 and all(s == "PASS" for s, _, _ in rep.lines), text
+    assert "72 routes at 12 junctions (24 left / 24 right / 24 straight" in text
+    assert si.leftovers() == []
+
+
+@needs_maps
+def test_carla_check_fails_what_breaks_and_still_cleans_up():
+    si = StandIn(MAPS, image_size_override=(200, 150))
+    si.drop = set(range(si.frame, si.frame + 10_000))  # the cameras never deliver
+    out = io.StringIO()
+    rep = carla_check.Report(out)
+    carla_check.run_checks(client=si.client, report=rep)
+    status = {n: s for s, n, _ in rep.lines}
+    assert status["map and routes"] == "PASS"
+    assert status["expert episode of the suite"] == "FAIL" and "CarlaSensorTimeout" in out.getvalue()
+    assert status["cleanup: no actor left, settings restored"] == "PASS"
+    assert si.leftovers() == []
+
+
+def test_carla_check_without_a_server_says_so(capsys):
+    rc = carla_check.main(["--host", "127.0.0.1", "--port", str(unused_port()), "--timeout", "1"])
+    out = capsys.readouterr().out
+    assert rc == 1 and "FAIL  server: no CARLA server answered" in out and "PASS  client" in out
+
+
+def test_cli_has_carla_check():
+    from cicfw.cli import COMMANDS
+
+    assert COMMANDS["carla-check"][0] == "cicfw.sim.carla_check"
