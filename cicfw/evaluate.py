@@ -6,7 +6,9 @@
 
 Writes the episode rows (JSON + CSV), the paper's table (Markdown + LaTeX), a map per town with the
 driven paths and a bar chart into the run folder, and returns the overall success rate (%) so sweepers
-can use it. ``evaluate_checkpoint`` runs the same from Python (``cicfw train evaluate_after=true``).
+can use it. ``evaluate_checkpoint`` runs the same from Python (``cicfw train evaluate_after=true``),
+``evaluate_policy`` from plain specs. Finished episodes are kept as they finish: the same command with
+the same output folder (``hydra.run.dir=<the killed run's folder>``) resumes a killed run.
 """
 from __future__ import annotations
 
@@ -39,18 +41,17 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     return spec
 
 
-def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None) -> dict[str, Any]:
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
-    (see ``evaluate_policy``)."""
+    (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation)."""
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=int(cfg.seed),
         label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
         maps=bool(cfg.get("maps", True)), video=list(cfg.get("video") or []), video_max=int(cfg.get("video_max", 8)),
-        new_folder_hint=f"give a new output folder (hydra.run.dir=<new folder>) or delete {str(run_dir)!r} to "
-                        f"start over")
+        new_folder_hint=new_folder_hint)
     join_sweep()
     return res.summary
 
@@ -303,7 +304,12 @@ def _quote(s: str) -> str:
 def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
 
-    return float(evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))["success"])
+    from hydra.types import RunMode
+
+    out = Path(HydraConfig.get().runtime.output_dir)
+    key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
+    hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"
+    return float(evaluate(cfg, out, new_folder_hint=hint)["success"])
 
 
 if __name__ == "__main__":

@@ -336,3 +336,51 @@ def test_a_sigkilled_evaluation_resumes_with_the_same_command(tmp_path: Path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert f"{finished} kept from an earlier run, {len(rows) - finished} to drive" in proc.stdout + proc.stderr
     assert_same_report(tmp_path / "whole", out)
+
+
+ORPHAN = """
+import multiprocessing as mp, sys, time
+
+def child():
+    from cicfw.bench.runner import _exit_with_parent
+    _exit_with_parent(0.1)
+    time.sleep(120)
+
+if __name__ == "__main__":
+    p = mp.get_context("spawn").Process(target=child, daemon=True)
+    p.start()
+    time.sleep(1.0)  # the child has started its watch
+    print(p.pid, flush=True)
+    time.sleep(120)
+"""
+
+
+def test_worker_processes_end_when_their_evaluation_is_killed(tmp_path: Path):
+    """A SIGKILLed evaluation leaves no worker driving on (the rerun would race it for the log)."""
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(ORPHAN)
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    child = 0
+    try:
+        child = int(parent.stdout.readline())
+        assert _alive(child)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 10
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(child)
+    finally:
+        parent.kill()
+        if child and _alive(child):
+            os.kill(child, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")  # a zombie has ended; its new parent may not reap it at once
