@@ -54,8 +54,8 @@ class RunnerConfig:
                 raise ValueError(f"runner.workers as a list must hold distinct server ports (one CARLA "
                                  f"server each), e.g. [2000,2002]; got {self.workers!r}")
         elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
-            raise ValueError(f"runner.workers must be an integer >= 1, 'auto', or (sim=carla) a list of "
-                             f"server ports, got {self.workers!r}")
+            raise ValueError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
+                             f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])")
         if self.off_road_s <= 0:
             raise ValueError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
         if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
