@@ -344,7 +344,7 @@ def _write_all(fd: int, data: bytes | memoryview) -> None:
 
 def _disk_error(err: OSError, path: Path, what: str) -> CollectError:
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        free = _free_bytes(path.parent)
+        free = shutil.disk_usage(path.parent).free  # (not _free_bytes: the truth, whatever the check said)
         return DiskFullError(f"no space left on the device of {path.parent} while writing {what} "
                              f"({free / 1e6:.1f} MB free); free some space or collect into another folder "
                              f"(out_dir=...), then rerun to resume")
@@ -791,6 +791,15 @@ def _read_markers(out_dir: Path, plan: list[dict], chash: str) -> dict[str, dict
     return markers
 
 
+def _remove_episodes(out_dir: Path, eps: list[dict]) -> None:
+    ids = {ep["id"] for ep in eps}
+    for ep_id in ids:
+        (out_dir / ".episodes" / f"{ep_id}.json").unlink(missing_ok=True)
+    for p in out_dir.glob("*.h5"):
+        if p.name.rsplit("_", 1)[0] in ids:
+            p.unlink()
+
+
 def _foreign_files(out_dir: Path, plan: list[dict]) -> list[Path]:
     ids = tuple(ep["id"] + "_" for ep in plan)
     return [p for p in sorted(out_dir.rglob("*.h5")) + sorted(out_dir.rglob("*.hdf5"))
@@ -880,6 +889,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
                                f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
         markers = _read_markers(out_dir, plan, chash)
         todo = [ep for ep in plan if ep["id"] not in markers]
+        _remove_episodes(out_dir, todo)  # what is left of them did not validate; they are collected again
         started = time.time()
         if not todo:
             if old is None or not old.get("complete"):
