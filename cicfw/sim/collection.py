@@ -730,7 +730,7 @@ def _run_workers(cfg: dict, todo: list[dict], out_dir: Path, n: int, on_marker: 
                 on_marker(msg[2])
             else:
                 _, _, ep_id, err, tb = msg
-                if isinstance(err, CollectError) or (err is not None and isinstance(err, (ValueError, KeyboardInterrupt))):
+                if isinstance(err, ValueError):  # a user error (CollectError, TownError ...): the same one line
                     raise err
                 where = f" on episode {ep_id}" if ep_id else ""
                 raise RuntimeError(f"collect worker {i} failed{where}:\n{tb}")
@@ -889,7 +889,6 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
                                f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
         markers = _read_markers(out_dir, plan, chash)
         todo = [ep for ep in plan if ep["id"] not in markers]
-        _remove_episodes(out_dir, todo)  # what is left of them did not validate; they are collected again
         started = time.time()
         if not todo:
             if old is None or not old.get("complete"):
@@ -900,6 +899,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
             raise CollectError(f"{out_dir} holds an unfinished dataset of simulator {old.get('sim_version')}; "
                                f"this is {sim_version}, and finishing it would mix the two: delete the folder or "
                                f"collect into another one")
+        _remove_episodes(out_dir, todo)  # what is left of them did not validate; they are collected again
         check_free_space(out_dir, len(todo) * episode_bytes(cfg), f"the {len(todo)} episode(s) left")
         write_json(meta_path, _metadata(cfg, out_dir, plan, markers, started, sim_version, False))
         log.info("collecting %d episode(s) (%d already done) into %s", len(todo), len(markers), out_dir)
