@@ -272,6 +272,8 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
             try:  # the backend's own error: unknown name, no such file, a broken file
                 towns.append(str(resolve(t)))
             except ValueError as err:
+                if t not in str(err) and Path(t).name not in str(err):
+                    raise  # not about this town (e.g. a simulator server that does not answer)
                 raise CollectConfigError(f"collect.towns: {err}") from None
         elif t in known:
             towns.append(t)
