@@ -72,6 +72,12 @@ def _describe(path: str, missing: str, keys: list[str], groups: list[str]) -> st
     return msg
 
 
+def _is_open(cfg: Any, path: list[str]) -> bool:
+    """Whether the config node at ``path`` accepts new keys (its struct flag is explicitly off)."""
+    node = OmegaConf.select(cfg, ".".join(path)) if path else cfg
+    return OmegaConf.is_dict(node) and node._get_node_flag("struct") is False
+
+
 def override_hints(config_name: str, args: list[str], config_module: str = CONFIG_MODULE) -> list[str]:
     """One hint per override in ``args`` whose key the composed config lacks (added ``+key`` and
     ``hydra.*`` keys excepted)."""
@@ -107,6 +113,8 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
             node: Any = tree
             parts = key.split(".")
             for i, part in enumerate(parts):
+                if _is_open(cfg, parts[:i]):
+                    break  # an open node (trainer: any Trainer argument) takes new keys; the app checks them
                 if not isinstance(node, dict) or part not in node:
                     path = ".".join(parts[:i])
                     keys = [str(k) for k in node] if isinstance(node, dict) else []

@@ -4,9 +4,13 @@ Returns the validation metric (``optimized_metric``) so Hydra sweepers can optim
 """
 from __future__ import annotations
 
+import difflib
+import inspect
 import logging
+import pickle
+import re
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import hydra
 import lightning as L
@@ -20,6 +24,7 @@ from cicfw.errors import report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
+from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 log = logging.getLogger("cicfw.train")
 
@@ -41,12 +46,68 @@ def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
     return d.pop("name"), d
 
 
+def _did_you_mean(word: str, options: list[str]) -> str:
+    close = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+    return f"did you mean {close[0]!r}? " if close else ""
+
+
+def _keyword_names(fn: Callable) -> tuple[list[str], bool]:
+    """The keyword arguments ``fn`` takes, and whether it takes any others. A class whose
+    ``__init__`` passes ``**kwargs`` on to its base (``HybridHead(W, **bins_kwargs)``) takes its
+    bases' arguments too, up to the first ``__init__`` without ``**kwargs``."""
+    keyword = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    inits = ([k.__dict__["__init__"] for k in fn.__mro__ if "__init__" in k.__dict__ and k is not object]
+             if inspect.isclass(fn) else [fn])
+    names: list[str] = []
+    for init in inits:
+        if inspect.isclass(fn) and init is torch.nn.Module.__init__:
+            return names, False  # nn.Module takes no keyword arguments of its own
+        params = inspect.signature(init).parameters
+        names += [n for n, p in params.items() if n != "self" and p.kind in keyword and n not in names]
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return names, False
+    return names, True
+
+
+def check_kwargs(where: str, what: str, fn: Callable, kwargs: Mapping[str, Any],
+                 set_by_cicfw: Mapping[str, str] | None = None, extra_keys: tuple[str, ...] = ()) -> None:
+    """One ``ValueError`` for a key ``fn`` does not take (naming the keys it accepts), a key cicfw sets
+    itself, or an argument without a default that is missing. ``where`` is the config node
+    (``mixer``), ``what`` the thing built (``mixer 'gtu'``)."""
+    set_by_cicfw = set_by_cicfw or {}
+    params = inspect.signature(fn).parameters
+    named, takes_any = _keyword_names(fn)
+    accepted = sorted([*extra_keys, *(n for n in named if n not in set_by_cicfw)])
+    for key in kwargs:
+        if key in set_by_cicfw:
+            raise ValueError(f"{where}.{key} cannot be set: {set_by_cicfw[key]}")
+        if key not in named and not takes_any:
+            raise ValueError(f"{where}.{key} is not an argument of {what}; {_did_you_mean(str(key), accepted)}"
+                             f"accepted keys: {', '.join(accepted)}")
+    missing = [n for n, p in params.items() if n != "self" and p.default is inspect.Parameter.empty
+               and p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+               and n not in kwargs and n not in set_by_cicfw]
+    if missing:
+        raise ValueError(f"{what} needs {where}.{missing[0]} (it has no default); add {where}.{missing[0]}=...")
+
+
 def build_model(cfg: DictConfig) -> CICModule:
+    """The model from the encoder/mixer/head/model nodes; an unknown name or key fails here with one
+    line naming what is accepted (before any data is read)."""
     enc, enc_kw = name_and_kwargs(cfg.encoder)
     mix, mix_kw = name_and_kwargs(cfg.mixer)
     head, head_kw = name_and_kwargs(cfg.head)
+    model_kw = OmegaConf.to_container(cfg.model, resolve=True)
+    dims = "cicfw sets it from the encoder's and the head's sizes"
+    check_kwargs("encoder", f"encoder {enc!r}", ENCODERS.get(enc), enc_kw, extra_keys=("name",))
+    check_kwargs("mixer", f"mixer {mix!r}", MIXERS.get(mix), mix_kw,
+                 {"in_dim": dims, "out_dim": dims}, extra_keys=("name",))
+    check_kwargs("head", f"head {head!r}", HEADS.get(head), head_kw, extra_keys=("name",))
+    parts = "choose it with the encoder/mixer/head config groups (mixer=gtu mixer.hidden=128)"
+    check_kwargs("model", "the model (CICModule)", CICModule, model_kw,
+                 {k: parts for k in ("encoder", "encoder_kwargs", "mixer", "mixer_kwargs", "head", "head_kwargs")})
     model = CICModule(encoder=enc, encoder_kwargs=enc_kw, mixer=mix, mixer_kwargs=mix_kw,
-                      head=head, head_kwargs=head_kw, **OmegaConf.to_container(cfg.model, resolve=True))
+                      head=head, head_kwargs=head_kw, **model_kw)
     if cfg.trainer.get("channels_last"):
         model.use_channels_last()
     return model
@@ -65,12 +126,21 @@ def ensure_data(data_cfg: DictConfig) -> None:
     collect_dataset(data_cfg.collect, Path(data_cfg.path).expanduser())
 
 
-def build_datamodule(cfg: DictConfig) -> CILDataModule:
-    ensure_data(cfg.data)
+def make_datamodule(cfg: DictConfig) -> CILDataModule:
+    """The datamodule from ``cfg.data``: its arguments are checked (batch size a multiple of 4 for
+    balanced batches, ...) but no file is read or collected yet."""
     kwargs = OmegaConf.to_container(cfg.data, resolve=True)
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
+    check_kwargs("data", "the CIL datamodule", CILDataModule, kwargs)
     return CILDataModule(**kwargs)
+
+
+def build_datamodule(cfg: DictConfig) -> CILDataModule:
+    """``make_datamodule``, after collecting the default simulator dataset if it is not complete."""
+    datamodule = make_datamodule(cfg)
+    ensure_data(cfg.data)
+    return datamodule
 
 
 class EpochCheckpoints(Callback):
@@ -99,10 +169,38 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     return callbacks
 
 
-def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
+# Trainer arguments cicfw passes itself, and what to use instead.
+SET_BY_CICFW = {
+    "default_root_dir": "cicfw uses the run folder (hydra.run.dir=...)",
+    "logger": "choose the logger with logger=csv, logger=tensorboard or logger=null",
+    "callbacks": "cicfw adds its checkpoint and diagnostics callbacks (progress_bar=false drops the bar)",
+}
+
+
+def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg.trainer`` minus cicfw's speed switches; every key must be a ``lightning.Trainer``
+    argument (the trainer node is open, so a typo arrives here and gets "did you mean")."""
     kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
+    assert isinstance(kwargs, dict)
     for key in SPEED_SWITCHES:
         kwargs.pop(key, None)
+    params = [n for n in inspect.signature(L.Trainer.__init__).parameters if n != "self"]
+    for key in kwargs:
+        if key in SET_BY_CICFW:
+            raise ValueError(f"trainer.{key} cannot be set: {SET_BY_CICFW[key]}")
+        if key not in params:
+            accepted = [p for p in params if p not in SET_BY_CICFW]
+            raise ValueError(
+                f"trainer.{key} is not a Lightning Trainer argument; {_did_you_mean(str(key), accepted + list(SPEED_SWITCHES))}"
+                f"accepted keys: the arguments of lightning.Trainer ({', '.join(accepted)}) and cicfw's "
+                f"switches ({', '.join(SPEED_SWITCHES)})")
+    return kwargs
+
+
+def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
+    """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
+    ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
+    kwargs = trainer_kwargs(cfg)
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:
@@ -110,8 +208,86 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     else:
         logger = LOGGERS[cfg.logger.name](run_dir)
     kwargs.setdefault("enable_progress_bar", bool(cfg.get("progress_bar", True)))
-    return L.Trainer(default_root_dir=str(run_dir), logger=logger,
-                     callbacks=build_callbacks(cfg, run_dir), **kwargs)
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    try:
+        return L.Trainer(default_root_dir=str(run_dir), logger=logger,
+                         callbacks=build_callbacks(cfg, run_dir), **kwargs)
+    except (MisconfigurationException, ValueError, TypeError) as err:
+        raise ValueError(f"trainer: {' '.join(str(err).split())}") from None
+
+
+# ckpt_path values Lightning resolves itself (no file to check before training).
+LIGHTNING_CKPT_NAMES = ("last", "best", "hpc", "registry")
+
+
+def _first_line(err: BaseException) -> str:
+    """The first sentence of an exception's message."""
+    text = str(err).strip()
+    return text.splitlines()[0].split(". ")[0].rstrip(".") if text else type(err).__name__
+
+
+def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[str, Any]:
+    """``torch.load(path, weights_only=True)``: tensors and plain data only, never pickled code (a
+    checkpoint that holds other objects is refused, whatever TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD says).
+    A missing, truncated or foreign file is one ``ValueError`` / ``FileNotFoundError`` naming it."""
+    p = Path(path).expanduser()
+    if p.is_dir():
+        raise ValueError(f"{what}={path} is a folder; give the checkpoint file, e.g. {p}/checkpoints/last.ckpt")
+    if not p.is_file():
+        raise FileNotFoundError(f"{what}={path}: no such file")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        found = re.search(r"Unsupported global: GLOBAL [\w.]+|Unsupported operand \d+", str(err))
+        detail = found.group(0) if found else _first_line(err)
+        raise ValueError(
+            f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
+            f"({detail}), which could run code when loaded; cicfw loads checkpoints with "
+            f"torch.load(weights_only=True) only") from None
+    except Exception as err:  # truncated zip, not a torch file, ...
+        raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
+                         f"torch.save): {type(err).__name__}: {_first_line(err)}") from None
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
+        raise ValueError(f"{what}={path} is not a Lightning training checkpoint (no 'state_dict'); "
+                         f"give a .ckpt written by cicfw train (<run>/checkpoints/last.ckpt)")
+    return ckpt
+
+
+def check_resume_checkpoint(path: str | Path | None, model: CICModule) -> str | None:
+    """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
+    holds the training state (not weights only), and fits this run's model. Returns the path for
+    ``Trainer.fit`` (None to start afresh)."""
+    if path is None or str(path) == "":
+        return None
+    if str(path) in LIGHTNING_CKPT_NAMES:
+        return str(path)
+    ckpt = load_checkpoint_safely(path)
+    if "optimizer_states" not in ckpt or "loops" not in ckpt:
+        raise ValueError(f"ckpt_path={path} holds the weights only (no optimizer or loop state), so training "
+                         f"cannot resume from it; resume from <run>/checkpoints/last.ckpt, or evaluate it "
+                         f"with cicfw evaluate checkpoint={path}")
+    want = model.state_dict()
+    got = ckpt["state_dict"]
+    missing = [k for k in want if k not in got]
+    unexpected = [k for k in got if k not in want]
+    reshaped = [k for k in want if k in got and hasattr(got[k], "shape") and tuple(got[k].shape) != tuple(want[k].shape)]
+    if missing or unexpected or reshaped:
+        hp = ckpt.get("hyper_parameters") or {}
+        saved = "/".join(str(hp.get(k, "?")) for k in ("encoder", "mixer", "head"))
+        here = "/".join(str(model.hparams.get(k, "?")) for k in ("encoder", "mixer", "head"))
+        first = (missing or unexpected or reshaped)[0]
+        raise ValueError(
+            f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: {here}): "
+            f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
+            f"{first!r}; resume with the options the checkpoint was trained with")
+    return str(path)
+
+
+def fit_kwargs() -> dict[str, Any]:
+    """``weights_only=True`` for ``Trainer.fit`` where Lightning takes it (2.6+); older Lightning
+    loads with torch's default, after ``check_resume_checkpoint`` loaded the same file safely."""
+    return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
 def train(cfg: DictConfig, run_dir: Path) -> float:
@@ -120,13 +296,16 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     ``return_closed_loop``)."""
     run_dir = Path(run_dir)
     L.seed_everything(cfg.seed, workers=True)
-    model = build_model(cfg)  # a bad mixer/head/encoder name fails here, before any data work
-    datamodule = build_datamodule(cfg)
-    datamodule.setup("fit")  # bad files and empty splits fail here, before training starts
+    # Everything a user can get wrong in the config fails first, before any image is collected or read:
+    model = build_model(cfg)  # names and keys of the encoder/mixer/head/model nodes
+    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model)  # a safe, whole, matching checkpoint
+    datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
+    trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
+    ensure_data(cfg.data)  # then the data: collected if needed,
+    datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
                             len(datamodule.train_dataloader()))      # channels_last, Adam's step
-    trainer = build_trainer(cfg, run_dir)
-    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, **fit_kwargs())
     ckpt = trainer.checkpoint_callback
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)

@@ -83,6 +83,9 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
     for g in out:
         if g in known or (path_ok and g.endswith((".yaml", ".yml")) and Path(g).expanduser().is_file()):
             continue
+        if path_ok and (g.endswith((".yaml", ".yml")) or "/" in g or "\\" in g) and not Path(g).expanduser().exists():
+            raise ValueError(f"{kind} file {g!r}: no such file (a {kind} is a name, {', '.join(known)}, "
+                             f"or the path of an existing {kind} .yaml file)")
         extra = " (or a path to a town .yaml file)" if path_ok else ""
         raise ValueError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}")
     return out

@@ -110,6 +110,12 @@ class CILDataModule(L.LightningDataModule):
             raise ValueError(f"batch sizes must be >= 1, got {batch_size} / {val_batch_size}")
         if not 0.0 < max_abs_steer <= 1.0:
             raise ValueError(f"data.max_abs_steer must be in (0, 1], got {max_abs_steer}")
+        # checked here, before any file is read (the sampler and the split check them again)
+        if balanced and batch_size % len(COMMANDS):
+            raise ValueError(f"data.batch_size must be a multiple of {len(COMMANDS)} for balanced batches "
+                             f"({len(COMMANDS)} commands), got {batch_size}; or set data.balanced=false")
+        if not 0.0 < val_fraction < 1.0:
+            raise ValueError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
         self.path = str(path)
         self.batch_size, self.val_batch_size = batch_size, val_batch_size
         self.val_fraction, self.seed = val_fraction, seed

@@ -16,6 +16,9 @@ from cicfw.data.cil_hdf5 import COMMAND_CODES, CILFormatError, T, check_file, fi
 
 log = logging.getLogger(__name__)
 
+#: targets[10] below minus this (km/h) is an error; smaller negative values are sensor noise at a standstill.
+NEGATIVE_SPEED_TOLERANCE_KMH = 0.5
+
 
 @dataclass
 class Frames:
@@ -65,7 +68,7 @@ def load_frames(
     - steer of side cameras is corrected: ``steer - correction * yaw / 30`` (yaw in degrees,
       positive right: a camera looking right sees the road drift left, so the label steers left);
     - samples with |corrected steer| > ``max_abs_steer`` are dropped (the paper keeps [-0.8, 0.8]);
-    - an unknown command code is an error naming the file.
+    - an unknown command code, or a negative speed, is an error naming the file.
     """
     files = find_files(path)
     for f in files:
@@ -83,6 +86,15 @@ def load_frames(
             raise CILFormatError(
                 f"{f}: unknown high-level command code(s) {found} in targets[24]; accepted codes are "
                 f"2 (follow), 3 (left), 4 (right), 5 (straight)"
+            )
+        speed = t[:, T.SPEED]
+        negative = np.flatnonzero(finite & (speed < -NEGATIVE_SPEED_TOLERANCE_KMH))
+        if len(negative):
+            r = int(negative[0])
+            raise CILFormatError(
+                f"{f}: negative speed in targets[10] ({len(negative)} row(s), e.g. {float(speed[r]):g} km/h at "
+                f"row {r}); speeds must be >= 0 km/h (the forward speed; down to "
+                f"-{NEGATIVE_SPEED_TOLERANCE_KMH:g} is accepted as standstill noise)"
             )
         rows = np.flatnonzero(finite)
         yaw = np.nan_to_num(t[rows, T.CAMERA_YAW])
@@ -115,6 +127,14 @@ def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Fr
     train, val = frames.subset(~is_val), frames.subset(is_val)
     counts = np.bincount(train.command, minlength=len(COMMANDS))
     missing = [name for name, c in zip(COMMANDS, counts) if c == 0]
+    whole = np.bincount(frames.command, minlength=len(COMMANDS))
+    absent = [name for name, c in zip(COMMANDS, whole) if c == 0]
+    if absent:  # no other split can help: say so rather than suggest another seed
+        raise ValueError(
+            f"the dataset has no samples of command(s) {absent} (samples per command after the filters "
+            f"|steer| <= data.max_abs_steer and data.cameras: {dict(zip(COMMANDS, whole.tolist()))}); each "
+            f"command trains its own branch, so collect episodes that contain those commands"
+        )
     if missing:
         raise ValueError(
             f"the train split has no sample of command(s) {missing} (train counts per command "

@@ -1,0 +1,245 @@
+"""One clear line for every user error of ``cicfw train`` (issue 11, section 3), each checked before
+any image is collected or read, and resuming that loads checkpoints with ``weights_only=True`` (§4).
+
+``train()`` raises the ``ValueError`` / ``FileNotFoundError`` whose message the app prints as
+``cicfw: error: <message>`` (tests/test_train.py checks that wrapper on the command line)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import cicfw.train as train_mod
+from cicfw.bench.suite import check_names
+from cicfw.data.cil_hdf5 import CILFormatError, T, write_file
+from cicfw.data.datamodule import CILDataModule
+from cicfw.data.frames import load_frames, split_by_episode
+from cicfw.override_hints import override_hints
+from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
+from conftest import compose_train, make_targets, write_tiny_dataset
+
+BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
+
+
+@pytest.fixture
+def no_data(monkeypatch):
+    """Fail loudly if training reaches the data (collecting or reading any file)."""
+
+    def touched(*_a, **_k):
+        raise AssertionError("the data was touched before the config error was reported")
+
+    monkeypatch.setattr(train_mod, "ensure_data", touched)
+    monkeypatch.setattr(CILDataModule, "setup", touched)
+
+
+def _cfg(tmp_path: Path, *overrides: str):
+    return compose_train(*BASE, f"data.path={tmp_path}/data", *overrides)
+
+
+@pytest.mark.parametrize("overrides, error, message", [
+    (["trainer.max_epochs=-2"], ValueError,
+     "trainer: `max_epochs` must be a non-negative integer or -1. You passed in -2."),
+    (["trainer.max_epoch=3"], ValueError,
+     "trainer.max_epoch is not a Lightning Trainer argument; did you mean 'max_epochs'? accepted keys: "
+     "the arguments of lightning.Trainer (accelerator, strategy, devices,"),
+    (["trainer.logger=true"], ValueError,
+     "trainer.logger cannot be set: choose the logger with logger=csv, logger=tensorboard or logger=null"),
+    (["trainer.precision=17"], ValueError, "trainer: Precision 17 is invalid. Allowed precision values:"),
+    (["+mixer.foo=1"], ValueError,
+     "mixer.foo is not an argument of mixer 'independent'; accepted keys: dropout, hidden, name"),
+    (["mixer=gtu", "+mixer.hiden=64"], ValueError,
+     "mixer.hiden is not an argument of mixer 'gtu'; did you mean 'hidden'? accepted keys: dropout, hidden, name"),
+    (["+mixer.in_dim=64"], ValueError,
+     "mixer.in_dim cannot be set: cicfw sets it from the encoder's and the head's sizes"),
+    (["head=hybrid", "+head.foo=1"], ValueError,  # HybridHead(W, **bins_kwargs): the bins' keys count too
+     "head.foo is not an argument of head 'hybrid'; accepted keys: W, bin_width, decode, high, low, n_classes, name"),
+    (["+encoder.foo=1"], ValueError,
+     "encoder.foo is not an argument of encoder 'cil'; accepted keys: dropout_conv, dropout_fc, name, out_dim"),
+    (["+model.foo=1"], ValueError,
+     "model.foo is not an argument of the model (CICModule); accepted keys: betas, lr, speed_norm_kmh, weight_decay"),
+    (["+data.foo=1"], ValueError, "data.foo is not an argument of the CIL datamodule; accepted keys: augment,"),
+    (["data.batch_size=6"], ValueError,
+     "data.batch_size must be a multiple of 4 for balanced batches (4 commands), got 6; or set data.balanced=false"),
+    (["data.val_fraction=1.5"], ValueError, "data.val_fraction must be in (0, 1), got 1.5"),
+    (["ckpt_path=/nonexistent/last.ckpt"], FileNotFoundError, "ckpt_path=/nonexistent/last.ckpt: no such file"),
+])
+def test_each_config_error_is_one_line_before_any_data(tmp_path, no_data, overrides, error, message):
+    with pytest.raises(error) as err:
+        train(_cfg(tmp_path, *overrides), tmp_path / "run")
+    text = str(err.value.args[0] if isinstance(err.value, FileNotFoundError) else err.value)
+    assert text.startswith(message), text
+    assert "\n" not in text
+
+
+def test_any_trainer_argument_passes_without_plus(tmp_path):
+    cfg = _cfg(tmp_path, "trainer.fast_dev_run=true", "trainer.accumulate_grad_batches=2")
+    trainer = build_trainer(cfg, tmp_path / "run")
+    assert trainer.fast_dev_run is True and trainer.accumulate_grad_batches == 2
+    cfg = _cfg(tmp_path, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=1",
+               "trainer.precision=32-true", "trainer.limit_val_batches=3")
+    assert build_trainer(cfg, tmp_path / "run2").limit_val_batches == 3
+    # the override hints (printed after a failed run) leave the open trainer node to the app's check
+    assert override_hints("train", ["trainer.max_epoch=3"]) == []
+    assert override_hints("train", ["mixer.hiden=3"])  # closed nodes still get their hint
+
+
+def test_trainer_argument_from_the_command_line(tmp_path):
+    """The whole app: ``trainer.fast_dev_run=true`` (no ``+``) trains one step; a typo is one line."""
+    data = write_tiny_dataset(tmp_path / "data")
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    common = [sys.executable, "-m", "cicfw.train", *BASE, f"data.path={data}", f"hydra.run.dir={tmp_path}/out"]
+    ok = subprocess.run([*common, "trainer.fast_dev_run=true"], capture_output=True, text=True, env=env, timeout=300)
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert "`Trainer.fit` stopped: `max_steps=1` reached." in ok.stderr + ok.stdout
+    bad = subprocess.run([*common, "trainer.max_epochs=-2"], capture_output=True, text=True, env=env, timeout=300)
+    assert bad.returncode == 2
+    errors = [line for line in bad.stderr.splitlines() if line.startswith("cicfw:")]
+    assert errors == ["cicfw: error: trainer: `max_epochs` must be a non-negative integer or -1. You passed in -2."]
+    assert "Traceback" not in bad.stderr
+
+
+# ---- checkpoints given to ckpt_path= --------------------------------------------------------------
+
+
+def _resumable(model, path: Path, **extra) -> Path:
+    """A checkpoint with what Lightning's resume reads (state_dict, optimizer and loop state)."""
+    torch.save({"state_dict": model.state_dict(), "optimizer_states": [], "lr_schedulers": [], "loops": {},
+                "epoch": 0, "global_step": 0, "pytorch-lightning_version": "2.6.0",
+                "hyper_parameters": dict(model.hparams), **extra}, path)
+    return path
+
+
+class _RunsCode:
+    """Unpickling this calls ``exec``: what a malicious checkpoint does."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return exec, (f"open({str(self.marker)!r}, 'w').close()",)
+
+
+def test_a_checkpoint_that_would_run_code_is_refused(tmp_path, no_data, monkeypatch):
+    marker = tmp_path / "code_ran"
+    cfg = _cfg(tmp_path)
+    evil = _resumable(build_model(cfg), tmp_path / "evil.ckpt", callbacks=_RunsCode(marker))
+    monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")  # torch's opt-out must not matter
+    with pytest.raises(ValueError) as err:
+        train(_cfg(tmp_path, f"ckpt_path={evil}"), tmp_path / "run")
+    assert str(err.value).startswith(f"ckpt_path={evil}: refused: the file holds pickled Python objects besides "
+                                     f"tensors and plain data (Unsupported global: GLOBAL exec), which could run code when loaded")
+    assert not marker.exists()
+    torch.load(evil, weights_only=False)  # the payload is live: loading it the unsafe way runs it
+    assert marker.exists()
+
+
+def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
+    cfg = _cfg(tmp_path)
+    model = build_model(cfg)
+    good = _resumable(model, tmp_path / "good.ckpt")
+    assert check_resume_checkpoint(good, model) == str(good)
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    weights = tmp_path / "weights.ckpt"
+    torch.save({"state_dict": model.state_dict(), "epoch": 0}, weights)
+    other = _resumable(build_model(_cfg(tmp_path, "mixer=gtu")), tmp_path / "gtu.ckpt")
+    plain = tmp_path / "plain.pt"
+    torch.save(model.state_dict(), plain)
+    cases = {
+        truncated: f"ckpt_path={truncated} is not a readable checkpoint (truncated, or not written by torch.save): "
+                   f"RuntimeError: PytorchStreamReader failed reading zip archive: failed finding central directory",
+        weights: f"ckpt_path={weights} holds the weights only (no optimizer or loop state), so training cannot "
+                 f"resume from it",
+        other: f"ckpt_path={other} was saved by another model (encoder/mixer/head cil/gtu/regression; this run: "
+               f"cil/independent/regression)",
+        plain: f"ckpt_path={plain} is not a Lightning training checkpoint (no 'state_dict')",
+        tmp_path: f"ckpt_path={tmp_path} is a folder; give the checkpoint file, e.g. {tmp_path}/checkpoints/last.ckpt",
+    }
+    for path, message in cases.items():
+        with pytest.raises(ValueError) as err:
+            train(_cfg(tmp_path, f"ckpt_path={path}"), tmp_path / "run")
+        assert str(err.value).startswith(message), str(err.value)
+        assert "\n" not in str(err.value)
+
+
+def test_lightning_resumes_with_weights_only(tmp_path, monkeypatch):
+    """Lightning's own load of ``ckpt_path`` is asked for ``weights_only=True`` (not torch's default)."""
+    from lightning.pytorch.trainer.connectors.checkpoint_connector import _CheckpointConnector
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def resume_start(self, checkpoint_path=None, weights_only=None):
+        seen.update(path=checkpoint_path, weights_only=weights_only)
+        raise Stop
+
+    monkeypatch.setattr(_CheckpointConnector, "resume_start", resume_start)
+    write_tiny_dataset(tmp_path / "data")
+    ckpt = _resumable(build_model(_cfg(tmp_path)), tmp_path / "last.ckpt")
+    with pytest.raises(Stop):
+        train(_cfg(tmp_path, f"ckpt_path={ckpt}", "debug=fast"), tmp_path / "run")
+    assert seen == {"path": str(ckpt), "weights_only": True}
+
+
+# ---- data ------------------------------------------------------------------------------------------
+
+
+def test_negative_speed_is_rejected_naming_file_and_row(tmp_path):
+    rng = np.random.default_rng(0)
+    t = make_targets(10, rng)
+    t[:, T.SPEED] = 5.0
+    t[3, T.SPEED], t[7, T.SPEED] = -12.5, -0.2  # row 7: standstill noise, accepted
+    path = write_file(tmp_path / "a.h5", rng.integers(0, 255, (10, 88, 200, 3), dtype=np.uint8), t)
+    with pytest.raises(CILFormatError) as err:
+        load_frames(str(tmp_path))
+    assert str(err.value) == (f"{path}: negative speed in targets[10] (1 row(s), e.g. -12.5 km/h at row 3); speeds "
+                              f"must be >= 0 km/h (the forward speed; down to -0.5 is accepted as standstill noise)")
+    t[3, T.SPEED] = 0.0
+    write_file(path, rng.integers(0, 255, (10, 88, 200, 3), dtype=np.uint8), t)
+    assert len(load_frames(str(tmp_path))) > 0
+
+
+def test_a_command_absent_from_the_whole_dataset_does_not_suggest_another_split(tmp_path):
+    write_tiny_dataset(tmp_path, n_files=4, commands=(2, 3, 5))  # no 'right' anywhere
+    frames = load_frames(str(tmp_path))
+    with pytest.raises(ValueError) as err:
+        split_by_episode(frames, 0.3, 0)
+    msg = str(err.value)
+    assert msg.startswith("the dataset has no samples of command(s) ['right'] (samples per command after the "
+                          "filters |steer| <= data.max_abs_steer and data.cameras: {'follow': ")
+    assert msg.endswith("each command trains its own branch, so collect episodes that contain those commands")
+    assert "seed" not in msg and "val_fraction" not in msg
+
+
+def test_a_missing_town_file_says_no_such_file(tmp_path):
+    known = ["town_a", "town_b"]
+    missing = str(tmp_path / "my_town.yaml")
+    with pytest.raises(ValueError) as err:
+        check_names("town", [missing], known, path_ok=True)
+    assert str(err.value) == (f"town file {missing!r}: no such file (a town is a name, town_a, town_b, or the "
+                              f"path of an existing town .yaml file)")
+    with pytest.raises(ValueError, match=r"^unknown town 'town_c'; known towns: town_a, town_b"):
+        check_names("town", ["town_c"], known, path_ok=True)
+    (tmp_path / "my_town.yaml").write_text("name: my_town\n")
+    assert check_names("town", [missing], known, path_ok=True) == [missing]
+
+
+def test_a_required_argument_without_a_value_is_named():
+    from cicfw.train import check_kwargs
+
+    class NeedsWidth:
+        def __init__(self, in_dim: int, out_dim: int, width: int, hidden: int = 8) -> None:
+            pass
+
+    dims = {"in_dim": "set by cicfw", "out_dim": "set by cicfw"}
+    with pytest.raises(ValueError) as err:
+        check_kwargs("mixer", "mixer 'wide'", NeedsWidth, {"hidden": 4}, dims)
+    assert str(err.value) == "mixer 'wide' needs mixer.width (it has no default); add mixer.width=..."
+    check_kwargs("mixer", "mixer 'wide'", NeedsWidth, {"width": 4}, dims)
