@@ -45,34 +45,30 @@ def turn_code(change_deg: float) -> int:
     return LEFT if change_deg > 0 else RIGHT
 
 
-def _walk_back(wp: Any, length: float, step: float) -> list:
-    """Waypoints behind ``wp`` (nearest first, ``wp`` excluded) along its lane, up to ``length`` m,
-    stopping before any junction."""
+def _walk(wp: Any, length: float, step: float, forward: bool) -> list:
+    """The waypoints ahead of (``forward``) or behind ``wp`` along its lane, nearest first, ``wp``
+    excluded, up to ``length`` m, stopping before any junction."""
     out: list = []
     cur, done = wp, 0.0
     while done + step <= length + 1e-6:
-        prev = [w for w in cur.previous(step) if not w.is_junction]
-        if not prev:
+        cand = [w for w in (cur.next(step) if forward else cur.previous(step)) if not w.is_junction]
+        if not cand:
             break
-        cur = min(prev, key=lambda w: (w.road_id != cur.road_id, w.lane_id != cur.lane_id))
+        cur = min(cand, key=lambda w: (w.road_id != cur.road_id, w.lane_id != cur.lane_id))
         out.append(cur)
         done += step
     return out
+
+
+def _walk_back(wp: Any, length: float, step: float) -> list:
+    """Waypoints behind ``wp`` (nearest first, ``wp`` excluded), up to ``length`` m, before any junction."""
+    return _walk(wp, length, step, forward=False)
 
 
 def _walk_forward(wp: Any, length: float, step: float) -> list:
-    """``wp`` and the waypoints ahead of it along its lane, up to ``length`` m, stopping before any
-    junction (``wp`` itself is expected outside one)."""
-    out = [wp]
-    cur, done = wp, 0.0
-    while done + step <= length + 1e-6:
-        nxt = [w for w in cur.next(step) if not w.is_junction]
-        if not nxt:
-            break
-        cur = min(nxt, key=lambda w: (w.road_id != cur.road_id, w.lane_id != cur.lane_id))
-        out.append(cur)
-        done += step
-    return out
+    """``wp`` and the waypoints ahead of it, up to ``length`` m, stopping before any junction (``wp``
+    itself is expected outside one)."""
+    return [wp] + _walk(wp, length, step, forward=True)
 
 
 def _through(wp: Any, step: float) -> list:
