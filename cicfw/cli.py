@@ -8,7 +8,7 @@ from pathlib import Path
 # command -> (module run as __main__, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("cicfw.train", "train a model (Hydra app: cicfw train mixer=gtu head=hybrid)"),
-    "collect": ("cicfw.collect", "collect CIL HDF5 data with the embedded simulator (Hydra app)"),
+    "collect": ("cicfw.collect", "collect CIL HDF5 data with the embedded simulator or CARLA (Hydra app, sim=)"),
     "evaluate": ("cicfw.evaluate", "closed-loop evaluation on the single-turn suite (Hydra app)"),
     "preview": ("cicfw.sim.preview", "write the camera contact sheet and town maps as PNGs"),
     "reproduce": ("cicfw.reproduce", "the paper's Table 4: rows x seeds x a budget, intervals and verdicts"),
