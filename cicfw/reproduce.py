@@ -339,7 +339,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
              manifest["budget"], manifest["episodes"], cfg.results_dir)
-    sys.argv = [sys.argv[0], "-m", *args, f"cell.row={','.join(rows)}", f"cell.seed={','.join(map(str, seeds))}"]
+    # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still
+    # compares every row on the same seeds
+    sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
     t0 = time.time()
     try:
         _cell_job()
