@@ -423,7 +423,7 @@ def curve_table(data: Mapping[str, Any]) -> list[str]:
 
 
 def plot_results(data: Mapping[str, Any], path: Path) -> Path:
-    """Success per column with 95% interval bars for each row; the paper's values as black crosses."""
+    """Success per column with 95% interval bars for each row; the paper's values as crosses in the row's colour."""
     from cicfw.bench.plots import _plt, _save
 
     plt = _plt()
@@ -440,8 +440,8 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
         ax.errorbar(xs, mean, yerr=err, fmt="o", color=cmap(k % 10), capsize=3, label=r["label"])
         if r["paper"]:
             pv = [*r["paper"], float(np.mean(r["paper"]))]
-            ax.scatter(xs, pv, marker="x", color="black", s=28, zorder=3,
-                       label="paper's value" if k == 0 else None)
+            ax.scatter(xs, pv, marker="x", color=cmap(k % 10), s=36, zorder=3)
+    ax.scatter([], [], marker="x", color="grey", label="the paper's value (row's colour)")
     ax.set_xticks(x, [n.replace(" / ", "\n") for n in COLUMN_NAMES] + ["Overall\n(mean of columns)"])
     ax.set_ylim(-3, 105)
     ax.set_ylabel("reach destination success (%)")
@@ -473,10 +473,15 @@ def plot_curve(data: Mapping[str, Any], path: Path) -> Path | None:
     return _save(fig, Path(path))
 
 
-def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], out_md: Path | None = None,
-                 n_boot: int = 4000) -> dict[str, Any]:
-    """results.json, results.csv, RESULTS.md and the two pictures in ``results_dir`` (and a copy of the
-    Markdown at ``out_md``, e.g. docs/RESULTS.md, with the picture links pointing into ``results_dir``)."""
+def _with_pictures(md: str, pics: Path | str, curve: bool) -> str:
+    pics = str(pics).rstrip("/")
+    prefix = "" if pics in ("", ".") else pics + "/"
+    return (md + f"\n![success per column with 95% intervals]({prefix}results.png)\n"
+            + (f"\n![learning curve]({prefix}learning_curve.png)\n" if curve else ""))
+
+
+def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], n_boot: int = 4000) -> dict[str, Any]:
+    """results.json, results.csv, RESULTS.md and the two pictures in ``results_dir``; returns the data."""
     results_dir = Path(results_dir)
     manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
     cells, failed = load_cells(results_dir)
@@ -487,16 +492,18 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
     atomic_write(results_dir / "results.csv", results_csv(data))
     plot_results(data, results_dir / "results.png")
-    has_curve = plot_curve(data, results_dir / "learning_curve.png") is not None
-    md = markdown(data)
-    pics = "\n![success per column](results.png)\n" + ("\n![learning curve](learning_curve.png)\n" if has_curve else "")
-    atomic_write(results_dir / "RESULTS.md", md + pics)
-    if out_md is not None:
-        rel = Path(__import__("os").path.relpath(results_dir, Path(out_md).parent))
-        pics = f"\n![success per column]({rel}/results.png)\n" + (
-            f"\n![learning curve]({rel}/learning_curve.png)\n" if has_curve else "")
-        atomic_write(Path(out_md), md + pics)
+    data["has_curve"] = plot_curve(data, results_dir / "learning_curve.png") is not None
+    atomic_write(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
     return data
+
+
+def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
+    """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
+    import os
+
+    rel = os.path.relpath(Path(pictures), Path(path).parent)
+    atomic_write(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
+    return Path(path)
 
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:
@@ -530,9 +537,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             catalogue = OmegaConf.to_container(compose("reproduce").catalogue, resolve=True)
-        data = write_report(Path(a.results_dir), catalogue, Path(a.markdown) if a.markdown else None)
+        data = write_report(Path(a.results_dir), catalogue)
         if a.publish:
             publish(Path(a.results_dir), Path(a.publish))
+        if a.markdown:
+            write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
