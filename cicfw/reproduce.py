@@ -212,10 +212,16 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
     try:
         result = _train_and_drive(cfg, row, seed, cell_dir)
         status = "ok"
-    except Exception as err:  # recorded with its one-line error; the other cells go on
-        first = (str(err).strip().splitlines() or [""])[0]
-        result, status = {"error": f"{type(err).__name__}: {first}"}, "failed"
-        log.error("cell %s seed %d failed: %s", row, seed, result["error"])
+    except Exception as err:  # recorded with its one-line error (and the whole text); the other cells go on
+        import traceback
+
+        lines = [ln.strip() for ln in str(err).strip().splitlines() if ln.strip()]
+        # a worker's error is "evaluation worker k failed:" + its traceback: its last line says what failed
+        line = lines[0] if len(lines) < 2 or not lines[0].endswith(":") else f"{lines[0]} {lines[-1]}"
+        result = {"error": f"{type(err).__name__}: {line}",
+                  "detail": "".join(traceback.format_exception(err))[-4000:]}
+        status = "failed"
+        log.error("cell %s seed %d failed: %s\n%s", row, seed, result["error"], result["detail"])
     atomic_write(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
                                    **result}, indent=1))
     return status
