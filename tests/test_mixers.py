@@ -183,3 +183,16 @@ def test_every_mixer_config_builds_its_class_through_the_registry(path):
     assert mixer.regularizer().shape == ()
     for key, m in mixer.inspect().items():
         assert m.dim() in (2, 3), key
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5])
+def test_offdiag_places_values_row_major_off_the_diagonal(n):
+    """``offdiag`` (padding, compile-friendly) puts value k at the k-th off-diagonal cell in row-major order."""
+    from cicfw.model.mixers.gtu import offdiag
+
+    v = torch.arange(1.0, 1 + 2 * n * (n - 1)).reshape(2, n * (n - 1))
+    expected = torch.zeros(2, n, n)
+    cells = [(i, j) for i in range(n) for j in range(n) if i != j]
+    for k, (i, j) in enumerate(cells):
+        expected[:, i, j] = v[:, k]
+    assert torch.equal(offdiag(v, n), expected)

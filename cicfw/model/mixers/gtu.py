@@ -20,12 +20,21 @@ def offdiag_mask(n: int) -> torch.Tensor:
     return ~torch.eye(n, dtype=torch.bool)
 
 
+def offdiag(values: torch.Tensor, n: int) -> torch.Tensor:
+    """The (..., n, n) matrices with ``values`` (..., n(n-1)) off the diagonal, row-major (c[i, j], i != j),
+    and zeros on it. Built by padding, not boolean indexing, so torch.compile traces it in one graph:
+    row-major, the n(n-1) off-diagonal entries come in n-1 runs of n, each run after one diagonal entry."""
+    lead = values.shape[:-1]
+    runs = values.reshape(*lead, n - 1, n)
+    flat = torch.nn.functional.pad(runs, (1, 0)).reshape(*lead, (n - 1) * (n + 1))  # d0 o.. d1 o.. ...
+    return torch.nn.functional.pad(flat, (0, 1)).reshape(*lead, n, n)  # ... and the last diagonal entry
+
+
 def colearn(coefs: torch.Tensor, outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``C = I + offdiag(coefs)`` from per-sample off-diagonal coefficients (B, n(n-1)) and
     ``A = C Â`` for branch outputs Â (B, n, K). Returns (A, C)."""
-    b, n = outputs.shape[0], outputs.shape[1]
-    c = torch.eye(n, dtype=outputs.dtype, device=outputs.device).repeat(b, 1, 1)
-    c[:, offdiag_mask(n).to(outputs.device)] = coefs.to(outputs.dtype)  # row-major: c[i, j], i != j
+    n = outputs.shape[1]
+    c = torch.eye(n, dtype=outputs.dtype, device=outputs.device) + offdiag(coefs.to(outputs.dtype), n)
     return torch.bmm(c, outputs), c
 
 

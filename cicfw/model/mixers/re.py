@@ -56,6 +56,8 @@ class REMixer(Mixer):
         check_branch_kwargs(hidden, dropout)
         check_positive_int("coef_hidden", coef_hidden, "the width of the coefficient MLP")
         self.register_buffer("R", r)  # persistent: a checkpoint remembers its R
+        # R's off-diagonal positions, row-major (an index, not a boolean mask: torch.compile traces it)
+        self.register_buffer("_off", torch.nonzero(offdiag_mask(n).flatten()).flatten(), persistent=False)
         self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
         # E: the "dedicated neural network" of the paper, one tanh coefficient per off-diagonal entry.
         self.coef = nn.Sequential(nn.Linear(in_dim, coef_hidden), nn.ReLU(inplace=True),
@@ -64,7 +66,7 @@ class REMixer(Mixer):
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
-        r_off = self.R[offdiag_mask(self.n_branches).to(h.device)]  # (n(n-1),), same order as colearn
+        r_off = self.R.flatten()[self._off]  # (n(n-1),), row-major like colearn
         mixed, c = colearn(r_off * torch.tanh(self.coef(h)), outputs)
         self._c = c.detach()  # for inspect(); detached so it does not hold the graph
         return mixed
