@@ -288,7 +288,8 @@ class Renderer:
             sy = dep * ct.dz_ppm[box]
             sy += LUT(ids, lut[Y0])
             alb = cv2.remap(self.atlas.image, sx, sy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            mask = cv2.compare(ids, 0, cv2.CMP_GT)
+            # numpy, not cv2.compare: OpenCV reads a 1x1 array as a scalar and refuses the comparison
+            mask = np.greater(ids, 0).view(np.uint8)
             cv2.copyTo(alb, mask, frame[box])
             dep *= ct.dn_fog[box]
             keep = self.keep_fixed.copy()
