@@ -160,3 +160,20 @@ def test_checkpoint_of_a_compiled_run_loads_eager_and_in_the_policy(tiny_data, t
     with torch.no_grad():
         ref = model.predict_steer(img, torch.tensor(obs.speed_kmh, dtype=torch.float32), torch.arange(4))
     np.testing.assert_allclose(steer, ref.clamp(-1, 1).numpy(), atol=1e-5)
+
+
+def test_a_checkpoint_with_compile_wrapper_prefixes_loads_in_the_policy(tmp_path):
+    import lightning as L
+
+    torch.manual_seed(0)
+    model = CICModule()
+    trainer = L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, max_epochs=0)
+    trainer.strategy.connect(model)
+    trainer.save_checkpoint(tmp_path / "plain.ckpt")
+    ckpt = torch.load(tmp_path / "plain.ckpt", weights_only=True)
+    # what torch.compile(model) / torch.compile(model.encoder) would have saved
+    ckpt["state_dict"] = {k.replace("encoder.", "encoder._orig_mod.", 1): v for k, v in ckpt["state_dict"].items()}
+    torch.save(ckpt, tmp_path / "prefixed.ckpt")
+    loaded = load_model(tmp_path / "prefixed.ckpt")
+    for k, v in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v), k

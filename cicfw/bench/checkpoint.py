@@ -99,8 +99,11 @@ def load_model(path: str | Path):
         raise CheckpointError(f"checkpoint {str(path)!r}: its hyper_parameters do not fit this cicfw's "
                               f"CICModule ({err})") from None
     model.on_load_checkpoint(ckpt)
+    # cicfw saves plain keys even from a torch.compile'd run; a module compiled with the
+    # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights
+    state = {k.replace("_orig_mod.", ""): v for k, v in ckpt["state_dict"].items()}
     try:
-        model.load_state_dict(ckpt["state_dict"], strict=True)
+        model.load_state_dict(state, strict=True)
     except RuntimeError as err:
         first = str(err).splitlines()[0]
         raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its "
