@@ -193,3 +193,26 @@ def test_weathers_look_different(town):
     road = {w: im[60:, 60:140].mean() for w, im in imgs.items()}
     assert road["MidRainyNoon"] < road["ClearNoon"]  # wet asphalt is darker
     assert imgs["ClearNoon"].std() > imgs["MidRainyNoon"].std()  # rain and fog lower the contrast
+
+
+def test_items_covering_a_single_pixel_render(town, monkeypatch):
+    """Items whose bounding box is one pixel (a far corner in view) composite like any other; OpenCV's
+    compare read a 1x1 box as a scalar and raised mid-episode, so the mask is made with numpy."""
+    import cv2
+
+    from cicfw.sim.render import renderer as mod
+
+    r = Renderer(town, WEATHERS["ClearNoon"], cameras=("centre",))
+    full = r.render(*NORTHBOUND)["centre"]
+    real = cv2.boundingRect
+
+    def one_pixel(ids):
+        x, y, w, h = real(ids)
+        ys, xs = np.nonzero(ids[y:y + h, x:x + w])
+        return (x + int(xs[0]), y + int(ys[0]), 1, 1) if len(xs) else (x, y, w, h)
+
+    monkeypatch.setattr(mod.cv2, "boundingRect", one_pixel)
+    img = r.render(*NORTHBOUND)["centre"]
+    assert img.shape == (88, 200, 3)
+    assert np.count_nonzero(np.any(img != full, axis=2)) > 0  # the other item pixels were not drawn ...
+    assert np.count_nonzero(np.any(img != full, axis=2)) < 88 * 200  # ... the rest of the frame was
