@@ -154,18 +154,20 @@ def check_folder(results_dir: Path) -> None:
 
 
 def dataset_info(path: Path) -> dict[str, Any]:
+    """What a results folder pins of its dataset: a hash of its files' names and sizes, plus the collector's
+    metadata (episodes, seconds, towns, weathers, samples) for the report."""
     meta = {}
-    for name in ("metadata.json", "dataset.json"):
+    for name in ("dataset_metadata.json", "metadata.json"):
         if (path / name).is_file():
             meta = json.loads((path / name).read_text())
             break
     files = sorted(path.rglob("*.h5")) + sorted(path.rglob("*.hdf5"))
-    chash = meta.get("config_hash") or hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
+    chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
     counts = meta.get("counts") or {}
     cfg = meta.get("config") or {}
     return {"path": str(path), "files": len(files), "samples": counts.get("samples"), "episodes": counts.get("episodes"),
             "seconds": cfg.get("seconds"), "towns": cfg.get("towns"), "weathers": cfg.get("weathers"),
-            "config_hash": chash, "complete": meta.get("complete")}
+            "config_hash": chash, "collect_config_hash": meta.get("config_hash"), "complete": meta.get("complete")}
 
 
 def machine() -> str:
