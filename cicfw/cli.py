@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> None:
     module, _ = COMMANDS[argv[0]]
     if argv[0] == "report" and len(argv) > 1 and (Path(argv[1]) / "reproduce.json").is_file():
         module = "cicfw.bench.results"  # a reproduction's folder: its Table 4 with intervals and verdicts
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     sys.argv = [f"cicfw {argv[0]}", *argv[1:]]
     runpy.run_module(module, run_name="__main__", alter_sys=True)
 

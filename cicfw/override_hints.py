@@ -125,7 +125,11 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
 
 
 def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:
-    """Run a ``@hydra.main`` app; if it exits with an error, print hints for mistyped keys."""
+    """Run a ``@hydra.main`` app; if it exits with an error, print hints for mistyped keys. A plugin
+    whose Hydra module fails to import is skipped with one warning first (it would stop the app)."""
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()
     try:
         main()
     except SystemExit as exit_:

@@ -3,10 +3,15 @@
 Built-ins register with a decorator when their package is imported; third-party packages register
 through an entry-point group (``cicfw.mixers`` ...), loaded lazily on first lookup. A plugin that
 fails to load is reported with a warning naming it and skipped, so the built-ins keep working.
+``guard_hydra_plugins`` does the same for the plugins' Hydra modules (``hydra_plugins.*``), which
+Hydra imports when any app starts.
 """
 from __future__ import annotations
 
 import importlib
+import pkgutil
+import sys
+import types
 import warnings
 from importlib.metadata import entry_points
 from typing import Callable, Generic, TypeVar
@@ -86,13 +91,14 @@ class Registry(Generic[T]):
         label = f"{dist}:{ep.name}"
         try:
             obj = ep.load()
-        except Exception as err:  # a broken plugin must not break cicfw
+        except (Exception, SystemExit) as err:  # a broken plugin must not break cicfw
             self.failed[label] = f"{type(err).__name__}: {err}"
-            warnings.warn(
-                f"cicfw: skipped {self.kind} plugin {ep.name!r} from distribution {dist!r} "
-                f"({ep.value}): it failed to load: {type(err).__name__}: {err}",
-                stacklevel=3,
-            )
+            if not any(d == dist for d, _ in SKIPPED_HYDRA_MODULES.values()):  # else already warned about
+                warnings.warn(
+                    f"cicfw: skipped {self.kind} plugin {ep.name!r} from distribution {dist!r} "
+                    f"({ep.value}): it failed to load: {type(err).__name__}: {err}",
+                    stacklevel=3,
+                )
             return
         if ep.name in self._entries and self._entries[ep.name] is not obj:
             self.failed[label] = f"name {ep.name!r} already registered by {self._origin[ep.name]!r}"
@@ -104,6 +110,89 @@ class Registry(Generic[T]):
             return
         self._entries[ep.name] = obj
         self._origin[ep.name] = dist
+
+
+# ---- the plugins' Hydra modules -------------------------------------------------------------------
+
+#: ``hydra_plugins.*`` modules skipped by ``guard_hydra_plugins``: module -> (distribution, error).
+SKIPPED_HYDRA_MODULES: dict[str, tuple[str, str]] = {}
+
+
+def _distribution_of(module: str, origin: str | None) -> str:
+    """The installed distribution whose files hold ``module`` (``hydra_plugins.x`` -> ``x-mixer``);
+    else the module's file, so the warning still says where it is."""
+    from importlib.metadata import distributions
+
+    parts = tuple(module.split("."))
+    for dist in distributions():
+        for f in dist.files or ():
+            if tuple(f.parts[: len(parts)]) == parts:
+                return dist.metadata["Name"] or "?"
+    return f"unknown (not in any installed distribution's file list: {origin or module})"
+
+
+def guard_hydra_plugins() -> dict[str, tuple[str, str]]:
+    """Import every ``hydra_plugins`` module the way Hydra's start-up scan will, before it does.
+
+    Hydra imports all of them when any app starts, and a module whose import raises anything but an
+    ``ImportError`` (typically a plugin's SearchPathPlugin importing its own broken package) stops
+    every Hydra app. Each module that fails here is hidden from Hydra's scan and reported with one
+    warning naming its distribution; the rest of the scan, and cicfw, go on. Call it before the first
+    Hydra app or config composition of the process (``cicfw <command>`` and ``python -m cicfw.train``
+    do); later calls, once Hydra has scanned, do nothing. Returns the skipped modules."""
+    from hydra.core.plugins import Plugins
+    from hydra.core.singleton import Singleton
+
+    if Plugins in Singleton._instances:
+        return {}
+    try:
+        namespace = importlib.import_module("hydra_plugins")
+    except ImportError:
+        return {}  # no Hydra plugin installed at all
+    broken: dict[str, BaseException] = {}
+    where: dict[str, str] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Hydra's own scan reports a plugin's import warnings
+        # onerror: a _private package the walk could not import to look inside; Hydra skips it silently too
+        for info in pkgutil.walk_packages(namespace.__path__, "hydra_plugins.", lambda name: None):
+            last = info.name.rsplit(".", 1)[-1]
+            if last.startswith("_") and not last.startswith("__"):
+                continue  # Hydra does not import _private modules
+            try:
+                importlib.import_module(info.name)
+            except (Exception, SystemExit) as err:
+                broken[info.name] = err
+                where[info.name] = f"{getattr(info.module_finder, 'path', '?')}/{last}"
+                stub = types.ModuleType(info.name)  # an empty package in its place: the walk does not
+                stub.__path__ = []  # type: ignore[attr-defined]  # execute it again to look inside
+                sys.modules[info.name] = stub
+    if not broken:
+        return {}
+    for name, err in broken.items():
+        dist = _distribution_of(name, where[name])
+        if not any(d == dist for d, _ in SKIPPED_HYDRA_MODULES.values()):  # one warning per distribution
+            warnings.warn(
+                f"cicfw: skipped plugin distribution {dist!r}: its Hydra module {name!r} failed to import "
+                f"({type(err).__name__}: {err}); its configs are not available, everything else works",
+                stacklevel=2,
+            )
+        SKIPPED_HYDRA_MODULES[name] = (dist, f"{type(err).__name__}: {err}")
+    real_walk = pkgutil.walk_packages
+
+    def walk_without_broken(*args, **kwargs):
+        for info in real_walk(*args, **kwargs):
+            if info.name not in broken:
+                yield info
+
+    pkgutil.walk_packages = walk_without_broken  # only while Hydra scans, below
+    try:
+        Plugins.instance()  # Hydra's scan, now without the broken modules; every app reuses it
+    finally:
+        pkgutil.walk_packages = real_walk
+        for name in broken:
+            if getattr(sys.modules.get(name), "__path__", None) == []:
+                del sys.modules[name]
+    return dict(SKIPPED_HYDRA_MODULES)
 
 
 ENCODERS: Registry = Registry("encoder", "cicfw.encoders", "cicfw.model.encoders")
@@ -133,6 +222,7 @@ def _config_options() -> dict[str, set[str]]:
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
+    guard_hydra_plugins()
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             loader = GlobalHydra.instance().config_loader()
@@ -162,12 +252,28 @@ def listing() -> tuple[list[tuple[str, str, str, str, str]], list[tuple[str, str
             rows.append((kind, name, f"{dist} {_version(dist)}",
                          f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', obj)}", config))
         failures += [(kind, label, error) for label, error in reg.failed.items()]
+    failures += [("hydra modules", f"{dist}:{name}", error) for name, (dist, error) in SKIPPED_HYDRA_MODULES.items()]
     return rows, failures
+
+
+def as_json(rows: list[tuple[str, str, str, str, str]], failures: list[tuple[str, str, str]]) -> str:
+    """The listing as JSON: ``{"registered": [{kind, name, distribution, version, class, config}],
+    "failed": [{kind, plugin, error}]}`` (``config`` is null where no config file selects the entry)."""
+    import json
+
+    registered = []
+    for kind, name, dist, cls, config in rows:
+        dist_name, _, version = dist.rpartition(" ")
+        registered.append({"kind": kind, "name": name, "distribution": dist_name, "version": version,
+                           "class": cls, "config": None if config == "-" else config})
+    failed = [{"kind": kind, "plugin": plugin, "error": error} for kind, plugin, error in failures]
+    return json.dumps({"registered": registered, "failed": failed}, indent=2)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Print the registered encoders, mixers, heads and sim backends with the distribution each came
-    from, and the plugins that failed to load. ``--strict``: exit 1 if any failed."""
+    from, and the plugins that failed to load. ``--strict``: exit 1 if any failed. ``--json``: the
+    same as JSON on stdout (no table wrapping when piped)."""
     import argparse
 
     from rich.console import Console
@@ -175,8 +281,12 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="cicfw plugins", description=main.__doc__)
     parser.add_argument("--strict", action="store_true", help="exit with status 1 if a plugin failed to load")
+    parser.add_argument("--json", action="store_true", help="print the listing as JSON instead of tables")
     args = parser.parse_args(argv)
     rows, failures = listing()
+    if args.json:
+        print(as_json(rows, failures))
+        return 1 if failures and args.strict else 0
     console = Console()
     table = Table(title="cicfw registry", title_justify="left")
     for col in ("kind", "name", "distribution", "class", "config"):
