@@ -48,4 +48,7 @@ def _main() -> None:
 
 
 if __name__ == "__main__":
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     _main()

@@ -313,4 +313,7 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     main()

@@ -367,4 +367,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     sys.exit(main())
