@@ -92,15 +92,15 @@ def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
 
 
 def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run):
-    """A row whose training raises (batch size 6: not a multiple of the 4 commands) fails its cells with
-    a one-line error in cell.json; the finished cells are kept and the report lists the failures."""
-    broken = "+catalogue.broken={experiment:paper_cil,overrides:[data.batch_size=6],label:Broken}"
+    """A row whose training raises (a mixer argument that does not exist) fails its cells with a one-line
+    error in cell.json; the finished cells are kept and the report lists the failures."""
+    broken = "+catalogue.broken={experiment:paper_cil,overrides:['+mixer.foo=1'],label:Broken}"
     assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 0
     got = cells(smoke_run)
     assert [got[f"broken/seed{s}"]["status"] for s in (0, 1)] == ["failed", "failed"]
     assert {got[k]["status"] for k in got if not k.startswith("broken")} == {"ok"}
     err = got["broken/seed0"]["error"]
-    assert err.startswith("ValueError: ") and "batch_size" in err and "\n" not in err
+    assert err.startswith("ValueError: mixer.foo is not an argument of mixer 'independent'") and "\n" not in err
     assert "- broken seed 0: ValueError: " in (smoke_run / "RESULTS.md").read_text()
 
 
