@@ -88,6 +88,8 @@ def main() -> None:
                     help="who steers during the timed whole-suite run (the network always runs)")
     ap.add_argument("--skip-suite", action="store_true", help="skip the whole-suite checkpoint run")
     ap.add_argument("--threads", type=int, default=None, help="torch threads in this process (default: all cores)")
+    ap.add_argument("--only-inference", action="store_true",
+                    help="only [4]: the inference variants at the runner's batch size (1 thread, as each of 2 workers)")
     args = ap.parse_args()
 
     import torch
@@ -101,6 +103,8 @@ def main() -> None:
     from cicfw.bench.suite import PAPER_WEATHERS, build_suite, make_backend
 
     print(f"closed-loop bench: {os.cpu_count()} cores, torch {torch.__version__}, {load()}")
+    if args.only_inference:
+        return inference_variants(args.batch_size, frames=None)
     sim = {"name": "embedded"}
     backend = make_backend(sim)
     episodes = build_suite(backend, ["town_a", "town_b"], PAPER_WEATHERS, training_towns=["town_a"])
@@ -135,7 +139,9 @@ def main() -> None:
             res = run(episodes, spec, sim, cfg)
             wall = time.perf_counter() - t
             print(f"whole suite: {wall:.1f} s = {wall / 60:.2f} min for {len(episodes)} episodes, {res.steps} steps "
-                  f"({1e3 * wall / res.steps:.2f} ms/step overall), success {Run('x', res.rows).success_rate():.1f}%")
+                  f"= {res.steps / wall:.0f} frames/s ({1e3 * wall / res.steps:.2f} ms/step overall), "
+                  f"success {Run('x', res.rows).success_rate():.1f}%")
+            suite_frames = res.steps
             worst = sum(int(np.ceil(r['timeout_s'] * 10)) for r in res.rows)
             print(f"  if every episode ran to its timeout ({worst} steps): ~{wall * worst / res.steps / 60:.1f} min "
                   f"at the same cost per step; {load()}")
@@ -190,6 +196,67 @@ def main() -> None:
             ts.append(time.perf_counter() - t)
         print(f"render centre camera: {1e3 * statistics.median(ts):.2f} ms/frame (median); {load()}")
     print(f"\nexpert suite steps for reference: {expert_steps}")
+    inference_variants(args.batch_size, frames=locals().get("suite_frames") or expert_steps)
+
+
+def inference_variants(batch: int, frames: int | None, rounds: int = 5) -> None:
+    """[4] The network alone at the runner's batch size with one torch thread (what each of the two
+    workers has), interleaved rounds: eager, channels_last, BatchNorm folded + NHWC (what
+    CheckpointPolicy runs), and that compiled, with its compilation time and whether it pays over
+    ``frames`` frames (split over two workers, each compiling once)."""
+    import torch
+
+    from cicfw.bench.checkpoint import prepare_for_inference
+    from cicfw.model.module import CICModule
+    from cicfw.model.speed import use_inductor_cache
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    base = CICModule().eval()
+
+    def copy():
+        m = CICModule().eval()
+        m.load_state_dict(base.state_dict())
+        return m
+
+    x = torch.randint(0, 256, (batch, 3, 88, 200), dtype=torch.uint8)
+    s, c = torch.rand(batch) * 30, torch.arange(batch) % 4
+    models = {"eager": base, "channels_last": copy().use_channels_last(),
+              "BN folded + NHWC (the policy)": prepare_for_inference(copy())}
+    compiled = prepare_for_inference(copy())
+    use_inductor_cache()
+    t = time.perf_counter()
+    compiled.forward = torch.compile(compiled.forward)
+    with torch.inference_mode():
+        compiled.predict_steer(x, s, c)
+    compile_s = time.perf_counter() - t
+    models["... + torch.compile"] = compiled
+    with torch.inference_mode():
+        ref = base.predict_steer(x, s, c)
+        diffs = {k: (m.predict_steer(x, s, c) - ref).abs().max().item() for k, m in models.items()}
+    times: dict[str, list[float]] = {k: [] for k in models}
+    for _ in range(rounds):
+        for k, m in models.items():
+            with torch.inference_mode():
+                ts = []
+                for _ in range(5):
+                    t = time.perf_counter()
+                    m.predict_steer(x, s, c)
+                    ts.append(time.perf_counter() - t)
+            times[k].append(statistics.median(ts) / batch)
+    print(f"\n[4] the network alone, batch {batch}, 1 torch thread, median of {rounds} interleaved rounds; {load()}")
+    ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
+    for k in models:
+        print(f"  {k:<32} {ms[k]:6.2f} ms/frame   max |steer - eager's| {diffs[k]:.1e}")
+    saved = (ms["BN folded + NHWC (the policy)"] - ms["... + torch.compile"]) / 1e3
+    print(f"  torch.compile: {compile_s:.1f} s to compile (inductor cache {os.environ.get('TORCHINDUCTOR_CACHE_DIR')}), "
+          f"saves {1e3 * saved:.2f} ms/frame; {load()}")
+    if frames:
+        per_worker = frames / 2
+        print(f"  over {frames} suite frames (2 workers, each compiling once): {per_worker * saved:.1f} s saved vs "
+              f"{compile_s:.1f} s compiling per worker -> {'pays' if per_worker * saved > compile_s else 'does not pay'}")
+    torch.set_num_threads(threads)
 
 
 if __name__ == "__main__":

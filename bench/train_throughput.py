@@ -17,7 +17,10 @@ Variants (``--variants``, comma-separated; ``default`` = conf/trainer/default.ya
                              (every other compile variant converts inside it)
   compile+cl+fused+bf16      ... under bf16 autocast (only where the CPU has avx512_bf16 / amx_bf16)
 
-Every figure is printed with the 1-minute load average at the moment it was taken. The ``mean loss``
+Every figure is printed with the 1-minute load average at the moment it was taken and the CPU this
+process got while measuring it (CPU seconds per wall second: near the thread count on an idle
+machine; well below it means another process took the cores, whatever the load average says: a
+process at a higher priority (negative nice) holds them at a low load average). The ``mean loss``
 column is each variant's loss over all its model-alone steps (same initial weights, same batches):
 the variants must agree within dropout's noise. Closes with one summary line for the default.
 """
@@ -121,6 +124,7 @@ class Variant:
         self.alone: list[tuple[float, float]] = []  # (samples/s, load)
         self.loop: list[tuple[float, float]] = []
         self.losses: list[float] = []
+        self.cores: list[float] = []  # CPU seconds of this process per wall second, per measurement
 
     def autocast(self):
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16-mixed")
@@ -128,10 +132,10 @@ class Variant:
     def model_alone(self, batches: list[dict], warmup: int) -> float:
         model, opt = self.model, self.opt
         model.train()
-        n, t0 = 0, time.perf_counter()
+        n, t0, c0 = 0, time.perf_counter(), time.process_time()
         for i, b in enumerate(batches):
             if i == warmup:
-                n, t0 = 0, time.perf_counter()
+                n, t0, c0 = 0, time.perf_counter(), time.process_time()
             b = model.on_after_batch_transfer(b, 0)
             with self.autocast():
                 _, loss, _ = model._losses(b)
@@ -140,7 +144,8 @@ class Variant:
             opt.step()
             self.losses.append(float(loss.detach()))
             n += b["steer"].shape[0]
-        return n / (time.perf_counter() - t0)
+        wall = time.perf_counter() - t0
+        return n / wall, (time.process_time() - c0) / wall
 
     def full_loop(self, dm: CILDataModule, steps: int, warmup: int, log_dir: str) -> float:
         timer = StepTimer(warmup)
@@ -149,7 +154,8 @@ class Variant:
                             enable_progress_bar=False, enable_model_summary=False, precision=self.precision,
                             callbacks=[timer], use_distributed_sampler=False, accelerator="cpu", devices=1)
         trainer.fit(self.model, datamodule=dm)
-        return timer.n / (timer.t1 - timer.t0)
+        wall = timer.t1 - timer.t0
+        return timer.n / wall, (timer.c1 - timer.c0) / wall
 
 
 class StepTimer(L.Callback):
@@ -160,12 +166,12 @@ class StepTimer(L.Callback):
         self.warmup, self.n, self.t0, self.t1 = warmup, 0, None, None
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         if batch_idx == self.warmup - 1:
-            self.t0 = now
+            self.t0, self.c0 = now, cpu
         elif batch_idx >= self.warmup:
             self.n += batch["steer"].shape[0]
-            self.t1 = now
+            self.t1, self.c1 = now, cpu
 
 
 def inference_ms(model, batch: int, repeats: int) -> float:
@@ -199,6 +205,40 @@ def inference_section(repeats: int) -> None:
         print(f"  {name:<36} batch 1: {b1:6.2f} ms   batch 64: {b64:7.1f} ms   (load {load1():.2f})", flush=True)
 
 
+def profile_loop(dm: CILDataModule, name: str, steps: int, warmup: int, log_dir: str) -> None:
+    """The default's full loop under torch.profiler: the ops that take the time, and the share of the
+    loop spent outside the training step (data, augmentation, Lightning, logging)."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    v = Variant(name)
+    v.full_loop(dm, 2, warmup, log_dir)  # warm: recompilations, first optimizer state
+
+    class Marks(L.Callback):
+        def on_train_batch_start(self, *a):
+            self.rf = record_function("## step (forward+loss+backward+Adam)")
+            self.rf.__enter__()
+
+        def on_train_batch_end(self, *a):
+            self.rf.__exit__(None, None, None)
+
+    print(f"profiling {name}: {steps} steps after {warmup} warm-up steps; load {load1():.2f}")
+    trainer = L.Trainer(max_steps=warmup + steps, limit_val_batches=0, enable_checkpointing=False,
+                        logger=CSVLogger(log_dir, name="profile"), log_every_n_steps=10, enable_progress_bar=False,
+                        enable_model_summary=False, precision=v.precision, callbacks=[Marks()],
+                        use_distributed_sampler=False, accelerator="cpu", devices=1)
+    t0 = time.perf_counter()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        trainer.fit(v.model, datamodule=dm)
+    wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    step = next((e for e in events if e.key.startswith("## step")), None)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    if step is not None:
+        print(f"wall {wall:.1f} s for {warmup + steps} steps; inside the training step (forward, loss, backward, "
+              f"Adam, logging hooks) {step.cpu_time_total / 1e6:.1f} s = {step.cpu_time_total / 1e6 / wall:.0%}; "
+              f"load {load1():.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--variants", default=None, help="comma-separated (default: all; bf16 only with native support)")
@@ -207,6 +247,8 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2, help="untimed steps before each measurement")
     ap.add_argument("--files", type=int, default=40, help="synthetic CIL files of 200 samples")
     ap.add_argument("--inference-repeats", type=int, default=10, help="0 skips the inference section")
+    ap.add_argument("--profile", action="store_true",
+                    help="only profile the default's full loop (torch.profiler, after a warm-up) and print where time goes")
     args = ap.parse_args()
     if args.steps < 1 or args.warmup < 1 or args.rounds < 1:
         ap.error("--steps, --warmup and --rounds must be >= 1")
@@ -240,6 +282,8 @@ def main() -> None:
         print(f"data pipeline alone (in-memory, augmented, balanced): {30 * BATCH / (time.perf_counter() - t0):,.0f} "
               f"samples/s (load {load1():.2f})")
 
+        if args.profile:
+            return profile_loop(dm, default, args.steps, args.warmup, str(Path(tmp) / "logs"))
         variants = []
         for name in names:
             v = Variant(name)
@@ -248,14 +292,15 @@ def main() -> None:
                   f"(load {load1():.2f})", flush=True)
         for r in range(args.rounds):
             for v in variants:
-                a = v.model_alone(batches, args.warmup)
+                a, ca = v.model_alone(batches, args.warmup)
                 la = load1()
                 v.alone.append((a, la))
-                f = v.full_loop(dm, args.steps, args.warmup, str(Path(tmp) / "logs"))
+                f, cf = v.full_loop(dm, args.steps, args.warmup, str(Path(tmp) / "logs"))
                 lf = load1()
                 v.loop.append((f, lf))
-                print(f"round {r + 1}  {v.name:<24} model alone {a:6.1f}/s (load {la:.2f})   "
-                      f"full loop {f:6.1f}/s (load {lf:.2f})", flush=True)
+                v.cores += [ca, cf]
+                print(f"round {r + 1}  {v.name:<24} model alone {a:6.1f}/s (load {la:.2f}, got {ca:.2f} cores)   "
+                      f"full loop {f:6.1f}/s (load {lf:.2f}, got {cf:.2f} cores)", flush=True)
 
     def med(xs):
         return statistics.median(x for x, _ in xs)
@@ -264,15 +309,15 @@ def main() -> None:
     print(f"\nmedians over {args.rounds} rounds of {args.steps} steps x {BATCH} samples; "
           f"load during the rounds {min(loads):.2f}-{max(loads):.2f}")
     print(f"| {'variant':<24} | {'model alone':>11} | {'full loop':>9} | {'loop/model':>10} | {'vs eager':>8} "
-          f"| {'mean loss':>9} | {'load':>9} |")
-    print(f"|{'-' * 26}|{'-' * 12}:|{'-' * 10}:|{'-' * 11}:|{'-' * 9}:|{'-' * 10}:|{'-' * 11}|")
+          f"| {'mean loss':>9} | {'load':>9} | {'cores got':>9} |")
+    print(f"|{'-' * 26}|{'-' * 12}:|{'-' * 10}:|{'-' * 11}:|{'-' * 9}:|{'-' * 10}:|{'-' * 11}|{'-' * 10}:|")
     eager = med(variants[0].loop)
     for v in variants:
         a, f = med(v.alone), med(v.loop)
         ls = [ld for _, ld in v.alone + v.loop]
         label = v.name + (" (default)" if v.name == default else "")
         print(f"| {label:<24} | {a:9.1f}/s | {f:7.1f}/s | {f / a:10.0%} | {f / eager:7.2f}x "
-              f"| {statistics.mean(v.losses):9.4f} | {min(ls):.2f}-{max(ls):.2f} |")
+              f"| {statistics.mean(v.losses):9.4f} | {min(ls):.2f}-{max(ls):.2f} | {min(v.cores):.2f}-{max(v.cores):.2f} |")
     if args.inference_repeats:
         inference_section(args.inference_repeats)
     d = next(v for v in variants if v.name == default)

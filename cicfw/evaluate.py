@@ -151,8 +151,10 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
         save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
         pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
                  int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
-    log.info("%d episodes (%d driven now, %.1f s), %d steps\n%s", len(report.rows), len(missing), wall,
-             summary.get("steps", 0), markdown_table([report]))
+    steps = int(summary.get("steps", 0))
+    rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
+    log.info("%d episodes (%d driven now, %.1f s), %d steps%s\n%s", len(report.rows), len(missing), wall,
+             steps, rate, markdown_table([report]))
     log.info("success %.2f%%; report in %s", summary["success"], out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
 
