@@ -113,6 +113,7 @@ def bar_chart(runs: Sequence[Run], path: Path) -> Path:
     ax.grid(axis="y", alpha=0.3)
     ax.set_axisbelow(True)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=min(n, 3), frameon=False)
-    ax.set_title("Single-turn suite")
+    suites = sorted({run.suite_name() for run in runs})
+    ax.set_title(f"Suite: {', '.join(suites)}" + (" (turns only)" if suites == ["single_turn"] else ""))
     return _save(fig, Path(path))
 

@@ -447,7 +447,8 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
     ax.set_ylabel("reach destination success (%)")
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=min(len(rows) + 1, 4), frameon=False)
-    ax.set_title(f"Single-turn suite, budget {data['manifest'].get('budget')}: mean over seeds, 95% bootstrap interval")
+    suite = (data["manifest"].get("suite") or {}).get("name", "?")
+    ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% bootstrap interval")
     return _save(fig, Path(path))
 
 
