@@ -106,6 +106,7 @@ def main() -> None:
     if args.only_inference:
         return inference_variants(args.batch_size, frames=None)
     sim = {"name": "embedded"}
+    suite_frames = None  # set by the whole-suite run below, unless --skip-suite
     backend = make_backend(sim)
     episodes = build_suite(backend, ["town_a", "town_b"], PAPER_WEATHERS, training_towns=["town_a"])
     print(f"suite: {len(episodes)} episodes (town_a {sum(e.town == 'town_a' for e in episodes) // 4} pairs, "
@@ -196,7 +197,7 @@ def main() -> None:
             ts.append(time.perf_counter() - t)
         print(f"render centre camera: {1e3 * statistics.median(ts):.2f} ms/frame (median); {load()}")
     print(f"\nexpert suite steps for reference: {expert_steps}")
-    inference_variants(args.batch_size, frames=locals().get("suite_frames") or expert_steps)
+    inference_variants(args.batch_size, frames=suite_frames or expert_steps)
 
 
 def inference_variants(batch: int, frames: int | None, rounds: int = 5) -> None:

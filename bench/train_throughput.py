@@ -129,7 +129,8 @@ class Variant:
     def autocast(self):
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16-mixed")
 
-    def model_alone(self, batches: list[dict], warmup: int) -> float:
+    def model_alone(self, batches: list[dict], warmup: int) -> tuple[float, float]:
+        """(samples/s, CPU cores this process got) over the steps after ``warmup``."""
         model, opt = self.model, self.opt
         model.train()
         n, t0, c0 = 0, time.perf_counter(), time.process_time()
@@ -147,7 +148,8 @@ class Variant:
         wall = time.perf_counter() - t0
         return n / wall, (time.process_time() - c0) / wall
 
-    def full_loop(self, dm: CILDataModule, steps: int, warmup: int, log_dir: str) -> float:
+    def full_loop(self, dm: CILDataModule, steps: int, warmup: int, log_dir: str) -> tuple[float, float]:
+        """(samples/s, CPU cores this process got) of the Lightning loop after ``warmup`` steps."""
         timer = StepTimer(warmup)
         trainer = L.Trainer(max_steps=warmup + steps, limit_val_batches=0, enable_checkpointing=False,
                             logger=CSVLogger(log_dir, name=self.name.replace("+", "_")), log_every_n_steps=10,
