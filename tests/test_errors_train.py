@@ -10,18 +10,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 import cicfw.train as train_mod
 from cicfw.bench.suite import check_names
-from cicfw.data.cil_hdf5 import CILFormatError, T, write_file
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.override_hints import override_hints
 from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
-from conftest import compose_train, make_targets, write_tiny_dataset
+from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 
@@ -189,21 +187,6 @@ def test_lightning_resumes_with_weights_only(tmp_path, monkeypatch):
 
 
 # ---- data ------------------------------------------------------------------------------------------
-
-
-def test_negative_speed_is_rejected_naming_file_and_row(tmp_path):
-    rng = np.random.default_rng(0)
-    t = make_targets(10, rng)
-    t[:, T.SPEED] = 5.0
-    t[3, T.SPEED], t[7, T.SPEED] = -12.5, -0.2  # row 7: standstill noise, accepted
-    path = write_file(tmp_path / "a.h5", rng.integers(0, 255, (10, 88, 200, 3), dtype=np.uint8), t)
-    with pytest.raises(CILFormatError) as err:
-        load_frames(str(tmp_path))
-    assert str(err.value) == (f"{path}: negative speed in targets[10] (1 row(s), e.g. -12.5 km/h at row 3); speeds "
-                              f"must be >= 0 km/h (the forward speed; down to -0.5 is accepted as standstill noise)")
-    t[3, T.SPEED] = 0.0
-    write_file(path, rng.integers(0, 255, (10, 88, 200, 3), dtype=np.uint8), t)
-    assert len(load_frames(str(tmp_path))) > 0
 
 
 def test_a_command_absent_from_the_whole_dataset_does_not_suggest_another_split(tmp_path):

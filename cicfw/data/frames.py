@@ -16,8 +16,11 @@ from cicfw.data.cil_hdf5 import COMMAND_CODES, CILFormatError, T, check_file, fi
 
 log = logging.getLogger(__name__)
 
-#: targets[10] below minus this (km/h) is an error; smaller negative values are sensor noise at a standstill.
-NEGATIVE_SPEED_TOLERANCE_KMH = 0.5
+#: |targets[10]| above this (km/h) cannot be a car's speed: the file is an error (its targets are not in
+#: the CIL layout). Negative speeds within it are kept as recorded: CARLA's forward speed is signed (a
+#: car rolling backwards, e.g. after a collision), the public CoRL-2017 data has such rows, and CIL's own
+#: agent feeds the measured forward speed to the network unchanged, so training sees what driving sees.
+MAX_ABS_SPEED_KMH = 300.0
 
 
 @dataclass
@@ -65,16 +68,19 @@ def load_frames(
     """Scan ``path`` (folder or glob), check every file, read targets and apply the filters.
 
     - rows whose steer or speed is NaN/inf are dropped (counted, reported once);
+    - negative speeds are kept as recorded (signed forward speed; counted, reported once per dataset);
+      a speed beyond +-``MAX_ABS_SPEED_KMH`` is an error naming the file and the row;
     - steer of side cameras is corrected: ``steer - correction * yaw / 30`` (yaw in degrees,
       positive right: a camera looking right sees the road drift left, so the label steers left);
     - samples with |corrected steer| > ``max_abs_steer`` are dropped (the paper keeps [-0.8, 0.8]);
-    - an unknown command code, or a negative speed, is an error naming the file.
+    - an unknown command code is an error naming the file.
     """
     files = find_files(path)
     for f in files:
         check_file(f)
     groups_of_file = episode_groups(files)
     parts, dropped_nan = [], 0
+    neg_rows, neg_files, lowest = 0, 0, (0.0, "", 0)  # negative speeds: counted, kept
     for i, f in enumerate(files):
         t = read_targets(f)
         codes = t[:, T.COMMAND]
@@ -88,14 +94,18 @@ def load_frames(
                 f"2 (follow), 3 (left), 4 (right), 5 (straight)"
             )
         speed = t[:, T.SPEED]
-        negative = np.flatnonzero(finite & (speed < -NEGATIVE_SPEED_TOLERANCE_KMH))
-        if len(negative):
-            r = int(negative[0])
+        beyond = np.flatnonzero(finite & (np.abs(speed) > MAX_ABS_SPEED_KMH))
+        if len(beyond):
+            r = int(beyond[0])
             raise CILFormatError(
-                f"{f}: negative speed in targets[10] ({len(negative)} row(s), e.g. {float(speed[r]):g} km/h at "
-                f"row {r}); speeds must be >= 0 km/h (the forward speed; down to "
-                f"-{NEGATIVE_SPEED_TOLERANCE_KMH:g} is accepted as standstill noise)"
-            )
+                f"{f}: speed {float(speed[r]):g} km/h in targets[10] at row {r} ({len(beyond)} row(s) beyond "
+                f"±{MAX_ABS_SPEED_KMH:g} km/h); a CIL speed is km/h within ±{MAX_ABS_SPEED_KMH:g} (negative: the "
+                f"car rolling backwards, kept), so this file's targets are not in the CIL layout")
+        negative = finite & (speed < 0)
+        if negative.any():
+            neg_rows += int(negative.sum())
+            neg_files += 1
+            lowest = min(lowest, (float(speed[negative].min()), f.name, int(np.argmin(np.where(negative, speed, 0)))))
         rows = np.flatnonzero(finite)
         yaw = np.nan_to_num(t[rows, T.CAMERA_YAW])
         steer = t[rows, T.STEER] - side_camera_correction * yaw / 30.0
@@ -106,6 +116,11 @@ def load_frames(
     frames = Frames(files, *(np.concatenate(col) for col in zip(*parts)))
     if dropped_nan:
         log.warning("dropped %d sample(s) whose steer or speed is NaN or inf", dropped_nan)
+    if neg_rows:
+        log.info("%d sample(s) in %d of %d file(s) have a negative speed (down to %.3g km/h, %s row %d): "
+                 "kept as recorded (the signed forward speed of a car rolling backwards, as the CoRL-2017 "
+                 "data has it; the encoder sees speed / model.speed_norm_kmh)", neg_rows, neg_files, len(files),
+                 *lowest)
     keep = np.abs(frames.steer) <= max_abs_steer
     if cameras is not None:
         keep &= np.isin(frames.camera, list(cameras))
