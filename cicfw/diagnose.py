@@ -1,0 +1,174 @@
+"""``python -m cicfw.diagnose``: why a model misses turns, measured on its validation frames.
+
+    python -m cicfw.diagnose checkpoint=outputs/<run>/checkpoints/<best>.ckpt
+    python -m cicfw.diagnose checkpoint=outputs/reproduce/<budget>/cells/cil/seed0/train/checkpoints/epoch004.ckpt
+    python -m cicfw.diagnose checkpoint=x.ckpt data.path=/data/SeqVal split=all     # your own frames
+    python -m cicfw.diagnose -m checkpoint=a.ckpt,b.ckpt                            # one folder each
+
+Per command and per junction phase (approach / inside / exit), how the predicted steering follows the
+expert's (slope, offset, MAE), and how far swapping the command on the same image moves it
+(``cicfw.bench.steer_diagnostic`` does the measuring; docs/evaluation.md reads the report). The frames
+are the training run's validation episodes: the split's settings (data path, seed, fraction, filters)
+come from the training run's saved config beside the checkpoint (``<run>/.hydra/config.yaml`` of a
+``cicfw train`` run, or a ``cicfw reproduce`` cell's), and any ``data.*`` given here overrides them.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from cicfw.errors import report_user_errors
+
+log = logging.getLogger("cicfw.diagnose")
+
+#: the datamodule arguments that decide which frames are the validation frames
+SPLIT_KEYS = ("path", "seed", "val_fraction", "max_abs_steer", "side_camera_correction", "cameras", "val_cameras")
+#: how many folders above the checkpoint's to search for the training run's .hydra/config.yaml
+SEARCH_LEVELS = 3
+
+
+def _compose_train(overrides: list[str]) -> DictConfig:
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return compose("train", overrides=overrides)
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def _data_values(node: DictConfig, where: str) -> dict[str, Any]:
+    """The split's keys of a training config's ``data`` node, resolved one by one."""
+    out: dict[str, Any] = {}
+    for key in SPLIT_KEYS:
+        if key in node:
+            try:
+                value = OmegaConf.select(node, key, throw_on_resolution_failure=True)
+            except Exception as err:
+                raise ValueError(f"{where}: data.{key} cannot be resolved here ({err}); give data.{key}=...") from None
+            out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+    return out
+
+
+def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
+    """The split settings of the run that wrote ``checkpoint``, and where they came from: the nearest
+    ``.hydra/config.yaml`` at most SEARCH_LEVELS folders above it, either a ``cicfw train`` run's (its
+    ``data`` node) or a ``cicfw reproduce`` cell's (the cell's training config composed again from its
+    row, seed and budget). None when there is neither."""
+    for folder in [checkpoint.parent, *checkpoint.parent.parents][:SEARCH_LEVELS + 1]:
+        path = folder / ".hydra" / "config.yaml"
+        if not path.is_file():
+            continue
+        cfg = OmegaConf.load(path)
+        if "data" in cfg and "path" in cfg.data:
+            return _data_values(cfg.data, str(path)), f"{path} (the training run's config)"
+        if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
+            from cicfw.reproduce import row_overrides
+
+            row, seed = str(cfg.cell.row), int(cfg.cell.seed)
+            tcfg = _compose_train(row_overrides(cfg, row, seed))
+            return _data_values(tcfg.data, str(path)), f"{path} (reproduce cell {row} seed {seed}, its training config)"
+    return None
+
+
+def data_settings(cfg: DictConfig, checkpoint: Path):
+    """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here."""
+    import inspect
+
+    from cicfw.bench.steer_diagnostic import DataSettings
+    from cicfw.data.datamodule import CILDataModule
+
+    params = inspect.signature(CILDataModule.__init__).parameters
+    values = {k: params[k].default for k in SPLIT_KEYS if k != "path"}
+    found = training_data(checkpoint)
+    source = "the datamodule's defaults"
+    if found is not None:
+        values.update(found[0])
+        source = found[1]
+    given = {k: v for k, v in (OmegaConf.to_container(cfg.data, resolve=True) or {}).items() if v is not None}
+    unknown = sorted(set(given) - set(SPLIT_KEYS))
+    if unknown:
+        raise ValueError(f"data.{unknown[0]} is not a diagnose option; data options: {', '.join(SPLIT_KEYS)}")
+    values.update(given)
+    if given:
+        source += f"; given here: {', '.join(sorted(given))}"
+    searched = f"no training config found beside {str(checkpoint)!r} (searched .hydra/config.yaml up to " \
+               f"{SEARCH_LEVELS} folders above it)"
+    if not values.get("path"):
+        raise ValueError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>")
+    if found is None and "seed" not in given and cfg.split != "all":
+        raise ValueError(f"{searched}, so its train/validation split is unknown; give data.seed=<the training "
+                         f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame")
+    values["path"] = str(Path(str(values["path"])).expanduser())
+    return DataSettings(**values), source
+
+
+def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
+    """Load the checkpoint, pick its frames, measure, write the report into ``out_dir``; returns the paths."""
+    import torch
+
+    from cicfw.bench import steer_diagnostic as sd
+    from cicfw.bench.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
+
+    if not cfg.get("checkpoint"):
+        raise ValueError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")
+    if cfg.split not in sd.SPLITS:
+        raise ValueError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
+    ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
+    ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
+    data, source = data_settings(cfg, ckpt_path)
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    device = str(cfg.get("device") or "auto")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    model = prepare_for_inference(load_model(ckpt_path), bool(cfg.get("fuse", True))).to(device)
+    approach_m = cfg.phases.approach_m
+    approach_from = "phases.approach_m"
+    if approach_m is None:
+        approach_m = sd.dataset_command_distance(data.path) if Path(data.path).is_dir() else None
+        approach_from = "the dataset's command_distance (dataset_metadata.json)"
+        if approach_m is None:
+            approach_m, approach_from = 12.0, "the embedded simulator's default command_distance"
+    frames, store = sd.load_split(data, str(cfg.split))
+    if len(frames) == 0:
+        raise sd.DiagnosticError(f"the {cfg.split} split of {data.path} holds no frame of camera(s) "
+                                 f"{data.val_cameras}; check data.val_cameras / split")
+    hp = ckpt["hyper_parameters"]
+    label = describe(hp)
+    log.info("diagnosing %s (%s) on %d %s frames of %s; split settings from %s", label, ckpt_path, len(frames),
+             cfg.split, data.path, source)
+    d, arrays = sd.measure(frames, store.get, sd.model_steer_all(model, device), approach_m=float(approach_m),
+                           exit_s=float(cfg.phases.exit_s), dt_s=float(cfg.phases.dt_s),
+                           batch_size=int(cfg.batch_size), max_frames=cfg.get("max_frames"))
+    meta = {"model": label, "checkpoint": str(ckpt_path), "epoch": int(ckpt.get("epoch", -1)) + 1,
+            "global_step": int(ckpt.get("global_step", 0)), "head": hp.get("head"), "mixer": hp.get("mixer"),
+            "decoder": (hp.get("head_kwargs") or {}).get("decode"),
+            "data": {**{k: getattr(data, k) for k in SPLIT_KEYS}, "split": str(cfg.split), "source": source,
+                     "frames": int(len(d.expert)), "episodes": int(len(set(arrays["episode"].tolist())))},
+            "phases": {"approach_m": float(approach_m), "approach_m_from": approach_from,
+                       "exit_s": float(cfg.phases.exit_s), "dt_s": float(cfg.phases.dt_s),
+                       "counts": {p: int((d.phase == p).sum()) for p in (*sd.PHASES, "unknown")}}}
+    paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
+    log.info("\n%s", sd.markdown(d, f"Steering diagnostic: {label}"))
+    log.info("report in %s", out_dir)
+    return paths
+
+
+@hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="diagnose")
+@report_user_errors
+def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    diagnose(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
+    main()
