@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("cicfw.reproduce", "the paper's Table 4: rows x seeds x a budget, intervals and verdicts"),
     "report": ("cicfw.bench.report", "join evaluation runs into one table (or report a reproduction folder)"),
     "video": ("cicfw.bench.video", "film episodes of a finished evaluation run (MP4)"),
+    "diagnose": ("cicfw.diagnose", "why a model misses turns: steering vs expert per junction phase, command swaps"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
     "carla-check": ("cicfw.sim.carla_check", "test a CARLA server in a minute: PASS/FAIL per guarantee"),
 }
