@@ -152,37 +152,30 @@ def describe(hp: Mapping[str, Any]) -> str:
 class CheckpointPolicy(Policy):
     """A trained CICModule steering from the centre camera (as in the paper), in eval mode, no grad.
 
-    The CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
+    It drives through ``cicfw.agent.Agent`` (one inference path for the suite, CARLA and a user's own
+    stack): the CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
     inference (``prepare_for_inference``: BatchNorm folded into the convolutions, NHWC layout);
-    ``device`` is where it runs (``auto``: a CUDA GPU when there is one, else the CPU).
+    ``device`` is where it runs (``auto``: a CUDA GPU when there is one, else the CPU). ``checkpoint``
+    may also be a model written by ``cicfw export`` (``.onnx``, TorchScript ``.pt``).
     """
 
     def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
                  label: str | None = None, fuse: bool = True, device: str = "auto") -> None:
-        import torch
+        from cicfw.agent import Agent
 
         if not checkpoint:
             raise ValueError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
-        if threads:
-            torch.set_num_threads(int(threads))
-        self.path = str(checkpoint)
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
         try:
-            self.device = torch.device(device)
-        except RuntimeError:
-            raise ValueError(f"policy.device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
-        self.model = prepare_for_inference(load_model(checkpoint), fuse).to(self.device)
+            self.agent = Agent.load(checkpoint, threads=threads, device=device, fuse=fuse)
+        except ValueError as err:
+            if str(err).startswith("device="):
+                raise ValueError(f"policy.{err}") from None
+            raise
+        self.path = str(checkpoint)
+        self.device = self.agent.device
+        self.model = self.agent.model  # the CICModule (None for an exported model)
         self.cameras = (camera,)
-        self.label = label or describe(self.model.hparams)
+        self.label = label or self.agent.label
 
     def act(self, obs: Observations) -> np.ndarray:
-        import torch
-
-        dev = self.device
-        img = torch.from_numpy(np.ascontiguousarray(obs.images[self.cameras[0]])).to(dev).permute(0, 3, 1, 2)
-        speed = torch.from_numpy(np.asarray(obs.speed_kmh, np.float32)).to(dev)
-        branch = torch.from_numpy(np.asarray(obs.command, np.int64) - 2).to(dev)
-        with torch.inference_mode():
-            steer = self.model.predict_steer(img, speed, branch)
-        return steer.float().clamp(-1.0, 1.0).cpu().numpy()
+        return self.agent.act(obs.images[self.cameras[0]], obs.speed_kmh, obs.command)

@@ -1,0 +1,485 @@
+"""``python -m cicfw.export``: a checkpoint's whole driving function as one ONNX or TorchScript graph.
+
+    python -m cicfw.export checkpoint=outputs/<run>/checkpoints/<best>.ckpt format=onnx out=cil.onnx
+    cicfw export checkpoint=<run folder> format=torchscript out=cil.pt
+
+The graph is ``cicfw.agent.DrivingFunction``: uint8 RGB frames (B, 88, 200, 3), speed km/h (B,), CIL
+command code (B,) 2-5 -> steering (B,) in [-1, 1], with the normalisation, the command's branch and the
+head's decoder inside, and a dynamic batch. Before anything is written the exported graph is run by
+its own runtime (onnxruntime, torch.jit) on real frames and random inputs, at batch 1 and batch 2n,
+and compared with the checkpoint's ``CICModule.predict_steer``; a model off by more than ``tolerance``
+is refused with one line naming the input. The model (its description inside: ONNX metadata, a
+TorchScript extra file) and a sidecar ``<out>.json`` are written under temporary names, then renamed.
+``cicfw.agent.Agent.load(out)`` drives it; docs/deploy.md shows how to drive it without cicfw.
+"""
+from __future__ import annotations
+
+import copy
+import glob
+import hashlib
+import io
+import json
+import logging
+import os
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from cicfw.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
+                         onnx_session)
+from cicfw.errors import report_user_errors
+
+log = logging.getLogger("cicfw.export")
+
+#: format -> the file suffix it gets when ``out`` is not given
+FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
+#: steering difference the parity check accepts (steering lives in [-1, 1]; float32 rounding is ~1e-6)
+TOLERANCE = 1e-4
+#: an argmax decoder may pick either bin when the checkpoint's two best logits are this close (a tie in
+#: float rounding, not an export error)
+TIE_MARGIN = 1e-4
+#: how many folders above the checkpoint to look for its training run's ``.hydra/config.yaml``
+RUN_CONFIG_LEVELS = 3
+
+
+class ExportError(ValueError):
+    """An export that cannot be done or failed its parity check; the message says why, in one line."""
+
+
+# ---- inputs for the parity check ----------------------------------------------------------------
+@dataclass
+class CheckInputs:
+    """A batch for the parity check: frames, speeds, command codes, and a name for each row."""
+
+    images: np.ndarray  # (N, 88, 200, 3) uint8 RGB
+    speed_kmh: np.ndarray  # (N,) float32
+    command: np.ndarray  # (N,) int64, CIL codes 2-5
+    names: list[str]
+
+    def __len__(self) -> int:
+        return len(self.command)
+
+    def __add__(self, other: "CheckInputs") -> "CheckInputs":
+        return CheckInputs(np.concatenate([self.images, other.images]), np.concatenate([self.speed_kmh, other.speed_kmh]),
+                           np.concatenate([self.command, other.command]), self.names + other.names)
+
+
+def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") -> CheckInputs:
+    """``n`` centre-camera frames of the embedded simulator's expert driving the training town's first
+    single-turn route (follow lane, then a turn), evenly spaced over the episode, with its speeds and
+    commands: real frames without a dataset on disk. Deterministic."""
+    from cicfw.sim.backends import EmbeddedBackend
+
+    backend = EmbeddedBackend()
+    route = backend.single_turn_routes(town)[0]
+    env = backend.make_env(town, route, weather, cameras=("centre",))
+    obs = env.reset()
+    frames = [obs]
+    while not env.done:
+        steer, v = env.expert_action()
+        obs, _, _ = env.step(steer, target_speed_kmh=v)
+        frames.append(obs)
+    pick = np.linspace(0, len(frames) - 1, n).round().astype(int)
+    where = f"the embedded simulator ({town}, {weather}, route {route.name!r})"
+    return CheckInputs(np.stack([frames[i]["images"]["centre"] for i in pick]),
+                       np.array([frames[i]["speed_kmh"] for i in pick], np.float32),
+                       np.array([frames[i]["command"] for i in pick], np.int64),
+                       [f"real frame {i} of {where}" for i in pick])
+
+
+def dataset_frames(path: str | Path, n: int) -> CheckInputs:
+    """``n`` frames of a CIL HDF5 file or folder (centre camera where the files say which), evenly spaced
+    over its first file(s), with their speeds and commands."""
+    from cicfw.data.cil_hdf5 import T, find_files, read_rgb, read_targets
+
+    files = find_files(path)  # a folder, a file or a glob; an error naming the path when it holds none
+    images, targets, names = [], [], []
+    for f in files:
+        t = read_targets(f)
+        rows = np.flatnonzero(t[:, T.CAMERA_ID] == 0) if np.any(t[:, T.CAMERA_ID] == 0) else np.arange(len(t))
+        rgb = read_rgb(f)
+        images.append(rgb[rows])
+        targets.append(t[rows])
+        names += [f"real frame {r} of {f}" for r in rows]
+        if sum(len(t) for t in targets) >= 4 * n:
+            break
+    rgb, t = np.concatenate(images), np.concatenate(targets)
+    pick = np.linspace(0, len(t) - 1, min(n, len(t))).round().astype(int)
+    return CheckInputs(rgb[pick], t[pick, T.SPEED].astype(np.float32), t[pick, T.COMMAND].astype(np.int64),
+                       [names[i] for i in pick])
+
+
+def random_inputs(n: int, seed: int = 0) -> CheckInputs:
+    """``n`` random frames (uniform pixels), speeds in [0, 60) km/h and command codes, every command present."""
+    rng = np.random.default_rng(seed)
+    codes = np.array(list(COMMAND_CODES), np.int64)
+    return CheckInputs(rng.integers(0, 256, (n, *IMAGE_SHAPE), dtype=np.uint8),
+                       rng.uniform(0, 60, n).astype(np.float32), np.resize(codes, n),
+                       [f"random input {i} (seed {seed})" for i in range(n)])
+
+
+# ---- the graph ---------------------------------------------------------------------------------
+def graph_module(model: torch.nn.Module) -> torch.nn.Module:
+    """The module that is exported: the driving function of an inference-prepared copy of ``model``."""
+    from cicfw.bench.checkpoint import prepare_for_inference
+
+    return DrivingFunction(prepare_for_inference(copy.deepcopy(model))).eval()
+
+
+@contextmanager
+def _tracing(module: torch.nn.Module, onnx: bool) -> Iterator[None]:
+    """Tracing switches: Lightning's own (``to_torchscript``'s) so tracing may read a LightningModule
+    without a Trainer, and for ONNX the MultiheadAttention fast path off (its fused kernel has no ONNX
+    form; the decomposed attention computes the same), tracer warnings muted."""
+    lightning = [m for m in module.modules() if hasattr(type(m), "_jit_is_scripting")]
+    fast = torch.backends.mha.get_fastpath_enabled()
+    for m in lightning:
+        m._jit_is_scripting = True
+    if onnx:
+        torch.backends.mha.set_fastpath_enabled(False)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fast)
+        for m in lightning:
+            m._jit_is_scripting = False
+
+
+def _example(inputs: CheckInputs, n: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return (torch.from_numpy(inputs.images[:n]), torch.from_numpy(inputs.speed_kmh[:n]),
+            torch.from_numpy(inputs.command[:n]))
+
+
+def to_onnx(module: torch.nn.Module, example: tuple, metadata: str, opset: int = 17) -> bytes:
+    """The ONNX bytes of ``module`` (legacy TorchScript-based exporter: no extra packages), dynamic batch,
+    ``metadata`` under the key ``cicfw.json``."""
+    import onnx
+
+    buf = io.BytesIO()
+    batch = {0: "batch"}
+    with _tracing(module, onnx=True), torch.no_grad():
+        torch.onnx.export(module, example, buf, dynamo=False, opset_version=opset, input_names=list(INPUT_NAMES),
+                          output_names=[OUTPUT_NAME], dynamic_axes={k: batch for k in (*INPUT_NAMES, OUTPUT_NAME)},
+                          do_constant_folding=True)
+    proto = onnx.load_from_string(buf.getvalue())
+    proto.metadata_props.add(key=METADATA_KEY, value=metadata)
+    proto.producer_name = "cicfw export"
+    return proto.SerializeToString()
+
+
+def to_torchscript(module: torch.nn.Module, example: tuple, metadata: str) -> bytes:
+    """The TorchScript bytes of ``module`` (traced; the batch size stays dynamic), ``metadata`` as the
+    extra file ``cicfw.json``."""
+    with _tracing(module, onnx=False), torch.no_grad():
+        traced = torch.jit.trace(module, example, check_trace=False)
+    buf = io.BytesIO()
+    torch.jit.save(traced, buf, _extra_files={METADATA_KEY: metadata})
+    return buf.getvalue()
+
+
+def runner(fmt: str, data: bytes) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """A function running exported ``data`` in its own runtime: onnxruntime, or torch.jit.load."""
+    if fmt == "onnx":
+        session = onnx_session(data)
+        return lambda img, speed, cmd: session.run([OUTPUT_NAME], {"images": img, "speed_kmh": speed,
+                                                                   "command": cmd})[0]
+    module = torch.jit.load(io.BytesIO(data), map_location="cpu").eval()
+
+    def run(img: np.ndarray, speed: np.ndarray, cmd: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return module(torch.from_numpy(img), torch.from_numpy(speed), torch.from_numpy(cmd)).numpy()
+
+    return run
+
+
+# ---- parity ------------------------------------------------------------------------------------
+def reference_steer(model: torch.nn.Module, inputs: CheckInputs) -> tuple[np.ndarray, np.ndarray]:
+    """The checkpoint's own steering, ``CICModule.predict_steer`` in eval mode, clamped to [-1, 1] as the
+    suite steers; and per row whether its decoder sits on a tie (an argmax head whose two best logits
+    are within ``TIE_MARGIN``: float rounding may pick either bin there)."""
+    image = torch.from_numpy(inputs.images).permute(0, 3, 1, 2)
+    speed, branch = torch.from_numpy(inputs.speed_kmh), torch.from_numpy(inputs.command - 2)
+    with torch.inference_mode():
+        steer = model.predict_steer(image, speed, branch).float().clamp(-1.0, 1.0).numpy()
+        tie = np.zeros(len(inputs), bool)
+        if getattr(model.head, "decode_mode", None) == "argmax":
+            top2 = model(image, speed, branch).topk(2, dim=-1).values
+            tie = (top2[:, 0] - top2[:, 1]).numpy() < TIE_MARGIN
+    return steer, tie
+
+
+def parity(run: Callable, model: torch.nn.Module, inputs: CheckInputs, tolerance: float = TOLERANCE,
+           batches: tuple[int, ...] | None = None) -> float:
+    """Run the exported model on ``inputs`` in chunks of each size in ``batches`` (default: 1 and all)
+    and compare with the checkpoint; the largest difference, or an ``ExportError`` naming the worst input."""
+    want, tie = reference_steer(model, inputs)
+    worst = 0.0
+    for b in batches or (1, len(inputs)):
+        got = np.concatenate([np.asarray(run(inputs.images[i:i + b], inputs.speed_kmh[i:i + b],
+                                             inputs.command[i:i + b])).reshape(-1)
+                              for i in range(0, len(inputs), b)])
+        diff = np.where(tie, 0.0, np.abs(got.astype(np.float64) - want))
+        diff[~np.isfinite(got)] = np.inf
+        k = int(np.argmax(diff))
+        if diff[k] > tolerance:
+            code = int(inputs.command[k])
+            raise ExportError(
+                f"the exported model fails the parity check, so nothing was written: on {inputs.names[k]} "
+                f"(command {code} {COMMAND_CODES.get(code, '?')}, {inputs.speed_kmh[k]:.1f} km/h, batch {b}) it "
+                f"steers {got[k]:+.4f} where the checkpoint steers {want[k]:+.4f} (off by {diff[k]:.2g}; "
+                f"tolerance {tolerance:g})")
+        worst = max(worst, float(diff.max()))
+    return worst
+
+
+# ---- what is written ---------------------------------------------------------------------------
+def decoder_info(head: torch.nn.Module, name: str) -> dict[str, Any]:
+    """How the head's output becomes steering, in words and numbers (the sidecar's ``decoder``)."""
+    mode = getattr(head, "decode_mode", None)
+    if mode is not None and getattr(head, "bins", None) is not None:
+        mids = [round(float(m), 6) for m in head.bins.midpoints]
+        what = ("the expectation: softmax scores times the bin midpoints" if mode == "expectation"
+                else "the midpoint of the argmax bin")
+        return {"head": name, "decode": mode, "bin_midpoints": mids, "description": what}
+    if hasattr(head, "max_phase"):
+        return {"head": name, "decode": "phase", "n_units": int(head.out_dim),
+                "phase_range": round(float(head.max_phase) / np.pi, 12),
+                "description": "the phase of the output wave (atan2 of its projections on cos and sin) / "
+                               "(phase_range * pi), clamped to [-1, 1]"}
+    if name == "regression":
+        return {"head": name, "decode": "identity", "description": "the single output, clamped to [-1, 1]"}
+    return {"head": name, "decode": type(head).__name__ + ".decode", "description": "the head's own decode()"}
+
+
+def _jsonable(obj: Any) -> Any:
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
+    """The training run's saved config (the nearest ``.hydra/config.yaml`` a few folders above the
+    checkpoint), unresolved interpolations left as written; (None, None) when there is none."""
+    for folder in [checkpoint.parent, *checkpoint.parent.parents][:RUN_CONFIG_LEVELS + 1]:
+        path = folder / ".hydra" / "config.yaml"
+        if path.is_file():
+            try:
+                return OmegaConf.to_container(OmegaConf.load(path), resolve=False), path
+            except Exception:
+                return None, path
+    return None, None
+
+
+def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
+    """The training dataset of the run config at ``cfg_path``: its path and a hash of its files' names and
+    sizes (``cicfw reproduce``'s ``config_hash``), with the collector's own config hash when it wrote one."""
+    if cfg_path is None:
+        return {"path": None, "hash": None, "why": "no training run config (.hydra/config.yaml) beside the checkpoint"}
+    try:
+        raw = OmegaConf.select(OmegaConf.load(cfg_path), "data.path", throw_on_resolution_failure=True)
+    except Exception as err:
+        return {"path": None, "hash": None, "why": f"data.path in {cfg_path} does not resolve here ({err})"}
+    if not raw:
+        return {"path": None, "hash": None, "why": f"{cfg_path} names no data.path"}
+    p = Path(str(raw)).expanduser()
+    files = (sorted(p.rglob("*.h5")) + sorted(p.rglob("*.hdf5")) if p.is_dir()
+             else sorted(Path(q) for q in glob.glob(str(p), recursive=True)))
+    if not files:
+        return {"path": str(p), "hash": None, "why": "the dataset is not on this machine"}
+    chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
+    meta_file = (p if p.is_dir() else p.parent) / "dataset_metadata.json"
+    meta = json.loads(meta_file.read_text()) if meta_file.is_file() else {}
+    return {"path": str(p), "hash": chash, "hash_of": "file names and sizes", "files": len(files),
+            "collect_config_hash": meta.get("config_hash")}
+
+
+def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
+    """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
+    import cicfw
+    from cicfw.bench.checkpoint import describe
+
+    hp = _jsonable(dict(model.hparams))
+    cfg, cfg_path = run_config(checkpoint)
+    row = None
+    if cfg is not None:
+        row = {k: cfg.get(k) for k in ("experiment", "encoder", "mixer", "head", "model", "seed") if k in cfg}
+        if "cell" in cfg:  # a cicfw reproduce cell: its row and seed
+            row["cell"] = cfg["cell"]
+    h, w, c = IMAGE_SHAPE
+    return {
+        "format": fmt, "opset": opset, "cicfw_version": cicfw.__version__, "torch_version": torch.__version__,
+        "label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
+        "hyper_parameters": hp, "row_config": row, "run_config_file": str(cfg_path) if cfg_path else None,
+        "inputs": [
+            {"name": "images", "dtype": "uint8", "shape": ["batch", h, w, c], "layout": "NHWC, RGB, 0-255",
+             "camera": "centre (CIL's crop of the camera image resized to 200x88, as cicfw's cameras deliver it)"},
+            {"name": "speed_kmh", "dtype": "float32", "shape": ["batch"], "unit": "km/h"},
+            {"name": "command", "dtype": "int64", "shape": ["batch"], "codes": {str(k): v for k, v in COMMAND_CODES.items()},
+             "note": "CIL command code; the branch is code - 2"},
+        ],
+        "output": {"name": OUTPUT_NAME, "dtype": "float32", "shape": ["batch"], "range": [-1.0, 1.0],
+                   "convention": "steering, positive = right (CARLA's)"},
+        "normalisation": {"pixels": "/ 255", "speed": f"speed_kmh / {float(model.speed_norm_kmh):g}"},
+        "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
+        "decoder": decoder_info(model.head, hp["head"]),
+        "checkpoint": {"path": str(checkpoint), "sha256": sha256(checkpoint)},
+        "training_dataset": dataset_hash(cfg_path),
+    }
+
+
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_files(files: Mapping[Path, bytes]) -> None:
+    """Write each file under a temporary name unique to this process, then rename them all, in order:
+    a failure while writing (a full disk, a folder that turns out read-only) leaves nothing behind."""
+    tmps: list[Path] = []
+    current = next(iter(files))
+    try:
+        for path, data in files.items():
+            current, tmp = path, _tmp_name(path)
+            tmps.append(tmp)
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+        for path, tmp in zip(files, tmps):
+            current = path
+            os.replace(tmp, path)
+    except OSError as err:
+        for tmp in tmps:
+            tmp.unlink(missing_ok=True)
+        raise ExportError(f"cannot write {str(current)!r}: {err.strerror or err}; "
+                          f"nothing was written; give out=<a file in a writable folder with room>") from None
+
+
+def output_path(out: str | None, checkpoint: Path, fmt: str) -> Path:
+    """Where the model goes (default: beside the checkpoint, its name with the format's suffix), after
+    checking its folder can be written."""
+    p = Path(str(out)).expanduser() if out else checkpoint.with_suffix(FORMATS[fmt])
+    if p.is_dir():
+        raise ExportError(f"out={str(p)!r} is a folder; give out=<a file name>, e.g. out={str(p / ('model' + FORMATS[fmt]))}")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise ExportError(f"out={str(p)!r} cannot be written: the folder {str(folder)!r} does not exist; create it "
+                          f"or give out=<a file in a writable folder>")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ExportError(f"out={str(p)!r} cannot be written: the folder {str(folder)!r} is not writable; give "
+                          f"out=<a file in a writable folder>")
+    return p
+
+
+def _check_format(fmt: str) -> None:
+    if fmt not in FORMATS:
+        raise ExportError(f"format={fmt!r} is not known; use one of {', '.join(FORMATS)}")
+    if fmt == "onnx":
+        try:
+            import onnx  # noqa: F401
+            import onnxruntime  # noqa: F401
+        except ImportError as err:
+            raise ExportError(f'format=onnx needs the onnx and onnxruntime packages ({err.name} is missing): '
+                              f'pip install "cicfw[export]"') from None
+
+
+def _plugin_parts(hp: Mapping[str, Any]) -> list[str]:
+    from cicfw.registry import ENCODERS, HEADS, MIXERS
+
+    out = []
+    for key, reg in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
+        origin = reg.origin(hp[key])
+        if origin != "cicfw":
+            out.append(f"its {key} {hp[key]!r} comes from the plugin {origin!r}")
+    return out
+
+
+def _export_failure(err: Exception, fmt: str, hp: Mapping[str, Any], opset: int) -> ExportError:
+    """One line for a model the exporter cannot express: which operator, which part, what to do."""
+    import re
+
+    text = str(err)
+    op = re.search(r"operator '([^']+)'", text) or re.search(r"(aten::\w+|\w+::\w+)", text)
+    what = f"the operator {op.group(1)!r}" if op else f"an operator ({type(err).__name__}: {text.splitlines()[0] if text else ''})"
+    where = f"ONNX opset {opset}" if fmt == "onnx" else "TorchScript tracing"
+    parts = _plugin_parts(hp)
+    blame = (("; " + ", ".join(parts) + " (cicfw's own parts export)") if parts
+             else "; all its parts are cicfw's own: please report this")
+    other = "format=torchscript" if fmt == "onnx" else "format=onnx"
+    return ExportError(f"cannot export {hp['mixer']}+{hp['head']} to {fmt}: {what} has no form in {where}{blame}; "
+                       f"try {other}, or ask the part's authors for an exportable operator")
+
+
+# ---- the export --------------------------------------------------------------------------------
+def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
+                 frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
+                 opset: int = 17) -> dict[str, Any]:
+    """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
+    ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
+    simulator) plus as many random inputs. Returns the sidecar's content."""
+    from cicfw.bench.checkpoint import load_model, resolve_checkpoint
+
+    _check_format(fmt)
+    if not (isinstance(n_frames, int) and n_frames >= 1):
+        raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)")
+    if not (isinstance(tolerance, (int, float)) and tolerance > 0):
+        raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)")
+    ckpt = resolve_checkpoint(checkpoint)
+    path = output_path(str(out) if out else None, ckpt, fmt)
+    model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
+    inputs = (dataset_frames(frames, n_frames) if frames else rendered_frames(n_frames)) + random_inputs(n_frames)
+    info = describe_model(model, ckpt, fmt, opset if fmt == "onnx" else None)
+    module = graph_module(model)
+    example = _example(inputs)
+    meta = json.dumps(info)
+    try:
+        data = (to_onnx(module, example, meta, opset) if fmt == "onnx" else to_torchscript(module, example, meta))
+    except Exception as err:
+        raise _export_failure(err, fmt, info["hyper_parameters"], opset) from None
+    worst = parity(runner(fmt, data), model, inputs, tolerance)
+    info["parity"] = {"max_abs_diff": worst, "tolerance": tolerance, "inputs": len(inputs),
+                      "what": f"{len(inputs) - n_frames} real frames ({inputs.names[0].split(' of ', 1)[-1]}) and "
+                              f"{n_frames} random inputs, batch 1 and batch {len(inputs)}, vs the checkpoint's "
+                              f"CICModule.predict_steer",
+                      "runtime": "onnxruntime" if fmt == "onnx" else "torch.jit"}
+    info["size_bytes"] = len(data)
+    sidecar = path.with_name(path.name + ".json")
+    # the model renamed last: once it is there it is whole, its sidecar beside it
+    write_files({sidecar: (json.dumps(info, indent=2) + "\n").encode(), path: data})
+    log.debug("wrote %s (%.1f MB, %s) and %s; parity %.2g (tolerance %g)", path, len(data) / 1e6, info["label"],
+             sidecar.name, worst, tolerance)
+    return {**info, "out": str(path), "sidecar": str(sidecar)}
+
+
+@hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="export")
+@report_user_errors
+def main(cfg: DictConfig) -> None:
+    if not cfg.get("checkpoint"):
+        raise ExportError("no checkpoint to export: give checkpoint=path/to.ckpt (written by cicfw train) "
+                          "and format=onnx|torchscript out=<file>")
+    res = export_model(cfg.checkpoint, str(cfg.format), cfg.get("out"), cfg.get("frames"), cfg.n_frames,
+                       cfg.tolerance, cfg.opset)
+    print(f"cicfw export: {res['out']} ({res['size_bytes'] / 1e6:.1f} MB, {res['label']}, {res['format']}); "
+          f"sidecar {res['sidecar']}; parity max |diff| {res['parity']['max_abs_diff']:.2g} on "
+          f"{res['parity']['inputs']} inputs (tolerance {res['parity']['tolerance']:g})")
+
+
+if __name__ == "__main__":
+    from cicfw.registry import guard_hydra_plugins
+
+    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
+    main()
