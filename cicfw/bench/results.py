@@ -1,21 +1,49 @@
 """The paper's comparison as results: per-cell outcomes -> Table 4 with 95% intervals -> a verdict per claim.
 
 A *cell* is one (row, seed) of a reproduction: a model trained with that seed and driven on the suite;
-``cell.json`` keeps every episode's outcome. Everything here is plain numpy over those outcomes, so
-``cicfw report`` and the tests use it without training anything.
+``cell.json`` keeps every episode's outcome. Everything here is numpy/scipy/statsmodels over those
+outcomes, so ``cicfw report`` and the tests use it without training anything. *Overall* is always the
+mean of the four table columns (each column weighs the same, as in reading the paper's table), never the
+success pooled over all episodes; a seed's overall is the mean of its four column rates.
 
-**Intervals.** A two-level (hierarchical) percentile bootstrap: each replicate draws the row's seeds
-with replacement and, independently within each table column, the suite's episodes with replacement
-(the same episode draw for every row, since every row drives the same episodes: differences are
-paired by episode); the statistic is the mean over the drawn seeds of the success rate on the drawn
-episodes. The 95% interval is the 2.5th..97.5th percentile of ``B`` replicates. With few seeds the
-seed level is coarse (3 seeds have 10 distinct draws): the interval is a floor on the uncertainty,
-not a ceiling. *Overall* is the mean of the four table columns (each column weighs the same, as in
-reading the paper's table).
+**Intervals (primary): the seed is the unit of replication.** A row's value in a column is the mean over
+its seeds of each seed's success rate there; its 95% interval is Student's t-interval over those per-seed
+rates, ``mean ± t_{0.975, n-1} · sd / sqrt(n)`` (``scipy.stats.t``; ``sd`` with ``n - 1``), widened, in a
+table column, to contain the Clopper-Pearson interval of the episodes pooled over the seeds
+(``statsmodels ... proportion_confint(method="beta")``), so that seeds that all drove 100% (or 0%) do not
+get a zero-width interval. A row with one seed has no interval. A difference between two rows (A - B) is
+computed on per-seed values: when both rows ran the same seeds (the same seed trains on the same
+train/validation split, so the cells are paired), the t-interval over the per-seed differences
+``A_s - B_s`` with ``n - 1`` degrees of freedom; when their seeds differ, Welch's t-interval
+(``scipy.stats.ttest_ind(equal_var=False)``, Welch-Satterthwaite degrees of freedom) over all seeds of
+each. A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
+variances, covariance (paired) and degrees of freedom; it is unbounded when B is not clearly above 0.
+Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
+cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
-**Verdicts.** A claim "A beats B" is *supported* when the 95% interval of A - B lies above 0,
-*contradicted* when it lies below 0, *inconclusive* otherwise; a claim made of several parts is
-supported when all are, contradicted when any is. A claim whose rows were not run is *not run*.
+**Secondary: the episode bootstrap.** Beside it, for comparison with earlier reports, a two-level
+percentile bootstrap (``n_boot`` replicates): each replicate draws the row's seeds with replacement and,
+within each table column, the suite's episodes with replacement (one episode draw shared by every row:
+rows drove the same episodes); the statistic is the mean over the drawn seeds of the success on the drawn
+episodes; the interval is its 2.5th..97.5th percentile. With few seeds it is too narrow (3 seeds have only
+10 distinct seed draws; simulated coverage of a difference about 87% at 3 seeds): it is not used for a
+verdict.
+
+**Verdicts.** Each claim of the paper (``claims:`` in ``conf/reproduce.yaml``, with its sentence quoted)
+is one or more tested parts, each a difference A - B of per-seed values on a column, the mean of some
+columns, or a change of the gap between two columns. Each part's test is the two-sided t-test of that
+difference against 0 (paired t-test on the per-seed differences, or Welch's), so the uncorrected verdict
+and the 95% interval agree: *significant* means the interval excludes 0. A part ``greater`` (A beats B)
+is *supported* when A - B is significantly above 0, *contradicted* when significantly below,
+*inconclusive* otherwise; ``less`` is its mirror; ``not_greater`` ("A failed to improve on B") is
+*contradicted* only when A is significantly better than B and *supported* otherwise. A part whose rows
+have fewer than 3 seeds (either row) gets no verdict: *too few seeds* (its difference is still shown).
+**Family-wise control:** the p-values of every part that gets a verdict form one family, adjusted by
+Holm's step-down method (``statsmodels.stats.multitest.multipletests(method="holm")``, family-wise error
+5%); the Holm verdict uses the adjusted p-value in place of the interval and is shown beside the
+uncorrected one. A claim of several parts is *contradicted* when any part is, *not run* when a part's rows
+were not run, *too few seeds* when a part lacks seeds, *supported* when every part is, *inconclusive*
+otherwise.
 """
 from __future__ import annotations
 
@@ -26,6 +54,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from cicfw.bench.runs import atomic_write, cell_key, cell_name
 from cicfw.bench.suite import CELLS
@@ -33,7 +62,20 @@ from cicfw.bench.suite import CELLS
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
 COLUMN_NAMES = tuple(cell_name(*c) for c in CELLS)
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
+TOO_FEW = "too few seeds"
 LEVEL = 0.95
+ALPHA = 1.0 - LEVEL
+#: a row needs this many seeds for a verdict (fewer: reported, "too few seeds")
+MIN_SEEDS = 3
+#: what a part of a claim compares: one table column, or the mean of several (overall: all four)
+SELECTORS: dict[str, tuple[int, ...]] = {
+    **{c: (i,) for i, c in enumerate(COLUMNS)},
+    "overall": (0, 1, 2, 3),
+    "training_town": (0, 1), "new_town": (2, 3), "training_weathers": (0, 2), "new_weathers": (1, 3),
+}
+SELECTOR_NAMES = {**dict(zip(COLUMNS, COLUMN_NAMES)), "overall": "overall", "training_town": "training town",
+                  "new_town": "new town", "training_weathers": "training weathers", "new_weathers": "new weathers"}
+TESTS = ("greater", "less", "not_greater")
 
 
 @dataclass
@@ -52,6 +94,15 @@ class CellResult:
         v = [e["success"] for e in self.episodes.values() if e["column"] == column]
         return 100.0 * float(np.mean(v)) if v else float("nan")
 
+    def value(self, on: str) -> float:
+        """Success (%) on a selector of ``SELECTORS``: the mean of its columns' rates."""
+        return float(np.mean([self.rate(COLUMNS[i]) for i in SELECTORS[on]]))
+
+    def counts(self, column: str) -> tuple[int, int]:
+        """(successes, episodes) in one table column."""
+        v = [bool(e["success"]) for e in self.episodes.values() if e["column"] == column]
+        return sum(v), len(v)
+
 
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
     """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
@@ -66,7 +117,168 @@ def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]
 
 
 # ------------------------------------------------------------------------------------------------
-# the bootstrap
+# intervals over seeds (primary)
+
+
+def t_quantile(n: int | np.ndarray, level: float = LEVEL) -> np.ndarray:
+    """Student's t quantile ``t_{(1+level)/2, n-1}`` for ``n`` seeds (scipy.stats.t)."""
+    return stats.t.ppf(0.5 + level / 2.0, np.asarray(n) - 1)
+
+
+def t_interval(values: np.ndarray, level: float = LEVEL, axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, lo, hi) of the t-interval over ``values`` along ``axis`` (the seeds):
+    ``mean ± t_{(1+level)/2, n-1} · sd / sqrt(n)``, sd with n - 1 (vectorised over the other axes).
+    With one value the bounds are NaN."""
+    v = np.asarray(values, dtype=float)
+    n = v.shape[axis]
+    mean = v.mean(axis=axis)
+    if n < 2:
+        nan = np.full_like(mean, np.nan)
+        return mean, nan, nan
+    half = t_quantile(n, level) * v.std(axis=axis, ddof=1) / math.sqrt(n)
+    return mean, mean - half, mean + half
+
+
+def paired_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
+                      axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A - B paired by seed: the t-interval over the per-seed differences ``a_s - b_s`` (n - 1 df)."""
+    return t_interval(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), level, axis)
+
+
+def welch_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
+                     axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A - B over unpaired seeds: Welch's t-interval (``scipy.stats.ttest_ind(equal_var=False)``,
+    Welch-Satterthwaite degrees of freedom), vectorised over the other axes."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ci = stats.ttest_ind(a, b, equal_var=False, axis=axis).confidence_interval(level)
+    return a.mean(axis=axis) - b.mean(axis=axis), np.asarray(ci.low), np.asarray(ci.high)
+
+
+def pooled_clopper_pearson(successes: int, episodes: int, level: float = LEVEL) -> tuple[float, float]:
+    """The Clopper-Pearson interval (%) of ``successes`` of ``episodes`` (statsmodels, method "beta")."""
+    from statsmodels.stats.proportion import proportion_confint
+
+    lo, hi = proportion_confint(successes, episodes, alpha=1.0 - level, method="beta")
+    return 100.0 * float(lo), 100.0 * float(hi)
+
+
+def ratio_interval(a: Sequence[float], b: Sequence[float], paired: bool,
+                   level: float = LEVEL) -> tuple[float, float | None, float | None]:
+    """(ratio, lo, hi) of mean(A) / mean(B) by Fieller's theorem: the set of R with
+    ``(mean_a - R mean_b)^2 <= t^2 · (v_a - 2 R c + R^2 v_b)``, where v_a, v_b are the variances of the two
+    means (sd^2 / n), c their covariance (paired seeds; 0 otherwise) and t the quantile with n - 1 df
+    (paired) or Welch-Satterthwaite df at the estimated ratio (unpaired). Bounds are None when the set is
+    not a bounded interval (B not clearly above 0)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ma, mb = float(a.mean()), float(b.mean())
+    ratio = ma / mb if mb != 0 else float("nan")
+    if len(a) < 2 or len(b) < 2 or mb == 0:
+        return ratio, None, None
+    va, vb = float(a.var(ddof=1)) / len(a), float(b.var(ddof=1)) / len(b)
+    if paired:
+        c = float(np.cov(a, b, ddof=1)[0, 1]) / len(a)
+        df = len(a) - 1
+    else:
+        c = 0.0
+        r2vb = ratio ** 2 * vb
+        den = va ** 2 / (len(a) - 1) + r2vb ** 2 / (len(b) - 1)
+        df = (va + r2vb) ** 2 / den if den > 0 else float(min(len(a), len(b)) - 1)
+    q2 = float(stats.t.ppf(0.5 + level / 2.0, df)) ** 2
+    qa, qb, qc = mb * mb - q2 * vb, ma * mb - q2 * c, ma * ma - q2 * va  # qa R^2 - 2 qb R + qc <= 0
+    disc = qb * qb - qa * qc
+    if qa <= 0 or disc < 0:
+        return ratio, None, None
+    root = math.sqrt(disc)
+    return ratio, (qb - root) / qa, (qb + root) / qa
+
+
+@dataclass
+class Estimate:
+    mean: float
+    lo: float | None
+    hi: float | None
+
+    def as_dict(self) -> dict[str, float | None]:
+        r = lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 2)  # noqa: E731
+        return {"mean": r(self.mean), "lo": r(self.lo), "hi": r(self.hi)}
+
+    def fmt(self, sign: str = "") -> str:
+        d = self.as_dict()
+        if d["lo"] is None or d["hi"] is None:
+            return f"{self.mean:{sign}.1f}"
+        return f"{self.mean:{sign}.1f} [{self.lo:{sign}.1f}, {self.hi:{sign}.1f}]"
+
+
+def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:
+    """A row's mean over seeds on ``on`` with its t-interval over seeds; on a single table column the
+    interval is widened to contain the pooled episodes' Clopper-Pearson interval. No interval for one seed."""
+    v = np.array([c.value(on) for c in cells])
+    mean, lo, hi = (float(x) for x in t_interval(v, level))
+    if len(v) < 2:
+        return Estimate(mean, None, None)
+    if len(SELECTORS[on]) == 1:
+        col = COLUMNS[SELECTORS[on][0]]
+        k, n = (sum(x) for x in zip(*(c.counts(col) for c in cells)))
+        cp_lo, cp_hi = pooled_clopper_pearson(k, n, level)
+        lo, hi = min(lo, cp_lo), max(hi, cp_hi)
+    return Estimate(mean, max(lo, 0.0), min(hi, 100.0))  # a rate lies in [0, 100]
+
+
+@dataclass
+class Difference:
+    """One tested difference A - (scale) B on per-seed values: its estimate, two-sided p-value and method."""
+
+    estimate: Estimate
+    p: float | None
+    method: str
+    paired: bool
+    n: tuple[int, int]
+
+    @property
+    def enough_seeds(self) -> bool:
+        return min(self.n) >= MIN_SEEDS
+
+
+def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL) -> Difference:
+    """A - B from per-seed values (seed -> value): paired t when both have the same seeds, else Welch's t.
+    The p-value is the two-sided t-test's (``scipy.stats.ttest_1samp`` on the differences, or
+    ``ttest_ind(equal_var=False)``); with no spread at all it is 0 (a difference) or 1 (none)."""
+    na, nb = len(a), len(b)
+    if sorted(a) == sorted(b):
+        d = np.array([a[s] - b[s] for s in sorted(a)])
+        mean, lo, hi = (float(x) for x in t_interval(d, level))
+        if na < 2:
+            return Difference(Estimate(mean, None, None), None, f"1 seed", True, (na, nb))
+        if np.ptp(d) == 0:
+            p = 1.0 if mean == 0 else 0.0
+        else:
+            p = float(stats.ttest_1samp(d, 0.0).pvalue)
+        return Difference(Estimate(mean, lo, hi), p, f"paired t, {na} seeds", True, (na, nb))
+    va, vb = np.array(list(a.values()), dtype=float), np.array(list(b.values()), dtype=float)
+    mean = float(va.mean() - vb.mean())
+    method = f"Welch t, {na} vs {nb} seeds"
+    if na < 2 or nb < 2:
+        return Difference(Estimate(mean, None, None), None, method, False, (na, nb))
+    if np.ptp(va) == 0 and np.ptp(vb) == 0:
+        return Difference(Estimate(mean, mean, mean), 1.0 if mean == 0 else 0.0, method, False, (na, nb))
+    _, lo, hi = welch_t_interval(va, vb, level)
+    p = float(stats.ttest_ind(va, vb, equal_var=False).pvalue)
+    return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
+
+
+def holm(pvalues: Sequence[float], alpha: float = ALPHA) -> tuple[list[float], list[bool]]:
+    """Holm's step-down adjustment of a family of p-values (statsmodels ``multipletests``, method "holm"):
+    the adjusted p-values and which are rejected at family-wise error ``alpha``."""
+    if not len(pvalues):
+        return [], []
+    from statsmodels.stats.multitest import multipletests
+
+    reject, adj, _, _ = multipletests(list(pvalues), alpha=alpha, method="holm")
+    return [float(x) for x in adj], [bool(x) for x in reject]
+
+
+# ------------------------------------------------------------------------------------------------
+# the two-level episode bootstrap (secondary)
 
 
 def _matrix(cells: Sequence[CellResult], keys: Sequence[str]) -> np.ndarray:
@@ -74,18 +286,16 @@ def _matrix(cells: Sequence[CellResult], keys: Sequence[str]) -> np.ndarray:
     return np.array([[float(c.episodes[k]["success"]) for k in keys] for c in cells])
 
 
-def _replicates(cells: Sequence[CellResult], keys: Sequence[str], columns: Sequence[str],
-                ep_draws: Mapping[str, np.ndarray], rng: np.random.Generator, n_boot: int) -> np.ndarray:
-    """(n_boot, 5) bootstrap replicates of [column rates..., overall] (in %) for one row."""
-    m = _matrix(cells, keys)  # (S, N)
+def bootstrap_replicates(m: np.ndarray, ep_draws: Mapping[str, np.ndarray], rng: np.random.Generator,
+                         n_boot: int) -> np.ndarray:
+    """(n_boot, 5) two-level bootstrap replicates of [column rates..., overall] (in %) of one row whose
+    (seeds, episodes) success matrix is ``m``: the seeds drawn with replacement, the episodes of each
+    column drawn by ``ep_draws`` (shared across rows)."""
     s = m.shape[0]
     seeds = rng.integers(0, s, size=(n_boot, s))  # seed draw, per replicate
     cols = []
     for c in COLUMNS:
-        idx = ep_draws[c]  # (n_boot, n_c) episode draw within column c (shared across rows)
-        # m[seeds][:, :, idx] per replicate: mean over drawn seeds and drawn episodes
-        per_seed_rates = m[:, idx]  # (S, n_boot, n_c)
-        per_seed_rates = per_seed_rates.mean(axis=2).T  # (n_boot, S)
+        per_seed_rates = m[:, ep_draws[c]].mean(axis=2).T  # (n_boot, S): each seed on the drawn episodes
         cols.append(np.take_along_axis(per_seed_rates, seeds, axis=1).mean(axis=1))
     out = 100.0 * np.stack(cols, axis=1)
     return np.concatenate([out, out.mean(axis=1, keepdims=True)], axis=1)
@@ -110,45 +320,32 @@ def percentile_interval(samples: np.ndarray, level: float = LEVEL) -> tuple[floa
     return float(lo), float(hi)
 
 
-@dataclass
-class Estimate:
-    mean: float
-    lo: float
-    hi: float
+def _boot_value(rep: np.ndarray, on: str) -> np.ndarray:
+    return rep[:, list(SELECTORS[on])].mean(axis=1)
 
-    def as_dict(self) -> dict[str, float]:
-        return {"mean": round(self.mean, 2), "lo": round(self.lo, 2), "hi": round(self.hi, 2)}
 
-    def fmt(self) -> str:
-        return f"{self.mean:.1f} [{self.lo:.1f}, {self.hi:.1f}]"
+# ------------------------------------------------------------------------------------------------
+# the analysis of one results folder
 
 
 @dataclass
 class Analysis:
-    """Every row's estimates (per column + overall) and its bootstrap replicates, on one episode draw."""
+    """Every row's estimates (per column + overall): t-intervals over seeds (primary) and the two-level
+    episode bootstrap (secondary, with its replicates, all on one episode draw)."""
 
     rows: dict[str, list[CellResult]]
-    estimates: dict[str, list[Estimate]]  # row -> 5 estimates (4 columns + overall)
+    estimates: dict[str, list[Estimate]]  # row -> 5 estimates (4 columns + overall), t over seeds
+    bootstrap: dict[str, list[Estimate]]  # row -> 5 estimates, the episode bootstrap
     replicates: dict[str, np.ndarray]  # row -> (n_boot, 5)
     n_boot: int
 
-    def diff(self, a: str, b: str, index: int = 4) -> Estimate:
-        """A - B on column ``index`` (4: overall), with its paired bootstrap interval."""
-        d = self.replicates[a][:, index] - self.replicates[b][:, index]
-        mean = float(np.mean([c.rate(None if index == 4 else COLUMNS[index]) for c in self.rows[a]])
-                     - np.mean([c.rate(None if index == 4 else COLUMNS[index]) for c in self.rows[b]]))
-        return Estimate(mean, *percentile_interval(d))
-
-    def gap_change(self, a: str, b: str, hard: int, easy: int) -> Estimate:
-        """(A - B) on column ``hard`` minus (A - B) on column ``easy``: where A's advantage is larger."""
-        ra, rb = self.replicates[a], self.replicates[b]
-        d = (ra[:, hard] - rb[:, hard]) - (ra[:, easy] - rb[:, easy])
-        pt = self.diff(a, b, hard).mean - self.diff(a, b, easy).mean
-        return Estimate(pt, *percentile_interval(d))
+    def per_seed(self, row: str, on: str) -> dict[int, float]:
+        return {c.seed: c.value(on) for c in self.rows[row]}
 
 
 def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> Analysis:
-    """Group cells by row, check they drove the same episodes, and bootstrap every row."""
+    """Group cells by row, check they drove the same episodes, estimate every row (t over seeds) and
+    bootstrap it (secondary)."""
     rows: dict[str, list[CellResult]] = {}
     for c in sorted(cells, key=lambda c: (c.row, c.seed)):
         rows.setdefault(c.row, []).append(c)
@@ -164,124 +361,201 @@ def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> A
     columns = [first.episodes[k]["column"] for k in keys]
     rng = np.random.default_rng(seed)
     draws = episode_draws(keys, columns, rng, n_boot)
-    reps, est = {}, {}
+    reps, est, boot = {}, {}, {}
     for row, cs in rows.items():
-        reps[row] = _replicates(cs, keys, columns, draws, rng, n_boot)
-        means = [float(np.mean([c.rate(col) for c in cs])) for col in COLUMNS]
-        means.append(float(np.mean(means)))
-        est[row] = [Estimate(m, *percentile_interval(reps[row][:, i])) for i, m in enumerate(means)]
-    return Analysis(rows=rows, estimates=est, replicates=reps, n_boot=n_boot)
+        reps[row] = bootstrap_replicates(_matrix(cs, keys), draws, rng, n_boot)
+        est[row] = [row_estimate(cs, on) for on in [*COLUMNS, "overall"]]
+        boot[row] = [Estimate(e.mean, *percentile_interval(reps[row][:, i])) for i, e in enumerate(est[row])]
+    return Analysis(rows=rows, estimates=est, bootstrap=boot, replicates=reps, n_boot=n_boot)
 
 
 # ------------------------------------------------------------------------------------------------
-# the paper's claims
+# the paper's claims (data: ``claims:`` in conf/reproduce.yaml)
 
 
 @dataclass(frozen=True)
-class Comparison:
-    """One testable part of a claim: ``a`` beats ``b`` on a column (4: overall), or ``a``'s advantage
-    over ``b`` is larger on column ``hard`` than on column ``easy`` (``kind="gap"``)."""
+class Part:
+    """One tested part of a claim: A - b_scale x B on ``on`` (a selector), or, with ``on="gap"``, A's
+    advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
+    (``greater``, ``less``, ``not_greater``); ``relative`` also reports A / B - 1."""
 
     a: str
     b: str
-    index: int = 4
-    kind: str = "beats"
-    hard: int = 3
-    easy: int = 0
+    on: str = "overall"
+    test: str = "greater"
+    relative: bool = False
+    hard: str | None = None
+    easy: str | None = None
+    b_scale: float = 1.0
 
     def text(self, labels: Mapping[str, str]) -> str:
         la, lb = labels.get(self.a, self.a), labels.get(self.b, self.b)
-        if self.kind == "gap":
-            return f"{la} − {lb} larger in {COLUMN_NAMES[self.hard]} than in {COLUMN_NAMES[self.easy]}"
-        where = "overall" if self.index == 4 else COLUMN_NAMES[self.index]
-        return f"{la} > {lb} ({where})"
+        lb = lb if self.b_scale == 1.0 else f"{self.b_scale:g} x {lb}"
+        if self.on == "gap":
+            return (f"{la} − {lb} larger in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}"
+                    if self.test != "less" else
+                    f"{la} − {lb} smaller in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}")
+        op = {"greater": ">", "less": "<", "not_greater": "not better than"}[self.test]
+        return f"{la} {op} {lb} ({SELECTOR_NAMES[self.on]})"
 
-    def estimate(self, an: Analysis) -> Estimate:
-        return an.gap_change(self.a, self.b, self.hard, self.easy) if self.kind == "gap" else an.diff(self.a, self.b, self.index)
+    def values(self, per_seed: Any, row: str) -> dict[int, float]:
+        """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)`` gives a selector's)."""
+        if self.on == "gap":
+            hard, easy = per_seed(row, self.hard), per_seed(row, self.easy)
+            return {s: hard[s] - easy[s] for s in hard}
+        return per_seed(row, self.on)
 
     def paper(self, paper: Mapping[str, Sequence[float]]) -> float | None:
-        if self.a not in paper or self.b not in paper:
+        """The paper's value of this difference (from its Table 4), None when a row has no paper values."""
+        if not paper.get(self.a) or not paper.get(self.b):
             return None
-        pa, pb = list(paper[self.a]), list(paper[self.b])
-        pa.append(float(np.mean(pa)))
-        pb.append(float(np.mean(pb)))
-        if self.kind == "gap":
-            return (pa[self.hard] - pb[self.hard]) - (pa[self.easy] - pb[self.easy])
-        return pa[self.index] - pb[self.index]
+        val = lambda row, on: float(np.mean([paper[row][i] for i in SELECTORS[on]]))  # noqa: E731
+        if self.on == "gap":
+            return ((val(self.a, self.hard) - self.b_scale * val(self.b, self.hard))
+                    - (val(self.a, self.easy) - self.b_scale * val(self.b, self.easy)))
+        return val(self.a, self.on) - self.b_scale * val(self.b, self.on)
+
+    def paper_relative(self, paper: Mapping[str, Sequence[float]]) -> float | None:
+        if not self.relative or not paper.get(self.a) or not paper.get(self.b) or self.on == "gap":
+            return None
+        va, vb = (float(np.mean([paper[r][i] for i in SELECTORS[self.on]])) for r in (self.a, self.b))
+        return va / vb - 1.0 if vb else None
 
 
 @dataclass(frozen=True)
 class Claim:
+    id: str
     text: str
-    parts: tuple[Comparison, ...]
+    parts: tuple[Part, ...]
+    quote: str = ""
+    source: str = ""
 
 
-#: the paper's claims (Section 4 and the conclusion), as comparisons of reproduction rows
-CLAIMS = (
-    Claim("GTU (co-learning) beats CIL", (Comparison("gtu", "cil"),)),
-    Claim("GTU's gain over CIL is largest in the new town under new weathers",
-          (Comparison("gtu", "cil", kind="gap", hard=3, easy=0),)),
-    Claim("CCE+MSE (hybrid) beats plain classification", (Comparison("hybrid", "classification"),)),
-    Claim("CCE+MSE beats CIL in the new town under new weathers (+21%)", (Comparison("hybrid", "cil", index=3),)),
-    Claim("Classification does not beat CIL (CIL is better)", (Comparison("cil", "classification"),)),
-    Claim("Co-existence beats classification but not CIL",
-          (Comparison("coexistence", "classification"), Comparison("cil", "coexistence"))),
-    Claim("MoE lands between CIL and GTU", (Comparison("moe", "cil"), Comparison("gtu", "moe"))),
-    Claim("Soft sharing lands between CIL and GTU",
-          (Comparison("soft_sharing", "cil"), Comparison("gtu", "soft_sharing"))),
-    Claim("Sluice lands between CIL and GTU", (Comparison("sluice", "cil"), Comparison("gtu", "sluice"))),
-    Claim("Sine encoding is (slightly) above CIL", (Comparison("sine", "cil"),)),
-)
-#: "cross-stitch fails to learn": its overall success is below this share of CIL's
-FAILS_TO_LEARN_SHARE = 0.25
-
-
-def part_verdict(e: Estimate) -> str:
-    if e.lo > 0:
-        return SUPPORTED
-    if e.hi < 0:
-        return CONTRADICTED
-    return INCONCLUSIVE
-
-
-def combine(verdicts: Sequence[str]) -> str:
-    if not verdicts or NOT_RUN in verdicts:
-        return NOT_RUN
-    if CONTRADICTED in verdicts:
-        return CONTRADICTED
-    return SUPPORTED if all(v == SUPPORTED for v in verdicts) else INCONCLUSIVE
-
-
-def judge(an: Analysis, paper: Mapping[str, Sequence[float]], labels: Mapping[str, str]) -> list[dict[str, Any]]:
-    """Every claim with each part's measured difference, interval, the paper's difference and a verdict."""
+def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
+    """Claims from their data (``claims:`` in conf/reproduce.yaml), checked: one clear error per bad entry."""
     out = []
-    for claim in CLAIMS:
+    for k, c in enumerate(spec or []):
+        where = f"claims[{k}] ({c.get('id', '?')})"
+        for key in ("id", "claim", "parts"):
+            if not c.get(key):
+                raise ValueError(f"{where} has no {key!r}; a claim needs id, claim, quote, source and parts")
         parts = []
-        for p in claim.parts:
-            if p.a not in an.rows or p.b not in an.rows:
-                parts.append({"comparison": p.text(labels), "verdict": NOT_RUN, "paper": p.paper(paper)})
-                continue
-            e = p.estimate(an)
-            parts.append({"comparison": p.text(labels), "measured": e.as_dict(), "paper": p.paper(paper),
-                          "verdict": part_verdict(e)})
-        out.append({"claim": claim.text, "verdict": combine([p["verdict"] for p in parts]), "parts": parts})
-    out.append(cross_stitch_claim(an, labels))
+        for j, p in enumerate(c["parts"]):
+            p = dict(p)
+            unknown = {str(k) for k in p} - {"a", "b", "column", "test", "relative", "hard", "easy", "b_scale"}
+            if unknown or "a" not in p or "b" not in p:
+                raise ValueError(f"{where} part {j}: needs a and b; accepted keys: a, b, column, test, relative, hard, "
+                                 f"easy, b_scale" + (f" (unknown: {', '.join(sorted(unknown))})" if unknown else ""))
+            on = p.get("column", "overall")
+            sels = [p.get("hard"), p.get("easy")] if on == "gap" else [on]
+            for s in sels:
+                if s not in SELECTORS:
+                    raise ValueError(f"{where} part {j}: unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
+                                     + (" (a gap needs hard and easy)" if on == "gap" else ", gap"))
+            if p.get("test", "greater") not in TESTS:
+                raise ValueError(f"{where} part {j}: unknown test {p.get('test')!r}; accepted: {', '.join(TESTS)}")
+            parts.append(Part(a=str(p["a"]), b=str(p["b"]), on=on, test=p.get("test", "greater"),
+                              relative=bool(p.get("relative", False)), hard=p.get("hard"), easy=p.get("easy"),
+                              b_scale=float(p.get("b_scale", 1.0))))
+        out.append(Claim(id=str(c["id"]), text=str(c["claim"]), parts=tuple(parts), quote=str(c.get("quote") or ""),
+                         source=str(c.get("source") or "")))
     return out
 
 
-def cross_stitch_claim(an: Analysis, labels: Mapping[str, str]) -> dict[str, Any]:
-    """"Cross-stitch fails to learn the driving task": its overall success stays below
-    ``FAILS_TO_LEARN_SHARE`` x CIL's (supported when the interval of the ratio's numerator says so)."""
-    text = "Cross-stitch fails to learn the driving task"
-    rule = f"cross-stitch overall < {FAILS_TO_LEARN_SHARE:.2f} x CIL overall"
-    if "cross_stitch" not in an.rows or "cil" not in an.rows:
-        return {"claim": text, "verdict": NOT_RUN, "parts": [{"comparison": rule, "verdict": NOT_RUN}]}
-    d = an.replicates["cross_stitch"][:, 4] - FAILS_TO_LEARN_SHARE * an.replicates["cil"][:, 4]
-    mean = an.estimates["cross_stitch"][4].mean - FAILS_TO_LEARN_SHARE * an.estimates["cil"][4].mean
-    e = Estimate(mean, *percentile_interval(d))
-    v = SUPPORTED if e.hi < 0 else CONTRADICTED if e.lo > 0 else INCONCLUSIVE
-    return {"claim": text, "verdict": v, "parts": [{"comparison": rule + " (measured: cross-stitch − 0.25 x CIL)",
-                                                    "measured": e.as_dict(), "paper": None, "verdict": v}]}
+def default_claims() -> list[Claim]:
+    """The paper's claims as shipped in ``conf/reproduce.yaml`` (``claims:``), read as plain YAML (no Hydra
+    state is touched, so this works inside a running app too)."""
+    from importlib.resources import files
+
+    import yaml
+
+    return load_claims(yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["claims"])
+
+
+def part_verdict(test: str, mean: float, significant: bool) -> str:
+    """A part's verdict from its direction and whether the difference is significant."""
+    if test == "not_greater":
+        return CONTRADICTED if significant and mean > 0 else SUPPORTED
+    if not significant or mean == 0:
+        return INCONCLUSIVE
+    up = mean > 0
+    return SUPPORTED if up == (test == "greater") else CONTRADICTED
+
+
+def combine(verdicts: Sequence[str]) -> str:
+    """A claim's verdict from its parts': contradicted > not run > too few seeds > inconclusive > supported."""
+    if not verdicts:
+        return NOT_RUN
+    for v in (CONTRADICTED, NOT_RUN, TOO_FEW, INCONCLUSIVE):
+        if v in verdicts:
+            return v
+    return SUPPORTED
+
+
+def _excludes_zero(e: Estimate) -> bool:
+    return e.lo is not None and e.hi is not None and (e.lo > 0 or e.hi < 0)
+
+
+def _pct_change(r: float | None) -> float | None:
+    return None if r is None or (isinstance(r, float) and math.isnan(r)) else round(100.0 * (r - 1.0), 1)
+
+
+def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[float]],
+          labels: Mapping[str, str]) -> list[dict[str, Any]]:
+    """Every claim with each part's measured difference (t-interval over seeds), its two-sided p-value,
+    the Holm-adjusted p-value over the family of parts with a verdict, the paper's difference, the episode
+    bootstrap's interval (secondary) and the verdicts, uncorrected and Holm."""
+    out, family = [], []
+    for claim in claims:
+        parts = []
+        for p in claim.parts:
+            rec: dict[str, Any] = {"comparison": p.text(labels), "test": p.test, "on": p.on, "paper": p.paper(paper)}
+            if p.relative:
+                rec["relative"] = {"paper": _pct_change(None if p.paper_relative(paper) is None
+                                                        else 1.0 + p.paper_relative(paper))}
+            if p.a not in an.rows or p.b not in an.rows:
+                rec.update(verdict=NOT_RUN, verdict_holm=NOT_RUN, method="–")
+                parts.append(rec)
+                continue
+            va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
+            d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
+            rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
+                       means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
+            rec["bootstrap"] = _boot_part(an, p).as_dict()
+            if p.relative:
+                r, lo, hi = ratio_interval([va[s] for s in sorted(va)], [vb[s] for s in sorted(vb)], d.paired)
+                rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi))
+            if not d.enough_seeds:
+                rec.update(verdict=TOO_FEW, verdict_holm=TOO_FEW)
+            else:
+                rec["verdict"] = part_verdict(p.test, d.estimate.mean, _excludes_zero(d.estimate))
+                family.append(rec)
+            parts.append(rec)
+        out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
+                    "parts": parts})
+    adjusted, reject = holm([r["p"] for r in family])
+    for rec, padj, rej in zip(family, adjusted, reject):
+        rec["p_holm"] = padj
+        rec["verdict_holm"] = part_verdict(rec["test"], rec["measured"]["mean"], rej)
+    for c in out:
+        c["verdict"] = combine([p["verdict"] for p in c["parts"]])
+        c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])
+    return out
+
+
+def _boot_part(an: Analysis, p: Part) -> Estimate:
+    """A part's difference in the episode bootstrap's replicates (secondary): the same statistic on
+    every replicate of A and B (paired by episode draw, seeds drawn per row)."""
+    ra, rb = an.replicates[p.a], an.replicates[p.b]
+    if p.on == "gap":
+        d = ((_boot_value(ra, p.hard) - p.b_scale * _boot_value(rb, p.hard))
+             - (_boot_value(ra, p.easy) - p.b_scale * _boot_value(rb, p.easy)))
+        va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
+    else:
+        d = _boot_value(ra, p.on) - p.b_scale * _boot_value(rb, p.on)
+        va, vb = an.per_seed(p.a, p.on), an.per_seed(p.b, p.on)
+    mean = float(np.mean(list(va.values())) - p.b_scale * np.mean(list(vb.values())))
+    return Estimate(mean, *percentile_interval(d))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -293,13 +567,20 @@ def _row_order(rows: Sequence[str], catalogue: Mapping[str, Mapping[str, Any]]) 
     return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
+def _method_text() -> str:
+    doc = __doc__ or ""
+    return doc.split("**Intervals (primary):")[1].split("**Verdicts.**")[0].strip() if "**Intervals (primary):" in doc else ""
+
+
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
                 catalogue: Mapping[str, Mapping[str, Any]], manifest: Mapping[str, Any],
-                n_boot: int = 4000) -> dict[str, Any]:
-    """Everything RESULTS.md shows, as JSON-ready data."""
+                n_boot: int = 4000, claims: Sequence[Claim] | None = None) -> dict[str, Any]:
+    """Everything RESULTS.md shows, as JSON-ready data (``claims``: the paper's, from conf/reproduce.yaml,
+    when not given)."""
     an = analyse(cells, n_boot=n_boot)
+    claims = default_claims() if claims is None else list(claims)
     labels = {r: str((catalogue.get(r) or {}).get("label", r)) for r in {*catalogue, *an.rows}}
-    paper = {r: list(catalogue[r]["paper"]) for r in catalogue if catalogue[r].get("paper")}
+    paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
     rows = []
     for r in _row_order(list(an.rows), catalogue):
         cs = an.rows[r]
@@ -311,8 +592,9 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
                     man.setdefault(m, []).append(100.0 * float(np.mean(v)))
         rows.append({
             "row": r, "label": labels[r], "decoder": cs[0].meta.get("decoder"),
-            "seeds": [c.seed for c in cs],
+            "seeds": [c.seed for c in cs], "enough_seeds": len(cs) >= MIN_SEEDS,
             "columns": {col: est.as_dict() for col, est in zip([*COLUMNS, "overall"], an.estimates[r])},
+            "bootstrap": {col: est.as_dict() for col, est in zip([*COLUMNS, "overall"], an.bootstrap[r])},
             "per_seed": {str(c.seed): {**{col: round(c.rate(col), 2) for col in COLUMNS}, "overall": round(c.rate(), 2)}
                          for c in cs},
             "manoeuvres": {m: round(float(np.mean(v)), 2) for m, v in man.items()},
@@ -320,20 +602,25 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
-    return {"manifest": dict(manifest), "method": __doc__.split("**Intervals.**")[1].split("**Verdicts.**")[0].strip(),
-            "n_boot": n_boot, "level": LEVEL, "rows": rows, "claims": judge(an, paper, labels),
+    return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
+            "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
+            "rows": rows, "claims": judge(an, claims, paper, labels),
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
 def results_csv(data: Mapping[str, Any]) -> str:
-    lines = ["row,label,decoder,column,mean,lo,hi,paper,per_seed"]
+    """One line per (row, column): the mean over seeds, the t-interval, the bootstrap's (secondary), the
+    paper's value and the per-seed values."""
+    lines = ["row,label,decoder,column,seeds,mean,lo,hi,boot_lo,boot_hi,paper,per_seed"]
+    nz = lambda v: "" if v is None else v  # noqa: E731
     for r in data["rows"]:
         for i, col in enumerate([*COLUMNS, "overall"]):
-            e = r["columns"][col]
+            e, b = r["columns"][col], r["bootstrap"][col]
             paper = r["paper"]
             pv = "" if not paper else f"{(paper[i] if i < 4 else float(np.mean(paper))):.2f}"
             per_seed = ";".join(f"{s}:{v[col]}" for s, v in r["per_seed"].items())
-            lines.append(f"{r['row']},\"{r['label']}\",{r['decoder'] or ''},{col},{e['mean']},{e['lo']},{e['hi']},{pv},{per_seed}")
+            lines.append(f"{r['row']},\"{r['label']}\",{r['decoder'] or ''},{col},{len(r['seeds'])},{e['mean']},"
+                         f"{nz(e['lo'])},{nz(e['hi'])},{nz(b['lo'])},{nz(b['hi'])},{pv},{per_seed}")
     return "\n".join(lines) + "\n"
 
 
@@ -341,40 +628,126 @@ def _pct(v: float | None) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.1f}"
 
 
+def _est(e: Mapping[str, Any], sign: str = "") -> str:
+    if e.get("lo") is None or e.get("hi") is None:
+        return f"{e['mean']:{sign}.1f}"
+    return f"{e['mean']:{sign}.1f} [{e['lo']:{sign}.1f}, {e['hi']:{sign}.1f}]"
+
+
+def _p(v: float | None) -> str:
+    if v is None:
+        return "–"
+    return "<0.001" if v < 0.001 else f"{v:.3f}"
+
+
+def _relative(rel: Mapping[str, Any] | None) -> str:
+    if not rel or rel.get("mean") is None:
+        return ""
+    if rel.get("lo") is None or rel.get("hi") is None:
+        return f"; relative {rel['mean']:+.0f}% (interval unbounded)"
+    return f"; relative {rel['mean']:+.0f}% [{rel['lo']:+.0f}, {rel['hi']:+.0f}]"
+
+
+def summary_lines(data: Mapping[str, Any]) -> list[str]:
+    """Sentences generated from the same numbers as the tables (for quoting in prose: no hand-written figure)."""
+    out = []
+    for r in data["rows"]:
+        o = r["columns"]["overall"]
+        seeds = " / ".join(f"{v['overall']:.1f}" for v in r["per_seed"].values())
+        few = "" if r["enough_seeds"] else f" (fewer than {data.get('min_seeds', MIN_SEEDS)} seeds: no verdict)"
+        out.append(f"- **{r['label']}**: {_est(o)}% overall over {len(r['seeds'])} seed(s){few}; per seed {seeds}.")
+    for c in data["claims"]:
+        bits = []
+        for p in c["parts"]:
+            if "measured" not in p:
+                bits.append(f"{p['comparison']}: {p['verdict']}")
+                continue
+            rel = p.get("relative") or {}
+            ab = f" ({p['means'][0]:.1f} vs {p['means'][1]:.1f})" if p["on"] != "gap" and p.get("means") else ""
+            paper = "" if p.get("paper") is None else f"; the paper {p['paper']:+.1f}"
+            if rel.get("paper") is not None:
+                paper += f" ({rel['paper']:+.0f}%)"
+            bits.append(f"{p['comparison']}{ab}: {_est(p['measured'], '+')} points{_relative(rel)} "
+                        f"({p['method']}{paper})")
+        out.append(f"- *{c['claim']}*: **{c['verdict']}** (Holm: **{c['verdict_holm']}**). " + "; ".join(bits) + ".")
+    return out
+
+
 def markdown(data: Mapping[str, Any]) -> str:
-    """RESULTS.md: the machine and budget, Table 4 with intervals and the paper's values, the claims,
-    success by manoeuvre, the learning curve and each cell's wall time."""
+    """RESULTS.md: the machine and budget, Table 4 with t-intervals over seeds and the paper's values, the
+    claims (uncorrected and Holm verdicts, each with its method, the episode bootstrap beside as a secondary
+    figure, the paper's sentences), a generated summary, per-seed values, success by manoeuvre, the
+    learning curve and each cell's wall time."""
     m = data["manifest"]
+    min_seeds = data.get("min_seeds", MIN_SEEDS)
     lines = ["# Reproduction of the paper's Table 4", ""]
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
               f"({m.get('episodes', '?')} episodes per cell); dataset: {m.get('dataset_summary', '?')}.",
               f"- **Machine:** {m.get('machine', '?')}.",
               f"- **Cells:** {sum(len(r['seeds']) for r in data['rows'])} finished"
               + (f", {len(data['failed'])} failed" if data["failed"] else "") + ".",
-              f"- **Intervals:** 95%, {data['n_boot']} replicates of a two-level bootstrap "
-              "(seeds, then episodes within each column; paired by episode between rows). "
-              "Success in %; each cell `mean over seeds [95% interval]`, the paper's value in *italics* below.", ""]
+              "- **Intervals:** 95% t-intervals over seeds (the seed is the unit of replication: "
+              "`mean ± t(0.975, n−1) · sd / √n` over the per-seed success rates; in a table column never narrower "
+              "than the pooled episodes' Clopper-Pearson interval). Success in %; each cell "
+              "`mean over seeds [95% interval]`, the paper's value in *italics* below. *Overall* is the mean of "
+              "the four columns (per seed, then over seeds), not the success pooled over episodes. "
+              f"A row with fewer than {min_seeds} seeds is shown but gets no verdict (†).", ""]
     lines += ["| Row | Decoder | Seeds | " + " | ".join(COLUMN_NAMES) + " | Overall |",
               "|---|---|---:|" + "---:|" * 5]
     for r in data["rows"]:
         cells = []
         for i, col in enumerate([*COLUMNS, "overall"]):
-            e = r["columns"][col]
             paper = r["paper"]
             pv = None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
-            cells.append(f"{e['mean']:.1f} [{e['lo']:.1f}, {e['hi']:.1f}]<br>*{_pct(pv)}*")
-        lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {len(r['seeds'])} | " + " | ".join(cells) + " |")
+            cells.append(f"{_est(r['columns'][col])}<br>*{_pct(pv)}*")
+        seeds = f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
+        lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {seeds} | " + " | ".join(cells) + " |")
+    if any(not r["enough_seeds"] for r in data["rows"]):
+        lines += ["", f"† fewer than {min_seeds} seeds: too few seeds for a verdict (with 2 seeds the t-interval "
+                      "uses t(0.975, 1) = 12.7; with 1 seed there is none)."]
     lines += ["", "## The paper's claims", "",
-              "Verdict per claim at this budget: *supported* when the 95% interval of the measured "
-              "difference lies above 0, *contradicted* when below, *inconclusive* when it contains 0.", "",
-              "| Claim | Comparison | Measured (points) | Paper | Verdict |", "|---|---|---:|---:|---|"]
+              "Each part of a claim is a difference of per-seed values (A − B, points), tested two-sided: "
+              "**paired t** over the per-seed differences when both rows ran the same seeds (the same seed trains "
+              "on the same split), **Welch t** otherwise. *Verdict*: uncorrected, from the 95% t-interval "
+              "(*supported* when it lies on the claim's side of 0, *contradicted* on the other side, "
+              "*inconclusive* when it contains 0; a *not better than* part is contradicted only when A is "
+              "significantly better than B). *Holm*: the same with Holm-adjusted p-values over the family of "
+              f"every part with a verdict (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
+              "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
+              "figure (too narrow with few seeds), not used for a verdict.", "",
+              "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
+              "Holm verdict | Bootstrap (secondary) |",
+              "|---|---|---|---:|---:|---:|---:|---|---|---:|"]
     for c in data["claims"]:
         for k, p in enumerate(c["parts"]):
             meas = p.get("measured")
-            ms = f"{meas['mean']:+.1f} [{meas['lo']:+.1f}, {meas['hi']:+.1f}]" if meas else "–"
+            rel = p.get("relative")
+            ms = (_est(meas, "+") + _relative(rel)) if meas else "–"
             pp = "–" if p.get("paper") is None else f"{p['paper']:+.1f}"
-            head = f"{c['claim']} (**{c['verdict']}**)" if k == 0 else ""
-            lines.append(f"| {head} | {p['comparison']} | {ms} | {pp} | {p['verdict']} |")
+            if rel and rel.get("paper") is not None:
+                pp += f"; {rel['paper']:+.0f}%"
+            boot = _est(p["bootstrap"], "+") if p.get("bootstrap") else "–"
+            head = (f"{c['claim']} (**{c['verdict']}**; Holm **{c['verdict_holm']}**)" if k == 0 else "")
+            lines.append(f"| {head} | {p['comparison']} | {p.get('method', '–')} | {ms} | {pp} | {_p(p.get('p'))} | "
+                         f"{_p(p.get('p_holm'))} | {p['verdict']} | {p.get('verdict_holm', '–')} | {boot} |")
+    quoted = [c for c in data["claims"] if c.get("quote")]
+    if quoted:
+        lines += ["", "### The claims in the paper's words", ""]
+        lines += [f"- **{c['claim']}** — “{c['quote']}” ({c['source']})" for c in quoted]
+    lines += ["", "## Summary (generated from the numbers above)", "", *summary_lines(data)]
+    lines += ["", "## Per seed (success %, overall = mean of the four columns)", "",
+              "| Row | Seed | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
+    for r in data["rows"]:
+        for s, v in r["per_seed"].items():
+            lines.append(f"| {r['label']} | {s} | " + " | ".join(f"{v[c]:.1f}" for c in [*COLUMNS, "overall"]) + " |")
+    lines += ["", f"## Secondary: the two-level episode bootstrap ({data['n_boot']} replicates)", "",
+              "Seeds, then episodes within each column, drawn with replacement (paired by episode between rows). "
+              "Kept for comparison with earlier reports; with few seeds its intervals are too narrow "
+              "(docs/reproduce.md gives its simulated coverage).", "",
+              "| Row | Seeds | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
+    for r in data["rows"]:
+        lines.append(f"| {r['label']} | {len(r['seeds'])} | "
+                     + " | ".join(_est(r["bootstrap"][c]) for c in [*COLUMNS, "overall"]) + " |")
     if any(r["manoeuvres"] for r in data["rows"]):
         names = [n for n in ("left", "right", "straight") if any(n in r["manoeuvres"] for r in data["rows"])]
         lines += ["", "## Success by manoeuvre (mean over seeds, %)", "",
@@ -423,7 +796,7 @@ def curve_table(data: Mapping[str, Any]) -> list[str]:
 
 
 def plot_results(data: Mapping[str, Any], path: Path) -> Path:
-    """Success per column with 95% interval bars for each row; the paper's values as crosses in the row's colour."""
+    """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses in the row's colour."""
     from cicfw.bench.plots import _plt, _save
 
     plt = _plt()
@@ -436,8 +809,10 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
         xs = x - 0.4 + width * (k + 0.5)
         est = [r["columns"][c] for c in [*COLUMNS, "overall"]]
         mean = np.array([e["mean"] for e in est])
-        err = np.array([[e["mean"] - e["lo"] for e in est], [e["hi"] - e["mean"] for e in est]])
-        ax.errorbar(xs, mean, yerr=err, fmt="o", color=cmap(k % 10), capsize=3, label=r["label"])
+        err = np.array([[e["mean"] - e["lo"] if e["lo"] is not None else 0.0 for e in est],
+                        [e["hi"] - e["mean"] if e["hi"] is not None else 0.0 for e in est]])
+        label = r["label"] + ("" if r.get("enough_seeds", True) else f" ({len(r['seeds'])} seed(s): too few)")
+        ax.errorbar(xs, mean, yerr=err, fmt="o", color=cmap(k % 10), capsize=3, label=label)
         if r["paper"]:
             pv = [*r["paper"], float(np.mean(r["paper"]))]
             ax.scatter(xs, pv, marker="x", color=cmap(k % 10), s=36, zorder=3)
@@ -448,7 +823,7 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=min(len(rows) + 1, 4), frameon=False)
     suite = (data["manifest"].get("suite") or {}).get("name", "?")
-    ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% bootstrap interval")
+    ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds")
     return _save(fig, Path(path))
 
 
@@ -481,15 +856,17 @@ def _with_pictures(md: str, pics: Path | str, curve: bool) -> str:
             + (f"\n![learning curve]({prefix}learning_curve.png)\n" if curve else ""))
 
 
-def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], n_boot: int = 4000) -> dict[str, Any]:
-    """results.json, results.csv, RESULTS.md and the two pictures in ``results_dir``; returns the data."""
+def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], n_boot: int = 4000,
+                 claims: Sequence[Claim] | None = None) -> dict[str, Any]:
+    """results.json, results.csv, RESULTS.md and the two pictures in ``results_dir``; returns the data.
+    ``claims``: the paper's (conf/reproduce.yaml) when not given."""
     results_dir = Path(results_dir)
     manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
     cells, failed = load_cells(results_dir)
     if not cells:
         raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
-    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot)
+    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims)
     atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
     atomic_write(results_dir / "results.csv", results_csv(data))
     plot_results(data, results_dir / "results.png")
@@ -522,6 +899,48 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     return out
 
 
+def continue_published(src: Path, results_dir: Path, pinned: Mapping[str, Any]) -> dict[str, Any]:
+    """Seed ``results_dir`` from a published results folder ``src`` (e.g. docs/results/<budget>, as
+    ``publish`` writes it: ``reproduce.json`` and ``cells/*/seed*/cell.json``), so that a fresh clone grows
+    the same table. ``pinned`` is this plan's fingerprint (budget, training overrides, suite, dataset hash):
+    a folder pinned to anything else is refused with one line. Copied: the manifest (when ``results_dir``
+    has none; a ``continued_from`` entry records the source) and every finished cell that ``results_dir``
+    lacks, which the launcher then skips. Never overwritten: a cell ``results_dir`` already has. Not
+    copied: failed cells (they are retried). Returns {"copied": [...], "kept": [...]} (row/seedN names)."""
+    import time
+
+    src, results_dir = Path(src), Path(results_dir)
+    man_path = src / "reproduce.json"
+    if not man_path.is_file():
+        raise ValueError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); "
+                         f"give the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json")
+    old = json.loads(man_path.read_text())
+    theirs = old.get("pinned") or {}
+    if theirs.get("hash") != pinned.get("hash"):
+        diff = [k for k in ("budget", "train", "suite", "dataset") if theirs.get(k) != pinned.get(k)] or ["settings"]
+        raise ValueError(f"continue_from={str(src)!r} was made with budget={theirs.get('budget')} and another "
+                         f"{'/'.join(diff)} (dataset {theirs.get('dataset')}, here {pinned.get('dataset')}); "
+                         f"continue it with its own budget and dataset, or start a new folder without continue_from")
+    copied, kept = [], []
+    for f in sorted(src.glob("cells/*/seed*/cell.json")):
+        d = json.loads(f.read_text())
+        if d.get("status") != "ok":
+            continue
+        target = results_dir / f.relative_to(src)
+        name = f"{f.parent.parent.name}/{f.parent.name}"
+        if target.is_file() and json.loads(target.read_text()).get("status") == "ok":
+            kept.append(name)
+            continue
+        atomic_write(target, f.read_bytes())
+        copied.append(name)
+    dest = results_dir / "reproduce.json"
+    if not dest.is_file():
+        old.setdefault("continued_from", []).append({"from": str(src), "cells": copied,
+                                                     "date": time.strftime("%Y-%m-%d %H:%M:%S")})
+        atomic_write(dest, json.dumps(old, indent=1))
+    return {"copied": copied, "kept": kept}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cicfw.bench.results RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
     import argparse
@@ -537,8 +956,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from omegaconf import OmegaConf
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            catalogue = OmegaConf.to_container(compose("reproduce").catalogue, resolve=True)
-        data = write_report(Path(a.results_dir), catalogue)
+            cfg = compose("reproduce")
+            catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
+            claims = load_claims(OmegaConf.to_container(cfg.claims, resolve=True))
+        data = write_report(Path(a.results_dir), catalogue, claims=claims)
         if a.publish:
             publish(Path(a.results_dir), Path(a.publish))
         if a.markdown:
