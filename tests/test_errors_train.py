@@ -57,9 +57,9 @@ def _cfg(tmp_path: Path, *overrides: str):
     (["head=hybrid", "+head.foo=1"], ValueError,  # HybridHead(W, **bins_kwargs): the bins' keys count too
      "head.foo is not an argument of head 'hybrid'; accepted keys: W, bin_width, decode, high, low, n_classes, name"),
     (["+encoder.foo=1"], ValueError,
-     "encoder.foo is not an argument of encoder 'cil'; accepted keys: dropout_conv, dropout_fc, name, out_dim"),
+     "encoder.foo is not an argument of encoder 'cil'; accepted keys: dropout_conv, dropout_fc, dropout_image_fc, dropout_join, dropout_speed_fc, name, out_dim"),
     (["+model.foo=1"], ValueError,
-     "model.foo is not an argument of the model (CICModule); accepted keys: betas, lr, speed_norm_kmh, weight_decay"),
+     "model.foo is not an argument of the model (CICModule); accepted keys: betas, lr, lr_final_factor, lr_schedule, speed_norm_kmh, weight_decay"),
     (["+data.foo=1"], ValueError, "data.foo is not an argument of the CIL datamodule; accepted keys: augment,"),
     (["data.batch_size=6"], ValueError,
      "data.batch_size must be a multiple of 4 for balanced batches (4 commands), got 6; or set data.balanced=false"),

@@ -24,12 +24,24 @@ def _fc(i: int, o: int, dropout: float) -> nn.Sequential:
 
 @ENCODERS.register("cil")
 class CILEncoder(Encoder):
-    """8 conv (BN, ReLU) -> 8192 -> FC 512 -> FC 512; speed FC 128 -> 128; concat -> FC 512."""
+    """8 conv (BN, ReLU) -> 8192 -> FC 512 -> FC 512; speed FC 128 -> 128; concat -> FC 512.
 
-    def __init__(self, dropout_conv: float = 0.2, dropout_fc: float = 0.5, out_dim: int = 512) -> None:
+    Dropout defaults follow the CIL authors' released network (carla-simulator/imitation-learning,
+    ``dropout_vec``): none after the convolutions, 0.3 after the image FCs, 0.5 after the speed FCs
+    and after the join. ``dropout_fc`` (one rate for every FC, cicfw 0.1's layout with
+    ``dropout_conv=0.2, dropout_fc=0.5``) overrides the three FC rates when given.
+    """
+
+    def __init__(self, dropout_conv: float = 0.0, dropout_image_fc: float = 0.3, dropout_speed_fc: float = 0.5,
+                 dropout_join: float = 0.5, dropout_fc: float | None = None, out_dim: int = 512) -> None:
         super().__init__()
-        if not (0 <= dropout_conv < 1 and 0 <= dropout_fc < 1):
-            raise ValueError(f"encoder dropouts must be in [0, 1), got {dropout_conv}, {dropout_fc}")
+        if dropout_fc is not None:
+            dropout_image_fc = dropout_speed_fc = dropout_join = dropout_fc
+        rates = {"dropout_conv": dropout_conv, "dropout_image_fc": dropout_image_fc,
+                 "dropout_speed_fc": dropout_speed_fc, "dropout_join": dropout_join}
+        for name, p in rates.items():
+            if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p < 1:
+                raise ValueError(f"encoder.{name}={p!r} is not valid; use a probability in [0, 1)")
         layers: list[nn.Module] = []
         c_in = 3
         for c_out, k, s in CIL_CONVS:
@@ -40,9 +52,9 @@ class CILEncoder(Encoder):
         self.convs = nn.Sequential(*layers)
         with torch.no_grad():
             flat = self.convs(torch.zeros(1, 3, *IMAGE_HW)).numel()  # 256 x 2 x 16 = 8192
-        self.image_fc = nn.Sequential(_fc(flat, 512, dropout_fc), _fc(512, 512, dropout_fc))
-        self.speed_fc = nn.Sequential(_fc(1, 128, dropout_fc), _fc(128, 128, dropout_fc))
-        self.join = _fc(512 + 128, out_dim, dropout_fc)
+        self.image_fc = nn.Sequential(_fc(flat, 512, dropout_image_fc), _fc(512, 512, dropout_image_fc))
+        self.speed_fc = nn.Sequential(_fc(1, 128, dropout_speed_fc), _fc(128, 128, dropout_speed_fc))
+        self.join = _fc(512 + 128, out_dim, dropout_join)
         self.out_dim = out_dim
 
     def forward(self, image: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:

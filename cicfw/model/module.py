@@ -8,7 +8,8 @@ Batches are dicts: ``image`` uint8 (B, 3, 88, 200), ``speed`` km/h (B,), ``comma
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+import math
+from typing import Any, Callable, Mapping
 
 import lightning as L
 import torch
@@ -17,6 +18,19 @@ from torchmetrics.classification import MulticlassAccuracy
 
 from cicfw import COMMANDS
 from cicfw.registry import ENCODERS, HEADS, MIXERS
+
+
+def cosine_factor(total_steps: int, final: float) -> Callable[[int], float]:
+    """lr(step) / lr: half a cosine from 1 at the first step to ``final`` after ``total_steps``."""
+    return lambda step: final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
+
+
+#: the learning-rate schedules over a run (``model.lr_schedule``); the paper names none, so the
+#: default stays constant. ``cosine`` ends a short run with small steps instead of on a knife edge.
+LR_SCHEDULES: dict[str, Callable[[int, float], Callable[[int], float] | None]] = {
+    "constant": lambda total, final: None,
+    "cosine": cosine_factor,
+}
 
 
 class CICModule(L.LightningModule):
@@ -34,11 +48,17 @@ class CICModule(L.LightningModule):
         betas: tuple[float, float] = (0.7, 0.85),
         weight_decay: float = 0.0,
         speed_norm_kmh: float = 40.0,
+        lr_schedule: str = "constant",
+        lr_final_factor: float = 0.0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         if lr <= 0:
             raise ValueError(f"lr must be > 0, got {lr}")
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"model.lr_schedule={lr_schedule!r} is not known; use one of {', '.join(LR_SCHEDULES)}")
+        if not 0.0 <= lr_final_factor <= 1.0:
+            raise ValueError(f"model.lr_final_factor={lr_final_factor!r} is not valid; use a number in [0, 1]")
         if speed_norm_kmh <= 0:
             raise ValueError(f"speed_norm_kmh must be > 0, got {speed_norm_kmh}")
         self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
@@ -142,8 +162,15 @@ class CICModule(L.LightningModule):
             self.log("val/bin_acc", self.val_bin_acc.compute())
             self.val_bin_acc.reset()
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> Any:
         hp = self.hparams
         impl = {"fused": {"fused": True}, "foreach": {"foreach": True}}.get(self.adam_impl, {"foreach": False})
-        return torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay,
-                                **impl)
+        opt = torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay,
+                               **impl)
+        schedule = hp.get("lr_schedule", "constant")  # checkpoints written before schedules existed
+        if schedule == "constant":
+            return opt
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        factor = LR_SCHEDULES[schedule](total, float(hp.get("lr_final_factor", 0.0)))
+        return {"optimizer": opt,
+                "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}

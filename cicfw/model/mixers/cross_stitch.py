@@ -7,6 +7,8 @@ With α = I this is exactly ``independent``.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import nn
 
@@ -37,7 +39,8 @@ class CrossStitchMixer(Mixer):
     """CIL branches with a learned 4x4 cross-stitch α after each of their two hidden layers."""
 
     def __init__(
-        self, in_dim: int, out_dim: int, alpha_diag: float = 0.9, hidden: int = 256, dropout: float = 0.5
+        self, in_dim: int, out_dim: int, alpha_diag: float = 0.9, hidden: int = 256,
+        dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
         super().__init__(in_dim, out_dim)
         check_unit_interval("alpha_diag", alpha_diag, "the initial self-weight of each branch (paper: 0.9)")

@@ -6,6 +6,8 @@ mixes them: ``A = C Â``. The gate lets the network switch a branch-to-branch li
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import nn
 
@@ -42,7 +44,8 @@ def colearn(coefs: torch.Tensor, outputs: torch.Tensor) -> tuple[torch.Tensor, t
 class GTUMixer(Mixer):
     """CIL branches, then ``A = C Â`` with ``C = I + offdiag(tanh(W_a h) * sigmoid(W_g h))`` per sample."""
 
-    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, dropout: float = 0.5) -> None:
+    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256,
+                 dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
         super().__init__(in_dim, out_dim)
         check_branch_kwargs(hidden, dropout)
         n = self.n_branches

@@ -8,6 +8,8 @@ branch MLP ``expert_dim -> hidden -> hidden -> K``.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import nn
 
@@ -28,7 +30,7 @@ class MoEMixer(Mixer):
         experts: int = 4,
         expert_dim: int = 512,
         hidden: int = 256,
-        dropout: float = 0.5,
+        dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
         super().__init__(in_dim, out_dim)
         check_positive_int("experts", experts, "the number of experts E (E >= 1)")

@@ -48,7 +48,7 @@ class REMixer(Mixer):
         R: Sequence[Sequence[int]] = DEFAULT_R,
         coef_hidden: int = 128,
         hidden: int = 256,
-        dropout: float = 0.5,
+        dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
         super().__init__(in_dim, out_dim)
         n = self.n_branches

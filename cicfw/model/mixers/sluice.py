@@ -11,6 +11,8 @@ With α = I and β = (0, ..., 0, 1) this is exactly ``independent``.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import nn
 
@@ -34,7 +36,7 @@ class SluiceMixer(Mixer):
         beta_last: float = 0.9,
         ortho: float = 1e-3,
         hidden: int = 256,
-        dropout: float = 0.5,
+        dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
         super().__init__(in_dim, out_dim)
         check_branch_kwargs(hidden, dropout)

@@ -5,6 +5,8 @@ every pair of branches, pulling the branches towards each other instead of shari
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import nn
 
@@ -18,7 +20,8 @@ from cicfw.registry import MIXERS
 class SoftSharingMixer(Mixer):
     """Four CIL branches; regularizer ``λ Σ_{i<j} ||θ_i − θ_j||²`` (all weights and biases of a branch)."""
 
-    def __init__(self, in_dim: int, out_dim: int, lam: float = 1e-4, hidden: int = 256, dropout: float = 0.5) -> None:
+    def __init__(self, in_dim: int, out_dim: int, lam: float = 1e-4, hidden: int = 256,
+                 dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
         super().__init__(in_dim, out_dim)
         if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam >= 0):
             raise ValueError(f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a number >= 0")
