@@ -155,11 +155,23 @@ class EpochCheckpoints(Callback):
             trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
 
 
+def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
+    """``<dirpath>/last.ckpt`` rewritten after every epoch (after validation when it runs): always the
+    latest weights and training state, the one to resume from. A callback of its own because
+    ``ModelCheckpoint(monitor=..., save_last=True)`` refreshes ``last.ckpt`` only when it saves a new
+    best checkpoint (Lightning 2.x): after a run whose validation error rose it held an older epoch."""
+    return ModelCheckpoint(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False)
+
+
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
+    """The best checkpoint by ``optimized_metric`` (first: ``trainer.checkpoint_callback``, and it saves
+    before ``last.ckpt`` so that file records the updated best), ``last.ckpt``, the mixer's diagnostics,
+    the kept epochs and the progress bar."""
     callbacks: list[Callback] = [
         ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
-                        save_last=True, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
+                        save_last=False, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
                         auto_insert_metric_name=False),
+        last_checkpoint(run_dir / "checkpoints"),
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
     ]
     if cfg.get("keep_epoch_checkpoints"):
