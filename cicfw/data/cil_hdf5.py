@@ -20,6 +20,7 @@ N_TARGETS = 28
 SAMPLES_PER_FILE = 200
 COMMAND_CODES = (2, 3, 4, 5)  # follow, left, right, straight -> branch = code - 2
 IMAGE_KEYS = ("rgb", "images_center")  # accepted names of the image dataset, in order of preference
+KNOWN_CAMERA_IDS = {0: "centre", 1: "left", 2: "right"}  # targets[26] in files cicfw writes
 
 
 class T:

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from cicfw import COMMANDS
-from cicfw.data.cil_hdf5 import COMMAND_CODES, CILFormatError, T, check_file, find_files, read_targets
+from cicfw.data.cil_hdf5 import (COMMAND_CODES, KNOWN_CAMERA_IDS, CILFormatError, T, check_file, find_files,
+                                 read_targets)
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,10 @@ def load_frames(
     - steer of side cameras is corrected: ``steer - correction * yaw / 30`` (yaw in degrees,
       positive right: a camera looking right sees the road drift left, so the label steers left);
     - samples with |corrected steer| > ``max_abs_steer`` are dropped (the paper keeps [-0.8, 0.8]);
-    - an unknown command code is an error naming the file.
+    - an unknown command code is an error naming the file;
+    - samples of a camera id outside ``cameras`` are dropped; when the id is none of the known ones
+      (``KNOWN_CAMERA_IDS``: 0 centre, 1 left, 2 right) the user cannot have meant to leave it out, so
+      a warning names the file, its unknown id(s) and the accepted ones, once per file.
     """
     files = find_files(path)
     for f in files:
@@ -107,6 +111,8 @@ def load_frames(
             neg_files += 1
             lowest = min(lowest, (float(speed[negative].min()), f.name, int(np.argmin(np.where(negative, speed, 0)))))
         rows = np.flatnonzero(finite)
+        if cameras is not None:
+            _warn_unknown_cameras(f, np.nan_to_num(t[rows, T.CAMERA_ID]).astype(np.int32), cameras)
         yaw = np.nan_to_num(t[rows, T.CAMERA_YAW])
         steer = t[rows, T.STEER] - side_camera_correction * yaw / 30.0
         parts.append((np.full(len(rows), i, np.int32), rows.astype(np.int32), steer.astype(np.float32),
@@ -125,6 +131,18 @@ def load_frames(
     if cameras is not None:
         keep &= np.isin(frames.camera, list(cameras))
     return frames.subset(keep)
+
+
+def _warn_unknown_cameras(path: Path, camera: np.ndarray, cameras: tuple[int, ...]) -> None:
+    """One warning for a file whose samples carry camera ids that are neither chosen nor known."""
+    unknown = ~np.isin(camera, list(cameras)) & ~np.isin(camera, list(KNOWN_CAMERA_IDS))
+    if not unknown.any():
+        return
+    ids = sorted(set(np.unique(camera[unknown]).tolist()))
+    known = ", ".join(f"{i} {name}" for i, name in KNOWN_CAMERA_IDS.items())
+    log.warning("%s: camera id(s) %s in targets[26] (%d sample(s)) are not among data.cameras %s (known ids: %s); "
+                "those samples are dropped: add the id(s) to data.cameras, or set data.cameras=null for every "
+                "camera, to train on them", path, ids, int(unknown.sum()), sorted(int(c) for c in cameras), known)
 
 
 def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Frames, Frames]:
