@@ -1,5 +1,8 @@
 """Collect a CIL HDF5 dataset: ``python -m cicfw.collect [sim=embedded|carla] [key=value ...]``.
 
+``verify=true`` (or ``--verify``) checks a collected folder instead, changing nothing: every file against
+its recorded size and SHA-256, one line per missing or corrupt file, exit status 2 if any.
+
 A thin Hydra app over the collection engine ``cicfw.sim.collection`` (episodes, workers, files,
 metadata, resume, the folder lock and the other guarantees are documented there and in
 docs/simulator.md). Every config error, a locked or unwritable folder and a full disk print one line
@@ -13,7 +16,7 @@ from pathlib import Path
 
 from cicfw.sim.collection import (  # noqa: F401  (the engine's API, re-exported for callers of cicfw.collect)
     CAMERA_IDS, DEFAULTS, SIM_VERSION, CollectConfigError, CollectError, DiskFullError, FolderLockedError,
-    collect_dataset, episode_plan, resolve_config, run_episode)
+    collect_dataset, episode_plan, resolve_config, run_episode, verify_dataset)
 
 
 def run(cfg) -> str:
@@ -22,8 +25,26 @@ def run(cfg) -> str:
 
     @report_user_errors
     def go() -> str:
-        out_dir = Path(str(cfg.out_dir)).expanduser()
-        meta = collect_dataset(cfg, out_dir)
+        from omegaconf import DictConfig, OmegaConf
+
+        raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+        verify = raw.pop("verify", False)
+        if not isinstance(verify, bool):
+            raise CollectConfigError(f"collect: verify must be true or false, got {verify!r}")
+        out_dir = Path(str(raw["out_dir"])).expanduser()
+        if verify:
+            lock_wait = raw.get("lock_wait", 0)
+            if lock_wait is not None and (isinstance(lock_wait, bool) or not isinstance(lock_wait, (int, float))
+                                          or lock_wait < 0):
+                raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
+                                         f"(wait as long as it takes), got {lock_wait!r}")
+            report = verify_dataset(out_dir, lock_wait)
+            for line in report.lines():
+                print(f"cicfw: {line}", file=sys.stderr)
+            if not report.ok:
+                raise CollectError(report.summary())
+            return report.summary()
+        meta = collect_dataset(raw, out_dir)
         m = json.loads(meta.read_text())
         return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
                 f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
@@ -38,6 +59,8 @@ def run(cfg) -> str:
 
 def _main() -> None:
     import hydra
+
+    sys.argv = ["verify=true" if a == "--verify" else a for a in sys.argv]  # `cicfw collect --verify`
     from omegaconf import DictConfig
 
     @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="collect")

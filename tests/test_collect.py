@@ -4,6 +4,7 @@ one-line errors (collect and preview), and the engine over the backend interface
 The integrity guarantees under faults (lock, killed parent, full disk ...) are in test_collect_integrity.py."""
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -56,8 +57,9 @@ def test_files_read_back_with_cil_values(small_dataset: Path):
     meta = json.loads((small_dataset / "dataset_metadata.json").read_text())
     assert meta["complete"] and meta["counts"]["samples"] == 480 and meta["towns"] == ["town_a"]
     assert meta["sim_version"] and meta["weathers"] == ["ClearNoon", "ClearSunset"]
-    assert meta["files"]["ep0001_town_a_ClearSunset_001.h5"] == {"episode": "ep0001_town_a_ClearSunset",
-                                                                 "samples": 40}
+    last = small_dataset / "ep0001_town_a_ClearSunset_001.h5"
+    assert meta["files"][last.name] == {"episode": "ep0001_town_a_ClearSunset", "samples": 40,
+                                        "sha256": hashlib.sha256(last.read_bytes()).hexdigest()}
 
 
 def test_noise_label_is_the_experts_steer_not_the_noisy_one(tmp_path: Path):

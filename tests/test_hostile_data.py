@@ -1,12 +1,22 @@
 """Issue 17, the data layer's hostile cases: nothing the reader drops is dropped without a word."""
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import shutil
+import subprocess
+import sys
 
 import h5py
 import numpy as np
+import pytest
+from hydra import compose, initialize_config_module
 
+import cicfw.collect as collect_mod
+import cicfw.sim.collection as engine
 from cicfw.data.cil_hdf5 import T
+from cicfw.sim.collection import collect_dataset
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
 
@@ -64,3 +74,131 @@ def test_known_cameras_left_out_on_purpose_raise_no_warning(tmp_path, caplog):
         frames = load_frames(str(folder), max_abs_steer=1.0, cameras=(0,))
     assert set(frames.camera.tolist()) == {0}
     assert _camera_warnings(caplog) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# item 6: a checksum per collected file, verified on resume and by `cicfw collect --verify`
+
+TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
+FIRST = "ep0000_town_a_ClearNoon_000.h5"
+
+
+def _meta(out) -> dict:
+    return json.loads((out / "dataset_metadata.json").read_text())
+
+
+def _flip(path, at: float = 0.6, n: int = 16) -> bytes:
+    """Flip ``n`` bytes inside the file (in the images, past the HDF5 header: it still opens, same size)."""
+    data = bytearray(path.read_bytes())
+    i = int(len(data) * at)
+    data[i:i + n] = bytes(b ^ 0xFF for b in data[i:i + n])
+    path.write_bytes(bytes(data))
+    return bytes(data)
+
+
+def _collect_cfg(out, *overrides: str):
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        return compose("collect", overrides=[f"out_dir={out}", "episodes=2", "seconds=2", "weathers=[ClearNoon]",
+                                             "cameras=[centre]", "workers=0", *overrides])
+
+
+@pytest.fixture(scope="module")
+def tiny_collection(tmp_path_factory):
+    out = tmp_path_factory.mktemp("collected")
+    collect_dataset(TINY, out, progress=False)
+    return out, {p.name: p.read_bytes() for p in sorted(out.glob("*.h5"))}
+
+
+@pytest.fixture
+def collected(tiny_collection, tmp_path):
+    src, files = tiny_collection
+    out = tmp_path / "collected"
+    shutil.copytree(src, out)
+    return out, files
+
+
+def test_the_metadata_keeps_a_checksum_of_every_file(collected):
+    out, files = collected
+    meta = _meta(out)
+    assert meta["complete"]
+    for name, data in files.items():
+        assert meta["files"][name]["sha256"] == hashlib.sha256(data).hexdigest(), name
+    marker = json.loads((out / ".episodes" / "ep0000_town_a_ClearNoon.json").read_text())
+    assert marker["files"][0]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()
+
+
+def test_flipped_bytes_are_named_on_rerun_and_the_episode_collected_again(collected, caplog):
+    """A finished file with bytes flipped (same size, still opens as HDF5): a rerun used to say complete=True."""
+    out, files = collected
+    _flip(out / FIRST)
+    with caplog.at_level(logging.INFO, logger="cicfw.sim.collection"):
+        meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
+    said = [r.getMessage() for r in caplog.records if FIRST in r.getMessage() and r.levelno >= logging.WARNING]
+    assert len(said) == 1, said
+    assert "checksum" in said[0] and "collected again" in said[0] and "\n" not in said[0]
+    assert meta["complete"]
+    assert (out / FIRST).read_bytes() == files[FIRST]  # re-collected, byte-identical
+    assert meta["files"][FIRST]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()
+
+
+def test_verify_says_ok_on_a_sound_dataset_and_changes_nothing(collected, capsys):
+    out, files = collected
+    before = (out / "dataset_metadata.json").read_bytes()
+    line = collect_mod.run(_collect_cfg(out, "verify=true"))
+    assert line.startswith(f"verified {out}: ") and "2 file(s)" in line and "match their checksums" in line, line
+    assert (out / "dataset_metadata.json").read_bytes() == before
+
+
+def test_verify_names_each_corrupt_file_in_one_line_and_exits_2(collected, capsys, monkeypatch):
+    out, files = collected
+    flipped = _flip(out / FIRST)
+    (out / "ep0001_town_a_ClearNoon_000.h5").unlink()
+    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("verify must not collect"))
+    with pytest.raises(SystemExit) as exc:
+        collect_mod.run(_collect_cfg(out, "verify=true"))
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0].startswith(f"cicfw: corrupt: {out / FIRST}: ") and "sha256" in lines[0]
+    assert lines[1].startswith(f"cicfw: missing: {out / 'ep0001_town_a_ClearNoon_000.h5'}")
+    assert lines[2].startswith("cicfw: error: 2 of 2 file(s) of ") and "rerun the same collect command" in lines[2]
+    assert (out / FIRST).read_bytes() == flipped  # verify changes nothing
+
+
+def test_verify_on_the_real_command_line_with_the_flag(collected):
+    out, _ = collected
+    _flip(out / FIRST)
+    r = subprocess.run([sys.executable, "-m", "cicfw.collect", f"out_dir={out}", "--verify"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert lines[0].startswith(f"cicfw: corrupt: {out / FIRST}: "), lines
+    assert lines[-1].startswith("cicfw: error: 1 of 2 file(s) of "), lines
+
+
+def test_verify_of_a_folder_without_a_dataset_is_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        collect_mod.run(_collect_cfg(tmp_path / "none", "verify=true"))
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "no dataset to verify" in lines[0], lines
+    assert not (tmp_path / "none").exists()
+
+
+def test_a_dataset_collected_before_checksums_gets_them_on_rerun(collected, caplog):
+    out, files = collected
+    for mp in (out / ".episodes").glob("*.json"):  # as cicfw wrote them before this change
+        m = json.loads(mp.read_text())
+        for f in m["files"]:
+            f.pop("sha256", None)
+        mp.write_text(json.dumps(m))
+    meta = _meta(out)
+    for f in meta["files"].values():
+        f.pop("sha256", None)
+    (out / "dataset_metadata.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.INFO, logger="cicfw.sim.collection"):
+        meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
+    assert meta["complete"]
+    assert meta["files"][FIRST]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()
+    assert any("recorded the checksums of 2 file(s)" in r.getMessage() for r in caplog.records)
+    assert {p.name: p.read_bytes() for p in out.glob("*.h5")} == files  # episode files untouched

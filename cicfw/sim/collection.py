@@ -28,7 +28,13 @@ Guarantees (each has a fault test in ``tests/test_collect_integrity.py``):
   ``DiskFullError`` after removing the episode's temporary files.
 - **Reported before simulating:** every bad config value, an unwritable or unusable output folder.
 - **``complete`` means complete:** true only when every planned episode has its marker and every file
-  exists with its recorded size and opens as a CIL file with its recorded number of samples.
+  exists with its recorded size and SHA-256 (``sha256`` per file in the markers and in the metadata's
+  ``files``; the episode files themselves are plain CIL files, unchanged). A rerun checks every file:
+  one whose bytes changed after it was written (a flipped bit, an edit) is named in one warning and its
+  episode is collected again (deterministic: the same bytes come back). Files of a dataset collected before
+  checksums were kept are checked for size and layout (they open as CIL files with their recorded number
+  of samples), and their checksums are recorded then. ``verify_dataset`` (``cicfw collect --verify``)
+  checks a folder without changing it: one line per missing or corrupt file.
 
 Backend interface (what the engine calls; ``EmbeddedBackend`` implements all of it)::
 
@@ -150,7 +156,10 @@ def _plain(cfg: Any) -> dict:
         from omegaconf import OmegaConf
 
         cfg = OmegaConf.to_container(cfg, resolve=True)
-    return {k: v for k, v in cfg.items() if k not in ("out_dir", "hydra")}
+    if cfg.get("verify"):  # the app's switch (cicfw collect --verify): it never reaches a collection
+        raise CollectConfigError("collect: verify=true checks a collected folder and is the collect app's switch "
+                                 "(python -m cicfw.collect out_dir=... verify=true); a collection cannot take it")
+    return {k: v for k, v in cfg.items() if k not in ("out_dir", "hydra", "verify")}
 
 
 def _sim_node(cfg: dict) -> dict:
@@ -611,7 +620,8 @@ def write_episode_files(out_dir: Path, ep_id: str, rgb: np.ndarray, tg: np.ndarr
             name = f"{ep_id}_{p:03d}.h5"
             data = cil_bytes(rgb[a:a + SAMPLES_PER_FILE], tg[a:a + SAMPLES_PER_FILE])
             parts.append((write_bytes_tmp(out_dir / name, data), out_dir / name))
-            files.append({"name": name, "samples": int(min(SAMPLES_PER_FILE, len(tg) - a)), "bytes": len(data)})
+            files.append({"name": name, "samples": int(min(SAMPLES_PER_FILE, len(tg) - a)), "bytes": len(data),
+                          "sha256": hashlib.sha256(data).hexdigest()})
         if not _parent_alive(parent_pid):
             raise _ParentGone()
     except BaseException:
@@ -765,22 +775,61 @@ def clean_partials(out_dir: Path) -> int:
     return n
 
 
-def _valid_marker(out_dir: Path, m: dict, full: bool) -> bool:
-    """Every file of the marker exists with its recorded size (and, ``full``, opens as a CIL file with
-    its recorded number of samples)."""
-    for f in m.get("files", []):
-        p = out_dir / f["name"]
-        try:
-            if "bytes" in f and p.stat().st_size != f["bytes"]:
-                return False
-            if full and check_file(p).n != f["samples"]:
-                return False
-        except (OSError, CILFormatError):
-            return False
-    return bool(m.get("files"))
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, read in 8 MB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(8 << 20):
+            h.update(block)
+    return h.hexdigest()
 
 
-def _read_markers(out_dir: Path, plan: list[dict], chash: str) -> dict[str, dict]:
+def file_problem(out_dir: Path, f: dict) -> tuple[str, str] | None:
+    """What is wrong with one recorded file of a marker, as (kind, one-line reason), or None when it is
+    sound: ``missing``; ``corrupt`` (another size, another SHA-256, or, without a recorded checksum, not a
+    CIL file with the recorded number of samples)."""
+    p = out_dir / f["name"]
+    try:
+        size = p.stat().st_size
+    except FileNotFoundError:
+        return "missing", "no such file"
+    except OSError as err:
+        return "missing", f"cannot read it ({err.strerror or err})"
+    if "bytes" in f and size != f["bytes"]:
+        return "corrupt", f"{size} bytes, {f['bytes']} when it was written (truncated or overwritten)"
+    try:
+        if "sha256" in f:
+            now = file_sha256(p)
+            if now != f["sha256"]:
+                return "corrupt", (f"its bytes no longer match the checksum recorded when it was written "
+                                   f"(sha256 {now[:16]}..., recorded {f['sha256'][:16]}...)")
+            return None
+        n = check_file(p).n
+    except CILFormatError as err:
+        return "corrupt", str(err).removeprefix(f"{p}: ")
+    except OSError as err:
+        return "missing", f"cannot read it ({err.strerror or err})"
+    if n != f["samples"]:
+        return "corrupt", f"{n} samples, {f['samples']} when it was written"
+    return None
+
+
+def _marker_problems(out_dir: Path, m: dict) -> list[tuple[str, str, str]]:
+    """(file name, kind, reason) for every file of the marker that is not sound; a marker without files
+    is a problem of its own."""
+    if not m.get("files"):
+        return [(f"{m.get('id', '?')} (no files recorded)", "corrupt", "its marker records no file")]
+    out = []
+    for f in m["files"]:
+        problem = file_problem(out_dir, f)
+        if problem is not None:
+            out.append((f["name"], *problem))
+    return out
+
+
+def _read_markers(out_dir: Path, plan: list[dict], chash: str, say: bool = False) -> dict[str, dict]:
+    """The markers of planned episodes whose files are all sound. ``say``: a warning per unsound file of a
+    finished episode (its episode is collected again)."""
     markers = {}
     for ep in plan:
         mp = out_dir / ".episodes" / f"{ep['id']}.json"
@@ -788,9 +837,33 @@ def _read_markers(out_dir: Path, plan: list[dict], chash: str) -> dict[str, dict
             m = json.loads(mp.read_text())
         except (OSError, ValueError):
             continue
-        if m.get("config_hash", chash) == chash and m.get("seed") == ep["seed"] and _valid_marker(out_dir, m, True):
+        if m.get("config_hash", chash) != chash or m.get("seed") != ep["seed"]:
+            continue
+        problems = _marker_problems(out_dir, m)
+        if not problems:
             markers[ep["id"]] = m
+        elif say:
+            for name, kind, why in problems:
+                log.warning("%s: %s: %s; episode %s is collected again", out_dir / name, kind, why, ep["id"])
     return markers
+
+
+def _record_checksums(out_dir: Path, markers: dict[str, dict]) -> int:
+    """Record the SHA-256 of files of markers written before checksums were kept (those files have just
+    been checked for size and layout); returns how many files got one."""
+    n = 0
+    for ep_id, m in markers.items():
+        legacy = [f for f in m["files"] if "sha256" not in f]
+        if not legacy:
+            continue
+        for f in legacy:
+            f["sha256"] = file_sha256(out_dir / f["name"])
+        write_json(out_dir / ".episodes" / f"{ep_id}.json", m)
+        n += len(legacy)
+    if n:
+        log.info("recorded the checksums of %d file(s) of %s collected before cicfw kept checksums (until now "
+                 "they could be checked for size and layout only)", n, out_dir)
+    return n
 
 
 def _remove_episodes(out_dir: Path, eps: list[dict]) -> None:
@@ -828,7 +901,7 @@ def _metadata(cfg: dict, out_dir: Path, plan: list[dict], markers: dict, started
         "episodes": {k: {x: m[x] for x in ("town", "weather", "seed", "samples", "noisy_episode",
                                             "noisy_steps", "route_length_m", "distance_driven_m", "commands")}
                      for k, m in sorted(markers.items())},
-        "files": {f["name"]: {"episode": k, "samples": f["samples"]}
+        "files": {f["name"]: {"episode": k, "samples": f["samples"], **({"sha256": f["sha256"]} if "sha256" in f else {})}
                   for k, m in sorted(markers.items()) for f in m["files"]},
         "collection_seconds": round(time.time() - started, 1),
     }
@@ -889,13 +962,17 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
         if foreign:
             raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection does not write "
                                f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
-        markers = _read_markers(out_dir, plan, chash)
+        markers = _read_markers(out_dir, plan, chash, say=True)
+        _record_checksums(out_dir, markers)
         todo = [ep for ep in plan if ep["id"] not in markers]
         started = time.time()
         if not todo:
+            meta = _metadata(cfg, out_dir, plan, markers, started, old.get("sim_version", sim_version)
+                             if old else sim_version, True)
             if old is None or not old.get("complete"):
-                write_json(meta_path, _metadata(cfg, out_dir, plan, markers, started, old.get("sim_version", sim_version)
-                                                if old else sim_version, True))
+                write_json(meta_path, meta)
+            elif old.get("files") != meta["files"]:  # checksums just recorded: the rest stays as collected
+                write_json(meta_path, {**old, "files": meta["files"]})
             return meta_path
         if old is not None and old.get("sim_version", sim_version) != sim_version:
             raise CollectError(f"{out_dir} holds an unfinished dataset of simulator {old.get('sim_version')}; "
@@ -932,6 +1009,90 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
             raise CollectError(f"{len(missing)} episode(s) of {out_dir} did not validate after collection "
                                f"(e.g. {missing[0]}); rerun to collect them again")
         return meta_path
+
+
+class VerifyReport:
+    """What ``verify_dataset`` found: ``problems`` as (path, kind, reason), kind one of ``missing``,
+    ``corrupt``, ``unfinished`` (a file of an episode without a marker: a rerun removes it)."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = out_dir
+        self.files = self.bytes = self.unchecked = self.episodes = self.planned = 0
+        self.complete = False
+        self.problems: list[tuple[Path, str, str]] = []
+
+    def lines(self) -> list[str]:
+        """One line per file that is not sound."""
+        return [f"{kind}: {path}: {why}" for path, kind, why in self.problems]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and self.complete
+
+    def summary(self) -> str:
+        if self.problems:
+            return (f"{len(self.problems)} of {self.files} file(s) of {self.out_dir} are missing, corrupt or "
+                    f"unfinished (listed above); rerun the same collect command (without verify) to collect "
+                    f"their episodes again")
+        if not self.complete:
+            return (f"{self.out_dir} is an unfinished dataset ({self.episodes} of {self.planned} episode(s) "
+                    f"finished; the files of those are sound); rerun the same collect command to finish it")
+        legacy = (f"; {self.unchecked} collected before cicfw kept checksums were checked for size and layout "
+                  f"only (a rerun of collect records their checksums)" if self.unchecked else "")
+        return (f"verified {self.out_dir}: {self.episodes} episode(s), {self.files} file(s) ({self.bytes / 1e6:.1f} MB), "
+                f"all match their checksums{legacy}")
+
+
+def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> VerifyReport:
+    """Check every file of a collected dataset against its recorded size and SHA-256 (files without a
+    recorded checksum: size and CIL layout), changing nothing. Holds the folder's lock while it reads (a
+    collection in progress is waited for as ``lock_wait`` says), unless the folder is read-only (then no
+    one can be writing into it). A folder without ``dataset_metadata.json`` is a CollectError."""
+    out_dir = Path(out_dir).expanduser().resolve()
+    meta_path = out_dir / META_NAME
+    if not meta_path.is_file():
+        what = "does not exist" if not out_dir.exists() else f"has no {META_NAME} (cicfw collect writes one)"
+        raise CollectError(f"no dataset to verify in {out_dir}: it {what}; give the out_dir of a collection "
+                           f"(out_dir=...)")
+    lock = None
+    if os.access(out_dir, os.W_OK | os.X_OK):
+        lock = FolderLock(out_dir, lock_wait, {"what": "cicfw collect verify=true"}).acquire()
+    try:
+        try:
+            meta = json.loads(meta_path.read_text())
+        except ValueError:
+            raise CollectError(f"{meta_path} is not valid JSON; this folder's dataset cannot be verified: "
+                               f"delete it and collect again") from None
+        rep = VerifyReport(out_dir)
+        rep.planned = int(meta.get("planned_episodes", 0))
+        recorded: set[str] = set()
+        for mp in sorted((out_dir / ".episodes").glob("*.json")):
+            try:
+                m = json.loads(mp.read_text())
+            except (OSError, ValueError):
+                continue  # an unreadable marker: its episode counts as unfinished
+            if m.get("config_hash", meta.get("config_hash")) != meta.get("config_hash"):
+                continue
+            rep.episodes += 1
+            problems = {name: (kind, why) for name, kind, why in _marker_problems(out_dir, m)}
+            for f in m.get("files", []):
+                recorded.add(f["name"])
+                rep.files += 1
+                rep.bytes += int(f.get("bytes", 0))
+                rep.unchecked += "sha256" not in f
+                if f["name"] in problems:
+                    rep.problems.append((out_dir / f["name"], *problems.pop(f["name"])))
+            rep.problems += [(out_dir / name, kind, why) for name, (kind, why) in problems.items()]
+        for p in sorted(out_dir.glob("*.h5")):
+            if p.name not in recorded:
+                rep.files += 1
+                rep.problems.append((p, "unfinished", "no finished episode records it (a collection stopped "
+                                                      "before its episode's marker was written)"))
+        rep.complete = bool(meta.get("complete")) and rep.episodes >= rep.planned
+        return rep
+    finally:
+        if lock is not None:
+            lock.release()
 
 
 class _Progress:
