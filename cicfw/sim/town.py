@@ -24,6 +24,11 @@ MIN_ARM_ANGLE_DEG = 30.0  # two roads leaving one junction closer than this are 
 MIN_ROAD_LENGTH = 6.0  # metres of road left between two junction edges
 
 
+#: the largest town side (its nodes and roads plus ``margin`` on each side) a town file may give: the renderer
+#: bakes the ground at 0.1 m a texel (about 1 GB of memory while baking town_a's 400 x 240 m)
+MAX_TOWN_SIDE_M = 1000.0
+
+
 class TownError(ValueError):
     """A town file that cannot be built; the message names the file, the element and the fix."""
 
@@ -337,6 +342,7 @@ def build_town(spec: Any, source: str = "<town>") -> Town:
     if not isinstance(raw_nodes, dict) or not raw_nodes:
         cx.fail("town: 'nodes' must be a mapping node_id: [x, y] with at least one node")
     nodes = {str(k): cx.point(v, f"node {k!r}") for k, v in raw_nodes.items()}
+    _check_extent(cx, np.array(list(nodes.values())), margin)  # before any road is resampled or grid allocated
 
     # roads: full node-to-node curves first
     raw_roads = spec.get("roads")
@@ -472,6 +478,7 @@ def build_town(spec: Any, source: str = "<town>") -> Town:
 
     # bounds
     allpts = np.vstack([r.centreline for r in roads] + [nodes[n][None] for n in nodes])
+    _check_extent(cx, allpts, margin)  # curves (via points) may reach beyond the nodes
     lo, hi = allpts.min(axis=0) - margin, allpts.max(axis=0) + margin
     bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
@@ -483,6 +490,18 @@ def build_town(spec: Any, source: str = "<town>") -> Town:
     return Town(name=name, lane_width=lw, sidewalk_width=sw, roads=tuple(roads), junctions=junctions,
                 buildings=tuple(buildings), props=tuple(props), style=style, bounds=bounds,
                 nodes=dict(nodes), source=source)
+
+
+def _check_extent(cx: _Ctx, pts: np.ndarray, margin: float) -> None:
+    """One clear error when the town (its points plus ``margin`` on each side) is more than
+    MAX_TOWN_SIDE_M a side: its occupancy grid and ground texture would not fit in memory."""
+    span = pts.max(axis=0) - pts.min(axis=0)
+    side = span + 2 * margin
+    if float(side.max()) > MAX_TOWN_SIDE_M:
+        cx.fail(f"town: the town spans {side[0]:.0f} x {side[1]:.0f} m (its nodes and roads {span[0]:.0f} x "
+                f"{span[1]:.0f} m plus margin {margin:g} m on each side); at most {MAX_TOWN_SIDE_M:g} m a side is "
+                f"accepted (the renderer bakes the ground at 0.1 m a texel, ~1 GB for the shipped 400 x 240 m "
+                f"town_a): lower 'margin' (the shipped towns use 35 m) or bring the nodes closer")
 
 
 def _style(cx: _Ctx, s: Any) -> Style:
