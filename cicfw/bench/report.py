@@ -12,7 +12,9 @@ import argparse
 import csv
 import io
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -254,17 +256,40 @@ def _unique_labels(runs: list[Run]) -> list[Run]:
     return runs
 
 
+def writable_folder(path: Path, what: str) -> Path:
+    """Create ``path`` if missing and make sure files can be written into it; one ValueError naming ``what``
+    (e.g. ``--out``) and the folder when it is a file, cannot be created, or is not writable."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"report: {what} {path} is a file, not a folder; give a folder (created if missing) for "
+                         f"table.md/.tex/.csv and success_bars.png")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".cicfw-report-", suffix=".probe")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        hint = "" if what == "--out" else " with --out"
+        raise ValueError(f"report: cannot write to {what} {path} ({err.strerror or err}); give a writable "
+                         f"folder{hint}") from None
+    return path
+
+
 def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
     """Write the joined table (md, tex, csv) and its bar chart into ``out_dir``; return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
-    atomic_write(out_dir / "table.md", md)
-    atomic_write(out_dir / "table.tex", latex_table(runs))
-    atomic_write(out_dir / "table.csv", table_csv(runs))
-    if plots:
-        from cicfw.bench.plots import bar_chart
+    try:
+        atomic_write(out_dir / "table.md", md)
+        atomic_write(out_dir / "table.tex", latex_table(runs))
+        atomic_write(out_dir / "table.csv", table_csv(runs))
+        if plots:
+            from cicfw.bench.plots import bar_chart
 
-        bar_chart(_marked(runs), out_dir / "success_bars.png")
+            bar_chart(_marked(runs), out_dir / "success_bars.png")
+    except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
+        raise ValueError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
+                         f"with --out") from None
     return md
 
 
@@ -285,8 +310,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
-    out = Path(args.out) if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
-    md = write_joined(runs, out, plots=not args.no_plots)
+    out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
+    try:
+        writable_folder(out, "--out" if args.out else "the report folder (default: the folder given; choose one "
+                                                      "with --out)")
+        md = write_joined(runs, out, plots=not args.no_plots)
+    except ValueError as err:
+        print(f"cicfw: error: {err}", file=sys.stderr)
+        return 2
     print(md)
     print(f"{len(runs)} run(s) joined; table and chart in {out}")
     return 0

@@ -336,6 +336,16 @@ def main(argv: list[str] | None = None, client: Any = None) -> int:
     p.add_argument("--town", default="Town01", help="the CARLA map to test on (Town01: known route counts)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the server to answer")
     args = p.parse_args(argv)
+    problem = None
+    if not 1 <= args.port <= 65535:
+        problem = f"--port must be a TCP port 1..65535, got {args.port}"
+    elif not (math.isfinite(args.timeout) and args.timeout > 0):
+        problem = f"--timeout must be seconds > 0, got {args.timeout:g}"
+    elif not args.host.strip():
+        problem = "--host must name the server's machine (a host name or an address), got an empty string"
+    if problem:
+        print(f"cicfw: error: {problem}", file=sys.stderr)
+        return 2
     t0 = time.monotonic()
     rep = run_checks(args.host, args.port, args.town, args.timeout, client=client)
     print(f"carla_check: {sum(s == 'PASS' for s, _, _ in rep.lines)} passed, {rep.failed} failed "

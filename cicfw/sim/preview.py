@@ -42,9 +42,27 @@ def _write_png(path: Path, rgb: np.ndarray, colours: int = 0) -> Path:
             raise OSError(0, "the image could not be encoded or written")
         os.replace(tmp, path)
     except OSError as err:
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass  # its folder is not there (or not a folder): nothing was written
         raise ValueError(f"cannot write {path} ({err.strerror or err}); give a writable --out folder") from None
     return path
+
+
+def check_out_folder(out: Path) -> Path:
+    """Create ``--out`` if missing and make sure a file can be written into it, before anything is rendered;
+    one ValueError naming the folder otherwise."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder; give a folder (created if missing) for the PNGs")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".cicfw-preview.{os.getpid()}-{secrets.token_hex(4)}.probe"
+        probe.touch(exist_ok=False)
+        probe.unlink()
+    except OSError as err:
+        raise ValueError(f"--out: cannot write to {out} ({err.strerror or err}); give a writable folder") from None
+    return out
 
 
 def _label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42, colour=(0, 0, 0)) -> None:
@@ -222,7 +240,7 @@ def _main(argv: list[str] | None = None) -> int:
     if a.routes < 0:
         raise ValueError(f"--routes must be >= 0, got {a.routes}")
     towns = load_towns(a.towns or town_names())
-    out = Path(a.out).expanduser().resolve()
+    out = check_out_folder(Path(a.out).expanduser().resolve())  # before the seconds of rendering
     q, pre = a.colours, a.prefix
     turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
     written = [_write_png(out / f"{pre}contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed), q),

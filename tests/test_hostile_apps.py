@@ -1,0 +1,214 @@
+"""Issue 17, tracebacks where one line belongs, in the small apps: ``report --out`` at a file or a
+read-only folder, ``preview --out <file>``, ``carla-check --port 99999``, and a town whose ``margin``
+(or extent) would make the renderer allocate ~150 GiB. Each is one line, ``cicfw: error: ...``, saying
+what was wrong and what is accepted, and nothing is half-written."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cicfw.bench import report
+from cicfw.bench.report import Run, write_run
+from cicfw.sim.town import MAX_TOWN_SIDE_M, TownError, build_town, load_town, town_path
+
+
+def _one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.fixture
+def read_only_folder(tmp_path: Path):
+    """A folder nobody may write into: a read-only tmpfs as root (root ignores permission bits), else 0o500."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() == 0:
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)], capture_output=True,
+                           text=True)
+        if r.returncode:
+            pytest.skip(f"cannot mount a read-only tmpfs here ({r.stderr.strip() or r.returncode})")
+    else:
+        ro.chmod(0o500)
+    yield ro
+    if os.geteuid() == 0:
+        subprocess.run(["umount", "-l", str(ro)], capture_output=True)
+    else:
+        ro.chmod(0o700)
+
+
+# ------------------------------------------------------------------------------------------------
+# cicfw report --out
+
+
+def _run_folder(tmp_path: Path) -> Path:
+    rows = [{"episode": k, "key": f"town_a/ClearNoon/{k:03d}", "town": "town_a", "weather": "ClearNoon",
+             "town_set": "training", "weather_set": "training", "pair": k, "route": "town_a/j/a>b/left",
+             "command": "left", "success": k % 2 == 0, "reason": "success" if k % 2 == 0 else "off_route",
+             "time_s": 10.0, "timeout_s": 30.0, "distance_m": 50.0, "route_length_m": 60.0, "goal_distance_m": 1.0,
+             "progress": 1.0, "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 100}
+            for k in range(4)]
+    run = tmp_path / "run"
+    write_run(run, Run("CIL", rows))
+    return run
+
+
+@pytest.mark.parametrize("where", ["a file", "under a file"])
+def test_report_out_at_a_file_is_one_line(tmp_path: Path, capsys, where: str):
+    run = _run_folder(tmp_path)
+    f = tmp_path / "afile"
+    f.write_text("mine")
+    out = f if where == "a file" else f / "sub"
+    assert report.main([str(run), "--out", str(out), "--no-plots"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(out) in line and "--out" in line and "folder" in line, line
+    assert f.read_text() == "mine"
+
+
+def test_report_out_at_a_read_only_folder_is_one_line(tmp_path: Path, capsys, read_only_folder: Path):
+    run = _run_folder(tmp_path)
+    for out in (read_only_folder, read_only_folder / "sub"):
+        assert report.main([str(run), "--out", str(out), "--no-plots"]) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert str(out) in line and "writable" in line, line
+
+
+def test_report_into_a_read_only_run_folder_by_default_says_use_out(tmp_path: Path, capsys):
+    """``cicfw report RUN`` writes into RUN: a colleague's read-only run folder gets a hint at --out."""
+    run = _run_folder(tmp_path)
+    if os.geteuid() == 0:  # a read-only bind mount of the run folder onto itself
+        if subprocess.run(["mount", "--bind", str(run), str(run)], capture_output=True).returncode:
+            pytest.skip("cannot bind-mount here")
+        subprocess.run(["mount", "-o", "remount,bind,ro", str(run)], capture_output=True)
+    else:
+        run.chmod(0o500)
+    try:
+        if os.access(run, os.W_OK):
+            pytest.skip("cannot make the run folder read-only here")
+        assert report.main([str(run), "--no-plots"]) == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert "--out" in line and str(run) in line, line
+    finally:
+        if os.geteuid() == 0:
+            subprocess.run(["umount", "-l", str(run)], capture_output=True)
+        else:
+            run.chmod(0o700)
+
+
+def test_report_cli_at_a_file_no_traceback(tmp_path: Path):
+    run = _run_folder(tmp_path)
+    f = tmp_path / "afile"
+    f.write_text("x")
+    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "report", str(run), "--out", str(f)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    _one_error_line(r.stderr)
+
+
+# ------------------------------------------------------------------------------------------------
+# cicfw preview --out
+
+
+def test_preview_out_at_a_file_is_one_line_before_rendering(tmp_path: Path, capsys, monkeypatch):
+    from cicfw.sim import preview
+
+    monkeypatch.setattr(preview, "contact_sheet", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    f = tmp_path / "afile"
+    f.write_text("mine")
+    for out in (f, f / "sub"):
+        with pytest.raises(SystemExit) as exc:
+            preview.main(["--out", str(out), "--towns", "town_b"])
+        assert exc.value.code == 2
+        line = _one_error_line(capsys.readouterr().err)
+        assert str(out) in line and "--out" in line, line
+    assert f.read_text() == "mine"
+
+
+def test_preview_out_at_a_read_only_folder_is_one_line(capsys, monkeypatch, read_only_folder: Path):
+    from cicfw.sim import preview
+
+    monkeypatch.setattr(preview, "contact_sheet", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(read_only_folder), "--towns", "town_b"])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(read_only_folder) in line and "writable" in line, line
+
+
+# ------------------------------------------------------------------------------------------------
+# cicfw carla-check --port
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--port", "99999"], "--port must be a TCP port 1..65535, got 99999"),
+    (["--port", "0"], "--port must be a TCP port 1..65535, got 0"),
+    (["--port", "-5"], "--port must be a TCP port 1..65535, got -5"),
+    (["--timeout", "0"], "--timeout must be seconds > 0, got 0"),
+    (["--timeout", "nan"], "--timeout must be seconds > 0, got nan"),
+])
+def test_carla_check_bad_values_are_one_line(capsys, args: list, message: str):
+    from cicfw.sim import carla_check
+
+    assert carla_check.main(args) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line == f"cicfw: error: {message}", line
+
+
+def test_carla_check_cli_port_99999_no_traceback():
+    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "carla-check", "--port", "99999"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert _one_error_line(r.stderr) == "cicfw: error: --port must be a TCP port 1..65535, got 99999"
+
+
+# ------------------------------------------------------------------------------------------------
+# a town too big to render
+
+
+def _town_spec(**changes) -> dict:
+    spec = yaml.safe_load(town_path("town_b").read_text())
+    spec.update(changes)
+    return spec
+
+
+def test_a_huge_margin_is_refused_in_one_line_before_allocating(tmp_path: Path):
+    path = tmp_path / "wide.yaml"
+    path.write_text(yaml.safe_dump(_town_spec(name="wide", margin=100000)))
+    t0 = time.monotonic()
+    with pytest.raises(TownError) as err:
+        load_town(path)
+    assert time.monotonic() - t0 < 5.0
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: town: ")
+    assert "margin 100000 m" in msg and f"at most {MAX_TOWN_SIDE_M:g} m" in msg, msg
+
+
+def test_nodes_too_far_apart_are_refused_in_one_line():
+    spec = _town_spec()
+    spec["nodes"] = {**spec["nodes"], "far": [5_000_000, 0]}
+    with pytest.raises(TownError, match=rf"at most {MAX_TOWN_SIDE_M:g} m a side"):
+        build_town(spec, source="far.yaml")
+
+
+def test_the_shipped_towns_are_within_the_bound():
+    for name in ("town_a", "town_b"):
+        b = load_town(name).bounds
+        assert max(b[2] - b[0], b[3] - b[1]) <= MAX_TOWN_SIDE_M
+
+
+def test_the_preview_app_says_one_line_for_a_huge_town(tmp_path: Path, capsys):
+    from cicfw.sim import preview
+
+    path = tmp_path / "wide.yaml"
+    path.write_text(yaml.safe_dump(_town_spec(name="wide", margin=100000)))
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(tmp_path / "out"), "--towns", str(path)])
+    assert exc.value.code == 2
+    assert "margin 100000 m" in _one_error_line(capsys.readouterr().err)
