@@ -154,6 +154,24 @@ def _tracing(module: torch.nn.Module, onnx: bool) -> Iterator[None]:
             m._jit_is_scripting = False
 
 
+@contextmanager
+def _stdout_muted() -> Iterator[None]:
+    """File descriptor 1 to /dev/null: the legacy ONNX exporter prints its whole graph from C++ on a failure,
+    and a failure here is one line."""
+    import sys
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _example(inputs: CheckInputs, n: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return (torch.from_numpy(inputs.images[:n]), torch.from_numpy(inputs.speed_kmh[:n]),
             torch.from_numpy(inputs.command[:n]))
@@ -166,7 +184,7 @@ def to_onnx(module: torch.nn.Module, example: tuple, metadata: str, opset: int =
 
     buf = io.BytesIO()
     batch = {0: "batch"}
-    with _tracing(module, onnx=True), torch.no_grad():
+    with _tracing(module, onnx=True), torch.no_grad(), _stdout_muted():
         torch.onnx.export(module, example, buf, dynamo=False, opset_version=opset, input_names=list(INPUT_NAMES),
                           output_names=[OUTPUT_NAME], dynamic_axes={k: batch for k in (*INPUT_NAMES, OUTPUT_NAME)},
                           do_constant_folding=True)

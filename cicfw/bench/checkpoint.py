@@ -113,30 +113,25 @@ def load_model(path: str | Path):
 
 def prepare_for_inference(model, fuse: bool = True):
     """Make an eval-mode model cheaper to run, computing the same function (up to float rounding):
-    each BatchNorm2d is folded into the Conv2d before it, Dropout (the identity in eval) is dropped,
-    and the weights go to the NHWC layout (``use_channels_last``). Done in place; returns the model."""
+    each BatchNorm2d is folded into the Conv2d before it, and it and each Dropout (the identity in eval)
+    become ``nn.Identity`` in place, so a Sequential keeps its indices (cross_stitch and sluice slice
+    their branches by index); the weights go to the NHWC layout (``use_channels_last``). Done in place;
+    returns the model."""
     if not fuse:
         return model
     from torch import nn
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     assert not model.training, "prepare_for_inference needs an eval-mode model"
+    dropouts = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)
     for seq in [m for m in model.modules() if isinstance(m, nn.Sequential)]:
-        kids, out, i = list(seq.children()), [], 0
-        while i < len(kids):
-            mod = kids[i]
+        names, kids = list(seq._modules), list(seq.children())
+        for i, mod in enumerate(kids):
             if isinstance(mod, nn.Conv2d) and i + 1 < len(kids) and isinstance(kids[i + 1], nn.BatchNorm2d):
-                out.append(fuse_conv_bn_eval(mod, kids[i + 1]))
-                i += 2
-                continue
-            if not isinstance(mod, (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)):
-                out.append(mod)
-            i += 1
-        if len(out) != len(kids):
-            for name in list(seq._modules):
-                del seq._modules[name]
-            for k, mod in enumerate(out):
-                seq.add_module(str(k), mod)
+                seq._modules[names[i]] = fuse_conv_bn_eval(mod, kids[i + 1])
+                seq._modules[names[i + 1]] = nn.Identity()
+            elif isinstance(mod, dropouts):
+                seq._modules[names[i]] = nn.Identity()
     if hasattr(model, "use_channels_last"):
         model.use_channels_last()
     return model

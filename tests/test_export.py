@@ -1,0 +1,355 @@
+"""cicfw export and the agent: every mixer x head exports to ONNX and TorchScript with the checkpoint's
+steering (``CICModule.predict_steer``) on real frames and random inputs at batch 1 and 64; a broken
+decoder inside the graph fails the export's own parity check; bad inputs give one line each and
+leave nothing behind.
+
+The mixer x head grid uses a tiny test encoder (registered for this module only) so that 40 models
+train, export twice and run in seconds; one CIL-size model trained by a Lightning Trainer goes
+through the command line.
+"""
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+import cicfw.export as export
+from cicfw.agent import Agent, AgentInputError, DrivingFunction
+from cicfw.bench.checkpoint import CheckpointError, CheckpointPolicy, load_model
+from cicfw.bench.policy import Observations
+from cicfw.data.cil_hdf5 import T, write_file
+from cicfw.export import ExportError, export_model
+from cicfw.model.encoders import Encoder
+from cicfw.model.module import CICModule
+from cicfw.registry import ENCODERS, HEADS, MIXERS
+from cicfw.testing import make_targets, write_tiny_dataset
+
+TINY = "export_test_tiny"
+FORMATS = ("onnx", "torchscript")
+#: the tolerance the tests hold every runtime to (the export's default)
+TOL = export.TOLERANCE
+
+
+class TinyEncoder(Encoder):
+    """A few-thousand-parameter stand-in for the CIL stack, same contract (uint8 (B, 3, 88, 200), speed)."""
+
+    def __init__(self, out_dim: int = 32) -> None:
+        super().__init__()
+        self.convs = nn.Sequential(nn.Conv2d(3, 8, 5, 4, bias=False), nn.BatchNorm2d(8), nn.ReLU(inplace=True),
+                                   nn.AvgPool2d(7, 7))  # 88x200 -> 21x49 -> 3x7
+        self.join = nn.Sequential(nn.Linear(8 * 3 * 7 + 1, out_dim), nn.ReLU(inplace=True), nn.Dropout(0.5))
+        self.out_dim = out_dim
+
+    def forward(self, image: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+        x = self.convs(image.float() / 255.0).flatten(1)
+        return self.join(torch.cat([x, speed[:, None]], dim=1))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def tiny_encoder():
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(ENCODERS._entries, TINY, TinyEncoder)
+        mp.setitem(ENCODERS._origin, TINY, "cicfw")
+        yield
+
+
+def small_kwargs(mixer: str) -> dict:
+    """Small widths for whichever of them the mixer takes."""
+    params = inspect.signature(MIXERS.get(mixer).__init__).parameters
+    want = {"hidden": 16, "expert_dim": 16, "experts": 2, "coef_hidden": 8}
+    return {k: v for k, v in want.items() if k in params}
+
+
+def tiny_checkpoint(path: Path, mixer: str, head: str, steps: int = 3, seed: int = 0) -> Path:
+    """A tiny model trained for a few Adam steps (weights and BatchNorm statistics moved off their
+    initial values), saved as Lightning saves a checkpoint."""
+    torch.manual_seed(seed)
+    model = CICModule(encoder=TINY, mixer=mixer, mixer_kwargs=small_kwargs(mixer), head=head).train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(steps):
+        img = torch.randint(0, 256, (8, 3, 88, 200), dtype=torch.uint8)
+        speed, cmd = torch.rand(8) * 40, torch.arange(8) % 4
+        loss = model.head.loss(model(img, speed, cmd), torch.rand(8) * 1.2 - 0.6) + model.mixer.regularizer()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                "pytorch-lightning_version": L.__version__, "epoch": 0, "global_step": steps}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory) -> tuple[export.CheckInputs, Path]:
+    """64 real frames of an episode the embedded simulator's expert drives, and the same frames written
+    as a collected CIL HDF5 file."""
+    frames = export.rendered_frames(64)
+    t = make_targets(64, np.random.default_rng(0))
+    t[:, T.SPEED], t[:, T.COMMAND], t[:, T.CAMERA_ID] = frames.speed_kmh, frames.command, 0
+    path = write_file(tmp_path_factory.mktemp("episode") / "episode_000.h5", frames.images, t)
+    return frames, path
+
+
+def reference(ckpt: Path, inputs: export.CheckInputs) -> np.ndarray:
+    """The checkpoint's own steering: ``CICModule.predict_steer`` of the model it rebuilds."""
+    model = load_model(ckpt)
+    with torch.no_grad():
+        return model.predict_steer(torch.from_numpy(inputs.images).permute(0, 3, 1, 2),
+                                   torch.from_numpy(inputs.speed_kmh), torch.from_numpy(inputs.command - 2)).numpy()
+
+
+def max_diff(agent: Agent, inputs: export.CheckInputs, want: np.ndarray) -> float:
+    """The agent's largest steering difference from ``want`` at batch 1 and batch 64."""
+    one = np.array([agent.act(inputs.images[i], inputs.speed_kmh[i], inputs.command[i]) for i in range(len(inputs))])
+    big = np.concatenate([agent.act(inputs.images[i:i + 64], inputs.speed_kmh[i:i + 64], inputs.command[i:i + 64])
+                          for i in range(0, len(inputs), 64)])
+    assert one.shape == big.shape == want.shape and np.all(np.abs(big) <= 1)
+    return float(max(np.abs(one - want).max(), np.abs(big - want).max()))
+
+
+GRID = [(m, h) for m in MIXERS.names() for h in HEADS.names()]
+
+
+@pytest.mark.parametrize("mixer,head", GRID, ids=[f"{m}-{h}" for m, h in GRID])
+def test_every_mixer_and_head_exports_with_parity(mixer, head, episode, tmp_path):
+    frames, episode_file = episode
+    ckpt = tiny_checkpoint(tmp_path / f"{mixer}-{head}.ckpt", mixer, head)
+    inputs = frames + export.random_inputs(64, seed=1)
+    want = reference(ckpt, inputs)
+    assert max_diff(Agent.load(ckpt), inputs, want) <= TOL  # the checkpoint's agent: predict_steer, BatchNorm folded
+    for fmt in FORMATS:
+        out = tmp_path / f"model{export.FORMATS[fmt]}"
+        info = export_model(ckpt, fmt, out, frames=episode_file, n_frames=4)
+        assert info["parity"]["max_abs_diff"] <= TOL and info["parity"]["inputs"] == 8
+        agent = Agent.load(out)
+        assert agent.runtime == {"onnx": "onnxruntime", "torchscript": "torchscript"}[fmt]
+        assert agent.info["mixer"] == mixer and agent.info["head"] == head  # the description travels inside
+        assert max_diff(agent, inputs, want) <= TOL, f"{mixer}+{head} {fmt}"
+        side = json.loads(out.with_name(out.name + ".json").read_text())
+        assert side["decoder"]["head"] == head and side["command_codes"] == {"2": "follow", "3": "left", "4": "right",
+                                                                             "5": "straight"}
+        assert side["inputs"][0]["shape"] == ["batch", 88, 200, 3] and side["cicfw_version"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [ckpt.name, "model.onnx", "model.onnx.json", "model.pt", "model.pt.json"])  # no temporary file left
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_broken_decoder_in_the_graph_fails_the_parity_check(fmt, episode, tmp_path, monkeypatch):
+    _, episode_file = episode
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "gtu", "hybrid")
+    real = export.graph_module
+
+    def with_argmax_decoder(model):  # the graph decodes the argmax bin instead of the expectation
+        graph = real(model)
+        head = graph.model.head
+        head.decode = lambda out: head.midpoints.to(out.dtype)[out.argmax(dim=-1)]
+        return graph
+
+    monkeypatch.setattr(export, "graph_module", with_argmax_decoder)
+    out = tmp_path / f"m{export.FORMATS[fmt]}"
+    with pytest.raises(ExportError, match=r"^the exported model fails the parity check, so nothing was written: on "
+                                          r"(real frame \d+ of .*episode_000\.h5|random input \d+ \(seed 0\)) \(command [2-5] \w+, [\d.]+ km/h, "
+                                          r"batch 1\) it steers [-+][\d.]+ where the checkpoint steers [-+][\d.]+ "
+                                          r"\(off by .*; tolerance 0.0001\)$"):
+        export_model(ckpt, fmt, out, frames=episode_file, n_frames=4)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt"]  # nothing written, nothing half-written
+
+
+@pytest.fixture(scope="module")
+def cil_run(tmp_path_factory) -> Path:
+    """A CIL-size gtu+hybrid checkpoint trained for two steps by a Lightning Trainer, in a run folder
+    whose saved config names its (tiny) training dataset."""
+    from torch.utils.data import DataLoader, TensorDataset
+
+    run = tmp_path_factory.mktemp("run")
+    data = write_tiny_dataset(run / "data", n_files=2, n=8)
+    (run / ".hydra").mkdir()
+    OmegaConf.save(OmegaConf.create({"mixer": {"name": "gtu"}, "head": {"name": "hybrid", "W": 10.0},
+                                     "data": {"path": str(data)}, "seed": 0}), run / ".hydra" / "config.yaml")
+
+    L.seed_everything(0)
+    model = CICModule(mixer="gtu", head="hybrid")
+    g = torch.Generator().manual_seed(0)
+    ds = TensorDataset(torch.randint(0, 256, (8, 3, 88, 200), dtype=torch.uint8, generator=g),
+                       torch.rand(8, generator=g) * 30, torch.arange(8) % 4, torch.rand(8, generator=g) - 0.5)
+    loader = DataLoader(ds, batch_size=4, collate_fn=lambda b: dict(zip(("image", "speed", "command", "steer"),
+                                                                          map(torch.stack, zip(*b)))))
+    trainer = L.Trainer(max_steps=2, limit_val_batches=0, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
+    trainer.fit(model, loader)
+    ckpt = run / "checkpoints" / "epoch000.ckpt"
+    trainer.save_checkpoint(ckpt)
+    return ckpt
+
+
+def test_the_suites_policy_drives_through_the_agent_unchanged(cil_run, episode):
+    frames, _ = episode
+    pol = CheckpointPolicy(checkpoint=str(cil_run))
+    assert isinstance(pol.agent, Agent) and pol.agent.runtime == "torch" and pol.label == "gtu+hybrid"
+    obs = Observations(images={"centre": frames.images}, speed_kmh=frames.speed_kmh.astype(np.float64),
+                       command=frames.command, pose=np.zeros((64, 3)), routes=[None] * 64, episode=np.arange(64))
+    # the policy's inference before the agent existed, verbatim: the suite's steering is bit for bit the same
+    img = torch.from_numpy(np.ascontiguousarray(frames.images)).permute(0, 3, 1, 2)
+    with torch.inference_mode():
+        before = pol.model.predict_steer(img, torch.from_numpy(frames.speed_kmh),
+                                         torch.from_numpy(frames.command - 2)).float().clamp(-1.0, 1.0).numpy()
+    steer = pol.act(obs)
+    assert steer.dtype == np.float32 and np.array_equal(steer, before)
+    one = pol.agent.act(frames.images[3], float(frames.speed_kmh[3]), int(frames.command[3]))
+    assert isinstance(one, float) and one == before[3]
+    assert np.abs(steer - reference(cil_run, frames)).max() < 1e-5  # fused BatchNorm: the same function
+
+
+def test_command_line_exports_a_cil_model_with_its_sidecar(cil_run, episode, tmp_path):
+    frames, episode_file = episode
+    out = tmp_path / "cil.onnx"
+    res = subprocess.run([sys.executable, "-m", "cicfw.export", f"checkpoint={cil_run.parent.parent}", f"out={out}",
+                          f"frames={episode_file}", "n_frames=4"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert f"cicfw export: {out} (" in res.stdout and "gtu+hybrid, onnx" in res.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cil.onnx", "cil.onnx.json"]  # no outputs/ folder
+    side = json.loads((tmp_path / "cil.onnx.json").read_text())
+    data = cil_run.parent.parent / "data"
+    files = sorted(data.rglob("*.h5"))
+    assert side["training_dataset"]["hash"] == hashlib.sha256(
+        "".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
+    assert side["row_config"]["mixer"] == {"name": "gtu"} and side["label"] == "gtu+hybrid"
+    assert side["checkpoint"]["sha256"] == hashlib.sha256(cil_run.read_bytes()).hexdigest()
+    assert side["decoder"]["decode"] == "expectation" and side["normalisation"]["speed"] == "speed_kmh / 40"
+    inputs = frames + export.random_inputs(64, seed=2)
+    assert max_diff(Agent.load(out, threads=1), inputs, reference(cil_run, inputs)) <= TOL
+
+
+def test_export_renders_its_own_frames_and_writes_torchscript_by_default_beside_the_checkpoint(tmp_path, episode):
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "sine")
+    info = export_model(ckpt, "torchscript", n_frames=3)
+    assert info["out"] == str(tmp_path / "m.pt") and "embedded simulator" in info["parity"]["what"]
+    assert info["decoder"]["decode"] == "phase" and info["training_dataset"]["hash"] is None
+
+
+# ---- bad input: one line each, nothing written ------------------------------------------------
+def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, monkeypatch):
+    _, episode_file = episode
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    run = dict(frames=episode_file, n_frames=2)
+    torch.save({"w": torch.zeros(2)}, tmp_path / "weights.pt")
+    (tmp_path / "cut.ckpt").write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+    cases = [
+        (dict(checkpoint=tmp_path / "weights.pt"), CheckpointError, r"is not a cicfw checkpoint: it needs"),
+        (dict(checkpoint=tmp_path / "cut.ckpt"), CheckpointError, r"is not a PyTorch checkpoint, or it is truncated"),
+        (dict(fmt="tflite"), ExportError, r"^format='tflite' is not known; use one of onnx, torchscript$"),
+        (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, r"the folder '.*nope' does not exist"),
+        (dict(out=tmp_path), ExportError, r"is a folder; give out=<a file name>"),
+        (dict(n_frames=0), ExportError, r"n_frames=0 is not valid"),
+    ]
+    for kwargs, kind, message in cases:
+        args = {"checkpoint": ckpt, "fmt": "onnx", "out": tmp_path / "m.onnx", **run, **kwargs}
+        with pytest.raises(kind, match=message) as err:
+            export_model(**args)
+        assert "\n" not in str(err.value)
+    with monkeypatch.context() as mp:  # a read-only folder (faked: root writes through chmod)
+        mp.setattr(export.os, "access", lambda path, mode: False)
+        with pytest.raises(ExportError, match=r"^out='.*m.onnx' cannot be written: the folder '.*' is not writable; "
+                                              r"give out=<a file in a writable folder>$"):
+            export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
+    # a folder that cannot take the file (a full disk here): the temporary files go, nothing stays
+    monkeypatch.setattr(export.os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(28, "No space left on device")))
+    with pytest.raises(ExportError, match=r"cannot write '.*m.onnx.json': No space left on device; nothing was written"):
+        export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ckpt", "m.ckpt", "weights.pt"]
+
+
+def test_the_cli_prints_one_line_for_a_bad_checkpoint(tmp_path):
+    (tmp_path / "notes.ckpt").write_text("not a checkpoint")
+    res = subprocess.run([sys.executable, "-m", "cicfw.cli", "export", f"checkpoint={tmp_path / 'notes.ckpt'}",
+                          f"out={tmp_path / 'm.onnx'}"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith("cicfw: error: ") and "is not a PyTorch checkpoint" \
+        in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.ckpt"]
+
+
+@torch.library.custom_op("cicfw_export_test::twist", mutates_args=())
+def twist(x: torch.Tensor) -> torch.Tensor:
+    """An operator a plugin might bring: it runs in torch, ONNX has no form for it."""
+    return x.flip(-1).clone()
+
+
+@twist.register_fake
+def _(x):
+    return torch.empty_like(x)
+
+
+twist.register_autograd(lambda ctx, grad: grad.flip(-1))  # so the plugin's model trains
+
+
+class TwistMixer(nn.Module):
+    """A plugin's mixer built on ``twist``."""
+
+    n_branches = 4
+
+    def __init__(self, in_dim: int, out_dim: int) -> None:
+        super().__init__()
+        self.out = nn.Linear(in_dim, 4 * out_dim)
+        self.out_dim = out_dim
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return twist(self.out(h)).view(h.shape[0], 4, self.out_dim)
+
+    def regularizer(self) -> torch.Tensor:
+        return self.out.weight.new_zeros(())
+
+
+def test_a_plugin_operator_that_does_not_export_is_named(tmp_path, episode, monkeypatch):
+    _, episode_file = episode
+    monkeypatch.setitem(MIXERS._entries, "twist", TwistMixer)
+    monkeypatch.setitem(MIXERS._origin, "twist", "cicfw-twist-mixer")
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "twist", "regression")
+    with pytest.raises(ExportError, match=r"^cannot export twist\+regression to onnx: the operator "
+                                          r"'cicfw_export_test::twist' has no form in ONNX opset 17; its mixer "
+                                          r"'twist' comes from the plugin 'cicfw-twist-mixer' \(cicfw's own parts "
+                                          r"export\); try format=torchscript, or ask"):
+        export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=episode_file, n_frames=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt"]
+    export_model(ckpt, "torchscript", tmp_path / "m.pt", frames=episode_file, n_frames=2)  # and this one does
+
+
+# ---- the agent's inputs -------------------------------------------------------------------------
+def test_the_agent_says_what_it_expects(tmp_path):
+    agent = Agent.load(tiny_checkpoint(tmp_path / "m.ckpt", "independent", "softmax"))
+    frame = np.zeros((88, 200, 3), np.uint8)
+    cases = [
+        ((np.zeros((3, 88, 200), np.uint8), 10, 2), r"channels-first \(C, H, W\).*use image.transpose\(1, 2, 0\)"),
+        ((np.zeros((5, 3, 88, 200), np.uint8), [10] * 5, [2] * 5), r"use images.transpose\(0, 2, 3, 1\)"),
+        ((np.zeros((88, 200, 4), np.uint8), 10, 2), r"4 channels \(BGRA.*image\[\.\.\., 2::-1\]"),
+        ((np.zeros((600, 800, 3), np.uint8), 10, 2), r"\(600, 800, 3\): the agent expects uint8 RGB frames \(88, 200, 3\)"),
+        ((frame.astype(np.float32) / 255, 10, 2), r"dtype float32: the agent expects uint8 pixels 0-255"),
+        ((frame, 10, 1), r"^command code 1 is not a CIL command: the agent expects 2 follow, 3 left, 4 right, "
+                         r"5 straight \(the branch is code - 2\)$"),
+        ((np.stack([frame] * 2), [10, 10], [2, 6]), r"command code 6 is not a CIL command"),
+        ((np.stack([frame] * 2), [10], [2, 3]), r"2 image\(s\) but 1 speed\(s\) and 2 command\(s\)"),
+    ]
+    for args, message in cases:
+        with pytest.raises(AgentInputError, match=message) as err:
+            agent.act(*args)
+        assert "\n" not in str(err.value)
+    assert isinstance(agent.act(frame, 10.0, np.float32(4.0)), float)  # CIL's targets store codes as floats
+
+
+def test_driving_function_is_the_modules_predict_steer():
+    torch.manual_seed(0)
+    model = CICModule(encoder=TINY, mixer="independent", mixer_kwargs={"hidden": 8}, head="hybrid").eval()
+    img = torch.randint(0, 256, (5, 88, 200, 3), dtype=torch.uint8)
+    speed, code = torch.rand(5) * 30, torch.tensor([2, 3, 4, 5, 2])
+    with torch.no_grad():
+        got = DrivingFunction(model)(img, speed, code)
+    assert torch.equal(got, model.predict_steer(img.permute(0, 3, 1, 2), speed, code - 2).clamp(-1, 1))
