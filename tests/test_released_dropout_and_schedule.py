@@ -1,0 +1,92 @@
+"""cicfw 0.2's training recipe (issue 16): dropout where the CIL authors' released network has it, and
+the cosine learning-rate schedule. Expected values are written out from their sources, not read back
+from the modules."""
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import pytest
+import torch
+from torch import nn
+
+import cicfw.train as train_mod
+from cicfw.train import build_model, train
+from conftest import compose_train, write_tiny_dataset
+
+# carla-simulator/imitation-learning, imitation_learning_network.py: dropout_vec holds KEEP probabilities,
+# 1.0 for the 8 convolutions, 0.7 for the two image FCs, 0.5 for the two speed FCs and the join, then
+# per branch 0.5 after the first hidden FC and 1.0 after the second. As drop rates, in execution order:
+RELEASED_ENCODER = [0.3, 0.3, 0.5, 0.5, 0.5]
+RELEASED_BRANCH = [0.5, 0.0]
+
+
+def _drop_rates_in_execution_order(model: nn.Module) -> list[float]:
+    rates: list[float] = []
+    hooks = [m.register_forward_hook(lambda mod, i, o: rates.append(mod.p))
+             for m in model.modules() if isinstance(m, (nn.Dropout, nn.Dropout2d))]
+    image = torch.zeros(4, 3, 88, 200, dtype=torch.uint8)
+    with torch.no_grad():
+        model(image, torch.zeros(4), torch.arange(4))
+    for h in hooks:
+        h.remove()
+    return rates
+
+
+def test_the_default_cil_row_drops_where_the_released_network_does():
+    model = build_model(compose_train())
+    rates = _drop_rates_in_execution_order(model)
+    assert rates == RELEASED_ENCODER + RELEASED_BRANCH * 4  # the encoder, then each of the four branches
+
+
+@pytest.mark.parametrize("mixer", ["independent", "gtu", "moe", "soft_sharing", "sluice", "cross_stitch", "re"])
+def test_every_rows_branches_use_the_released_pair(mixer):
+    model = build_model(compose_train(f"mixer={mixer}"))
+    assert _drop_rates_in_execution_order(model)[:5] == RELEASED_ENCODER
+    # sluice and cross-stitch run the branches layer by layer, so look at each branch's own layers
+    for branch in model.mixer.branches:
+        assert [m.p for m in branch.modules() if isinstance(m, nn.Dropout)] == RELEASED_BRANCH
+
+
+def test_cicfw_0_1_layout_is_still_reachable():
+    """The old layout: Dropout2d 0.2 after each of the 8 convolutions, 0.5 after every FC and both branch layers."""
+    model = build_model(compose_train("encoder.dropout_conv=0.2", "encoder.dropout_fc=0.5", "mixer.dropout=0.5"))
+    assert _drop_rates_in_execution_order(model) == [0.2] * 8 + [0.5] * 5 + [0.5, 0.5] * 4
+
+
+def _lrs_seen(tmp_path, monkeypatch, *overrides: str) -> list[float]:
+    """The learning rate the optimizer holds at the start of every training batch."""
+    seen: list[float] = []
+
+    class Record(L.Callback):
+        def on_train_batch_start(self, trainer, *args):
+            seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    build = train_mod.build_callbacks
+    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), Record()])
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
+    cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+                        "progress_bar=false", "trainer.compile=false", "trainer.max_epochs=2",
+                        "trainer.limit_train_batches=3", "trainer.limit_val_batches=1",
+                        "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", *overrides)
+    train(cfg, tmp_path / "run")
+    return seen
+
+
+@pytest.mark.parametrize("final", [0.0, 0.1])
+def test_cosine_schedule_follows_half_a_cosine_over_the_run(tmp_path, monkeypatch, final):
+    lr, total = 2e-4, 6  # 2 epochs x 3 batches
+    seen = _lrs_seen(tmp_path, monkeypatch, "model.lr_schedule=cosine", f"model.lr_final_factor={final}")
+    # step t trains at lr * (final + (1 - final) * (1 + cos(pi t / T)) / 2): lr at t = 0, lr * final at t = T
+    expected = [lr * (final + (1 - final) * (1 + math.cos(math.pi * t / total)) / 2) for t in range(total)]
+    assert seen == pytest.approx(expected, rel=1e-9, abs=1e-15)
+    assert seen[0] == pytest.approx(lr) and seen[3] == pytest.approx(lr * (final + (1 - final) / 2))
+
+
+def test_constant_schedule_keeps_the_papers_rate(tmp_path, monkeypatch):
+    assert _lrs_seen(tmp_path, monkeypatch) == [2e-4] * 6
+
+
+def test_unknown_schedule_is_one_line():
+    with pytest.raises(ValueError, match=r"model.lr_schedule='step' is not known; use one of constant, cosine"):
+        build_model(compose_train("model.lr_schedule=step"))
