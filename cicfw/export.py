@@ -73,25 +73,30 @@ class CheckInputs:
 
 def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") -> CheckInputs:
     """``n`` centre-camera frames of the embedded simulator's expert driving the training town's first
-    single-turn route (follow lane, then a turn), evenly spaced over the episode, with its speeds and
-    commands: real frames without a dataset on disk. Deterministic."""
+    left-turn and first right-turn single-turn routes (follow lane, then the turn), evenly spaced over
+    both episodes, with their speeds and commands: real frames under every turn command, without a
+    dataset on disk. Deterministic."""
     from cicfw.sim.backends import EmbeddedBackend
 
     backend = EmbeddedBackend()
-    route = backend.single_turn_routes(town)[0]
-    env = backend.make_env(town, route, weather, cameras=("centre",))
-    obs = env.reset()
-    frames = [obs]
-    while not env.done:
-        steer, v = env.expert_action()
-        obs, _, _ = env.step(steer, target_speed_kmh=v)
-        frames.append(obs)
+    routes = backend.single_turn_routes(town)
+    frames, names = [], []
+    for code in (3, 4):  # left, right
+        route = next(r for r in routes if code in np.asarray(r.commands))
+        env = backend.make_env(town, route, weather, cameras=("centre",))
+        obs, step = env.reset(), 0
+        while True:
+            frames.append(obs)
+            names.append(f"real frame {step} of the embedded simulator ({town}, {weather}, route {route.name!r})")
+            if env.done:
+                break
+            steer, v = env.expert_action()
+            obs, _, _ = env.step(steer, target_speed_kmh=v)
+            step += 1
     pick = np.linspace(0, len(frames) - 1, n).round().astype(int)
-    where = f"the embedded simulator ({town}, {weather}, route {route.name!r})"
     return CheckInputs(np.stack([frames[i]["images"]["centre"] for i in pick]),
                        np.array([frames[i]["speed_kmh"] for i in pick], np.float32),
-                       np.array([frames[i]["command"] for i in pick], np.int64),
-                       [f"real frame {i} of {where}" for i in pick])
+                       np.array([frames[i]["command"] for i in pick], np.int64), [names[i] for i in pick])
 
 
 def dataset_frames(path: str | Path, n: int) -> CheckInputs:
@@ -442,6 +447,11 @@ def _export_failure(err: Exception, fmt: str, hp: Mapping[str, Any], opset: int)
                        f"try {other}, or ask the part's authors for an exportable operator")
 
 
+def _sources(names: list[str]) -> list[str]:
+    """Where the named frames come from, each once, in order (``real frame 3 of X`` -> ``X``)."""
+    return list(dict.fromkeys(n.split(" of ", 1)[-1] for n in names))
+
+
 # ---- the export --------------------------------------------------------------------------------
 def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
                  frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
@@ -470,7 +480,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         raise _export_failure(err, fmt, info["hyper_parameters"], opset) from None
     worst = parity(runner(fmt, data), model, inputs, tolerance)
     info["parity"] = {"max_abs_diff": worst, "tolerance": tolerance, "inputs": len(inputs),
-                      "what": f"{len(inputs) - n_frames} real frames ({inputs.names[0].split(' of ', 1)[-1]}) and "
+                      "what": f"{len(inputs) - n_frames} real frames ({'; '.join(_sources(inputs.names[:-n_frames]))}) and "
                               f"{n_frames} random inputs, batch 1 and batch {len(inputs)}, vs the checkpoint's "
                               f"CICModule.predict_steer",
                       "runtime": "onnxruntime" if fmt == "onnx" else "torch.jit"}

@@ -35,6 +35,7 @@ from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.testing import make_targets, write_tiny_dataset
 
 TINY = "export_test_tiny"
+DEPLOY_DOC = Path(__file__).resolve().parents[1] / "docs" / "deploy.md"
 FORMATS = ("onnx", "torchscript")
 #: the tolerance the tests hold every runtime to (the export's default)
 TOL = export.TOLERANCE
@@ -227,6 +228,16 @@ def test_command_line_exports_a_cil_model_with_its_sidecar(cil_run, episode, tmp
     assert side["decoder"]["decode"] == "expectation" and side["normalisation"]["speed"] == "speed_kmh / 40"
     inputs = frames + export.random_inputs(64, seed=2)
     assert max_diff(Agent.load(out, threads=1), inputs, reference(cil_run, inputs)) <= TOL
+
+    # docs/deploy.md's numpy loop, verbatim, in a process where torch and cicfw cannot be imported
+    np.savez(tmp_path / "episode.npz", rgb=frames.images, speed_kmh=frames.speed_kmh, command=frames.command)
+    loop = DEPLOY_DOC.read_text().split("## Without cicfw", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    script = ('import sys\nsys.modules["torch"] = sys.modules["cicfw"] = None\n' + loop
+              + 'print(info["label"], repr(float(steer)))\n')
+    res = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    label, last = res.stdout.split()
+    assert label == "gtu+hybrid" and abs(float(last) - reference(cil_run, frames)[-1]) <= TOL
 
 
 def test_export_renders_its_own_frames_and_writes_torchscript_by_default_beside_the_checkpoint(tmp_path, episode):
