@@ -247,6 +247,44 @@ def test_export_renders_its_own_frames_and_writes_torchscript_by_default_beside_
     assert info["decoder"]["decode"] == "phase" and info["training_dataset"]["hash"] is None
 
 
+def test_the_carla_loop_in_the_docs_drives_against_the_carla_wheels_api(episode, tmp_path, monkeypatch):
+    """docs/deploy.md's CARLA client loop, verbatim but for five ticks, on the recording stand-in server
+    (autospecs of the installed wheel's classes, calls bound to its stubs)."""
+    import enum
+    import types
+
+    pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
+    from cicfw.sim.carla_standin import StandIn, maps_dir
+
+    if maps_dir() is None:
+        pytest.skip("CARLA's Town01/Town02 OpenDRIVE files are not in ../shared/carla-maps (or $CICFW_CARLA_MAPS)")
+    _, episode_file = episode
+    export_model(tiny_checkpoint(tmp_path / "m.ckpt", "gtu", "hybrid"), "onnx", tmp_path / "cil.onnx",
+                 frames=episode_file, n_frames=2)
+    si = StandIn(maps_dir())
+    world = si.client.get_world()
+    settings = world.get_settings()
+    settings.synchronous_mode, settings.fixed_delta_seconds = True, 0.1
+    world.apply_settings(settings)
+    start = world.get_map().generate_waypoints(10.0)[0].transform  # an OpenDRIVE map has no spawn points
+    car = world.spawn_actor(world.get_blueprint_library().find("vehicle.lincoln.mkz_2020"), start)
+    # CARLA's PythonAPI agents package is not in the wheel: its RoadOption, as local_planner.py defines it
+    planner = types.ModuleType("agents.navigation.local_planner")
+    planner.RoadOption = enum.IntEnum("RoadOption", {"VOID": -1, "LEFT": 1, "RIGHT": 2, "STRAIGHT": 3,
+                                                     "LANEFOLLOW": 4, "CHANGELANELEFT": 5, "CHANGELANERIGHT": 6})
+    for name in ("agents", "agents.navigation"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    monkeypatch.setitem(sys.modules, "agents.navigation.local_planner", planner)
+    monkeypatch.chdir(tmp_path)
+    loop = DEPLOY_DOC.read_text().split("## Driving in CARLA", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert loop.count("while not done:") == 1
+    exec(loop.replace("while not done:", "for _ in range(5):"),
+         {"world": world, "car": car, "throttle": 0.4, "next_option": planner.RoadOption.LEFT})
+    controls = si.controls()
+    assert len(controls) == 5 and all(c[3] == pytest.approx(0.4) and -1 <= c[2] <= 1 for c in controls)
+    assert si.check_calls() == []
+
+
 # ---- bad input: one line each, nothing written ------------------------------------------------
 def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, monkeypatch):
     _, episode_file = episode
