@@ -475,7 +475,7 @@ def scatter_figure(d: Diagnosis, title: str = "Steering diagnostic", max_points:
         ax.bar(x + (j - 1.5) * 0.2, [r[key] for r in inside], 0.2, color=colour, label=key.replace("shift_", "") +
                (" - follow" if key != "needed" else ": expert - follow"))
     ax.axhline(0, color="#999999", lw=0.8)
-    ax.set_xticks(x, [f"{r['command']} turn" for r in inside], fontsize=7)
+    ax.set_xticks(x, [f"{r['command']} command" for r in inside], fontsize=7)
     ax.set_title("inside the junction: branch minus follow branch", fontsize=8)
     ax.legend(fontsize=6)
     ax.tick_params(labelsize=7)
