@@ -1,7 +1,8 @@
 """cicfw export and the agent: every mixer x head exports to ONNX and TorchScript with the checkpoint's
 steering (``CICModule.predict_steer``) on real frames and random inputs at batch 1 and 64; a broken
 decoder inside the graph fails the export's own parity check; bad inputs give one line each and
-leave nothing behind.
+leave nothing behind; docs/deploy.md's numpy loop runs without torch and cicfw, its CARLA loop on the
+stand-in server.
 
 The mixer x head grid uses a tiny test encoder (registered for this module only) so that 40 models
 train, export twice and run in seconds; one CIL-size model trained by a Lightning Trainer goes
