@@ -4,36 +4,53 @@
     python -m cicfw.reproduce budget=smoke rows=[cil,gtu] seeds=2 results_dir=/tmp/smoke
     python -m cicfw.reproduce launcher=joblib hydra.launcher.n_jobs=4      # cells in parallel processes
 
-Before any cell runs, the app checks the rows, seeds and budget, collects the budget's dataset once
-(every row trains on it) and pins the results folder to this budget, suite and dataset
-(``reproduce.json``): a folder made with another one is refused. Then each (row, seed) cell is one job
-of Hydra's launcher (``cell.row``/``cell.seed`` swept), so ``launcher=joblib|slurm`` spreads cells with
-no other change. A cell trains, drives the suite and writes ``cell.json`` last: a finished cell is
-skipped, a killed one resumes from its last epoch checkpoint (and its evaluation from the episodes it
-kept), a failed one records its one-line error and the others go on. The report
-(``cicfw.bench.results``) is written at the end, and by ``cicfw report <results_dir>`` at any time.
+    python -m cicfw.reproduce budget=converged continue_from=docs/results/converged \
+        publish_dir=docs/results/converged                                   # grow a published table
+
+Before anything is collected or trained, the app checks the plan: every key it was given (an unknown one
+is refused), the rows (each custom row's experiment, head, mixer and overrides compose), the seeds, the
+budget, the claims, ``publish_dir`` and ``continue_from``; it takes the results folder's lock (one run
+per folder: ``reproduce.lock`` names the holder; a stale lock, whose process on this host is gone, is
+taken over with a warning) and checks a folder (or a published one to continue) made with another
+budget or suite. Then it collects the budget's dataset once (every row trains on it) and pins the
+results folder to this budget, suite and dataset (``reproduce.json``): a folder made with another dataset
+is refused, and so is a finished cell trained on another dataset or with another model configuration
+(its ``recipe``). Each (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed``
+swept), so ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite
+and writes ``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch
+checkpoint (marked ``resumed`` in cell.json and in the report: resuming does not restore the data
+pipeline's random state) and its evaluation from the episodes it kept, a failed one records its one-line
+error and the others go on. The report (``cicfw.bench.results``) is written at the end, and by
+``cicfw report <results_dir>`` at any time.
 """
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import logging
 import os
 import platform
+import socket
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.runs import atomic_write
+from cicfw.bench.results import write_shared
 
 log = logging.getLogger("cicfw.reproduce")
 
 MANIFEST = "reproduce.json"
 CELL_FILE = "cell.json"
+LOCK_FILE = "reproduce.lock"
+#: the config groups conf/reproduce.yaml's defaults choose (``budget=...``, ``launcher=...``)
+GROUPS = ("budget", "launcher")
+#: what a catalogue entry (a row) may say
+ROW_KEYS = ("experiment", "overrides", "label", "paper")
 
 
 class ReproduceError(ValueError):
@@ -50,24 +67,79 @@ def known_budgets() -> list[str]:
     return sorted(p.name[:-5] for p in files("cicfw.conf").joinpath("budget").iterdir() if p.name.endswith(".yaml"))
 
 
+def _hydra_line(err: BaseException) -> str:
+    """A Hydra composition error as one line (its options list folded in)."""
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    if not lines:
+        return type(err).__name__
+    if any(ln.startswith("Available options in") for ln in lines):
+        start = next(i for i, ln in enumerate(lines) if ln.startswith("Available options in")) + 1
+        opts = []
+        for ln in lines[start:]:
+            if ln.startswith("Config search path"):
+                break
+            opts.append(ln)
+        return f"{lines[0]}; available: {', '.join(opts)}"
+    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://"))
+
+
+def _parse(overrides: Sequence[str]) -> list[Any]:
+    """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    parser, out = OverridesParser.create(), []
+    for o in overrides:
+        try:
+            out.extend(parser.parse_overrides([o]))
+        except OverrideParseException as err:
+            raise ReproduceError(
+                f"cannot parse the override {o!r}: {str(err).splitlines()[0]}; quote a value that holds '=', "
+                f"spaces or brackets, e.g. '+catalogue.mine={{experiment: paper_gtu, overrides: [\"head=hybrid\"], "
+                f"label: GTU+hybrid}}'") from None
+    return out
+
+
+def _unknown(what: str, key: str, override: str, accepted: Sequence[str], where: str) -> ReproduceError:
+    close = difflib.get_close_matches(key.split(".")[-1], list(accepted), n=1, cutoff=0.6)
+    hint = f" did you mean {close[0]!r}?" if close else ""
+    return ReproduceError(f"unknown key {what!r} ({override});{hint} accepted {where}: {', '.join(accepted)}")
+
+
 def compose_plan(overrides: Sequence[str]) -> DictConfig:
-    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch)."""
+    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch). Every
+    override must parse and name a key the app has (``+foo=1`` is refused, not silently carried)."""
     from hydra import compose, initialize_config_module
-    from hydra.errors import MissingConfigException
+    from hydra.errors import HydraException
 
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
+    parsed = _parse(plain)
     for o in plain:
         if o.split("=", 1)[0].lstrip("+~") == "budget" and "=" in o and o.split("=", 1)[1] not in known_budgets():
             raise ReproduceError(f"unknown budget {o.split('=', 1)[1]!r}; known budgets: {', '.join(known_budgets())}")
+    group_choices = [o for o, p in zip(plain, parsed) if p.key_or_group in GROUPS]
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
+            base = compose("reproduce", overrides=group_choices)
+            for o, p in zip(plain, parsed):
+                key = p.key_or_group
+                top = key.split(".")[0]
+                if key in GROUPS or top == "cell":
+                    continue
+                if top not in base:
+                    raise _unknown(top, top, o, [k for k in base if k != "cell"], "top-level keys")
+                if top == "budget" and "." in key and key.split(".")[1] not in base.budget:
+                    raise _unknown(".".join(key.split(".")[:2]), key.split(".")[1], o, list(base.budget),
+                                   f"keys of budget {base.budget.name}")
             return compose("reproduce", overrides=plain)
-    except MissingConfigException as err:
-        raise ReproduceError(str(err).splitlines()[0]) from None
+    except HydraException as err:
+        raise ReproduceError(_hydra_line(err)) from None
 
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted."""
+    from cicfw.bench.results import load_claims
+
     catalogue = cfg.catalogue
     rows = [str(r) for r in (cfg.rows if OmegaConf.is_list(cfg.rows) else [cfg.rows])]
     if not rows:
@@ -75,12 +147,88 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     for r in rows:
         if r not in catalogue:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
+        check_row_entry(r, catalogue[r])
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
     seeds = cfg.seeds
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ReproduceError(f"seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got {seeds!r}")
+    load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
     return rows, list(range(int(seeds)))
+
+
+def check_row_entry(row: str, entry: Any) -> None:
+    """A catalogue entry: ``{experiment, overrides, label, paper}``, each of the right kind."""
+    if not OmegaConf.is_dict(entry):
+        raise ReproduceError(f"catalogue.{row} must be {{experiment: <name>, overrides: [...], label: <text>, "
+                             f"paper: [4 values] or null}}, got {entry!r}")
+    unknown = [str(k) for k in entry if k not in ROW_KEYS]
+    if unknown:
+        raise ReproduceError(f"catalogue.{row}: unknown key {unknown[0]!r}; accepted: {', '.join(ROW_KEYS)}")
+    if not entry.get("experiment"):
+        raise ReproduceError(f"catalogue.{row} has no experiment; give experiment: <one of conf/experiment/> "
+                             f"(e.g. paper_gtu), with overrides: [...] for what the row changes")
+    ov = entry.get("overrides")
+    if ov is not None and not (OmegaConf.is_list(ov) and all(isinstance(o, str) for o in ov)):
+        raise ReproduceError(f"catalogue.{row}.overrides must be a list of train overrides (quoted when they hold "
+                             f"'=': [\"head=hybrid\"]), got {OmegaConf.to_container(ov) if OmegaConf.is_config(ov) else ov!r}")
+    paper = entry.get("paper")
+    if paper is not None and not (OmegaConf.is_list(paper) and len(paper) == 4
+                                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in paper)):
+        raise ReproduceError(f"catalogue.{row}.paper must be the paper's 4 Table-4 values (training town: training / "
+                             f"new weathers, new town: training / new weathers) or null")
+
+
+def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
+    """Every row's training config composes and names a registered encoder, mixer and head: a custom row
+    with an unknown experiment, head or mixer is refused before anything is collected or trained."""
+    from hydra import initialize_config_module
+    from hydra.errors import HydraException, MissingConfigException
+
+    from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        for r in rows:
+            entry = cfg.catalogue[r]
+            ov = [str(o) for o in entry.get("overrides") or []]
+            what = f"row {r!r} (experiment {entry.experiment}" + (f", overrides {ov})" if ov else ")")
+            try:
+                tcfg = compose_train(cfg, r, 0)
+            except MissingConfigException as err:
+                line = _hydra_line(err)
+                import re
+
+                m = re.search(r"Could not find '([\w-]+)/([^']+)'", line)
+                if m and m.group(1) == "experiment":
+                    raise ReproduceError(f"row {r!r}: unknown experiment {m.group(2)!r}; known experiments: "
+                                         f"{line.split('available: ', 1)[-1]}") from None
+                if m:
+                    raise ReproduceError(f"{what}: unknown {m.group(1)} {m.group(2)!r}; known {m.group(1)}s: "
+                                         f"{line.split('available: ', 1)[-1]}") from None
+                raise ReproduceError(f"{what}: {line}") from None
+            except HydraException as err:
+                raise ReproduceError(f"{what}: {_hydra_line(err)}") from None
+            for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
+                try:
+                    registry.get(str(tcfg[group].get("name")))
+                except UnknownNameError as err:
+                    raise ReproduceError(f"{what}: {err}") from None
+
+
+def check_outputs(cfg: DictConfig) -> None:
+    """results_dir and publish_dir writable folders (or creatable), continue_from a published folder:
+    checked before any cell, so nothing fails after the work is done."""
+    from cicfw.bench.results import published_manifest
+
+    check_folder(Path(cfg.results_dir))
+    if cfg.get("publish_dir"):
+        pub = Path(cfg.publish_dir)
+        if pub.exists() and not pub.is_dir():
+            raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
+                                 f"(created if missing)")
+        check_folder(pub, "publish_dir")
+    if cfg.get("continue_from"):
+        published_manifest(Path(cfg.continue_from))
 
 
 def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
@@ -100,19 +248,105 @@ def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
     return tcfg
 
 
-def fingerprint(cfg: DictConfig, dataset: dict[str, Any]) -> dict[str, Any]:
-    """What a results folder is pinned to: the budget's training and suite settings and the dataset."""
-    budget = OmegaConf.to_container(cfg.budget, resolve=True)
-    pinned = {"budget": budget["name"], "train": budget["train"], "suite": budget["suite"],
-              "dataset": dataset.get("config_hash")}
+def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str, Any]:
+    """What a results folder is pinned to: the budget's training and suite settings and the dataset (None:
+    not known yet). The training overrides are kept as written (``${oc.env:CICFW_CACHE,...}`` unresolved),
+    so that a folder made on one machine is the same plan on another; ``train_resolved`` is compared too,
+    for folders pinned before that."""
+    budget = OmegaConf.to_container(cfg.budget, resolve=False)
+    pinned = {"budget": cfg.budget.name, "train": [str(o) for o in budget["train"]],
+              "suite": [str(o) for o in OmegaConf.to_container(cfg.budget.suite, resolve=True)],
+              "dataset": None if dataset is None else dataset.get("config_hash")}
     pinned["hash"] = hashlib.sha256(json.dumps(pinned, sort_keys=True).encode()).hexdigest()[:16]
     return pinned
 
 
-def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
-    """Collect the budget's dataset once, then pin (or check) the results folder; returns the manifest."""
+def pinned_differences(theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
+                       keys: Sequence[str] = ("budget", "train", "suite", "dataset")) -> list[str]:
+    """Which of ``keys`` a folder's pinned fingerprint (``theirs``) has otherwise than this plan's."""
+    resolved = [str(o) for o in OmegaConf.to_container(cfg.budget.train, resolve=True)]
+    diff = []
+    for k in keys:
+        if k == "train" and theirs.get("train") in (ours["train"], resolved):
+            continue
+        if theirs.get(k) != ours.get(k):
+            diff.append(k)
+    return diff
+
+
+def refuse_other_pin(where: str, fix: str, theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
+                     keys: Sequence[str]) -> None:
+    """One line when a folder (``where``) is pinned to another budget, training, suite or dataset."""
+    diff = pinned_differences(theirs, ours, cfg, keys)
+    if not diff:
+        return
+    if "budget" in diff:
+        rest = [k for k in diff if k != "budget"]
+        raise ReproduceError(f"{where} was made with budget={theirs.get('budget')}, this run asks for "
+                             f"budget={ours['budget']}" + (f" (another {'/'.join(rest)})" if rest else "") + f"; {fix}")
+    data = (f" (dataset {theirs.get('dataset')} there, {ours.get('dataset')} here)" if "dataset" in diff else "")
+    raise ReproduceError(f"{where} was made with budget={theirs.get('budget')} and another {'/'.join(diff)}{data}; "
+                         f"{fix}")
+
+
+#: the parts of a cell's training config that decide what it learns, kept in its cell.json (``recipe``):
+#: the network, the losses, the optimizer, the data pipeline (not where the data lies or how it is read)
+RECIPE = ("encoder", "mixer", "head", "model", "data")
+RECIPE_DATA_SKIP = ("path", "collect", "num_workers", "in_memory", "val_batch_size", "seed")
+
+
+def recipe(tcfg: DictConfig) -> dict[str, Any]:
+    """The cell's ``recipe``: what decides its model besides the seed (a continued cell is checked against it)."""
+    out = {k: OmegaConf.to_container(tcfg[k], resolve=True) for k in RECIPE if k in tcfg}
+    for k in RECIPE_DATA_SKIP:
+        (out.get("data") or {}).pop(k, None)
+    return json.loads(json.dumps(out))
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out = {}
+        for k, v in d.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: d}
+
+
+def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: str,
+                recipes: dict[str, dict[str, Any]]) -> None:
+    """Every finished cell under ``folder`` was trained on this dataset and as this cicfw trains its row
+    (its ``recipe``: a value both give that differs, e.g. another dropout, is refused; a key only one has
+    is not, since a new option's default keeps the old behaviour). Cells written before cells recorded
+    them (no ``dataset``/``recipe``) are not checked."""
     from hydra import initialize_config_module
 
+    from cicfw.bench.results import finished_cells
+
+    for name, d in finished_cells(folder).items():
+        if d.get("dataset") and dataset and d["dataset"] != dataset:
+            raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
+                                 f"{dataset}; {fix}")
+        row = str(d.get("row"))
+        if not d.get("recipe") or row not in cfg.catalogue:
+            continue
+        if row not in recipes:
+            with initialize_config_module("cicfw.conf", version_base="1.3"):
+                recipes[row] = recipe(compose_train(cfg, row, 0))
+        theirs, ours = _flat(d["recipe"]), _flat(recipes[row])
+        for k in sorted(set(theirs) & set(ours)):
+            if theirs[k] != ours[k]:
+                raise ReproduceError(f"cell {name} of {where} was trained with {k}={theirs[k]}, this run trains row "
+                                     f"{row} with {k}={ours[k]}; {fix}")
+
+
+def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
+    """Check the results folder (and the published folder to continue) against this plan's budget and
+    suite, collect the budget's dataset once, check its hash and the finished cells, copy a published
+    folder's finished cells in, then pin the folder; returns the manifest. Everything that can be checked
+    before collecting is."""
+    from hydra import initialize_config_module
+
+    from cicfw.bench.results import continue_published, published_manifest
     from cicfw.train import ensure_data
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -120,37 +354,182 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         evcfg = compose_eval(cfg, [])
         n_episodes = count_episodes(evcfg)
     results_dir = Path(cfg.results_dir)
-    check_folder(results_dir)
-    ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
-    dataset = dataset_info(Path(tcfg.data.path).expanduser())
-    pinned = fingerprint(cfg, dataset)
     path = results_dir / MANIFEST
-    if path.is_file():
-        old = json.loads(path.read_text())
-        if old.get("pinned", {}).get("hash") != pinned["hash"]:
-            diff = [k for k in ("budget", "train", "suite", "dataset") if old.get("pinned", {}).get(k) != pinned[k]]
-            raise ReproduceError(
-                f"results folder {str(results_dir)!r} was made with budget={old.get('budget')} and another "
-                f"{'/'.join(diff)}; start a new folder (results_dir=<new path>) or delete this one")
-        return old
-    manifest = {"budget": pinned["budget"], "pinned": pinned, "suite": OmegaConf.to_container(evcfg.suite, resolve=True),
-                "episodes": n_episodes, "dataset": dataset,
-                "dataset_summary": f"{dataset.get('episodes')} episodes of {dataset.get('seconds')} s in "
-                                   f"{'/'.join(dataset.get('towns') or [])} under {'/'.join(dataset.get('weathers') or [])}, "
-                                   f"{dataset.get('samples')} samples in {dataset.get('files')} files",
-                "machine": machine(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
-    atomic_write(path, json.dumps(manifest, indent=1))
+    old = json.loads(path.read_text()) if path.is_file() else None
+    src = Path(cfg.continue_from) if cfg.get("continue_from") else None
+    published = published_manifest(src) if src is not None else None
+    folders = []  # (where, what to do instead, its pinned fingerprint)
+    if old is not None:
+        folders.append((f"results folder {str(results_dir)!r}",
+                        "start a new folder (results_dir=<new path>) or delete this one", old.get("pinned") or {}))
+    if published is not None:
+        folders.append((f"continue_from={str(src)!r}", f"continue it with budget={(published.get('pinned') or {}).get('budget')} "
+                        "and its dataset, or start a new folder without continue_from", published.get("pinned") or {}))
+    ours = fingerprint(cfg, None)
+    for where, fix, theirs in folders:  # before collecting: another budget, training or suite
+        refuse_other_pin(where, fix, theirs, ours, cfg, ("budget", "train", "suite"))
+    data_path = Path(tcfg.data.path).expanduser()
+    if folders and dataset_is_complete(data_path):  # collected before: its hash is known without collecting
+        early = fingerprint(cfg, dataset_info(data_path))
+        for where, fix, theirs in folders:
+            refuse_other_pin(where, fix, theirs, early, cfg, ("dataset",))
+    ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
+    dataset = dataset_info(data_path)
+    pinned = fingerprint(cfg, dataset)
+    for where, fix, theirs in folders:
+        refuse_other_pin(where, fix, theirs, pinned, cfg, ("budget", "train", "suite", "dataset"))
+    recipes: dict[str, dict[str, Any]] = {}
+    for where, fix, _ in folders:
+        folder = src if where.startswith("continue_from") else results_dir
+        label = repr(str(folder))
+        check_cells(folder, label, fix, cfg, pinned["dataset"], recipes)
+    manifest = old or {
+        "budget": pinned["budget"], "pinned": pinned, "suite": OmegaConf.to_container(evcfg.suite, resolve=True),
+        "episodes": n_episodes, "dataset": dataset,
+        "dataset_summary": f"{dataset.get('episodes')} episodes of {dataset.get('seconds')} s in "
+                           f"{'/'.join(dataset.get('towns') or [])} under {'/'.join(dataset.get('weathers') or [])}, "
+                           f"{dataset.get('samples')} samples in {dataset.get('files')} files",
+        "machine": machine(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    changed = old is None
+    if src is not None:
+        got = continue_published(src, results_dir)
+        log.info("continue_from=%s: %d finished cell(s) copied, %d already here", src, len(got["copied"]),
+                 len(got["kept"]))
+        if got["copied"]:
+            manifest.setdefault("continued_from", []).append(
+                {"from": str(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+                 "machine": (published or {}).get("machine"), "created": (published or {}).get("created")})
+            changed = True
+    if changed:
+        write_shared(path, json.dumps(manifest, indent=1))
     return manifest
 
 
-def check_folder(results_dir: Path) -> None:
-    """A results folder must be writable (or creatable) before anything is collected or trained."""
-    p = results_dir
+def dataset_is_complete(path: Path) -> bool:
+    """Whether the collector's metadata says the dataset at ``path`` is complete (then collecting is a no-op)."""
+    for name in ("dataset_metadata.json", "metadata.json"):
+        try:
+            return bool(json.loads((path / name).read_text()).get("complete"))
+        except (OSError, ValueError, AttributeError):
+            continue
+    return False
+
+
+def check_folder(folder: Path, key: str = "results_dir") -> None:
+    """A folder must be writable (or creatable) before anything is collected or trained."""
+    p = folder
     while not p.exists():
         p = p.parent
     if not p.is_dir() or not os.access(p, os.W_OK):
-        raise ReproduceError(f"results_dir {str(results_dir)!r} cannot be written ({str(p)!r} is not a writable "
-                             f"folder); give results_dir=<a writable path>")
+        raise ReproduceError(f"{key} {str(folder)!r} cannot be written ({str(p)!r} is not a writable "
+                             f"folder); give {key}=<a writable path>")
+
+
+# ------------------------------------------------------------------------------------------------
+# one run per results folder
+
+
+class ResultsLock:
+    """One ``reproduce`` run per results folder: ``<results_dir>/reproduce.lock`` names the holder (pid, host,
+    start time, command) and is held with an exclusive ``flock`` for the run's life, removed when it ends.
+    Another run on the folder is refused in one line naming the holder. A lock whose holder is gone (the
+    flock is free, and its pid on this host is dead or younger than the lock: a killed run) is stale and
+    taken over with a warning; a record from another host is never taken over (its pid cannot be checked
+    here): the message says to delete the file if that run is gone."""
+
+    def __init__(self, results_dir: Path) -> None:
+        self.dir = Path(results_dir)
+        self.path = self.dir / LOCK_FILE
+        self.fd: int | None = None
+        self.made_dir = False
+
+    def _in_use(self, holder: Mapping[str, Any], certain: bool) -> ReproduceError:
+        who = (f"pid {holder.get('pid', '?')} on host {holder.get('host', '?')}, started "
+               f"{holder.get('started', '?')}")
+        tail = ("" if certain else f"; if it is no longer running, delete {str(self.path)!r}")
+        return ReproduceError(f"results folder {str(self.dir)!r} is in use by another reproduce run ({who}): one run "
+                              f"per folder; wait for it to finish, or give another results_dir=<path>{tail}")
+
+    def acquire(self) -> "ResultsLock":
+        import fcntl
+
+        self.made_dir = not self.dir.exists()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        for _ in range(20):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # a live run holds it
+                holder = _read_lock(fd)
+                os.close(fd)
+                raise self._in_use(holder, certain=True) from None
+            try:  # the file we locked is still the one at the path (a finishing holder unlinks it)
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            holder = _read_lock(fd)
+            if holder:
+                if holder.get("host") != socket.gethostname() or _holder_alive(holder):
+                    os.close(fd)
+                    raise self._in_use(holder, certain=False)
+                log.warning("results folder %s: taking over the stale lock of pid %s on %s (started %s), which is "
+                            "no longer running", self.dir, holder.get("pid"), holder.get("host"), holder.get("started"))
+            now = time.time()
+            record = {"pid": os.getpid(), "host": socket.gethostname(),
+                      "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(now)), "started_epoch": now,
+                      "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])[:500]}
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps(record).encode(), 0)
+            self.fd = fd
+            return self
+        raise ReproduceError(f"could not take the lock {str(self.path)!r} (it kept changing); try again")
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # while still holding it: a waiting run then retries the new file
+        finally:
+            os.close(self.fd)
+            self.fd = None
+        if self.made_dir:
+            try:
+                self.dir.rmdir()  # a folder this run made and nothing was written into
+            except OSError:
+                pass
+
+
+def _read_lock(fd: int) -> dict[str, Any]:
+    try:
+        data = os.pread(fd, 65536, 0)
+        return json.loads(data) if data.strip() else {}
+    except (OSError, ValueError):
+        return {"pid": "?", "host": "?", "started": "? (an unreadable lock file)"}
+
+
+def _holder_alive(holder: Mapping[str, Any]) -> bool:
+    """Whether the lock's pid (on this host) is a live process that is not younger than the lock."""
+    try:
+        pid = int(holder.get("pid"))
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # alive, someone else's
+    except (TypeError, ValueError):
+        return False
+    started = holder.get("started_epoch")
+    try:  # a pid reused after the holder died (a reboot, a container) started after the lock was taken
+        ticks = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
+        btime = next(int(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime"))
+        if started is not None and btime + ticks / os.sysconf("SC_CLK_TCK") > float(started) + 1.0:
+            return False
+    except (OSError, ValueError, IndexError, StopIteration):
+        pass
+    return True
 
 
 def dataset_info(path: Path) -> dict[str, Any]:
@@ -212,6 +591,10 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
         return "skipped"
     t0 = time.time()
     try:
+        pinned = json.loads((Path(cfg.results_dir) / MANIFEST).read_text()).get("pinned") or {}
+    except (OSError, ValueError):
+        pinned = {}
+    try:
         result = _train_and_drive(cfg, row, seed, cell_dir)
         status = "ok"
     except Exception as err:  # recorded with its one-line error (and the whole text); the other cells go on
@@ -224,8 +607,8 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
                   "detail": "".join(traceback.format_exception(err))[-4000:]}
         status = "failed"
         log.error("cell %s seed %d failed: %s\n%s", row, seed, result["error"], result["detail"])
-    atomic_write(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
-                                   **result}, indent=1))
+    write_shared(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
+                                   "dataset": pinned.get("dataset"), **result}, indent=1))
     return status
 
 
@@ -241,15 +624,21 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
     epochs = int(tcfg.trainer.max_epochs)
     if not trained.is_file():
         saved = sorted(ckpts.glob("epoch[0-9][0-9][0-9].ckpt"))
+        resumed = None
         if saved:  # a killed cell: resume its training from the latest epoch it saved
-            log.info("cell %s seed %d: resuming training from %s", row, seed, saved[-1])
+            log.info("cell %s seed %d: resuming training from %s (the batch order and augmentation after it will "
+                     "not be the uninterrupted run's: the cell is marked resumed)", row, seed, saved[-1])
             tcfg.ckpt_path = str(saved[-1])
+            resumed = {"training": {"from_epoch": int(saved[-1].stem[len("epoch"):])}}
         log.info("cell %s seed %d: training (%s)", row, seed, tcfg.experiment if "experiment" in tcfg else row)
         t = time.time()
         val = train(tcfg, train_dir)
-        atomic_write(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
-                                          "resumed": bool(tcfg.get("ckpt_path"))}))
+        write_shared(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
+                                          "resumed": resumed}))
     info = json.loads(trained.read_text())
+    resumed = info.get("resumed")
+    if resumed is True:  # written by cicfw before the epoch was recorded
+        resumed = {"training": {"from_epoch": None}}
     final = ckpts / f"epoch{epochs:03d}.ckpt"  # the final weights (last.ckpt follows the best-val checkpoints)
 
     def drive(ckpt: Path, out: Path) -> tuple[dict, float]:
@@ -279,7 +668,8 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
             "val_steer_mae": info.get("val_steer_mae"), "success": summary["success"],
             "cells": {k: v["rate"] for k, v in summary["cells"].items()},
             "wall_s": {"train": info.get("train_s"), "evaluate": round(eval_s, 1), "curve": round(curve_s, 1)},
-            "curve": curve, "episodes": episodes, "machine": machine()}
+            "curve": curve, "episodes": episodes, "machine": machine(), "resumed": resumed or None,
+            "recipe": recipe(tcfg)}
 
 
 def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
@@ -315,18 +705,25 @@ def _cell_job(cfg: DictConfig) -> str:
 
 
 def write_report(cfg: DictConfig) -> dict[str, Any] | None:
-    from cicfw.bench.results import publish, write_report as write
+    from cicfw.bench.results import load_claims, publish, write_report as write
 
     results_dir = Path(cfg.results_dir)
     catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
-    data = write(results_dir, catalogue)
+    data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)))
     if cfg.get("publish_dir"):
         publish(results_dir, Path(cfg.publish_dir))
     return data
 
 
+def _error_line(err: BaseException) -> str:
+    if isinstance(err, OSError) and err.strerror and not isinstance(err, FileNotFoundError):
+        return f"cannot write {err.filename!r}: {err.strerror}" if err.filename else str(err.strerror)
+    return str(err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Check the plan, collect the data, run every cell through Hydra's launcher, write the report."""
+    """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
+    write the report (and publish it)."""
     from cicfw.errors import USER_ERRORS
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -337,20 +734,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     args = [a for a in args if a not in ("-m", "--multirun")]
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    lock = None
     try:
         cfg = compose_plan(args)
         rows, seeds = check_plan(cfg)
+        check_rows(cfg, rows)
+        check_outputs(cfg)
+        lock = ResultsLock(Path(cfg.results_dir)).acquire()
         manifest = prepare(cfg, rows)
     except USER_ERRORS as err:
-        msg = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
-        print(f"cicfw: error: {msg}", file=sys.stderr)
+        if lock is not None:
+            lock.release()
+        print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
         return 2
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
     log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
              manifest["budget"], manifest["episodes"], cfg.results_dir)
     # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still
     # compares every row on the same seeds
     sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
     t0 = time.time()
+    code = 0
     try:
         _cell_job()
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
@@ -363,7 +770,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
         except ValueError as err:
             log.error("no report: %s", err)
-    return 0
+        except OSError as err:  # a publish_dir that became unwritable, a full disk: one line, the cells are kept
+            print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
+            code = 1
+        finally:
+            lock.release()
+    return code
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """``python -m cicfw.reproduce`` end to end on the smoke budget: two rows x two seeds, a rerun that skips
-every finished cell, a killed run that resumes without recomputing, a failed cell recorded while the
-others go on, configurations that refuse to mix, and one clear line for every bad input."""
+every finished cell, a killed run that resumes without recomputing, a resumed cell marked as such, a
+failed cell recorded while the others go on, configurations that refuse to mix, a published folder
+continued elsewhere (its cells skipped, its dataset checked), and one clear line for every bad input."""
 from __future__ import annotations
 
 import json
@@ -11,9 +12,13 @@ import sys
 import time
 from pathlib import Path
 
+import shutil
+import stat
+
 import pytest
 
 from cicfw import reproduce
+from cicfw.bench import results
 
 SMOKE = ["budget=smoke", "seeds=2"]
 
@@ -34,7 +39,19 @@ def cache(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def smoke_run(cache, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("smoke") / "results"
-    assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"results_dir={out}"]) == 0
+    old = os.umask(0o022)  # a shared machine's usual umask: what is written must be readable by others
+    try:
+        assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"results_dir={out}"]) == 0
+    finally:
+        os.umask(old)
+    return out
+
+
+@pytest.fixture(scope="module")
+def one_cell(cache, tmp_path_factory) -> Path:
+    """A results folder with one finished cell (cil seed 0): what resuming and continuing start from."""
+    out = tmp_path_factory.mktemp("one") / "results"
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
     return out
 
 
@@ -62,6 +79,19 @@ def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
     assert (smoke_run / "results.png").read_bytes()[:4] == b"\x89PNG"
     manifest = json.loads((smoke_run / "reproduce.json").read_text())
     assert manifest["budget"] == "smoke" and manifest["suite"]["name"] == "single_turn" and manifest["episodes"] == 4
+    assert one["dataset"] == manifest["pinned"]["dataset"] and one["recipe"]["mixer"]["name"] == "gtu"
+    assert one["resumed"] is None
+    assert not (smoke_run / "reproduce.lock").exists()  # the run released its folder
+
+
+def test_what_a_run_writes_is_readable_by_others(smoke_run):
+    """Under umask 022 a colleague can read the report, the manifest and every cell (issue 17, item 7)."""
+    names = ["RESULTS.md", "results.json", "results.csv", "results.png", "reproduce.json"]
+    files = [smoke_run / n for n in names] + list(smoke_run.glob("cells/*/seed*/cell.json"))
+    files += list(smoke_run.glob("cells/*/seed*/train/trained.json"))
+    assert len(files) == len(names) + 8
+    for p in files:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, (p, oct(p.stat().st_mode))
 
 
 def test_rerun_skips_every_finished_cell(smoke_run, capsys):
@@ -90,6 +120,84 @@ def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
     got = cells(out)
     assert sorted(got) == ["cil/seed0", "cil/seed1"] and {c["status"] for c in got.values()} == {"ok"}
     assert not list(out.rglob("*.tmp"))
+
+
+def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, tmp_path):
+    """A cell whose training resumed from an epoch checkpoint (here: the first epoch's, as a killed run
+    leaves it) says so in cell.json and in the report's table, with the difference resuming can make."""
+    out = tmp_path / "results"
+    ckpts = out / "cells" / "cil" / "seed0" / "train" / "checkpoints"
+    ckpts.mkdir(parents=True)
+    shutil.copy(one_cell / "cells" / "cil" / "seed0" / "train" / "checkpoints" / "epoch001.ckpt", ckpts)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
+    got = cells(out)["cil/seed0"]
+    assert got["status"] == "ok" and got["resumed"] == {"training": {"from_epoch": 1}}
+    assert got["epochs"] == 2
+    md = (out / "RESULTS.md").read_text()
+    assert "| Regression (CIL) | – | 1 † ‡ |" in md and "| Regression (CIL) | 0 ‡ |" in md
+    assert "‡ Regression (CIL) seed 0 (training resumed after epoch 1)" in md and "0.12743" in md
+
+
+def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_path, capsys):
+    """A fresh clone continues a published folder (issue 16, item 5): the published cells are copied in and
+    skipped (nothing is trained), the report covers them, and publishing back records where they came
+    from, so the next machine continues from there (a new cell would train and be published like any)."""
+    published = tmp_path / "docs_results_smoke"
+    results.publish(one_cell, published)  # what publish_dir=... writes, committed
+    out = tmp_path / "clone" / "results"
+    args = [*SMOKE, "rows=[cil]", "seeds=1", f"continue_from={published}", f"results_dir={out}",
+            f"publish_dir={published}"]
+    assert reproduce.main(args) == 0
+    assert capsys.readouterr().out.count("finished before, skipped") == 1
+    assert cells(out) == cells(one_cell) == cells(published)
+    assert not (out / "cells" / "cil" / "seed0" / "train").exists()  # nothing recomputed
+    manifest = json.loads((out / "reproduce.json").read_text())
+    assert manifest["continued_from"][0]["from"] == str(published)
+    assert manifest["continued_from"][0]["cells"] == ["cil/seed0"]
+    assert json.loads((published / "reproduce.json").read_text())["continued_from"] == manifest["continued_from"]
+    assert f"- **Continued from:** `{published}` (1 finished cells copied" in (published / "RESULTS.md").read_text()
+    # the next machine continues the folder published back
+    again = tmp_path / "third" / "results"
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"continue_from={published}", f"results_dir={again}"]) == 0
+    assert cells(again) == cells(one_cell)
+
+
+@pytest.mark.parametrize("what", ["manifest", "cell", "recipe"])
+def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cache, one_cell, tmp_path, capsys,
+                                                                        monkeypatch):
+    import cicfw.train
+
+    published = tmp_path / "published"
+    results.publish(one_cell, published)
+    dataset = json.loads((one_cell / "reproduce.json").read_text())["pinned"]["dataset"]
+    if what == "manifest":
+        p = published / "reproduce.json"
+        m = json.loads(p.read_text())
+        m["pinned"]["dataset"] = "ffffffffffffffff"
+        message = (f"continue_from={str(published)!r} was made with budget=smoke and another dataset "
+                   f"(dataset ffffffffffffffff there, {dataset} here)")
+    else:
+        p = published / "cells" / "cil" / "seed0" / "cell.json"
+        m = json.loads(p.read_text())
+        if what == "cell":
+            m["dataset"] = "ffffffffffffffff"
+            message = (f"cell cil/seed0 of {str(published)!r} was trained on dataset ffffffffffffffff, this run's "
+                       f"is {dataset}")
+        else:
+            m["recipe"]["encoder"]["dropout_conv"] = 0.2
+            message = (f"cell cil/seed0 of {str(published)!r} was trained with encoder.dropout_conv=0.2, this run "
+                       f"trains row cil with encoder.dropout_conv=0.0")
+    p.write_text(json.dumps(m))
+    collected = []
+    monkeypatch.setattr(cicfw.train, "ensure_data", lambda *a, **k: collected.append(1))
+    out = tmp_path / "clone"
+    assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"continue_from={published}", f"results_dir={out}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"cicfw: error: {message}"), err
+    assert not list(out.glob("cells/*/seed*/cell.json")) and not (out / "reproduce.json").exists()
+    assert not (out / "reproduce.lock").exists()
+    if what == "manifest":
+        assert not collected  # the dataset was already there: refused before asking the collector
 
 
 def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run):

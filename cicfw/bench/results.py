@@ -26,7 +26,8 @@ percentile bootstrap (``n_boot`` replicates): each replicate draws the row's see
 within each table column, the suite's episodes with replacement (one episode draw shared by every row:
 rows drove the same episodes); the statistic is the mean over the drawn seeds of the success on the drawn
 episodes; the interval is its 2.5th..97.5th percentile. With few seeds it is too narrow (3 seeds have only
-10 distinct seed draws; simulated coverage of a difference about 87% at 3 seeds): it is not used for a
+10 distinct seed draws; in the coverage simulation it covers the true difference in about 90% of
+experiments at 3 seeds and 93% at 5, where the paired t-interval covers 95%): it is not used for a
 verdict.
 
 **Verdicts.** Each claim of the paper (``claims:`` in ``conf/reproduce.yaml``, with its sentence quoted)
@@ -44,11 +45,18 @@ Holm's step-down method (``statsmodels.stats.multitest.multipletests(method="hol
 uncorrected one. A claim of several parts is *contradicted* when any part is, *not run* when a part's rows
 were not run, *too few seeds* when a part lacks seeds, *supported* when every part is, *inconclusive*
 otherwise.
+
+**Resumed cells.** A cell whose training was stopped and resumed from an epoch checkpoint records it in
+``cell.json`` (``resumed``); the report marks its row and seed (‡) with a footnote: a resumed training does
+not restore the data pipeline's and augmentation's random state, so its numbers can differ from an
+uninterrupted run's (``RESUME_EXAMPLE``). Every file written here is readable by others as the umask allows
+(0644 under umask 022), like any file the user writes, not owner-only as a bare temporary file would be.
 """
 from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -76,6 +84,36 @@ SELECTORS: dict[str, tuple[int, ...]] = {
 SELECTOR_NAMES = {**dict(zip(COLUMNS, COLUMN_NAMES)), "overall": "overall", "training_town": "training town",
                   "new_town": "new town", "training_weathers": "training weathers", "new_weathers": "new weathers"}
 TESTS = ("greater", "less", "not_greater")
+#: what resuming a killed training changed, measured (issue 17): the report's footnote on resumed cells
+RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last epoch was 0.12519 uninterrupted "
+                  "and 0.12743 when the run was killed after epoch 1 and resumed")
+RESUMED_MARK = "‡"
+
+
+def umask() -> int:
+    """The process's umask (read without changing it where /proc says it; else set and restored at once)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def make_shared(path: Path) -> Path:
+    """Give ``path`` the mode a plainly created file gets (0666 less the umask): the atomic writer's
+    temporary file is owner-only (0600), which a colleague reading a shared results folder cannot open."""
+    os.chmod(path, 0o666 & ~umask())
+    return Path(path)
+
+
+def write_shared(path: Path, data: str | bytes) -> Path:
+    """``atomic_write`` (temporary file, then rename: never half-written), readable as the umask allows."""
+    atomic_write(Path(path), data)
+    return make_shared(Path(path))
 
 
 @dataclass
@@ -600,6 +638,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "manoeuvres": {m: round(float(np.mean(v)), 2) for m, v in man.items()},
             "paper": paper.get(r),
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
+            "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
     return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
@@ -673,6 +712,22 @@ def summary_lines(data: Mapping[str, Any]) -> list[str]:
     return out
 
 
+def resumed_text(data: Mapping[str, Any]) -> str:
+    """The footnote on resumed cells (‡), or "" when every cell ran uninterrupted."""
+    which = []
+    for r in data["rows"]:
+        for s, how in (r.get("resumed") or {}).items():
+            epoch = ((how or {}).get("training") or {}).get("from_epoch") if isinstance(how, Mapping) else None
+            which.append(f"{r['label']} seed {s} (training resumed"
+                         + (f" after epoch {epoch})" if epoch is not None else ")"))
+    if not which:
+        return ""
+    return (f"{RESUMED_MARK} {', '.join(which)}: resumed from an epoch checkpoint after its run was stopped. A "
+            "resumed cell's numbers can differ from an uninterrupted run's, since resuming restores the weights, "
+            "the optimizer and the epoch but not the random state of the batch order and augmentation "
+            f"({RESUME_EXAMPLE}); its evaluation, when resumed, is the uninterrupted one's.")
+
+
 def markdown(data: Mapping[str, Any]) -> str:
     """RESULTS.md: the machine and budget, Table 4 with t-intervals over seeds and the paper's values, the
     claims (uncorrected and Holm verdicts, each with its method, the episode bootstrap beside as a secondary
@@ -684,6 +739,9 @@ def markdown(data: Mapping[str, Any]) -> str:
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
               f"({m.get('episodes', '?')} episodes per cell); dataset: {m.get('dataset_summary', '?')}.",
               f"- **Machine:** {m.get('machine', '?')}.",
+              *[f"- **Continued from:** `{c.get('from')}` ({len(c.get('cells') or [])} finished cells copied"
+                + (f", made on {c['machine']}" if c.get("machine") else "") + f", {c.get('date', '?')})."
+                for c in m.get("continued_from") or []],
               f"- **Cells:** {sum(len(r['seeds']) for r in data['rows'])} finished"
               + (f", {len(data['failed'])} failed" if data["failed"] else "") + ".",
               "- **Intervals:** 95% t-intervals over seeds (the seed is the unit of replication: "
@@ -700,11 +758,15 @@ def markdown(data: Mapping[str, Any]) -> str:
             paper = r["paper"]
             pv = None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
             cells.append(f"{_est(r['columns'][col])}<br>*{_pct(pv)}*")
-        seeds = f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
+        seeds = (f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
+                 + (f" {RESUMED_MARK}" if r.get("resumed") else ""))
         lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {seeds} | " + " | ".join(cells) + " |")
     if any(not r["enough_seeds"] for r in data["rows"]):
         lines += ["", f"† fewer than {min_seeds} seeds: too few seeds for a verdict (with 2 seeds the t-interval "
                       "uses t(0.975, 1) = 12.7; with 1 seed there is none)."]
+    resumed = resumed_text(data)
+    if resumed:
+        lines += ["", resumed]
     lines += ["", "## The paper's claims", "",
               "Each part of a claim is a difference of per-seed values (A − B, points), tested two-sided: "
               "**paired t** over the per-seed differences when both rows ran the same seeds (the same seed trains "
@@ -739,7 +801,9 @@ def markdown(data: Mapping[str, Any]) -> str:
               "| Row | Seed | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
     for r in data["rows"]:
         for s, v in r["per_seed"].items():
-            lines.append(f"| {r['label']} | {s} | " + " | ".join(f"{v[c]:.1f}" for c in [*COLUMNS, "overall"]) + " |")
+            mark = f" {RESUMED_MARK}" if s in (r.get("resumed") or {}) else ""
+            lines.append(f"| {r['label']} | {s}{mark} | "
+                         + " | ".join(f"{v[c]:.1f}" for c in [*COLUMNS, "overall"]) + " |")
     lines += ["", f"## Secondary: the two-level episode bootstrap ({data['n_boot']} replicates)", "",
               "Seeds, then episodes within each column, drawn with replacement (paired by episode between rows). "
               "Kept for comparison with earlier reports; with few seeds its intervals are too narrow "
@@ -867,21 +931,21 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
         raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims)
-    atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
-    atomic_write(results_dir / "results.csv", results_csv(data))
-    plot_results(data, results_dir / "results.png")
-    data["has_curve"] = plot_curve(data, results_dir / "learning_curve.png") is not None
-    atomic_write(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
+    write_shared(results_dir / "results.json", json.dumps(data, indent=1))
+    write_shared(results_dir / "results.csv", results_csv(data))
+    make_shared(plot_results(data, results_dir / "results.png"))
+    curve = plot_curve(data, results_dir / "learning_curve.png")
+    data["has_curve"] = curve is not None
+    if curve is not None:
+        make_shared(curve)
+    write_shared(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
     return data
 
 
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
     """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
-    import os
-
     rel = os.path.relpath(Path(pictures), Path(path).parent)
-    atomic_write(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
-    return Path(path)
+    return write_shared(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
 
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:
@@ -892,52 +956,59 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     files = [results_dir / n for n in names if (results_dir / n).is_file()]
     files += sorted(results_dir.glob("cells/*/seed*/cell.json"))
     out = []
+    if dest.exists() and not dest.is_dir():
+        raise ValueError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
     for f in files:
         target = dest / f.relative_to(results_dir)
-        atomic_write(target, f.read_bytes())
+        if target.resolve() != f.resolve():
+            write_shared(target, f.read_bytes())
         out.append(target)
     return out
 
 
-def continue_published(src: Path, results_dir: Path, pinned: Mapping[str, Any]) -> dict[str, Any]:
-    """Seed ``results_dir`` from a published results folder ``src`` (e.g. docs/results/<budget>, as
-    ``publish`` writes it: ``reproduce.json`` and ``cells/*/seed*/cell.json``), so that a fresh clone grows
-    the same table. ``pinned`` is this plan's fingerprint (budget, training overrides, suite, dataset hash):
-    a folder pinned to anything else is refused with one line. Copied: the manifest (when ``results_dir``
-    has none; a ``continued_from`` entry records the source) and every finished cell that ``results_dir``
-    lacks, which the launcher then skips. Never overwritten: a cell ``results_dir`` already has. Not
-    copied: failed cells (they are retried). Returns {"copied": [...], "kept": [...]} (row/seedN names)."""
-    import time
+def published_manifest(src: Path) -> dict[str, Any]:
+    """The manifest (``reproduce.json``) of a published results folder, or one line saying what it is not."""
+    src = Path(src)
+    if not src.is_dir():
+        raise ValueError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
+                         f"(reproduce.json and cells/<row>/seed<k>/cell.json, e.g. docs/results/<budget>)")
+    try:
+        return json.loads((src / "reproduce.json").read_text())
+    except FileNotFoundError:
+        raise ValueError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
+                         f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"continue_from={str(src)!r}: reproduce.json is not JSON ({err})") from None
 
-    src, results_dir = Path(src), Path(results_dir)
-    man_path = src / "reproduce.json"
-    if not man_path.is_file():
-        raise ValueError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); "
-                         f"give the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json")
-    old = json.loads(man_path.read_text())
-    theirs = old.get("pinned") or {}
-    if theirs.get("hash") != pinned.get("hash"):
-        diff = [k for k in ("budget", "train", "suite", "dataset") if theirs.get(k) != pinned.get(k)] or ["settings"]
-        raise ValueError(f"continue_from={str(src)!r} was made with budget={theirs.get('budget')} and another "
-                         f"{'/'.join(diff)} (dataset {theirs.get('dataset')}, here {pinned.get('dataset')}); "
-                         f"continue it with its own budget and dataset, or start a new folder without continue_from")
-    copied, kept = [], []
-    for f in sorted(src.glob("cells/*/seed*/cell.json")):
+
+def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
+    """``row/seedK`` -> cell.json of every finished (status ok) cell under ``folder``."""
+    out = {}
+    for f in sorted(Path(folder).glob("cells/*/seed*/cell.json")):
         d = json.loads(f.read_text())
-        if d.get("status") != "ok":
-            continue
-        target = results_dir / f.relative_to(src)
-        name = f"{f.parent.parent.name}/{f.parent.name}"
-        if target.is_file() and json.loads(target.read_text()).get("status") == "ok":
+        if d.get("status") == "ok":
+            out[f"{f.parent.parent.name}/{f.parent.name}"] = d
+    return out
+
+
+def continue_published(src: Path, results_dir: Path) -> dict[str, list[str]]:
+    """Copy into ``results_dir`` every finished cell of the published results folder ``src`` (as ``publish``
+    writes it, e.g. docs/results/<budget>) that ``results_dir`` lacks, so the launcher skips it and a fresh
+    clone grows the same table. The caller has checked that ``src`` is pinned to the same budget, suite and
+    dataset and that its cells were trained as this cicfw trains them (``cicfw.reproduce``). Never
+    overwritten: a finished cell ``results_dir`` already has. Not copied: failed cells (they are retried).
+    Returns {"copied": [...], "kept": [...]} (``row/seedK`` names)."""
+    src, results_dir = Path(src), Path(results_dir)
+    copied, kept = [], []
+    have = finished_cells(results_dir)
+    for name in finished_cells(src):
+        if name in have:
             kept.append(name)
             continue
-        atomic_write(target, f.read_bytes())
+        rel = Path("cells", *name.split("/"), "cell.json")
+        if (results_dir / rel).resolve() != (src / rel).resolve():
+            write_shared(results_dir / rel, (src / rel).read_bytes())
         copied.append(name)
-    dest = results_dir / "reproduce.json"
-    if not dest.is_file():
-        old.setdefault("continued_from", []).append({"from": str(src), "cells": copied,
-                                                     "date": time.strftime("%Y-%m-%d %H:%M:%S")})
-        atomic_write(dest, json.dumps(old, indent=1))
     return {"copied": copied, "kept": kept}
 
 
@@ -966,6 +1037,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a read-only folder, a full disk: one line
+        print(f"cicfw: error: cannot write {err.filename!r}: {err.strerror}", file=sys.stderr)
         return 2
     print(f"{sum(len(r['seeds']) for r in data['rows'])} cells of {len(data['rows'])} rows; "
           f"report in {Path(a.results_dir) / 'RESULTS.md'}")

@@ -1,0 +1,267 @@
+"""``python -m cicfw.reproduce`` against a hostile user, without training anything (issue 17, items 2, 3, 4,
+7, 10 and the reproduce tracebacks): every bad plan is refused in one line *before the budget's dataset is
+collected* (the tests make collecting raise, so a check that comes too late fails them), one run per
+results folder (a lock naming its holder; a stale one taken over with a warning), unknown keys refused,
+the docs' own custom-row example parses, report files readable under umask 022, resumed cells marked."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cicfw import reproduce
+from cicfw.bench import results
+from cicfw.bench.results import COLUMNS, CellResult
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "reproduce.md"
+
+
+class Collected(Exception):
+    """Raised where the app would start collecting the budget's dataset: the expensive work."""
+
+
+@pytest.fixture
+def no_collect(monkeypatch):
+    import cicfw.train
+
+    def collect(*args, **kwargs):
+        raise Collected("the app went on to collect the dataset")
+
+    monkeypatch.setattr(cicfw.train, "ensure_data", collect)
+
+
+def refused(args: list[str], capsys) -> str:
+    """Run the app; it must exit 2 with exactly one line on stderr, which is returned."""
+    assert reproduce.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("cicfw: error: "), err
+    return err[0][len("cicfw: error: "):]
+
+
+# ------------------------------------------------------------------------------------------------
+# item 4: unknown keys; unparsable overrides
+
+
+@pytest.mark.parametrize("arg, message", [
+    ("+foo=1", "unknown key 'foo' (+foo=1); accepted top-level keys: rows, seeds, results_dir, "),
+    ("+evaluate_aftr=true", "unknown key 'evaluate_aftr' (+evaluate_aftr=true); accepted top-level keys: "),
+    ("publish_dirr=x", "unknown key 'publish_dirr' (publish_dirr=x); did you mean 'publish_dir'? accepted "),
+    ("+budget.foo=1", "unknown key 'budget.foo' (+budget.foo=1); accepted keys of budget smoke: name, train, suite"),
+])
+def test_unknown_keys_are_refused_in_one_line(arg, message, no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    msg = refused(["budget=smoke", arg, f"results_dir={out}"], capsys)
+    assert msg.startswith(message), msg
+    assert not out.exists()
+
+
+def test_an_unparsable_override_is_one_line(no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    msg = refused(["rows=[cil", f"results_dir={out}"], capsys)
+    assert msg.startswith("cannot parse the override 'rows=[cil': "), msg
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# custom rows: the docs' example, unknown heads and experiments
+
+
+def docs_example() -> str:
+    m = re.search(r"(\+catalogue\.mine=\{[^}]*\})", DOCS.read_text())
+    assert m, "docs/reproduce.md has no custom-row example"
+    return m.group(1)
+
+
+def test_the_docs_custom_row_example_parses(no_collect, tmp_path):
+    example = docs_example()
+    cfg = reproduce.compose_plan([example, "rows=[mine]"])
+    assert list(cfg.catalogue.mine.overrides) == ["head=hybrid"] and cfg.catalogue.mine.label == "GTU+hybrid"
+    with pytest.raises(Collected):  # every check passed: the app goes on to collect
+        reproduce.main([example, "rows=[mine]", "budget=smoke", f"results_dir={tmp_path / 'results'}"])
+
+
+@pytest.mark.parametrize("row, message", [
+    ("{experiment: paper_nosuch, label: x}",
+     "row 'mine': unknown experiment 'paper_nosuch'; known experiments: main, paper_cil, "),
+    ("{experiment: paper_gtu, overrides: ['head=nosuch'], label: x}",
+     "row 'mine' (experiment paper_gtu, overrides ['head=nosuch']): unknown head 'nosuch'; known heads: coexistence, "
+     "hybrid, regression, sine, softmax"),
+    ("{experiment: paper_gtu, overrides: ['head.name=nosuch'], label: x}",
+     "row 'mine' (experiment paper_gtu, overrides ['head.name=nosuch']): unknown head 'nosuch'"),
+    ("{experiment: paper_gtu, overrides: ['mixer=gtuu'], label: x}",
+     "row 'mine' (experiment paper_gtu, overrides ['mixer=gtuu']): unknown mixer 'gtuu'; known mixers: "),
+    ("{experiment: paper_gtu, overrides: ['head.WW=3'], label: x}",
+     "row 'mine' (experiment paper_gtu, overrides ['head.WW=3']): Could not override 'head.WW'"),
+    ("{experiment: paper_gtu, overides: ['head=hybrid'], label: x}",
+     "catalogue.mine: unknown key 'overides'; accepted: experiment, overrides, label, paper"),
+    ("{label: x}", "catalogue.mine has no experiment; give experiment: <one of conf/experiment/> "),
+])
+def test_a_bad_custom_row_is_refused_up_front(row, message, no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    msg = refused([f"+catalogue.mine={row}", "rows=[cil,mine]", f"results_dir={out}"], capsys)
+    assert msg.startswith(message), msg
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# item 10: checked before any cell and before collecting
+
+
+def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    out = tmp_path / "results"
+    msg = refused(["budget=smoke", f"publish_dir={f}", f"results_dir={out}"], capsys)
+    assert msg.startswith(f"publish_dir {str(f)!r} is a file, not a folder; give publish_dir=<a folder>"), msg
+    assert not out.exists()
+
+
+def smoke_manifest(tmp_path: Path, budget: str = "smoke", **pinned) -> Path:
+    """A results folder pinned to ``budget`` as reproduce.json records it (no cell needed)."""
+    cfg = reproduce.compose_plan([f"budget={budget}"])
+    pin = reproduce.fingerprint(cfg, {"config_hash": "0123456789abcdef"})
+    pin.update(pinned)
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "reproduce.json").write_text(json.dumps({"budget": budget, "pinned": pin}))
+    return out
+
+
+def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsys):
+    out = smoke_manifest(tmp_path, "smoke")
+    msg = refused(["budget=laptop", "rows=[cil]", f"results_dir={out}"], capsys)
+    assert msg.startswith(f"results folder {str(out)!r} was made with budget=smoke, this run asks for budget=laptop "
+                          f"(another train/suite); start a new folder (results_dir=<new path>)"), msg
+    assert not (out / "reproduce.lock").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# item 2: one run per results folder
+
+
+HOLDER = """
+import sys, time
+from pathlib import Path
+from cicfw.reproduce import ResultsLock
+lock = ResultsLock(Path(sys.argv[1]))
+lock.acquire()
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+def test_a_folder_in_use_is_refused_naming_its_holder(no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        msg = refused(["budget=smoke", "rows=[cil]", f"results_dir={out}"], capsys)
+        assert re.match(rf"results folder {re.escape(repr(str(out)))} is in use by another reproduce run \(pid "
+                        rf"{holder.pid} on host {re.escape(socket.gethostname())}, started \d{{4}}-\d\d-\d\d "
+                        rf"\d\d:\d\d:\d\d\): one run per folder; wait for it to finish, or give another "
+                        rf"results_dir=<path>", msg), msg
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder is gone: its lock is stale and the next run takes it over (then goes on to collect)
+    with pytest.raises(Collected):
+        reproduce.main(["budget=smoke", "rows=[cil]", f"results_dir={out}"])
+    assert not (out / "reproduce.lock").exists()  # released when the run stops
+
+
+def dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def test_a_stale_lock_is_taken_over_with_a_warning(no_collect, tmp_path, caplog):
+    out = tmp_path / "results"
+    out.mkdir()
+    pid = dead_pid()
+    (out / "reproduce.lock").write_text(json.dumps({"pid": pid, "host": socket.gethostname(),
+                                                    "started": "2020-01-01 00:00:00"}))
+    with caplog.at_level(logging.WARNING, logger="cicfw.reproduce"), pytest.raises(Collected):
+        reproduce.main(["budget=smoke", "rows=[cil]", f"results_dir={out}"])
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(f"taking over the stale lock of pid {pid} on {socket.gethostname()} (started 2020-01-01 00:00:00), "
+               "which is no longer running" in w for w in warned), warned
+    assert not (out / "reproduce.lock").exists()
+
+
+def test_a_lock_held_on_another_host_is_refused(no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "reproduce.lock").write_text(json.dumps({"pid": 1, "host": "elsewhere", "started": "2020-01-01 00:00:00"}))
+    msg = refused(["budget=smoke", "rows=[cil]", f"results_dir={out}"], capsys)
+    assert msg.startswith(f"results folder {str(out)!r} is in use by another reproduce run (pid 1 on host elsewhere, "
+                          "started 2020-01-01 00:00:00)"), msg
+    assert f"if it is no longer running, delete {str(out / 'reproduce.lock')!r}" in msg
+    assert (out / "reproduce.lock").is_file()  # someone else's lock is left alone
+
+
+# ------------------------------------------------------------------------------------------------
+# item 7: report files readable by a colleague; item 3: resumed cells marked
+
+
+def synthetic(row: str, seed: int, pct: int, resumed: dict | None = None) -> CellResult:
+    eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left" if k % 2 else "right"}
+           for c in COLUMNS for k in range(20)}
+    meta = {"row": row, "seed": seed, "status": "ok", "episodes": eps, "decoder": None, "wall_s": {"train": 1.0}}
+    if resumed:
+        meta["resumed"] = resumed
+    return CellResult(row=row, seed=seed, episodes=eps, meta=meta)
+
+
+def write_cells(out: Path, cells: list[CellResult]) -> None:
+    for c in cells:
+        p = out / "cells" / c.row / f"seed{c.seed}" / "cell.json"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps(c.meta))
+
+
+CATALOGUE = {"cil": {"label": "Regression (CIL)", "paper": [94.74, 86.84, 52.5, 46.25]},
+             "gtu": {"label": "Co-learning (GTU)", "paper": [100.0, 93.42, 81.25, 75.0]}}
+
+
+def test_report_files_are_readable_under_umask_022(tmp_path):
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    old = os.umask(0o022)
+    try:
+        results.write_report(out, CATALOGUE, n_boot=50)
+        published = results.publish(out, tmp_path / "published")
+        md = results.write_markdown_copy(json.loads((out / "results.json").read_text()) | {"has_curve": False},
+                                         tmp_path / "docs" / "RESULTS.md", tmp_path / "published")
+    finally:
+        os.umask(old)
+    written = [out / n for n in ("RESULTS.md", "results.json", "results.csv", "results.png")] + published + [md]
+    for p in written:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, (p, oct(p.stat().st_mode))
+
+
+def test_resumed_cells_are_marked_in_the_report(tmp_path):
+    cells = [synthetic("cil", s, 10 + s) for s in range(3)]
+    cells += [synthetic("gtu", s, 12 + s, resumed={"training": {"from_epoch": 1}} if s == 1 else None)
+              for s in range(3)]
+    data = results.report_data(cells, [], CATALOGUE, {"budget": "smoke", "suite": {"name": "single_turn"}}, n_boot=50)
+    md = results.markdown(data)
+    lines = md.splitlines()
+    gtu = next(ln for ln in lines if ln.startswith("| Co-learning (GTU) | – |"))
+    cil = next(ln for ln in lines if ln.startswith("| Regression (CIL) | – |"))
+    assert "| 3 ‡ |" in gtu and "‡" not in cil
+    note = next(ln for ln in lines if ln.startswith("‡ "))
+    assert "Co-learning (GTU) seed 1 (training resumed after epoch 1)" in note
+    assert "can differ from an uninterrupted run's" in note and "0.12519" in note and "0.12743" in note
+    assert any(ln.startswith("| Co-learning (GTU) | 1 ‡ |") for ln in lines)  # the per-seed table
+    assert data["rows"][1]["resumed"] == {"1": {"training": {"from_epoch": 1}}}
