@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw.bench.runs import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
 from cicfw.errors import report_user_errors
+from cicfw.override_hints import check_top_level_keys
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -45,15 +46,26 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None)
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation)."""
+    check_top_level_keys(cfg, "evaluate")  # +vide=[0] would silently film nothing
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=int(cfg.seed),
         label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
-        maps=bool(cfg.get("maps", True)), video=list(cfg.get("video") or []), video_max=int(cfg.get("video_max", 8)),
+        maps=bool(cfg.get("maps", True)), video=video_list(cfg.get("video")), video_max=int(cfg.get("video_max", 8)),
         new_folder_hint=new_folder_hint)
     join_sweep()
     return res.summary
+
+
+def video_list(video: Any) -> list[Any]:
+    """``video=`` as a list (a lone episode index or key would otherwise be read one character at a time)."""
+    if video is None:
+        return []
+    if not OmegaConf.is_list(video) and not isinstance(video, (list, tuple)):
+        raise ValueError(f"video must be a list of episodes (indices, keys such as town_a/ClearNoon/003, or "
+                         f"'failures'), got {video!r}")
+    return list(video)
 
 
 @dataclass
@@ -95,8 +107,9 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     missing, the folder's report says ``"complete": false`` (table.md: a PARTIAL line). Raises
     ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
     (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
-    another process is writing it; config errors raise before anything is written.
-    ``runner.batch_size``, ``workers`` and ``threads`` may change between calls.
+    another process is writing it; config errors (``video`` naming no episode of the suite included)
+    raise before anything is written. ``runner.batch_size``, ``workers`` and ``threads`` may change
+    between calls.
 
     Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
@@ -104,22 +117,18 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     from cicfw.bench.journal import EpisodeLog
     from cicfw.bench.policy import Policy, make_policy
     from cicfw.bench.report import markdown_table
-    from cicfw.bench.runner import RunnerConfig, run, server_specs
-    from cicfw.bench.suite import build_suite, make_backend
+    from cicfw.bench.runner import run
     from cicfw.bench.video import select_episodes
 
     out_dir = Path(out_dir)
     spec = dict(policy)
     sim = dict(sim) if sim is not None else {"name": "embedded"}
     runner = dict(runner or {})
-    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
-    server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
-    pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
-    backend = make_backend(sim)
     suite = dict(suite)
-    episodes = build_suite(backend, **suite)  # unknown towns and weathers fail here
-    label = label or spec.get("label") or pol.label
     filmed = list(video)
+    runner_cfg, episodes = plan_evaluation(spec, suite, runner, sim, seed, progress_bar, filmed, video_max)
+    pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
+    label = label or spec.get("label") or pol.label
     fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
     with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
                          f"give another output folder, or delete {str(out_dir)!r} to start over") as elog:
@@ -157,6 +166,93 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
              steps, rate, markdown_table([report]))
     log.info("success %.2f%%; report in %s", summary["success"], out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any],
+                    sim: Mapping[str, Any], seed: int = 0, progress_bar: bool = False, video: Sequence[Any] = (),
+                    video_max: int = 8) -> tuple[Any, list[Any]]:
+    """Everything about an evaluation that can be checked without its policy's weights, checked: the
+    runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
+    weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
+    raises one ``ValueError`` line before anything is driven or written."""
+    from cicfw.bench.policy import POLICIES
+    from cicfw.bench.runner import RunnerConfig, server_specs
+    from cicfw.bench.suite import build_suite, make_backend
+    from cicfw.bench.video import select_episodes
+    from cicfw.config_checks import check_kwargs
+
+    check_kwargs("runner", "the runner", RunnerConfig, runner,
+                 {"seed": "it is the top-level seed=...", "progress_bar": "it is the top-level progress_bar=..."})
+    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
+    server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
+    kwargs = {k: v for k, v in spec.items() if k != "name"}
+    check_kwargs("policy", f"policy {spec.get('name')!r}", POLICIES.get(str(spec.get("name"))), kwargs,
+                 extra_keys=("name",))
+    episodes = build_suite(make_backend(sim), **suite)  # unknown towns and weathers, suite.limit=0 fail here
+    select_episodes([{"episode": e.index, "key": e.key, "success": False} for e in episodes], video, video_max)
+    return runner_cfg, episodes
+
+
+def check_evaluation_overrides(overrides: Any) -> None:
+    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
+    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
+    training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
+    starting ``evaluate_overrides:``."""
+    from cicfw.registry import UnknownNameError
+
+    try:
+        cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
+        check_top_level_keys(cfg, "evaluate")
+        spec = policy_spec(cfg)
+        plan_evaluation(spec, OmegaConf.to_container(cfg.suite, resolve=True),
+                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
+                        int(cfg.seed), False, video_list(cfg.get("video")), int(cfg.get("video_max", 8)))
+    except (ValueError, FileNotFoundError, UnknownNameError) as err:
+        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
+        raise ValueError(f"evaluate_overrides: {text}") from None
+
+
+def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
+    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); Hydra's
+    parse and composition errors become one ``ValueError`` line naming the override."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import ConfigCompositionException, MissingConfigException
+
+    if OmegaConf.is_list(overrides):
+        overrides = OmegaConf.to_container(overrides, resolve=True)
+    if overrides is None:
+        overrides = []
+    if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
+    parser = OverridesParser.create()
+    for o in overrides:
+        try:
+            parser.parse_override(o)
+        except Exception as err:
+            raise ValueError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
+    try:
+        return compose_config([*first, *overrides])
+    except MissingConfigException as err:
+        raise ValueError(_missing_option(err, overrides)) from None
+    except ConfigCompositionException as err:
+        raise ValueError(_composition_error(err, overrides)) from None
+
+
+def _missing_option(err: Any, overrides: Sequence[str]) -> str:
+    """``suite=nosuch: no option 'nosuch' in config group 'suite'; options: junctions, single_turn``."""
+    group, _, option = str(err.missing_cfg_file or "").rpartition("/")
+    culprit = next((o for o in overrides if o.lstrip("+~").split("=", 1)[0] == group), f"{group}={option}")
+    return f"{culprit}: no option {option!r} in config group {group!r}; options: {', '.join(err.options or [])}"
+
+
+def _composition_error(err: Exception, overrides: Sequence[str]) -> str:
+    """The override Hydra could not apply, with what exists there (the override hints, on one line)."""
+    from cicfw.override_hints import override_hints
+
+    for o in overrides:
+        for hint in override_hints("evaluate", [o]):
+            return f"{o}: " + hint.removeprefix("cicfw: hint: ").replace("\n  ", "; ")
+    return str(err).strip().splitlines()[0]
 
 
 #: policy keys that change how fast or where a policy runs, never which episodes it drives

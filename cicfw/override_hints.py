@@ -9,8 +9,10 @@ composition, on the failure path only.
 from __future__ import annotations
 
 import difflib
+import functools
 import sys
-from typing import Any, Callable
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator
 
 from omegaconf import OmegaConf
 
@@ -78,17 +80,31 @@ def _is_open(cfg: Any, path: list[str]) -> bool:
     return OmegaConf.is_dict(node) and node._get_node_flag("struct") is False
 
 
+@contextmanager
+def hydra_context(config_module: str = CONFIG_MODULE) -> Iterator[None]:
+    """Hydra initialised for ``compose``: the running app's (inside ``cicfw train``, composing the
+    evaluation's config up front), else ``config_module`` for the duration."""
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        yield
+        return
+    with initialize_config_module(config_module, version_base="1.3"):
+        yield
+
+
 def override_hints(config_name: str, args: list[str], config_module: str = CONFIG_MODULE) -> list[str]:
     """One hint per override in ``args`` whose key the composed config lacks (added ``+key`` and
     ``hydra.*`` keys excepted)."""
-    from hydra import compose, initialize_config_module
+    from hydra import compose
     from hydra.core.global_hydra import GlobalHydra
 
     overrides = _parse(args)
     if not overrides:
         return []
     hints: list[str] = []
-    with initialize_config_module(config_module, version_base="1.3"):
+    with hydra_context(config_module):
         loader = GlobalHydra.instance().config_loader()
 
         def groups_at(path: str) -> list[str]:
@@ -122,6 +138,34 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
                     break
                 node = node[part]
     return hints
+
+
+@functools.lru_cache(maxsize=8)
+def top_level_keys(config_name: str, config_module: str = CONFIG_MODULE) -> tuple[str, ...] | None:
+    """The top-level keys of ``config_name`` composed with its defaults (its own keys and its config
+    groups' nodes): the keys the app reads. None when it cannot be composed here."""
+    from hydra import compose
+
+    try:
+        with hydra_context(config_module):
+            return tuple(compose(config_name))
+    except Exception:  # another app's config search path: the check is skipped, not the run
+        return None
+
+
+def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
+    """One ``ValueError`` for a top-level key ``config_name`` does not have (``+evaluate_aftr=true``:
+    added with ``+``, never read, so it would silently change nothing), naming the accepted keys, as
+    ``cicfw collect`` does for its keys. ``where`` prefixes the message (``evaluate_overrides: ``)."""
+    accepted = top_level_keys(config_name)
+    if accepted is None:
+        return
+    unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], list(accepted), n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise ValueError(f"{where}unknown top-level key {unknown[0]!r}; {hint}accepted top-level keys: "
+                         f"{', '.join(sorted(accepted))}")
 
 
 def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:

@@ -4,13 +4,12 @@ Returns the validation metric (``optimized_metric``) so Hydra sweepers can optim
 """
 from __future__ import annotations
 
-import difflib
 import inspect
 import logging
 import pickle
 import re
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
 import hydra
 import lightning as L
@@ -19,11 +18,13 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressB
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw.config_checks import check_kwargs, did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
+from cicfw.override_hints import check_top_level_keys
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 log = logging.getLogger("cicfw.train")
@@ -44,51 +45,6 @@ def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
     if "name" not in d:
         raise ValueError(f"config node {d} has no 'name:' key naming the registered class")
     return d.pop("name"), d
-
-
-def _did_you_mean(word: str, options: list[str]) -> str:
-    close = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
-    return f"did you mean {close[0]!r}? " if close else ""
-
-
-def _keyword_names(fn: Callable) -> tuple[list[str], bool]:
-    """The keyword arguments ``fn`` takes, and whether it takes any others. A class whose
-    ``__init__`` passes ``**kwargs`` on to its base (``HybridHead(W, **bins_kwargs)``) takes its
-    bases' arguments too, up to the first ``__init__`` without ``**kwargs``."""
-    keyword = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    inits = ([k.__dict__["__init__"] for k in fn.__mro__ if "__init__" in k.__dict__ and k is not object]
-             if inspect.isclass(fn) else [fn])
-    names: list[str] = []
-    for init in inits:
-        if inspect.isclass(fn) and init is torch.nn.Module.__init__:
-            return names, False  # nn.Module takes no keyword arguments of its own
-        params = inspect.signature(init).parameters
-        names += [n for n, p in params.items() if n != "self" and p.kind in keyword and n not in names]
-        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            return names, False
-    return names, True
-
-
-def check_kwargs(where: str, what: str, fn: Callable, kwargs: Mapping[str, Any],
-                 set_by_cicfw: Mapping[str, str] | None = None, extra_keys: tuple[str, ...] = ()) -> None:
-    """One ``ValueError`` for a key ``fn`` does not take (naming the keys it accepts), a key cicfw sets
-    itself, or an argument without a default that is missing. ``where`` is the config node
-    (``mixer``), ``what`` the thing built (``mixer 'gtu'``)."""
-    set_by_cicfw = set_by_cicfw or {}
-    params = inspect.signature(fn).parameters
-    named, takes_any = _keyword_names(fn)
-    accepted = sorted([*extra_keys, *(n for n in named if n not in set_by_cicfw)])
-    for key in kwargs:
-        if key in set_by_cicfw:
-            raise ValueError(f"{where}.{key} cannot be set: {set_by_cicfw[key]}")
-        if key not in named and not takes_any:
-            raise ValueError(f"{where}.{key} is not an argument of {what}; {_did_you_mean(str(key), accepted)}"
-                             f"accepted keys: {', '.join(accepted)}")
-    missing = [n for n, p in params.items() if n != "self" and p.default is inspect.Parameter.empty
-               and p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-               and n not in kwargs and n not in set_by_cicfw]
-    if missing:
-        raise ValueError(f"{what} needs {where}.{missing[0]} (it has no default); add {where}.{missing[0]}=...")
 
 
 def build_model(cfg: DictConfig) -> CICModule:
@@ -121,9 +77,28 @@ def ensure_data(data_cfg: DictConfig) -> None:
     """
     if data_cfg.get("collect") is None:
         return
+    path = Path(data_cfg.path).expanduser()
+    check_not_your_own_data(path)
     from cicfw.collect import collect_dataset  # the simulator is only needed for the default data
 
-    collect_dataset(data_cfg.collect, Path(data_cfg.path).expanduser())
+    collect_dataset(data_cfg.collect, path)
+
+
+#: written by ``cicfw collect`` into every folder it collects (cicfw.sim.collection.META_NAME)
+COLLECTED_META = "dataset_metadata.json"
+
+
+def check_not_your_own_data(path: Path) -> None:
+    """``data=sim_default`` (the default) collects into ``data.path``; a folder of CIL files it did not
+    collect is the user's own data, which ``data=cil_hdf5`` reads: say so instead of the collector's
+    "collect into an empty folder"."""
+    if not path.is_dir() or (path / COLLECTED_META).exists():
+        return
+    files = [f for f in path.rglob("*") if f.suffix in (".h5", ".hdf5") and f.is_file()]
+    if files:
+        raise ValueError(f"data.path={path} holds {len(files)} CIL HDF5 file(s) that cicfw did not collect, and "
+                         f"the default data=sim_default collects its own dataset into data.path; add data=cil_hdf5 "
+                         f"to train on them: python -m cicfw.train data=cil_hdf5 data.path={path}")
 
 
 def make_datamodule(cfg: DictConfig) -> CILDataModule:
@@ -309,10 +284,15 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     run_dir = Path(run_dir)
     L.seed_everything(cfg.seed, workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
-    model = build_model(cfg)  # names and keys of the encoder/mixer/head/model nodes
+    check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
+    model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model)  # a safe, whole, matching checkpoint
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
+    if cfg.get("evaluate_after"):  # the evaluation's config, so that a typo there does not cost the training
+        from cicfw.evaluate import check_evaluation_overrides
+
+        check_evaluation_overrides(cfg.get("evaluate_overrides"))
     ensure_data(cfg.data)  # then the data: collected if needed,
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
