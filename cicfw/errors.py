@@ -5,7 +5,8 @@ import functools
 import logging
 import math
 import sys
-from typing import Callable, TypeVar
+from contextlib import contextmanager
+from typing import Callable, Iterator, TypeVar
 
 from cicfw.data.cil_hdf5 import CILFormatError
 from cicfw.registry import UnknownNameError
@@ -29,6 +30,21 @@ def _in_multirun() -> bool:
 
 class NonFiniteResult(ArithmeticError):
     """A multirun job returned nan/inf: sweepers cannot rank it (Optuna would stop), so it fails."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, with what was kept and how to go on (``cicfw: interrupted; <message>``)."""
+
+
+@contextmanager
+def on_interrupt(message: str) -> Iterator[None]:
+    """A Ctrl-C inside becomes ``Interrupted(message)``: what this stage leaves kept, how to go on."""
+    try:
+        yield
+    except Interrupted:
+        raise
+    except KeyboardInterrupt:
+        raise Interrupted(message) from None
 
 
 def _message(err: BaseException) -> object:
@@ -64,5 +80,25 @@ def report_user_errors(fn: F) -> F:
             log.error("job failed: %s", err)
             raise err
         return result
+
+    return wrapper  # type: ignore[return-value]
+
+
+def report_interrupts(fn: F) -> F:
+    """Exit with ``cicfw: interrupted; <what is kept>`` (status 130) on Ctrl-C instead of a traceback.
+
+    The message is the ``Interrupted``'s (a plain KeyboardInterrupt says only "interrupted"). In a
+    multirun it is re-raised, so the sweep stops as Ctrl-C means."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt as err:
+            if _in_multirun():
+                raise
+            detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
+            print(f"cicfw: interrupted{detail}", file=sys.stderr)
+            sys.exit(130)
 
     return wrapper  # type: ignore[return-value]

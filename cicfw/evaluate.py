@@ -13,6 +13,7 @@ the same output folder (``hydra.run.dir=<the killed run's folder>``) resumes a k
 from __future__ import annotations
 
 import logging
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -21,7 +22,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.bench.runs import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
-from cicfw.errors import report_user_errors
+from cicfw.errors import Interrupted, report_interrupts, report_user_errors
 from cicfw.override_hints import check_top_level_keys
 
 log = logging.getLogger("cicfw.evaluate")
@@ -42,10 +43,12 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     return spec
 
 
-def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None) -> dict[str, Any]:
+def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
+             resume_hint: str | None = None) -> dict[str, Any]:
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
-    (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation)."""
+    (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
+    ``resume_hint`` its ``Interrupted`` message)."""
     check_top_level_keys(cfg, "evaluate")  # +vide=[0] would silently film nothing
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
@@ -53,7 +56,7 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None)
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=int(cfg.seed),
         label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
         maps=bool(cfg.get("maps", True)), video=video_list(cfg.get("video")), video_max=int(cfg.get("video_max", 8)),
-        new_folder_hint=new_folder_hint)
+        new_folder_hint=new_folder_hint, resume_hint=resume_hint)
     join_sweep()
     return res.summary
 
@@ -87,7 +90,8 @@ class EvalResult:
 def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any] | None,
                     out_dir: str | Path, *, sim: Mapping[str, Any] | None = None, seed: int = 0,
                     label: str | None = None, progress_bar: bool = False, maps: bool = True,
-                    video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None) -> EvalResult:
+                    video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
+                    resume_hint: str | None = None) -> EvalResult:
     """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
 
     ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
@@ -108,8 +112,9 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
     (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
     another process is writing it; config errors (``video`` naming no episode of the suite included)
-    raise before anything is written. ``runner.batch_size``, ``workers`` and ``threads`` may change
-    between calls.
+    raise before anything is written. Ctrl-C raises ``Interrupted`` saying how many episodes are kept
+    and, with ``resume_hint``, how to drive the rest. ``runner.batch_size``, ``workers`` and
+    ``threads`` may change between calls.
 
     Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
@@ -147,13 +152,15 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
             try:
                 res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
                 wall = res.wall_s
-            except BaseException:
+            except BaseException as stop:
                 try:
                     _write_report(out_dir, label, elog.rows, episodes, meta)
                 except Exception as err:  # e.g. a full disk: the log still holds every finished episode
                     log.error("could not write the partial report: %s", err)
-                log.error("stopped with %d of %d episodes finished; run the same command with the same output "
-                          "folder to drive the rest", len(elog.rows), len(episodes))
+                kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
+                if isinstance(stop, KeyboardInterrupt):
+                    raise Interrupted(f"{kept}: {resume_hint or 'call again with the same output folder to drive the rest'}") from None
+                log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
         summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
@@ -363,10 +370,11 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
         return compose("evaluate", overrides=list(overrides))
 
 
-def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any]:
+def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),
+                        resume_hint: str | None = None) -> dict[str, Any]:
     """The suite for one checkpoint, configured by conf/evaluate.yaml plus ``overrides``."""
     cfg = compose_config([f"checkpoint={_quote(str(checkpoint))}", *overrides])
-    return evaluate(cfg, Path(run_dir))
+    return evaluate(cfg, Path(run_dir), resume_hint=resume_hint)
 
 
 def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
@@ -381,7 +389,11 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
         path = str(run_dir / "checkpoints" / "final.ckpt")
         trainer.save_checkpoint(path)
     log.info("closed-loop evaluation of %s", path)
-    summary = evaluate_checkpoint(path, run_dir / "evaluate", list(cfg.get("evaluate_overrides") or []))
+    overrides = [str(o) for o in cfg.get("evaluate_overrides") or []]
+    out = run_dir / "evaluate"
+    command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])
+    summary = evaluate_checkpoint(path, out, overrides, resume_hint=f"training finished (checkpoints in "
+                                  f"{Path(path).parent}); drive the rest with {command}")
     metrics = {"closed_loop/success": summary["success"],
                **{f"closed_loop/success/{k}": v["rate"] for k, v in summary["cells"].items()}}
     if trainer.logger is not None:
@@ -398,6 +410,7 @@ def _quote(s: str) -> str:
 
 
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="evaluate")
+@report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
@@ -407,7 +420,8 @@ def main(cfg: DictConfig) -> float:
     out = Path(HydraConfig.get().runtime.output_dir)
     key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
     hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"
-    return float(evaluate(cfg, out, new_folder_hint=hint)["success"])
+    resume = f"run the same command with {key}={out if key == 'hydra.run.dir' else out.parent} to drive the rest"
+    return float(evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume)["success"])
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -38,16 +37,11 @@ LAST = ["overrides", "error", "output_dir"]
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write to a temporary file beside ``path``, then rename: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write to a temporary file beside ``path``, then rename: readers never see half a file (the
+    shared writer, ``cicfw.bench.runs.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
+    from cicfw.bench.runs import atomic_write
+
+    atomic_write(path, text)
 
 
 def write_job_metrics(output_dir: str | Path, metrics: Mapping[str, Any]) -> None:

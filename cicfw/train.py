@@ -4,10 +4,13 @@ Returns the validation metric (``optimized_metric``) so Hydra sweepers can optim
 """
 from __future__ import annotations
 
+import errno
 import inspect
+import io
 import logging
 import pickle
 import re
+import shutil
 from pathlib import Path
 from typing import Any, Callable
 
@@ -16,11 +19,12 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
+from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.config_checks import check_kwargs, did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
-from cicfw.errors import report_user_errors
+from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
@@ -81,7 +85,9 @@ def ensure_data(data_cfg: DictConfig) -> None:
     check_not_your_own_data(path)
     from cicfw.collect import collect_dataset  # the simulator is only needed for the default data
 
-    collect_dataset(data_cfg.collect, path)
+    with on_interrupt(f"while collecting the dataset: finished episodes are kept in {path}; run the same "
+                      f"command to go on"):
+        collect_dataset(data_cfg.collect, path)
 
 
 #: written by ``cicfw collect`` into every folder it collects (cicfw.sim.collection.META_NAME)
@@ -136,6 +142,48 @@ def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
     ``ModelCheckpoint(monitor=..., save_last=True)`` refreshes ``last.ckpt`` only when it saves a new
     best checkpoint (Lightning 2.x): after a run whose validation error rose it held an older epoch."""
     return ModelCheckpoint(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False)
+
+
+class CheckpointWriteError(ValueError):
+    """A checkpoint could not be written (a full disk ...); the ones written before are intact."""
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Checkpoints written to a temporary file beside their final name, then renamed, as the collector
+    writes its files: a full disk or a kill never leaves a truncated checkpoint under the final name,
+    and the previous ``last.ckpt`` stays whole. (Lightning stages in the system's temporary folder and
+    copies the file over when that is another filesystem: a full disk left half a file there.)"""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            return super().save_checkpoint(checkpoint, path, storage_options)  # refuses them, with its message
+        from cicfw.bench.runs import atomic_write
+
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        try:
+            atomic_write(Path(path), buffer.getbuffer())
+        except OSError as err:
+            raise checkpoint_write_error(err, Path(path)) from None
+
+
+def checkpoint_write_error(err: OSError, path: Path) -> CheckpointWriteError:
+    """One line for a checkpoint that could not be written: why, and how to go on."""
+    last = path.parent / "last.ckpt"
+    go_on = f"resume with ckpt_path={last}" if last.is_file() else "run the same command again"
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        free = shutil.disk_usage(path.parent).free / 1e6
+        return CheckpointWriteError(f"no space left on the device of {path.parent} while writing the checkpoint "
+                                    f"{path.name} ({free:.1f} MB free; the checkpoints written before are intact): "
+                                    f"free some space, then {go_on}")
+    return CheckpointWriteError(f"could not write the checkpoint {path} ({err.strerror or err}; the checkpoints "
+                                f"written before are intact): {go_on}")
+
+
+def with_checkpoint_io(plugins: Any) -> list[Any]:
+    """``trainer.plugins`` plus ``AtomicCheckpointIO``, unless the user gave a CheckpointIO of their own."""
+    plugins = list(plugins) if isinstance(plugins, (list, tuple)) else ([] if plugins is None else [plugins])
+    return plugins if any(isinstance(p, CheckpointIO) for p in plugins) else [*plugins, AtomicCheckpointIO()]
 
 
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
@@ -195,6 +243,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     else:
         logger = LOGGERS[cfg.logger.name](run_dir)
     kwargs.setdefault("enable_progress_bar", bool(cfg.get("progress_bar", True)))
+    kwargs["plugins"] = with_checkpoint_io(kwargs.get("plugins"))
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     try:
@@ -280,7 +329,7 @@ def fit_kwargs() -> dict[str, Any]:
 def train(cfg: DictConfig, run_dir: Path) -> float:
     """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
     ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
-    ``return_closed_loop``)."""
+    ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on."""
     run_dir = Path(run_dir)
     L.seed_everything(cfg.seed, workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
@@ -295,9 +344,11 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
     ensure_data(cfg.data)  # then the data: collected if needed,
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
-    apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
-                            len(datamodule.train_dataloader()))      # channels_last, Adam's step
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, **fit_kwargs())
+    with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
+                      "was compiled is cached), run the same command again"):
+        apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
+                                len(datamodule.train_dataloader()))      # channels_last, Adam's step
+    fit(trainer, model, datamodule, ckpt_path, run_dir)
     ckpt = trainer.checkpoint_callback
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
@@ -312,7 +363,24 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     return metric
 
 
+def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_path: str | None, run_dir: Path) -> None:
+    """``trainer.fit``; Lightning turns Ctrl-C into ``sys.exit(1)`` after its graceful shutdown, which
+    becomes ``Interrupted`` naming the checkpoint to resume from."""
+    try:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, **fit_kwargs())
+    except SystemExit:
+        if not trainer.interrupted:
+            raise
+        last = run_dir / "checkpoints" / "last.ckpt"
+        if last.is_file():
+            raise Interrupted(f"during training epoch {trainer.current_epoch + 1}: the finished epochs are kept in "
+                              f"{last.parent}; resume with ckpt_path={last}") from None
+        raise Interrupted("during the first training epoch: no epoch finished, nothing to keep; run the same "
+                          "command again") from None
+
+
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="train")
+@report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig

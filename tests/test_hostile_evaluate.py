@@ -1,17 +1,24 @@
 """``cicfw evaluate`` as a hostile user runs it (issue 17): mistakes refused before any episode is
-driven."""
+driven, Ctrl-C says what is kept, an unusable run folder is one line, and the report is readable by
+the colleagues who share the results folder."""
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from cicfw.bench.journal import LOG_NAME
+from cicfw.bench.journal import LOG_NAME, read_log
 from cicfw.evaluate import compose_config, evaluate
+from test_hostile_train import _errors, read_only_app
 
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 QUICK = ("policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]", "suite.limit=2",
          "progress_bar=false", "runner.workers=1")
+ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
 
 
 @pytest.mark.parametrize("override, message", [
@@ -37,3 +44,77 @@ def test_an_unknown_video_episode_is_refused_before_driving(tmp_path, video, mes
         evaluate(compose_config([*QUICK, f"video={video}"]), tmp_path / "run")
     assert str(err.value) == message
     assert not (tmp_path / "run" / LOG_NAME).exists()  # not one episode driven
+
+
+def test_report_files_are_readable_by_others_under_umask_022(tmp_path):
+    from cicfw.sweeps import write_job_metrics
+
+    old = os.umask(0o022)
+    try:
+        evaluate(compose_config([*QUICK, "video=[0]"]), tmp_path / "run")
+        write_job_metrics(tmp_path / "run", {"closed_loop/success": 50.0})
+    finally:
+        os.umask(old)
+    files = [p for p in (tmp_path / "run").rglob("*") if p.is_file() and p.name != ".lock"]
+    names = {p.relative_to(tmp_path / "run").as_posix() for p in files}
+    assert {"episodes.json", "episodes.csv", "summary.json", "table.md", "table.tex", "trajectories.npz",
+            "success_bars.png", "metrics.json", LOG_NAME}.issubset(names), names
+    assert any(n.startswith("map_") for n in names) and any(n.startswith("videos/") for n in names)
+    modes = {n: oct(p.stat().st_mode & 0o777) for n, p in zip(names, files)}
+    assert {n for n, p in zip(names, files) if p.stat().st_mode & 0o044 != 0o044} == set(), modes
+
+
+INTERRUPTING = """
+import os, signal, sys
+from cicfw.bench.policies import ExpertPolicy
+from cicfw.bench.policy import POLICIES
+
+
+class InterruptedExpert(ExpertPolicy):
+    \"\"\"The expert, until Ctrl-C after STEPS episode-steps.\"\"\"
+
+    served = 0
+
+    def act(self, obs):
+        InterruptedExpert.served += len(obs)
+        if InterruptedExpert.served > int(os.environ["STEPS"]):
+            os.kill(os.getpid(), signal.SIGINT)
+        return super().act(obs)
+
+
+POLICIES.register("interrupted_expert")(InterruptedExpert)
+import runpy
+runpy.run_module("cicfw.evaluate", run_name="__main__", alter_sys=True)
+"""
+
+
+def test_ctrl_c_during_the_evaluation_keeps_the_finished_episodes_and_says_how_to_go_on(tmp_path):
+    script = tmp_path / "interrupting.py"
+    script.write_text(INTERRUPTING)
+    out = tmp_path / "out"
+    args = [*QUICK, "suite.limit=3", "runner.batch_size=1", "policy.name=interrupted_expert", "maps=false",
+            f"hydra.run.dir={out}"]
+    proc = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True,
+                          env={**ENV, "STEPS": "340"}, timeout=600)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    kept = len(read_log(out)[1])
+    assert 1 <= kept < 3
+    assert _errors(proc) == [f"cicfw: interrupted; {kept} of 3 episodes finished, kept in {out}: run the same "
+                             f"command with hydra.run.dir={out} to drive the rest"]
+    assert json.loads((out / "summary.json").read_text())["complete"] is False
+
+
+def test_a_read_only_run_folder_is_one_line(tmp_path):
+    proc = read_only_app(tmp_path, "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/ro")
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert _errors(proc) == [f"cicfw: error: cannot write the run folder {tmp_path}/ro (Permission denied); "
+                             f"give a folder you can write: hydra.run.dir=<folder>"]
+
+
+def test_a_300_character_run_name_is_one_line(tmp_path):
+    name = "e" * 300
+    proc = subprocess.run([sys.executable, "-m", "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/x/{name}"],
+                          capture_output=True, text=True, env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
+                             f"this filesystem allows (255); give a shorter one"]

@@ -1,10 +1,15 @@
 """``cicfw train`` as a hostile user runs it (issue 17): every mistake refused in one line before the
-first batch."""
+first batch, Ctrl-C says what is kept, and a full disk never leaves a truncated checkpoint behind."""
 from __future__ import annotations
 
+import errno
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 import cicfw.train as train_mod
 from cicfw.data.datamodule import CILDataModule
@@ -13,6 +18,7 @@ from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
+ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
 
 
 @pytest.fixture
@@ -106,3 +112,197 @@ def test_a_folder_of_your_own_cil_files_without_data_cil_hdf5_names_it(tmp_path)
     assert text.startswith(f"data.path={data} holds 6 CIL HDF5 file(s) that cicfw did not collect"), text
     assert f"add data=cil_hdf5 to train on them: python -m cicfw.train data=cil_hdf5 data.path={data}" in text
     assert not (data / "dataset_metadata.json").exists()  # nothing collected into the user's folder
+
+
+# ---- a full disk while saving a checkpoint -------------------------------------------------------
+
+
+@pytest.fixture
+def full_disk(monkeypatch):
+    """``full_disk(folder)``: the filesystem holding ``folder`` is full, and the system's temporary
+    folder lives on another one (as /tmp on tmpfs does): any write into ``folder`` stores its first
+    100 bytes and then fails with ENOSPC, and a rename into ``folder`` from elsewhere fails with EXDEV
+    (so it is copied, and the copy hits the full disk)."""
+    real_write, real_sendfile, real_rename = os.write, os.sendfile, os.rename
+    state = {"folder": None}
+
+    def inside(fd: int) -> bool:
+        return state["folder"] is not None and os.readlink(f"/proc/self/fd/{fd}").startswith(state["folder"])
+
+    def write(fd, data):
+        if inside(fd):
+            real_write(fd, bytes(data)[:100])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    def sendfile(out_fd, in_fd, offset, count):
+        if inside(out_fd):
+            real_sendfile(out_fd, in_fd, offset, min(count, 100))
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_sendfile(out_fd, in_fd, offset, count)
+
+    def rename(src, dst, *a, **k):
+        if state["folder"] and str(dst).startswith(state["folder"]) and not str(src).startswith(state["folder"]):
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        return real_rename(src, dst, *a, **k)
+
+    monkeypatch.setattr(os, "write", write)
+    monkeypatch.setattr(os, "sendfile", sendfile)
+    monkeypatch.setattr(os, "rename", rename)
+
+    def fill(folder: Path) -> None:
+        state["folder"] = str(Path(folder).resolve())
+
+    return fill
+
+
+def test_a_full_disk_while_saving_a_checkpoint_is_one_line_and_leaves_no_truncated_file(tmp_path, full_disk):
+    data = write_tiny_dataset(tmp_path / "data")
+    run = tmp_path / "run"
+    ckpts = run / "checkpoints"
+    ckpts.mkdir(parents=True)
+    (ckpts / "last.ckpt").write_bytes(b"the previous last.ckpt")
+    cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
+                        "trainer.limit_val_batches=1", "trainer.compile=false")
+    full_disk(ckpts)
+    with pytest.raises(ValueError) as err:
+        train(cfg, run)
+    text = _one_line(err)
+    assert text.startswith(f"no space left on the device of {ckpts} while writing the checkpoint "), text
+    assert "free some space, then resume with ckpt_path=" in text
+    assert (ckpts / "last.ckpt").read_bytes() == b"the previous last.ckpt"  # intact, not half overwritten
+    assert sorted(p.name for p in ckpts.iterdir()) == ["last.ckpt"]  # no truncated file, no temporary left
+
+
+def test_checkpoints_are_whole_files_readable_by_others(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data")
+    cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
+                        "trainer.limit_val_batches=1", "trainer.compile=false")
+    old = os.umask(0o022)
+    try:
+        train(cfg, tmp_path / "run")
+    finally:
+        os.umask(old)
+    files = sorted((tmp_path / "run" / "checkpoints").iterdir())
+    assert [p.name for p in files if p.name == "last.ckpt"] and len(files) == 2
+    for p in files:
+        assert p.stat().st_mode & 0o777 == 0o644, p
+        assert torch.load(p, map_location="cpu", weights_only=True)["epoch"] == 0
+
+
+def test_ctrl_c_during_training_names_the_checkpoint_to_resume_from(tmp_path, monkeypatch):
+    """Lightning's graceful shutdown ends in ``sys.exit(1)``: train says what is kept instead."""
+    import signal
+
+    from lightning.pytorch.callbacks import Callback
+
+    from cicfw.errors import Interrupted
+
+    class CtrlC(Callback):
+        def on_train_batch_start(self, trainer, *args):
+            if trainer.current_epoch == 1:
+                raise KeyboardInterrupt
+
+    real = train_mod.build_callbacks
+    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*real(cfg, run_dir), CtrlC()])
+    data = write_tiny_dataset(tmp_path / "data")
+    cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=3", "trainer.limit_train_batches=1",
+                        "trainer.limit_val_batches=1", "trainer.compile=false")
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        with pytest.raises(Interrupted) as err:
+            train(cfg, tmp_path / "run")
+    finally:
+        signal.signal(signal.SIGINT, handler)  # Lightning ignores Ctrl-C after its shutdown
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert str(err.value) == (f"during training epoch 2: the finished epochs are kept in {last.parent}; "
+                              f"resume with ckpt_path={last}")
+    assert torch.load(last, map_location="cpu", weights_only=True)["epoch"] == 0
+
+
+# ---- the app: Ctrl-C, an unusable run folder -----------------------------------------------------
+
+
+INTERRUPT_WARM_UP = """
+import os, signal, sys, time, runpy
+import cicfw.model.speed as speed
+
+def warm_up(model, batch_size):
+    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the training step compiles
+    time.sleep(30)
+
+speed.warm_up = warm_up
+runpy.run_module("cicfw.train", run_name="__main__", alter_sys=True)
+"""
+
+
+def _errors(proc: subprocess.CompletedProcess) -> list[str]:
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    return [line for line in proc.stderr.splitlines() if line.startswith("cicfw:")]
+
+
+def test_ctrl_c_during_the_compile_warm_up_is_one_line(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data")
+    script = tmp_path / "interrupt.py"
+    script.write_text(INTERRUPT_WARM_UP)
+    proc = subprocess.run([sys.executable, str(script), *BASE, f"data.path={data}", "trainer.compile=true",
+                           "debug=fast", f"hydra.run.dir={tmp_path}/out"], capture_output=True, text=True,
+                          env=ENV, timeout=600)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert _errors(proc) == ["cicfw: interrupted; during the compile warm-up, before the first training step: "
+                             "nothing to keep yet (what was compiled is cached), run the same command again"]
+
+
+READ_ONLY = """
+import errno, os, runpy, sys
+ro = os.environ["READ_ONLY"]
+real_mkdir, real_open = os.mkdir, os.open
+
+def refuse(path):
+    if os.path.abspath(os.fspath(path)).startswith(ro + os.sep):
+        raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+
+def mkdir(path, *a, **k):
+    refuse(path)
+    return real_mkdir(path, *a, **k)
+
+def open_(path, *a, **k):
+    refuse(path)
+    return real_open(path, *a, **k)
+
+os.mkdir, os.open = mkdir, open_  # a folder where nothing can be created (a read-only mount)
+runpy.run_module(sys.argv.pop(1), run_name="__main__", alter_sys=True)
+"""
+
+
+def read_only_app(tmp_path: Path, module: str, *args: str) -> subprocess.CompletedProcess:
+    """``python -m <module> args`` with ``tmp_path/ro`` read-only."""
+    script = tmp_path / "read_only.py"
+    script.write_text(READ_ONLY)
+    (tmp_path / "ro").mkdir()
+    return subprocess.run([sys.executable, str(script), module, *args], capture_output=True, text=True,
+                          env={**ENV, "READ_ONLY": str(tmp_path / "ro")}, timeout=600)
+
+
+def test_a_read_only_run_folder_is_one_line(tmp_path):
+    proc = read_only_app(tmp_path, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
+                         f"hydra.run.dir={tmp_path}/ro/run")
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert _errors(proc) == [f"cicfw: error: cannot create the run folder {tmp_path}/ro/run (Permission denied); "
+                             f"give a folder you can write: hydra.run.dir=<folder>"]
+
+
+def test_a_300_character_run_name_is_one_line(tmp_path):
+    name = "n" * 300
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data",
+                           f"hydra.run.dir={tmp_path}/{name}"], capture_output=True, text=True, env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
+                             f"this filesystem allows (255); give a shorter one"]
+    assert not (tmp_path / name[:255]).exists()
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data",
+                           f"hydra.run.dir={tmp_path}/run", f"hydra.job.name={name}"], capture_output=True,
+                          text=True, env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert _errors(proc) == [f"cicfw: error: hydra.job.name: the name {name[:20]}... is 304 bytes long, more than "
+                             f"this filesystem allows (255); give a shorter one"]
