@@ -6,6 +6,8 @@ entry_points.txt) on PYTHONPATH, laid out as docs/plugins.md tells plugin author
 ``hydra_plugins/<name>`` SearchPathPlugin that imports it, and a ``cicfw.mixers`` entry point."""
 from __future__ import annotations
 
+from importlib.metadata import version
+
 import json
 import os
 import subprocess
@@ -149,7 +151,7 @@ def test_plugins_json_lists_every_entry_and_failure(tmp_path, monkeypatch, capsy
     assert main(["--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     rows = {(r["kind"], r["name"]): r for r in data["registered"]}
-    assert rows[("mixers", "gtu")] == {"kind": "mixers", "name": "gtu", "distribution": "cicfw", "version": "0.1.0",
+    assert rows[("mixers", "gtu")] == {"kind": "mixers", "name": "gtu", "distribution": "cicfw", "version": version("cicfw"),
                                       "class": "cicfw.model.mixers.gtu.GTUMixer", "config": "mixer=gtu"}
     assert {(r["kind"], r["name"]) for r in data["registered"]} == {(k, n) for k, n, *_ in listing()[0]}
     assert data["failed"] == [{"kind": "mixers", "plugin": "failing-mixer:failing", "error": "ImportError: needs libfoo"}]

@@ -211,7 +211,9 @@ def test_the_suites_policy_drives_through_the_agent_unchanged(cil_run, episode):
     steer = pol.act(obs)
     assert steer.dtype == np.float32 and np.array_equal(steer, before(slice(None)))
     one = pol.agent.act(frames.images[3], float(frames.speed_kmh[3]), int(frames.command[3]))
-    assert isinstance(one, float) and one == before(slice(3, 4))[0]
+    # one frame: the same function, but not bit for bit (which kernels run at batch 1 depends on the
+    # threads torch has when the test runs: a full-suite run saw 16 float32 ulps)
+    assert isinstance(one, float) and abs(one - float(before(slice(3, 4))[0])) < 1e-6
     assert np.abs(steer - reference(cil_run, frames)).max() < 1e-5  # fused BatchNorm: the same function
 
 
