@@ -26,3 +26,16 @@ def fast_cfg(tiny_data: Path):
         "data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.val_batch_size=8",
         "debug=fast", "progress_bar=false",
     )
+
+
+@pytest.fixture
+def no_data(monkeypatch):
+    """Fail loudly if training reaches the data (collecting or reading any file)."""
+    import cicfw.train as train_mod
+    from cicfw.data.datamodule import CILDataModule
+
+    def touched(*_a, **_k):
+        raise AssertionError("the data was touched before the config error was reported")
+
+    monkeypatch.setattr(train_mod, "ensure_data", touched)
+    monkeypatch.setattr(CILDataModule, "setup", touched)

@@ -13,26 +13,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import cicfw.train as train_mod
 from cicfw.bench.suite import check_names
-from cicfw.data.datamodule import CILDataModule
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.override_hints import override_hints
 from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
 from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
-
-
-@pytest.fixture
-def no_data(monkeypatch):
-    """Fail loudly if training reaches the data (collecting or reading any file)."""
-
-    def touched(*_a, **_k):
-        raise AssertionError("the data was touched before the config error was reported")
-
-    monkeypatch.setattr(train_mod, "ensure_data", touched)
-    monkeypatch.setattr(CILDataModule, "setup", touched)
 
 
 def _cfg(tmp_path: Path, *overrides: str):

@@ -12,24 +12,12 @@ import pytest
 import torch
 
 import cicfw.train as train_mod
-from cicfw.data.datamodule import CILDataModule
 from cicfw.train import train
 from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-
-
-@pytest.fixture
-def no_data(monkeypatch):
-    """Fail loudly if training reaches the data (collecting or reading any file)."""
-
-    def touched(*_a, **_k):
-        raise AssertionError("the data was touched before the config error was reported")
-
-    monkeypatch.setattr(train_mod, "ensure_data", touched)
-    monkeypatch.setattr(CILDataModule, "setup", touched)
 
 
 def _cfg(tmp_path: Path, *overrides: str):
