@@ -40,7 +40,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.results import write_shared
+from cicfw.bench.runs import atomic_write
 
 log = logging.getLogger("cicfw.reproduce")
 
@@ -401,7 +401,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
                  "machine": (published or {}).get("machine"), "created": (published or {}).get("created")})
             changed = True
     if changed:
-        write_shared(path, json.dumps(manifest, indent=1))
+        atomic_write(path, json.dumps(manifest, indent=1))
     return manifest
 
 
@@ -607,7 +607,7 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
                   "detail": "".join(traceback.format_exception(err))[-4000:]}
         status = "failed"
         log.error("cell %s seed %d failed: %s\n%s", row, seed, result["error"], result["detail"])
-    write_shared(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
+    atomic_write(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
                                    "dataset": pinned.get("dataset"), **result}, indent=1))
     return status
 
@@ -633,7 +633,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
         log.info("cell %s seed %d: training (%s)", row, seed, tcfg.experiment if "experiment" in tcfg else row)
         t = time.time()
         val = train(tcfg, train_dir)
-        write_shared(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
+        atomic_write(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
                                           "resumed": resumed}))
     info = json.loads(trained.read_text())
     resumed = info.get("resumed")

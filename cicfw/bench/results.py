@@ -90,32 +90,6 @@ RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last
 RESUMED_MARK = "‡"
 
 
-def umask() -> int:
-    """The process's umask (read without changing it where /proc says it; else set and restored at once)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    old = os.umask(0o022)
-    os.umask(old)
-    return old
-
-
-def make_shared(path: Path) -> Path:
-    """Give ``path`` the mode a plainly created file gets (0666 less the umask): the atomic writer's
-    temporary file is owner-only (0600), which a colleague reading a shared results folder cannot open."""
-    os.chmod(path, 0o666 & ~umask())
-    return Path(path)
-
-
-def write_shared(path: Path, data: str | bytes) -> Path:
-    """``atomic_write`` (temporary file, then rename: never half-written), readable as the umask allows."""
-    atomic_write(Path(path), data)
-    return make_shared(Path(path))
-
-
 @dataclass
 class CellResult:
     """One finished (row, seed) cell: every episode's success, keyed by episode key."""
@@ -931,21 +905,20 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
         raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims)
-    write_shared(results_dir / "results.json", json.dumps(data, indent=1))
-    write_shared(results_dir / "results.csv", results_csv(data))
-    make_shared(plot_results(data, results_dir / "results.png"))
+    atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
+    atomic_write(results_dir / "results.csv", results_csv(data))
+    plot_results(data, results_dir / "results.png")
     curve = plot_curve(data, results_dir / "learning_curve.png")
     data["has_curve"] = curve is not None
-    if curve is not None:
-        make_shared(curve)
-    write_shared(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
+    atomic_write(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
     return data
 
 
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
     """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
-    return write_shared(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
+    atomic_write(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
+    return Path(path)
 
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:
@@ -961,7 +934,7 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     for f in files:
         target = dest / f.relative_to(results_dir)
         if target.resolve() != f.resolve():
-            write_shared(target, f.read_bytes())
+            atomic_write(target, f.read_bytes())
         out.append(target)
     return out
 
@@ -1007,7 +980,7 @@ def continue_published(src: Path, results_dir: Path) -> dict[str, list[str]]:
             continue
         rel = Path("cells", *name.split("/"), "cell.json")
         if (results_dir / rel).resolve() != (src / rel).resolve():
-            write_shared(results_dir / rel, (src / rel).read_bytes())
+            atomic_write(results_dir / rel, (src / rel).read_bytes())
         copied.append(name)
     return {"copied": copied, "kept": kept}
 
