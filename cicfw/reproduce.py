@@ -40,7 +40,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.runs import atomic_write
+from cicfw.files import atomic_write
 
 log = logging.getLogger("cicfw.reproduce")
 

@@ -38,8 +38,8 @@ LAST = ["overrides", "error", "output_dir"]
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write to a temporary file beside ``path``, then rename: readers never see half a file (the
-    shared writer, ``cicfw.bench.runs.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
-    from cicfw.bench.runs import atomic_write
+    shared writer, ``cicfw.files.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
+    from cicfw.files import atomic_write
 
     atomic_write(path, text)
 

@@ -157,7 +157,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
         if storage_options is not None:
             return super().save_checkpoint(checkpoint, path, storage_options)  # refuses them, with its message
-        from cicfw.bench.runs import atomic_write
+        from cicfw.files import atomic_write
 
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)

@@ -7,7 +7,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.runs import Run, atomic_write, cell_name, table_rows
+from cicfw.bench.runs import Run, cell_name, table_rows
+from cicfw.files import atomic_write
 from cicfw.bench.suite import CELLS
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"

@@ -64,7 +64,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy import stats
 
-from cicfw.bench.runs import atomic_write, cell_key, cell_name
+from cicfw.bench.runs import cell_key, cell_name
+from cicfw.files import atomic_write
 from cicfw.bench.suite import CELLS
 
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers

@@ -1,14 +1,11 @@
 """A finished evaluation run on disk, as the apps, the report and the pictures all read it: the
 ``Run`` (label, episode rows, metadata), its folder (``episodes.json``, ``trajectories.npz``), the
-paper's table cells, and atomic writes. It imports nothing from the apps or from the report and
-plot modules, so every layer above can share it (apps -> bench -> sim/model/data -> registry).
+paper's table cells. It imports nothing from the apps or from the report and plot modules, so every layer above can share it (apps -> bench -> sim/model/data -> registry).
 """
 from __future__ import annotations
 
 import io
 import json
-import os
-import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -16,6 +13,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from cicfw.bench.suite import CELLS
+from cicfw.files import atomic_write
 
 SET_NAMES = {"training": "Training", "new": "New"}
 
@@ -75,38 +73,6 @@ def table_rows(runs: Sequence[Run]) -> list[tuple[str, list[float | None], list[
         rates = [100.0 * cells[c][0] / cells[c][1] if c in cells else None for c in CELLS]
         out.append((run.label, rates, [cells[c][1] if c in cells else 0 for c in CELLS]))
     return out
-
-
-def temp_beside(path: Path) -> tuple[int, Path]:
-    """A new, empty temporary file in ``path``'s folder (``.<name>.<random>.tmp``), open for writing,
-    with the mode a plain ``open`` gives (0666 less the umask; ``mkstemp``'s 0600 would hide a shared
-    results folder's report from colleagues). Returns its descriptor and path."""
-    for _ in range(100):
-        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
-        try:
-            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666), tmp
-        except FileExistsError:
-            continue
-    raise FileExistsError(f"no free temporary name beside {path}")
-
-
-def atomic_write(path: Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, then rename: readers (and
-    a full disk) never leave half a file under ``path``. The file gets the umask's mode, like ``open``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temp_beside(path)
-    try:
-        view = memoryview(data.encode() if isinstance(data, str) else data)
-        try:
-            while view:
-                view = view[os.write(fd, view):]
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def load_run(run_dir: Path) -> Run:

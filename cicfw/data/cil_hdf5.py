@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import glob
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from cicfw.files import replacing
 
 IMAGE_SHAPE = (88, 200, 3)  # rows, columns, RGB
 N_TARGETS = 28
@@ -130,16 +131,8 @@ def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) ->
         raise ValueError(f"rgb must be (N, 88, 200, 3), got {rgb.shape}")
     if targets.shape != (rgb.shape[0], N_TARGETS):
         raise ValueError(f"targets must be ({rgb.shape[0]}, 28), got {targets.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with replacing(path) as tmp:  # the umask's mode: a dataset is meant to be shared
         with h5py.File(tmp, "w") as f:
             f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
             f.create_dataset("targets", data=targets)
-        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only; a dataset is meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
     return path

@@ -10,8 +10,8 @@ branches mix) as ``diagnostics/<name>_offdiag_abs``.
 """
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 import warnings
 from typing import Any, Mapping
 
@@ -23,6 +23,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from cicfw import COMMANDS, N_COMMANDS
+from cicfw.files import atomic_write
 
 # Axis titles by matrix name (prefix match); rows first.
 AXES = {
@@ -89,17 +90,10 @@ def figure_rgb(fig: Figure) -> np.ndarray:
 
 
 def save_png(fig: Figure, path: str) -> None:
-    """Write atomically: a temporary file in the same folder, then rename."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png.tmp", dir=os.path.dirname(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=110)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    """Write atomically, with the umask's mode (the shared writer, ``cicfw.files``)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write(path, buf.getbuffer())
 
 
 class MixerDiagnostics(L.Callback):
