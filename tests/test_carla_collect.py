@@ -15,9 +15,9 @@ import pytest
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
 from cicfw.data.cil_hdf5 import T, check_file  # noqa: E402
-from cicfw.sim import carla_backend  # noqa: E402
-from cicfw.sim.carla_backend import CarlaBackend  # noqa: E402
-from cicfw.sim.carla_standin import StandIn, maps_dir  # noqa: E402
+from cicfw.carla_client import backend as carla_backend  # noqa: E402
+from cicfw.carla_client.backend import CarlaBackend  # noqa: E402
+from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
 from cicfw.sim.collection import collect_dataset, episode_plan, resolve_config  # noqa: E402
 
 MAPS = maps_dir()
