@@ -309,7 +309,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
 
     def collection() -> tuple[bool, str]:
         try:
-            from cicfw.sim.collection import episode_plan, resolve_config, run_episode
+            from cicfw.collection import episode_plan, resolve_config, run_episode
         except ImportError as err:
             return False, f"the collection engine is missing ({err})"
         from cicfw.data.cil_hdf5 import check_file
