@@ -1,5 +1,5 @@
 """Collection speed, end to end: samples (camera images + targets) written per second by
-cicfw.sim.collection.collect_dataset into a temporary folder, cold (renderers baked in every run, worker
+cicfw.collection.collect_dataset into a temporary folder, cold (renderers baked in every run, worker
 processes started), in-process (workers=1) and with worker processes. ``--default`` times the
 default dataset (43,200 samples, ~2.2 GB in the temporary folder) instead.
 
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import cicfw.sim.env as sim_env
-from cicfw.sim.collection import DEFAULTS, collect_dataset, episode_plan, make_backend, resolve_config, run_episode
+from cicfw.collection import DEFAULTS, collect_dataset, episode_plan, make_backend, resolve_config, run_episode
 
 
 def main() -> None:

@@ -3,7 +3,7 @@
 ``verify=true`` (or ``--verify``) checks a collected folder instead, changing nothing: every file against
 its recorded size and SHA-256, one line per missing or corrupt file, exit status 2 if any.
 
-A thin Hydra app over the collection engine ``cicfw.sim.collection`` (episodes, workers, files,
+A thin Hydra app over the collection engine ``cicfw.collection`` (episodes, workers, files,
 metadata, resume, the folder lock and the other guarantees are documented there and in
 docs/simulator.md). Every config error, a locked or unwritable folder and a full disk print one line
 (``cicfw: error: ...``, exit status 2); Ctrl-C prints one line too (rerun the same command to resume).
@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from cicfw.sim.collection import (  # noqa: F401  (the engine's API, re-exported for callers of cicfw.collect)
+from cicfw.collection import (  # noqa: F401  (the engine's API, re-exported for callers of cicfw.collect)
     CAMERA_IDS, DEFAULTS, SIM_VERSION, CollectConfigError, CollectError, DiskFullError, FolderLockedError,
     collect_dataset, episode_plan, resolve_config, run_episode, verify_dataset)
 

@@ -31,10 +31,11 @@ class UnknownNameError(KeyError):
 class Registry(Generic[T]):
     """Maps names to classes of one kind, e.g. ``MIXERS.get("gtu")``."""
 
-    def __init__(self, kind: str, group: str | None = None, builtins: str | None = None) -> None:
+    def __init__(self, kind: str, group: str | None = None, builtins: str | tuple[str, ...] | None = None) -> None:
         self.kind = kind
         self.group = group  # entry-point group third-party packages register under
-        self._builtins = builtins  # module whose import registers the built-in entries
+        # modules whose import registers the built-in entries (one per package that implements the kind)
+        self._builtins = (builtins,) if isinstance(builtins, str) else tuple(builtins or ())
         self._entries: dict[str, T] = {}
         self._origin: dict[str, str] = {}
         self._loaded = False
@@ -80,8 +81,8 @@ class Registry(Generic[T]):
         if self._loaded:
             return
         self._loaded = True  # set first: plugin modules may import this registry while loading
-        if self._builtins:
-            importlib.import_module(self._builtins)
+        for module in self._builtins:
+            importlib.import_module(module)
         if self.group:
             for ep in entry_points(group=self.group):
                 self._load_entry_point(ep)
@@ -198,7 +199,9 @@ def guard_hydra_plugins() -> dict[str, tuple[str, str]]:
 ENCODERS: Registry = Registry("encoder", "cicfw.encoders", "cicfw.model.encoders")
 MIXERS: Registry = Registry("mixer", "cicfw.mixers", "cicfw.model.mixers")
 HEADS: Registry = Registry("head", "cicfw.heads", "cicfw.model.heads")
-SIM_BACKENDS: Registry = Registry("sim backend", "cicfw.sim_backends", "cicfw.sim.backends")
+# the embedded simulator and the CARLA client each register their backend; neither imports the other
+SIM_BACKENDS: Registry = Registry("sim backend", "cicfw.sim_backends",
+                                  ("cicfw.sim.backends", "cicfw.carla_client.backend"))
 
 ALL = {"encoders": ENCODERS, "mixers": MIXERS, "heads": HEADS, "sim backends": SIM_BACKENDS}
 
@@ -242,7 +245,7 @@ def listing() -> tuple[list[tuple[str, str, str, str, str]], list[tuple[str, str
             try:
                 names = reg.names()
             except Exception as err:
-                failures.append((kind, f"cicfw built-ins ({reg._builtins})", f"{type(err).__name__}: {err}"))
+                failures.append((kind, f"cicfw built-ins ({', '.join(reg._builtins)})", f"{type(err).__name__}: {err}"))
                 names = sorted(reg._entries)
         group = CONFIG_GROUPS[kind]
         for name in names:

@@ -90,7 +90,7 @@ def ensure_data(data_cfg: DictConfig) -> None:
         collect_dataset(data_cfg.collect, path)
 
 
-#: written by ``cicfw collect`` into every folder it collects (cicfw.sim.collection.META_NAME)
+#: written by ``cicfw collect`` into every folder it collects (cicfw.collection.META_NAME)
 COLLECTED_META = "dataset_metadata.json"
 
 

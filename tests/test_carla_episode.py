@@ -1,4 +1,4 @@
-"""CARLA episodes driven offline through a recording stand-in server (``cicfw.sim.carla_standin``:
+"""CARLA episodes driven offline through a recording stand-in server (``cicfw.carla_client.standin``:
 autospecs of the real ``carla`` classes, the real Town01/Town02 maps, calls bound to the wheel's stubs).
 
 What a whole evaluation run does to the server: one episode at a time, each with its own town, weather
@@ -17,9 +17,9 @@ carla = pytest.importorskip("carla", reason="the CARLA client is not installed: 
 from cicfw.bench.policies import ConstantPolicy, ExpertPolicy  # noqa: E402
 from cicfw.bench.runner import RunnerConfig, run, server_specs  # noqa: E402
 from cicfw.bench.suite import build_suite  # noqa: E402
-from cicfw.sim.carla_backend import (CarlaBackend, CarlaBusy, CarlaSensorTimeout,  # noqa: E402
-                                     steer_for_car)
-from cicfw.sim.carla_standin import StandIn, maps_dir  # noqa: E402
+from cicfw.carla_client.backend import (CarlaBackend, CarlaBusy, CarlaSensorTimeout,  # noqa: E402
+                                        steer_for_car)
+from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
 from cicfw.sim.vehicle import VehicleParams  # noqa: E402
 
 MAPS = maps_dir()

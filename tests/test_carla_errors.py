@@ -1,5 +1,5 @@
 """CARLA's errors are one line each (no server, the client missing, versions differing), found fast with the
-real ``carla.Client``; and ``python -m cicfw.sim.carla_check`` reports PASS / FAIL per guarantee (here
+real ``carla.Client``; and ``python -m cicfw.carla_check`` reports PASS / FAIL per guarantee (here
 against the recording stand-in; against a real server it is the user's one-minute self-test)."""
 from __future__ import annotations
 
@@ -16,10 +16,10 @@ import pytest
 
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
-from cicfw.sim import carla_check  # noqa: E402
-from cicfw.sim.carla_backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
-                                     CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
-from cicfw.sim.carla_standin import StandIn, maps_dir  # noqa: E402
+from cicfw import carla_check  # noqa: E402
+from cicfw.carla_client.backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
+                                        CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
+from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
 
 MAPS = maps_dir()
 needs_maps = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
@@ -145,4 +145,4 @@ def test_carla_check_without_a_server_says_so(capsys):
 def test_cli_has_carla_check():
     from cicfw.cli import COMMANDS
 
-    assert COMMANDS["carla-check"][0] == "cicfw.sim.carla_check"
+    assert COMMANDS["carla-check"][0] == "cicfw.carla_check"

@@ -13,8 +13,8 @@ import pytest
 
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
-from cicfw.sim.carla_routes import random_route, single_turn_routes  # noqa: E402
-from cicfw.sim.carla_standin import maps_dir  # noqa: E402
+from cicfw.carla_client.routes import random_route, single_turn_routes  # noqa: E402
+from cicfw.carla_client.standin import maps_dir  # noqa: E402
 from cicfw.sim.expert import Expert  # noqa: E402
 
 MAPS = maps_dir()

@@ -15,8 +15,10 @@ import pytest
 from hydra import compose, initialize_config_module
 
 import cicfw.collect as collect_mod
-import cicfw.sim.collection as engine
+import cicfw.collection.dataset as dataset_mod
+import cicfw.collection.episode as episode_mod
 from cicfw.collect import CollectConfigError, collect_dataset, resolve_config
+from cicfw.collection import LOCK_NAME
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.backends import EmbeddedBackend
@@ -73,7 +75,7 @@ def test_noise_label_is_the_experts_steer_not_the_noisy_one(tmp_path: Path):
 
 def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path, small_dataset: Path,
                                                                    monkeypatch):
-    real_write = engine.write_bytes_tmp
+    real_write = episode_mod.write_bytes_tmp
     calls = {"n": 0}
     seen = []
 
@@ -85,7 +87,7 @@ def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path
         return real_write(path, data, suffix)
 
     out = tmp_path / "resumed"
-    monkeypatch.setattr(engine, "write_bytes_tmp", dying_write)
+    monkeypatch.setattr(episode_mod, "write_bytes_tmp", dying_write)
     with pytest.raises(KeyboardInterrupt):
         collect_dataset(SMALL, out, progress=False)
     visible = sorted(p.name for p in out.glob("*.h5"))
@@ -95,10 +97,10 @@ def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path
     assert not list(out.glob(".*.part"))
     meta = json.loads((out / "dataset_metadata.json").read_text())
     assert not meta["complete"] and meta["counts"]["episodes"] == 1
-    monkeypatch.setattr(engine, "write_bytes_tmp", real_write)
+    monkeypatch.setattr(episode_mod, "write_bytes_tmp", real_write)
     collect_dataset(SMALL, out, progress=False)
     # no temporary files left (the lock file stays: it is how the next collector finds the holder)
-    assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == [engine.LOCK_NAME]
+    assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == [LOCK_NAME]
     assert json.loads((out / "dataset_metadata.json").read_text())["complete"]
     for f in find_files(small_dataset):  # same seed, same bytes, whether interrupted or not
         assert (out / f.name).read_bytes() == f.read_bytes(), f.name
@@ -154,7 +156,7 @@ def test_the_app_prints_one_line_for_every_config_error(tmp_path: Path, capsys, 
     override = override.replace("BAD", str(bad))
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         cfg = compose("collect", overrides=[f"out_dir={tmp_path / 'out'}", override])
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("simulated despite a bad config"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated despite a bad config"))
     with pytest.raises(SystemExit) as exc:
         collect_mod.run(cfg)
     assert exc.value.code == 2

@@ -22,13 +22,14 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-import cicfw.sim.collection as engine
+import cicfw.collection.dataset as dataset_mod
+import cicfw.collection.writing as writing
+from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
+                              collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files
-from cicfw.sim.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock,
-                                  FolderLockedError, collect_dataset, episode_plan, resolve_config)
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
-COLLECTOR = ("import json, sys\nfrom cicfw.sim.collection import collect_dataset\n"
+COLLECTOR = ("import json, sys\nfrom cicfw.collection import collect_dataset\n"
              "collect_dataset(json.loads(sys.argv[1]), sys.argv[2], progress=False)\n")
 
 
@@ -97,7 +98,7 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
         assert f"is being collected into by another process (pid {a.pid} on {socket.gethostname()}, started " in msg
         assert "seed 0" in msg and "\n" not in msg
         # a third with the first one's config waits for it, then finds nothing left to do
-        with caplog.at_level(logging.WARNING, logger="cicfw.sim.collection"):
+        with caplog.at_level(logging.WARNING, logger="cicfw.collection"):
             meta = json.loads(collect_dataset({**a_cfg, "lock_wait": 300}, out, progress=False).read_text())
         assert f"waiting for {out}: another process is collecting into it (pid {a.pid}" in caplog.text
         assert a.wait(600) == 0, a.stderr.read()
@@ -131,7 +132,7 @@ def test_a_training_job_waits_for_the_one_filling_the_same_cache(tmp_path: Path,
     threading.Timer(1.5, lock.release).start()
     collect = {k: v for k, v in TINY.items() if k != "workers"} | {"episodes": 1}
     t0 = time.monotonic()
-    with caplog.at_level(logging.WARNING, logger="cicfw.sim.collection"):
+    with caplog.at_level(logging.WARNING, logger="cicfw.collection"):
         ensure_data(OmegaConf.create({"path": str(out), "collect": collect}))
     assert time.monotonic() - t0 >= 1.4
     assert f"pid {os.getpid()} on {socket.gethostname()}" in caplog.text and "(the other job)" in caplog.text
@@ -139,7 +140,7 @@ def test_a_training_job_waits_for_the_one_filling_the_same_cache(tmp_path: Path,
 
 
 def test_the_lock_is_released_on_errors_and_names_its_holder(tmp_path: Path, monkeypatch):
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom")))
     with pytest.raises(RuntimeError, match="boom"):
         collect_dataset(TINY, tmp_path, progress=False)
     with FolderLock(tmp_path, 0, {"what": "a test"}):  # free again
@@ -150,7 +151,7 @@ def test_the_lock_is_released_on_errors_and_names_its_holder(tmp_path: Path, mon
         with pytest.raises(FolderLockedError, match=r"after waiting 1 s"):
             collect_dataset({**TINY, "lock_wait": 0.6}, tmp_path, progress=False)
     # temporary names are unique to the process and to each call
-    a, b = engine._tmp_name(tmp_path / "x.h5", ".part"), engine._tmp_name(tmp_path / "x.h5", ".part")
+    a, b = writing._tmp_name(tmp_path / "x.h5", ".part"), writing._tmp_name(tmp_path / "x.h5", ".part")
     assert a != b and a.name.startswith(f".x.h5.{os.getpid()}-") and a.suffix == ".part"
 
 
@@ -202,15 +203,15 @@ if mode == "death signal only":  # no parent-pid poll
         def start(self):
             pass
     threading.Thread = NoThread
-from cicfw.sim import collection
+from cicfw.collection import workers
 if mode == "a collect worker":  # the real worker entry point, waiting for its next episode
     class Tasks:
         def get(self):
             print("ready", flush=True)
             time.sleep(600)
-    collection._worker_main(0, {"name": "embedded"}, {}, "/nonexistent", int(sys.argv[1]), Tasks(), None)
+    workers._worker_main(0, {"name": "embedded"}, {}, "/nonexistent", int(sys.argv[1]), Tasks(), None)
 else:
-    collection._die_with_parent(int(sys.argv[1]))
+    workers._die_with_parent(int(sys.argv[1]))
     print("ready", flush=True)
     time.sleep(600)
 """
@@ -261,10 +262,10 @@ def test_ctrl_c_ends_the_workers_and_leaves_one_line(tmp_path: Path):
 
 def test_what_a_stopped_worker_left_is_removed_by_its_parent(tmp_path: Path, monkeypatch):
     def workers_that_die(cfg, todo, out_dir, n, on_marker, lock):
-        engine.write_bytes_tmp(out_dir / "ep0000_town_a_ClearNoon_000.h5", b"half a file")  # as if killed
+        writing.write_bytes_tmp(out_dir / "ep0000_town_a_ClearNoon_000.h5", b"half a file")  # as if killed
         raise CollectError("collect worker 1 (pid 1) died with exit code -9")
 
-    monkeypatch.setattr(engine, "_run_workers", workers_that_die)
+    monkeypatch.setattr(dataset_mod, "run_workers", workers_that_die)
     with pytest.raises(CollectError, match="died with exit code -9"):
         collect_dataset({**TINY, "workers": 2}, tmp_path, progress=False)
     assert _temp_files(tmp_path) == [] and not _meta(tmp_path)["complete"]
@@ -293,18 +294,18 @@ def _fill(disk: Path, leave: int) -> Path:
 
 def test_a_full_tmpfs_is_one_clear_error_and_leaves_no_temp_file(small_disk: Path, monkeypatch):
     out = small_disk / "ds"
-    need = engine.episode_bytes(resolve_config(TINY))
+    need = episode_bytes(resolve_config(TINY))
     filler = _fill(small_disk, int(1.5 * need))  # room for one episode, not two
     runs = []
-    real_run = engine.run_episode
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: runs.append(1) or real_run(*a, **k))
+    real_run = dataset_mod.run_episode
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: runs.append(1) or real_run(*a, **k))
     # the free-space check: refused before anything is simulated
     with pytest.raises(DiskFullError, match=rf"not enough free space in {out}: the 2 episode\(s\) left needs ~"):
         collect_dataset(TINY, out, progress=False)
     assert runs == [] and _temp_files(out) == []
     # with the check fooled, the second episode's write really hits ENOSPC: one clear error, no temp file,
     # no crash inside HDF5 (the file is built in memory and written with os.write)
-    monkeypatch.setattr(engine, "_free_bytes", lambda path: 10**12)
+    monkeypatch.setattr(writing, "_free_bytes", lambda path: 10**12)
     with pytest.raises(DiskFullError, match=rf"no space left on the device of {out} while writing "
                                             rf"ep0001_town_a_ClearNoon_000.h5 \(0.\d MB free\)") as err:
         collect_dataset(TINY, out, progress=False)
@@ -318,7 +319,7 @@ def test_a_full_tmpfs_is_one_clear_error_and_leaves_no_temp_file(small_disk: Pat
 
 def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monkeypatch):
     """The same fault simulated (for machines where no tmpfs can be mounted): half a file, then ENOSPC."""
-    real = engine._write_all
+    real = writing._write_all
 
     def half_then_full(fd, data):
         if len(data) > 100_000:  # an HDF5 file, not a JSON one
@@ -326,16 +327,16 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real(fd, data)
 
-    monkeypatch.setattr(engine, "_write_all", half_then_full)
+    monkeypatch.setattr(writing, "_write_all", half_then_full)
     with pytest.raises(DiskFullError, match=r"no space left on the device of .* while writing x.h5 \("):
-        engine.write_bytes_tmp(tmp_path / "x.h5", b"\0" * 200_000)  # the write itself removes its temp file
+        writing.write_bytes_tmp(tmp_path / "x.h5", b"\0" * 200_000)  # the write itself removes its temp file
     assert os.listdir(tmp_path) == []
     with pytest.raises(DiskFullError, match="no space left on the device of .* while writing "
                                             "ep0000_town_a_ClearNoon_000.h5") as err:
         collect_dataset(TINY, tmp_path, progress=False)
     assert "\n" not in str(err.value)
     assert _temp_files(tmp_path) == [] and not list(tmp_path.glob("*.h5")) and not _meta(tmp_path)["complete"]
-    monkeypatch.setattr(engine, "_write_all", real)
+    monkeypatch.setattr(writing, "_write_all", real)
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
 
 
@@ -344,7 +345,7 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
 
 
 def test_a_file_in_place_of_the_folder_is_reported_before_simulating(tmp_path: Path, monkeypatch):
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     f = tmp_path / "a_file"
     f.write_text("x")
     with pytest.raises(CollectError, match=rf"out_dir {f} is a file, not a folder"):
@@ -354,7 +355,7 @@ def test_a_file_in_place_of_the_folder_is_reported_before_simulating(tmp_path: P
 
 
 def test_a_read_only_folder_is_reported_before_simulating(tmp_path: Path, monkeypatch):
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     ro = tmp_path / "ro"
     ro.mkdir()
     if os.geteuid() == 0:  # root ignores permission bits: a read-only file system it is
@@ -405,7 +406,7 @@ def test_complete_is_true_only_when_every_file_validates(tmp_path: Path, monkeyp
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
     first = tmp_path / "ep0000_town_a_ClearNoon_000.h5"
     original = first.read_bytes()
-    real_run = engine.run_episode
+    real_run = dataset_mod.run_episode
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -418,20 +419,20 @@ def test_complete_is_true_only_when_every_file_validates(tmp_path: Path, monkeyp
         else:
             first.unlink()
         # a rerun that cannot redo the episode leaves the metadata saying incomplete
-        monkeypatch.setattr(engine, "run_episode", interrupted)
+        monkeypatch.setattr(dataset_mod, "run_episode", interrupted)
         with pytest.raises(KeyboardInterrupt):
             collect_dataset(TINY, tmp_path, progress=False)
         meta = _meta(tmp_path)
         assert not meta["complete"] and meta["counts"]["episodes"] == 1, damage
         assert "ep0000_town_a_ClearNoon_000.h5" not in meta["files"] and not first.exists()  # never left to read
         # a rerun that can redoes exactly that episode, with the same bytes
-        monkeypatch.setattr(engine, "run_episode", real_run)
+        monkeypatch.setattr(dataset_mod, "run_episode", real_run)
         assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
         assert first.read_bytes() == original, damage
 
 
 def test_a_folder_with_other_hdf5_files_is_refused(tmp_path: Path, monkeypatch):
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "theirs.h5").write_bytes(b"not ours")
     with pytest.raises(CollectError, match=r"holds 1 HDF5 file\(s\) this collection does not write "

@@ -14,9 +14,9 @@ import pytest
 from hydra import compose, initialize_config_module
 
 import cicfw.collect as collect_mod
-import cicfw.sim.collection as engine
+import cicfw.collection.dataset as dataset_mod
+from cicfw.collection import collect_dataset
 from cicfw.data.cil_hdf5 import T
-from cicfw.sim.collection import collect_dataset
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
 
@@ -131,7 +131,7 @@ def test_flipped_bytes_are_named_on_rerun_and_the_episode_collected_again(collec
     """A finished file with bytes flipped (same size, still opens as HDF5): a rerun used to say complete=True."""
     out, files = collected
     _flip(out / FIRST)
-    with caplog.at_level(logging.INFO, logger="cicfw.sim.collection"):
+    with caplog.at_level(logging.INFO, logger="cicfw.collection"):
         meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
     said = [r.getMessage() for r in caplog.records if FIRST in r.getMessage() and r.levelno >= logging.WARNING]
     assert len(said) == 1, said
@@ -153,7 +153,7 @@ def test_verify_names_each_corrupt_file_in_one_line_and_exits_2(collected, capsy
     out, files = collected
     flipped = _flip(out / FIRST)
     (out / "ep0001_town_a_ClearNoon_000.h5").unlink()
-    monkeypatch.setattr(engine, "run_episode", lambda *a, **k: pytest.fail("verify must not collect"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("verify must not collect"))
     with pytest.raises(SystemExit) as exc:
         collect_mod.run(_collect_cfg(out, "verify=true"))
     assert exc.value.code == 2
@@ -196,7 +196,7 @@ def test_a_dataset_collected_before_checksums_gets_them_on_rerun(collected, capl
     for f in meta["files"].values():
         f.pop("sha256", None)
     (out / "dataset_metadata.json").write_text(json.dumps(meta))
-    with caplog.at_level(logging.INFO, logger="cicfw.sim.collection"):
+    with caplog.at_level(logging.INFO, logger="cicfw.collection"):
         meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
     assert meta["complete"]
     assert meta["files"][FIRST]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()

@@ -1,4 +1,13 @@
-"""Imports run one way: apps -> bench / sim / model / data -> registry (issue 11, section 7).
+"""Imports run one way (issue 11, section 7; issue 17, the house)::
+
+    apps (train, evaluate, collect, reproduce, cli, carla_check)
+      -> bench | collection | carla_client  ->  sim | model | data  ->  registry
+
+``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
+code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
+and ``cicfw.data`` import no simulator (and no benchmark). The CARLA client implements sim's interface
+and imports no benchmark, dataset or collection code. The collection stage (sim + data) and the CARLA
+check (bench + the CARLA client + collection) are imported by apps only.
 
 Every ``import`` and ``from ... import`` in the package is read with ``ast`` (function-level ones
 included: a lazy import is still a dependency), so a lower layer reaching up fails here.
@@ -13,8 +22,17 @@ import pytest
 import cicfw
 
 PKG = Path(cicfw.__file__).parent
-APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.cli")
-LOWER = ("bench", "sim", "model", "data")
+APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.cli", "cicfw.carla_check")
+LOWER = ("bench", "sim", "model", "data", "carla_client", "collection")
+#: package -> what none of its modules may import
+FORBIDDEN = {
+    "sim": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection"),
+    "model": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection"),
+    "data": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection"),
+    "carla_client": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.collection"),
+}
+#: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
+APPS_ONLY = ("cicfw.collection", "cicfw.carla_check")
 
 
 def _module_name(path: Path, root: Path = PKG.parent) -> str:
@@ -54,6 +72,17 @@ def _lower_modules() -> list[Path]:
     return sorted(p for sub in LOWER for p in (PKG / sub).rglob("*.py"))
 
 
+def _modules_of(packages) -> list[Path]:
+    return sorted(p for sub in packages for p in (PKG / sub).rglob("*.py"))
+
+
+def forbidden_imports(path: Path, root: Path = PKG.parent) -> list[str]:
+    """What ``path`` imports that FORBIDDEN denies its package."""
+    package = _module_name(path, root).split(".")[1]
+    found = imports_of(path, root)
+    return [m for m in FORBIDDEN.get(package, ()) if _reaches(found, m)]
+
+
 def test_the_checker_sees_an_upward_import(tmp_path):
     bad = tmp_path / "cicfw" / "bench" / "bad.py"
     bad.parent.mkdir(parents=True)
@@ -62,11 +91,42 @@ def test_the_checker_sees_an_upward_import(tmp_path):
     assert _reaches(found, "cicfw.evaluate") and _reaches(found, "cicfw.train")
 
 
+def test_the_checker_sees_the_simulator_reaching_into_the_data_layer(tmp_path):
+    for i, line in enumerate(["from cicfw.data.cil_hdf5 import T", "from ..data import cil_hdf5",
+                              "import cicfw.data", "from cicfw import data"]):
+        bad = tmp_path / "cicfw" / "sim" / f"bad{i}.py"
+        bad.parent.mkdir(parents=True, exist_ok=True)
+        bad.write_text(f"def f():\n    {line}\n")  # a lazy import is still one
+        assert forbidden_imports(bad, tmp_path) == ["cicfw.data"], line
+    fine = tmp_path / "cicfw" / "sim" / "fine.py"
+    fine.write_text("from cicfw.registry import SIM_BACKENDS\nfrom .roadgraph import Route\n")
+    assert forbidden_imports(fine, tmp_path) == []
+
+
 @pytest.mark.parametrize("path", _lower_modules(), ids=lambda p: str(p.relative_to(PKG)))
 def test_lower_layers_never_import_an_app(path):
     found = imports_of(path)
     upward = [app for app in APPS if _reaches(found, app)]
     assert not upward, f"{path.relative_to(PKG.parent)} imports the app module(s) {upward}; move the shared code down"
+
+
+@pytest.mark.parametrize("path", _modules_of(FORBIDDEN), ids=lambda p: str(p.relative_to(PKG)))
+def test_each_layer_imports_only_what_it_may(path):
+    bad = forbidden_imports(path)
+    assert not bad, (f"{path.relative_to(PKG.parent)} imports {bad}, which its layer may not "
+                     f"(tests/test_layering.py's docstring draws the layers)")
+
+
+def test_only_apps_import_the_collection_stage_and_the_carla_check():
+    offenders = []
+    for path in sorted(PKG.rglob("*.py")):
+        name = _module_name(path)
+        if name in APPS:
+            continue
+        found = imports_of(path)
+        offenders += [f"{name} imports {target}" for target in APPS_ONLY
+                      if _reaches(found, target) and not (name == target or name.startswith(target + "."))]
+    assert not offenders, offenders
 
 
 def test_plots_and_report_do_not_import_each_other():

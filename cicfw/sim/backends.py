@@ -1,14 +1,14 @@
-"""Simulator backends behind one interface, registered in ``SIM_BACKENDS`` ("embedded", "carla").
+"""The simulator backend interface, and the embedded simulator's backend (``SIM_BACKENDS`` "embedded").
 
 A backend is built from its config's kwargs (``conf/sim/<name>.yaml``: ``name:`` + kwargs) and gives
 ``towns()``, ``weathers()``, ``single_turn_routes(town)`` and ``make_env(town, route, weather, seed,
 cameras, renderer) -> env`` where env has ``reset() -> obs``, ``step(steer, target_speed_kmh=...) ->
 (obs, done, info)`` and ``expert_action()``, as ``cicfw.sim.env.DrivingEnv``. The data collector
-(``cicfw.sim.collection``) needs a little more: ``random_route``, ``make_env(..., expert=, time_offset=,
-endless=)`` and optionally ``resolve_town``; its module docstring lists the whole interface.
+(``cicfw.collection``) needs a little more: ``random_route``, ``make_env(..., expert=, time_offset=,
+endless=)`` and optionally ``resolve_town``; its package docstring lists the whole interface.
 ``lockstep``: True when many episodes may run side by side (embedded); False for a backend whose server
-runs one episode at a time (CARLA, ``cicfw.sim.carla_backend``): the runner then drives episodes one
-after another and ``runner.workers`` is a list of server ports.
+runs one episode at a time (CARLA, ``cicfw.carla_client.backend``, which registers "carla" itself): the
+runner then drives episodes one after another and ``runner.workers`` is a list of server ports.
 """
 from __future__ import annotations
 
@@ -87,8 +87,3 @@ class EmbeddedBackend:
                           renderer=renderer, expert=ExpertParams(**(expert or {})), time_offset=time_offset,
                           **stop)
 
-
-# ------------------------------------------------------------------------------------------------
-# CARLA 0.9.16: its own module (imports ``carla`` only when a CarlaBackend is built)
-
-from cicfw.sim import carla_backend as _carla_backend  # noqa: E402,F401  (registers "carla")

@@ -1,8 +1,8 @@
-"""Test a CARLA server with cicfw's CARLA backend in about a minute: ``python -m cicfw.sim.carla_check``
+"""Test a CARLA server with cicfw's CARLA backend in about a minute: ``python -m cicfw.carla_check``
 (or ``cicfw carla-check``) ``[--host localhost] [--port 2000] [--town Town01] [--timeout 5]``.
 
 Prints ``PASS`` or ``FAIL`` (or ``SKIP``) and one line of evidence per guarantee of
-``cicfw.sim.carla_backend``, then a summary; exit status 0 when nothing failed. What it does, on the
+``cicfw.carla_client.backend``, then a summary; exit status 0 when nothing failed. What it does, on the
 server: loads the town, plans the suite's routes from the server's map, drives one expert episode of
 the suite through the runner (three cameras), a full-lock drive across the road and into the oncoming
 lane, a drive into a parked car, and one short collection episode (three cameras, CIL files in a
@@ -126,8 +126,8 @@ def run_checks(host: str = "localhost", port: int = 2000, town: str = "Town01", 
                client: Any = None, report: Report | None = None, collect_seconds: float = 8.0) -> Report:
     """Run every check against the server at ``host:port`` (or an already connected ``client``)."""
     rep = report or Report()
-    from cicfw.sim.carla_backend import (CARLA_VERSION, CarlaBackend, CarlaServerUnavailable, connect,
-                                         import_carla)
+    from cicfw.carla_client.backend import (CARLA_VERSION, CarlaBackend, CarlaServerUnavailable, connect,
+                                            import_carla)
 
     try:
         carla = import_carla()
@@ -188,7 +188,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
     from cicfw.bench.policies import ExpertPolicy
     from cicfw.bench.runner import RunnerConfig, drive
     from cicfw.bench.suite import build_suite, suite_routes
-    from cicfw.sim.carla_routes import STRAIGHT_MAX_DEG
+    from cicfw.carla_client.routes import STRAIGHT_MAX_DEG
     from cicfw.sim.expert import Expert
 
     routes: list = []
@@ -309,7 +309,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
 
     def collection() -> tuple[bool, str]:
         try:
-            from cicfw.sim.collection import episode_plan, resolve_config, run_episode
+            from cicfw.collection import episode_plan, resolve_config, run_episode
         except ImportError as err:
             return False, f"the collection engine is missing ({err})"
         from cicfw.data.cil_hdf5 import check_file
@@ -330,7 +330,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
 
 
 def main(argv: list[str] | None = None, client: Any = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cicfw.sim.carla_check", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m cicfw.carla_check", description=__doc__.split("\n\n")[0])
     p.add_argument("--host", default="localhost")
     p.add_argument("--port", type=int, default=2000)
     p.add_argument("--town", default="Town01", help="the CARLA map to test on (Town01: known route counts)")

@@ -2,11 +2,11 @@
 interface as the embedded simulator (``cicfw.sim.backends``).
 
 Needs the client (``pip install "cicfw[carla]"``: carla==0.9.16, Python 3.10-3.12) and a CARLA 0.9.16
-server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.sim.carla_check`` tests a server in a
+server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.carla_check`` tests a server in a
 minute; docs/simulator.md says what was verified offline and what only that check verifies.
 
 Guarantees (tests/test_carla_*.py drive them offline with the real client library, the real Town01 /
-Town02 maps and a recording stand-in world, ``cicfw.sim.carla_standin``):
+Town02 maps and a recording stand-in world, ``cicfw.carla_client.standin``):
 
 - **One episode at a time per server.** A CARLA server is one world: one car, one weather, one map. The
   backend refuses a second live episode (``CarlaBusy``); ``lockstep = False`` tells the runner to drive
@@ -262,8 +262,8 @@ class CarlaBackend:
         return list(self._weathers)
 
     def single_turn_routes(self, town: str) -> list[Route]:
-        """One route per lane through a junction of the CARLA map (``cicfw.sim.carla_routes``)."""
-        from cicfw.sim.carla_routes import single_turn_routes
+        """One route per lane through a junction of the CARLA map (``cicfw.carla_client.routes``)."""
+        from cicfw.carla_client.routes import single_turn_routes
 
         return single_turn_routes(self.map(town), town, self.route_before, self.route_after,
                                   self.command_distance)
@@ -295,7 +295,7 @@ class CarlaBackend:
                      command_distance: float | None = None, counts: dict | None = None) -> Route:
         """A multi-junction route for data collection, from a random point of a driving lane; turns
         drawn to stay balanced (within the route, or across routes through a shared ``counts``)."""
-        from cicfw.sim.carla_routes import random_route
+        from cicfw.carla_client.routes import random_route
 
         cd = self.command_distance if command_distance is None else float(command_distance)
         return random_route(self.map(town), rng, min_length, name, {} if counts is None else counts, cd)

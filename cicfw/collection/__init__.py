@@ -1,0 +1,93 @@
+"""The collection stage: a CIL HDF5 dataset from any simulator backend (``SIM_BACKENDS``).
+
+``collect_dataset(cfg, out_dir)`` drives random multi-junction routes (turns drawn to keep left / right /
+straight balanced) in the chosen towns and weathers with the expert and CIL's steering noise; each step
+writes one sample per camera. Files: ``<episode>_<part>.h5`` (200 samples each, the last part of an
+episode may be shorter), one JSON marker per finished episode under ``.episodes/``, and
+``dataset_metadata.json`` (towns, weathers, seeds, sim version, counts, file -> episode). The app
+``python -m cicfw.collect`` (``cicfw/collect.py``) is a thin shell around this package.
+
+The package sits above the simulator (``cicfw.sim``) and the data layer (``cicfw.data``, whose CIL format it
+writes) and only apps import it. Its modules, one job each: ``config`` (defaults, validation, hash, the
+backend it names), ``plan`` (the episodes and their sizes), ``episode`` (one episode -> its files and
+marker), ``writing`` (temporary names, in-memory HDF5, a full disk), ``lock`` (one collector per folder),
+``workers`` (worker processes that die with their parent), ``integrity`` (files against their checksums),
+``metadata`` (``dataset_metadata.json``), ``dataset`` (the whole collection, resumed), ``verify``
+(``cicfw collect --verify``), ``progress`` and ``errors``.
+
+Guarantees (each has a fault test in ``tests/test_collect_integrity.py``):
+
+- **One writer per folder.** The whole collection holds an exclusive ``fcntl.flock`` on
+  ``<out_dir>/.collect.lock``, which records the holder (pid, host, start time, worker pids). A second
+  collector (or a second training job filling the same default dataset) waits ``lock_wait`` seconds
+  (``null``: as long as it takes) or refuses at once (``0``), with one line naming the holder. The kernel
+  drops the lock when the holder dies, so a stale lock file never blocks anyone.
+- **Nothing half-written, nothing mixed.** Every file is written under a temporary name unique to the
+  process (``.<name>.<pid>-<random>.part`` / ``.tmp``) and renamed; an episode's files get their final
+  names only when all of them are written, then its marker. The metadata (``complete: false``) is
+  written before the first episode; a folder that holds another config's dataset, another simulator
+  version's unfinished dataset, or HDF5 files this collection does not plan, is an error.
+- **Workers die with their parent.** Worker processes ask the kernel for SIGKILL when their parent dies
+  (``prctl(PR_SET_PDEATHSIG)`` on Linux) and poll their parent pid every second (everywhere); they also
+  check it before giving any file its final name. A worker that dies is reported (exit code, episode).
+- **A full disk is one clear error.** Free space is checked before anything is simulated (the whole
+  remainder) and before each episode; files are built in memory (HDF5 into a ``BytesIO``) and written
+  with plain ``os.write``, so ENOSPC is an ``OSError`` (never a crash inside HDF5), turned into
+  ``DiskFullError`` after removing the episode's temporary files.
+- **Reported before simulating:** every bad config value, an unwritable or unusable output folder.
+- **``complete`` means complete:** true only when every planned episode has its marker and every file
+  exists with its recorded size and SHA-256 (``sha256`` per file in the markers and in the metadata's
+  ``files``; the episode files themselves are plain CIL files, unchanged). A rerun checks every file:
+  one whose bytes changed after it was written (a flipped bit, an edit) is named in one warning and its
+  episode is collected again (deterministic: the same bytes come back). Files of a dataset collected before
+  checksums were kept are checked for size and layout (they open as CIL files with their recorded number
+  of samples), and their checksums are recorded then. ``verify_dataset`` (``cicfw collect --verify``)
+  checks a folder without changing it: one line per missing or corrupt file.
+
+Backend interface (what the engine calls; ``EmbeddedBackend`` implements all of it)::
+
+    backend = SIM_BACKENDS.get(name)(**kwargs)            # kwargs: conf/sim/<name>.yaml but ``name``
+    backend.towns() -> list[str]                          # known town names (for error messages)
+    backend.weathers() -> list[str]                       # known weather names
+    backend.resolve_town(town) -> str                     # optional: a name, or a path -> its absolute
+                                                          #   path; ValueError naming the known towns, a
+                                                          #   missing file or the file's problem.
+                                                          #   Without it: names in towns() only.
+    backend.random_route(town, rng, min_length, name=, command_distance=) -> cicfw.sim.roadgraph.Route
+    backend.make_env(town, route, weather, seed=, cameras=, renderer=True,
+                     expert=dict, time_offset=float, endless=True) -> env
+    backend.data_version -> str                           # optional: metadata's sim_version
+    type(backend).worker_kwargs(kwargs, index) -> dict | None
+                                                          # optional (class/static method): the backend
+                                                          #   kwargs of worker ``index`` (e.g. one server
+                                                          #   per worker); None: no worker of that index
+                                                          #   (fewer workers). Without it: the same kwargs.
+    env.reset() -> obs        # obs: images {camera: (88, 200, 3) uint8 RGB}, command (2-5),
+                              #      speed_kmh, pose (x, y, yaw: metres, rear axle, our frame), t (s)
+    env.expert_action() -> (steer in [-1, 1], target speed km/h)
+    env.speed_ctl(speed m/s, target m/s) -> (throttle, brake)
+    env.step(steer, throttle=, brake=) -> (obs, done, info)   # info: opposite_lane, off_road (0-1)
+    env.info() -> info        # optional: the current state's info (lane fractions of the first step)
+    env.close() / with env:   # optional: release the simulator's resources on any exit
+
+An env that reports ``done`` before the episode's steps ends the episode early (shorter files).
+Workers (``workers`` > 1) are spawned processes that each build their own backend; the parent
+collects in-process when ``workers`` <= 1.
+"""
+from __future__ import annotations
+
+from cicfw.collection.config import CAMERA_IDS, DEFAULTS, config_hash, make_backend, resolve_config, town_key
+from cicfw.collection.dataset import collect_dataset
+from cicfw.collection.episode import run_episode
+from cicfw.collection.errors import CollectConfigError, CollectError, DiskFullError, FolderLockedError
+from cicfw.collection.lock import LOCK_NAME, FolderLock
+from cicfw.collection.metadata import META_NAME, SIM_VERSION
+from cicfw.collection.plan import episode_bytes, episode_plan, steps_per_episode
+from cicfw.collection.verify import VerifyReport, verify_dataset
+
+__all__ = [
+    "CAMERA_IDS", "DEFAULTS", "LOCK_NAME", "META_NAME", "SIM_VERSION", "CollectConfigError", "CollectError",
+    "DiskFullError", "FolderLock", "FolderLockedError", "VerifyReport", "collect_dataset", "config_hash",
+    "episode_bytes", "episode_plan", "make_backend", "resolve_config", "run_episode", "steps_per_episode",
+    "town_key", "verify_dataset",
+]

@@ -1,0 +1,206 @@
+"""The collect config: its defaults, its validation (one clear error per bad key), its hash, and the
+simulator backend it names."""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from cicfw.collection.errors import CollectConfigError, CollectError
+from cicfw.registry import SIM_BACKENDS, UnknownNameError
+
+CAMERA_IDS = {"centre": (0, 0.0), "left": (1, -30.0), "right": (2, 30.0)}  # name -> (targets[26], [27])
+DEFAULTS: dict[str, Any] = {
+    "towns": ["town_a"],
+    "weathers": ["ClearNoon", "ClearSunset"],
+    "episodes": 36,  # in total, spread round-robin over towns x weathers
+    "seconds": 40.0,  # per episode (10 steps a second)
+    "seed": 0,
+    "cameras": ["centre", "left", "right"],
+    "noise": {"episode_fraction": 0.75, "frequency": 15, "intensity": 10.0},
+    "expert": {},  # overrides of cicfw.sim.expert.ExpertParams (cruise_kmh, lateral_accel ...)
+    "command_distance": 12.0,  # metres before a junction where its turn command starts
+    "workers": 2,  # processes; 0 or 1 = in this process
+    "lock_wait": None,  # seconds to wait for another process collecting into the folder; None: wait
+    "sim": {"name": "embedded"},  # the simulator backend: conf/sim/<name>.yaml
+}
+# keys that do not change the data (left out of the config hash, so a rerun may change them)
+_NOT_DATA = ("workers", "lock_wait", "sim", "_hash")
+
+
+def close_backend(backend: Any) -> None:
+    """Release a backend's simulator (a CARLA server's world) if it has anything to release."""
+    if backend is not None and hasattr(backend, "close"):
+        backend.close()
+
+
+def plain_config(cfg: Any) -> dict:
+    """The collect config as a plain dict without the app's keys (out_dir, hydra); verify=true is refused."""
+    if cfg is None:
+        return {}
+    if not isinstance(cfg, dict):
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    if cfg.get("verify"):  # the app's switch (cicfw collect --verify): it never reaches a collection
+        raise CollectConfigError("collect: verify=true checks a collected folder and is the collect app's switch "
+                                 "(python -m cicfw.collect out_dir=... verify=true); a collection cannot take it")
+    return {k: v for k, v in cfg.items() if k not in ("out_dir", "hydra", "verify")}
+
+
+def sim_node(cfg: dict) -> dict:
+    """The config's ``sim`` node (backend name + kwargs), ``embedded`` unless it names another."""
+    sim = cfg.get("sim", DEFAULTS["sim"])
+    if not isinstance(sim, dict) or not isinstance(sim.get("name", "embedded"), str):
+        raise CollectConfigError(f"collect.sim must be a backend config with a name (sim=embedded | sim=carla), "
+                                 f"got {sim!r}")
+    return {"name": "embedded", **sim}
+
+
+def make_backend(sim: dict) -> Any:
+    """The backend of a ``sim`` config node (``name`` + kwargs); one clear error when it cannot be built."""
+    kwargs = dict(sim)
+    name = str(kwargs.pop("name", "embedded"))
+    try:
+        cls = SIM_BACKENDS.get(name)
+    except UnknownNameError as err:
+        raise CollectConfigError(f"collect: {err}") from None
+    try:
+        return cls(**kwargs)
+    except ImportError as err:  # an optional simulator package that is not installed
+        raise CollectError(str(err)) from None
+    except TypeError as err:
+        raise CollectConfigError(f"sim={name}: {err}") from None
+
+
+def _is_path(town: str) -> bool:
+    return town.endswith((".yaml", ".yml")) or "/" in town or "\\" in town
+
+
+def town_key(town: str) -> str:
+    """The name used in file and episode names: a town's name, or a town file's stem."""
+    return Path(town).stem if _is_path(town) else town
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def resolve_config(cfg: Any, backend: Any = None) -> dict:
+    """The collect config as a plain dict over DEFAULTS, validated (one clear error per bad key).
+
+    Towns given by path come back as absolute paths. ``backend``: the sim backend, if already built
+    (otherwise one is built for the check and closed)."""
+    cfg = plain_config(cfg)
+    unknown = sorted(set(cfg) - set(DEFAULTS))
+    if unknown:
+        raise CollectConfigError(f"collect: unknown key {unknown[0]!r}; accepted keys: {', '.join(DEFAULTS)}")
+    out = json.loads(json.dumps(DEFAULTS))
+    for k, v in cfg.items():
+        if isinstance(out[k], dict):
+            if not isinstance(v, dict):
+                raise CollectConfigError(f"collect.{k} must be a mapping, got {v!r}")
+            out[k].update(v)
+        else:
+            out[k] = v
+    for k in ("towns", "weathers", "cameras"):
+        if isinstance(out[k], str):
+            out[k] = [out[k]]
+        if not isinstance(out[k], (list, tuple)) or not all(isinstance(x, str) for x in out[k]):
+            raise CollectConfigError(f"collect.{k} must be a list of names, got {out[k]!r}")
+        out[k] = list(out[k])
+    if not isinstance(out["episodes"], int) or isinstance(out["episodes"], bool) or out["episodes"] < 1:
+        raise CollectConfigError(f"collect.episodes must be an integer >= 1, got {out['episodes']!r}")
+    if not _number(out["seconds"]) or round(float(out["seconds"]) * 10) < 1:
+        raise CollectConfigError(f"collect.seconds must be > 0 (at least 0.1: one step at 10 Hz), "
+                                 f"got {out['seconds']!r}")
+    if not isinstance(out["seed"], int) or isinstance(out["seed"], bool):
+        raise CollectConfigError(f"collect.seed must be an integer, got {out['seed']!r}")
+    if not isinstance(out["workers"], int) or isinstance(out["workers"], bool) or out["workers"] < 0:
+        raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
+                                 f"got {out['workers']!r}")
+    if out["lock_wait"] is not None and (not _number(out["lock_wait"]) or out["lock_wait"] < 0):
+        raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
+                                 f"(wait as long as it takes), got {out['lock_wait']!r}")
+    if not _number(out["command_distance"]) or out["command_distance"] <= 0:
+        raise CollectConfigError(f"collect.command_distance must be metres > 0, got {out['command_distance']!r}")
+    if not out["cameras"]:
+        raise CollectConfigError(f"collect.cameras is empty; known: {', '.join(CAMERA_IDS)}")
+    for c in out["cameras"]:
+        if c not in CAMERA_IDS:
+            raise CollectConfigError(f"collect.cameras: unknown camera {c!r}; known: {', '.join(CAMERA_IDS)}")
+    if len(set(out["cameras"])) != len(out["cameras"]):
+        raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
+    nz = out["noise"]
+    extra = sorted(set(nz) - set(DEFAULTS["noise"]))
+    if extra:
+        raise CollectConfigError(f"collect.noise: unknown key {extra[0]!r}; accepted: {', '.join(DEFAULTS['noise'])}")
+    if not _number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
+        raise CollectConfigError(f"collect.noise.episode_fraction must be in [0, 1], got {nz['episode_fraction']!r}")
+    if not isinstance(nz["frequency"], int) or isinstance(nz["frequency"], bool) or nz["frequency"] < 0:
+        raise CollectConfigError(f"collect.noise.frequency must be an integer >= 0, got {nz['frequency']!r}")
+    if not _number(nz["intensity"]) or nz["intensity"] < 0:
+        raise CollectConfigError(f"collect.noise.intensity must be >= 0, got {nz['intensity']!r}")
+    from cicfw.sim.expert import ExpertParams
+
+    accepted = asdict(ExpertParams())
+    extra = sorted(set(out["expert"]) - set(accepted))
+    if extra:
+        raise CollectConfigError(f"collect.expert: unknown key {extra[0]!r}; accepted: {', '.join(accepted)}")
+    for k, v in out["expert"].items():
+        if not _number(v):
+            raise CollectConfigError(f"collect.expert.{k} must be a number, got {v!r}")
+    out["sim"] = sim_node(out)
+    if backend is None:
+        backend = make_backend(out["sim"])
+        try:
+            return resolve_config(out, backend)
+        finally:
+            close_backend(backend)
+    sim = out["sim"]["name"]
+    known = list(backend.towns())
+    if not out["towns"]:
+        raise CollectConfigError(f"collect.towns is empty; known towns (sim={sim}): {', '.join(known)}")
+    resolve = getattr(backend, "resolve_town", None)
+    towns = []
+    for t in out["towns"]:
+        if resolve is not None:
+            try:  # the backend's own error: unknown name, no such file, a broken file
+                towns.append(str(resolve(t)))
+            except ValueError as err:
+                if t not in str(err) and Path(t).name not in str(err):
+                    raise  # not about this town (e.g. a simulator server that does not answer)
+                raise CollectConfigError(f"collect.towns: {err}") from None
+        elif t in known:
+            towns.append(t)
+        else:
+            raise CollectConfigError(f"collect.towns: unknown town {t!r}; known towns (sim={sim}): {', '.join(known)}")
+    out["towns"] = towns
+    keys = [town_key(t) for t in towns]
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise CollectConfigError(f"collect.towns: two towns named {dup[0]!r} (file names use a town file's stem); "
+                                 f"rename one of the files")
+    known_w = list(backend.weathers())
+    if not out["weathers"]:
+        raise CollectConfigError(f"collect.weathers is empty; known weathers (sim={sim}): {', '.join(known_w)}")
+    for w in out["weathers"]:
+        if w not in known_w:
+            raise CollectConfigError(f"collect.weathers: unknown weather {w!r}; known weathers (sim={sim}): "
+                                     f"{', '.join(known_w)}")
+    return out
+
+
+def config_hash(cfg: dict) -> str:
+    """Hash of everything that shapes the data: the config but its runtime keys, the simulator's name
+    when it is not the embedded one, and the contents of town files given by path."""
+    keep = {k: v for k, v in cfg.items() if k not in _NOT_DATA}
+    if cfg.get("sim", {}).get("name", "embedded") != "embedded":
+        keep["sim"] = cfg["sim"]["name"]
+    files = {t: hashlib.sha256(Path(t).read_bytes()).hexdigest() for t in cfg["towns"] if _is_path(t)}
+    if files:
+        keep["town_files"] = files
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]

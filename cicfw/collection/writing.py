@@ -1,0 +1,93 @@
+"""Writing files with nothing half-written: temporary names unique to the process, bytes built in
+memory (HDF5 into a ``BytesIO``), then a rename; a full disk is one clear error."""
+from __future__ import annotations
+
+import errno
+import io
+import json
+import os
+import secrets
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cicfw.collection.errors import CollectError, DiskFullError
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE
+
+
+def _tmp_name(path: Path, suffix: str) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+def _write_all(fd: int, data: bytes | memoryview) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def disk_error(err: OSError, path: Path, what: str) -> CollectError:
+    """A failed write as one clear error: DiskFullError on ENOSPC / EDQUOT (with the free space), else
+    a CollectError naming the file."""
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        free = shutil.disk_usage(path.parent).free  # (not _free_bytes: the truth, whatever the check said)
+        return DiskFullError(f"no space left on the device of {path.parent} while writing {what} "
+                             f"({free / 1e6:.1f} MB free); free some space or collect into another folder "
+                             f"(out_dir=...), then rerun to resume")
+    return CollectError(f"could not write {path} ({err.strerror or err}); check the folder and rerun to resume")
+
+
+def write_bytes_tmp(path: Path, data: bytes, suffix: str = ".part") -> Path:
+    """Write ``data`` to a new temporary name next to ``path`` (fsynced); return that name. On any
+    failure the temporary file is removed and a CollectError (DiskFullError on ENOSPC) raised."""
+    tmp = _tmp_name(path, suffix)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as err:
+        raise disk_error(err, path, path.name) from None
+    try:
+        try:
+            _write_all(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise disk_error(err, path, path.name) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Write JSON atomically (temporary name unique to the process, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = write_bytes_tmp(path, json.dumps(obj, indent=1, sort_keys=True).encode(), ".tmp")
+    os.replace(tmp, path)
+
+
+def cil_bytes(rgb: np.ndarray, targets: np.ndarray) -> bytes:
+    """One CIL HDF5 file, built in memory (``rgb`` chunked per image, as ``cil_hdf5.write_file``)."""
+    import h5py
+
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    targets = np.ascontiguousarray(targets, dtype=np.float32)
+    bio = io.BytesIO()
+    with h5py.File(bio, "w") as f:
+        f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
+        f.create_dataset("targets", data=targets)
+    return bio.getvalue()
+
+
+def _free_bytes(path: Path) -> int:
+    return shutil.disk_usage(path).free
+
+
+def check_free_space(out_dir: Path, need: int, what: str) -> None:
+    free = _free_bytes(out_dir)
+    if free < need:
+        raise DiskFullError(f"not enough free space in {out_dir}: {what} needs ~{need / 1e6:.1f} MB, "
+                            f"{free / 1e6:.1f} MB free; free some space or collect into another folder (out_dir=...)")
