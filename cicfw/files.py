@@ -25,6 +25,13 @@ def temp_beside(path: Path) -> tuple[int, Path]:
     raise FileExistsError(f"no free temporary name beside {path}")
 
 
+def write_all(fd: int, data: bytes | memoryview) -> None:
+    """``os.write`` until every byte is written (one call may write fewer)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
 @contextlib.contextmanager
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """For writers that need a file name (h5py, savefig to a path): yields the temporary file's path,
@@ -47,10 +54,8 @@ def atomic_write(path: str | os.PathLike, data: str | bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = temp_beside(path)
     try:
-        view = memoryview(data.encode() if isinstance(data, str) else data)
         try:
-            while view:
-                view = view[os.write(fd, view):]
+            write_all(fd, data.encode() if isinstance(data, str) else data)
         finally:
             os.close(fd)
         os.replace(tmp, path)

@@ -319,7 +319,7 @@ def test_a_full_tmpfs_is_one_clear_error_and_leaves_no_temp_file(small_disk: Pat
 
 def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monkeypatch):
     """The same fault simulated (for machines where no tmpfs can be mounted): half a file, then ENOSPC."""
-    real = writing._write_all
+    real = writing.write_all
 
     def half_then_full(fd, data):
         if len(data) > 100_000:  # an HDF5 file, not a JSON one
@@ -327,7 +327,7 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real(fd, data)
 
-    monkeypatch.setattr(writing, "_write_all", half_then_full)
+    monkeypatch.setattr(writing, "write_all", half_then_full)
     with pytest.raises(DiskFullError, match=r"no space left on the device of .* while writing x.h5 \("):
         writing.write_bytes_tmp(tmp_path / "x.h5", b"\0" * 200_000)  # the write itself removes its temp file
     assert os.listdir(tmp_path) == []
@@ -336,7 +336,7 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
         collect_dataset(TINY, tmp_path, progress=False)
     assert "\n" not in str(err.value)
     assert _temp_files(tmp_path) == [] and not list(tmp_path.glob("*.h5")) and not _meta(tmp_path)["complete"]
-    monkeypatch.setattr(writing, "_write_all", real)
+    monkeypatch.setattr(writing, "write_all", real)
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
 
 

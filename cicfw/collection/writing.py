@@ -15,17 +15,11 @@ import numpy as np
 
 from cicfw.collection.errors import CollectError, DiskFullError
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE
+from cicfw.files import write_all
 
 
 def _tmp_name(path: Path, suffix: str) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
-
-
-def _write_all(fd: int, data: bytes | memoryview) -> None:
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
 
 
 def disk_error(err: OSError, path: Path, what: str) -> CollectError:
@@ -49,7 +43,7 @@ def write_bytes_tmp(path: Path, data: bytes, suffix: str = ".part") -> Path:
         raise disk_error(err, path, path.name) from None
     try:
         try:
-            _write_all(fd, data)
+            write_all(fd, data)
             os.fsync(fd)
         finally:
             os.close(fd)
