@@ -1,5 +1,6 @@
 """Atomic file writes, shared by every layer: a temporary file beside the final name, then a rename, so a
-reader (or a full disk, or a kill) never finds half a file under the final name. Files get the mode a
+reader (or a full disk, or a kill) never finds half a file under the final name; ``write_together``
+does it for a group of files (an episode's parts, a model and its sidecar): all or none. Files get the mode a
 plain ``open`` gives (0666 less the umask), not ``mkstemp``'s owner-only 0600: a shared results folder,
 dataset or run folder stays readable by colleagues. It imports nothing from cicfw (the bottom layer,
 beside the registry).
@@ -10,14 +11,19 @@ import contextlib
 import os
 import secrets
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterable, Iterator, Mapping
 
 
-def temp_beside(path: Path) -> tuple[int, Path]:
-    """A new, empty temporary file in ``path``'s folder (``.<name>.<random>.tmp``), open for writing,
-    with the umask's mode. Returns its descriptor and path."""
+def _temp_name(path: Path, suffix: str) -> Path:
+    """``.<name>.<pid>-<random><suffix>`` beside ``path``: hidden, and telling which process left it."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+def temp_beside(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:
+    """A new, empty temporary file in ``path``'s folder (``.<name>.<pid>-<random><suffix>``), open for
+    writing, with the umask's mode. Returns its descriptor and path."""
     for _ in range(100):
-        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        tmp = _temp_name(path, suffix)
         try:
             return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666), tmp
         except FileExistsError:
@@ -30,6 +36,47 @@ def write_all(fd: int, data: bytes | memoryview) -> None:
     view = memoryview(data)
     while view:
         view = view[os.write(fd, view):]
+
+
+@contextlib.contextmanager
+def _about(path: Path) -> Iterator[None]:
+    """An OSError raised inside is raised again as the same error (same errno, same subclass) about
+    ``path``, the final name the caller knows (``err.filename``), not a temporary one."""
+    try:
+        yield
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from err
+
+
+def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Path, bytes | memoryview]], *,
+                   fsync: bool = False, suffix: str = ".tmp",
+                   before_rename: Callable[[], None] | None = None) -> None:
+    """Write each file under a temporary name beside it (``temp_beside``), then, all written and
+    ``before_rename`` (if given) passed, rename them to their final names in order: on any failure
+    before that, every temporary file is removed and no final name touched. ``files`` may be pairs made
+    as they are written (one file's bytes in memory at a time). ``fsync``: each file reaches the disk
+    before any is renamed. An OSError while writing or renaming names the final path (``err.filename``)."""
+    temps: list[tuple[Path, Path]] = []  # (temporary, final)
+    try:
+        for path, data in files.items() if isinstance(files, Mapping) else files:
+            with _about(path):
+                fd, tmp = temp_beside(path, suffix)
+                temps.append((tmp, path))
+                try:
+                    write_all(fd, data)
+                    if fsync:
+                        os.fsync(fd)
+                finally:
+                    os.close(fd)
+        if before_rename is not None:
+            before_rename()
+        for tmp, path in temps:
+            with _about(path):
+                os.replace(tmp, path)
+    except BaseException:
+        for tmp, _ in temps:
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 @contextlib.contextmanager
@@ -48,17 +95,8 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def atomic_write(path: str | os.PathLike, data: str | bytes) -> None:
+def atomic_write(path: str | os.PathLike, data: str | bytes | memoryview) -> None:
     """Write ``data`` (text as UTF-8) to ``path`` through a temporary file beside it, then rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temp_beside(path)
-    try:
-        try:
-            write_all(fd, data.encode() if isinstance(data, str) else data)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_together({path: data.encode() if isinstance(data, str) else data})

@@ -3,6 +3,7 @@ write leaves the final name untouched and no temporary file behind, and the modu
 from __future__ import annotations
 
 import ast
+import errno
 import os
 import stat
 from pathlib import Path
@@ -12,8 +13,9 @@ import pytest
 from matplotlib.figure import Figure
 
 import cicfw
+import cicfw.files as files_mod
 from cicfw.data.cil_hdf5 import N_TARGETS, write_file
-from cicfw.files import atomic_write, replacing
+from cicfw.files import atomic_write, replacing, write_together
 from cicfw.model.diagnostics import save_png
 
 
@@ -65,6 +67,36 @@ def test_atomic_write_writes_text_as_utf8_and_bytes_as_given(tmp_path):
     atomic_write(tmp_path / "b", b"\x00\xff")
     assert (tmp_path / "a").read_bytes() == "é".encode("utf-8")
     assert (tmp_path / "b").read_bytes() == b"\x00\xff"
+
+
+def test_a_group_of_files_appears_whole_or_not_at_all(tmp_path, monkeypatch):
+    group = {tmp_path / "a.h5": b"a" * 10, tmp_path / "b.h5": b"b" * 10, tmp_path / "c.json": b"{}"}
+    (tmp_path / "a.h5").write_bytes(b"old")  # a file the group replaces
+    real, calls = files_mod.write_all, []
+
+    def full_on_the_second(fd, data):
+        calls.append(data)
+        if len(calls) == 2:
+            real(fd, data[:3])
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd, data)
+
+    def untouched():
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5"], "a file or a temporary was left"
+        assert (tmp_path / "a.h5").read_bytes() == b"old"
+
+    monkeypatch.setattr(files_mod, "write_all", full_on_the_second)
+    with pytest.raises(OSError) as err:
+        write_together(group, fsync=True, suffix=".part")
+    assert err.value.errno == errno.ENOSPC and err.value.filename == str(tmp_path / "b.h5")  # the final name
+    untouched()
+    monkeypatch.setattr(files_mod, "write_all", real)
+    # a check before the renames (the collector's: is its parent still there?) stops it just the same
+    with pytest.raises(RuntimeError, match="gone"):
+        write_together(group, before_rename=lambda: (_ for _ in ()).throw(RuntimeError("gone")))
+    untouched()
+    write_together(iter(group.items()))  # pairs made as they are written
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == {p.name: data for p, data in group.items()}
 
 
 def test_the_writer_is_the_bottom_layer():
