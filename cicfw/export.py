@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
 from cicfw.errors import report_user_errors
+from cicfw.files import write_together
 
 log = logging.getLogger("cicfw.export")
 
@@ -365,30 +366,14 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
     }
 
 
-def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
 def write_files(files: Mapping[Path, bytes]) -> None:
-    """Write each file under a temporary name unique to this process, then rename them all, in order:
-    a failure while writing (a full disk, a folder that turns out read-only) leaves nothing behind."""
-    tmps: list[Path] = []
-    current = next(iter(files))
+    """Write each file under a temporary name (fsynced), then rename them all, in order
+    (``cicfw.files.write_together``): a failure while writing (a full disk, a folder that turns out
+    read-only) leaves nothing behind."""
     try:
-        for path, data in files.items():
-            current, tmp = path, _tmp_name(path)
-            tmps.append(tmp)
-            with open(tmp, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-        for path, tmp in zip(files, tmps):
-            current = path
-            os.replace(tmp, path)
+        write_together(files, fsync=True)
     except OSError as err:
-        for tmp in tmps:
-            tmp.unlink(missing_ok=True)
-        raise ExportError(f"cannot write {str(current)!r}: {err.strerror or err}; "
+        raise ExportError(f"cannot write {err.filename!r}: {err.strerror or err}; "
                           f"nothing was written; give out=<a file in a writable folder with room>") from None
 
 

@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_module
 
 import cicfw.collect as collect_mod
 import cicfw.collection.dataset as dataset_mod
-import cicfw.collection.episode as episode_mod
+import cicfw.files as files_mod
 from cicfw.collect import CollectConfigError, collect_dataset, resolve_config
 from cicfw.collection import LOCK_NAME
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
@@ -75,19 +75,19 @@ def test_noise_label_is_the_experts_steer_not_the_noisy_one(tmp_path: Path):
 
 def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path, small_dataset: Path,
                                                                    monkeypatch):
-    real_write = episode_mod.write_bytes_tmp
+    real_write = files_mod.temp_beside
     calls = {"n": 0}
     seen = []
 
-    def dying_write(path, data, suffix=".part"):  # episode 0 finishes, episode 1 dies writing its 2nd file
+    def dying_write(path, suffix=".tmp"):  # episode 0 finishes, episode 1 dies writing its 2nd file
         calls["n"] += suffix == ".part"  # the HDF5 files (JSON files are written with ".tmp")
         if calls["n"] == 4:
             seen.extend(p.name for p in out.glob(".*.part"))
             raise KeyboardInterrupt("killed")
-        return real_write(path, data, suffix)
+        return real_write(path, suffix)
 
     out = tmp_path / "resumed"
-    monkeypatch.setattr(episode_mod, "write_bytes_tmp", dying_write)
+    monkeypatch.setattr(files_mod, "temp_beside", dying_write)
     with pytest.raises(KeyboardInterrupt):
         collect_dataset(SMALL, out, progress=False)
     visible = sorted(p.name for p in out.glob("*.h5"))
@@ -97,7 +97,7 @@ def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path
     assert not list(out.glob(".*.part"))
     meta = json.loads((out / "dataset_metadata.json").read_text())
     assert not meta["complete"] and meta["counts"]["episodes"] == 1
-    monkeypatch.setattr(episode_mod, "write_bytes_tmp", real_write)
+    monkeypatch.setattr(files_mod, "temp_beside", real_write)
     collect_dataset(SMALL, out, progress=False)
     # no temporary files left (the lock file stays: it is how the next collector finds the holder)
     assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == [LOCK_NAME]

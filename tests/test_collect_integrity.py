@@ -24,6 +24,7 @@ from omegaconf import OmegaConf
 
 import cicfw.collection.dataset as dataset_mod
 import cicfw.collection.writing as writing
+import cicfw.files as files_mod
 from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
                               collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files
@@ -151,7 +152,7 @@ def test_the_lock_is_released_on_errors_and_names_its_holder(tmp_path: Path, mon
         with pytest.raises(FolderLockedError, match=r"after waiting 1 s"):
             collect_dataset({**TINY, "lock_wait": 0.6}, tmp_path, progress=False)
     # temporary names are unique to the process and to each call
-    a, b = writing._tmp_name(tmp_path / "x.h5", ".part"), writing._tmp_name(tmp_path / "x.h5", ".part")
+    a, b = files_mod._temp_name(tmp_path / "x.h5", ".part"), files_mod._temp_name(tmp_path / "x.h5", ".part")
     assert a != b and a.name.startswith(f".x.h5.{os.getpid()}-") and a.suffix == ".part"
 
 
@@ -262,7 +263,9 @@ def test_ctrl_c_ends_the_workers_and_leaves_one_line(tmp_path: Path):
 
 def test_what_a_stopped_worker_left_is_removed_by_its_parent(tmp_path: Path, monkeypatch):
     def workers_that_die(cfg, todo, out_dir, n, on_marker, lock):
-        writing.write_bytes_tmp(out_dir / "ep0000_town_a_ClearNoon_000.h5", b"half a file")  # as if killed
+        fd, _ = files_mod.temp_beside(out_dir / "ep0000_town_a_ClearNoon_000.h5", ".part")
+        os.write(fd, b"half a file")  # as if killed
+        os.close(fd)
         raise CollectError("collect worker 1 (pid 1) died with exit code -9")
 
     monkeypatch.setattr(dataset_mod, "run_workers", workers_that_die)
@@ -319,7 +322,7 @@ def test_a_full_tmpfs_is_one_clear_error_and_leaves_no_temp_file(small_disk: Pat
 
 def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monkeypatch):
     """The same fault simulated (for machines where no tmpfs can be mounted): half a file, then ENOSPC."""
-    real = writing.write_all
+    real = files_mod.write_all
 
     def half_then_full(fd, data):
         if len(data) > 100_000:  # an HDF5 file, not a JSON one
@@ -327,16 +330,16 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real(fd, data)
 
-    monkeypatch.setattr(writing, "write_all", half_then_full)
+    monkeypatch.setattr(files_mod, "write_all", half_then_full)
     with pytest.raises(DiskFullError, match=r"no space left on the device of .* while writing x.h5 \("):
-        writing.write_bytes_tmp(tmp_path / "x.h5", b"\0" * 200_000)  # the write itself removes its temp file
+        writing.write_files({tmp_path / "x.h5": b"\0" * 200_000})  # the write itself removes its temp file
     assert os.listdir(tmp_path) == []
     with pytest.raises(DiskFullError, match="no space left on the device of .* while writing "
                                             "ep0000_town_a_ClearNoon_000.h5") as err:
         collect_dataset(TINY, tmp_path, progress=False)
     assert "\n" not in str(err.value)
     assert _temp_files(tmp_path) == [] and not list(tmp_path.glob("*.h5")) and not _meta(tmp_path)["complete"]
-    monkeypatch.setattr(writing, "write_all", real)
+    monkeypatch.setattr(files_mod, "write_all", real)
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
 
 

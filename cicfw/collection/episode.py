@@ -12,7 +12,7 @@ import numpy as np
 
 from cicfw.collection.config import CAMERA_IDS
 from cicfw.collection.plan import episode_bytes, steps_per_episode
-from cicfw.collection.writing import check_free_space, cil_bytes, write_bytes_tmp, write_json
+from cicfw.collection.writing import check_free_space, cil_bytes, write_files, write_json
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE, T
 
 
@@ -120,21 +120,21 @@ def run_episode(cfg: dict, ep: dict, out_dir: Path, backend: Any, parent_pid: in
 
 def write_episode_files(out_dir: Path, ep_id: str, rgb: np.ndarray, tg: np.ndarray,
                         parent_pid: int | None = None) -> list[dict]:
-    """An episode's parts under temporary names, then (all written) under their final names."""
-    files, parts = [], []
-    try:
+    """An episode's parts under temporary names, then (all written, the collector still there) under
+    their final names. Each part's bytes are built as it is written: one part in memory at a time."""
+    files: list[dict] = []
+
+    def parts():
         for p, a in enumerate(range(0, len(tg), SAMPLES_PER_FILE)):
             name = f"{ep_id}_{p:03d}.h5"
             data = cil_bytes(rgb[a:a + SAMPLES_PER_FILE], tg[a:a + SAMPLES_PER_FILE])
-            parts.append((write_bytes_tmp(out_dir / name, data), out_dir / name))
             files.append({"name": name, "samples": int(min(SAMPLES_PER_FILE, len(tg) - a)), "bytes": len(data),
                           "sha256": hashlib.sha256(data).hexdigest()})
+            yield out_dir / name, data
+
+    def collector_alive():
         if not parent_alive(parent_pid):
             raise ParentGone()
-    except BaseException:
-        for tmp, _ in parts:
-            tmp.unlink(missing_ok=True)
-        raise
-    for tmp, final in parts:
-        os.replace(tmp, final)
+
+    write_files(parts(), before_rename=collector_alive)
     return files

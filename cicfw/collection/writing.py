@@ -1,25 +1,20 @@
-"""Writing files with nothing half-written: temporary names unique to the process, bytes built in
-memory (HDF5 into a ``BytesIO``), then a rename; a full disk is one clear error."""
+"""Writing files with nothing half-written: bytes built in memory (HDF5 into a ``BytesIO``), written
+under temporary names unique to the process, then renamed (``cicfw.files.write_together``); a full disk
+is one clear error."""
 from __future__ import annotations
 
 import errno
 import io
 import json
-import os
-import secrets
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
 from cicfw.collection.errors import CollectError, DiskFullError
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE
-from cicfw.files import write_all
-
-
-def _tmp_name(path: Path, suffix: str) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+from cicfw.files import write_together
 
 
 def disk_error(err: OSError, path: Path, what: str) -> CollectError:
@@ -33,34 +28,23 @@ def disk_error(err: OSError, path: Path, what: str) -> CollectError:
     return CollectError(f"could not write {path} ({err.strerror or err}); check the folder and rerun to resume")
 
 
-def write_bytes_tmp(path: Path, data: bytes, suffix: str = ".part") -> Path:
-    """Write ``data`` to a new temporary name next to ``path`` (fsynced); return that name. On any
-    failure the temporary file is removed and a CollectError (DiskFullError on ENOSPC) raised."""
-    tmp = _tmp_name(path, suffix)
+def write_files(files: Mapping[Path, bytes] | Iterable[tuple[Path, bytes]], suffix: str = ".part",
+                before_rename: Callable[[], None] | None = None) -> None:
+    """``cicfw.files.write_together``, fsynced: every file gets its final name or none does. A failed
+    write is one CollectError naming the file (DiskFullError on ENOSPC)."""
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o644)
+        write_together(files, fsync=True, suffix=suffix, before_rename=before_rename)
     except OSError as err:
+        if err.filename is None:  # not the write's own (a caller's ``files`` or ``before_rename``)
+            raise
+        path = Path(err.filename)
         raise disk_error(err, path, path.name) from None
-    try:
-        try:
-            write_all(fd, data)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise disk_error(err, path, path.name) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return tmp
 
 
 def write_json(path: Path, obj: Any) -> None:
     """Write JSON atomically (temporary name unique to the process, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = write_bytes_tmp(path, json.dumps(obj, indent=1, sort_keys=True).encode(), ".tmp")
-    os.replace(tmp, path)
+    write_files({path: json.dumps(obj, indent=1, sort_keys=True).encode()}, ".tmp")
 
 
 def cil_bytes(rgb: np.ndarray, targets: np.ndarray) -> bytes:
