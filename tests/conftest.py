@@ -1,12 +1,25 @@
 """Shared fixtures: tiny datasets in the exact CIL HDF5 layout, and composed configs."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
 
 from cicfw.testing import make_targets, write_tiny_dataset  # noqa: F401  (tests import them from here)
+
+
+def pytest_configure(config):
+    """Under pytest-xdist, give each worker its share of the cores: two workers each running torch on
+    every core (and the apps they start in subprocesses, which inherit OMP_NUM_THREADS) would fight."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT") or 0)
+    if workers > 1:
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+        import torch
+
+        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
 @pytest.fixture
