@@ -25,11 +25,14 @@ PKG = Path(cicfw.__file__).parent
 APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.cli", "cicfw.carla_check")
 LOWER = ("bench", "sim", "model", "data", "carla_client", "collection")
 #: package -> what none of its modules may import
+#: (``carla`` is CARLA's own client library: only the CARLA client may import it)
 FORBIDDEN = {
-    "sim": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection"),
-    "model": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection"),
-    "data": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection"),
+    "sim": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "model": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "data": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
     "carla_client": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.collection"),
+    # the collection stage sits on the simulator interface and the data layer, nothing beside it
+    "collection": ("cicfw.bench", "cicfw.model", "cicfw.carla_client", "carla"),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
 APPS_ONLY = ("cicfw.collection", "cicfw.carla_check")
@@ -98,6 +101,9 @@ def test_the_checker_sees_the_simulator_reaching_into_the_data_layer(tmp_path):
         bad.parent.mkdir(parents=True, exist_ok=True)
         bad.write_text(f"def f():\n    {line}\n")  # a lazy import is still one
         assert forbidden_imports(bad, tmp_path) == ["cicfw.data"], line
+    carla = tmp_path / "cicfw" / "sim" / "carla_inside.py"
+    carla.write_text("def f():\n    import carla\n    return carla.Client\n")
+    assert forbidden_imports(carla, tmp_path) == ["carla"]  # CARLA's library stays in the CARLA client
     fine = tmp_path / "cicfw" / "sim" / "fine.py"
     fine.write_text("from cicfw.registry import SIM_BACKENDS\nfrom .roadgraph import Route\n")
     assert forbidden_imports(fine, tmp_path) == []
