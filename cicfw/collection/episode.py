@@ -12,7 +12,8 @@ import numpy as np
 
 from cicfw.collection.config import CAMERA_IDS
 from cicfw.collection.plan import episode_bytes, steps_per_episode
-from cicfw.collection.writing import check_free_space, cil_bytes, write_files, write_json
+from cicfw.collection.writing import check_free_space, write_files, write_json
+from cicfw.data import cil_hdf5
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE, T
 
 
@@ -127,7 +128,7 @@ def write_episode_files(out_dir: Path, ep_id: str, rgb: np.ndarray, tg: np.ndarr
     def parts():
         for p, a in enumerate(range(0, len(tg), SAMPLES_PER_FILE)):
             name = f"{ep_id}_{p:03d}.h5"
-            data = cil_bytes(rgb[a:a + SAMPLES_PER_FILE], tg[a:a + SAMPLES_PER_FILE])
+            data = cil_hdf5.file_bytes(rgb[a:a + SAMPLES_PER_FILE], tg[a:a + SAMPLES_PER_FILE])
             files.append({"name": name, "samples": int(min(SAMPLES_PER_FILE, len(tg) - a)), "bytes": len(data),
                           "sha256": hashlib.sha256(data).hexdigest()})
             yield out_dir / name, data

@@ -1,19 +1,16 @@
-"""Writing files with nothing half-written: bytes built in memory (HDF5 into a ``BytesIO``), written
+"""Writing files with nothing half-written: bytes built in memory (``cil_hdf5.file_bytes``), written
 under temporary names unique to the process, then renamed (``cicfw.files.write_together``); a full disk
 is one clear error."""
 from __future__ import annotations
 
 import errno
-import io
 import json
 import shutil
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-import numpy as np
 
 from cicfw.collection.errors import CollectError, DiskFullError
-from cicfw.data.cil_hdf5 import IMAGE_SHAPE
 from cicfw.files import write_together
 
 
@@ -45,19 +42,6 @@ def write_json(path: Path, obj: Any) -> None:
     """Write JSON atomically (temporary name unique to the process, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     write_files({path: json.dumps(obj, indent=1, sort_keys=True).encode()}, ".tmp")
-
-
-def cil_bytes(rgb: np.ndarray, targets: np.ndarray) -> bytes:
-    """One CIL HDF5 file, built in memory (``rgb`` chunked per image, as ``cil_hdf5.write_file``)."""
-    import h5py
-
-    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
-    targets = np.ascontiguousarray(targets, dtype=np.float32)
-    bio = io.BytesIO()
-    with h5py.File(bio, "w") as f:
-        f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
-        f.create_dataset("targets", data=targets)
-    return bio.getvalue()
 
 
 def _free_bytes(path: Path) -> int:

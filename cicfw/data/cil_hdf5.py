@@ -7,6 +7,7 @@ CoRL-2017 dataset's own README gives them (the files in circulation use ``rgb``;
 from __future__ import annotations
 
 import glob
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from cicfw.files import replacing
+from cicfw.files import atomic_write
 
 IMAGE_SHAPE = (88, 200, 3)  # rows, columns, RGB
 N_TARGETS = 28
@@ -122,17 +123,25 @@ def read_rgb(path: Path) -> np.ndarray:
         return np.asarray(f[image_key(f)])
 
 
-def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) -> Path:
-    """Write one CIL file atomically (temporary name in the same folder, then rename)."""
-    path = Path(path)
+def file_bytes(rgb: np.ndarray, targets: np.ndarray) -> bytes:
+    """One CIL file built in memory (``rgb`` chunked per image, as the public files): what
+    ``write_file`` writes and what the collector writes with its episode's other files."""
     rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
     targets = np.ascontiguousarray(targets, dtype=np.float32)
     if rgb.ndim != 4 or rgb.shape[1:] != IMAGE_SHAPE:
         raise ValueError(f"rgb must be (N, 88, 200, 3), got {rgb.shape}")
     if targets.shape != (rgb.shape[0], N_TARGETS):
         raise ValueError(f"targets must be ({rgb.shape[0]}, 28), got {targets.shape}")
-    with replacing(path) as tmp:  # the umask's mode: a dataset is meant to be shared
-        with h5py.File(tmp, "w") as f:
-            f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
-            f.create_dataset("targets", data=targets)
+    bio = io.BytesIO()
+    with h5py.File(bio, "w") as f:
+        f.create_dataset("rgb", data=rgb, chunks=(1, *IMAGE_SHAPE))
+        f.create_dataset("targets", data=targets)
+    return bio.getvalue()
+
+
+def write_file(path: str | os.PathLike, rgb: np.ndarray, targets: np.ndarray) -> Path:
+    """Write one CIL file atomically (temporary name in the same folder, then rename), with the umask's
+    mode: a dataset is meant to be shared."""
+    path = Path(path)
+    atomic_write(path, file_bytes(rgb, targets))
     return path
