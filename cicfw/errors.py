@@ -8,11 +8,11 @@ import sys
 from contextlib import contextmanager
 from typing import Callable, Iterator, TypeVar
 
-from cicfw.data.cil_hdf5 import CILFormatError
 from cicfw.registry import UnknownNameError
 
-# Errors a user causes with a bad file, path, name or value; everything else is a bug and keeps its traceback.
-USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, UnknownNameError, CILFormatError)
+# Errors a user causes with a bad file, path, name or value (a bad CIL file's CILFormatError is a
+# ValueError); everything else is a bug and keeps its traceback.
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, UnknownNameError)
 
 F = TypeVar("F", bound=Callable)
 log = logging.getLogger("cicfw")

@@ -145,3 +145,10 @@ def test_plots_and_report_do_not_import_each_other():
 def test_registry_is_the_bottom_layer():
     found = imports_of(PKG / "registry.py")
     assert not [m for m in found if m.startswith("cicfw.") and not m.startswith("cicfw.registry")], sorted(found)
+
+
+def test_the_error_reporter_sits_at_the_bottom():
+    """Every app and the simulator's preview use cicfw.errors: it may import the registry only, so using
+    it never pulls a layer in by the back door (it once imported the data layer for one exception)."""
+    found = imports_of(PKG / "errors.py")
+    assert not [m for m in found if m.startswith("cicfw.") and not m.startswith("cicfw.registry")], sorted(found)
