@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from cicfw.registry import SIM_BACKENDS
+from cicfw.sim.episode import step_info
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route
 from cicfw.sim.vehicle import DT, SpeedController, VehicleParams, VehicleState
 
@@ -642,18 +643,10 @@ class CarlaEnv:
         s = self._state
         if i is None:
             i = self.expert.locate(s.x, s.y)
-        gx, gy = self.route.goal
-        dist = math.hypot(gx - s.x, gy - s.y)
-        px, py = self.route.points[i]
-        dev = math.hypot(px - s.x, py - s.y)
-        in_j, opp, off = self.lane_fractions()
-        reason = ("success" if dist <= self.success_radius else
-                  "timeout" if self.t >= self.timeout - 1e-9 else
-                  "lost" if dev > self.max_deviation else None)
-        return {"distance_to_goal": dist, "route_deviation": dev,
-                "progress": float(self.route.s[i] / max(self.route.length, 1e-9)),
-                "opposite_lane": opp, "off_road": off, "in_junction": in_j, **self.events,
-                "success": reason == "success", "reason": reason, "t": self.t, "frame": self.frame}
+        info = step_info(self.route, s.x, s.y, i, self.t, self.success_radius, self.timeout, self.max_deviation,
+                         self.lane_fractions())
+        end = {k: info.pop(k) for k in ("success", "reason", "t")}  # the events sit before them
+        return {**info, **self.events, **end, "frame": self.frame}
 
 
 def _carla_xy(route: Route) -> tuple[float, float]:

@@ -15,11 +15,11 @@ the route's timeout (length at 10 km/h + 10 s), or when the car is ``max_deviati
 """
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
+from cicfw.sim.episode import step_info
 from cicfw.sim.expert import Expert, ExpertParams
 from cicfw.sim.roadgraph import Route
 from cicfw.sim.town import Town, load_town
@@ -132,22 +132,9 @@ class DrivingEnv:
         s = self.vehicle.s
         if i is None:
             i = self.expert.locate(s.x, s.y)
-        gx, gy = self.route.goal
-        dist_goal = math.hypot(gx - s.x, gy - s.y)
-        px, py = self.route.points[i]
-        dev = math.hypot(px - s.x, py - s.y)
         in_j, opp, off, _ = self.map.query(*self.vehicle.centre(), s.yaw, self.vehicle_params.width / 2)
-        reason = None
-        if dist_goal <= self.success_radius:
-            reason = "success"
-        elif self.t >= self.timeout - 1e-9:
-            reason = "timeout"
-        elif dev > self.max_deviation:
-            reason = "lost"
-        return {"distance_to_goal": dist_goal, "route_deviation": dev,
-                "progress": float(self.route.s[i] / max(self.route.length, 1e-9)),
-                "opposite_lane": opp, "off_road": off, "in_junction": in_j,
-                "success": reason == "success", "reason": reason, "t": self.t}
+        return step_info(self.route, s.x, s.y, i, self.t, self.success_radius, self.timeout, self.max_deviation,
+                         (in_j, opp, off))
 
     def _obs(self, i: int | None = None) -> dict:
         s = self.vehicle.s
