@@ -9,7 +9,6 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-
 from cicfw.collection.errors import CollectError, DiskFullError
 from cicfw.files import write_together
 
