@@ -1,0 +1,249 @@
+"""The committed results agree with the committed cells they were made from: every published folder's
+results.json and RESULTS.md tables are recomputed from its cells/ (nothing is trained or written into
+docs/), and docs/RESULTS.md is the converged report between its hand-written head and tail, verbatim."""
+from __future__ import annotations
+
+import difflib
+import functools
+import hashlib
+import json
+import math
+import re
+import shutil
+from importlib.resources import files
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from cicfw.bench.results import load_cells, load_claims, markdown, report_data
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+PUBLISHED = sorted(p for p in (DOCS / "results").glob("*/")
+                   if (p / "cells").is_dir() and (p / "results.json").is_file())
+#: folders made by an earlier cicfw, documented as such, whose report reads differently from today's: they
+#: are checked on what that report showed (``legacy_view``), not on their claims, which were another list
+LEGACY = {
+    "laptop": "made by cicfw 0.1's report: bootstrap intervals in the table and an older list of claims "
+              "(docs/results/laptop/README.md)",
+}
+TITLE = "# Reproduction of the paper's Table 4"
+
+
+@functools.cache
+def app_config() -> tuple[dict, list]:
+    """The catalogue and claims ``cicfw report`` uses (``main`` composes conf/reproduce.yaml with Hydra).
+    Read as plain YAML, as ``results.default_claims`` does: neither holds an interpolation, so the values
+    are the composed ones (checked once, equal), and composing took 30-40 s on the loaded 2-core machine."""
+    conf = yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())
+    return conf["catalogue"], conf["claims"]
+
+
+_reports: dict[str, tuple[dict[str, Any], str]] = {}
+
+
+def recompute(folder: Path) -> tuple[dict[str, Any], str]:
+    """The report's data (as results.json holds it) and Markdown, recomputed from ``folder``'s cells the way
+    ``write_report`` makes them, with the committed results.json's number of bootstrap replicates.
+    Remembered by the bytes it is made from: a copy whose cells are unchanged is not recomputed."""
+    n_boot = json.loads((folder / "results.json").read_text())["n_boot"]
+    inputs = [p for p in sorted(folder.glob("cells/*/seed*/cell.json")) + [folder / "reproduce.json"] if p.is_file()]
+    key = hashlib.sha256(repr([(p.relative_to(folder).as_posix(), p.read_bytes()) for p in inputs] + [n_boot])
+                         .encode()).hexdigest()
+    if key not in _reports:
+        catalogue, claims = app_config()
+        cells, failed = load_cells(folder)
+        manifest = json.loads((folder / "reproduce.json").read_text()) if (folder / "reproduce.json").is_file() else {}
+        data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=load_claims(claims))
+        data = json.loads(json.dumps(data))  # as read back from results.json: string keys, lists
+        _reports[key] = data, markdown(data)
+    return _reports[key]
+
+
+def legacy_view(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(results.json data, Markdown data) as cicfw 0.1 made them from the same cells: its table's interval
+    was the two-level episode bootstrap (today's secondary ``bootstrap``, same draws), it had no
+    too-few-seeds mark, and its results.json had neither ``bootstrap`` nor ``enough_seeds``."""
+    rows = [{**r, "columns": r["bootstrap"], "enough_seeds": True} for r in data["rows"]]
+    as_json = [{k: v for k, v in r.items() if k not in ("bootstrap", "enough_seeds")} for r in rows]
+    return {**data, "rows": as_json}, {**data, "rows": rows}
+
+
+def differences(got: Any, want: Any, where: str = "") -> list[str]:
+    """Where ``got`` (recomputed) and ``want`` (committed) differ; floats within 1e-9. A key only the
+    recomputed data has is allowed while it is empty (a field added after the folder was published, e.g.
+    ``resumed``: {} for a row without a resumed cell)."""
+    if isinstance(want, dict) and isinstance(got, dict):
+        out = [f"{where}.{k}: committed {want[k]!r}, not recomputed" for k in want if k not in got]
+        out += [f"{where}.{k}: recomputed {got[k]!r}, not committed" for k in got
+                if k not in want and got[k] not in (None, {}, [])]
+        return out + [d for k in want if k in got for d in differences(got[k], want[k], f"{where}.{k}")]
+    if isinstance(want, list) and isinstance(got, list):
+        if len(got) != len(want):
+            return [f"{where}: {len(got)} items recomputed, {len(want)} committed"]
+        return [d for i, (g, w) in enumerate(zip(got, want)) for d in differences(g, w, f"{where}[{i}]")]
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (got, want))
+    if (numbers and math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-9)) or got == want:
+        return []
+    return [f"{where}: recomputed {got!r}, committed {want!r}"]
+
+
+def table_lines(md: str) -> dict[str, list[str]]:
+    """The Markdown's table lines (starting with ``|``) under each heading. Only these are compared: the
+    other lines are prose and the header's bullets, which come from reproduce.json (the machine, the
+    creation and 'Continued from' dates, notes added after the run) or from wording that changes with the
+    code without changing a number."""
+    out: dict[str, list[str]] = {}
+    heading = ""
+    for line in md.splitlines():
+        if line.startswith("#"):
+            heading = line
+        elif line.startswith("|"):
+            out.setdefault(heading, []).append(line)
+    return out
+
+
+def line_diff(got: list[str], want: list[str], what: str) -> list[str]:
+    """The lines that differ (``-`` committed, ``+`` recomputed), after each hunk's ``@@`` line numbers."""
+    return [f"{what}: {d}" for d in list(difflib.unified_diff(want, got, lineterm="", n=0))[2:]]  # no ---/+++ header
+
+
+def folder_mismatches(folder: Path, legacy: bool = False) -> list[str]:
+    """Every difference between ``folder``'s committed results.json and RESULTS.md and what its cells give:
+    the table rows (per-column means and intervals, per-seed values, manoeuvres, curves, wall times), the
+    claims (every part's estimate, p-values and verdicts), the failed cells, and the Markdown's tables.
+    ``legacy``: the folder was made by cicfw 0.1 (``legacy_view``); its claims are not compared."""
+    committed = json.loads((folder / "results.json").read_text())
+    data, md = recompute(folder)
+    keys = ["rows", "claims", "failed"]
+    if legacy:
+        data, md_data = legacy_view(data)
+        md, keys = markdown(md_data), ["rows", "failed"]
+    out = [d for k in keys for d in differences(data[k], committed[k], f"results.json {k}")]
+    got, want = table_lines(md), table_lines((folder / "RESULTS.md").read_text())
+    if legacy:  # cicfw 0.1 had no per-seed or bootstrap table, and other claims
+        want.pop("## The paper's claims", None)
+        got = {h: v for h, v in got.items() if h in want}
+    for heading in sorted(set(got) | set(want)):
+        out += line_diff(got.get(heading, []), want.get(heading, []), f"RESULTS.md {heading or 'top'!r}")
+    return out
+
+
+def composed_results_md(docs: Path) -> str:
+    """docs/RESULTS.md as it is composed by hand: prose/head.md, the published converged RESULTS.md with its
+    title one level down and marked generated and its pictures linked from docs/, a blank line, prose/tail.md."""
+    folder = docs / "results" / "converged"
+    report = (folder / "RESULTS.md").read_text()
+    if report.startswith(TITLE + "\n"):
+        report = "## Reproduction of the paper's Table 4 (generated)\n" + report[len(TITLE) + 1:]
+    report = re.sub(r"^(!\[[^\]]*\]\()([^)/]+\.png\))", r"\1results/converged/\2", report, flags=re.M)
+    return (folder / "prose" / "head.md").read_text() + report + "\n" + (folder / "prose" / "tail.md").read_text()
+
+
+def results_md_mismatches(docs: Path) -> list[str]:
+    got = composed_results_md(docs).splitlines()
+    return line_diff(got, (docs / "RESULTS.md").read_text().splitlines(), "docs/RESULTS.md (-) vs its parts (+)")
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def test_every_published_folder_is_checked():
+    assert {p.name for p in PUBLISHED} >= {"converged", "laptop"}  # the glob still finds what it guards
+    assert set(LEGACY) <= {p.name for p in PUBLISHED}
+
+
+@pytest.mark.parametrize("folder", PUBLISHED, ids=lambda p: p.name)
+def test_published_results_match_their_cells(folder: Path):
+    mismatches = folder_mismatches(folder, legacy=folder.name in LEGACY)
+    read_as = f" (read as {LEGACY[folder.name]})" if folder.name in LEGACY else ""
+    assert not mismatches, f"{folder}{read_as} differs from its cells:\n" + "\n".join(mismatches[:40])
+
+
+def test_docs_results_md_is_head_published_report_tail():
+    mismatches = results_md_mismatches(DOCS)
+    assert not mismatches, "\n".join(mismatches[:40])
+
+
+# ---- the checks can fail: each is pointed at a copy with one thing changed
+
+
+@pytest.fixture
+def folder_copy(tmp_path: Path) -> Path:
+    """A copy of the smallest published folder (one cell), to corrupt."""
+    dest = tmp_path / "converged_constant_lr"
+    shutil.copytree(DOCS / "results" / "converged_constant_lr", dest)
+    assert folder_mismatches(dest) == []
+    return dest
+
+
+def edit(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert text.count(old) >= 1, f"{old!r} not in {path}"
+    path.write_text(text.replace(old, new, 1))
+
+
+def test_a_changed_wall_time_in_a_cell_is_reported(folder_copy: Path):
+    edit(folder_copy / "cells/cil/seed0/cell.json", '"train": 1280.6', '"train": 1280.7')
+    got = folder_mismatches(folder_copy)
+    assert any("results.json rows[0].wall_s.0.train: recomputed 1280.7, committed 1280.6" in m for m in got), got
+    assert any("-| Regression (CIL) | 0 | 1280.6 |" in m for m in got), got
+
+
+def test_one_episode_flipped_in_a_cell_is_reported(folder_copy: Path):
+    cell = folder_copy / "cells/cil/seed0/cell.json"
+    d = json.loads(cell.read_text())
+    first = next(e for e in d["episodes"].values() if e["column"] == "new_town/new_weathers")
+    first["success"] = not first["success"]
+    cell.write_text(json.dumps(d))
+    got = folder_mismatches(folder_copy)
+    assert any("rows[0].columns.new_town/new_weathers.mean" in m for m in got), got
+    table4 = "RESULTS.md \"# Reproduction of the paper's Table 4\": "
+    assert any(m.startswith(table4 + "-| Regression (CIL)") for m in got), got
+
+
+def test_a_changed_digit_in_results_json_or_md_is_reported(folder_copy: Path):
+    edit(folder_copy / "results.json", '"mean": 58.98', '"mean": 58.99')
+    edit(folder_copy / "RESULTS.md", "| 1280.6 |", "| 1280.9 |")
+    got = folder_mismatches(folder_copy)
+    assert any("columns.overall.mean: recomputed 58.98, committed 58.99" in m for m in got), got
+    assert any("+| Regression (CIL) | 0 | 1280.6 |" in m for m in got), got
+
+
+def test_a_changed_claim_is_reported():
+    """The claims of the converged folder (the one with p-values and verdicts) against a copy of its
+    results.json with one p-value and one verdict changed."""
+    folder = DOCS / "results" / "converged"
+    data, _ = recompute(folder)
+    committed = json.loads((folder / "results.json").read_text())
+    part = next(p for c in committed["claims"] for p in c["parts"] if p.get("p"))  # a p of 0 would not change
+    part["p"] *= 1.001
+    part["verdict_holm"] = "contradicted" if part["verdict_holm"] != "contradicted" else "supported"
+    got = differences(data["claims"], committed["claims"])
+    assert len(got) == 2 and any(".p: recomputed" in m for m in got) and any(".verdict_holm:" in m for m in got), got
+
+
+def test_legacy_folder_checked_on_what_it_showed(tmp_path: Path):
+    """laptop's bootstrap intervals are checked too: one digit off in its Table 4 is reported."""
+    dest = tmp_path / "laptop"
+    shutil.copytree(DOCS / "results" / "laptop", dest)
+    edit(dest / "RESULTS.md", "60.1 [44.8, 78.1]", "60.1 [44.8, 78.2]")
+    got = folder_mismatches(dest, legacy=True)
+    changed = [m.split(": ", 1)[1] for m in got if "@@" not in m]
+    assert len(changed) == 2, got
+    assert changed[0].startswith("-| Regression (CIL) | – | 3 | 60.1 [44.8, 78.2]"), got  # committed (changed)
+    assert changed[1].startswith("+| Regression (CIL) | – | 3 | 60.1 [44.8, 78.1]"), got  # recomputed
+
+
+@pytest.mark.parametrize("change", ["published", "composed"])
+def test_docs_results_md_drift_is_reported(tmp_path: Path, change: str):
+    docs = tmp_path / "docs"
+    for rel in ["RESULTS.md", "results/converged/RESULTS.md", "results/converged/prose/head.md",
+                "results/converged/prose/tail.md"]:
+        (docs / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(DOCS / rel, docs / rel)
+    assert results_md_mismatches(docs) == []
+    edit(docs / ("results/converged/RESULTS.md" if change == "published" else "RESULTS.md"),
+         "| Regression (CIL) | 0 |", "| Regression (CIL) | 9 |")
+    assert results_md_mismatches(docs)
