@@ -6,8 +6,8 @@ bench/models.py times every mixer x head eagerly; a cell of ``budget=converged``
 ``trainer.compile=true trainer.channels_last=true``, where a mixer can cost more (or less) than its
 eager figure says. Here each row's model is built from its ``paper_*`` experiment (conf/reproduce.yaml's
 catalogue), given the converged budget's speed switches (``apply_speed``: compile + channels_last,
-Adam's for-loop step), and timed on the same random batches for the whole optimizer step (forward,
-loss, backward, Adam). Rows are interleaved round by round, CIL first in each, so a change of load hits
+Adam's for-loop step), and timed on the same random batch (``dummy_batch``) for the whole optimizer
+step (forward, loss, backward, Adam; ``time_steps``, as bench/train_throughput.py's model-alone figure). Rows are interleaved round by round, CIL first in each, so a change of load hits
 them alike; the figure is the median over rounds of (row's samples/s / CIL's samples/s in that round).
 """
 from __future__ import annotations
@@ -18,25 +18,18 @@ import statistics
 import time
 
 import torch
-import yaml
 from hydra import compose, initialize_config_module
 
-from cicfw.model.speed import SpeedConfig, apply_speed
+from cicfw.model.speed import SpeedConfig, apply_speed, dummy_batch, time_steps
 from cicfw.train import build_model
 
 BATCH = 120
 
 
-def catalogue() -> dict:
-    from importlib.resources import files
-
-    return yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["catalogue"]
-
-
 def build(row: str):
     """The row's model as its cell builds it, with the speed switches applied (compiled, warmed up)."""
-    spec = catalogue()[row]
     with initialize_config_module("cicfw.conf", version_base="1.3"):
+        spec = compose("reproduce").catalogue[row]
         cfg = compose("train", overrides=[f"experiment={spec['experiment']}", *spec.get("overrides", [])])
     torch.manual_seed(0)
     model = build_model(cfg).train()
@@ -45,28 +38,6 @@ def build(row: str):
     opt = model.configure_optimizers()
     opt = opt["optimizer"] if isinstance(opt, dict) else opt
     return model, opt, variant, time.perf_counter() - t0
-
-
-def make_batches(n: int) -> list[dict[str, torch.Tensor]]:
-    g = torch.Generator().manual_seed(0)
-    return [{"image": torch.randint(0, 256, (BATCH, 3, 88, 200), dtype=torch.uint8, generator=g),
-             "speed": torch.rand(BATCH, generator=g) * 40,
-             "command": torch.arange(BATCH) % 4,
-             "steer": torch.rand(BATCH, generator=g) * 1.6 - 0.8} for _ in range(n)]
-
-
-def samples_per_s(model, opt, batches, warmup: int) -> tuple[float, float]:
-    """(samples/s, CPU cores this process got) over the optimizer steps after ``warmup``."""
-    for i, b in enumerate(batches):
-        if i == warmup:
-            t0, c0 = time.perf_counter(), time.process_time()
-        b = model.on_after_batch_transfer(b, 0)
-        _, loss, _ = model._losses(b)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    wall = time.perf_counter() - t0
-    return (len(batches) - warmup) * BATCH / wall, (time.process_time() - c0) / wall
 
 
 def main() -> None:
@@ -84,12 +55,12 @@ def main() -> None:
         model, opt, variant, warm = build(r)
         models[r] = (model, opt)
         print(f"  {r:<14} {variant}; compiled + warmed in {warm:.0f} s", flush=True)
-    batches = make_batches(args.warmup + args.steps)
+    batches = [dummy_batch(None, BATCH)] * (args.warmup + args.steps)
     speed: dict[str, list[float]] = {r: [] for r in rows}
     cores: dict[str, list[float]] = {r: [] for r in rows}
     for k in range(args.rounds):
         for r in rows:
-            s, c = samples_per_s(*models[r], batches, args.warmup)
+            s, c = time_steps(*models[r], batches, args.warmup)
             speed[r].append(s)
             cores[r].append(c)
         print(f"  round {k + 1}/{args.rounds}: " + ", ".join(f"{r} {speed[r][-1]:.0f}" for r in rows)

@@ -43,7 +43,7 @@ from omegaconf import OmegaConf
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
-from cicfw.model.speed import SpeedConfig, apply_speed, use_inductor_cache, warm_up
+from cicfw.model.speed import SpeedConfig, apply_speed, time_steps, use_inductor_cache, warm_up
 
 ROOT = Path(__file__).resolve().parents[1]
 BATCH = 120
@@ -131,22 +131,7 @@ class Variant:
 
     def model_alone(self, batches: list[dict], warmup: int) -> tuple[float, float]:
         """(samples/s, CPU cores this process got) over the steps after ``warmup``."""
-        model, opt = self.model, self.opt
-        model.train()
-        n, t0, c0 = 0, time.perf_counter(), time.process_time()
-        for i, b in enumerate(batches):
-            if i == warmup:
-                n, t0, c0 = 0, time.perf_counter(), time.process_time()
-            b = model.on_after_batch_transfer(b, 0)
-            with self.autocast():
-                _, loss, _ = model._losses(b)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            self.losses.append(float(loss.detach()))
-            n += b["steer"].shape[0]
-        wall = time.perf_counter() - t0
-        return n / wall, (time.process_time() - c0) / wall
+        return time_steps(self.model, self.opt, batches, warmup, self.autocast, self.losses)
 
     def full_loop(self, dm: CILDataModule, steps: int, warmup: int, log_dir: str) -> tuple[float, float]:
         """(samples/s, CPU cores this process got) of the Lightning loop after ``warmup`` steps."""

@@ -12,7 +12,7 @@ import torch
 from cicfw.bench.checkpoint import CheckpointPolicy, load_model
 from cicfw.bench.policy import Observations
 from cicfw.model.module import CICModule
-from cicfw.model.speed import AUTO_COMPILE_MIN_STEPS, SpeedConfig, apply_speed, dummy_batch, planned_steps
+from cicfw.model.speed import AUTO_COMPILE_MIN_STEPS, SpeedConfig, apply_speed, dummy_batch, planned_steps, time_steps
 from cicfw.train import train
 
 from conftest import compose_train
@@ -75,6 +75,32 @@ def test_fused_adam_step_equals_the_for_loop_step():
             o.step()
     for p, q in zip(ref.parameters(), fused.parameters()):
         torch.testing.assert_close(q, p, rtol=1e-6, atol=1e-7)
+
+
+def test_time_steps_takes_the_training_steps_a_hand_loop_takes():
+    """bench/'s timing loop: one optimizer step per batch, the same losses and weights as a hand-written
+    training loop from the same start, and a rate over the steps after the warm-up."""
+    torch.manual_seed(0)
+    timed, hand = CICModule(), CICModule()
+    hand.load_state_dict(timed.state_dict())
+    opts = [m.configure_optimizers() for m in (timed, hand)]
+    batches = [dummy_batch(None, 6), {**dummy_batch(None, 6), "steer": torch.zeros(6)}] * 2
+    torch.manual_seed(1)
+    losses: list[float] = []
+    rate, cores = time_steps(timed, opts[0], batches, warmup=1, losses=losses)
+    torch.manual_seed(1)
+    hand.train()
+    expected = []
+    for b in batches:
+        _, loss, _ = hand._losses(hand.on_after_batch_transfer(b, 0))
+        opts[1].zero_grad()
+        loss.backward()
+        opts[1].step()
+        expected.append(loss.item())
+    assert losses == pytest.approx(expected, rel=1e-6)
+    for p, q in zip(timed.parameters(), hand.parameters()):
+        torch.testing.assert_close(p, q)
+    assert rate > 0 and cores > 0
 
 
 def _failing_compile(when: str):

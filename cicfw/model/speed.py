@@ -14,6 +14,7 @@ training goes on eager with one warning line.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -137,6 +138,29 @@ def apply_speed(model, speed: SpeedConfig, batch_size: int = 120, warm: bool = T
         return name
     log.info("torch.compile: training step compiled in %.1f s (inductor cache %s)", time.perf_counter() - t0, cache)
     return "compile+" + name
+
+
+def time_steps(model, opt, batches: list[dict], warmup: int, autocast=contextlib.nullcontext,
+               losses: list[float] | None = None) -> tuple[float, float]:
+    """Run one optimizer step (forward, loss, backward, ``opt.step``) per batch, as training does, and
+    return (samples/s, CPU cores this process got) over the steps after ``warmup`` (bench/ scripts).
+    Each step's loss is appended to ``losses`` when given."""
+    model.train()
+    n, t0, c0 = 0, time.perf_counter(), time.process_time()
+    for i, b in enumerate(batches):
+        if i == warmup:
+            n, t0, c0 = 0, time.perf_counter(), time.process_time()
+        b = model.on_after_batch_transfer(b, 0)
+        with autocast():
+            _, loss, _ = model._losses(b)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if losses is not None:
+            losses.append(float(loss.detach()))
+        n += b["steer"].shape[0]
+    wall = time.perf_counter() - t0
+    return n / wall, (time.process_time() - c0) / wall
 
 
 def planned_steps(trainer_cfg, batches_per_epoch: int) -> float:
