@@ -21,6 +21,9 @@ variances, covariance (paired) and degrees of freedom; it is unbounded when B is
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
+Whether a row's seeds differ beyond the episodes' luck (the premise of the seed as the unit) is tested per
+row and column by ``cicfw.bench.seed_spread`` and shown as a table of its own.
+
 **Secondary: the episode bootstrap.** Beside it, for comparison with earlier reports, a two-level
 percentile bootstrap (``n_boot`` replicates): each replicate draws the row's seeds with replacement and,
 within each table column, the suite's episodes with replacement (one episode draw shared by every row:
@@ -65,6 +68,7 @@ import numpy as np
 from scipy import stats
 
 from cicfw.bench.runs import cell_key, cell_name
+from cicfw.bench.seed_spread import seed_spread
 from cicfw.files import atomic_write
 from cicfw.bench.suite import CELLS
 
@@ -261,7 +265,7 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
         d = np.array([a[s] - b[s] for s in sorted(a)])
         mean, lo, hi = (float(x) for x in t_interval(d, level))
         if na < 2:
-            return Difference(Estimate(mean, None, None), None, f"1 seed", True, (na, nb))
+            return Difference(Estimate(mean, None, None), None, "1 seed", True, (na, nb))
         if np.ptp(d) == 0:
             p = 1.0 if mean == 0 else 0.0
         else:
@@ -585,6 +589,26 @@ def _method_text() -> str:
     return doc.split("**Intervals (primary):")[1].split("**Verdicts.**")[0].strip() if "**Intervals (primary):" in doc else ""
 
 
+def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
+    """Per column (and per command in the bar's column, training town / training weathers): do the row's seeds
+    differ beyond the episodes' luck (``cicfw.bench.seed_spread``)? Empty with fewer than two seeds."""
+    if len(cs) < 2:
+        return {}
+
+    def test(column: str, command: str | None) -> dict[str, Any] | None:
+        counts = [[bool(e["success"]) for e in c.episodes.values()
+                   if e["column"] == column and (command is None or e.get("command") == command)] for c in cs]
+        t = seed_spread([sum(v) for v in counts], [len(v) for v in counts])
+        return None if t is None else {"p": round(t.pvalue, 4), "chi2": round(t.statistic, 3),
+                                       "failures": list(t.failures), "episodes": list(t.episodes)}
+
+    out: dict[str, dict[str, Any]] = {col: {"all": test(col, None)} for col in COLUMNS}
+    for m in ("left", "right", "straight"):
+        if any(e.get("command") == m and e["column"] == COLUMNS[0] for c in cs for e in c.episodes.values()):
+            out[COLUMNS[0]][m] = test(COLUMNS[0], m)
+    return out
+
+
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
                 catalogue: Mapping[str, Mapping[str, Any]], manifest: Mapping[str, Any],
                 n_boot: int = 4000, claims: Sequence[Claim] | None = None) -> dict[str, Any]:
@@ -611,6 +635,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "per_seed": {str(c.seed): {**{col: round(c.rate(col), 2) for col in COLUMNS}, "overall": round(c.rate(), 2)}
                          for c in cs},
             "manoeuvres": {m: round(float(np.mean(v)), 2) for m, v in man.items()},
+            "spread": spread_data(cs),
             "paper": paper.get(r),
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
@@ -793,6 +818,7 @@ def markdown(data: Mapping[str, Any]) -> str:
                   "| Row | " + " | ".join(n.capitalize() for n in names) + " |", "|---|" + "---:|" * len(names)]
         for r in data["rows"]:
             lines.append(f"| {r['label']} | " + " | ".join(_pct(r["manoeuvres"].get(n)) for n in names) + " |")
+    lines += spread_lines(data)
     curve = curve_table(data)
     if curve:
         lines += ["", "## Learning curve (overall success, mean over seeds [min, max])", "", *curve]
@@ -805,6 +831,36 @@ def markdown(data: Mapping[str, Any]) -> str:
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
+
+
+def _spread(t: Mapping[str, Any] | None) -> str:
+    if not t:
+        return "–"
+    n = set(t["episodes"])
+    of = f" of {n.pop()}" if len(n) == 1 else ""
+    return f"{_p(t['p'])} ({', '.join(map(str, t['failures']))}{of})"
+
+
+def spread_lines(data: Mapping[str, Any]) -> list[str]:
+    """RESULTS.md's section on the seeds' spread: a p-value per row and column, failures per seed beside it."""
+    rows = [r for r in data["rows"] if r.get("spread")]
+    if not rows:
+        return []
+    commands = [m for m in ("left", "right", "straight") if any(m in r["spread"][COLUMNS[0]] for r in rows)]
+    lines = ["", "## Do the seeds differ beyond the episodes' luck?", "",
+             "Each entry: the p-value of the test that every seed of the row has the same success rate there "
+             "(Pearson's chi-square of the seeds' successes and failures, p by Monte Carlo over tables with the "
+             "same margins, `cicfw.bench.seed_spread`), then each seed's failures in seed order. A small p: the "
+             "seeds trained models of different quality, beyond what the episodes' luck gives.", "",
+             "| Row | Seeds | " + " | ".join(COLUMN_NAMES) + " | "
+             + " | ".join(f"{COLUMN_NAMES[0]}: {m} turns" if m != "straight" else f"{COLUMN_NAMES[0]}: straight"
+                          for m in commands) + " |",
+             "|---|---:|" + "---:|" * (len(COLUMNS) + len(commands))]
+    for r in rows:
+        sp = r["spread"]
+        lines.append(f"| {r['label']} | {len(r['seeds'])} | " + " | ".join(_spread(sp[c]["all"]) for c in COLUMNS)
+                     + " | " + " | ".join(_spread(sp[COLUMNS[0]].get(m)) for m in commands) + " |")
+    return lines
 
 
 def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, float, float]]]:
