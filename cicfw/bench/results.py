@@ -115,9 +115,10 @@ class CellResult:
         """Success (%) on a selector of ``SELECTORS``: the mean of its columns' rates."""
         return float(np.mean([self.rate(COLUMNS[i]) for i in SELECTORS[on]]))
 
-    def counts(self, column: str) -> tuple[int, int]:
-        """(successes, episodes) in one table column."""
-        v = [bool(e["success"]) for e in self.episodes.values() if e["column"] == column]
+    def counts(self, column: str, command: str | None = None) -> tuple[int, int]:
+        """(successes, episodes) in one table column, or in its episodes of one command."""
+        v = [bool(e["success"]) for e in self.episodes.values()
+             if e["column"] == column and (command is None or e.get("command") == command)]
         return sum(v), len(v)
 
 
@@ -596,9 +597,8 @@ def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
         return {}
 
     def test(column: str, command: str | None) -> dict[str, Any] | None:
-        counts = [[bool(e["success"]) for e in c.episodes.values()
-                   if e["column"] == column and (command is None or e.get("command") == command)] for c in cs]
-        t = seed_spread([sum(v) for v in counts], [len(v) for v in counts])
+        successes, episodes = zip(*(c.counts(column, command) for c in cs))
+        t = seed_spread(successes, episodes)
         return None if t is None else {"p": round(t.pvalue, 4), "chi2": round(t.statistic, 3),
                                        "failures": list(t.failures), "episodes": list(t.episodes)}
 
