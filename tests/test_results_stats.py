@@ -134,6 +134,30 @@ def test_holm_by_hand():
     assert holm([]) == ([], [])
 
 
+def test_holm_over_a_family_fixed_in_advance():
+    """Two of a family of four tested, .01 and .04; the two untested count as p = 1: sorted .01 x 4 = .04,
+    .04 x 3 = .12 (the family of the two tested alone would give .02 and .04, both rejected)."""
+    adj, reject = holm([0.04, 0.01], family_size=4)
+    assert adj == pytest.approx([0.12, 0.04])
+    assert reject == [False, True]
+    assert holm([0.04, 0.01]) == (pytest.approx([0.04, 0.02]), [True, True])
+    with pytest.raises(ValueError, match="family of 1"):
+        holm([0.04, 0.01], family_size=1)
+
+
+def test_a_fixed_family_only_grows_more_lenient_as_it_fills_in():
+    """Holm is monotone: replacing an untested member's p = 1 by any tested p never raises another member's
+    adjusted p-value, so a verdict reached over the fixed family survives the rows still to come."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        m = int(rng.integers(2, 12))
+        ps = list(rng.uniform(0, 0.2, size=m) ** 2)
+        k = int(rng.integers(1, m))
+        before, _ = holm(ps[:k], family_size=m)
+        after, _ = holm(ps[:k + 1], family_size=m)
+        assert all(a <= b + 1e-12 for a, b in zip(after[:k], before))
+
+
 def test_holm_turns_a_marginal_claim_inconclusive():
     """Three claims on 3 paired seeds against a row at 50%: differences (10, 8, 12), (8, 5, 11), (4, 1, 7).
     With 2 df, p = 1 - t / sqrt(2 + t^2): t = 8.660 -> .0131, t = 4.619 -> .0437, t = 2.309 -> .1472.
@@ -157,6 +181,25 @@ def test_holm_turns_a_marginal_claim_inconclusive():
     assert got["y"]["parts"][0]["p_holm"] == pytest.approx(ps["y"], abs=1e-6)
     assert [got[r]["verdict"] for r in "xwy"] == [SUPPORTED, SUPPORTED, INCONCLUSIVE]
     assert [got[r]["verdict_holm"] for r in "xwy"] == [SUPPORTED, INCONCLUSIVE, INCONCLUSIVE]
+
+
+def test_a_claim_not_run_still_counts_in_holms_family():
+    """The three claims of the test above plus one on a row never run: the family is 4, so Holm multiplies
+    the sorted p-values .0131, .0437, .1472 by 4, 3, 2: .0524 (x is no longer supported after Holm)."""
+    cells = [at("cil", s, 50) for s in range(3)]
+    cells += [at("x", s, p) for s, p in zip(range(3), (60, 58, 62))]
+    cells += [at("w", s, p) for s, p in zip(range(3), (58, 55, 61))]
+    cells += [at("y", s, p) for s, p in zip(range(3), (54, 51, 57))]
+    claims = [Claim(r, f"{r} beats cil", (Part(r, "cil"),)) for r in ("x", "w", "y", "never")]
+    got = {c["id"]: c for c in judge(analyse(cells, n_boot=200), claims, {}, {})}
+    p_x = 1 - 8.660254 / math.sqrt(2 + 75.0)  # t = 10 / (2 / sqrt 3), 2 df (as above)
+    p_w = 1 - 4.618802 / math.sqrt(2 + 4.618802 ** 2)
+    p_y = 1 - 2.309401 / math.sqrt(2 + 2.309401 ** 2)
+    assert got["x"]["parts"][0]["p_holm"] == pytest.approx(4 * p_x, abs=1e-5)
+    assert got["w"]["parts"][0]["p_holm"] == pytest.approx(3 * p_w, abs=1e-5)
+    assert got["y"]["parts"][0]["p_holm"] == pytest.approx(2 * p_y, abs=1e-5)
+    assert [got[r]["verdict_holm"] for r in "xwy"] == [INCONCLUSIVE] * 3
+    assert got["never"]["verdict_holm"] == NOT_RUN and "p_holm" not in got["never"]["parts"][0]
 
 
 def test_a_row_with_fewer_than_three_seeds_gets_no_verdict():

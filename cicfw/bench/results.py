@@ -42,9 +42,10 @@ is *supported* when A - B is significantly above 0, *contradicted* when signific
 *inconclusive* otherwise; ``less`` is its mirror; ``not_greater`` ("A failed to improve on B") is
 *contradicted* only when A is significantly better than B and *supported* otherwise. A part whose rows
 have fewer than 3 seeds (either row) gets no verdict: *too few seeds* (its difference is still shown).
-**Family-wise control:** the p-values of every part that gets a verdict form one family, adjusted by
-Holm's step-down method (``statsmodels.stats.multitest.multipletests(method="holm")``, family-wise error
-5%); the Holm verdict uses the adjusted p-value in place of the interval and is shown beside the
+**Family-wise control:** the family is fixed in advance, every part of every claim in the list (a part
+without a verdict, its rows not run or short of seeds, counts as p = 1), adjusted by Holm's step-down
+method (``statsmodels.stats.multitest.multipletests(method="holm")``, family-wise error 5%), so a Holm
+verdict does not weaken when another row's cells arrive; the Holm verdict uses the adjusted p-value in place of the interval and is shown beside the
 uncorrected one. A claim of several parts is *contradicted* when any part is, *not run* when a part's rows
 were not run, *too few seeds* when a part lacks seeds, *supported* when every part is, *inconclusive*
 otherwise.
@@ -284,15 +285,24 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
 
 
-def holm(pvalues: Sequence[float], alpha: float = ALPHA) -> tuple[list[float], list[bool]]:
+def holm(pvalues: Sequence[float], alpha: float = ALPHA,
+         family_size: int | None = None) -> tuple[list[float], list[bool]]:
     """Holm's step-down adjustment of a family of p-values (statsmodels ``multipletests``, method "holm"):
-    the adjusted p-values and which are rejected at family-wise error ``alpha``."""
+    the adjusted p-values and which are rejected at family-wise error ``alpha``.
+
+    ``family_size``: the family fixed in advance, of which ``pvalues`` are the members tested so far; the
+    untested ones count as p = 1 (they can reject nothing), so a verdict reached here can only stay
+    reached as they are filled in (Holm's procedure is monotone in every p-value)."""
     if not len(pvalues):
         return [], []
     from statsmodels.stats.multitest import multipletests
 
-    reject, adj, _, _ = multipletests(list(pvalues), alpha=alpha, method="holm")
-    return [float(x) for x in adj], [bool(x) for x in reject]
+    n = len(pvalues)
+    if family_size is not None and family_size < n:
+        raise ValueError(f"a family of {family_size} cannot hold {n} p-values")
+    padded = list(pvalues) + [1.0] * ((family_size or n) - n)
+    reject, adj, _, _ = multipletests(padded, alpha=alpha, method="holm")
+    return [float(x) for x in adj[:n]], [bool(x) for x in reject[:n]]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -521,7 +531,8 @@ def _pct_change(r: float | None) -> float | None:
 def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[float]],
           labels: Mapping[str, str]) -> list[dict[str, Any]]:
     """Every claim with each part's measured difference (t-interval over seeds), its two-sided p-value,
-    the Holm-adjusted p-value over the family of parts with a verdict, the paper's difference, the episode
+    the Holm-adjusted p-value over the family of every claim's parts (fixed in advance: a part without a
+    verdict counts as p = 1), the paper's difference, the episode
     bootstrap's interval (secondary) and the verdicts, uncorrected and Holm."""
     out, family = [], []
     for claim in claims:
@@ -551,7 +562,8 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
             parts.append(rec)
         out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
                     "parts": parts})
-    adjusted, reject = holm([r["p"] for r in family])
+    # the family is fixed in advance: every part of every claim, tested or not (``holm``'s family_size)
+    adjusted, reject = holm([r["p"] for r in family], family_size=sum(len(c["parts"]) for c in out))
     for rec, padj, rej in zip(family, adjusted, reject):
         rec["p_holm"] = padj
         rec["verdict_holm"] = part_verdict(rec["test"], rec["measured"]["mean"], rej)
@@ -773,8 +785,9 @@ def markdown(data: Mapping[str, Any]) -> str:
               "on the same split), **Welch t** otherwise. *Verdict*: uncorrected, from the 95% t-interval "
               "(*supported* when it lies on the claim's side of 0, *contradicted* on the other side, "
               "*inconclusive* when it contains 0; a *not better than* part is contradicted only when A is "
-              "significantly better than B). *Holm*: the same with Holm-adjusted p-values over the family of "
-              f"every part with a verdict (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
+              "significantly better than B). *Holm*: the same with Holm-adjusted p-values over a family fixed in "
+              f"advance, the {sum(len(c['parts']) for c in data['claims'])} parts of the claims below, a part "
+              "without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
               "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
               "figure (too narrow with few seeds), not used for a verdict.", "",
               "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
