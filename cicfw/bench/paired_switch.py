@@ -1,0 +1,128 @@
+"""Does a switch change driving? Two sets of cells of one row, the same seeds, one setting changed.
+
+    python -m cicfw.bench.paired_switch docs/results/converged_bf16/cells/cil_bf16 \\
+        docs/results/converged/cells/cil --margin 5
+
+A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, not by a short run's loss
+(docs/training.md): each seed trains twice, with and without it, on the same split and batch order, and
+both models drive the same suite. Per table column and overall this prints the paired difference A - B
+over seeds (t-interval, ``results.difference``) and an equivalence test against a margin stated in
+advance: two one-sided t-tests (TOST, ``statsmodels.stats.weightstats.ttost_paired``), *equivalent*
+when both reject at 5%, i.e. the 90% interval lies inside ±margin. Too few seeds or too wide an
+interval reads *not shown*, never *equivalent*. It also prints the cells' training wall time, which
+ran at different hours: a hint, not a speed figure (bench/train_throughput.py measures speed).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from cicfw.bench.results import COLUMNS, MIN_SEEDS, CellResult, difference
+
+ALPHA = 0.05
+ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
+
+
+@dataclass
+class Equivalence:
+    """A - B on one column over the paired seeds: the 95% t-interval, the TOST p-value and its verdict."""
+
+    on: str
+    a: list[float]
+    b: list[float]
+    mean: float
+    lo: float | None
+    hi: float | None
+    p_tost: float | None
+    verdict: str
+
+
+def load_row(folder: Path) -> dict[int, CellResult]:
+    """seed -> finished cell under a row's folder (``<row>/seed<k>/cell.json``), or one error line."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
+    out = {}
+    for p in sorted(folder.glob("seed*/cell.json")):
+        d = json.loads(p.read_text())
+        if d.get("status") == "ok":
+            out[int(d["seed"])] = CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
+    if not out:
+        raise ValueError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
+    return out
+
+
+def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
+    """TOST p-value for |mean(a - b)| < margin, paired (statsmodels); 1 when the differences do not vary
+    and lie outside the margin, 0 when they do not vary and lie inside it."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    if np.ptp(d) == 0:
+        return 0.0 if abs(d[0]) < margin else 1.0
+    from statsmodels.stats.weightstats import ttost_paired
+
+    return float(ttost_paired(np.asarray(a, float), np.asarray(b, float), -margin, margin)[0])
+
+
+def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float) -> list[Equivalence]:
+    """Every column and overall, on the seeds both sides ran."""
+    seeds = sorted(set(a) & set(b))
+    out = []
+    for col in ON:
+        va = {s: a[s].rate(col) for s in seeds}
+        vb = {s: b[s].rate(col) for s in seeds}
+        d = difference(va, vb)
+        if len(seeds) < MIN_SEEDS:
+            p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
+        else:
+            p = tost_paired(list(va.values()), list(vb.values()), margin)
+            verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
+        out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
+                               d.estimate.lo, d.estimate.hi, p, verdict))
+    return out
+
+
+def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
+          names: tuple[str, str] = ("A", "B")) -> list[str]:
+    """The printed report: seeds, one line per column, the cells' training times."""
+    seeds = sorted(set(a) & set(b))
+    out = [f"{names[0]} vs {names[1]}, paired seeds {seeds} (only in one: {sorted(set(a) ^ set(b)) or 'none'}); "
+           f"equivalence margin ±{margin:g} points",
+           f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95% t]':>22s} {'TOST p':>7s}  verdict"]
+    for e in compare(a, b, margin):
+        ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
+        p = "–" if e.p_tost is None else f"{e.p_tost:.3f}"
+        out.append(f"{e.on:36s} {' '.join(f'{x:5.1f}' for x in e.a):>22s} {' '.join(f'{x:5.1f}' for x in e.b):>22s} "
+                   f"{ci:>22s} {p:>7s}  {e.verdict}")
+    ta = [a[s].meta.get("wall_s", {}).get("train") for s in seeds]
+    tb = [b[s].meta.get("wall_s", {}).get("train") for s in seeds]
+    if all(ta) and all(tb):
+        out.append(f"training wall time per seed (s): A {[round(x) for x in ta]}, B {[round(x) for x in tb]} "
+                   f"(different hours: a hint, not a speed figure)")
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m cicfw.bench.paired_switch", description=__doc__.split("\n")[0])
+    ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
+    ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")
+    ap.add_argument("--margin", type=float, default=5.0, help="equivalence margin in points (default 5)")
+    args = ap.parse_args(argv)
+    try:
+        if not args.margin > 0:
+            raise ValueError(f"--margin must be a positive number of points, got {args.margin}")
+        a, b = load_row(Path(args.a)), load_row(Path(args.b))
+        print("\n".join(lines(a, b, args.margin, (args.a, args.b))))
+    except (ValueError, OSError, json.JSONDecodeError) as err:
+        print(f"cicfw: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,92 @@
+"""The paired switch comparison (cicfw.bench.paired_switch): its TOST recomputed by hand from Student's t,
+its verdicts on cells with a known answer, and its one-line errors."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from scipy import stats
+
+from cicfw.bench import paired_switch as ps
+from cicfw.bench.results import COLUMNS
+
+EPISODES = 20  # per column
+
+
+def write_cell(folder: Path, row: str, seed: int, successes: list[int], train_s: float = 100.0) -> None:
+    """A finished cell whose four columns hold ``successes[i]`` successes of ``EPISODES`` episodes."""
+    eps = {}
+    for col, k in zip(COLUMNS, successes):
+        for i in range(EPISODES):
+            eps[f"{col}/{i:02d}"] = {"success": i < k, "column": col, "command": "left"}
+    d = folder / f"seed{seed}"
+    d.mkdir(parents=True)
+    (d / "cell.json").write_text(json.dumps({"row": row, "seed": seed, "status": "ok", "episodes": eps,
+                                             "wall_s": {"train": train_s}}))
+
+
+def tost_by_hand(d: list[float], margin: float) -> float:
+    """max of the two one-sided p-values: H0 mean <= -margin (t = (m + margin) / se, upper tail) and
+    H0 mean >= +margin (t = (m - margin) / se, lower tail), n - 1 df."""
+    n = len(d)
+    m = sum(d) / n
+    se = math.sqrt(sum((x - m) ** 2 for x in d) / (n - 1)) / math.sqrt(n)
+    p_low = 1 - stats.t.cdf((m + margin) / se, n - 1)
+    p_high = stats.t.cdf((m - margin) / se, n - 1)
+    return max(p_low, p_high)
+
+
+def test_tost_against_a_hand_computation():
+    a, b = [61.0, 58.0, 64.0, 60.0], [60.0, 59.0, 62.0, 61.0]  # differences 1, -1, 2, -1: mean 0.25
+    assert ps.tost_paired(a, b, 5.0) == pytest.approx(tost_by_hand([1, -1, 2, -1], 5.0), rel=1e-9)
+    assert ps.tost_paired(a, b, 5.0) < 0.01
+    # a margin the differences straddle: not equivalent
+    assert ps.tost_paired(a, b, 0.5) == pytest.approx(tost_by_hand([1, -1, 2, -1], 0.5), rel=1e-9)
+    assert ps.tost_paired(a, b, 0.5) > 0.3
+    # no spread at all: inside or outside the margin decides
+    assert ps.tost_paired([60, 60, 60], [58, 58, 58], 5.0) == 0.0
+    assert ps.tost_paired([60, 60, 60], [50, 50, 50], 5.0) == 1.0
+
+
+def test_verdicts_on_cells_with_a_known_answer(tmp_path):
+    """Equal cells (every seed, every column): equivalent; a switch that costs 5 of 20 episodes (25 points)
+    in every column: not shown; two paired seeds: too few."""
+    for s in range(3):
+        write_cell(tmp_path / "fp32", "cil", s, [18, 10, 12, 5 + s])
+        write_cell(tmp_path / "same", "cil_x", s, [18, 10, 12, 5 + s])
+        write_cell(tmp_path / "worse", "cil_y", s, [13, 5, 7, s])
+    base = ps.load_row(tmp_path / "fp32")
+    same = ps.compare(ps.load_row(tmp_path / "same"), base, 5.0)
+    assert [e.on for e in same] == [*COLUMNS, "overall"]
+    assert all(e.verdict == "equivalent within ±5" and e.mean == 0 for e in same)
+    worse = ps.compare(ps.load_row(tmp_path / "worse"), base, 5.0)
+    assert all(e.verdict == "not shown" and e.mean == pytest.approx(-25.0) for e in worse)
+    two = {s: c for s, c in base.items() if s < 2}
+    assert all(e.verdict.startswith("too few seeds") and e.p_tost is None for e in ps.compare(two, base, 5.0))
+
+
+def test_overall_is_the_mean_of_the_columns_and_tost_matches_by_hand(tmp_path):
+    a = [[18, 10, 12, 4], [19, 12, 11, 6], [17, 9, 14, 5]]
+    b = [[18, 11, 12, 5], [18, 10, 12, 4], [18, 10, 13, 6]]
+    for s in range(3):
+        write_cell(tmp_path / "a", "x", s, a[s])
+        write_cell(tmp_path / "b", "y", s, b[s])
+    got = ps.compare(ps.load_row(tmp_path / "a"), ps.load_row(tmp_path / "b"), 5.0)[-1]
+    d = [sum(x - y for x, y in zip(a[s], b[s])) * 100 / EPISODES / 4 for s in range(3)]  # overall, points
+    assert got.on == "overall" and got.mean == pytest.approx(sum(d) / 3)
+    assert got.p_tost == pytest.approx(tost_by_hand(d, 5.0), rel=1e-9)
+    assert got.lo == pytest.approx(sum(d) / 3 - stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3))
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    assert ps.main([str(tmp_path / "nowhere"), str(tmp_path)]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    write_cell(tmp_path / "b", "cil", 0, [1, 1, 1, 1])
+    assert ps.main([str(tmp_path / "empty"), str(tmp_path / "b")]) == 2
+    assert "holds no finished cell" in capsys.readouterr().err
+    assert ps.main([str(tmp_path / "b"), str(tmp_path / "b"), "--margin", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--margin must be a positive number" in err
