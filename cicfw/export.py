@@ -492,7 +492,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.override_hints import run_app
 
-    guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
-    main()
+    run_app(main, "export")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

@@ -52,3 +52,14 @@ def test_an_option_whose_plugin_is_missing_names_the_extra(monkeypatch):
 
 def test_mandatory_values_count_as_present():
     assert override_hints("train", ["data=cil_hdf5", "data.path=/x", "data.batch_size=8"]) == []
+
+
+@pytest.mark.parametrize("app", ["evaluate", "diagnose", "export", "collect"])
+def test_every_hydra_app_hints_at_a_mistyped_top_level_key(app):
+    """Not only train: ``cicfw diagnose progress_bar=false`` used to end on Hydra's message alone."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", f"cicfw.{app}", "bogus_keyy=1"], capture_output=True, text=True,
+                       timeout=300, cwd="/")
+    assert r.returncode != 0
+    assert "cicfw: hint: the top level of the config has no key 'bogus_keyy'" in r.stderr, r.stderr[-800:]
