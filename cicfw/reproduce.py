@@ -150,11 +150,26 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
         check_row_entry(r, catalogue[r])
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
-    seeds = cfg.seeds
-    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
-        raise ReproduceError(f"seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got {seeds!r}")
+    seeds = _seed_list(cfg.seeds)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
-    return rows, list(range(int(seeds)))
+    return rows, seeds
+
+
+def _seed_list(seeds: Any) -> list[int]:
+    """``seeds=5``: seeds 0..4; ``seeds=[3,4]``: those seeds only (a second machine's share of a table that
+    is continued with ``continue_from``); anything else: one error line."""
+    def whole(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    accepted = "a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4])"
+    if OmegaConf.is_list(seeds) or isinstance(seeds, list):
+        got = list(seeds)
+        if not got or not all(whole(x) and x >= 0 for x in got) or len(set(got)) != len(got):
+            raise ReproduceError(f"seeds must be {accepted}, got {got!r}")
+        return sorted(int(x) for x in got)
+    if not whole(seeds) or seeds < 1:
+        raise ReproduceError(f"seeds must be {accepted}, got {seeds!r}")
+    return list(range(int(seeds)))
 
 
 def check_row_entry(row: str, entry: Any) -> None:

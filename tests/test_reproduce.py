@@ -223,10 +223,13 @@ def test_results_folder_of_another_configuration_is_refused(cache, smoke_run, ca
 @pytest.mark.parametrize("args, message", [
     (["rows=[cil,gtx]"], "unknown row 'gtx'; known rows: cil, gtu, soft_sharing, moe, sluice, classification, "
                          "coexistence, hybrid, sine, re, cross_stitch, classification_argmax"),
-    (["seeds=0"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got 0"),
-    (["seeds=-2"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got -2"),
-    (["seeds=two"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row), got 'two'"),
-    (["budget=huge"], "unknown budget 'huge'; known budgets: converged, laptop, paper, smoke"),
+    (["seeds=0"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got 0"),
+    (["seeds=-2"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got -2"),
+    (["seeds=two"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got 'two'"),
+    (["seeds=[]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got []"),
+    (["seeds=[1,1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got [1, 1]"),
+    (["seeds=[2,-1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got [2, -1]"),
+    (["budget=huge"], "unknown budget 'huge'; known budgets: converged, converged6, laptop, paper, smoke"),
     (["rows=[]"], "rows is empty; known rows: cil, gtu"),
 ])
 def test_bad_input_is_one_clear_line_and_writes_nothing(args, message, tmp_path, capsys):
@@ -235,3 +238,15 @@ def test_bad_input_is_one_clear_line_and_writes_nothing(args, message, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"cicfw: error: {message}"), err
     assert not out.exists()
+
+
+def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
+    """``seeds=3`` runs 0, 1, 2; ``seeds=[4,1]`` runs 1 and 4 only (a second machine's share)."""
+    from omegaconf import OmegaConf
+
+    assert reproduce._seed_list(3) == [0, 1, 2]
+    assert reproduce._seed_list(OmegaConf.create([4, 1])) == [1, 4]
+    assert reproduce._seed_list([0]) == [0]
+    for bad in (True, 0, [True], [1.5], []):
+        with pytest.raises(reproduce.ReproduceError, match="seeds must be"):
+            reproduce._seed_list(bad)
