@@ -90,3 +90,29 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert ps.main([str(tmp_path / "b"), str(tmp_path / "b"), "--margin", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--margin must be a positive number" in err
+
+
+def exact_mcnemar_by_hand(lost: int, gained: int) -> float:
+    """Two-sided exact McNemar: twice the binomial(n, 1/2) tail at the smaller count, at most 1."""
+    n, k = lost + gained, min(lost, gained)
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n)
+
+
+def test_episode_changes_between_a_cell_and_an_evaluation_folder(tmp_path):
+    """Cell B drives episodes 0-13 of column 0; evaluation A drives 2-19 of them (gains 14-19, loses 0-1):
+    18 vs 14, gained 6, lost 2, p = 2 * (1 + 8 + 28) / 256 = .289."""
+    write_cell(tmp_path / "cells", "cil", 0, [14, 10, 0, 0])
+    col = COLUMNS[0]
+    lines = ["key,town_set,weather_set,success"]
+    for i in range(EPISODES):
+        lines.append(f"{col}/{i:02d},training,training,{i >= 2}")
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "episodes.csv").write_text("\n".join(lines) + "\n")
+    a = ps.load_episodes(tmp_path / "eval")
+    b = ps.load_episodes(tmp_path / "cells" / "seed0" / "cell.json")
+    got = {r["column"]: r for r in ps.episode_changes(a, b)}
+    r = got[col]
+    assert (r["episodes"], r["a"], r["b"], r["gained"], r["lost"]) == (20, 18, 14, 6, 2)
+    assert r["p"] == pytest.approx(exact_mcnemar_by_hand(2, 6)) and r["p"] == pytest.approx(74 / 256)
+    assert got["all"]["episodes"] == 20 and got[COLUMNS[1]]["episodes"] == 0 and got[COLUMNS[1]]["p"] == 1.0
+    assert ps.main(["--episodes", str(tmp_path / "eval"), str(tmp_path / "nothing.json")]) == 2

@@ -3,13 +3,18 @@
     python -m cicfw.bench.paired_switch docs/results/converged_bf16/cells/cil_bf16 \\
         docs/results/converged/cells/cil --margin 5
 
+    python -m cicfw.bench.paired_switch --episodes docs/results/converged/cells/cil/seed2/cell.json \
+        outputs/cil_seed2_6epochs/eval_epoch6            # one seed, two models: the same episodes
+
 A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, not by a short run's loss
 (docs/training.md): each seed trains twice, with and without it, on the same split and batch order, and
 both models drive the same suite. Per table column and overall this prints the paired difference A - B
 over seeds (t-interval, ``results.difference``) and an equivalence test against a margin stated in
 advance: two one-sided t-tests (TOST, ``statsmodels.stats.weightstats.ttost_paired``), *equivalent*
 when both reject at 5%, i.e. the 90% interval lies inside ±margin. Too few seeds or too wide an
-interval reads *not shown*, never *equivalent*. It also prints the cells' training wall time, which
+interval reads *not shown*, never *equivalent*. ``--episodes`` compares two models of one seed (a cell's
+``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both drove: per column, the
+episodes one model lost and the other gained, with McNemar's exact test (``statsmodels``). It also prints the cells' training wall time, which
 ran at different hours: a hint, not a speed figure (bench/train_throughput.py measures speed).
 """
 from __future__ import annotations
@@ -107,13 +112,62 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
     return out
 
 
+def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
+    """key -> (success, table column) from a cell's ``cell.json`` or an evaluation's folder (``episodes.csv``)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "episodes.csv"
+    if not path.is_file():
+        raise ValueError(f"{path} does not exist; give a cell.json or an evaluation folder holding episodes.csv")
+    if path.suffix == ".json":
+        eps = json.loads(path.read_text()).get("episodes")
+        if not isinstance(eps, dict):
+            raise ValueError(f"{path} holds no episodes; give a finished cell's cell.json")
+        return {k: (bool(e["success"]), e["column"]) for k, e in eps.items()}
+    import csv
+
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    try:
+        return {r["key"]: (r["success"] == "True", f"{r['town_set']}_town/{r['weather_set']}_weathers") for r in rows}
+    except KeyError as err:
+        raise ValueError(f"{path} has no column {err}; give an evaluation's episodes.csv") from None
+
+
+def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]]) -> list[dict]:
+    """Per column (and all), on the episodes both drove: successes of each, the episodes A lost (B drove
+    them, A did not) and gained, and McNemar's exact two-sided p-value on those discordant episodes."""
+    from statsmodels.stats.contingency_tables import mcnemar
+
+    keys = sorted(set(a) & set(b))
+    out = []
+    for col in [*COLUMNS, "all"]:
+        ks = [k for k in keys if col == "all" or a[k][1] == col]
+        lost = sum(1 for k in ks if b[k][0] and not a[k][0])
+        gained = sum(1 for k in ks if a[k][0] and not b[k][0])
+        both = sum(1 for k in ks if a[k][0] and b[k][0])
+        p = float(mcnemar([[both, gained], [lost, len(ks) - both - lost - gained]], exact=True).pvalue) \
+            if lost + gained else 1.0
+        out.append({"column": col, "episodes": len(ks), "a": both + gained, "b": both + lost,
+                    "lost": lost, "gained": gained, "p": p})
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m cicfw.bench.paired_switch", description=__doc__.split("\n")[0])
     ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
     ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")
     ap.add_argument("--margin", type=float, default=5.0, help="equivalence margin in points (default 5)")
+    ap.add_argument("--episodes", action="store_true",
+                    help="a and b are two models of one seed (cell.json or evaluation folders): McNemar per column")
     args = ap.parse_args(argv)
     try:
+        if args.episodes:
+            print(f"A {args.a} vs B {args.b}: the episodes both drove")
+            for r in episode_changes(load_episodes(Path(args.a)), load_episodes(Path(args.b))):
+                print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
+                      f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
+            return 0
         if not args.margin > 0:
             raise ValueError(f"--margin must be a positive number of points, got {args.margin}")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
