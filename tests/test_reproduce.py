@@ -250,3 +250,16 @@ def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
     for bad in (True, 0, [True], [1.5], []):
         with pytest.raises(reproduce.ReproduceError, match="seeds must be"):
             reproduce._seed_list(bad)
+
+
+def test_converged6_is_converged_two_epochs_longer():
+    """The 90% bar's candidate changes the training length and nothing else a cell trains with."""
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        four, six = (compose("reproduce", overrides=[f"budget={b}"]) for b in ("converged", "converged6"))
+        t4, t6 = (reproduce.compose_train(c, "cil", 2) for c in (four, six))
+    assert (t4.trainer.max_epochs, t6.trainer.max_epochs) == (4, 6)
+    assert t6.keep_epoch_checkpoints == [1, 2, 3, 4, 5, 6]
+    t6.trainer.max_epochs, t6.keep_epoch_checkpoints = 4, t4.keep_epoch_checkpoints
+    assert t6 == t4 and list(four.budget.suite) == list(six.budget.suite)
