@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -11,8 +12,12 @@ from cicfw.testing import make_targets, write_tiny_dataset  # noqa: F401  (tests
 
 
 def pytest_configure(config):
-    """Under pytest-xdist, give each worker its share of the cores: two workers each running torch on
+    """A suite started in the background (``nohup pytest ... &``) inherits SIGINT ignored, and so would the
+    apps the Ctrl-C tests start, which would then never see their Ctrl-C: give them the default back.
+    Under pytest-xdist, give each worker its share of the cores: two workers each running torch on
     every core (and the apps they start in subprocesses, which inherit OMP_NUM_THREADS) would fight."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT") or 0)
     if workers > 1:
         threads = max(1, (os.cpu_count() or 1) // workers)
