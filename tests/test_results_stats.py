@@ -220,6 +220,7 @@ def test_a_row_with_fewer_than_three_seeds_gets_no_verdict():
     data = report_data(cells, [], {"cil": {"label": "CIL"}, "gtu": {"label": "GTU"}, "sine": {"label": "Sine"}},
                        {"budget": "smoke"}, n_boot=200, claims=claims)
     md = markdown(data)
+    assert "fewer than 3 seeds: *too few seeds*" in md and "{" not in md  # no unformatted placeholder
     assert "| GTU | – | 2 † |" in md and "| Sine | – | 1 † |" in md and "| CIL | – | 3 |" in md
     assert "too few seeds" in next(line for line in md.splitlines() if line.startswith("| GTU beats CIL"))
 

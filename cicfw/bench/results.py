@@ -787,7 +787,7 @@ def markdown(data: Mapping[str, Any]) -> str:
               "*inconclusive* when it contains 0; a *not better than* part is contradicted only when A is "
               "significantly better than B). *Holm*: the same with Holm-adjusted p-values over a family fixed in "
               f"advance, the {sum(len(c['parts']) for c in data['claims'])} parts of the claims below, a part "
-              "without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
+              f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
               "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
               "figure (too narrow with few seeds), not used for a verdict.", "",
               "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
