@@ -28,7 +28,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.results import COLUMNS, MIN_SEEDS, CellResult, difference
+from cicfw.bench.results import COLUMNS, MIN_SEEDS, CellResult, difference, load_cell
 
 ALPHA = 0.05
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
@@ -53,11 +53,8 @@ def load_row(folder: Path) -> dict[int, CellResult]:
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
-    out = {}
-    for p in sorted(folder.glob("seed*/cell.json")):
-        d = json.loads(p.read_text())
-        if d.get("status") == "ok":
-            out[int(d["seed"])] = CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
+    cells = (load_cell(p) for p in sorted(folder.glob("seed*/cell.json")))
+    out = {c.seed: c for c in cells if isinstance(c, CellResult)}
     if not out:
         raise ValueError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
     return out

@@ -123,15 +123,20 @@ class CellResult:
         return sum(v), len(v)
 
 
+def load_cell(path: Path) -> CellResult | dict[str, Any]:
+    """One ``cell.json``: its CellResult when it finished (status ok), else the file's dict as it is."""
+    d = json.loads(Path(path).read_text())
+    if d.get("status") == "ok":
+        return CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
+    return d
+
+
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
     """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
     ok, failed = [], []
     for p in sorted(Path(results_dir).glob("cells/*/seed*/cell.json")):
-        d = json.loads(p.read_text())
-        if d.get("status") == "ok":
-            ok.append(CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d))
-        else:
-            failed.append(d)
+        c = load_cell(p)
+        (ok if isinstance(c, CellResult) else failed).append(c)
     return ok, failed
 
 
