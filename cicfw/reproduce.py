@@ -412,12 +412,22 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
                  len(got["kept"]))
         if got["copied"]:
             manifest.setdefault("continued_from", []).append(
-                {"from": str(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+                {"from": shown_path(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
                  "machine": (published or {}).get("machine"), "created": (published or {}).get("created")})
             changed = True
     if changed:
         atomic_write(path, json.dumps(manifest, indent=1))
     return manifest
+
+
+def shown_path(folder: Path) -> str:
+    """``folder`` as a published manifest records it: relative to the git work tree that holds it (what a
+    clone elsewhere can follow), else as given; a machine's absolute path means nothing on the next one."""
+    folder = Path(folder).resolve()
+    for top in (folder, *folder.parents):
+        if (top / ".git").exists():
+            return folder.relative_to(top).as_posix()
+    return str(folder)
 
 
 def dataset_is_complete(path: Path) -> bool:

@@ -142,7 +142,8 @@ def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_p
     """A fresh clone continues a published folder (issue 16, item 5): the published cells are copied in and
     skipped (nothing is trained), the report covers them, and publishing back records where they came
     from, so the next machine continues from there (a new cell would train and be published like any)."""
-    published = tmp_path / "docs_results_smoke"
+    (tmp_path / "repo" / ".git").mkdir(parents=True)  # a clone: the manifest names the folder inside it
+    published = tmp_path / "repo" / "docs" / "results" / "smoke"
     results.publish(one_cell, published)  # what publish_dir=... writes, committed
     out = tmp_path / "clone" / "results"
     args = [*SMOKE, "rows=[cil]", "seeds=1", f"continue_from={published}", f"results_dir={out}",
@@ -152,14 +153,25 @@ def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_p
     assert cells(out) == cells(one_cell) == cells(published)
     assert not (out / "cells" / "cil" / "seed0" / "train").exists()  # nothing recomputed
     manifest = json.loads((out / "reproduce.json").read_text())
-    assert manifest["continued_from"][0]["from"] == str(published)
+    assert manifest["continued_from"][0]["from"] == "docs/results/smoke"
     assert manifest["continued_from"][0]["cells"] == ["cil/seed0"]
     assert json.loads((published / "reproduce.json").read_text())["continued_from"] == manifest["continued_from"]
-    assert f"- **Continued from:** `{published}` (1 finished cells copied" in (published / "RESULTS.md").read_text()
+    assert "- **Continued from:** `docs/results/smoke` (1 finished cells copied" in (published / "RESULTS.md").read_text()
     # the next machine continues the folder published back
     again = tmp_path / "third" / "results"
     assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"continue_from={published}", f"results_dir={again}"]) == 0
     assert cells(again) == cells(one_cell)
+
+
+def test_shown_path_is_relative_to_the_clone_that_holds_the_folder(tmp_path):
+    """A published manifest names where its cells came from as a clone elsewhere can follow it."""
+    (tmp_path / "clone" / ".git").mkdir(parents=True)
+    inside = tmp_path / "clone" / "docs" / "results" / "x"
+    inside.mkdir(parents=True)
+    assert reproduce.shown_path(inside) == "docs/results/x"
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    assert reproduce.shown_path(outside) == str(outside.resolve())
 
 
 @pytest.mark.parametrize("what", ["manifest", "cell", "recipe"])
