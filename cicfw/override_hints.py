@@ -14,7 +14,7 @@ import sys
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 CONFIG_MODULE = "cicfw.conf"
 
@@ -108,8 +108,10 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
         loader = GlobalHydra.instance().config_loader()
 
         def groups_at(path: str) -> list[str]:
+            """The config groups under ``path`` that this app's defaults use (not every group in conf/)."""
+            prefix = path.replace(".", "/") + "/" if path else ""
             try:
-                return [g for g in loader.list_groups(path.replace(".", "/")) if g != "hydra"]
+                return [g for g in loader.list_groups(prefix.rstrip("/")) if f"{prefix}{g}" in used]
             except Exception:
                 return []
 
@@ -118,9 +120,12 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
 
         choices = [o.input_line for o in overrides if is_group(o.key_or_group) and not o.is_sweep_override()]
         try:
-            cfg = compose(config_name, overrides=choices)
+            cfg = compose(config_name, overrides=choices, return_hydra_config=True)
         except Exception:
             return []  # a bad group choice: Hydra's own message lists the options
+        used = {g for g in cfg.hydra.runtime.choices if not g.startswith("hydra/")}
+        with open_dict(cfg):
+            del cfg["hydra"]
         tree = OmegaConf.to_container(cfg, resolve=False)  # plain dicts: '???' values count as present
         for o in overrides:
             key = o.key_or_group

@@ -15,6 +15,17 @@ def test_top_level_typo_suggests_the_key_and_lists_keys_and_groups():
     assert "keys there:" in hint and " seed" in hint and "launcher" in hint and "hydra," not in hint
 
 
+def test_the_groups_listed_are_the_apps_own():
+    """evaluate's hint names its groups (policy, sim, suite), not train's (mixer, head) it cannot take."""
+    (hint,) = override_hints("evaluate", ["suitee=single_turn"])
+    groups = hint.split("config groups there (choose with group=option): ")[1]
+    assert groups.split(", ") == ["policy", "sim", "suite"]
+    assert "did you mean 'suite'" in hint
+    (hint,) = override_hints("train", ["mixr=gtu"])
+    assert {"mixer", "head", "experiment", "launcher"} <= set(hint.split("group=option): ")[1].split(", "))
+    assert "budget" not in hint and "policy" not in hint
+
+
 def test_nested_typo_in_the_chosen_group_option():
     (hint,) = override_hints("train", ["head=hybrid", "head.WW=5"])
     assert "'head' has no key 'WW'; did you mean 'W'?" in hint and "bin_width" in hint
