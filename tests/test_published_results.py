@@ -248,3 +248,13 @@ def test_docs_results_md_drift_is_reported(tmp_path: Path, change: str):
     edit(docs / ("results/converged/RESULTS.md" if change == "published" else "RESULTS.md"),
          "| Regression (CIL) | 0 |", "| Regression (CIL) | 9 |")
     assert results_md_mismatches(docs)
+
+
+def test_the_docs_state_the_family_size_the_claims_have():
+    """docs/reproduce.md and RESULTS.md's prose name Holm's family size; counted here from the YAML's parts
+    (they once said 21 when the claims had 20)."""
+    _, claims = app_config()
+    size = sum(len(c["parts"]) for c in claims)
+    stated = re.findall(r"\((\d+) parts today", (DOCS / "reproduce.md").read_text())
+    stated += re.findall(r"the claims' (\d+) parts", (DOCS / "RESULTS.md").read_text())
+    assert len(stated) == 2 and {int(n) for n in stated} == {size}, (stated, size)
