@@ -422,7 +422,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
 
 def shown_path(folder: Path) -> str:
     """``folder`` as a published manifest records it: relative to the git work tree that holds it (what a
-    clone elsewhere can follow), else as given; a machine's absolute path means nothing on the next one."""
+    clone elsewhere can follow), else its absolute path; a machine's absolute path means nothing on the next one."""
     folder = Path(folder).resolve()
     for top in (folder, *folder.parents):
         if (top / ".git").exists():

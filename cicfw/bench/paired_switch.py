@@ -29,6 +29,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.bench.results import COLUMNS, MIN_SEEDS, CellResult, difference, load_cell
+from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
@@ -117,16 +118,16 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
     if not path.is_file():
         raise ValueError(f"{path} does not exist; give a cell.json or an evaluation folder holding episodes.csv")
     if path.suffix == ".json":
-        eps = json.loads(path.read_text()).get("episodes")
-        if not isinstance(eps, dict):
+        cell = load_cell(path)
+        if not isinstance(cell, CellResult):
             raise ValueError(f"{path} holds no episodes; give a finished cell's cell.json")
-        return {k: (bool(e["success"]), e["column"]) for k, e in eps.items()}
+        return {k: (bool(e["success"]), e["column"]) for k, e in cell.episodes.items()}
     import csv
 
     with path.open(newline="") as f:
         rows = list(csv.DictReader(f))
     try:
-        return {r["key"]: (r["success"] == "True", f"{r['town_set']}_town/{r['weather_set']}_weathers") for r in rows}
+        return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
     except KeyError as err:
         raise ValueError(f"{path} has no column {err}; give an evaluation's episodes.csv") from None
 
