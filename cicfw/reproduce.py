@@ -404,7 +404,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         "dataset_summary": f"{dataset.get('episodes')} episodes of {dataset.get('seconds')} s in "
                            f"{'/'.join(dataset.get('towns') or [])} under {'/'.join(dataset.get('weathers') or [])}, "
                            f"{dataset.get('samples')} samples in {dataset.get('files')} files",
-        "machine": machine(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+        "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     changed = old is None
     if src is not None:
         got = continue_published(src, results_dir)
@@ -589,6 +589,32 @@ def machine() -> str:
     return f"{os.cpu_count()} cores ({cpu}), {gpu}, Python {platform.python_version()}, torch {torch.__version__}"
 
 
+def code() -> dict[str, Any]:
+    """Which cicfw made a cell: its version and, in a git clone, the commit and whether files differed from it.
+
+    Cells of one folder may come from several machines and commits (``continue_from``); this says which."""
+    import subprocess
+
+    import cicfw
+
+    here = Path(cicfw.__file__).resolve().parent.parent
+    out: dict[str, Any] = {"version": cicfw.__version__, "commit": None, "modified": None}
+    try:
+        git = ["git", "-C", str(here)]
+        top = subprocess.run([*git, "rev-parse", "--show-toplevel"], capture_output=True, text=True, timeout=10)
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != here:
+            return out  # not a clone of cicfw (an installed wheel, or a clone of something else around it)
+        head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        diff = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                              text=True, timeout=10)
+        if head.returncode == 0:
+            out["commit"] = head.stdout.strip()
+            out["modified"] = bool(diff.stdout.strip()) if diff.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass  # no git on this machine: the version alone
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # one cell
 
@@ -693,7 +719,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
             "val_steer_mae": info.get("val_steer_mae"), "success": summary["success"],
             "cells": {k: v["rate"] for k, v in summary["cells"].items()},
             "wall_s": {"train": info.get("train_s"), "evaluate": round(eval_s, 1), "curve": round(curve_s, 1)},
-            "curve": curve, "episodes": episodes, "machine": machine(), "resumed": resumed or None,
+            "curve": curve, "episodes": episodes, "machine": machine(), "code": code(), "resumed": resumed or None,
             "recipe": recipe(tcfg)}
 
 

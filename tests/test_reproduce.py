@@ -17,6 +17,7 @@ import stat
 
 import pytest
 
+import cicfw
 from cicfw import reproduce
 from cicfw.bench import results
 
@@ -81,6 +82,7 @@ def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
     assert manifest["budget"] == "smoke" and manifest["suite"]["name"] == "single_turn" and manifest["episodes"] == 4
     assert one["dataset"] == manifest["pinned"]["dataset"] and one["recipe"]["mixer"]["name"] == "gtu"
     assert one["resumed"] is None
+    assert one["code"]["version"] == manifest["code"]["version"] == cicfw.__version__  # who made the cell
     assert not (smoke_run / "reproduce.lock").exists()  # the run released its folder
 
 
