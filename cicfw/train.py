@@ -34,7 +34,7 @@ from cicfw.registry import ENCODERS, HEADS, MIXERS
 log = logging.getLogger("cicfw.train")
 
 # Trainer-config keys that are cicfw switches rather than Lightning Trainer arguments.
-SPEED_SWITCHES = ("compile", "channels_last", "adam")
+SPEED_SWITCHES = ("compile", "channels_last", "adam", "keep_memory")
 
 LOGGERS: dict[str, Callable[[Path], Logger]] = {
     "csv": lambda run_dir: CSVLogger(str(run_dir), name="csv", version=""),

@@ -1,4 +1,4 @@
-"""Training speed switches (``conf/trainer/*.yaml``): memory layout, torch.compile, Adam's step.
+"""Training speed switches (``conf/trainer/*.yaml``): memory layout, torch.compile, Adam's step, malloc.
 
 None of them changes what is computed, only how fast (float rounding aside; the tolerance is tested
 in ``tests/test_speed.py``). ``bench/train_throughput.py`` measures each one; the fastest correct
@@ -60,17 +60,21 @@ class SpeedConfig:
     channels_last: bool = False
     compile: bool | str = False  # true | false | auto
     adam: str = "for-loop"       # for-loop | foreach | fused: how Adam's step is computed
+    keep_memory: bool = False    # malloc keeps freed memory (cicfw/model/memory.py): no page faults per step
 
     def __post_init__(self) -> None:
         if self.adam not in ADAM_IMPLS:
             raise ValueError(f"trainer.adam={self.adam!r}; choose one of {', '.join(ADAM_IMPLS)}")
         if self.compile not in (True, False, "auto"):
             raise ValueError(f"trainer.compile={self.compile!r}; choose true, false or auto")
+        if not isinstance(self.keep_memory, bool):
+            raise ValueError(f"trainer.keep_memory={self.keep_memory!r}; choose true or false")
 
     @classmethod
     def from_trainer_cfg(cls, cfg) -> "SpeedConfig":
         return cls(channels_last=bool(cfg.get("channels_last", False)), compile=cfg.get("compile", False),
-                   adam=str(cfg.get("adam", "for-loop") or "for-loop"))
+                   adam=str(cfg.get("adam", "for-loop") or "for-loop"),
+                   keep_memory=cfg.get("keep_memory", False))
 
 
 def dummy_batch(model, batch_size: int) -> dict[str, torch.Tensor]:
@@ -117,6 +121,14 @@ def apply_speed(model, speed: SpeedConfig, batch_size: int = 120, warm: bool = T
     if speed.channels_last:
         model.use_channels_last()
     name = ("channels_last" if speed.channels_last else "eager") + f", Adam {speed.adam}"
+    if speed.keep_memory:
+        from cicfw.model.memory import keep_freed_memory
+
+        why = keep_freed_memory()
+        if why is None:
+            name += ", freed memory kept"
+        else:
+            log.warning("trainer.keep_memory: %s; freed memory goes back to the kernel as usual", why)
     if not speed.compile:
         return name
     cache = use_inductor_cache()
