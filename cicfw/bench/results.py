@@ -290,6 +290,11 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
 
 
+def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
+    """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not."""
+    return sum(len(c["parts"]) for c in claims)
+
+
 def holm(pvalues: Sequence[float], alpha: float = ALPHA,
          family_size: int | None = None) -> tuple[list[float], list[bool]]:
     """Holm's step-down adjustment of a family of p-values (statsmodels ``multipletests``, method "holm"):
@@ -568,7 +573,7 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
         out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
                     "parts": parts})
     # the family is fixed in advance: every part of every claim, tested or not (``holm``'s family_size)
-    adjusted, reject = holm([r["p"] for r in family], family_size=sum(len(c["parts"]) for c in out))
+    adjusted, reject = holm([r["p"] for r in family], family_size=holm_family_size(out))
     for rec, padj, rej in zip(family, adjusted, reject):
         rec["p_holm"] = padj
         rec["verdict_holm"] = part_verdict(rec["test"], rec["measured"]["mean"], rej)
@@ -791,7 +796,7 @@ def markdown(data: Mapping[str, Any]) -> str:
               "(*supported* when it lies on the claim's side of 0, *contradicted* on the other side, "
               "*inconclusive* when it contains 0; a *not better than* part is contradicted only when A is "
               "significantly better than B). *Holm*: the same with Holm-adjusted p-values over a family fixed in "
-              f"advance, the {sum(len(c['parts']) for c in data['claims'])} parts of the claims below, a part "
+              f"advance, the {holm_family_size(data['claims'])} parts of the claims below, a part "
               f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
               "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
               "figure (too narrow with few seeds), not used for a verdict.", "",
