@@ -27,7 +27,7 @@ from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
-from cicfw.model.speed import apply_speed_from_config
+from cicfw.model.speed import SpeedConfig, apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
@@ -236,6 +236,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
+    SpeedConfig.from_trainer_cfg(cfg.trainer)  # cicfw's own switches' values (trainer.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:

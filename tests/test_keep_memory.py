@@ -80,3 +80,18 @@ def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         cfg = compose("train", overrides=["trainer.keep_memory=true"])
     assert cfg.trainer.keep_memory is True and "keep_memory" not in trainer_kwargs(cfg)
+
+
+def test_a_bad_value_is_refused_before_any_data_is_collected(tmp_path, monkeypatch):
+    from hydra import compose, initialize_config_module
+
+    import cicfw.train as train_app
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("the data was reached before the bad switch was refused")
+
+    monkeypatch.setattr(train_app, "ensure_data", no_data)
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=["trainer.keep_memory=maybe"])
+    with pytest.raises(ValueError, match=r"^trainer.keep_memory='maybe'; choose true or false$"):
+        train_app.train(cfg, tmp_path / "run")
