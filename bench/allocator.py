@@ -3,7 +3,7 @@
     python bench/allocator.py [--rounds 3] [--steps 12]
 
 The switch is process-wide (glibc's malloc thresholds, cicfw/model/memory.py), so each measurement is a
-fresh process: CIL (``experiment=paper_cil``) with the converged budget's speed switches (compile +
+fresh process: CIL as bench/row_cost.py builds it (``paper_cil``) with the converged budget's speed switches (compile +
 channels_last, Adam's for-loop step), batch 120, ``--warmup`` steps, then ``--steps`` timed optimizer
 steps on one random batch (``time_steps``, the model-alone figure of bench/train_throughput.py). Each
 round runs both variants, in alternating order, so a change of load hits both; the figure is the median
@@ -23,19 +23,11 @@ BATCH = 120
 
 
 def child(keep: bool, warmup: int, steps: int) -> None:
-    import torch
-    from hydra import compose, initialize_config_module
+    from row_cost import build  # bench/ is this script's folder: CIL as its reproduction cell builds it
 
-    from cicfw.model.speed import SpeedConfig, apply_speed, dummy_batch, time_steps
-    from cicfw.train import build_model
+    from cicfw.model.speed import dummy_batch, time_steps
 
-    with initialize_config_module("cicfw.conf", version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=paper_cil"])
-    torch.manual_seed(0)
-    model = build_model(cfg).train()
-    variant = apply_speed(model, SpeedConfig(channels_last=True, compile=True, adam="for-loop", keep_memory=keep), BATCH)
-    opt = model.configure_optimizers()
-    opt = opt["optimizer"] if isinstance(opt, dict) else opt
+    model, opt, variant, _ = build("cil", keep_memory=keep)
     batch = dummy_batch(None, BATCH)
     time_steps(model, opt, [batch] * warmup, warmup)
     f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

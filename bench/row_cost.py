@@ -26,15 +26,16 @@ from cicfw.train import build_model
 BATCH = 120
 
 
-def build(row: str):
-    """The row's model as its cell builds it, with the speed switches applied (compiled, warmed up)."""
+def build(row: str, keep_memory: bool = False):
+    """The row's model as its cell builds it, with the speed switches applied (compiled, warmed up);
+    ``keep_memory`` as ``trainer.keep_memory`` (bench/allocator.py compares it)."""
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         spec = compose("reproduce").catalogue[row]
         cfg = compose("train", overrides=[f"experiment={spec['experiment']}", *spec.get("overrides", [])])
     torch.manual_seed(0)
     model = build_model(cfg).train()
     t0 = time.perf_counter()
-    variant = apply_speed(model, SpeedConfig(channels_last=True, compile=True, adam="for-loop"), BATCH)
+    variant = apply_speed(model, SpeedConfig(channels_last=True, compile=True, adam="for-loop", keep_memory=keep_memory), BATCH)
     opt = model.configure_optimizers()
     opt = opt["optimizer"] if isinstance(opt, dict) else opt
     return model, opt, variant, time.perf_counter() - t0

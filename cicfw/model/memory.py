@@ -12,10 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import logging
 import platform
-
-log = logging.getLogger("cicfw.memory")
 
 # glibc's mallopt parameters (malloc.h)
 M_TRIM_THRESHOLD = -1
