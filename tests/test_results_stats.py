@@ -387,3 +387,16 @@ def test_report_table_shows_mean_interval_paper_value_and_each_verdict_method():
     assert "Holm" in md and "“On the other hand, our proposed CIC model tackled this issue" in md
     # the generated summary quotes the same numbers as the table
     assert "- **Regression (CIL)**: 75.0 [62.6, 87.4]% overall over 3 seed(s); per seed 70.0 / 75.0 / 80.0." in md
+
+
+def test_wall_time_table_names_the_cicfw_that_made_each_cell():
+    """Cells of one folder come from several commits (``continue_from``): the wall-time table says which,
+    ``–`` for a cell made before cells recorded it."""
+    cells = [at("cil", s, 30, n=40) for s in range(3)]
+    cells[0].meta["code"] = {"version": "0.2.0", "commit": "1cee6eb8fb7487929ba588f58be21eba1a40473c", "modified": False}
+    cells[1].meta["code"] = {"version": "0.2.0", "commit": "0743064aaaabbbbccccddddeeeeffff000011112", "modified": True}
+    md = markdown(report_data(cells, [], {"cil": {"label": "CIL"}}, {"budget": "smoke"}, n_boot=50))
+    table = md.split("## Wall time per cell")[1].splitlines()
+    assert "| cicfw |" in table[2]
+    assert [line.rsplit("|", 2)[1].strip() for line in table[4:7]] == [
+        "0.2.0 @ 1cee6eb", "0.2.0 @ 0743064 + changes", "–"]

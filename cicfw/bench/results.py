@@ -660,6 +660,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "spread": spread_data(cs),
             "paper": paper.get(r),
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
+            "code": {str(c.seed): c.meta["code"] for c in cs if c.meta.get("code")},
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
@@ -693,6 +694,15 @@ def _est(e: Mapping[str, Any], sign: str = "") -> str:
     if e.get("lo") is None or e.get("hi") is None:
         return f"{e['mean']:{sign}.1f}"
     return f"{e['mean']:{sign}.1f} [{e['lo']:{sign}.1f}, {e['hi']:{sign}.1f}]"
+
+
+def _code(c: Mapping[str, Any] | None) -> str:
+    """Which cicfw made a cell (its ``code``): ``0.2.0 @ 1cee6eb``, ``+ changes`` when its files differed from
+    the commit; ``–`` for cells made before cells recorded it."""
+    if not c:
+        return "–"
+    at = f" @ {c['commit'][:7]}" if c.get("commit") else ""
+    return f"{c.get('version', '?')}{at}" + (" + changes" if c.get("modified") else "")
 
 
 def _p(v: float | None) -> str:
@@ -845,12 +855,15 @@ def markdown(data: Mapping[str, Any]) -> str:
     curve = curve_table(data)
     if curve:
         lines += ["", "## Learning curve (overall success, mean over seeds [min, max])", "", *curve]
-    lines += ["", "## Wall time per cell (s, on the machine above)", "", "| Row | Seed | Train | Evaluate | Curve evaluations |",
-              "|---|---:|---:|---:|---:|"]
+    code = any(r.get("code") for r in data["rows"])  # a column only once some cell records its cicfw
+    lines += ["", "## Wall time per cell (s, on the machine above)", "",
+              "| Row | Seed | Train | Evaluate | Curve evaluations |" + (" cicfw |" if code else ""),
+              "|---|---:|---:|---:|---:|" + ("---|" if code else "")]
     for r in data["rows"]:
         for s, w in r["wall_s"].items():
             w = w or {}
-            lines.append(f"| {r['label']} | {s} | {_pct(w.get('train'))} | {_pct(w.get('evaluate'))} | {_pct(w.get('curve'))} |")
+            lines.append(f"| {r['label']} | {s} | {_pct(w.get('train'))} | {_pct(w.get('evaluate'))} | "
+                         f"{_pct(w.get('curve'))} |" + (f" {_code((r.get('code') or {}).get(s))} |" if code else ""))
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
