@@ -400,3 +400,7 @@ def test_wall_time_table_names_the_cicfw_that_made_each_cell():
     assert "| cicfw |" in table[2]
     assert [line.rsplit("|", 2)[1].strip() for line in table[4:7]] == [
         "0.2.0 @ 1cee6eb", "0.2.0 @ 0743064 + changes", "–"]
+    # a folder none of whose cells records its code (made before cells did) keeps the table it was published with
+    old = markdown(report_data([at("cil", s, 30, n=40) for s in range(3)], [], {"cil": {"label": "CIL"}},
+                               {"budget": "smoke"}, n_boot=50)).split("## Wall time per cell")[1].splitlines()
+    assert old[2] == "| Row | Seed | Train | Evaluate | Curve evaluations |" and old[4] == "| CIL | 0 | 1.0 | – | – |"
