@@ -404,3 +404,23 @@ def test_wall_time_table_names_the_cicfw_that_made_each_cell():
     old = markdown(report_data([at("cil", s, 30, n=40) for s in range(3)], [], {"cil": {"label": "CIL"}},
                                {"budget": "smoke"}, n_boot=50)).split("## Wall time per cell")[1].splitlines()
     assert old[2] == "| Row | Seed | Train | Evaluate | Curve evaluations |" and old[4] == "| CIL | 0 | 1.0 | – | – |"
+
+
+def test_wall_time_table_names_each_cells_machine_where_they_differ():
+    """A folder continued on another machine mixes machines: its wall times are not one machine's, so the
+    table says whose each is; a folder made on one machine keeps the table it was published with."""
+    amd, intel = "2 cores (AMD EPYC), no GPU", "2 cores (Intel(R) Xeon(R) Processor), no GPU"
+    cells = [at("cil", s, 30, n=40) for s in range(3)]
+    for c, m in zip(cells, (amd, amd, intel)):
+        c.meta["machine"] = m
+    data = report_data(cells, [], {"cil": {"label": "CIL"}}, {"budget": "smoke"}, n_boot=50)
+    table = markdown(data).split("## Wall time per cell")[1].splitlines()
+    assert table[0] == " (s, on each cell's machine)" and table[2].endswith("| Curve evaluations | Machine |")
+    assert [line.rsplit("|", 2)[1].strip() for line in table[4:7]] == [amd, amd, intel]
+    assert data["rows"][0]["machine"] == {"0": amd, "1": amd, "2": intel}
+    for c in cells:
+        c.meta["machine"] = amd
+    same = report_data(cells, [], {"cil": {"label": "CIL"}}, {"budget": "smoke"}, n_boot=50)
+    table = markdown(same).split("## Wall time per cell")[1].splitlines()
+    assert same["rows"][0]["machine"] == {} and table[0] == " (s, on the machine above)"
+    assert table[2] == "| Row | Seed | Train | Evaluate | Curve evaluations |"

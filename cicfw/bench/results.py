@@ -640,6 +640,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
     claims = default_claims() if claims is None else list(claims)
     labels = {r: str((catalogue.get(r) or {}).get("label", r)) for r in {*catalogue, *an.rows}}
     paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
+    machines = {c.meta.get("machine") for cs in an.rows.values() for c in cs}
     rows = []
     for r in _row_order(list(an.rows), catalogue):
         cs = an.rows[r]
@@ -661,6 +662,8 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "paper": paper.get(r),
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
             "code": {str(c.seed): c.meta["code"] for c in cs if c.meta.get("code")},
+            # each cell's machine, only where the folder's cells come from more than one (``continue_from``)
+            "machine": {str(c.seed): c.meta.get("machine") for c in cs} if len(machines) > 1 else {},
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
@@ -856,14 +859,17 @@ def markdown(data: Mapping[str, Any]) -> str:
     if curve:
         lines += ["", "## Learning curve (overall success, mean over seeds [min, max])", "", *curve]
     code = any(r.get("code") for r in data["rows"])  # a column only once some cell records its cicfw
-    lines += ["", "## Wall time per cell (s, on the machine above)", "",
-              "| Row | Seed | Train | Evaluate | Curve evaluations |" + (" cicfw |" if code else ""),
-              "|---|---:|---:|---:|---:|" + ("---|" if code else "")]
+    machine = any(r.get("machine") for r in data["rows"])  # only where the cells come from several machines
+    lines += ["", "## Wall time per cell (s, " + ("on each cell's machine)" if machine else "on the machine above)"), "",
+              "| Row | Seed | Train | Evaluate | Curve evaluations |" + (" cicfw |" if code else "")
+              + (" Machine |" if machine else ""),
+              "|---|---:|---:|---:|---:|" + ("---|" if code else "") + ("---|" if machine else "")]
     for r in data["rows"]:
         for s, w in r["wall_s"].items():
             w = w or {}
             lines.append(f"| {r['label']} | {s} | {_pct(w.get('train'))} | {_pct(w.get('evaluate'))} | "
-                         f"{_pct(w.get('curve'))} |" + (f" {_code((r.get('code') or {}).get(s))} |" if code else ""))
+                         f"{_pct(w.get('curve'))} |" + (f" {_code((r.get('code') or {}).get(s))} |" if code else "")
+                         + (f" {(r.get('machine') or {}).get(s) or '–'} |" if machine else ""))
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
