@@ -858,18 +858,20 @@ def markdown(data: Mapping[str, Any]) -> str:
     curve = curve_table(data)
     if curve:
         lines += ["", "## Learning curve (overall success, mean over seeds [min, max])", "", *curve]
-    code = any(r.get("code") for r in data["rows"])  # a column only once some cell records its cicfw
-    machine = any(r.get("machine") for r in data["rows"])  # only where the cells come from several machines
-    lines += ["", "## Wall time per cell (s, " + ("on each cell's machine)" if machine else "on the machine above)"), "",
-              "| Row | Seed | Train | Evaluate | Curve evaluations |" + (" cicfw |" if code else "")
-              + (" Machine |" if machine else ""),
-              "|---|---:|---:|---:|---:|" + ("---|" if code else "") + ("---|" if machine else "")]
+    # optional columns: cicfw only once some cell records it, the machine only where the cells come from several
+    optional = [(name, value) for name, key, value in [
+        ("cicfw", "code", lambda r, s: _code((r.get("code") or {}).get(s))),
+        ("Machine", "machine", lambda r, s: (r.get("machine") or {}).get(s) or "–"),
+    ] if any(r.get(key) for r in data["rows"])]
+    where = "on each cell's machine" if any(n == "Machine" for n, _ in optional) else "on the machine above"
+    lines += ["", f"## Wall time per cell (s, {where})", "",
+              "| Row | Seed | Train | Evaluate | Curve evaluations |" + "".join(f" {n} |" for n, _ in optional),
+              "|---|---:|---:|---:|---:|" + "---|" * len(optional)]
     for r in data["rows"]:
         for s, w in r["wall_s"].items():
             w = w or {}
             lines.append(f"| {r['label']} | {s} | {_pct(w.get('train'))} | {_pct(w.get('evaluate'))} | "
-                         f"{_pct(w.get('curve'))} |" + (f" {_code((r.get('code') or {}).get(s))} |" if code else "")
-                         + (f" {(r.get('machine') or {}).get(s) or '–'} |" if machine else ""))
+                         f"{_pct(w.get('curve'))} |" + "".join(f" {value(r, s)} |" for _, value in optional))
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
