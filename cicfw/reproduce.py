@@ -244,6 +244,23 @@ def check_outputs(cfg: DictConfig) -> None:
         check_folder(pub, "publish_dir")
     if cfg.get("continue_from"):
         published_manifest(Path(cfg.continue_from))
+    if cfg.get("continue_machine") is not None:
+        check_continue_machine(cfg)
+
+
+def check_continue_machine(cfg: DictConfig) -> None:
+    """``continue_machine`` filters the cells of ``continue_from``: without it, or matching none of its
+    finished cells, it is a typo, refused in one line that lists the machines there."""
+    from cicfw.bench.results import finished_cells
+
+    text = str(cfg.continue_machine)
+    if not cfg.get("continue_from"):
+        raise ReproduceError(f"continue_machine={text!r} selects cells of a published folder; give "
+                             f"continue_from=<folder> too, or drop continue_machine")
+    machines = sorted({str(d.get("machine")) for d in finished_cells(Path(cfg.continue_from)).values()})
+    if not text or not any(text in m for m in machines):
+        raise ReproduceError(f"continue_machine={text!r} is in no finished cell's machine of "
+                             f"{str(cfg.continue_from)!r}; its machines: {'; '.join(machines) or 'none'}")
 
 
 def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
@@ -407,13 +424,17 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     changed = old is None
     if src is not None:
-        got = continue_published(src, results_dir)
-        log.info("continue_from=%s: %d finished cell(s) copied, %d already here", src, len(got["copied"]),
-                 len(got["kept"]))
+        only = cfg.get("continue_machine")
+        got = continue_published(src, results_dir, machine=None if only is None else str(only))
+        log.info("continue_from=%s: %d finished cell(s) copied, %d already here%s", src, len(got["copied"]),
+                 len(got["kept"]), f", {len(got['other_machine'])} left out (machine without {only!r})"
+                 if only is not None else "")
         if got["copied"]:
-            manifest.setdefault("continued_from", []).append(
-                {"from": shown_path(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-                 "machine": (published or {}).get("machine"), "created": (published or {}).get("created")})
+            entry = {"from": shown_path(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+                     "machine": (published or {}).get("machine"), "created": (published or {}).get("created")}
+            if only is not None:
+                entry["only_machine"] = str(only)
+            manifest.setdefault("continued_from", []).append(entry)
             changed = True
     if changed:
         atomic_write(path, json.dumps(manifest, indent=1))

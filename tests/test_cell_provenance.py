@@ -49,3 +49,23 @@ def test_an_installed_copy_inside_another_repository_names_no_commit(tmp_path, m
                     "--allow-empty", "-m", "theirs"], check=True)
     monkeypatch.setattr(cicfw, "__file__", str(other / "site" / "cicfw" / "__init__.py"))
     assert reproduce.code()["commit"] is None
+
+
+def test_continuing_with_a_machine_copies_only_that_machines_finished_cells(tmp_path):
+    """``continue_published(..., machine=...)``: a table within one kind of CPU takes only the finished cells
+    whose ``machine`` holds the text; the others are named, not copied; a failed cell is never copied."""
+    import json
+
+    from cicfw.bench.results import continue_published
+
+    src, dst = tmp_path / "published", tmp_path / "results"
+    made = {"seed0": ("2 cores (Alpha CPU), no GPU", "ok"), "seed1": ("2 cores (Beta CPU), no GPU", "ok"),
+            "seed2": ("2 cores (Alpha CPU), no GPU", "failed")}
+    for seed, (machine, status) in made.items():
+        (src / "cells" / "cil" / seed).mkdir(parents=True)
+        (src / "cells" / "cil" / seed / "cell.json").write_text(json.dumps({"machine": machine, "status": status}))
+    got = continue_published(src, dst, machine="Alpha")
+    assert got == {"copied": ["cil/seed0"], "kept": [], "other_machine": ["cil/seed1"]}
+    assert sorted(p.parent.name for p in dst.glob("cells/*/*/cell.json")) == ["seed0"]
+    got = continue_published(src, dst)  # no filter: the other machine's cell too, seed 0 kept
+    assert got == {"copied": ["cil/seed1"], "kept": ["cil/seed0"], "other_machine": []}

@@ -165,6 +165,54 @@ def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_p
     assert cells(again) == cells(one_cell)
 
 
+def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_path, capsys):
+    """``continue_machine``: a table within one kind of CPU. Of a published folder whose cells came from two
+    machines, only those whose machine holds the text are copied (the others are neither copied nor run
+    when not asked for), and the manifest and report say so."""
+    published = tmp_path / "published"
+    results.publish(one_cell, published)
+    ours = json.loads((published / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    other = {**ours, "seed": 1, "machine": "2 cores (Some Other CPU), no GPU"}
+    (published / "cells" / "cil" / "seed1").mkdir()
+    (published / "cells" / "cil" / "seed1" / "cell.json").write_text(json.dumps(other))
+    assert "Some Other CPU" not in ours["machine"]
+    text = ours["machine"].split(",")[0]  # e.g. "2 cores (…)": this machine's, not the other's
+    out = tmp_path / "results"
+    args = ["budget=smoke", "rows=[cil]", "seeds=[0]", f"continue_from={published}", f"continue_machine='{text}'",
+            f"results_dir={out}"]
+    assert reproduce.main(args) == 0
+    assert list(cells(out)) == ["cil/seed0"]
+    entry = json.loads((out / "reproduce.json").read_text())["continued_from"][0]
+    assert entry["cells"] == ["cil/seed0"] and entry["only_machine"] == text
+    assert f"1 finished cells copied, only those made on a machine with {text!r}" in (out / "RESULTS.md").read_text()
+    # without the filter both cells are copied
+    both = tmp_path / "both"
+    assert reproduce.main(["budget=smoke", "rows=[cil]", "seeds=[0]", f"continue_from={published}", f"results_dir={both}"]) == 0
+    assert sorted(cells(both)) == ["cil/seed0", "cil/seed1"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    ([], "continue_machine='Xeon' selects cells of a published folder; give continue_from=<folder> too"),
+    (["continue_from"], "continue_machine='Xeon' is in no finished cell's machine of "),
+])
+def test_continue_machine_typo_or_alone_is_one_line(extra, message, one_cell, tmp_path, capsys):
+    published = tmp_path / "published"
+    results.publish(one_cell, published)
+    out = tmp_path / "results"
+    typo = "Xeon"
+    if typo in json.loads((published / "cells" / "cil" / "seed0" / "cell.json").read_text())["machine"]:
+        typo = "Xeonn"  # on a Xeon, a text no machine holds
+        message = message.replace("'Xeon'", "'Xeonn'")
+    args = [*SMOKE, "rows=[cil]", f"continue_machine={typo}", f"results_dir={out}"]
+    args += [f"continue_from={published}"] if extra else []
+    assert reproduce.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"cicfw: error: {message}"), err
+    if extra:
+        assert "its machines: 2 cores (" in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_shown_path_is_relative_to_the_clone_that_holds_the_folder(tmp_path):
     """A published manifest names where its cells came from as a clone elsewhere can follow it."""
     (tmp_path / "clone" / ".git").mkdir(parents=True)

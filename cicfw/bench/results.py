@@ -775,7 +775,8 @@ def markdown(data: Mapping[str, Any]) -> str:
               f"({m.get('episodes', '?')} episodes per cell); dataset: {m.get('dataset_summary', '?')}.",
               f"- **Machine:** {m.get('machine', '?')}.",
               *[f"- **Continued from:** `{c.get('from')}` ({len(c.get('cells') or [])} finished cells copied"
-                + (f", made on {c['machine']}" if c.get("machine") else "") + f", {c.get('date', '?')})."
+                + (f", only those made on a machine with {c['only_machine']!r}" if c.get("only_machine") else
+                   f", made on {c['machine']}" if c.get("machine") else "") + f", {c.get('date', '?')})."
                 for c in m.get("continued_from") or []],
               f"- **Cells:** {sum(len(r['seeds']) for r in data['rows'])} finished"
               + (f", {len(data['failed'])} failed" if data["failed"] else "") + ".",
@@ -1065,17 +1066,22 @@ def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
     return out
 
 
-def continue_published(src: Path, results_dir: Path) -> dict[str, list[str]]:
+def continue_published(src: Path, results_dir: Path, machine: str | None = None) -> dict[str, list[str]]:
     """Copy into ``results_dir`` every finished cell of the published results folder ``src`` (as ``publish``
     writes it, e.g. docs/results/<budget>) that ``results_dir`` lacks, so the launcher skips it and a fresh
     clone grows the same table. The caller has checked that ``src`` is pinned to the same budget, suite and
     dataset and that its cells were trained as this cicfw trains them (``cicfw.reproduce``). Never
-    overwritten: a finished cell ``results_dir`` already has. Not copied: failed cells (they are retried).
-    Returns {"copied": [...], "kept": [...]} (``row/seedK`` names)."""
+    overwritten: a finished cell ``results_dir`` already has. Not copied: failed cells (they are retried)
+    and, with ``machine``, cells whose ``machine`` does not contain that text (a table made within one kind
+    of CPU: the same seed trains another model on another kind). Returns {"copied": [...], "kept": [...],
+    "other_machine": [...]} (``row/seedK`` names)."""
     src, results_dir = Path(src), Path(results_dir)
-    copied, kept = [], []
+    copied, kept, other = [], [], []
     have = finished_cells(results_dir)
-    for name in finished_cells(src):
+    for name, cell in finished_cells(src).items():
+        if machine is not None and machine not in str(cell.get("machine") or ""):
+            other.append(name)
+            continue
         if name in have:
             kept.append(name)
             continue
@@ -1083,7 +1089,7 @@ def continue_published(src: Path, results_dir: Path) -> dict[str, list[str]]:
         if (results_dir / rel).resolve() != (src / rel).resolve():
             atomic_write(results_dir / rel, (src / rel).read_bytes())
         copied.append(name)
-    return {"copied": copied, "kept": kept}
+    return {"copied": copied, "kept": kept, "other_machine": other}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
