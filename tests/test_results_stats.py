@@ -424,3 +424,27 @@ def test_wall_time_table_names_each_cells_machine_where_they_differ():
     table = markdown(same).split("## Wall time per cell")[1].splitlines()
     assert same["rows"][0]["machine"] == {} and table[0] == " (s, on the machine above)"
     assert table[2] == "| Row | Seed | Train | Evaluate | Curve evaluations |"
+
+
+def test_a_row_keeps_its_colour_whichever_rows_the_folder_holds(tmp_path, monkeypatch):
+    """Two folders' pictures are compared by colour: CIL's points are drawn in the same colour with GTU
+    present or absent (its place in the catalogue fixes it), and two rows never share one."""
+    from cicfw.bench import plots
+
+    drawn = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.append(fig) or path)
+    catalogue = {"cil": {"label": "CIL"}, "gtu": {"label": "GTU"}, "moe": {"label": "MoE"}}
+
+    def colour_of(rows: list[str]) -> dict[str, tuple]:
+        cells = [at(r, s, 30, n=40) for r in rows for s in range(3)]
+        data = report_data(cells, [], catalogue, {"budget": "smoke"}, n_boot=50)
+        drawn.clear()
+        results.plot_results(data, tmp_path / "results.png", order=list(catalogue))
+        ax = drawn[0].axes[0]
+        return {bars.get_label(): tuple(bars.lines[0].get_color()) for bars in ax.containers}
+
+    both, without_gtu = colour_of(["cil", "gtu", "moe"]), colour_of(["cil", "moe"])
+    assert len(set(both.values())) == 3
+    assert without_gtu == {"CIL": both["CIL"], "MoE": both["MoE"]}
+    # a row outside the catalogue follows it; the catalogue's rows keep their places
+    assert results.row_colours(["x", "moe", "cil"], list(catalogue)) == {"x": 3, "moe": 2, "cil": 0}

@@ -935,14 +935,28 @@ def curve_table(data: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def plot_results(data: Mapping[str, Any], path: Path) -> Path:
-    """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses in the row's colour."""
+def row_colours(rows: Sequence[str], order: Sequence[str] = ()) -> dict[str, int]:
+    """Each row's colour index: its place in ``order`` (the catalogue, the paper's Table-4 order), so a row
+    keeps its colour in every folder's picture whichever rows are present; rows outside it follow it."""
+    order = list(order)
+    extras = [r for r in rows if r not in order]
+    return {r: order.index(r) if r in order else len(order) + extras.index(r) for r in rows}
+
+
+def _colour(plt: Any, k: int) -> Any:
+    """Colour ``k``: tab10's ten, then their light shades (tab20's odd entries), then round again."""
+    return plt.get_cmap("tab20")((2 * k) % 20 + (k // 10) % 2)
+
+
+def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
+    """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses
+    in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
     from cicfw.bench.plots import _plt, _save
 
     plt = _plt()
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(max(7.5, 1.2 * len(rows) + 4), 4.4))
-    cmap = plt.get_cmap("tab10")
+    colour = row_colours([r["row"] for r in rows], order)
     x = np.arange(5)
     width = 0.8 / max(len(rows), 1)
     for k, r in enumerate(rows):
@@ -952,10 +966,11 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
         err = np.array([[e["mean"] - e["lo"] if e["lo"] is not None else 0.0 for e in est],
                         [e["hi"] - e["mean"] if e["hi"] is not None else 0.0 for e in est]])
         label = r["label"] + ("" if r.get("enough_seeds", True) else f" ({len(r['seeds'])} seed(s): too few)")
-        ax.errorbar(xs, mean, yerr=err, fmt="o", color=cmap(k % 10), capsize=3, label=label)
+        c = _colour(plt, colour[r["row"]])
+        ax.errorbar(xs, mean, yerr=err, fmt="o", color=c, capsize=3, label=label)
         if r["paper"]:
             pv = [*r["paper"], float(np.mean(r["paper"]))]
-            ax.scatter(xs, pv, marker="x", color=cmap(k % 10), s=36, zorder=3)
+            ax.scatter(xs, pv, marker="x", color=c, s=36, zorder=3)
     ax.scatter([], [], marker="x", color="grey", label="the paper's value (row's colour)")
     ax.set_xticks(x, [n.replace(" / ", "\n") for n in COLUMN_NAMES] + ["Overall\n(mean of columns)"])
     ax.set_ylim(-3, 105)
@@ -967,8 +982,9 @@ def plot_results(data: Mapping[str, Any], path: Path) -> Path:
     return _save(fig, Path(path))
 
 
-def plot_curve(data: Mapping[str, Any], path: Path) -> Path | None:
-    """Overall success against training samples seen, per row (mean over seeds, band = min..max)."""
+def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """Overall success against training samples seen, per row (mean over seeds, band = min..max), each row
+    in its colour of ``plot_results``."""
     pts = curve_points(data)
     if not pts:
         return None
@@ -976,10 +992,13 @@ def plot_curve(data: Mapping[str, Any], path: Path) -> Path | None:
 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
+    colour = row_colours([r["row"] for r in data["rows"]], order)
+    row_of = {r["label"]: r["row"] for r in data["rows"]}
     for label, v in pts.items():
         s, m, lo, hi = (np.array(a) for a in zip(*v))
-        ax.plot(s, m, "o-", label=label)
-        ax.fill_between(s, lo, hi, alpha=0.2)
+        c = _colour(plt, colour[row_of[label]])
+        ax.plot(s, m, "o-", label=label, color=c)
+        ax.fill_between(s, lo, hi, alpha=0.2, color=c)
     ax.set_xlabel("training samples seen")
     ax.set_ylabel("overall success (%)")
     ax.set_ylim(-3, 105)
@@ -1009,8 +1028,8 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims)
     atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
     atomic_write(results_dir / "results.csv", results_csv(data))
-    plot_results(data, results_dir / "results.png")
-    curve = plot_curve(data, results_dir / "learning_curve.png")
+    plot_results(data, results_dir / "results.png", order=list(catalogue))
+    curve = plot_curve(data, results_dir / "learning_curve.png", order=list(catalogue))
     data["has_curve"] = curve is not None
     atomic_write(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
     return data
