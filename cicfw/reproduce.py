@@ -424,8 +424,8 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     changed = old is None
     if src is not None:
-        only = cfg.get("continue_machine")
-        got = continue_published(src, results_dir, machine=None if only is None else str(only))
+        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
+        got = continue_published(src, results_dir, machine=only)
         log.info("continue_from=%s: %d finished cell(s) copied, %d already here%s", src, len(got["copied"]),
                  len(got["kept"]), f", {len(got['other_machine'])} left out (machine without {only!r})"
                  if only is not None else "")
@@ -433,7 +433,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
             entry = {"from": shown_path(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
                      "machine": (published or {}).get("machine"), "created": (published or {}).get("created")}
             if only is not None:
-                entry["only_machine"] = str(only)
+                entry["only_machine"] = only
             manifest.setdefault("continued_from", []).append(entry)
             changed = True
     if changed:
