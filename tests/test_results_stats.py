@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from cicfw.bench import results
 from cicfw.bench.results import (COLUMNS, CONTRADICTED, INCONCLUSIVE, NOT_RUN, SUPPORTED, TOO_FEW, CellResult,
@@ -94,6 +95,51 @@ def test_paired_difference_by_hand():
     t = 12.6667 / (3.05505 / math.sqrt(3))
     assert d.p == pytest.approx(1 - t / math.sqrt(2 + t * t), abs=2e-4)
     assert d.p == pytest.approx(0.0189, abs=2e-4)
+
+
+def wilson(k: int, n: int, z: float) -> tuple[float, float]:
+    """Wilson's score interval for k of n, from its closed form."""
+    p = k / n
+    centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def newcombe(a: tuple[int, int], b: tuple[int, int], z: float) -> tuple[float, float]:
+    """Newcombe's hybrid score interval (his method 10) for a[0]/a[1] - b[0]/b[1], in points, by hand."""
+    (p1, (l1, u1)), (p2, (l2, u2)) = ((k / n, wilson(k, n, z)) for k, n in (a, b))
+    d = p1 - p2
+    return 100 * (d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2)), 100 * (d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2))
+
+
+def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
+    """29 of 192 against 50 of 192 (GTU and CCE+MSE in the new town under new weathers on the Xeon): the
+    interval is Newcombe's from Wilson's closed form with z = 1.959964; at the p-value's level
+    (z = the normal quantile 1 - p/2) its upper bound is 0. Both rows at 100%: width, p = 1."""
+    lo, hi, p = results.episode_interval((29, 192), (50, 192))
+    assert (lo, hi) == pytest.approx(newcombe((29, 192), (50, 192), 1.959964), abs=1e-3)
+    assert lo == pytest.approx(-18.85, abs=0.05) and hi < 0
+    z = float(stats.norm.ppf(1 - p / 2))
+    assert newcombe((29, 192), (50, 192), z)[1] == pytest.approx(0.0, abs=1e-6)
+    # the chi-square test of the 2x2 table (uncorrected), a close relative, lands near it
+    chi = stats.chi2_contingency([[29, 163], [50, 142]], correction=False).pvalue
+    assert 0.5 * chi < p < 2 * chi
+    lo, hi, p = results.episode_interval((96, 96), (96, 96))
+    assert p == 1.0 and (lo, hi) == pytest.approx(newcombe((96, 96), (96, 96), 1.959964), abs=1e-3) and hi > 3.0
+
+
+def test_seeds_whose_differences_agree_still_get_the_episodes_interval():
+    """Three paired seeds each exactly 7 of 64 episodes apart in one column (a t-interval of zero width,
+    p = 0, a verdict Holm cannot touch) get the pooled episodes' interval and its p-value instead."""
+    a = [cell("gtu", s, {c: [1] * (10 + s) + [0] * (54 - s) for c in COLUMNS}) for s in range(3)]
+    b = [cell("hybrid", s, {c: [1] * (17 + s) + [0] * (47 - s) for c in COLUMNS}) for s in range(3)]
+    assert difference({c.seed: c.rate(COLUMNS[3]) for c in a}, {c.seed: c.rate(COLUMNS[3]) for c in b}).p == 0.0
+    an = analyse(a + b, n_boot=200)
+    part = judge(an, [Claim("x", "GTU beats CCE+MSE there", (Part("gtu", "hybrid", on=COLUMNS[3]),))], {}, {})[0]["parts"][0]
+    lo, hi = newcombe((33, 192), (54, 192), 1.959964)
+    assert part["measured"]["mean"] == pytest.approx(-10.94, abs=0.01)
+    assert (part["measured"]["lo"], part["measured"]["hi"]) == pytest.approx((lo, hi), abs=0.01)
+    assert part["method"] == "paired t, 3 seeds, widened to the episodes' interval"
+    assert 0.005 < part["p"] < 0.05 and part["verdict"] == CONTRADICTED
 
 
 def test_welch_when_the_seeds_differ():

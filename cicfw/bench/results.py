@@ -16,7 +16,12 @@ computed on per-seed values: when both rows ran the same seeds (the same seed tr
 train/validation split, so the cells are paired), the t-interval over the per-seed differences
 ``A_s - B_s`` with ``n - 1`` degrees of freedom; when their seeds differ, Welch's t-interval
 (``scipy.stats.ttest_ind(equal_var=False)``, Welch-Satterthwaite degrees of freedom) over all seeds of
-each. A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
+each; in a table column it too is widened, to contain Newcombe's interval for the difference of the two
+rows' success on their pooled episodes (``statsmodels ... confint_proportions_2indep(method="newcomb")``),
+and its p-value is then the larger of the t-test's and the one dual to that interval, so seeds whose
+differences happen to agree (a column's rates come in steps of 1/64 or 1/96) do not get a zero-width
+interval and p = 0; the method column says "widened to the episodes' interval" where it moved a bound.
+A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
 variances, covariance (paired) and degrees of freedom; it is unbounded when B is not clearly above 0.
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
@@ -290,6 +295,45 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
 
 
+def episode_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> tuple[float, float, float]:
+    """A - B on the episodes pooled over each row's seeds, ``(successes, episodes)`` each, in points:
+    Newcombe's hybrid score interval for a difference of two proportions (statsmodels
+    ``confint_proportions_2indep(method="newcomb")``; it keeps a width at 0% and 100%) and the two-sided
+    p-value dual to it, the level at which the interval's bound reaches 0 (1 when the difference is 0).
+    The rows drove the same episodes, and treating them as independent ignores that pairing, which
+    widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
+    from scipy.optimize import brentq
+    from statsmodels.stats.proportion import confint_proportions_2indep
+
+    def bounds(alpha: float) -> tuple[float, float]:
+        lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff", alpha=alpha)
+        return float(lo), float(hi)
+
+    lo, hi = bounds(1.0 - level)
+    diff = a[0] / a[1] - b[0] / b[1]
+    if diff == 0:
+        return 100.0 * lo, 100.0 * hi, 1.0
+    toward_zero = (lambda al: bounds(al)[0]) if diff > 0 else (lambda al: -bounds(al)[1])
+    tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the difference itself
+    p = 0.0 if toward_zero(tiny) > 0 else float(brentq(toward_zero, tiny, near_one, xtol=1e-12))
+    return 100.0 * lo, 100.0 * hi, p
+
+
+def with_episode_floor(d: Difference, a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> Difference:
+    """``d`` (A - B on one table column) widened to contain the pooled episodes' interval
+    (``episode_interval``), its p-value the larger of the two: seeds whose differences happen to agree
+    (rates come in steps of 1/64) leave the t-interval no width, but never remove the episodes' luck.
+    The method says so where the floor moved a bound."""
+    e = d.estimate
+    if e.lo is None or e.hi is None or d.p is None:
+        return d
+    lo, hi, p = episode_interval(a, b, level)
+    if lo >= e.lo and hi <= e.hi and p <= d.p:
+        return d
+    return Difference(Estimate(e.mean, min(e.lo, lo), max(e.hi, hi)), max(d.p, p),
+                      d.method + ", widened to the episodes' interval", d.paired, d.n)
+
+
 def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
     """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not."""
     return sum(len(c["parts"]) for c in claims)
@@ -558,6 +602,9 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
                 continue
             va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
             d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
+            if p.on in COLUMNS and p.b_scale == 1.0:  # one table column: the episodes' floor, as for a row
+                d = with_episode_floor(d, *(tuple(map(sum, zip(*(c.counts(p.on) for c in an.rows[r]))))
+                                            for r in (p.a, p.b)))
             rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
                        means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
             rec["bootstrap"] = _boot_part(an, p).as_dict()
