@@ -51,8 +51,10 @@ def test_tost_against_a_hand_computation():
 
 
 def test_verdicts_on_cells_with_a_known_answer(tmp_path):
-    """Equal cells (every seed, every column): equivalent; a switch that costs 5 of 20 episodes (25 points)
-    in every column: not shown; two paired seeds: too few."""
+    """Equal cells (every seed, every column): equivalent overall, and in each column only where its 60
+    pooled episodes can resolve the margin (±25, not ±5: equal seeds are no evidence that the episodes'
+    luck is small); a switch that costs 5 of 20 episodes (25 points) in every column: not shown; two
+    paired seeds: too few."""
     for s in range(3):
         write_cell(tmp_path / "fp32", "cil", s, [18, 10, 12, 5 + s])
         write_cell(tmp_path / "same", "cil_x", s, [18, 10, 12, 5 + s])
@@ -60,7 +62,9 @@ def test_verdicts_on_cells_with_a_known_answer(tmp_path):
     base = ps.load_row(tmp_path / "fp32")
     same = ps.compare(ps.load_row(tmp_path / "same"), base, 5.0)
     assert [e.on for e in same] == [*COLUMNS, "overall"]
-    assert all(e.verdict == "equivalent within ±5" and e.mean == 0 for e in same)
+    assert all(e.mean == 0 for e in same) and same[-1].verdict == "equivalent within ±5"
+    assert all(e.verdict == "not shown" and e.hi > 9 for e in same[:-1])
+    assert all(e.verdict == "equivalent within ±25" for e in ps.compare(ps.load_row(tmp_path / "same"), base, 25.0))
     worse = ps.compare(ps.load_row(tmp_path / "worse"), base, 5.0)
     assert all(e.verdict == "not shown" and e.mean == pytest.approx(-25.0) for e in worse)
     two = {s: c for s, c in base.items() if s < 2}
@@ -78,6 +82,25 @@ def test_overall_is_the_mean_of_the_columns_and_tost_matches_by_hand(tmp_path):
     assert got.on == "overall" and got.mean == pytest.approx(sum(d) / 3)
     assert got.p_tost == pytest.approx(tost_by_hand(d, 5.0), rel=1e-9)
     assert got.lo == pytest.approx(sum(d) / 3 - stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3))
+
+
+def wilson(k: int, n: int, z: float) -> tuple[float, float]:
+    p = k / n
+    centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def test_episode_tost_is_dual_to_newcombes_interval_by_hand():
+    """192 of 192 against 180 of 192 (+6.25 points), margin 10: the p-value is the alpha at which Newcombe's
+    (1 - 2 alpha) interval, from Wilson's closed form with z = the normal quantile 1 - alpha, reaches
+    +10; a difference outside the margin gives 1, a margin far wider than the episodes' luck about 0."""
+    p = ps.episode_tost((192, 192), (180, 192), 10.0)
+    z = float(stats.norm.ppf(1 - p))
+    (l1, u1), (l2, u2) = wilson(192, 192, z), wilson(180, 192, z)
+    upper = 100 * (1.0 - 180 / 192 + math.sqrt((u1 - 1.0) ** 2 + (180 / 192 - l2) ** 2))
+    assert 0.01 < p < 0.05 and upper == pytest.approx(10.0, abs=1e-6)
+    assert ps.episode_tost((192, 192), (150, 192), 10.0) == 1.0
+    assert ps.episode_tost((96, 192), (96, 192), 60.0) < 1e-9
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):

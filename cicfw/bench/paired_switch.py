@@ -11,7 +11,9 @@ A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, 
 both models drive the same suite. Per table column and overall this prints the paired difference A - B
 over seeds (t-interval, ``results.difference``) and an equivalence test against a margin stated in
 advance: two one-sided t-tests (TOST, ``statsmodels.stats.weightstats.ttost_paired``), *equivalent*
-when both reject at 5%, i.e. the 90% interval lies inside ±margin. Too few seeds or too wide an
+when both reject at 5%, i.e. the 90% interval lies inside ±margin; in a table column the episodes
+pooled over the seeds must show it too (Newcombe's 90% interval inside ±margin, ``episode_tost``), as
+seeds that differ by the same number of episodes leave the t-test no spread. Too few seeds or too wide an
 interval reads *not shown*, never *equivalent*. ``--episodes`` compares two models of one seed (a cell's
 ``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both drove: per column, the
 episodes one model lost and the other gained, with McNemar's exact test (``statsmodels``). It also prints the cells' training wall time, which
@@ -28,7 +30,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.results import COLUMNS, MIN_SEEDS, CellResult, difference, load_cell
+from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, difference, load_cell, newcombe_interval,
+                                 with_episode_floor)
 from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05
@@ -72,18 +75,42 @@ def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
     return float(ttost_paired(np.asarray(a, float), np.asarray(b, float), -margin, margin)[0])
 
 
+def episode_tost(a: tuple[int, int], b: tuple[int, int], margin: float) -> float:
+    """The equivalence p-value on the pooled episodes, ``(successes, episodes)`` each: the smallest alpha
+    at which Newcombe's (1 - 2 alpha) interval for A - B lies inside ±margin (TOST's duality), 1 when
+    the difference itself is not inside. The floor ``results.with_episode_floor`` gives an interval."""
+    from scipy.optimize import brentq
+
+    def excess(alpha: float) -> float:  # how far the (1 - 2 alpha) interval reaches beyond the margin
+        lo, hi = newcombe_interval(a, b, 1.0 - 2.0 * alpha)
+        return max(hi, -lo) - margin
+
+    tiny, near_half = 1e-12, 0.5 - 1e-9  # at alpha -> 0.5 the interval shrinks to the difference itself
+    if excess(near_half) >= 0:
+        return 1.0
+    return 0.0 if excess(tiny) < 0 else float(brentq(excess, tiny, near_half, xtol=1e-12))
+
+
 def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float) -> list[Equivalence]:
-    """Every column and overall, on the seeds both sides ran."""
+    """Every column and overall, on the seeds both sides ran. In a table column both the interval and the
+    TOST p-value also answer to the episodes pooled over those seeds (``with_episode_floor``,
+    ``episode_tost``), so seeds whose differences happen to agree are not *equivalent* by luck."""
     seeds = sorted(set(a) & set(b))
     out = []
     for col in ON:
         va = {s: a[s].rate(col) for s in seeds}
         vb = {s: b[s].rate(col) for s in seeds}
         d = difference(va, vb)
+        pooled = None if col is None else tuple(tuple(map(sum, zip(*(x[s].counts(col) for s in seeds))))
+                                                for x in (a, b))
+        if pooled is not None and seeds:
+            d = with_episode_floor(d, *pooled)
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
         else:
             p = tost_paired(list(va.values()), list(vb.values()), margin)
+            if pooled is not None:
+                p = max(p, episode_tost(*pooled, margin))
             verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
         out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
                                d.estimate.lo, d.estimate.hi, p, verdict))

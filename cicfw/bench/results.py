@@ -303,20 +303,24 @@ def episode_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVE
     The rows drove the same episodes, and treating them as independent ignores that pairing, which
     widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
     from scipy.optimize import brentq
-    from statsmodels.stats.proportion import confint_proportions_2indep
 
-    def bounds(alpha: float) -> tuple[float, float]:
-        lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff", alpha=alpha)
-        return float(lo), float(hi)
-
-    lo, hi = bounds(1.0 - level)
+    lo, hi = newcombe_interval(a, b, level)
     diff = a[0] / a[1] - b[0] / b[1]
     if diff == 0:
-        return 100.0 * lo, 100.0 * hi, 1.0
-    toward_zero = (lambda al: bounds(al)[0]) if diff > 0 else (lambda al: -bounds(al)[1])
+        return lo, hi, 1.0
+    toward_zero = ((lambda al: newcombe_interval(a, b, 1.0 - al)[0]) if diff > 0
+                   else (lambda al: -newcombe_interval(a, b, 1.0 - al)[1]))
     tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the difference itself
     p = 0.0 if toward_zero(tiny) > 0 else float(brentq(toward_zero, tiny, near_one, xtol=1e-12))
-    return 100.0 * lo, 100.0 * hi, p
+    return lo, hi, p
+
+
+def newcombe_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> tuple[float, float]:
+    """Newcombe's hybrid score interval for a[0]/a[1] - b[0]/b[1] at ``level``, in points (statsmodels)."""
+    from statsmodels.stats.proportion import confint_proportions_2indep
+
+    lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff", alpha=1.0 - level)
+    return 100.0 * float(lo), 100.0 * float(hi)
 
 
 def with_episode_floor(d: Difference, a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> Difference:
