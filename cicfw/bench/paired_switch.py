@@ -31,7 +31,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, difference, load_cell, newcombe_interval,
-                                 with_episode_floor)
+                                 pooled_counts, with_episode_floor)
 from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05
@@ -101,9 +101,8 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
         va = {s: a[s].rate(col) for s in seeds}
         vb = {s: b[s].rate(col) for s in seeds}
         d = difference(va, vb)
-        pooled = None if col is None else tuple(tuple(map(sum, zip(*(x[s].counts(col) for s in seeds))))
-                                                for x in (a, b))
-        if pooled is not None and seeds:
+        pooled = None if col is None or not seeds else tuple(pooled_counts([x[s] for s in seeds], col) for x in (a, b))
+        if pooled is not None:
             d = with_episode_floor(d, *pooled)
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"

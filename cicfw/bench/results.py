@@ -238,6 +238,12 @@ class Estimate:
         return f"{self.mean:{sign}.1f} [{self.lo:{sign}.1f}, {self.hi:{sign}.1f}]"
 
 
+def pooled_counts(cells: Sequence[CellResult], column: str) -> tuple[int, int]:
+    """(successes, episodes) in one table column, pooled over ``cells``: the episodes' floor's input."""
+    k, n = (sum(x) for x in zip(*(c.counts(column) for c in cells)))
+    return k, n
+
+
 def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:
     """A row's mean over seeds on ``on`` with its t-interval over seeds; on a single table column the
     interval is widened to contain the pooled episodes' Clopper-Pearson interval. No interval for one seed."""
@@ -247,8 +253,7 @@ def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> 
         return Estimate(mean, None, None)
     if len(SELECTORS[on]) == 1:
         col = COLUMNS[SELECTORS[on][0]]
-        k, n = (sum(x) for x in zip(*(c.counts(col) for c in cells)))
-        cp_lo, cp_hi = pooled_clopper_pearson(k, n, level)
+        cp_lo, cp_hi = pooled_clopper_pearson(*pooled_counts(cells, col), level)
         lo, hi = min(lo, cp_lo), max(hi, cp_hi)
     return Estimate(mean, max(lo, 0.0), min(hi, 100.0))  # a rate lies in [0, 100]
 
@@ -607,8 +612,7 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
             va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
             d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
             if p.on in COLUMNS and p.b_scale == 1.0:  # one table column: the episodes' floor, as for a row
-                d = with_episode_floor(d, *(tuple(map(sum, zip(*(c.counts(p.on) for c in an.rows[r]))))
-                                            for r in (p.a, p.b)))
+                d = with_episode_floor(d, pooled_counts(an.rows[p.a], p.on), pooled_counts(an.rows[p.b], p.on))
             rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
                        means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
             rec["bootstrap"] = _boot_part(an, p).as_dict()
