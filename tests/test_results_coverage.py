@@ -128,7 +128,8 @@ def floor_coverage(n_seeds: int, n_exp: int = 1000, seed: int = 2) -> dict[str, 
     for a, b in zip(ka, kb):
         d = results.difference({s: 100.0 * x / N_EP[3] for s, x in enumerate(a)},
                                {s: 100.0 * x / N_EP[3] for s, x in enumerate(b)})
-        f = results.with_episode_floor(d, (int(a.sum()), n_seeds * int(N_EP[3])), (int(b.sum()), n_seeds * int(N_EP[3])))
+        pooled = ((int(a.sum()), n_seeds * int(N_EP[3])), (int(b.sum()), n_seeds * int(N_EP[3])))
+        f = results.with_episode_floor(d, results.difference_terms(*pooled))
         covered_t += d.estimate.lo <= TRUE_NEW_NEW <= d.estimate.hi
         covered_floor += f.estimate.lo <= TRUE_NEW_NEW <= f.estimate.hi
         moved += f is not d

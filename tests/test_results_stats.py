@@ -115,7 +115,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     """29 of 192 against 50 of 192 (GTU and CCE+MSE in the new town under new weathers on the Xeon): the
     interval is Newcombe's from Wilson's closed form with z = 1.959964; at the p-value's level
     (z = the normal quantile 1 - p/2) its upper bound is 0. Both rows at 100%: width, p = 1."""
-    lo, hi, p = results.episode_interval((29, 192), (50, 192))
+    lo, hi, p = results.episode_interval(results.difference_terms((29, 192), (50, 192)))
     assert (lo, hi) == pytest.approx(newcombe((29, 192), (50, 192), 1.959964), abs=1e-3)
     assert lo == pytest.approx(-18.85, abs=0.05) and hi < 0
     z = float(stats.norm.ppf(1 - p / 2))
@@ -123,7 +123,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     # the chi-square test of the 2x2 table (uncorrected), a close relative, lands near it
     chi = stats.chi2_contingency([[29, 163], [50, 142]], correction=False).pvalue
     assert 0.5 * chi < p < 2 * chi
-    lo, hi, p = results.episode_interval((96, 96), (96, 96))
+    lo, hi, p = results.episode_interval(results.difference_terms((96, 96), (96, 96)))
     assert p == 1.0 and (lo, hi) == pytest.approx(newcombe((96, 96), (96, 96), 1.959964), abs=1e-3) and hi > 3.0
 
 
@@ -305,6 +305,61 @@ def test_gap_claim_supported_when_the_advantage_grows_in_the_hard_column():
     # per seed (90 - 30) - 0, (87.5 - 35), (85 - 40): 60, 52.5, 45
     assert got["measured"]["mean"] == pytest.approx(52.5) and got["verdict"] == SUPPORTED
     assert got["measured"]["lo"] == pytest.approx(52.5 - 4.303 * 7.5 / math.sqrt(3), abs=0.01)
+
+
+def test_the_contrast_interval_of_one_difference_is_statsmodels_newcombe():
+    """The MOVER interval of A - B is Newcombe's hybrid score interval: statsmodels' own implementation
+    (``method="newcomb"``) agrees, at 0%, 100% and in between, at 95% and 90%."""
+    from statsmodels.stats.proportion import confint_proportions_2indep
+
+    for a, b in [((29, 192), (50, 192)), ((96, 96), (90, 96)), ((0, 64), (5, 64)), ((40, 64), (40, 64))]:
+        for level in (0.95, 0.90):
+            lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff",
+                                                alpha=1 - level)
+            assert results.newcombe_interval(a, b, level) == pytest.approx((100 * lo, 100 * hi), abs=1e-6)
+
+
+def test_a_gaps_episode_interval_by_hand():
+    """(A - B) in one column minus (A - B) in another, four independent proportions: the lower bound
+    subtracts the root of the summed squared distances to the side each term pulls down (the lower Wilson
+    distance for +, the upper for -), the upper bound the mirror (Zou & Donner's MOVER), Wilson by hand."""
+    z = 1.959964
+    terms = [(1.0, 160, 192), (-1.0, 100, 192), (-1.0, 190, 192), (1.0, 185, 192)]
+    value, below, above = 0.0, 0.0, 0.0
+    for c, k, n in terms:
+        p, (lo, hi) = k / n, wilson(k, n, z)
+        value += c * p
+        below += (p - lo) ** 2 if c > 0 else (hi - p) ** 2
+        above += (hi - p) ** 2 if c > 0 else (p - lo) ** 2
+    want = (100 * (value - math.sqrt(below)), 100 * (value + math.sqrt(above)))
+    lo, hi, p = results.episode_interval(terms)
+    assert (lo, hi) == pytest.approx(want, abs=1e-3)
+    assert lo > 0 and 0 < p < 0.05
+    assert results.contrast_interval(terms, 1 - p)[0] == pytest.approx(0.0, abs=1e-6)  # p is dual to it
+
+
+def test_a_gap_whose_easy_column_is_full_still_gets_the_episodes_interval():
+    """Every seed at 100% in the easy column and exactly 7 of 64 episodes apart in the hard one: the
+    per-seed gaps agree (a t-interval of zero width, p = 0) until the four columns' pooled episodes
+    widen it to their interval."""
+    easy, hard = COLUMNS[0], COLUMNS[3]
+    rest = {c: [1] * 64 for c in COLUMNS[1:3]}
+    a = [cell("gtu", s, {easy: [1] * 96, hard: [1] * (17 + s) + [0] * (47 - s), **rest}) for s in range(3)]
+    b = [cell("cil", s, {easy: [1] * 96, hard: [1] * (10 + s) + [0] * (54 - s), **rest}) for s in range(3)]
+    part = Part("gtu", "cil", on="gap", hard=hard, easy=easy)
+    got = judge(analyse(a + b, n_boot=200), [Claim("gap", "gap", (part,))], {}, {})[0]["parts"][0]
+    z = 1.959964
+    (la, ua), (lb, ub), (lf, uf) = wilson(54, 192, z), wilson(33, 192, z), wilson(288, 288, z)
+    d = 54 / 192 - 33 / 192
+    # at 100% only the distance down to Wilson's lower bound is left: B's full column pulls the gap
+    # down (its coefficient is +1), A's pulls it up (-1); each enters one side once
+    want = (100 * (d - math.sqrt((54 / 192 - la) ** 2 + (ub - 33 / 192) ** 2 + (1 - lf) ** 2)),
+            100 * (d + math.sqrt((ua - 54 / 192) ** 2 + (33 / 192 - lb) ** 2 + (1 - lf) ** 2)))
+    assert uf == pytest.approx(1.0)
+    assert got["measured"]["mean"] == pytest.approx(100 * 7 / 64, abs=0.01)
+    assert (got["measured"]["lo"], got["measured"]["hi"]) == pytest.approx(want, abs=0.01)
+    assert got["method"] == "paired t, 3 seeds, widened to the episodes' interval"
+    assert 0.001 < got["p"] < 0.05 and got["verdict"] == SUPPORTED
 
 
 def test_combine_and_paper_differences():

@@ -30,8 +30,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, difference, load_cell, newcombe_interval,
-                                 pooled_counts, with_episode_floor)
+from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, difference, difference_terms, load_cell,
+                                 newcombe_interval, pooled_counts, with_episode_floor)
 from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05
@@ -103,7 +103,7 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
         d = difference(va, vb)
         pooled = None if col is None or not seeds else tuple(pooled_counts([x[s] for s in seeds], col) for x in (a, b))
         if pooled is not None:
-            d = with_episode_floor(d, *pooled)
+            d = with_episode_floor(d, difference_terms(*pooled))
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
         else:

@@ -16,12 +16,14 @@ computed on per-seed values: when both rows ran the same seeds (the same seed tr
 train/validation split, so the cells are paired), the t-interval over the per-seed differences
 ``A_s - B_s`` with ``n - 1`` degrees of freedom; when their seeds differ, Welch's t-interval
 (``scipy.stats.ttest_ind(equal_var=False)``, Welch-Satterthwaite degrees of freedom) over all seeds of
-each; in a table column it too is widened, to contain Newcombe's interval for the difference of the two
-rows' success on their pooled episodes (``statsmodels ... confint_proportions_2indep(method="newcomb")``),
-and its p-value is then the larger of the t-test's and the one dual to that interval, so seeds whose
-differences happen to agree (a column's rates come in steps of 1/64 or 1/96) do not get a zero-width
-interval and p = 0; the method column says "widened to the episodes' interval" where it moved a bound.
-A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
+each; on one table column (or a gap between two table columns) it too is widened, to contain the interval
+of the same contrast of the two rows' success on their pooled episodes (Zou & Donner's MOVER from each
+proportion's Wilson interval, ``statsmodels ... proportion_confint(method="wilson")``; on one column this is
+Newcombe's hybrid score interval), and its p-value is then the larger of the t-test's and the one dual to
+that interval, so seeds whose differences happen to agree (a column's rates come in steps of 1/64 or 1/96,
+an easy column often sits at 100%) do not get a zero-width interval and p = 0; the method column says
+"widened to the episodes' interval" where it moved a bound. Overall and a town's or weather's mean of two
+columns keep their t-interval, as a row's overall does. A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
 variances, covariance (paired) and degrees of freedom; it is unbounded when B is not clearly above 0.
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
@@ -300,43 +302,61 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
 
 
-def episode_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> tuple[float, float, float]:
-    """A - B on the episodes pooled over each row's seeds, ``(successes, episodes)`` each, in points:
-    Newcombe's hybrid score interval for a difference of two proportions (statsmodels
-    ``confint_proportions_2indep(method="newcomb")``; it keeps a width at 0% and 100%) and the two-sided
-    p-value dual to it, the level at which the interval's bound reaches 0 (1 when the difference is 0).
-    The rows drove the same episodes, and treating them as independent ignores that pairing, which
-    widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
+def episode_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float, float]:
+    """A contrast of table columns on the episodes pooled over each row's seeds, ``sum c * k / n`` over
+    ``terms`` of ``(c, successes, episodes)``, in points: its interval (``contrast_interval``; A - B is
+    Newcombe's) and the two-sided p-value dual to it, the level at which the bound nearer 0 reaches 0 (1
+    when the contrast is 0). The rows drove the same episodes, and treating them as independent ignores
+    that pairing, which widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
     from scipy.optimize import brentq
 
-    lo, hi = newcombe_interval(a, b, level)
-    diff = a[0] / a[1] - b[0] / b[1]
-    if diff == 0:
+    lo, hi = contrast_interval(terms, level)
+    value = sum(c * k / n for c, k, n in terms)
+    if abs(value) < 1e-12:
         return lo, hi, 1.0
-    toward_zero = ((lambda al: newcombe_interval(a, b, 1.0 - al)[0]) if diff > 0
-                   else (lambda al: -newcombe_interval(a, b, 1.0 - al)[1]))
-    tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the difference itself
+    toward_zero = ((lambda al: contrast_interval(terms, 1.0 - al)[0]) if value > 0
+                   else (lambda al: -contrast_interval(terms, 1.0 - al)[1]))
+    tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the contrast itself
     p = 0.0 if toward_zero(tiny) > 0 else float(brentq(toward_zero, tiny, near_one, xtol=1e-12))
     return lo, hi, p
 
 
+def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float]:
+    """``sum c * k / n`` of independent proportions, in points: the MOVER interval (Zou & Donner 2008),
+    which recovers each side's variance from the proportions' Wilson score intervals (statsmodels), so it
+    keeps a width at 0% and 100%; for one difference, ``[(1, A), (-1, B)]``, it is Newcombe's hybrid score
+    interval, and for a gap, ``(A - B)`` in one column minus ``(A - B)`` in another, its four-term form."""
+    from statsmodels.stats.proportion import proportion_confint
+
+    value, below, above = 0.0, 0.0, 0.0
+    for c, k, n in terms:
+        p = k / n
+        lo, hi = (float(x) for x in proportion_confint(k, n, alpha=1.0 - level, method="wilson"))
+        down, up = (p - lo, hi - p) if c > 0 else (hi - p, p - lo)  # a negative coefficient swaps the sides
+        value, below, above = value + c * p, below + (c * down) ** 2, above + (c * up) ** 2
+    return 100.0 * (value - math.sqrt(below)), 100.0 * (value + math.sqrt(above))
+
+
 def newcombe_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> tuple[float, float]:
-    """Newcombe's hybrid score interval for a[0]/a[1] - b[0]/b[1] at ``level``, in points (statsmodels)."""
-    from statsmodels.stats.proportion import confint_proportions_2indep
-
-    lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff", alpha=1.0 - level)
-    return 100.0 * float(lo), 100.0 * float(hi)
+    """Newcombe's hybrid score interval for a[0]/a[1] - b[0]/b[1] at ``level``, in points."""
+    return contrast_interval(difference_terms(a, b), level)
 
 
-def with_episode_floor(d: Difference, a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> Difference:
-    """``d`` (A - B on one table column) widened to contain the pooled episodes' interval
-    (``episode_interval``), its p-value the larger of the two: seeds whose differences happen to agree
-    (rates come in steps of 1/64) leave the t-interval no width, but never remove the episodes' luck.
-    The method says so where the floor moved a bound."""
+def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float, int, int]]:
+    """A - B, each ``(successes, episodes)``, as the terms of a contrast (``contrast_interval``)."""
+    return [(1.0, *a), (-1.0, *b)]
+
+
+def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> Difference:
+    """``d`` (a contrast of table columns between rows A and B, its ``terms`` the pooled episodes)
+    widened to contain the episodes' interval (``episode_interval``), its p-value the larger of the two:
+    seeds whose differences happen to agree (rates come in steps of 1/64, and an easy column often sits at
+    100% for every seed) leave the t-interval no width, but never remove the episodes' luck. The method
+    says so where the floor moved a bound."""
     e = d.estimate
     if e.lo is None or e.hi is None or d.p is None:
         return d
-    lo, hi, p = episode_interval(a, b, level)
+    lo, hi, p = episode_interval(terms, level)
     if lo >= e.lo and hi <= e.hi and p <= d.p:
         return d
     return Difference(Estimate(e.mean, min(e.lo, lo), max(e.hi, hi)), max(d.p, p),
@@ -611,8 +631,9 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
                 continue
             va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
             d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
-            if p.on in COLUMNS and p.b_scale == 1.0:  # one table column: the episodes' floor, as for a row
-                d = with_episode_floor(d, pooled_counts(an.rows[p.a], p.on), pooled_counts(an.rows[p.b], p.on))
+            terms = episode_terms(an, p)
+            if terms:  # on single table columns: the episodes' floor, as for a row
+                d = with_episode_floor(d, terms)
             rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
                        means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
             rec["bootstrap"] = _boot_part(an, p).as_dict()
@@ -636,6 +657,20 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
         c["verdict"] = combine([p["verdict"] for p in c["parts"]])
         c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])
     return out
+
+
+def episode_terms(an: Analysis, p: Part) -> list[tuple[float, int, int]] | None:
+    """A part as a contrast of its rows' pooled episodes, ``(coefficient, successes, episodes)`` per
+    row and column, for the episodes' floor; None where it is not made of single table columns (overall,
+    a town or weather's mean of two columns: a mean of column rates, whose t-interval keeps its width) or
+    B is scaled."""
+    if p.b_scale != 1.0:
+        return None
+    sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
+    if any(col not in COLUMNS for col, _ in sides):
+        return None
+    return [(sign * side, *pooled_counts(an.rows[row], col))
+            for col, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))]
 
 
 def _boot_part(an: Analysis, p: Part) -> Estimate:
