@@ -549,3 +549,17 @@ def test_a_row_keeps_its_colour_whichever_rows_the_folder_holds(tmp_path, monkey
     assert without_gtu == {"CIL": both["CIL"], "MoE": both["MoE"]}
     # a row outside the catalogue follows it; the catalogue's rows keep their places
     assert results.row_colours(["x", "moe", "cil"], list(catalogue)) == {"x": 3, "moe": 2, "cil": 0}
+
+
+def test_a_learning_curve_of_one_seed_shows_its_value_not_a_range():
+    """One seed's curve point is a value ("60.9", not "60.9 [60.9, 60.9]", which reads like an interval
+    of no width); several seeds' is their mean with [min, max] and the count, recomputed here by hand."""
+    data = {"rows": [
+        {"label": "CIL", "curve": {"0": [{"samples": 120, "overall": 60.94}, {"samples": 240, "overall": 59.1}]}},
+        {"label": "GTU", "curve": {"0": [{"samples": 120, "overall": 50.0}],
+                                   "1": [{"samples": 120, "overall": 70.0}], "2": [{"samples": 120, "overall": 66.0}]}},
+    ]}
+    lines = results.curve_table(data)
+    assert lines[0] == "| Row | 120 samples | 240 samples |"
+    assert lines[2] == "| CIL | 60.9 | 59.1 |"
+    assert lines[3] == f"| GTU | {(50 + 70 + 66) / 3:.1f} [50.0, 70.0] (3 seeds) | – |"

@@ -948,7 +948,7 @@ def markdown(data: Mapping[str, Any]) -> str:
     lines += spread_lines(data)
     curve = curve_table(data)
     if curve:
-        lines += ["", "## Learning curve (overall success, mean over seeds [min, max])", "", *curve]
+        lines += ["", "## Learning curve (overall success: a seed's value; of several seeds, their mean [min, max])", "", *curve]
     # optional columns: cicfw only once some cell records it, the machine only where the cells come from several
     optional = [(name, value) for name, key, value in [
         ("cicfw", "code", lambda r, s: _code((r.get("code") or {}).get(s))),
@@ -998,8 +998,9 @@ def spread_lines(data: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, float, float]]]:
-    """row -> [(samples seen, mean, min, max of overall success over seeds)] for rows with a curve."""
+def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, float, float, int]]]:
+    """row -> [(samples seen, mean, min, max of overall success over seeds, number of seeds)] for rows
+    with a curve."""
     out = {}
     for r in data["rows"]:
         by_samples: dict[int, list[float]] = {}
@@ -1007,7 +1008,7 @@ def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, fl
             for p in pts:
                 by_samples.setdefault(int(p["samples"]), []).append(float(p["overall"]))
         if by_samples:
-            out[r["label"]] = [(s, float(np.mean(v)), float(np.min(v)), float(np.max(v)))
+            out[r["label"]] = [(s, float(np.mean(v)), float(np.min(v)), float(np.max(v)), len(v))
                                for s, v in sorted(by_samples.items())]
     return out
 
@@ -1018,10 +1019,13 @@ def curve_table(data: Mapping[str, Any]) -> list[str]:
         return []
     samples = sorted({s for v in pts.values() for s, *_ in v})
     lines = ["| Row | " + " | ".join(f"{s:,} samples" for s in samples) + " |", "|---|" + "---:|" * len(samples)]
+
+    def point(m: float, lo: float, hi: float, n: int) -> str:  # one seed has a value, not a range
+        return f"{m:.1f}" if n == 1 else f"{m:.1f} [{lo:.1f}, {hi:.1f}] ({n} seeds)"
+
     for label, v in pts.items():
-        d = {s: (m, lo, hi) for s, m, lo, hi in v}
-        lines.append(f"| {label} | " + " | ".join(f"{d[s][0]:.1f} [{d[s][1]:.1f}, {d[s][2]:.1f}]" if s in d else "–"
-                                                for s in samples) + " |")
+        d = {s: rest for s, *rest in v}
+        lines.append(f"| {label} | " + " | ".join(point(*d[s]) if s in d else "–" for s in samples) + " |")
     return lines
 
 
@@ -1085,7 +1089,7 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     colour = row_colours([r["row"] for r in data["rows"]], order)
     row_of = {r["label"]: r["row"] for r in data["rows"]}
     for label, v in pts.items():
-        s, m, lo, hi = (np.array(a) for a in zip(*v))
+        s, m, lo, hi, _ = (np.array(a) for a in zip(*v))
         c = _colour(plt, colour[row_of[label]])
         ax.plot(s, m, "o-", label=label, color=c)
         ax.fill_between(s, lo, hi, alpha=0.2, color=c)
