@@ -23,8 +23,9 @@ Newcombe's hybrid score interval), and its p-value is then the larger of the t-t
 that interval, so seeds whose differences happen to agree (a column's rates come in steps of 1/64 or 1/96,
 an easy column often sits at 100%) do not get a zero-width interval and p = 0; the method column says
 "widened to the episodes' interval" where it moved a bound. Overall and a town's or weather's mean of two
-columns keep their t-interval, as a row's overall does. A relative change (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same
-variances, covariance (paired) and degrees of freedom; it is unbounded when B is not clearly above 0.
+columns keep their t-interval, as a row's overall does. A relative change (``A / B - 1``) gets Fieller's
+interval for a ratio of means, with the same variances, covariance (paired) and degrees of freedom; it is
+unbounded when B is not clearly above 0.
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
@@ -948,7 +949,8 @@ def markdown(data: Mapping[str, Any]) -> str:
     lines += spread_lines(data)
     curve = curve_table(data)
     if curve:
-        lines += ["", "## Learning curve (overall success: a seed's value; of several seeds, their mean [min, max])", "", *curve]
+        heading = "## Learning curve (overall success: a seed's value; of several seeds, their mean [min, max])"
+        lines += ["", heading, "", *curve]
     # optional columns: cicfw only once some cell records it, the machine only where the cells come from several
     optional = [(name, value) for name, key, value in [
         ("cicfw", "code", lambda r, s: _code((r.get("code") or {}).get(s))),
