@@ -1,6 +1,8 @@
-"""Shared fixtures: tiny datasets in the exact CIL HDF5 layout, and composed configs."""
+"""Shared fixtures: tiny datasets in the exact CIL HDF5 layout, composed configs, and the hand formulas
+the statistics tests recompute with."""
 from __future__ import annotations
 
+import math
 import os
 import signal
 from pathlib import Path
@@ -25,6 +27,14 @@ def pytest_configure(config):
         import torch
 
         torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
+def wilson(k: int, n: int, z: float) -> tuple[float, float]:
+    """Wilson's score interval for k of n at normal quantile z, from its closed form (no library)."""
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
 
 
 @pytest.fixture

@@ -12,6 +12,8 @@ from scipy import stats
 from cicfw.bench import paired_switch as ps
 from cicfw.bench.results import COLUMNS
 
+from conftest import wilson
+
 EPISODES = 20  # per column
 
 
@@ -82,12 +84,6 @@ def test_overall_is_the_mean_of_the_columns_and_tost_matches_by_hand(tmp_path):
     assert got.on == "overall" and got.mean == pytest.approx(sum(d) / 3)
     assert got.p_tost == pytest.approx(tost_by_hand(d, 5.0), rel=1e-9)
     assert got.lo == pytest.approx(sum(d) / 3 - stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3))
-
-
-def wilson(k: int, n: int, z: float) -> tuple[float, float]:
-    p = k / n
-    centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
 
 
 def test_episode_tost_is_dual_to_newcombes_interval_by_hand():

@@ -30,8 +30,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, difference, difference_terms, load_cell,
-                                 newcombe_interval, pooled_counts, with_episode_floor)
+from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, contrast_level, difference, difference_terms,
+                                 load_cell, pooled_counts, with_episode_floor)
 from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05
@@ -77,18 +77,12 @@ def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
 
 def episode_tost(a: tuple[int, int], b: tuple[int, int], margin: float) -> float:
     """The equivalence p-value on the pooled episodes, ``(successes, episodes)`` each: the smallest alpha
-    at which Newcombe's (1 - 2 alpha) interval for A - B lies inside ±margin (TOST's duality), 1 when
-    the difference itself is not inside. The floor ``results.with_episode_floor`` gives an interval."""
-    from scipy.optimize import brentq
-
-    def excess(alpha: float) -> float:  # how far the (1 - 2 alpha) interval reaches beyond the margin
-        lo, hi = newcombe_interval(a, b, 1.0 - 2.0 * alpha)
-        return max(hi, -lo) - margin
-
-    tiny, near_half = 1e-12, 0.5 - 1e-9  # at alpha -> 0.5 the interval shrinks to the difference itself
-    if excess(near_half) >= 0:
-        return 1.0
-    return 0.0 if excess(tiny) < 0 else float(brentq(excess, tiny, near_half, xtol=1e-12))
+    at which Newcombe's (1 - 2 alpha) interval for A - B lies inside ±margin (TOST's duality: half the
+    two-sided level at which the farther bound crosses its margin), 1 when the difference itself is not
+    inside. The floor ``results.with_episode_floor`` gives an interval."""
+    terms = difference_terms(a, b)
+    levels = contrast_level(terms, "lo", -margin), contrast_level(terms, "hi", margin)
+    return 1.0 if max(levels) == 1.0 else max(levels) / 2.0
 
 
 def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float) -> list[Equivalence]:

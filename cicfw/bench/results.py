@@ -309,17 +309,29 @@ def episode_interval(terms: Sequence[tuple[float, int, int]], level: float = LEV
     Newcombe's) and the two-sided p-value dual to it, the level at which the bound nearer 0 reaches 0 (1
     when the contrast is 0). The rows drove the same episodes, and treating them as independent ignores
     that pairing, which widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
-    from scipy.optimize import brentq
-
     lo, hi = contrast_interval(terms, level)
     value = sum(c * k / n for c, k, n in terms)
     if abs(value) < 1e-12:
         return lo, hi, 1.0
-    toward_zero = ((lambda al: contrast_interval(terms, 1.0 - al)[0]) if value > 0
-                   else (lambda al: -contrast_interval(terms, 1.0 - al)[1]))
+    return lo, hi, contrast_level(terms, "lo" if value > 0 else "hi", 0.0)
+
+
+def contrast_level(terms: Sequence[tuple[float, int, int]], bound: str, target: float) -> float:
+    """The alpha at which the two-sided (1 - alpha) ``contrast_interval``'s ``bound`` ("lo" or "hi")
+    reaches ``target`` (points) as the interval narrows toward the contrast itself: the p-value dual to
+    the interval (root-found). 0 when even the (1 - 1e-12) interval's bound lies beyond ``target``, 1 when
+    the contrast itself does not."""
+    from scipy.optimize import brentq
+
+    i, sign = (0, 1.0) if bound == "lo" else (1, -1.0)
+
+    def past(alpha: float) -> float:  # > 0 once the bound has moved past target, toward the contrast
+        return sign * (contrast_interval(terms, 1.0 - alpha)[i] - target)
+
     tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the contrast itself
-    p = 0.0 if toward_zero(tiny) > 0 else float(brentq(toward_zero, tiny, near_one, xtol=1e-12))
-    return lo, hi, p
+    if past(near_one) <= 0:
+        return 1.0
+    return 0.0 if past(tiny) > 0 else float(brentq(past, tiny, near_one, xtol=1e-12))
 
 
 def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float]:
@@ -336,11 +348,6 @@ def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LE
         down, up = (p - lo, hi - p) if c > 0 else (hi - p, p - lo)  # a negative coefficient swaps the sides
         value, below, above = value + c * p, below + (c * down) ** 2, above + (c * up) ** 2
     return 100.0 * (value - math.sqrt(below)), 100.0 * (value + math.sqrt(above))
-
-
-def newcombe_interval(a: tuple[int, int], b: tuple[int, int], level: float = LEVEL) -> tuple[float, float]:
-    """Newcombe's hybrid score interval for a[0]/a[1] - b[0]/b[1] at ``level``, in points."""
-    return contrast_interval(difference_terms(a, b), level)
 
 
 def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float, int, int]]:
