@@ -18,6 +18,7 @@ P_A = np.array([0.65, 0.55, 0.50, 0.45])  # the truth: row A's success probabili
 P_B = np.array([0.60, 0.45, 0.45, 0.35])  # ... and row B's
 TRUE_OVERALL = 100 * float(np.mean(P_A - P_B))  # 7.5 points
 TRUE_NEW_NEW = 100 * float(P_A[3] - P_B[3])  # 10 points
+TRUE_GAP = TRUE_NEW_NEW - 100 * float(P_A[0] - P_B[0])  # A's advantage grows by 5 points, easy column to hard
 # a seed's shift of all its columns and its own shift per column, as probabilities: like the laptop cells,
 # whose seeds differ by 10-17 points within a column but about 6 overall
 SD_SEED, SD_SEED_COLUMN = 0.02, 0.12
@@ -117,31 +118,38 @@ def test_welch_interval_covers_when_seeds_do_not_match(n_a, n_b):
     assert welch_coverage(n_a, n_b) >= 0.93
 
 
-def floor_coverage(n_seeds: int, n_exp: int = 1000, seed: int = 2) -> dict[str, float]:
-    """Coverage of the new town / new weathers difference, paired t and then widened by the episodes' floor
-    (``with_episode_floor``, as ``judge`` applies it), on the same experiments; how often the floor moved a
-    bound. Fewer experiments than above: the floor root-finds its p-value per experiment."""
+def floor_coverage(n_seeds: int, gap: bool = False, n_exp: int = 1000, seed: int = 2) -> dict[str, float]:
+    """Coverage of the new town / new weathers difference (``gap``: that difference minus the one in the
+    training town under training weathers, TRUE_GAP), paired t and then widened by the episodes' floor
+    (``with_episode_floor`` on the pooled episodes' contrast, as ``judge`` applies it), on the same
+    experiments; how often the floor moved a bound. Fewer experiments than above: the floor root-finds its
+    p-value per experiment."""
     rng = np.random.default_rng(seed)
     pa, pb = seed_probabilities(rng, n_exp, n_seeds, 0.5)
-    ka, kb = rng.binomial(N_EP[3], pa[:, :, 3]), rng.binomial(N_EP[3], pb[:, :, 3])  # (n_exp, n_seeds)
+    ka, kb = rng.binomial(N_EP, pa), rng.binomial(N_EP, pb)  # (n_exp, n_seeds, 4) successes
+    cols, truth = ((3, 1.0), (0, -1.0)) if gap else ((3, 1.0),), (TRUE_GAP if gap else TRUE_NEW_NEW)
     covered_t = covered_floor = moved = 0
     for a, b in zip(ka, kb):
-        d = results.difference({s: 100.0 * x / N_EP[3] for s, x in enumerate(a)},
-                               {s: 100.0 * x / N_EP[3] for s, x in enumerate(b)})
-        pooled = ((int(a.sum()), n_seeds * int(N_EP[3])), (int(b.sum()), n_seeds * int(N_EP[3])))
-        f = results.with_episode_floor(d, results.difference_terms(*pooled))
-        covered_t += d.estimate.lo <= TRUE_NEW_NEW <= d.estimate.hi
-        covered_floor += f.estimate.lo <= TRUE_NEW_NEW <= f.estimate.hi
+        va = {s: sum(sign * 100.0 * a[s, c] / N_EP[c] for c, sign in cols) for s in range(n_seeds)}
+        vb = {s: sum(sign * 100.0 * b[s, c] / N_EP[c] for c, sign in cols) for s in range(n_seeds)}
+        d = results.difference(va, vb)
+        terms = [(sign * side, int(k[:, c].sum()), n_seeds * int(N_EP[c]))
+                 for c, sign in cols for k, side in ((a, 1.0), (b, -1.0))]
+        f = results.with_episode_floor(d, terms)
+        covered_t += d.estimate.lo <= truth <= d.estimate.hi
+        covered_floor += f.estimate.lo <= truth <= f.estimate.hi
         moved += f is not d
     return {"t": covered_t / n_exp, "floor": covered_floor / n_exp, "moved": moved / n_exp}
 
 
+@pytest.mark.parametrize("gap", [False, True], ids=["new_new", "gap"])
 @pytest.mark.parametrize("n_seeds", [3, 5])
-def test_the_episodes_floor_keeps_coverage_and_only_widens(n_seeds):
-    """The floor on a difference in one column (Newcombe on the pooled episodes) covers the truth at least
-    as often as the paired t-interval it widens, and at least 93% of the time."""
-    got = floor_coverage(n_seeds)
-    print(f"\n{n_seeds} seeds: {got}")
+def test_the_episodes_floor_keeps_coverage_and_only_widens(n_seeds, gap):
+    """The floor on a difference in one column (Newcombe on the pooled episodes), or on a gap between two
+    columns (its four-term MOVER), covers the truth at least as often as the paired t-interval it widens,
+    and at least 93% of the time."""
+    got = floor_coverage(n_seeds, gap)
+    print(f"\n{n_seeds} seeds, {'gap' if gap else 'new town / new weathers'}: {got}")
     assert got["floor"] >= got["t"] and got["floor"] >= 0.93 and got["moved"] > 0
 
 
@@ -160,3 +168,6 @@ if __name__ == "__main__":
         print(f"{s} seeds, bootstrap:", {k: round(v, 3) for k, v in bootstrap_coverage(s, n_exp=1000).items()})
     for a, b in ((3, 3), (5, 3), (5, 5)):
         print(f"Welch {a} vs {b} seeds:", round(welch_coverage(a, b), 3))
+    for s in (3, 5):
+        for gap in (False, True):
+            print(f"{s} seeds, episodes' floor, {'gap' if gap else 'new town / new weathers'}:", floor_coverage(s, gap))
