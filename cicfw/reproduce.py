@@ -138,7 +138,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted."""
-    from cicfw.bench.results import load_claims
+    from cicfw.bench.claims import load_claims
 
     catalogue = cfg.catalogue
     rows = [str(r) for r in (cfg.rows if OmegaConf.is_list(cfg.rows) else [cfg.rows])]
@@ -233,7 +233,7 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
 def check_outputs(cfg: DictConfig) -> None:
     """results_dir and publish_dir writable folders (or creatable), continue_from a published folder:
     checked before any cell, so nothing fails after the work is done."""
-    from cicfw.bench.results import published_manifest
+    from cicfw.bench.published import published_manifest
 
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
@@ -251,7 +251,7 @@ def check_outputs(cfg: DictConfig) -> None:
 def check_continue_machine(cfg: DictConfig) -> None:
     """``continue_machine`` filters the cells of ``continue_from``: without it, or matching none of its
     finished cells, it is a typo, refused in one line that lists the machines there."""
-    from cicfw.bench.results import finished_cells
+    from cicfw.bench.cells import finished_cells
 
     text = str(cfg.continue_machine)
     if not cfg.get("continue_from"):
@@ -352,7 +352,7 @@ def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: st
     them (no ``dataset``/``recipe``) are not checked."""
     from hydra import initialize_config_module
 
-    from cicfw.bench.results import finished_cells
+    from cicfw.bench.cells import finished_cells
 
     for name, d in finished_cells(folder).items():
         if d.get("dataset") and dataset and d["dataset"] != dataset:
@@ -378,7 +378,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     before collecting is."""
     from hydra import initialize_config_module
 
-    from cicfw.bench.results import continue_published, published_manifest
+    from cicfw.bench.published import continue_published, published_manifest
     from cicfw.train import ensure_data
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -747,7 +747,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
 def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
     import torch
 
-    from cicfw.bench.results import COLUMNS
+    from cicfw.bench.cells import COLUMNS
 
     ck = torch.load(ckpt, map_location="cpu", weights_only=True)
     rates = {k: v["rate"] for k, v in summary["cells"].items()}
@@ -777,7 +777,9 @@ def _cell_job(cfg: DictConfig) -> str:
 
 
 def write_report(cfg: DictConfig) -> dict[str, Any] | None:
-    from cicfw.bench.results import load_claims, publish, write_report as write
+    from cicfw.bench.claims import load_claims
+    from cicfw.bench.published import publish
+    from cicfw.bench.results import write_report as write
 
     results_dir = Path(cfg.results_dir)
     catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)

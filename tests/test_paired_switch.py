@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from cicfw.bench import paired_switch as ps
-from cicfw.bench.results import COLUMNS
+from cicfw.bench.cells import COLUMNS
 
 from conftest import wilson
 

@@ -17,7 +17,9 @@ from typing import Any
 import pytest
 import yaml
 
-from cicfw.bench.results import load_cells, load_claims, markdown, report_data
+from cicfw.bench.cells import load_cells
+from cicfw.bench.claims import load_claims
+from cicfw.bench.results import markdown, report_data
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 PUBLISHED = sorted(p for p in (DOCS / "results").glob("*/")

@@ -19,7 +19,7 @@ import pytest
 
 import cicfw
 from cicfw import reproduce
-from cicfw.bench import results
+from cicfw.bench.published import publish
 
 SMOKE = ["budget=smoke", "seeds=2"]
 
@@ -146,7 +146,7 @@ def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_p
     from, so the next machine continues from there (a new cell would train and be published like any)."""
     (tmp_path / "repo" / ".git").mkdir(parents=True)  # a clone: the manifest names the folder inside it
     published = tmp_path / "repo" / "docs" / "results" / "smoke"
-    results.publish(one_cell, published)  # what publish_dir=... writes, committed
+    publish(one_cell, published)  # what publish_dir=... writes, committed
     out = tmp_path / "clone" / "results"
     args = [*SMOKE, "rows=[cil]", "seeds=1", f"continue_from={published}", f"results_dir={out}",
             f"publish_dir={published}"]
@@ -170,7 +170,7 @@ def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_p
     machines, only those whose machine holds the text are copied (the others are neither copied nor run
     when not asked for), and the manifest and report say so."""
     published = tmp_path / "published"
-    results.publish(one_cell, published)
+    publish(one_cell, published)
     ours = json.loads((published / "cells" / "cil" / "seed0" / "cell.json").read_text())
     other = {**ours, "seed": 1, "machine": "2 cores (Some Other CPU), no GPU"}
     (published / "cells" / "cil" / "seed1").mkdir()
@@ -197,7 +197,7 @@ def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_p
 ])
 def test_continue_machine_typo_or_alone_is_one_line(extra, message, one_cell, tmp_path, capsys):
     published = tmp_path / "published"
-    results.publish(one_cell, published)
+    publish(one_cell, published)
     out = tmp_path / "results"
     typo = "Xeon"
     if typo in json.loads((published / "cells" / "cil" / "seed0" / "cell.json").read_text())["machine"]:
@@ -230,7 +230,7 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
     import cicfw.train
 
     published = tmp_path / "published"
-    results.publish(one_cell, published)
+    publish(one_cell, published)
     dataset = json.loads((one_cell / "reproduce.json").read_text())["pinned"]["dataset"]
     if what == "manifest":
         p = published / "reproduce.json"

@@ -20,7 +20,8 @@ import pytest
 
 from cicfw import reproduce
 from cicfw.bench import results
-from cicfw.bench.results import COLUMNS, CellResult
+from cicfw.bench.cells import COLUMNS, CellResult
+from cicfw.bench.published import publish
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "reproduce.md"
 
@@ -240,7 +241,7 @@ def test_report_files_are_readable_under_umask_022(tmp_path):
     old = os.umask(0o022)
     try:
         results.write_report(out, CATALOGUE, n_boot=50)
-        published = results.publish(out, tmp_path / "published")
+        published = publish(out, tmp_path / "published")
         md = results.write_markdown_copy(json.loads((out / "results.json").read_text()) | {"has_curve": False},
                                          tmp_path / "docs" / "RESULTS.md", tmp_path / "published")
     finally:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cicfw.bench import results
+from cicfw.bench import analysis, cells, seed_stats
 
 N_EP = np.array([96, 96, 64, 64])  # episodes per table column in the single-turn suite
 P_A = np.array([0.65, 0.55, 0.50, 0.45])  # the truth: row A's success probability per column ...
@@ -54,13 +54,13 @@ def t_coverage(n_seeds: int, split_share: float = 0.0, n_exp: int = N_EXP, seed:
     ra, rb = column_rates(rng, pa), column_rates(rng, pb)  # (n_exp, n_seeds, 4)
     oa, ob = ra.mean(axis=2), rb.mean(axis=2)  # per-seed overall: the mean of the four columns
     out = {"seed_sd_overall": float(np.mean(np.std(oa, axis=1, ddof=1)))}
-    _, lo, hi = results.paired_t_interval(oa, ob)
+    _, lo, hi = seed_stats.paired_t_interval(oa, ob)
     out["paired_overall"] = float(np.mean((lo <= TRUE_OVERALL) & (TRUE_OVERALL <= hi)))
     out["paired_overall_width"] = float(np.mean(hi - lo))
-    _, lo, hi = results.paired_t_interval(ra[:, :, 3], rb[:, :, 3])
+    _, lo, hi = seed_stats.paired_t_interval(ra[:, :, 3], rb[:, :, 3])
     out["paired_new_new"] = float(np.mean((lo <= TRUE_NEW_NEW) & (TRUE_NEW_NEW <= hi)))
     out["paired_new_new_width"] = float(np.mean(hi - lo))
-    _, lo, hi = results.t_interval(oa)
+    _, lo, hi = seed_stats.t_interval(oa)
     truth_a = 100 * float(P_A.mean())
     out["row_overall"] = float(np.mean((lo <= truth_a) & (truth_a <= hi)))
     out["row_overall_width"] = float(np.mean(hi - lo))
@@ -73,30 +73,30 @@ def welch_coverage(n_a: int, n_b: int, n_exp: int = N_EXP, seed: int = 1) -> flo
     pa, _ = seed_probabilities(rng, n_exp, n_a, 0.0)
     _, pb = seed_probabilities(rng, n_exp, n_b, 0.0)
     oa, ob = column_rates(rng, pa).mean(axis=2), column_rates(rng, pb).mean(axis=2)
-    _, lo, hi = results.welch_t_interval(oa, ob)
+    _, lo, hi = seed_stats.welch_t_interval(oa, ob)
     return float(np.mean((lo <= TRUE_OVERALL) & (TRUE_OVERALL <= hi)))
 
 
 def bootstrap_coverage(n_seeds: int, n_exp: int = 300, n_boot: int = 400, seed: int = 2) -> dict[str, float]:
-    """The old two-level episode bootstrap (``results.bootstrap_replicates``, seeds then episodes, episode
+    """The old two-level episode bootstrap (``analysis.bootstrap_replicates``, seeds then episodes, episode
     draw shared by the rows) on the same kind of experiments, episode by episode; and the paired
     t-interval on the very same experiments."""
     rng = np.random.default_rng(seed)
-    columns = np.repeat(np.array(results.COLUMNS), N_EP)  # episode -> its column
+    columns = np.repeat(np.array(cells.COLUMNS), N_EP)  # episode -> its column
     keys = [f"e{i:03d}" for i in range(len(columns))]
     pa, pb = seed_probabilities(rng, n_exp, n_seeds, 0.0)
     hit_boot, hit_t, widths = 0, 0, []
     for e in range(n_exp):
         ma = (rng.random((n_seeds, len(columns))) < np.repeat(pa[e], N_EP, axis=1)).astype(float)
         mb = (rng.random((n_seeds, len(columns))) < np.repeat(pb[e], N_EP, axis=1)).astype(float)
-        draws = results.episode_draws(keys, columns, rng, n_boot)
-        d = (results.bootstrap_replicates(ma, draws, rng, n_boot)[:, 4]
-             - results.bootstrap_replicates(mb, draws, rng, n_boot)[:, 4])
-        lo, hi = results.percentile_interval(d)
+        draws = analysis.episode_draws(keys, columns, rng, n_boot)
+        d = (analysis.bootstrap_replicates(ma, draws, rng, n_boot)[:, 4]
+             - analysis.bootstrap_replicates(mb, draws, rng, n_boot)[:, 4])
+        lo, hi = analysis.percentile_interval(d)
         hit_boot += lo <= TRUE_OVERALL <= hi
         widths.append(hi - lo)
-        per_col = lambda m: np.stack([m[:, columns == c].mean(axis=1) for c in results.COLUMNS], 1).mean(1)  # noqa: E731
-        _, tlo, thi = results.paired_t_interval(100 * per_col(ma), 100 * per_col(mb))
+        per_col = lambda m: np.stack([m[:, columns == c].mean(axis=1) for c in cells.COLUMNS], 1).mean(1)  # noqa: E731
+        _, tlo, thi = seed_stats.paired_t_interval(100 * per_col(ma), 100 * per_col(mb))
         hit_t += tlo <= TRUE_OVERALL <= thi
     return {"bootstrap": hit_boot / n_exp, "bootstrap_width": float(np.mean(widths)), "paired_t": hit_t / n_exp}
 
@@ -132,10 +132,10 @@ def floor_coverage(n_seeds: int, gap: bool = False, n_exp: int = 1000, seed: int
     for a, b in zip(ka, kb):
         va = {s: sum(sign * 100.0 * a[s, c] / N_EP[c] for c, sign in cols) for s in range(n_seeds)}
         vb = {s: sum(sign * 100.0 * b[s, c] / N_EP[c] for c, sign in cols) for s in range(n_seeds)}
-        d = results.difference(va, vb)
+        d = seed_stats.difference(va, vb)
         terms = [(sign * side, int(k[:, c].sum()), n_seeds * int(N_EP[c]))
                  for c, sign in cols for k, side in ((a, 1.0), (b, -1.0))]
-        f = results.with_episode_floor(d, terms)
+        f = seed_stats.with_episode_floor(d, terms)
         covered_t += d.estimate.lo <= truth <= d.estimate.hi
         covered_floor += f.estimate.lo <= truth <= f.estimate.hi
         moved += f is not d

@@ -12,10 +12,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cicfw.bench import results
-from cicfw.bench.results import (COLUMNS, CONTRADICTED, INCONCLUSIVE, NOT_RUN, SUPPORTED, TOO_FEW, CellResult,
-                                 Claim, Part, analyse, combine, difference, holm, judge, load_claims, markdown,
-                                 ratio_interval, report_data, row_estimate, t_interval)
+from cicfw.bench import results, seed_stats
+from cicfw.bench.cells import COLUMNS, CellResult
+from cicfw.bench.analysis import analyse, row_estimate
+from cicfw.bench.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, SUPPORTED, TOO_FEW, Claim, Part, _boot_part,
+                                combine, default_claims, judge, load_claims)
+from cicfw.bench.results import markdown, report_data
+from cicfw.bench.seed_stats import difference, holm, ratio_interval, t_interval
 
 from conftest import wilson
 
@@ -110,7 +113,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     """29 of 192 against 50 of 192 (GTU and CCE+MSE in the new town under new weathers on the Xeon): the
     interval is Newcombe's from Wilson's closed form with z = 1.959964; at the p-value's level
     (z = the normal quantile 1 - p/2) its upper bound is 0. Both rows at 100%: width, p = 1."""
-    lo, hi, p = results.episode_interval(results.difference_terms((29, 192), (50, 192)))
+    lo, hi, p = seed_stats.episode_interval(seed_stats.difference_terms((29, 192), (50, 192)))
     assert (lo, hi) == pytest.approx(newcombe((29, 192), (50, 192), 1.959964), abs=1e-3)
     assert lo == pytest.approx(-18.85, abs=0.05) and hi < 0
     z = float(stats.norm.ppf(1 - p / 2))
@@ -118,7 +121,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     # the chi-square test of the 2x2 table (uncorrected), a close relative, lands near it
     chi = stats.chi2_contingency([[29, 163], [50, 142]], correction=False).pvalue
     assert 0.5 * chi < p < 2 * chi
-    lo, hi, p = results.episode_interval(results.difference_terms((96, 96), (96, 96)))
+    lo, hi, p = seed_stats.episode_interval(seed_stats.difference_terms((96, 96), (96, 96)))
     assert p == 1.0 and (lo, hi) == pytest.approx(newcombe((96, 96), (96, 96), 1.959964), abs=1e-3) and hi > 3.0
 
 
@@ -311,7 +314,7 @@ def test_the_contrast_interval_of_one_difference_is_statsmodels_newcombe():
         for level in (0.95, 0.90):
             lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff",
                                                 alpha=1 - level)
-            got = results.contrast_interval(results.difference_terms(a, b), level)
+            got = seed_stats.contrast_interval(seed_stats.difference_terms(a, b), level)
             assert got == pytest.approx((100 * lo, 100 * hi), abs=1e-6)
 
 
@@ -328,10 +331,10 @@ def test_a_gaps_episode_interval_by_hand():
         below += (p - lo) ** 2 if c > 0 else (hi - p) ** 2
         above += (hi - p) ** 2 if c > 0 else (p - lo) ** 2
     want = (100 * (value - math.sqrt(below)), 100 * (value + math.sqrt(above)))
-    lo, hi, p = results.episode_interval(terms)
+    lo, hi, p = seed_stats.episode_interval(terms)
     assert (lo, hi) == pytest.approx(want, abs=1e-3)
     assert lo > 0 and 0 < p < 0.05
-    assert results.contrast_interval(terms, 1 - p)[0] == pytest.approx(0.0, abs=1e-6)  # p is dual to it
+    assert seed_stats.contrast_interval(terms, 1 - p)[0] == pytest.approx(0.0, abs=1e-6)  # p is dual to it
 
 
 def test_a_gap_whose_easy_column_is_full_still_gets_the_episodes_interval():
@@ -379,7 +382,7 @@ def test_the_paper_claims_come_from_the_config_with_their_sentences():
     """conf/reproduce.yaml holds the claims: the headline (GTU vs CIL in the new town under new weathers,
     relative), GTU vs CCE+MSE there, 'failed to improve' as not-better-than; each quote is the paper's
     own sentence (checked against the LaTeX source where the shared folder is present)."""
-    claims = {c.id: c for c in results.default_claims()}
+    claims = {c.id: c for c in default_claims()}
     head = claims["headline"].parts[0]
     assert (head.a, head.b, head.on, head.test, head.relative) == ("gtu", "cil", COLUMNS[3], "greater", True)
     assert "by 62\\%" in claims["headline"].quote
@@ -450,7 +453,7 @@ def test_bootstrap_paired_difference_of_identical_rows_is_exactly_zero():
     the episode draw is shared (paired), so the bootstrap interval is [0, 0]."""
     outs = [1, 0, 1, 1, 0, 1, 0, 1]
     an = analyse([same_in_every_column("a", 0, outs), same_in_every_column("b", 0, outs)], n_boot=2000)
-    d = results._boot_part(an, Part("a", "b"))
+    d = _boot_part(an, Part("a", "b"))
     assert (d.mean, d.lo, d.hi) == (0.0, 0.0, 0.0)
 
 

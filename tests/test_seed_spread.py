@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cicfw.bench.results import COLUMNS, CellResult, markdown, report_data
+from cicfw.bench.cells import COLUMNS, CellResult
+from cicfw.bench.results import markdown, report_data
 from cicfw.bench.seed_spread import seed_spread
 
 

@@ -30,8 +30,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.results import (COLUMNS, MIN_SEEDS, CellResult, contrast_level, difference, difference_terms,
-                                 load_cell, pooled_counts, with_episode_floor)
+from cicfw.bench.cells import COLUMNS, CellResult, load_cell, pooled_counts
+from cicfw.bench.seed_stats import MIN_SEEDS, contrast_level, difference, difference_terms, with_episode_floor
 from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05

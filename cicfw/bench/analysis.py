@@ -1,0 +1,119 @@
+"""One results folder analysed: every row's estimate per column with its t-interval over seeds (primary)
+and the two-level episode bootstrap beside it (secondary)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from cicfw.bench.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
+from cicfw.bench.seed_stats import LEVEL, Estimate, pooled_clopper_pearson, t_interval
+
+
+def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:
+    """A row's mean over seeds on ``on`` with its t-interval over seeds; on a single table column the
+    interval is widened to contain the pooled episodes' Clopper-Pearson interval. No interval for one seed."""
+    v = np.array([c.value(on) for c in cells])
+    mean, lo, hi = (float(x) for x in t_interval(v, level))
+    if len(v) < 2:
+        return Estimate(mean, None, None)
+    if len(SELECTORS[on]) == 1:
+        col = COLUMNS[SELECTORS[on][0]]
+        cp_lo, cp_hi = pooled_clopper_pearson(*pooled_counts(cells, col), level)
+        lo, hi = min(lo, cp_lo), max(hi, cp_hi)
+    return Estimate(mean, max(lo, 0.0), min(hi, 100.0))  # a rate lies in [0, 100]
+
+
+# ------------------------------------------------------------------------------------------------
+# the two-level episode bootstrap (secondary)
+
+
+def _matrix(cells: Sequence[CellResult], keys: Sequence[str]) -> np.ndarray:
+    """(seeds, episodes) success matrix of one row's cells, episodes in ``keys`` order."""
+    return np.array([[float(c.episodes[k]["success"]) for k in keys] for c in cells])
+
+
+def bootstrap_replicates(m: np.ndarray, ep_draws: Mapping[str, np.ndarray], rng: np.random.Generator,
+                         n_boot: int) -> np.ndarray:
+    """(n_boot, 5) two-level bootstrap replicates of [column rates..., overall] (in %) of one row whose
+    (seeds, episodes) success matrix is ``m``: the seeds drawn with replacement, the episodes of each
+    column drawn by ``ep_draws`` (shared across rows)."""
+    s = m.shape[0]
+    seeds = rng.integers(0, s, size=(n_boot, s))  # seed draw, per replicate
+    cols = []
+    for c in COLUMNS:
+        per_seed_rates = m[:, ep_draws[c]].mean(axis=2).T  # (n_boot, S): each seed on the drawn episodes
+        cols.append(np.take_along_axis(per_seed_rates, seeds, axis=1).mean(axis=1))
+    out = 100.0 * np.stack(cols, axis=1)
+    return np.concatenate([out, out.mean(axis=1, keepdims=True)], axis=1)
+
+
+def episode_draws(keys: Sequence[str], columns: Sequence[str], rng: np.random.Generator,
+                  n_boot: int) -> dict[str, np.ndarray]:
+    """Per table column, ``n_boot`` draws (with replacement) of that column's episode positions."""
+    cols = np.asarray(columns)
+    out = {}
+    for c in COLUMNS:
+        pos = np.flatnonzero(cols == c)
+        if len(pos) == 0:
+            raise ValueError(f"the suite has no episode in column {c!r}: the table needs all four columns")
+        out[c] = pos[rng.integers(0, len(pos), size=(n_boot, len(pos)))]
+    return out
+
+
+def percentile_interval(samples: np.ndarray, level: float = LEVEL) -> tuple[float, float]:
+    """The percentile interval of bootstrap replicates: their (1 - level) / 2 and (1 + level) / 2 quantiles."""
+    a = (1.0 - level) / 2.0
+    lo, hi = np.quantile(samples, [a, 1.0 - a])
+    return float(lo), float(hi)
+
+
+def boot_value(rep: np.ndarray, on: str) -> np.ndarray:
+    """A selector's value (the mean of its columns) in each of ``bootstrap_replicates``' replicates."""
+    return rep[:, list(SELECTORS[on])].mean(axis=1)
+
+
+# ------------------------------------------------------------------------------------------------
+# the analysis of one results folder
+
+
+@dataclass
+class Analysis:
+    """Every row's estimates (per column + overall): t-intervals over seeds (primary) and the two-level
+    episode bootstrap (secondary, with its replicates, all on one episode draw)."""
+
+    rows: dict[str, list[CellResult]]
+    estimates: dict[str, list[Estimate]]  # row -> 5 estimates (4 columns + overall), t over seeds
+    bootstrap: dict[str, list[Estimate]]  # row -> 5 estimates, the episode bootstrap
+    replicates: dict[str, np.ndarray]  # row -> (n_boot, 5)
+    n_boot: int
+
+    def per_seed(self, row: str, on: str) -> dict[int, float]:
+        return {c.seed: c.value(on) for c in self.rows[row]}
+
+
+def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> Analysis:
+    """Group cells by row, check they drove the same episodes, estimate every row (t over seeds) and
+    bootstrap it (secondary)."""
+    rows: dict[str, list[CellResult]] = {}
+    for c in sorted(cells, key=lambda c: (c.row, c.seed)):
+        rows.setdefault(c.row, []).append(c)
+    if not rows:
+        raise ValueError("no finished cell to analyse")
+    first = next(iter(rows.values()))[0]
+    keys = sorted(first.episodes)
+    for row, cs in rows.items():
+        for c in cs:
+            if sorted(c.episodes) != keys:
+                raise ValueError(f"cell {row}/seed{c.seed} drove other episodes than {first.row}/seed{first.seed}: "
+                                 f"cells of one results folder must share the suite")
+    columns = [first.episodes[k]["column"] for k in keys]
+    rng = np.random.default_rng(seed)
+    draws = episode_draws(keys, columns, rng, n_boot)
+    reps, est, boot = {}, {}, {}
+    for row, cs in rows.items():
+        reps[row] = bootstrap_replicates(_matrix(cs, keys), draws, rng, n_boot)
+        est[row] = [row_estimate(cs, on) for on in [*COLUMNS, "overall"]]
+        boot[row] = [Estimate(e.mean, *percentile_interval(reps[row][:, i])) for i, e in enumerate(est[row])]
+    return Analysis(rows=rows, estimates=est, bootstrap=boot, replicates=reps, n_boot=n_boot)

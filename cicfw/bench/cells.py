@@ -1,0 +1,85 @@
+"""A reproduction's cells as data: one ``cell.json`` per (row, seed), every episode's outcome, and the
+table's columns and selectors (a column, a town, a weather, overall) that results are read on."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from cicfw.bench.runs import cell_key, cell_name
+from cicfw.bench.suite import CELLS
+
+COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
+COLUMN_NAMES = tuple(cell_name(*c) for c in CELLS)
+#: what a part of a claim compares: one table column, or the mean of several (overall: all four)
+SELECTORS: dict[str, tuple[int, ...]] = {
+    **{c: (i,) for i, c in enumerate(COLUMNS)},
+    "overall": (0, 1, 2, 3),
+    "training_town": (0, 1), "new_town": (2, 3), "training_weathers": (0, 2), "new_weathers": (1, 3),
+}
+SELECTOR_NAMES = {**dict(zip(COLUMNS, COLUMN_NAMES)), "overall": "overall", "training_town": "training town",
+                  "new_town": "new town", "training_weathers": "training weathers", "new_weathers": "new weathers"}
+
+
+@dataclass
+class CellResult:
+    """One finished (row, seed) cell: every episode's success, keyed by episode key."""
+
+    row: str
+    seed: int
+    episodes: dict[str, dict[str, Any]]  # key -> {"success": bool, "column": str, "command": str}
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def rate(self, column: str | None = None) -> float:
+        """Success (%) on one table column, or the mean of the four columns (``None``)."""
+        if column is None:
+            return float(np.mean([self.rate(c) for c in COLUMNS]))
+        v = [e["success"] for e in self.episodes.values() if e["column"] == column]
+        return 100.0 * float(np.mean(v)) if v else float("nan")
+
+    def value(self, on: str) -> float:
+        """Success (%) on a selector of ``SELECTORS``: the mean of its columns' rates."""
+        return float(np.mean([self.rate(COLUMNS[i]) for i in SELECTORS[on]]))
+
+    def counts(self, column: str, command: str | None = None) -> tuple[int, int]:
+        """(successes, episodes) in one table column, or in its episodes of one command."""
+        v = [bool(e["success"]) for e in self.episodes.values()
+             if e["column"] == column and (command is None or e.get("command") == command)]
+        return sum(v), len(v)
+
+
+def load_cell(path: Path) -> CellResult | dict[str, Any]:
+    """One ``cell.json``: its CellResult when it finished (status ok), else the file's dict as it is."""
+    d = json.loads(Path(path).read_text())
+    if d.get("status") == "ok":
+        return CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
+    return d
+
+
+def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
+    """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
+    ok, failed = [], []
+    for p in sorted(Path(results_dir).glob("cells/*/seed*/cell.json")):
+        c = load_cell(p)
+        (ok if isinstance(c, CellResult) else failed).append(c)
+    return ok, failed
+
+
+def pooled_counts(cells: Sequence[CellResult], column: str) -> tuple[int, int]:
+    """(successes, episodes) in one table column, pooled over ``cells``: the episodes' floor's input."""
+    k, n = (sum(x) for x in zip(*(c.counts(column) for c in cells)))
+    return k, n
+
+
+def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
+    """``row/seedK`` -> cell.json of every finished (status ok) cell under ``folder``."""
+    out = {}
+    for f in sorted(Path(folder).glob("cells/*/seed*/cell.json")):
+        d = json.loads(f.read_text())
+        if d.get("status") == "ok":
+            out[f"{f.parent.parent.name}/{f.parent.name}"] = d
+    return out
+

@@ -1,0 +1,227 @@
+"""The paper's claims as tested parts (data: ``claims:`` in conf/reproduce.yaml) and their verdicts:
+each part's difference over seeds, its p-value, Holm's over the family, the paper's own figure."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from cicfw.bench.analysis import Analysis, boot_value, percentile_interval
+from cicfw.bench.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, pooled_counts
+from cicfw.bench.seed_stats import Estimate, difference, holm, ratio_interval, with_episode_floor
+
+SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
+TOO_FEW = "too few seeds"
+TESTS = ("greater", "less", "not_greater")
+
+
+def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
+    """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not."""
+    return sum(len(c["parts"]) for c in claims)
+
+
+@dataclass(frozen=True)
+class Part:
+    """One tested part of a claim: A - b_scale x B on ``on`` (a selector), or, with ``on="gap"``, A's
+    advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
+    (``greater``, ``less``, ``not_greater``); ``relative`` also reports A / B - 1."""
+
+    a: str
+    b: str
+    on: str = "overall"
+    test: str = "greater"
+    relative: bool = False
+    hard: str | None = None
+    easy: str | None = None
+    b_scale: float = 1.0
+
+    def text(self, labels: Mapping[str, str]) -> str:
+        la, lb = labels.get(self.a, self.a), labels.get(self.b, self.b)
+        lb = lb if self.b_scale == 1.0 else f"{self.b_scale:g} x {lb}"
+        if self.on == "gap":
+            return (f"{la} − {lb} larger in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}"
+                    if self.test != "less" else
+                    f"{la} − {lb} smaller in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}")
+        op = {"greater": ">", "less": "<", "not_greater": "not better than"}[self.test]
+        return f"{la} {op} {lb} ({SELECTOR_NAMES[self.on]})"
+
+    def values(self, per_seed: Any, row: str) -> dict[int, float]:
+        """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)`` gives a selector's)."""
+        if self.on == "gap":
+            hard, easy = per_seed(row, self.hard), per_seed(row, self.easy)
+            return {s: hard[s] - easy[s] for s in hard}
+        return per_seed(row, self.on)
+
+    def paper(self, paper: Mapping[str, Sequence[float]]) -> float | None:
+        """The paper's value of this difference (from its Table 4), None when a row has no paper values."""
+        if not paper.get(self.a) or not paper.get(self.b):
+            return None
+        val = lambda row, on: float(np.mean([paper[row][i] for i in SELECTORS[on]]))  # noqa: E731
+        if self.on == "gap":
+            return ((val(self.a, self.hard) - self.b_scale * val(self.b, self.hard))
+                    - (val(self.a, self.easy) - self.b_scale * val(self.b, self.easy)))
+        return val(self.a, self.on) - self.b_scale * val(self.b, self.on)
+
+    def paper_relative(self, paper: Mapping[str, Sequence[float]]) -> float | None:
+        if not self.relative or not paper.get(self.a) or not paper.get(self.b) or self.on == "gap":
+            return None
+        va, vb = (float(np.mean([paper[r][i] for i in SELECTORS[self.on]])) for r in (self.a, self.b))
+        return va / vb - 1.0 if vb else None
+
+
+@dataclass(frozen=True)
+class Claim:
+    id: str
+    text: str
+    parts: tuple[Part, ...]
+    quote: str = ""
+    source: str = ""
+
+
+def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
+    """Claims from their data (``claims:`` in conf/reproduce.yaml), checked: one clear error per bad entry."""
+    out = []
+    for k, c in enumerate(spec or []):
+        where = f"claims[{k}] ({c.get('id', '?')})"
+        for key in ("id", "claim", "parts"):
+            if not c.get(key):
+                raise ValueError(f"{where} has no {key!r}; a claim needs id, claim, quote, source and parts")
+        parts = []
+        for j, p in enumerate(c["parts"]):
+            p = dict(p)
+            unknown = {str(k) for k in p} - {"a", "b", "column", "test", "relative", "hard", "easy", "b_scale"}
+            if unknown or "a" not in p or "b" not in p:
+                raise ValueError(f"{where} part {j}: needs a and b; accepted keys: a, b, column, test, relative, hard, "
+                                 f"easy, b_scale" + (f" (unknown: {', '.join(sorted(unknown))})" if unknown else ""))
+            on = p.get("column", "overall")
+            sels = [p.get("hard"), p.get("easy")] if on == "gap" else [on]
+            for s in sels:
+                if s not in SELECTORS:
+                    raise ValueError(f"{where} part {j}: unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
+                                     + (" (a gap needs hard and easy)" if on == "gap" else ", gap"))
+            if p.get("test", "greater") not in TESTS:
+                raise ValueError(f"{where} part {j}: unknown test {p.get('test')!r}; accepted: {', '.join(TESTS)}")
+            parts.append(Part(a=str(p["a"]), b=str(p["b"]), on=on, test=p.get("test", "greater"),
+                              relative=bool(p.get("relative", False)), hard=p.get("hard"), easy=p.get("easy"),
+                              b_scale=float(p.get("b_scale", 1.0))))
+        out.append(Claim(id=str(c["id"]), text=str(c["claim"]), parts=tuple(parts), quote=str(c.get("quote") or ""),
+                         source=str(c.get("source") or "")))
+    return out
+
+
+def default_claims() -> list[Claim]:
+    """The paper's claims as shipped in ``conf/reproduce.yaml`` (``claims:``), read as plain YAML (no Hydra
+    state is touched, so this works inside a running app too)."""
+    from importlib.resources import files
+
+    import yaml
+
+    return load_claims(yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["claims"])
+
+
+def part_verdict(test: str, mean: float, significant: bool) -> str:
+    """A part's verdict from its direction and whether the difference is significant."""
+    if test == "not_greater":
+        return CONTRADICTED if significant and mean > 0 else SUPPORTED
+    if not significant or mean == 0:
+        return INCONCLUSIVE
+    up = mean > 0
+    return SUPPORTED if up == (test == "greater") else CONTRADICTED
+
+
+def combine(verdicts: Sequence[str]) -> str:
+    """A claim's verdict from its parts': contradicted > not run > too few seeds > inconclusive > supported."""
+    if not verdicts:
+        return NOT_RUN
+    for v in (CONTRADICTED, NOT_RUN, TOO_FEW, INCONCLUSIVE):
+        if v in verdicts:
+            return v
+    return SUPPORTED
+
+
+def _excludes_zero(e: Estimate) -> bool:
+    return e.lo is not None and e.hi is not None and (e.lo > 0 or e.hi < 0)
+
+
+def _pct_change(r: float | None) -> float | None:
+    return None if r is None or (isinstance(r, float) and math.isnan(r)) else round(100.0 * (r - 1.0), 1)
+
+
+def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[float]],
+          labels: Mapping[str, str]) -> list[dict[str, Any]]:
+    """Every claim with each part's measured difference (t-interval over seeds), its two-sided p-value,
+    the Holm-adjusted p-value over the family of every claim's parts (fixed in advance: a part without a
+    verdict counts as p = 1), the paper's difference, the episode
+    bootstrap's interval (secondary) and the verdicts, uncorrected and Holm."""
+    out, family = [], []
+    for claim in claims:
+        parts = []
+        for p in claim.parts:
+            rec: dict[str, Any] = {"comparison": p.text(labels), "test": p.test, "on": p.on, "paper": p.paper(paper)}
+            if p.relative:
+                rec["relative"] = {"paper": _pct_change(None if p.paper_relative(paper) is None
+                                                        else 1.0 + p.paper_relative(paper))}
+            if p.a not in an.rows or p.b not in an.rows:
+                rec.update(verdict=NOT_RUN, verdict_holm=NOT_RUN, method="–")
+                parts.append(rec)
+                continue
+            va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
+            d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
+            terms = episode_terms(an, p)
+            if terms:  # on single table columns: the episodes' floor, as for a row
+                d = with_episode_floor(d, terms)
+            rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
+                       means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
+            rec["bootstrap"] = _boot_part(an, p).as_dict()
+            if p.relative:
+                r, lo, hi = ratio_interval([va[s] for s in sorted(va)], [vb[s] for s in sorted(vb)], d.paired)
+                rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi))
+            if not d.enough_seeds:
+                rec.update(verdict=TOO_FEW, verdict_holm=TOO_FEW)
+            else:
+                rec["verdict"] = part_verdict(p.test, d.estimate.mean, _excludes_zero(d.estimate))
+                family.append(rec)
+            parts.append(rec)
+        out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
+                    "parts": parts})
+    # the family is fixed in advance: every part of every claim, tested or not (``holm``'s family_size)
+    adjusted, reject = holm([r["p"] for r in family], family_size=holm_family_size(out))
+    for rec, padj, rej in zip(family, adjusted, reject):
+        rec["p_holm"] = padj
+        rec["verdict_holm"] = part_verdict(rec["test"], rec["measured"]["mean"], rej)
+    for c in out:
+        c["verdict"] = combine([p["verdict"] for p in c["parts"]])
+        c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])
+    return out
+
+
+def episode_terms(an: Analysis, p: Part) -> list[tuple[float, int, int]] | None:
+    """A part as a contrast of its rows' pooled episodes, ``(coefficient, successes, episodes)`` per
+    row and column, for the episodes' floor; None where it is not made of single table columns (overall,
+    a town or weather's mean of two columns: a mean of column rates, whose t-interval keeps its width) or
+    B is scaled."""
+    if p.b_scale != 1.0:
+        return None
+    sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
+    if any(col not in COLUMNS for col, _ in sides):
+        return None
+    return [(sign * side, *pooled_counts(an.rows[row], col))
+            for col, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))]
+
+
+def _boot_part(an: Analysis, p: Part) -> Estimate:
+    """A part's difference in the episode bootstrap's replicates (secondary): the same statistic on
+    every replicate of A and B (paired by episode draw, seeds drawn per row)."""
+    ra, rb = an.replicates[p.a], an.replicates[p.b]
+    if p.on == "gap":
+        d = ((boot_value(ra, p.hard) - p.b_scale * boot_value(rb, p.hard))
+             - (boot_value(ra, p.easy) - p.b_scale * boot_value(rb, p.easy)))
+        va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
+    else:
+        d = boot_value(ra, p.on) - p.b_scale * boot_value(rb, p.on)
+        va, vb = an.per_seed(p.a, p.on), an.per_seed(p.b, p.on)
+    mean = float(np.mean(list(va.values())) - p.b_scale * np.mean(list(vb.values())))
+    return Estimate(mean, *percentile_interval(d))
+

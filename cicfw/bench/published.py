@@ -1,0 +1,70 @@
+"""Published results folders (docs/results/<name>): copy a reproduction's small results there, and
+continue one from a fresh clone (its finished cells copied back, so the launcher skips them)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from cicfw.bench.cells import finished_cells
+from cicfw.files import atomic_write
+
+
+def publish(results_dir: Path, dest: Path) -> list[Path]:
+    """Copy a reproduction's small results into ``dest`` (for committing): RESULTS.md, results.json/.csv,
+    the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs)."""
+    results_dir, dest = Path(results_dir), Path(dest)
+    names = ["RESULTS.md", "results.json", "results.csv", "results.png", "learning_curve.png", "reproduce.json"]
+    files = [results_dir / n for n in names if (results_dir / n).is_file()]
+    files += sorted(results_dir.glob("cells/*/seed*/cell.json"))
+    out = []
+    if dest.exists() and not dest.is_dir():
+        raise ValueError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
+    for f in files:
+        target = dest / f.relative_to(results_dir)
+        if target.resolve() != f.resolve():
+            atomic_write(target, f.read_bytes())
+        out.append(target)
+    return out
+
+
+def published_manifest(src: Path) -> dict[str, Any]:
+    """The manifest (``reproduce.json``) of a published results folder, or one line saying what it is not."""
+    src = Path(src)
+    if not src.is_dir():
+        raise ValueError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
+                         f"(reproduce.json and cells/<row>/seed<k>/cell.json, e.g. docs/results/<budget>)")
+    try:
+        return json.loads((src / "reproduce.json").read_text())
+    except FileNotFoundError:
+        raise ValueError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
+                         f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"continue_from={str(src)!r}: reproduce.json is not JSON ({err})") from None
+
+
+def continue_published(src: Path, results_dir: Path, machine: str | None = None) -> dict[str, list[str]]:
+    """Copy into ``results_dir`` every finished cell of the published results folder ``src`` (as ``publish``
+    writes it, e.g. docs/results/<budget>) that ``results_dir`` lacks, so the launcher skips it and a fresh
+    clone grows the same table. The caller has checked that ``src`` is pinned to the same budget, suite and
+    dataset and that its cells were trained as this cicfw trains them (``cicfw.reproduce``). Never
+    overwritten: a finished cell ``results_dir`` already has. Not copied: failed cells (they are retried)
+    and, with ``machine``, cells whose ``machine`` does not contain that text (a table made within one kind
+    of CPU: the same seed trains another model on another kind). Returns {"copied": [...], "kept": [...],
+    "other_machine": [...]} (``row/seedK`` names)."""
+    src, results_dir = Path(src), Path(results_dir)
+    copied, kept, other = [], [], []
+    have = finished_cells(results_dir)
+    for name, cell in finished_cells(src).items():
+        if machine is not None and machine not in str(cell.get("machine") or ""):
+            other.append(name)
+            continue
+        if name in have:
+            kept.append(name)
+            continue
+        rel = Path("cells", *name.split("/"), "cell.json")
+        if (results_dir / rel).resolve() != (src / rel).resolve():
+            atomic_write(results_dir / rel, (src / rel).read_bytes())
+        copied.append(name)
+    return {"copied": copied, "kept": kept, "other_machine": other}
+

@@ -1,0 +1,236 @@
+"""Intervals with the seed as the unit of replication, the episodes' floor under them and Holm's control
+of a family of tests: plain numbers in, no cells (the method as the report states it is
+``cicfw.bench.results``'s docstring)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+LEVEL = 0.95
+ALPHA = 1.0 - LEVEL
+#: a row needs this many seeds for a verdict (fewer: reported, "too few seeds")
+MIN_SEEDS = 3
+
+
+def t_quantile(n: int | np.ndarray, level: float = LEVEL) -> np.ndarray:
+    """Student's t quantile ``t_{(1+level)/2, n-1}`` for ``n`` seeds (scipy.stats.t)."""
+    return stats.t.ppf(0.5 + level / 2.0, np.asarray(n) - 1)
+
+
+def t_interval(values: np.ndarray, level: float = LEVEL, axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, lo, hi) of the t-interval over ``values`` along ``axis`` (the seeds):
+    ``mean ± t_{(1+level)/2, n-1} · sd / sqrt(n)``, sd with n - 1 (vectorised over the other axes).
+    With one value the bounds are NaN."""
+    v = np.asarray(values, dtype=float)
+    n = v.shape[axis]
+    mean = v.mean(axis=axis)
+    if n < 2:
+        nan = np.full_like(mean, np.nan)
+        return mean, nan, nan
+    half = t_quantile(n, level) * v.std(axis=axis, ddof=1) / math.sqrt(n)
+    return mean, mean - half, mean + half
+
+
+def paired_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
+                      axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A - B paired by seed: the t-interval over the per-seed differences ``a_s - b_s`` (n - 1 df)."""
+    return t_interval(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), level, axis)
+
+
+def welch_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
+                     axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A - B over unpaired seeds: Welch's t-interval (``scipy.stats.ttest_ind(equal_var=False)``,
+    Welch-Satterthwaite degrees of freedom), vectorised over the other axes."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ci = stats.ttest_ind(a, b, equal_var=False, axis=axis).confidence_interval(level)
+    return a.mean(axis=axis) - b.mean(axis=axis), np.asarray(ci.low), np.asarray(ci.high)
+
+
+def pooled_clopper_pearson(successes: int, episodes: int, level: float = LEVEL) -> tuple[float, float]:
+    """The Clopper-Pearson interval (%) of ``successes`` of ``episodes`` (statsmodels, method "beta")."""
+    from statsmodels.stats.proportion import proportion_confint
+
+    lo, hi = proportion_confint(successes, episodes, alpha=1.0 - level, method="beta")
+    return 100.0 * float(lo), 100.0 * float(hi)
+
+
+def ratio_interval(a: Sequence[float], b: Sequence[float], paired: bool,
+                   level: float = LEVEL) -> tuple[float, float | None, float | None]:
+    """(ratio, lo, hi) of mean(A) / mean(B) by Fieller's theorem: the set of R with
+    ``(mean_a - R mean_b)^2 <= t^2 · (v_a - 2 R c + R^2 v_b)``, where v_a, v_b are the variances of the two
+    means (sd^2 / n), c their covariance (paired seeds; 0 otherwise) and t the quantile with n - 1 df
+    (paired) or Welch-Satterthwaite df at the estimated ratio (unpaired). Bounds are None when the set is
+    not a bounded interval (B not clearly above 0)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ma, mb = float(a.mean()), float(b.mean())
+    ratio = ma / mb if mb != 0 else float("nan")
+    if len(a) < 2 or len(b) < 2 or mb == 0:
+        return ratio, None, None
+    va, vb = float(a.var(ddof=1)) / len(a), float(b.var(ddof=1)) / len(b)
+    if paired:
+        c = float(np.cov(a, b, ddof=1)[0, 1]) / len(a)
+        df = len(a) - 1
+    else:
+        c = 0.0
+        r2vb = ratio ** 2 * vb
+        den = va ** 2 / (len(a) - 1) + r2vb ** 2 / (len(b) - 1)
+        df = (va + r2vb) ** 2 / den if den > 0 else float(min(len(a), len(b)) - 1)
+    q2 = float(stats.t.ppf(0.5 + level / 2.0, df)) ** 2
+    qa, qb, qc = mb * mb - q2 * vb, ma * mb - q2 * c, ma * ma - q2 * va  # qa R^2 - 2 qb R + qc <= 0
+    disc = qb * qb - qa * qc
+    if qa <= 0 or disc < 0:
+        return ratio, None, None
+    root = math.sqrt(disc)
+    return ratio, (qb - root) / qa, (qb + root) / qa
+
+
+@dataclass
+class Estimate:
+    mean: float
+    lo: float | None
+    hi: float | None
+
+    def as_dict(self) -> dict[str, float | None]:
+        r = lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 2)  # noqa: E731
+        return {"mean": r(self.mean), "lo": r(self.lo), "hi": r(self.hi)}
+
+    def fmt(self, sign: str = "") -> str:
+        d = self.as_dict()
+        if d["lo"] is None or d["hi"] is None:
+            return f"{self.mean:{sign}.1f}"
+        return f"{self.mean:{sign}.1f} [{self.lo:{sign}.1f}, {self.hi:{sign}.1f}]"
+
+
+@dataclass
+class Difference:
+    """One tested difference A - (scale) B on per-seed values: its estimate, two-sided p-value and method."""
+
+    estimate: Estimate
+    p: float | None
+    method: str
+    paired: bool
+    n: tuple[int, int]
+
+    @property
+    def enough_seeds(self) -> bool:
+        return min(self.n) >= MIN_SEEDS
+
+
+def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL) -> Difference:
+    """A - B from per-seed values (seed -> value): paired t when both have the same seeds, else Welch's t.
+    The p-value is the two-sided t-test's (``scipy.stats.ttest_1samp`` on the differences, or
+    ``ttest_ind(equal_var=False)``); with no spread at all it is 0 (a difference) or 1 (none)."""
+    na, nb = len(a), len(b)
+    if sorted(a) == sorted(b):
+        d = np.array([a[s] - b[s] for s in sorted(a)])
+        mean, lo, hi = (float(x) for x in t_interval(d, level))
+        if na < 2:
+            return Difference(Estimate(mean, None, None), None, "1 seed", True, (na, nb))
+        if np.ptp(d) == 0:
+            p = 1.0 if mean == 0 else 0.0
+        else:
+            p = float(stats.ttest_1samp(d, 0.0).pvalue)
+        return Difference(Estimate(mean, lo, hi), p, f"paired t, {na} seeds", True, (na, nb))
+    va, vb = np.array(list(a.values()), dtype=float), np.array(list(b.values()), dtype=float)
+    mean = float(va.mean() - vb.mean())
+    method = f"Welch t, {na} vs {nb} seeds"
+    if na < 2 or nb < 2:
+        return Difference(Estimate(mean, None, None), None, method, False, (na, nb))
+    if np.ptp(va) == 0 and np.ptp(vb) == 0:
+        return Difference(Estimate(mean, mean, mean), 1.0 if mean == 0 else 0.0, method, False, (na, nb))
+    _, lo, hi = welch_t_interval(va, vb, level)
+    p = float(stats.ttest_ind(va, vb, equal_var=False).pvalue)
+    return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
+
+
+def episode_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float, float]:
+    """A contrast of table columns on the episodes pooled over each row's seeds, ``sum c * k / n`` over
+    ``terms`` of ``(c, successes, episodes)``, in points: its interval (``contrast_interval``; A - B is
+    Newcombe's) and the two-sided p-value dual to it, the level at which the bound nearer 0 reaches 0 (1
+    when the contrast is 0). The rows drove the same episodes, and treating them as independent ignores
+    that pairing, which widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
+    lo, hi = contrast_interval(terms, level)
+    value = sum(c * k / n for c, k, n in terms)
+    if abs(value) < 1e-12:
+        return lo, hi, 1.0
+    return lo, hi, contrast_level(terms, "lo" if value > 0 else "hi", 0.0)
+
+
+def contrast_level(terms: Sequence[tuple[float, int, int]], bound: str, target: float) -> float:
+    """The alpha at which the two-sided (1 - alpha) ``contrast_interval``'s ``bound`` ("lo" or "hi")
+    reaches ``target`` (points) as the interval narrows toward the contrast itself: the p-value dual to
+    the interval (root-found). 0 when even the (1 - 1e-12) interval's bound lies beyond ``target``, 1 when
+    the contrast itself does not."""
+    from scipy.optimize import brentq
+
+    i, sign = (0, 1.0) if bound == "lo" else (1, -1.0)
+
+    def past(alpha: float) -> float:  # > 0 once the bound has moved past target, toward the contrast
+        return sign * (contrast_interval(terms, 1.0 - alpha)[i] - target)
+
+    tiny, near_one = 1e-12, 1.0 - 1e-9  # at alpha -> 1 the interval shrinks to the contrast itself
+    if past(near_one) <= 0:
+        return 1.0
+    return 0.0 if past(tiny) > 0 else float(brentq(past, tiny, near_one, xtol=1e-12))
+
+
+def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float]:
+    """``sum c * k / n`` of independent proportions, in points: the MOVER interval (Zou & Donner 2008),
+    which recovers each side's variance from the proportions' Wilson score intervals (statsmodels), so it
+    keeps a width at 0% and 100%; for one difference, ``[(1, A), (-1, B)]``, it is Newcombe's hybrid score
+    interval, and for a gap, ``(A - B)`` in one column minus ``(A - B)`` in another, its four-term form."""
+    from statsmodels.stats.proportion import proportion_confint
+
+    value, below, above = 0.0, 0.0, 0.0
+    for c, k, n in terms:
+        p = k / n
+        lo, hi = (float(x) for x in proportion_confint(k, n, alpha=1.0 - level, method="wilson"))
+        down, up = (p - lo, hi - p) if c > 0 else (hi - p, p - lo)  # a negative coefficient swaps the sides
+        value, below, above = value + c * p, below + (c * down) ** 2, above + (c * up) ** 2
+    return 100.0 * (value - math.sqrt(below)), 100.0 * (value + math.sqrt(above))
+
+
+def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float, int, int]]:
+    """A - B, each ``(successes, episodes)``, as the terms of a contrast (``contrast_interval``)."""
+    return [(1.0, *a), (-1.0, *b)]
+
+
+def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> Difference:
+    """``d`` (a contrast of table columns between rows A and B, its ``terms`` the pooled episodes)
+    widened to contain the episodes' interval (``episode_interval``), its p-value the larger of the two:
+    seeds whose differences happen to agree (rates come in steps of 1/64, and an easy column often sits at
+    100% for every seed) leave the t-interval no width, but never remove the episodes' luck. The method
+    says so where the floor moved a bound."""
+    e = d.estimate
+    if e.lo is None or e.hi is None or d.p is None:
+        return d
+    lo, hi, p = episode_interval(terms, level)
+    if lo >= e.lo and hi <= e.hi and p <= d.p:
+        return d
+    return Difference(Estimate(e.mean, min(e.lo, lo), max(e.hi, hi)), max(d.p, p),
+                      d.method + ", widened to the episodes' interval", d.paired, d.n)
+
+
+def holm(pvalues: Sequence[float], alpha: float = ALPHA,
+         family_size: int | None = None) -> tuple[list[float], list[bool]]:
+    """Holm's step-down adjustment of a family of p-values (statsmodels ``multipletests``, method "holm"):
+    the adjusted p-values and which are rejected at family-wise error ``alpha``.
+
+    ``family_size``: the family fixed in advance, of which ``pvalues`` are the members tested so far; the
+    untested ones count as p = 1 (they can reject nothing), so a verdict reached here can only stay
+    reached as they are filled in (Holm's procedure is monotone in every p-value)."""
+    if not len(pvalues):
+        return [], []
+    from statsmodels.stats.multitest import multipletests
+
+    n = len(pvalues)
+    if family_size is not None and family_size < n:
+        raise ValueError(f"a family of {family_size} cannot hold {n} p-values")
+    padded = list(pvalues) + [1.0] * ((family_size or n) - n)
+    reject, adj, _, _ = multipletests(padded, alpha=alpha, method="holm")
+    return [float(x) for x in adj[:n]], [bool(x) for x in reject[:n]]
+
