@@ -36,7 +36,7 @@ TITLE = "# Reproduction of the paper's Table 4"
 @functools.cache
 def app_config() -> tuple[dict, list]:
     """The catalogue and claims ``cicfw report`` uses (``main`` composes conf/reproduce.yaml with Hydra).
-    Read as plain YAML, as ``results.default_claims`` does: neither holds an interpolation, so the values
+    Read as plain YAML, as ``claims.default_claims`` does: neither holds an interpolation, so the values
     are the composed ones (checked once, equal), and composing took 30-40 s on the loaded 2-core machine."""
     conf = yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())
     return conf["catalogue"], conf["claims"]

@@ -83,13 +83,12 @@ def bootstrap_coverage(n_seeds: int, n_exp: int = 300, n_boot: int = 400, seed: 
     t-interval on the very same experiments."""
     rng = np.random.default_rng(seed)
     columns = np.repeat(np.array(cells.COLUMNS), N_EP)  # episode -> its column
-    keys = [f"e{i:03d}" for i in range(len(columns))]
     pa, pb = seed_probabilities(rng, n_exp, n_seeds, 0.0)
     hit_boot, hit_t, widths = 0, 0, []
     for e in range(n_exp):
         ma = (rng.random((n_seeds, len(columns))) < np.repeat(pa[e], N_EP, axis=1)).astype(float)
         mb = (rng.random((n_seeds, len(columns))) < np.repeat(pb[e], N_EP, axis=1)).astype(float)
-        draws = analysis.episode_draws(keys, columns, rng, n_boot)
+        draws = analysis.episode_draws(columns, rng, n_boot)
         d = (analysis.bootstrap_replicates(ma, draws, rng, n_boot)[:, 4]
              - analysis.bootstrap_replicates(mb, draws, rng, n_boot)[:, 4])
         lo, hi = analysis.percentile_interval(d)

@@ -49,9 +49,9 @@ def bootstrap_replicates(m: np.ndarray, ep_draws: Mapping[str, np.ndarray], rng:
     return np.concatenate([out, out.mean(axis=1, keepdims=True)], axis=1)
 
 
-def episode_draws(keys: Sequence[str], columns: Sequence[str], rng: np.random.Generator,
-                  n_boot: int) -> dict[str, np.ndarray]:
-    """Per table column, ``n_boot`` draws (with replacement) of that column's episode positions."""
+def episode_draws(columns: Sequence[str], rng: np.random.Generator, n_boot: int) -> dict[str, np.ndarray]:
+    """Per table column, ``n_boot`` draws (with replacement) of that column's episode positions
+    (``columns``: each episode's column, in the order of the success matrix)."""
     cols = np.asarray(columns)
     out = {}
     for c in COLUMNS:
@@ -90,12 +90,14 @@ class Analysis:
     n_boot: int
 
     def per_seed(self, row: str, on: str) -> dict[int, float]:
+        """seed -> ``row``'s success on a selector (``cells.SELECTORS``): what a claim's part compares."""
         return {c.seed: c.value(on) for c in self.rows[row]}
 
 
 def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> Analysis:
     """Group cells by row, check they drove the same episodes, estimate every row (t over seeds) and
-    bootstrap it (secondary)."""
+    bootstrap it (secondary): ``n_boot`` replicates, drawn with the random seed ``seed`` (not a training
+    seed)."""
     rows: dict[str, list[CellResult]] = {}
     for c in sorted(cells, key=lambda c: (c.row, c.seed)):
         rows.setdefault(c.row, []).append(c)
@@ -110,7 +112,7 @@ def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> A
                                  f"cells of one results folder must share the suite")
     columns = [first.episodes[k]["column"] for k in keys]
     rng = np.random.default_rng(seed)
-    draws = episode_draws(keys, columns, rng, n_boot)
+    draws = episode_draws(columns, rng, n_boot)
     reps, est, boot = {}, {}, {}
     for row, cs in rows.items():
         reps[row] = bootstrap_replicates(_matrix(cs, keys), draws, rng, n_boot)

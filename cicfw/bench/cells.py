@@ -31,7 +31,7 @@ class CellResult:
     row: str
     seed: int
     episodes: dict[str, dict[str, Any]]  # key -> {"success": bool, "column": str, "command": str}
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)  # the whole cell.json (machine, code, wall_s, curve, ...)
 
     def rate(self, column: str | None = None) -> float:
         """Success (%) on one table column, or the mean of the four columns (``None``)."""

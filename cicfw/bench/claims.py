@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -18,7 +18,8 @@ TESTS = ("greater", "less", "not_greater")
 
 
 def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
-    """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not."""
+    """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not
+    (``claims``: the judged claims, ``judge``'s output, each with its ``parts``)."""
     return sum(len(c["parts"]) for c in claims)
 
 
@@ -26,7 +27,9 @@ def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
 class Part:
     """One tested part of a claim: A - b_scale x B on ``on`` (a selector), or, with ``on="gap"``, A's
     advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
-    (``greater``, ``less``, ``not_greater``); ``relative`` also reports A / B - 1."""
+    (``greater``, ``less``, ``not_greater``); ``relative`` also reports A / B - 1. ``on`` is the part's
+    ``column:`` in conf/reproduce.yaml; ``b_scale`` multiplies B before the difference is taken (the
+    statistics see B already scaled) and turns off the episodes' floor (``episode_terms``)."""
 
     a: str
     b: str
@@ -38,6 +41,7 @@ class Part:
     b_scale: float = 1.0
 
     def text(self, labels: Mapping[str, str]) -> str:
+        """The part as the report words it, rows by their labels: "GTU > CIL (new town / new weathers)"."""
         la, lb = labels.get(self.a, self.a), labels.get(self.b, self.b)
         lb = lb if self.b_scale == 1.0 else f"{self.b_scale:g} x {lb}"
         if self.on == "gap":
@@ -47,8 +51,9 @@ class Part:
         op = {"greater": ">", "less": "<", "not_greater": "not better than"}[self.test]
         return f"{la} {op} {lb} ({SELECTOR_NAMES[self.on]})"
 
-    def values(self, per_seed: Any, row: str) -> dict[int, float]:
-        """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)`` gives a selector's)."""
+    def values(self, per_seed: Callable[[str, str], dict[int, float]], row: str) -> dict[int, float]:
+        """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)``, e.g.
+        ``Analysis.per_seed``, gives a selector's)."""
         if self.on == "gap":
             hard, easy = per_seed(row, self.hard), per_seed(row, self.easy)
             return {s: hard[s] - easy[s] for s in hard}
@@ -65,6 +70,7 @@ class Part:
         return val(self.a, self.on) - self.b_scale * val(self.b, self.on)
 
     def paper_relative(self, paper: Mapping[str, Sequence[float]]) -> float | None:
+        """The paper's A / B - 1 for a ``relative`` part (None for a gap or without the paper's values)."""
         if not self.relative or not paper.get(self.a) or not paper.get(self.b) or self.on == "gap":
             return None
         va, vb = (float(np.mean([paper[r][i] for i in SELECTORS[self.on]])) for r in (self.a, self.b))
@@ -73,6 +79,9 @@ class Part:
 
 @dataclass(frozen=True)
 class Claim:
+    """One sentence of the paper (``quote``, from ``source``) as tested parts; a claim's verdict combines
+    its parts' (``combine``)."""
+
     id: str
     text: str
     parts: tuple[Part, ...]
@@ -170,7 +179,7 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
             va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
             d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
             terms = episode_terms(an, p)
-            if terms:  # on single table columns: the episodes' floor, as for a row
+            if terms:  # on single table columns: the episodes' floor, as ``analysis.row_estimate`` has for a row
                 d = with_episode_floor(d, terms)
             rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
                        means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])

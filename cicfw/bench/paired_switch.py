@@ -1,15 +1,15 @@
 """Does a switch change driving? Two sets of cells of one row, the same seeds, one setting changed.
 
-    python -m cicfw.bench.paired_switch docs/results/converged_bf16/cells/cil_bf16 \\
-        docs/results/converged/cells/cil --margin 5
+    python -m cicfw.bench.paired_switch docs/results/converged6_bf16_xeon/cells/cil_bf16 \\
+        docs/results/converged6_xeon/cells/cil --margin 5
 
-    python -m cicfw.bench.paired_switch --episodes docs/results/converged/cells/cil/seed2/cell.json \
+    python -m cicfw.bench.paired_switch --episodes docs/results/converged/cells/cil/seed2/cell.json \\
         outputs/cil_seed2_6epochs/eval_epoch6            # one seed, two models: the same episodes
 
 A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, not by a short run's loss
 (docs/training.md): each seed trains twice, with and without it, on the same split and batch order, and
 both models drive the same suite. Per table column and overall this prints the paired difference A - B
-over seeds (t-interval, ``results.difference``) and an equivalence test against a margin stated in
+over seeds (t-interval, ``seed_stats.difference``; in a table column widened by the episodes' floor) and an equivalence test against a margin stated in
 advance: two one-sided t-tests (TOST, ``statsmodels.stats.weightstats.ttost_paired``), *equivalent*
 when both reject at 5%, i.e. the 90% interval lies inside ±margin; in a table column the episodes
 pooled over the seeds must show it too (Newcombe's 90% interval inside ±margin, ``episode_tost``), as
@@ -34,13 +34,14 @@ from cicfw.bench.cells import COLUMNS, CellResult, load_cell, pooled_counts
 from cicfw.bench.seed_stats import MIN_SEEDS, contrast_level, difference, difference_terms, with_episode_floor
 from cicfw.bench.runs import cell_key
 
-ALPHA = 0.05
+ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
 
 
 @dataclass
 class Equivalence:
-    """A - B on one column over the paired seeds: the 95% t-interval, the TOST p-value and its verdict."""
+    """A - B on one table column, or overall (``on`` None), over the paired seeds: the 95% t-interval
+    (widened by the episodes' floor in a table column), the TOST p-value and its verdict."""
 
     on: str
     a: list[float]
@@ -79,7 +80,7 @@ def episode_tost(a: tuple[int, int], b: tuple[int, int], margin: float) -> float
     """The equivalence p-value on the pooled episodes, ``(successes, episodes)`` each: the smallest alpha
     at which Newcombe's (1 - 2 alpha) interval for A - B lies inside ±margin (TOST's duality: half the
     two-sided level at which the farther bound crosses its margin), 1 when the difference itself is not
-    inside. The floor ``results.with_episode_floor`` gives an interval."""
+    inside. The floor ``seed_stats.with_episode_floor`` gives an interval."""
     terms = difference_terms(a, b)
     levels = contrast_level(terms, "lo", -margin), contrast_level(terms, "hi", margin)
     return 1.0 if max(levels) == 1.0 else max(levels) / 2.0
@@ -172,6 +173,7 @@ def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[boo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line: two rows' cells (or, with --episodes, two runs' episodes) -> the table, rc 0."""
     ap = argparse.ArgumentParser(prog="python -m cicfw.bench.paired_switch", description=__doc__.split("\n")[0])
     ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
     ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")

@@ -29,7 +29,8 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
 
 
 def published_manifest(src: Path) -> dict[str, Any]:
-    """The manifest (``reproduce.json``) of a published results folder, or one line saying what it is not."""
+    """The manifest (``reproduce.json``) of a published results folder; a ValueError of one line saying what
+    it is not."""
     src = Path(src)
     if not src.is_dir():
         raise ValueError(f"continue_from={str(src)!r} is not a folder; give a published results folder "

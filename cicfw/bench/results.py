@@ -1,15 +1,19 @@
 """The paper's comparison as results: per-cell outcomes -> Table 4 with 95% intervals -> a verdict per claim.
 
 A *cell* is one (row, seed) of a reproduction: a model trained with that seed and driven on the suite;
-``cell.json`` keeps every episode's outcome. Everything here is numpy/scipy/statsmodels over those
-outcomes, so ``cicfw report`` and the tests use it without training anything. This module writes the
-report (results.json/.csv, RESULTS.md, the pictures) and its docstring is the method the report states;
-the parts live beside it, one job each: ``cells`` (cell.json as data, the table's columns),
-``seed_stats`` (the intervals, the episodes' floor, Holm), ``analysis`` (a folder's estimates and the
-episode bootstrap), ``claims`` (the paper's claims and their verdicts) and ``published`` (docs/results
-folders: publish, continue). *Overall* is always the
-mean of the four table columns (each column weighs the same, as in reading the paper's table), never the
-success pooled over all episodes; a seed's overall is the mean of its four column rates.
+``cell.json`` keeps every episode's outcome. Everything in these modules is numpy/scipy/statsmodels over
+those outcomes, so ``cicfw report`` and the tests use it without training anything. This module writes
+the report (results.json/.csv, RESULTS.md, the pictures); the parts live beside it, one job each:
+``cells`` (cell.json as data, the table's columns), ``seed_stats`` (the intervals, the episodes' floor,
+Holm), ``analysis`` (a folder's estimates and the episode bootstrap), ``claims`` (the paper's claims and
+their verdicts) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
+a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference``
+-> ``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a
+relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``. The
+method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
+``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
+reading the paper's table), never the success pooled over all episodes; a seed's overall is the mean of
+its four column rates.
 
 **Intervals (primary): the seed is the unit of replication.** A row's value in a column is the mean over
 its seeds of each seed's success rate there; its 95% interval is Student's t-interval over those per-seed
@@ -66,7 +70,7 @@ otherwise.
 **Resumed cells.** A cell whose training was stopped and resumed from an epoch checkpoint records it in
 ``cell.json`` (``resumed``); the report marks its row and seed (‡) with a footnote: a resumed training does
 not restore the data pipeline's and augmentation's random state, so its numbers can differ from an
-uninterrupted run's (``RESUME_EXAMPLE``). Every file written here is readable by others as the umask allows
+uninterrupted run's (``RESUME_EXAMPLE``). Every file the report and ``published`` write is readable by others as the umask allows
 (0644 under umask 022), like any file the user writes, not owner-only as a bare temporary file would be.
 """
 from __future__ import annotations
@@ -81,8 +85,7 @@ import numpy as np
 
 from cicfw.bench.analysis import analyse
 from cicfw.bench.cells import COLUMN_NAMES, COLUMNS, CellResult, load_cells
-from cicfw.bench.claims import Claim, default_claims, holm_family_size, judge, load_claims
-from cicfw.bench.published import publish
+from cicfw.bench.claims import Claim, default_claims, holm_family_size, judge
 from cicfw.bench.seed_spread import seed_spread
 from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.files import atomic_write
@@ -93,16 +96,14 @@ RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last
 RESUMED_MARK = "‡"
 
 
-# ------------------------------------------------------------------------------------------------
-# the report
-
-
 def _row_order(rows: Sequence[str], catalogue: Mapping[str, Mapping[str, Any]]) -> list[str]:
     order = list(catalogue)
     return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
 def _method_text() -> str:
+    """results.json's ``method``: this module's docstring from **Intervals (primary)** up to **Verdicts**
+    (editing that span changes every re-rendered report under docs/results)."""
     doc = __doc__ or ""
     return doc.split("**Intervals (primary):")[1].split("**Verdicts.**")[0].strip() if "**Intervals (primary):" in doc else ""
 
@@ -546,6 +547,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cicfw.bench.results RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
     import argparse
     import sys
+
+    from cicfw.bench.claims import load_claims
+    from cicfw.bench.published import publish
 
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
     ap.add_argument("results_dir")

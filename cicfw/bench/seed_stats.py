@@ -90,24 +90,23 @@ def ratio_interval(a: Sequence[float], b: Sequence[float], paired: bool,
 
 @dataclass
 class Estimate:
+    """A mean (%, or points for a difference) with its interval; ``lo``/``hi`` are None where there is
+    none (one seed, an unbounded Fieller set)."""
+
     mean: float
     lo: float | None
     hi: float | None
 
     def as_dict(self) -> dict[str, float | None]:
+        """The JSON form (results.json): 2 decimals, NaN as None."""
         r = lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 2)  # noqa: E731
         return {"mean": r(self.mean), "lo": r(self.lo), "hi": r(self.hi)}
-
-    def fmt(self, sign: str = "") -> str:
-        d = self.as_dict()
-        if d["lo"] is None or d["hi"] is None:
-            return f"{self.mean:{sign}.1f}"
-        return f"{self.mean:{sign}.1f} [{self.lo:{sign}.1f}, {self.hi:{sign}.1f}]"
 
 
 @dataclass
 class Difference:
-    """One tested difference A - (scale) B on per-seed values: its estimate, two-sided p-value and method."""
+    """One tested difference A - B on per-seed values (B already scaled by the caller where a claim's part
+    has ``b_scale``): its estimate, two-sided p-value, method, whether paired, and each side's seeds."""
 
     estimate: Estimate
     p: float | None
@@ -117,6 +116,7 @@ class Difference:
 
     @property
     def enough_seeds(self) -> bool:
+        """Both rows have at least MIN_SEEDS seeds: fewer get no verdict ("too few seeds")."""
         return min(self.n) >= MIN_SEEDS
 
 
@@ -202,7 +202,7 @@ def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float
 def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> Difference:
     """``d`` (a contrast of table columns between rows A and B, its ``terms`` the pooled episodes)
     widened to contain the episodes' interval (``episode_interval``), its p-value the larger of the two:
-    seeds whose differences happen to agree (rates come in steps of 1/64, and an easy column often sits at
+    seeds whose differences happen to agree (rates come in steps of 1/64 or 1/96, and an easy column often sits at
     100% for every seed) leave the t-interval no width, but never remove the episodes' luck. The method
     says so where the floor moved a bound."""
     e = d.estimate
