@@ -152,7 +152,7 @@ def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsy
 HOLDER = """
 import sys, time
 from pathlib import Path
-from cicfw.reproduce import ResultsLock
+from cicfw.results_lock import ResultsLock
 lock = ResultsLock(Path(sys.argv[1]))
 lock.acquire()
 print("held", flush=True)
