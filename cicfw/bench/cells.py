@@ -59,10 +59,15 @@ def load_cell(path: Path) -> CellResult | dict[str, Any]:
     return d
 
 
+def cell_files(folder: Path) -> list[Path]:
+    """Every ``cells/<row>/seed<k>/cell.json`` under a results folder, in a fixed order."""
+    return sorted(Path(folder).glob("cells/*/seed*/cell.json"))
+
+
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
     """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
     ok, failed = [], []
-    for p in sorted(Path(results_dir).glob("cells/*/seed*/cell.json")):
+    for p in cell_files(results_dir):
         c = load_cell(p)
         (ok if isinstance(c, CellResult) else failed).append(c)
     return ok, failed
@@ -77,7 +82,7 @@ def pooled_counts(cells: Sequence[CellResult], column: str) -> tuple[int, int]:
 def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
     """``row/seedK`` -> cell.json of every finished (status ok) cell under ``folder``."""
     out = {}
-    for f in sorted(Path(folder).glob("cells/*/seed*/cell.json")):
+    for f in cell_files(folder):
         d = json.loads(f.read_text())
         if d.get("status") == "ok":
             out[f"{f.parent.parent.name}/{f.parent.name}"] = d

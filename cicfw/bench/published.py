@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from cicfw.bench.cells import finished_cells
+from cicfw.bench.cells import cell_files, finished_cells
 from cicfw.files import atomic_write
 
 
@@ -16,7 +16,7 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     results_dir, dest = Path(results_dir), Path(dest)
     names = ["RESULTS.md", "results.json", "results.csv", "results.png", "learning_curve.png", "reproduce.json"]
     files = [results_dir / n for n in names if (results_dir / n).is_file()]
-    files += sorted(results_dir.glob("cells/*/seed*/cell.json"))
+    files += cell_files(results_dir)
     out = []
     if dest.exists() and not dest.is_dir():
         raise ValueError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
