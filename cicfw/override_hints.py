@@ -74,6 +74,12 @@ def _describe(path: str, missing: str, keys: list[str], groups: list[str]) -> st
     return msg
 
 
+def _describe_empty(path: str, override: str) -> str:
+    """The hint for a key under an empty node (``data.collect: {}``): its keys are the app's, added with ``+``."""
+    return (f"cicfw: hint: '{path}' is empty in the config (the keys it takes are documented beside it), so a key "
+            f"under it is added with '+': +{override}")
+
+
 def _is_open(cfg: Any, path: list[str]) -> bool:
     """Whether the config node at ``path`` accepts new keys (its struct flag is explicitly off)."""
     node = OmegaConf.select(cfg, ".".join(path)) if path else cfg
@@ -139,7 +145,10 @@ def override_hints(config_name: str, args: list[str], config_module: str = CONFI
                 if not isinstance(node, dict) or part not in node:
                     path = ".".join(parts[:i])
                     keys = [str(k) for k in node] if isinstance(node, dict) else []
-                    hints.append(_describe(path, part, keys, groups_at(path)))
+                    if path and node == {} and not groups_at(path):
+                        hints.append(_describe_empty(path, o.input_line))
+                    else:
+                        hints.append(_describe(path, part, keys, groups_at(path)))
                     break
                 node = node[part]
     return hints

@@ -148,6 +148,7 @@ BAD_TOWN = "name: broken\nroads: [1\n"  # not YAML
     ("lock_wait=-1", "collect.lock_wait must be seconds >= 0"),
     ("sim.name=nosuch", "collect: unknown sim backend 'nosuch'; registered sim backends: "),
     ("+frames=3", "collect: unknown key 'frames'; accepted keys: towns, weathers"),
+    ("expert.cruise_kmh=abc", "collect.expert.cruise_kmh must be a number, got 'abc'"),
 ])
 def test_the_app_prints_one_line_for_every_config_error(tmp_path: Path, capsys, override: str, message: str,
                                                         monkeypatch):
@@ -181,6 +182,8 @@ def test_the_real_command_line_prints_one_line(tmp_path: Path):
     (["--weathers", "Foggy"], "--weathers: unknown weather 'Foggy'; known weathers: ClearNoon, "),
     (["--scale", "0"], "--scale must be >= 1"),
     (["--colours", "1"], "--colours must be 0 (full colour) or 2..256"),
+    (["--seed", "-1"], "--seed must be an integer >= 0 (the seed of the images and of the maps' routes), got -1"),
+    (["--prefix", "sub/"], "--prefix is the start of the PNGs' file names and takes no '/' (e.g. sim_), got 'sub/'"),
 ])
 def test_preview_prints_one_line_for_every_config_error(tmp_path: Path, capsys, args: list, message: str):
     from cicfw.sim import preview
@@ -194,6 +197,7 @@ def test_preview_prints_one_line_for_every_config_error(tmp_path: Path, capsys, 
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("cicfw: error: "), lines
     assert message.replace("BAD", str(bad)) in lines[0], lines[0]
+    assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
 # ------------------------------------------------------------------------------------------------
@@ -308,3 +312,23 @@ def test_hydra_collect_config_composes_and_resolves():
     assert resolved["episodes"] == 3 and resolved["towns"] == ["town_a", "town_b"]
     assert resolve_config({}) == resolve_config(None)  # data.collect: {} = the defaults
     assert set(resolve_config({})) == set(collect_mod.DEFAULTS)
+
+
+def test_the_documented_expert_keys_are_set_without_plus():
+    """``expert.cruise_kmh=30`` as conf/collect.yaml documents it (no ``+``); its spelled-out defaults are
+    ExpertParams' own and hash as the engine's ``expert: {}``, so no collected dataset changes its hash."""
+    from dataclasses import asdict
+
+    from omegaconf import OmegaConf
+
+    from cicfw.collection import config_hash
+    from cicfw.sim.expert import ExpertParams
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        default = compose("collect")
+        faster = compose("collect", overrides=["expert.cruise_kmh=30"])
+    assert OmegaConf.to_container(default.expert) == asdict(ExpertParams())
+    assert resolve_config(faster)["expert"] == {"cruise_kmh": 30}
+    assert resolve_config(default)["expert"] == {}
+    assert config_hash(resolve_config(default)) == config_hash(resolve_config({}))
+    assert resolve_config({"expert": {"cruise_kmh": 27.0, "decel": 2}})["expert"] == {"decel": 2}

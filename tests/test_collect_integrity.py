@@ -441,3 +441,29 @@ def test_a_folder_with_other_hdf5_files_is_refused(tmp_path: Path, monkeypatch):
     with pytest.raises(CollectError, match=r"holds 1 HDF5 file\(s\) this collection does not write "
                                            r"\(e.g. sub/theirs.h5\); collect into an empty folder"):
         collect_dataset(TINY, tmp_path, progress=False)
+
+
+def _listing(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (hidden ones too) with its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_folder_of_the_users_own_hdf5_files_is_left_exactly_as_it_was(tmp_path: Path, capsys, monkeypatch):
+    """``cicfw collect out_dir=<a folder of my .h5 files>``: one line, exit 2, and no ``.collect.lock`` (nor
+    a removed ``.*.tmp``) left in the user's folder: the refusal comes before the lock is taken."""
+    import cicfw.collect as collect_mod
+
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for i in range(3):
+        (mine / f"data_{i:05d}.h5").write_bytes(b"my data %d" % i)
+    (mine / ".notes.tmp").write_text("my notes")
+    before = _listing(mine)
+    with pytest.raises(SystemExit) as exc:
+        collect_mod.run({**TINY, "out_dir": str(mine)})
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0] == (f"cicfw: error: {mine} holds 3 HDF5 file(s) this collection does not "
+                                            f"write (e.g. data_00000.h5); collect into an empty folder"), lines
+    assert _listing(mine) == before

@@ -212,3 +212,58 @@ def test_the_preview_app_says_one_line_for_a_huge_town(tmp_path: Path, capsys):
         preview.main(["--out", str(tmp_path / "out"), "--towns", str(path)])
     assert exc.value.code == 2
     assert "margin 100000 m" in _one_error_line(capsys.readouterr().err)
+
+
+# ------------------------------------------------------------------------------------------------
+# cicfw preview --seed, --prefix, and a failure after the rendering started
+
+
+def test_preview_cli_seed_below_zero_is_one_line_naming_seed(tmp_path: Path):
+    """``cicfw preview --seed -1`` used to render and write both sheets, then end on numpy's
+    "expected non-negative integer" (no option named)."""
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "preview", "--out", str(out), "--seed", "-1"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    line = _one_error_line(r.stderr)
+    assert "--seed must be an integer >= 0" in line and "got -1" in line, line
+    assert not out.exists()
+
+
+def test_preview_prefix_with_a_folder_is_one_line_before_rendering(tmp_path: Path, capsys, monkeypatch):
+    from cicfw.sim import preview
+
+    monkeypatch.setattr(preview, "contact_sheet", lambda *a, **k: pytest.fail("rendered before checking --prefix"))
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(tmp_path / "out"), "--towns", "town_b", "--prefix", "../escaped_"])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--prefix" in line and "'../escaped_'" in line and "--out" in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_preview_that_fails_after_rendering_started_writes_nothing(tmp_path: Path, capsys, monkeypatch):
+    """Every picture is made before the first PNG is written, and a folder the run created is removed:
+    a town whose routes cannot be drawn leaves neither sheets nor an empty --out behind."""
+    import numpy as np
+
+    from cicfw.sim import preview
+
+    picture = lambda *a, **k: np.zeros((4, 4, 3), np.uint8)  # noqa: E731
+    monkeypatch.setattr(preview, "contact_sheet", picture)
+    monkeypatch.setattr(preview, "turn_sheet", picture)
+    monkeypatch.setattr(preview, "town_map", picture)
+
+    def no_routes(town, *a, **k):
+        raise ValueError(f"town {town.name} has no route of 150 m")
+
+    monkeypatch.setattr(preview, "sample_routes", no_routes)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    for out in (tmp_path / "new" / "deeper", mine):
+        with pytest.raises(SystemExit) as exc:
+            preview.main(["--out", str(out), "--towns", "town_b"])
+        assert exc.value.code == 2
+        assert "has no route of 150 m" in _one_error_line(capsys.readouterr().err)
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["mine", "mine/notes.txt"]

@@ -74,3 +74,20 @@ def test_every_hydra_app_hints_at_a_mistyped_top_level_key(app):
                        timeout=300, cwd="/")
     assert r.returncode != 0
     assert "cicfw: hint: the top level of the config has no key 'bogus_keyy'" in r.stderr, r.stderr[-800:]
+
+
+def test_the_collect_experts_documented_keys_need_no_plus_and_a_typo_lists_them():
+    """``cicfw collect expert.cruise_kmh=30`` as conf/collect.yaml documents it; ``expert.cruise=30``
+    names the ExpertParams keys there."""
+    assert override_hints("collect", ["expert.cruise_kmh=30"]) == []
+    (hint,) = override_hints("collect", ["expert.cruise=30"])
+    assert "'expert' has no key 'cruise'; did you mean 'cruise_kmh'?" in hint
+    assert "keys there: cruise_kmh, decel, lateral_accel, lookahead_base" in hint
+
+
+def test_a_key_under_an_empty_node_is_told_to_take_a_plus():
+    """``data.collect: {}`` takes the collector's keys, added with ``+``: the hint says so, not "has no key"."""
+    (hint,) = override_hints("train", ["data.collect.towns=[town_b]"])
+    assert hint == ("cicfw: hint: 'data.collect' is empty in the config (the keys it takes are documented beside "
+                    "it), so a key under it is added with '+': +data.collect.towns=[town_b]")
+    assert override_hints("train", ["+data.collect.towns=[town_b]"]) == []

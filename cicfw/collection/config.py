@@ -21,7 +21,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "cameras": ["centre", "left", "right"],
     "noise": {"episode_fraction": 0.75, "frequency": 15, "intensity": 10.0},
-    "expert": {},  # overrides of cicfw.sim.expert.ExpertParams (cruise_kmh, lateral_accel ...)
+    "expert": {},  # overrides of cicfw.sim.expert.ExpertParams (cruise_kmh, lateral_accel ...; defaults dropped)
     "command_distance": 12.0,  # metres before a junction where its turn command starts
     "workers": 2,  # processes; 0 or 1 = in this process
     "lock_wait": None,  # seconds to wait for another process collecting into the folder; None: wait
@@ -153,6 +153,8 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     for k, v in out["expert"].items():
         if not _number(v):
             raise CollectConfigError(f"collect.expert.{k} must be a number, got {v!r}")
+    # only the overrides are kept: conf/collect.yaml spells out the defaults, and they must hash as {}
+    out["expert"] = {k: v for k, v in out["expert"].items() if v != accepted[k]}
     out["sim"] = sim_node(out)
     if backend is None:
         backend = make_backend(out["sim"])

@@ -50,6 +50,14 @@ def _foreign_files(out_dir: Path, plan: list[dict]) -> list[Path]:
             if p.parent != out_dir or not p.name.startswith(ids)]
 
 
+def _refuse_foreign_files(out_dir: Path, plan: list[dict]) -> None:
+    """Refuse a folder that holds HDF5 files this collection does not write: never mix in the user's own."""
+    foreign = _foreign_files(out_dir, plan)
+    if foreign:
+        raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection does not write "
+                           f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
+
+
 def _prepare_folder(out_dir: Path) -> None:
     try:
         if out_dir.exists() and not out_dir.is_dir():
@@ -85,6 +93,8 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
     cfg["_hash"] = chash = config_hash(cfg)
     out_dir = out_dir.expanduser().resolve()
     _prepare_folder(out_dir)
+    if not (out_dir / META_NAME).exists():  # not a collection's folder: refuse it before the lock file is made
+        _refuse_foreign_files(out_dir, episode_plan(cfg))
     what = f"cicfw collect, seed {cfg['seed']}, {cfg['episodes']} episode(s), config {chash}"
     with FolderLock(out_dir, cfg["lock_wait"], {"what": what}) as lock:
         clean_partials(out_dir)
@@ -101,10 +111,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
                     f"{out_dir} holds a dataset collected with another config (hash {old.get('config_hash')} "
                     f"!= {chash}, seed {old.get('seed')}); collect into another folder or delete this one")
         plan = episode_plan(cfg)
-        foreign = _foreign_files(out_dir, plan)
-        if foreign:
-            raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection does not write "
-                               f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
+        _refuse_foreign_files(out_dir, plan)  # again under the lock: a collection's folder, or one changed since
         markers = read_markers(out_dir, plan, chash, say=True)
         record_checksums(out_dir, markers)
         todo = [ep for ep in plan if ep["id"] not in markers]

@@ -227,11 +227,62 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weathers", nargs="+", default=list(WEATHERS), help="weathers (default: all)")
     ap.add_argument("--scale", type=int, default=2, help="image upscale in the sheets (default: %(default)s)")
     ap.add_argument("--routes", type=int, default=4, help="routes drawn on each map (default: %(default)s)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the images and the maps' routes, >= 0 (default: 0)")
     ap.add_argument("--colours", type=int, default=0,
                     help="quantise the PNGs to this many colours (e.g. 256 for small files; default: full colour)")
     ap.add_argument("--prefix", default="", help="prefix of the file names (e.g. sim_)")
     a = ap.parse_args(argv)
+    check_args(a)
+    towns = load_towns(a.towns or town_names())
+    out = Path(a.out).expanduser().resolve()
+    new_top = _first_missing(out)
+    check_out_folder(out)  # before the seconds of rendering
+    try:  # every picture is made before the first is written: a late failure leaves no half set of PNGs
+        images = _render(a, towns)
+    except BaseException:
+        _remove_empty_folders(out, new_top)
+        raise
+    for name, rgb in images.items():
+        print(_write_png(out / name, rgb, a.colours))
+    return 0
+
+
+def _render(a: argparse.Namespace, towns: list) -> dict[str, np.ndarray]:
+    """The PNGs' file names -> their RGB images: the two sheets and a map per town."""
+    pre = a.prefix
+    turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
+    images = {f"{pre}contact_sheet.png": contact_sheet(towns, a.weathers, a.scale, a.seed),
+              f"{pre}turn_sheet.png": turn_sheet(towns, turn_weathers, a.scale, a.seed)}
+    for town in towns:
+        images[f"{pre}map_{town.name}.png"] = town_map(town, sample_routes(town, a.routes, a.seed))
+    return images
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The topmost folder of ``path`` that does not exist yet (what creating it would create), or None."""
+    missing = None
+    while not path.exists() and path != path.parent:
+        missing, path = path, path.parent
+    return missing
+
+
+def _remove_empty_folders(out: Path, top: Path | None) -> None:
+    """Remove the folders this run created (``out`` up to ``top``) while they are empty: a failed run leaves none."""
+    if top is None:
+        return
+    d = out
+    while True:
+        try:
+            d.rmdir()
+        except OSError:
+            return
+        if d == top:
+            return
+        d = d.parent
+
+
+def check_args(a: argparse.Namespace) -> None:
+    """One ValueError for the first argument outside its domain, before anything is rendered or written."""
     check_weathers(a.weathers)
     if a.scale < 1:
         raise ValueError(f"--scale must be >= 1, got {a.scale}")
@@ -239,18 +290,12 @@ def _main(argv: list[str] | None = None) -> int:
         raise ValueError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}")
     if a.routes < 0:
         raise ValueError(f"--routes must be >= 0, got {a.routes}")
-    towns = load_towns(a.towns or town_names())
-    out = check_out_folder(Path(a.out).expanduser().resolve())  # before the seconds of rendering
-    q, pre = a.colours, a.prefix
-    turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
-    written = [_write_png(out / f"{pre}contact_sheet.png", contact_sheet(towns, a.weathers, a.scale, a.seed), q),
-               _write_png(out / f"{pre}turn_sheet.png", turn_sheet(towns, turn_weathers, a.scale, a.seed), q)]
-    for town in towns:
-        written.append(_write_png(out / f"{pre}map_{town.name}.png",
-                                  town_map(town, sample_routes(town, a.routes, a.seed)), q))
-    for p in written:
-        print(p)
-    return 0
+    if a.seed < 0:
+        raise ValueError(f"--seed must be an integer >= 0 (the seed of the images and of the maps' routes), "
+                         f"got {a.seed}")
+    if "/" in a.prefix or os.sep in a.prefix:
+        raise ValueError(f"--prefix is the start of the PNGs' file names and takes no '/' (e.g. sim_), got "
+                         f"{a.prefix!r}; choose their folder with --out")
 
 
 if __name__ == "__main__":
