@@ -20,8 +20,8 @@ swept), so ``launcher=joblib|slurm`` spreads cells with no other change. A cell 
 and writes ``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch
 checkpoint (marked ``resumed`` in cell.json and in the report: resuming does not restore the data
 pipeline's random state) and its evaluation from the episodes it kept, a failed one records its one-line
-error and the others go on. The report (``cicfw.bench.results``) is written at the end, and by
-``cicfw report <results_dir>`` at any time.
+error and the others go on (the app then exits 1, naming the cells that did not finish). The report
+(``cicfw.bench.results``) is written at the end, and by ``cicfw report <results_dir>`` at any time.
 """
 from __future__ import annotations
 
@@ -150,6 +150,7 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
     seeds = _seed_list(cfg.seeds)
+    check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
     return rows, seeds
 
@@ -169,6 +170,21 @@ def _seed_list(seeds: Any) -> list[int]:
     if not whole(seeds) or seeds < 1:
         raise ReproduceError(f"seeds must be {accepted}, got {seeds!r}")
     return list(range(int(seeds)))
+
+
+def check_curve(budget: DictConfig) -> None:
+    """``budget.curve_seeds`` and ``budget.curve_epochs`` lists of whole numbers (or null): read only after a
+    cell has trained, so a bad one is refused here instead of failing every curve cell."""
+    for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
+                             ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
+        got = budget.get(key)
+        if got is None:
+            continue
+        values = list(got) if OmegaConf.is_list(got) else None
+        if values is None or not all(isinstance(x, int) and not isinstance(x, bool) and x >= least for x in values):
+            shown = OmegaConf.to_container(got) if OmegaConf.is_config(got) else got
+            raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
+                                 f"null, got {shown!r}")
 
 
 def check_row_entry(row: str, entry: Any) -> None:
@@ -222,11 +238,32 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
                 raise ReproduceError(f"{what}: {line}") from None
             except HydraException as err:
                 raise ReproduceError(f"{what}: {_hydra_line(err)}") from None
+            except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
+                raise ReproduceError(f"{what}: {_error_line(err)}") from None
             for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
                 try:
                     registry.get(str(tcfg[group].get("name")))
                 except UnknownNameError as err:
                     raise ReproduceError(f"{what}: {err}") from None
+            try:
+                check_training(tcfg)
+            except (ValueError, TypeError, UnknownNameError) as err:
+                raise ReproduceError(f"{what}: {_error_line(err)}") from None
+
+
+def check_training(tcfg: DictConfig) -> None:
+    """What ``cicfw.train.train`` checks before it reads any data (top-level keys, the model's names, keys
+    and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
+    the dataset is collected rather than failing every cell of the row."""
+    from cicfw.model.speed import SpeedConfig
+    from cicfw.override_hints import check_top_level_keys
+    from cicfw.train import build_model, make_datamodule, trainer_kwargs
+
+    check_top_level_keys(tcfg, "train")
+    build_model(tcfg)
+    make_datamodule(tcfg)
+    trainer_kwargs(tcfg)
+    SpeedConfig.from_trainer_cfg(tcfg.trainer)
 
 
 def check_outputs(cfg: DictConfig) -> None:
@@ -745,7 +782,29 @@ def main(argv: Sequence[str] | None = None) -> int:
             code = 1
         finally:
             lock.release()
+    unfinished = unfinished_cells(Path(cfg.results_dir), rows, seeds)
+    if unfinished and not code:
+        print(f"cicfw: error: {len(unfinished)} of {len(rows) * len(seeds)} cells did not finish "
+              f"({', '.join(unfinished[:6])}{', ...' if len(unfinished) > 6 else ''}): their cell.json or the log "
+              f"above says why; a rerun of the same command retries them", file=sys.stderr)
+        code = 1
     return code
+
+
+def unfinished_cells(results_dir: Path, rows: Sequence[str], seeds: Sequence[int]) -> list[str]:
+    """``row/seedK`` of this run's cells without a finished ``cell.json`` (failed, or never run because the
+    launcher stopped): the app then exits 1, so that a script sees the table is incomplete."""
+    out = []
+    for seed in seeds:
+        for row in rows:
+            p = results_dir / "cells" / row / f"seed{seed}" / CELL_FILE
+            try:
+                ok = json.loads(p.read_text()).get("status") == "ok"
+            except (OSError, ValueError, AttributeError):
+                ok = False
+            if not ok:
+                out.append(f"{row}/seed{seed}")
+    return out
 
 
 if __name__ == "__main__":

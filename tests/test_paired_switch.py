@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import pytest
@@ -135,3 +136,46 @@ def test_episode_changes_between_a_cell_and_an_evaluation_folder(tmp_path):
     assert r["p"] == pytest.approx(exact_mcnemar_by_hand(2, 6)) and r["p"] == pytest.approx(74 / 256)
     assert got["all"]["episodes"] == 20 and got[COLUMNS[1]]["episodes"] == 0 and got[COLUMNS[1]]["p"] == 1.0
     assert ps.main(["--episodes", str(tmp_path / "eval"), str(tmp_path / "nothing.json")]) == 2
+
+
+def test_the_same_folder_or_file_twice_is_refused(tmp_path, capsys):
+    """A run against itself is +0.0 'equivalent' by construction: refused, also under another spelling."""
+    write_cell(tmp_path / "a", "cil", 0, [1, 1, 1, 1])
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "x" / ".." / "a")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "are the same folder" in err
+    cell = tmp_path / "a" / "seed0" / "cell.json"
+    assert ps.main(["--episodes", str(cell), str(tmp_path / "a" / "seed0" / "." / "cell.json")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "are the same episodes file" in err
+
+
+def test_rows_with_no_common_seed_are_refused_and_row_names_are_printed(tmp_path, capsys):
+    """No paired seed: one line naming each side's seeds, no numpy warning, no +nan table; two rows that
+    do share seeds are compared, their row names printed."""
+    write_cell(tmp_path / "a", "cil_bf16", 5, [1, 1, 1, 1])
+    write_cell(tmp_path / "b", "cil", 0, [1, 1, 1, 1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "share no seed" in err and "[5]" in err and "[0]" in err
+    write_cell(tmp_path / "b", "cil", 5, [1, 1, 1, 1])
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert "(row cil_bf16) vs B" in capsys.readouterr().out
+
+
+def test_episodes_files_without_episodes_are_refused(tmp_path, capsys):
+    """--episodes on a text file, an empty file, a header-only episodes.csv, or two runs with no episode
+    in common: one line each, nothing printed on stdout."""
+    write_cell(tmp_path / "cells", "cil", 0, [2, 2, 2, 2])
+    cell = str(tmp_path / "cells" / "seed0" / "cell.json")
+    (tmp_path / "text.h5").write_text("not a table\n")
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "header.csv").write_text("key,town_set,weather_set,success\n")
+    (tmp_path / "other.csv").write_text("key,town_set,weather_set,success\nzz/00,training,training,True\n")
+    for name, words in [("text.h5", "lacks the column(s) key"), ("empty.csv", "lacks the column(s) key"),
+                        ("header.csv", "holds no episodes"), ("other.csv", "share no episode")]:
+        assert ps.main(["--episodes", str(tmp_path / name), cell]) == 2, name
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and words in err, (name, err)

@@ -262,17 +262,26 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
         assert not collected  # the dataset was already there: refused before asking the collector
 
 
-def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run):
-    """A row whose training raises (a mixer argument that does not exist) fails its cells with a one-line
-    error in cell.json; the finished cells are kept and the report lists the failures."""
-    broken = "+catalogue.broken={experiment:paper_cil,overrides:['+mixer.foo=1'],label:Broken}"
-    assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 0
+def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run, capsys, monkeypatch):
+    """A row whose training raises (a bad config value is refused up front, so the training itself raises
+    here) fails its cells with a one-line error in cell.json; the finished cells are kept, the report lists
+    the failures and the app exits 1 naming the cells that did not finish."""
+    import cicfw.train
+
+    def oom(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory.\nTried to allocate 2.00 GiB")
+
+    monkeypatch.setattr(cicfw.train, "train", oom)  # cil and gtu finished before: only broken trains
+    broken = "+catalogue.broken={experiment:paper_cil,label:Broken}"
+    assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
+        "cicfw: error: 2 of 6 cells did not finish (broken/seed0, broken/seed1): ")
     got = cells(smoke_run)
     assert [got[f"broken/seed{s}"]["status"] for s in (0, 1)] == ["failed", "failed"]
     assert {got[k]["status"] for k in got if not k.startswith("broken")} == {"ok"}
     err = got["broken/seed0"]["error"]
-    assert err.startswith("ValueError: mixer.foo is not an argument of mixer 'independent'") and "\n" not in err
-    assert "- broken seed 0: ValueError: " in (smoke_run / "RESULTS.md").read_text()
+    assert err == "RuntimeError: CUDA out of memory." and "\n" not in err
+    assert "- broken seed 0: RuntimeError: " in (smoke_run / "RESULTS.md").read_text()
 
 
 def test_results_folder_of_another_configuration_is_refused(cache, smoke_run, capsys):

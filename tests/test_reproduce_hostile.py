@@ -113,6 +113,54 @@ def test_a_bad_custom_row_is_refused_up_front(row, message, no_collect, tmp_path
     assert not out.exists()
 
 
+@pytest.mark.parametrize("override, message", [
+    ("model.lr=abc", "model.lr must be a number, got 'abc'"),
+    ("+mixer.foo=1", "mixer.foo is not an argument of mixer 'independent'; accepted keys: "),
+    ("+trainer.foo=1", "trainer.foo is not a Lightning Trainer argument; "),
+    ("+foo=1", "unknown top-level key 'foo'; accepted top-level keys: "),
+])
+def test_a_custom_row_with_a_bad_value_is_refused_up_front(override, message, no_collect, tmp_path, capsys):
+    """A value only the training would refuse (``model.lr=abc``) is refused before collecting, in one line
+    naming the row, not by every cell of the row after the dataset is collected."""
+    out = tmp_path / "results"
+    row = f"{{experiment: paper_cil, overrides: ['{override}'], label: mine}}"
+    msg = refused([f"+catalogue.mine={row}", "rows=[cil,mine]", "budget=smoke", f"results_dir={out}"], capsys)
+    assert msg.startswith(f"row 'mine' (experiment paper_cil, overrides ['{override}']): {message}"), msg
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("arg, message", [
+    ("budget.curve_epochs=[abc]", "budget.curve_epochs must be a list of whole numbers >= 1 "),
+    ("budget.curve_epochs=[0]", "budget.curve_epochs must be a list of whole numbers >= 1 "),
+    ("budget.curve_seeds=abc", "budget.curve_seeds must be a list of whole numbers >= 0 "),
+    ("budget.curve_seeds=[1.5]", "budget.curve_seeds must be a list of whole numbers >= 0 "),
+])
+def test_bad_curve_lists_are_refused_up_front(arg, message, no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    msg = refused(["budget=smoke", "rows=[cil]", arg, f"results_dir={out}"], capsys)
+    assert msg.startswith(message) and f"or null, got {arg.split('=', 1)[1]}" in msg.replace("'", ""), msg
+    assert not out.exists()
+
+
+def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
+    """Every cell raising (its training, here): each records its error and the app ends with one line
+    naming the cells that did not finish and rc 1, so that a script sees the table is incomplete."""
+    def boom(cfg, row, seed, cell_dir):
+        raise RuntimeError("out of memory\ndetail")
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # main hands Hydra its sweep through sys.argv
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", boom)
+    out = tmp_path / "results"
+    assert reproduce.main(["budget=smoke", "rows=[cil,gtu]", "seeds=1", f"results_dir={out}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == ("cicfw: error: 2 of 2 cells did not finish (cil/seed0, gtu/seed0): their cell.json or the "
+                       "log above says why; a rerun of the same command retries them"), err
+    cell = json.loads((out / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    assert cell["status"] == "failed" and cell["error"] == "RuntimeError: out of memory"
+    assert not (out / "reproduce.lock").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # item 10: checked before any cell and before collecting
 

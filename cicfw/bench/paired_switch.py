@@ -36,6 +36,7 @@ from cicfw.bench.runs import cell_key
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
+EPISODE_COLUMNS = ("key", "town_set", "weather_set", "success")  # what --episodes reads of an episodes.csv
 
 
 @dataclass
@@ -111,12 +112,30 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
     return out
 
 
+def row_names(cells: Mapping[int, CellResult]) -> str:
+    """The row name(s) the cells' ``cell.json`` give, e.g. ``cil_bf16``: printed so that two rows are seen."""
+    return ", ".join(sorted({c.row for c in cells.values()}))
+
+
+def check_paired(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
+    """One error line when the two rows share no seed: a paired comparison needs the same seeds."""
+    if not set(a) & set(b):
+        raise ValueError(f"{names[0]} (seeds {sorted(a)}) and {names[1]} (seeds {sorted(b)}) share no seed; "
+                         f"give two rows' cells run on the same seeds")
+
+
+def check_distinct(a: Path, b: Path, what: str) -> None:
+    """One error line when a and b are the same folder or file: it would compare a run with itself."""
+    if Path(a).resolve() == Path(b).resolve():
+        raise ValueError(f"{a} and {b} are the same {what}; give two different runs to compare")
+
+
 def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
           names: tuple[str, str] = ("A", "B")) -> list[str]:
     """The printed report: seeds, one line per column, the cells' training times."""
     seeds = sorted(set(a) & set(b))
-    out = [f"{names[0]} vs {names[1]}, paired seeds {seeds} (only in one: {sorted(set(a) ^ set(b)) or 'none'}); "
-           f"equivalence margin ±{margin:g} points",
+    out = [f"A {names[0]} (row {row_names(a)}) vs B {names[1]} (row {row_names(b)}), paired seeds {seeds} "
+           f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points",
            f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95% t]':>22s} {'TOST p':>7s}  verdict"]
     for e in compare(a, b, margin):
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
@@ -133,24 +152,32 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
 
 def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
     """key -> (success, table column) from a cell's ``cell.json`` or an evaluation's folder (``episodes.csv``)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "episodes.csv"
+    path = episodes_file(path)
     if not path.is_file():
         raise ValueError(f"{path} does not exist; give a cell.json or an evaluation folder holding episodes.csv")
     if path.suffix == ".json":
         cell = load_cell(path)
-        if not isinstance(cell, CellResult):
+        if not isinstance(cell, CellResult) or not cell.episodes:
             raise ValueError(f"{path} holds no episodes; give a finished cell's cell.json")
         return {k: (bool(e["success"]), e["column"]) for k, e in cell.episodes.items()}
     import csv
 
     with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    try:
-        return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
-    except KeyError as err:
-        raise ValueError(f"{path} has no column {err}; give an evaluation's episodes.csv") from None
+        reader = csv.DictReader(f)
+        missing = [c for c in EPISODE_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path} lacks the column(s) {', '.join(missing)}; give a cell.json or an evaluation's "
+                             f"episodes.csv (columns {', '.join(EPISODE_COLUMNS)})")
+        rows = list(reader)
+    if not rows:
+        raise ValueError(f"{path} holds no episodes; give a cell.json or an evaluation's episodes.csv")
+    return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
+
+
+def episodes_file(path: Path) -> Path:
+    """The file ``--episodes`` reads for ``path``: itself, or a folder's ``episodes.csv``."""
+    path = Path(path)
+    return path / "episodes.csv" if path.is_dir() else path
 
 
 def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]]) -> list[dict]:
@@ -183,14 +210,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         if args.episodes:
+            check_distinct(episodes_file(args.a), episodes_file(args.b), "episodes file")
+            ea, eb = load_episodes(Path(args.a)), load_episodes(Path(args.b))
+            if not set(ea) & set(eb):
+                raise ValueError(f"{args.a} and {args.b} share no episode (no key in common); "
+                                 f"give two runs of the same evaluation suite")
             print(f"A {args.a} vs B {args.b}: the episodes both drove")
-            for r in episode_changes(load_episodes(Path(args.a)), load_episodes(Path(args.b))):
+            for r in episode_changes(ea, eb):
                 print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
         if not args.margin > 0:
             raise ValueError(f"--margin must be a positive number of points, got {args.margin}")
+        check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
+        check_paired(a, b, (args.a, args.b))
         print("\n".join(lines(a, b, args.margin, (args.a, args.b))))
     except (ValueError, OSError, json.JSONDecodeError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
