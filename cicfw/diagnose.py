@@ -21,6 +21,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw.config_checks import _is_number
 from cicfw.errors import report_user_errors
 
 log = logging.getLogger("cicfw.diagnose")
@@ -29,6 +30,55 @@ log = logging.getLogger("cicfw.diagnose")
 SPLIT_KEYS = ("path", "seed", "val_fraction", "max_abs_steer", "side_camera_correction", "cameras", "val_cameras")
 #: how many folders above the checkpoint's to search for the training run's .hydra/config.yaml
 SEARCH_LEVELS = 3
+
+
+def _is_int(v: Any) -> bool:
+    """An integer, not a bool (YAML's ``true`` is an int to Python)."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+#: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read
+OPTION_RULES = {
+    "batch_size": (lambda v: _is_int(v) and v >= 1, "a positive integer (frames per network call)"),
+    "max_frames": (lambda v: v is None or (_is_int(v) and v >= 1),
+                   "null (every frame) or a positive integer (an evenly spaced subset)"),
+    "threads": (lambda v: v is None or (_is_int(v) and v >= 1), "null (torch's default) or a positive integer"),
+    "phases.approach_m": (lambda v: v is None or (_is_number(v) and v > 0),
+                          "null (the dataset's command_distance) or a number of metres > 0"),
+    "phases.exit_s": (lambda v: _is_number(v) and v >= 0, "a number of seconds >= 0"),
+    "phases.dt_s": (lambda v: _is_number(v) and v > 0,
+                    "a number of seconds > 0 (the time step when the game time does not increase)"),
+}
+
+
+def check_options(cfg: DictConfig) -> None:
+    """One ``ValueError`` line for a number option outside its domain (``batch_size=0``, ``phases.dt_s=0``),
+    before anything is loaded: such a value would fail deep inside (or silently skew the phases)."""
+    for key, (ok, accepted) in OPTION_RULES.items():
+        value = OmegaConf.select(cfg, key)
+        if not ok(value):
+            raise ValueError(f"{key}={value!r} is not valid; use {accepted}")
+
+
+def torch_device(name: Any) -> str:
+    """The device to run on (``auto``: a CUDA GPU when there is one): a torch device name checked by
+    the agent's own check, then refused in one line when it is a CUDA device this machine lacks."""
+    import torch
+
+    from cicfw.agent import _torch_device
+
+    device = _torch_device(str(name or "auto"))
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N")
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            why = "this torch is built without CUDA" if torch.version.cuda is None else "it sees no CUDA GPU"
+            raise ValueError(f"device={str(name)!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
+        if device.index is not None and device.index >= count:
+            raise ValueError(f"device={str(name)!r} is not on this machine: it has {count} CUDA GPU(s), "
+                             f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto")
+    return str(device)
 
 
 def _compose_train(overrides: list[str]) -> DictConfig:
@@ -118,14 +168,13 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
         raise ValueError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")
     if cfg.split not in sd.SPLITS:
         raise ValueError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
+    check_options(cfg)
+    device = torch_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
     data, source = data_settings(cfg, ckpt_path)
     if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    device = str(cfg.get("device") or "auto")
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+        torch.set_num_threads(cfg.threads)
     model = prepare_for_inference(load_model(ckpt_path), bool(cfg.get("fuse", True))).to(device)
     approach_m = cfg.phases.approach_m
     approach_from = "phases.approach_m"

@@ -48,6 +48,8 @@ TOLERANCE = 1e-4
 TIE_MARGIN = 1e-4
 #: how many folders above the checkpoint to look for its training run's ``.hydra/config.yaml``
 RUN_CONFIG_LEVELS = 3
+#: the ONNX opset used when none is given
+DEFAULT_OPSET = 17
 
 
 class ExportError(ValueError):
@@ -100,12 +102,33 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
                        np.array([frames[i]["command"] for i in pick], np.int64), [names[i] for i in pick])
 
 
+def frame_files(path: str | Path) -> list[Path]:
+    """The CIL HDF5 files ``frames=`` names (a file, a folder or a glob), each checked as training checks
+    its data (``check_file``), with no sample among them: else one ``ExportError`` naming ``frames=``."""
+    from cicfw.data.cil_hdf5 import CILFormatError, check_file, find_files
+
+    try:
+        files = find_files(path)
+    except FileNotFoundError:
+        raise ExportError(f"frames={str(path)!r} matches no HDF5 file; give a CIL HDF5 file, a folder that holds "
+                          f"*.h5 / *.hdf5 files (searched recursively) or a glob, or leave frames out (frames "
+                          f"rendered by the embedded simulator)") from None
+    try:
+        n = sum(check_file(f).n for f in files)
+    except CILFormatError as err:
+        raise ExportError(f"frames={str(path)!r} is not CIL data: {err}") from None
+    if n == 0:
+        raise ExportError(f"frames={str(path)!r} holds no frame (its {len(files)} HDF5 file(s) are empty); "
+                          f"give CIL data with frames, or leave frames out")
+    return files
+
+
 def dataset_frames(path: str | Path, n: int) -> CheckInputs:
     """``n`` frames of a CIL HDF5 file or folder (centre camera where the files say which), evenly spaced
     over its first file(s), with their speeds and commands."""
-    from cicfw.data.cil_hdf5 import T, find_files, read_rgb, read_targets
+    from cicfw.data.cil_hdf5 import T, read_rgb, read_targets
 
-    files = find_files(path)  # a folder, a file or a glob; an error naming the path when it holds none
+    files = frame_files(path)  # a folder, a file or a glob; an error naming frames= when it holds no data
     images, targets, names = [], [], []
     for f in files:
         t = read_targets(f)
@@ -183,7 +206,7 @@ def _example(inputs: CheckInputs, n: int = 2) -> tuple[torch.Tensor, torch.Tenso
             torch.from_numpy(inputs.command[:n]))
 
 
-def to_onnx(module: torch.nn.Module, example: tuple, metadata: str, opset: int = 17) -> bytes:
+def to_onnx(module: torch.nn.Module, example: tuple, metadata: str, opset: int = DEFAULT_OPSET) -> bytes:
     """The ONNX bytes of ``module`` (legacy TorchScript-based exporter: no extra packages), dynamic batch,
     ``metadata`` under the key ``cicfw.json``."""
     import onnx
@@ -405,6 +428,24 @@ def _check_format(fmt: str) -> None:
                               f'pip install "cicfw[export]"') from None
 
 
+def opset_range() -> tuple[int, int]:
+    """The ONNX opsets the exporter ``to_onnx`` uses (torch's TorchScript-based one) can write, as torch states them."""
+    try:
+        from torch.onnx import _constants as c
+
+        return int(c.ONNX_MIN_OPSET), int(c.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET)
+    except (ImportError, AttributeError):  # a torch that moved them: the range of torch 2.x
+        return 7, 20
+
+
+def _check_opset(opset: Any) -> None:
+    """One line for an opset torch cannot write (``opset=abc``, ``opset=99``), before anything is loaded."""
+    low, high = opset_range()
+    if not (isinstance(opset, int) and not isinstance(opset, bool) and low <= opset <= high):
+        raise ExportError(f"opset={opset!r} is not valid; use an integer ONNX opset from {low} to {high} "
+                          f"(torch {torch.__version__}'s exporter), e.g. {DEFAULT_OPSET} (the default)")
+
+
 def _plugin_parts(hp: Mapping[str, Any]) -> list[str]:
     from cicfw.registry import ENCODERS, HEADS, MIXERS
 
@@ -428,8 +469,11 @@ def _export_failure(err: Exception, fmt: str, hp: Mapping[str, Any], opset: int)
     blame = (("; " + ", ".join(parts) + " (cicfw's own parts export)") if parts
              else "; all its parts are cicfw's own: please report this")
     other = "format=torchscript" if fmt == "onnx" else "format=onnx"
+    todo = f"try {other}, or ask the part's authors for an exportable operator"
+    if fmt == "onnx" and opset < DEFAULT_OPSET:  # an older opset lacks operators: not the parts' fault
+        blame, todo = "", f"give opset={DEFAULT_OPSET} (the default) or newer, or {other}"
     return ExportError(f"cannot export {hp['mixer']}+{hp['head']} to {fmt}: {what} has no form in {where}{blame}; "
-                       f"try {other}, or ask the part's authors for an exportable operator")
+                       f"{todo}")
 
 
 def _sources(names: list[str]) -> list[str]:
@@ -440,7 +484,7 @@ def _sources(names: list[str]) -> list[str]:
 # ---- the export --------------------------------------------------------------------------------
 def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
                  frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
-                 opset: int = 17) -> dict[str, Any]:
+                 opset: int = DEFAULT_OPSET) -> dict[str, Any]:
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
     simulator) plus as many random inputs. Returns the sidecar's content."""
@@ -451,10 +495,13 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)")
     if not (isinstance(tolerance, (int, float)) and tolerance > 0):
         raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)")
+    if fmt == "onnx":
+        _check_opset(opset)
     ckpt = resolve_checkpoint(checkpoint)
     path = output_path(str(out) if out else None, ckpt, fmt)
+    real = dataset_frames(frames, n_frames) if frames else None  # bad frames=: refused before the model loads
     model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
-    inputs = (dataset_frames(frames, n_frames) if frames else rendered_frames(n_frames)) + random_inputs(n_frames)
+    inputs = (real if real is not None else rendered_frames(n_frames)) + random_inputs(n_frames)
     info = describe_model(model, ckpt, fmt, opset if fmt == "onnx" else None)
     module = graph_module(model)
     example = _example(inputs)

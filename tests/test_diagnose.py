@@ -328,3 +328,55 @@ def test_a_reproduce_cell_gives_its_training_split(tmp_path: Path, episodes: Pat
     values, source = training_data(ckpt)
     assert values["path"] == str(episodes) and values["seed"] == 2 and values["val_fraction"] == 0.25
     assert "reproduce cell cil seed 2" in source
+
+
+BAD_OPTIONS = [  # override, the one line's key words (each refused before the checkpoint is even looked for)
+    ("batch_size=0", r"^batch_size=0 is not valid; use a positive integer"),
+    ("max_frames=-5", r"^max_frames=-5 is not valid; use null \(every frame\) or a positive integer"),
+    ("max_frames=0", r"^max_frames=0 is not valid"),
+    ("threads=abc", r"^threads='abc' is not valid; use null \(torch's default\) or a positive integer$"),
+    ("threads=-2", r"^threads=-2 is not valid"),
+    ("phases.exit_s=-1", r"^phases.exit_s=-1 is not valid; use a number of seconds >= 0$"),
+    ("phases.dt_s=0", r"^phases.dt_s=0 is not valid; use a number of seconds > 0"),
+    ("phases.approach_m=-3", r"^phases.approach_m=-3 is not valid; use null .* or a number of metres > 0$"),
+    ("device=gpu", r"^device='gpu' is not a torch device; use auto, cpu, cuda or cuda:N$"),
+    ("device=mps", r"^device='mps' is not supported here; use auto, cpu, cuda or cuda:N$"),
+]
+
+
+@pytest.mark.parametrize("override,message", BAD_OPTIONS, ids=[o for o, _ in BAD_OPTIONS])
+def test_bad_numbers_and_devices_are_refused_before_anything_loads(tmp_path: Path, override: str, message: str):
+    """A value outside its domain is one line naming the key and what is accepted, before the checkpoint
+    (here a missing one, which would otherwise be the error) or the data is read; nothing is written."""
+    from cicfw.diagnose import diagnose
+
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=message) as err:
+        diagnose(diagnose_cfg(f"checkpoint={tmp_path / 'nope.ckpt'}", override), out)
+    assert "\n" not in str(err.value)
+    assert not out.exists()
+
+
+def test_a_cuda_device_this_machine_lacks_is_one_line(tmp_path: Path, monkeypatch):
+    """device=cuda without CUDA, or a GPU index past the machine's: one line offering cpu / auto / the GPUs there."""
+    from cicfw.diagnose import diagnose
+
+    nope = f"checkpoint={tmp_path / 'nope.ckpt'}"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"^device='cuda' needs a CUDA GPU, but .*; use device=cpu \(or auto\)$"):
+        diagnose(diagnose_cfg(nope, "device=cuda"), tmp_path / "out")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"^device='cuda:3' is not on this machine: it has 1 CUDA GPU\(s\), "
+                                         r"cuda:0 to cuda:0"):
+        diagnose(diagnose_cfg(nope, "device=cuda:3"), tmp_path / "out")
+
+
+def test_the_cli_refuses_a_bad_thread_count_in_one_line(tmp_path: Path):
+    """``threads=-2`` was a torch RuntimeError traceback: now status 2 and one line."""
+    res = subprocess.run([sys.executable, "-m", "cicfw.diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}",
+                          "threads=-2", f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 2
+    lines = [x for x in res.stderr.splitlines() if x.strip()]
+    assert lines == ["cicfw: error: threads=-2 is not valid; use null (torch's default) or a positive integer"], res.stderr

@@ -409,3 +409,73 @@ def test_driving_function_is_the_modules_predict_steer():
     with torch.no_grad():
         got = DrivingFunction(model)(img, speed, code)
     assert torch.equal(got, model.predict_steer(img.permute(0, 3, 1, 2), speed, code - 2).clamp(-1, 1))
+
+
+# ---- bad frames= and opset=: one line, up front -------------------------------------------------
+def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monkeypatch):
+    """frames= of a text file, an empty file or a folder without HDF5 files: one line naming frames=
+    (the h5py traceback and data.path= before), refused before the model loads; nothing written."""
+    import h5py
+
+    import cicfw.bench.checkpoint as checkpoint
+
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    (tmp_path / "notes.h5").write_text("hello\n")
+    (tmp_path / "empty.h5").write_bytes(b"")
+    (tmp_path / "nothing").mkdir()
+    (tmp_path / "zero").mkdir()
+    with h5py.File(tmp_path / "zero" / "data_00000.h5", "w") as f:  # the CIL layout, no sample
+        f.create_dataset("rgb", (0, 88, 200, 3), np.uint8)
+        f.create_dataset("targets", (0, 28), np.float32)
+    monkeypatch.setattr(checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
+    cases = [
+        ("notes.h5", r"^frames='.*notes.h5' is not CIL data: .*notes.h5: not a readable HDF5 file"),
+        ("empty.h5", r"^frames='.*empty.h5' is not CIL data: .*empty.h5: not a readable HDF5 file"),
+        ("nothing", r"^frames='.*nothing' matches no HDF5 file; give a CIL HDF5 file, a folder .* or leave frames out"),
+        ("zero", r"^frames='.*zero' holds no frame"),
+    ]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for name, message in cases:
+        with pytest.raises(ExportError, match=message) as err:
+            export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=tmp_path / name, n_frames=2)
+        assert "\n" not in str(err.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
+    (tmp_path / "notes.h5").write_text("hello\n")
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    res = subprocess.run([sys.executable, "-m", "cicfw.export", f"checkpoint={ckpt}", f"out={tmp_path / 'm.onnx'}",
+                          f"frames={tmp_path / 'notes.h5'}"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith(f"cicfw: error: frames='{tmp_path / 'notes.h5'}' "
+                                                                 f"is not CIL data:"), res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt", "notes.h5"]
+
+
+@pytest.mark.parametrize("opset", ["abc", 99, 6, True, 17.0])
+def test_an_opset_torch_cannot_write_is_refused_up_front(tmp_path, monkeypatch, opset):
+    """opset= outside the range torch.onnx states (its TorchScript-based exporter's) is one line with that
+    range, before the checkpoint is read, not an export failure that asks to report a cicfw bug."""
+    import cicfw.bench.checkpoint as checkpoint
+    from torch.onnx import _constants
+
+    monkeypatch.setattr(checkpoint, "resolve_checkpoint", lambda *a: pytest.fail("the checkpoint was read first"))
+    low, high = _constants.ONNX_MIN_OPSET, _constants.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET
+    assert export.opset_range() == (low, high) and low <= export.DEFAULT_OPSET <= high
+    with pytest.raises(ExportError, match=rf"^opset={opset!r} is not valid; use an integer ONNX opset from {low} "
+                                          rf"to {high} \(torch .*'s exporter\), e.g. 17 \(the default\)$"):
+        export_model(tmp_path / "m.ckpt", "onnx", tmp_path / "m.onnx", opset=opset)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_opset_too_old_for_an_operator_asks_for_a_newer_one(tmp_path):
+    """opset 7 is torch's, but lacks an operator cicfw's own parts use: the line asks for a newer opset
+    instead of calling it a cicfw bug."""
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    frames = write_tiny_dataset(tmp_path / "data", n_files=1, n=4)
+    with pytest.raises(ExportError, match=r"^cannot export independent\+regression to onnx: .* has no form in ONNX "
+                                          r"opset 7; give opset=17 \(the default\) or newer, or format=torchscript$") as err:
+        export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=frames, n_frames=2, opset=7)
+    assert "please report" not in str(err.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "m.ckpt"]
