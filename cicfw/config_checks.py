@@ -1,6 +1,8 @@
 """Checking a config node against the constructor it is passed to, before anything is built: an
 unknown key (with "did you mean" and the accepted keys), a key cicfw sets itself, a missing argument,
-and a value of the wrong type (``model.lr=abc``), each as one ``ValueError`` line.
+and a value of the wrong type (``model.lr=abc``, ``trainer.max_epochs=abc`` against Lightning's typing
+annotations), each as one ``ValueError`` line; ``whole_number`` for the integers read outside any
+constructor (``seed=abc``).
 
 Light on purpose (no torch, no Lightning): the train and evaluate apps both use it up front.
 """
@@ -10,6 +12,8 @@ import difflib
 import inspect
 import math
 import re
+import types
+import typing
 from typing import Any, Callable, Mapping
 
 _KEYWORD = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
@@ -54,21 +58,77 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+#: the annotation parts a config value can be checked against (classes, ``list[int]`` ... are not)
+_PLAIN = ("int", "float", "bool", "str", "None")
+
+
+def _parts(annotation: Any) -> tuple[list[str], list[Any]] | None:
+    """An annotation's type names and ``Literal`` values, from its text (``int | None``, as
+    ``from __future__ import annotations`` keeps it) or its typing object (``Optional[int]``, as
+    ``lightning.Trainer`` has it); None when a part is none of ``_PLAIN`` (nothing to check)."""
+    if isinstance(annotation, str):
+        names = [p.strip() for p in annotation.split("|")]
+        return (names, []) if all(n in _PLAIN for n in names) else None
+    if annotation is type(None) or annotation is None:
+        return ["None"], []
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return [], list(typing.get_args(annotation))
+    if origin in (typing.Union, types.UnionType):
+        found = [_parts(a) for a in typing.get_args(annotation)]
+        if any(f is None for f in found):
+            return None
+        return [n for f in found for n in f[0]], [v for f in found for v in f[1]]
+    name = getattr(annotation, "__name__", None)
+    return ([name], []) if origin is None and name in _PLAIN else None
+
+
+def _fits(names: list[str], literals: list[Any], value: Any) -> bool:
+    """Whether ``value`` is one of ``names``' types or ``literals`` (a number is a valid ``str``: Hydra
+    reads ``name=123`` as one)."""
+    if any(value == v and type(value) is type(v) for v in literals):
+        return True
+    if isinstance(value, bool):
+        return "bool" in names
+    return (("None" in names and value is None) or ("str" in names and isinstance(value, (str, int, float)))
+            or ("float" in names and _is_number(value)) or ("int" in names and isinstance(value, int)))
+
+
+def _accepted(names: list[str], literals: list[Any], value: Any) -> str:
+    """``a number or null``, ``true or false``, ``true, false, 'warn' or null`` ...; an ``int`` is "a
+    number" to a value that is none, and "a whole number" to a fraction."""
+    whole = "a whole number" if _is_number(value) else "a number"
+    words = {"int": [whole] if "float" not in names else [], "float": ["a number"], "bool": ["true", "false"],
+             "str": ["a string"]}
+    said = [w for n in dict.fromkeys(names) for w in words.get(n, [])]
+    said += [repr(v) for v in literals] + (["null"] if "None" in names else [])
+    return said[0] if len(said) == 1 else f"{', '.join(said[:-1])} or {said[-1]}"
+
+
 def type_problem(annotation: Any, value: Any) -> str | None:
-    """What is wrong with ``value`` for a parameter annotated ``annotation`` (only the plain cases:
-    ``int``/``float`` with or without ``None``, and ``tuple[float, ...]`` of a fixed length), else None."""
+    """What is wrong with ``value`` for a parameter annotated ``annotation``, else None. Checked: unions of
+    ``int``, ``float``, ``bool``, ``str``, ``None`` and ``Literal`` values (as text or typing objects),
+    and ``tuple[float, ...]`` of a fixed length; any other annotation passes (its callee checks it)."""
     ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation))
-    parts = {p.strip() for p in ann.split("|")}
-    if value is None and "None" in parts:
-        return None
-    if parts and parts <= {"int", "float", "None"}:
-        return None if _is_number(value) else f"must be a number, got {value!r}"
     fixed = re.fullmatch(r"tuple\[((?:int|float)(?:, *(?:int|float))*)\]", ann.replace(" ", ""))
     if fixed:
         n = len(fixed.group(1).split(","))
         ok = isinstance(value, (list, tuple)) and len(value) == n and all(_is_number(v) for v in value)
         return None if ok else f"must be a list of {n} numbers, got {value!r}"
-    return None
+    parts = _parts(annotation)
+    if parts is None or set(parts[0]) <= {"None"} or _fits(*parts, value):
+        return None  # Literal values only (trainer.precision): the callee names the accepted ones
+    return f"must be {_accepted(*parts, value)}, got {value!r}"
+
+
+def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:
+    """``value`` as an int (an int, or its digits as a string), else one ``ValueError`` naming ``key`` and
+    what it accepts: ``seed must be an integer, got 'abc'`` rather than int()'s own message."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, str) and re.fullmatch(r"\s*[-+]?\d+\s*", value):
+        return int(value)
+    raise ValueError(f"{key} must be {accepted}, got {value!r}")
 
 
 def check_kwargs(where: str, what: str, fn: Callable, kwargs: Mapping[str, Any],

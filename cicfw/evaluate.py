@@ -22,6 +22,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.bench.runs import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
+from cicfw.config_checks import whole_number
 from cicfw.errors import Interrupted, report_interrupts, report_user_errors
 from cicfw.override_hints import check_top_level_keys
 
@@ -53,9 +54,10 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
-        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=int(cfg.seed),
+        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=whole_number("seed", cfg.seed),
         label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
-        maps=bool(cfg.get("maps", True)), video=video_list(cfg.get("video")), video_max=int(cfg.get("video_max", 8)),
+        maps=bool(cfg.get("maps", True)), video=video_list(cfg.get("video")),
+        video_max=whole_number("video_max", cfg.get("video_max", 8)),
         new_folder_hint=new_folder_hint, resume_hint=resume_hint)
     join_sweep()
     return res.summary
@@ -190,7 +192,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
 
     check_kwargs("runner", "the runner", RunnerConfig, runner,
                  {"seed": "it is the top-level seed=...", "progress_bar": "it is the top-level progress_bar=..."})
-    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
+    runner_cfg = RunnerConfig(**{**runner, "seed": whole_number("seed", seed), "progress_bar": bool(progress_bar)})
     server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
     kwargs = {k: v for k, v in spec.items() if k != "name"}
     check_kwargs("policy", f"policy {spec.get('name')!r}", POLICIES.get(str(spec.get("name"))), kwargs,
@@ -213,7 +215,8 @@ def check_evaluation_overrides(overrides: Any) -> None:
         spec = policy_spec(cfg)
         plan_evaluation(spec, OmegaConf.to_container(cfg.suite, resolve=True),
                         OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
-                        int(cfg.seed), False, video_list(cfg.get("video")), int(cfg.get("video_max", 8)))
+                        whole_number("seed", cfg.seed), False, video_list(cfg.get("video")),
+                        whole_number("video_max", cfg.get("video_max", 8)))
     except (ValueError, FileNotFoundError, UnknownNameError) as err:
         text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
         raise ValueError(f"evaluate_overrides: {text}") from None

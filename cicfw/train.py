@@ -22,7 +22,9 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import check_kwargs, did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
+from cicfw.bench.checkpoint import disallowed_global
+from cicfw.config_checks import check_kwargs, type_problem, whole_number
+from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
@@ -114,7 +116,26 @@ def make_datamodule(cfg: DictConfig) -> CILDataModule:
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
     check_kwargs("data", "the CIL datamodule", CILDataModule, kwargs)
-    return CILDataModule(**kwargs)
+    datamodule = CILDataModule(**kwargs)
+    check_collected_cameras(cfg.data, datamodule)
+    return datamodule
+
+
+def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> None:
+    """The default data (``data.collect``) records the cameras of ``collect.cameras``: ``data.cameras``
+    or ``data.val_cameras`` choosing none of their ids is refused now, not after the collection."""
+    if data_cfg.get("collect") is None:
+        return
+    from cicfw.collection.config import CAMERA_IDS, DEFAULTS
+
+    names = data_cfg.collect.get("cameras") or DEFAULTS["cameras"]
+    recorded = {CAMERA_IDS[n][0]: n for n in names if n in CAMERA_IDS}  # unknown names: the collector says so
+    for key, chosen in (("cameras", datamodule.cameras), ("val_cameras", datamodule.val_cameras)):
+        if chosen is not None and recorded and not set(chosen) & set(recorded):
+            held = ", ".join(f"{i} {n}" for i, n in sorted(recorded.items()))
+            raise ValueError(f"data.{key}={list(chosen)} chooses none of the cameras the default data records "
+                             f"({held}; collect.cameras); choose among those, or train on your own files with "
+                             f"data=cil_hdf5 data.path=...")
 
 
 def build_datamodule(cfg: DictConfig) -> CILDataModule:
@@ -122,6 +143,23 @@ def build_datamodule(cfg: DictConfig) -> CILDataModule:
     datamodule = make_datamodule(cfg)
     ensure_data(cfg.data)
     return datamodule
+
+
+def epoch_list(epochs: Any) -> list[int]:
+    """``keep_epoch_checkpoints`` as a list of epochs >= 1, else one line naming it (a lone ``abc`` was
+    read one character at a time, inside the Trainer's construction)."""
+    if OmegaConf.is_config(epochs):
+        epochs = OmegaConf.to_container(epochs, resolve=True)
+    if epochs is None:
+        return []
+    try:
+        found = [whole_number("keep_epoch_checkpoints", e) for e in epochs] if isinstance(epochs, list) else None
+    except ValueError:
+        found = None
+    if found is None or any(e < 1 for e in found):
+        raise ValueError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
+                         f"checkpoints/epochNNN.ckpt), got {epochs!r}")
+    return found
 
 
 class EpochCheckpoints(Callback):
@@ -197,8 +235,9 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
         last_checkpoint(run_dir / "checkpoints"),
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
     ]
-    if cfg.get("keep_epoch_checkpoints"):
-        callbacks.append(EpochCheckpoints(run_dir / "checkpoints", cfg.keep_epoch_checkpoints))
+    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
+    if epochs:
+        callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs))
     if cfg.get("progress_bar", True):
         callbacks.append(RichProgressBar())
     return callbacks
@@ -219,8 +258,9 @@ def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
     assert isinstance(kwargs, dict)
     for key in SPEED_SWITCHES:
         kwargs.pop(key, None)
-    params = [n for n in inspect.signature(L.Trainer.__init__).parameters if n != "self"]
-    for key in kwargs:
+    signature = inspect.signature(L.Trainer.__init__).parameters
+    params = [n for n in signature if n != "self"]
+    for key, value in kwargs.items():
         if key in SET_BY_CICFW:
             raise ValueError(f"trainer.{key} cannot be set: {SET_BY_CICFW[key]}")
         if key not in params:
@@ -229,6 +269,9 @@ def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
                 f"trainer.{key} is not a Lightning Trainer argument; {_did_you_mean(str(key), accepted + list(SPEED_SWITCHES))}"
                 f"accepted keys: the arguments of lightning.Trainer ({', '.join(accepted)}) and cicfw's "
                 f"switches ({', '.join(SPEED_SWITCHES)})")
+        problem = type_problem(signature[key].annotation, value)  # max_epochs=abc would pass Lightning
+        if problem:
+            raise ValueError(f"trainer.{key} {problem}")
     return kwargs
 
 
@@ -236,6 +279,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
+    epoch_list(cfg.get("keep_epoch_checkpoints"))  # here, not inside the try below that says "trainer:"
     SpeedConfig.from_trainer_cfg(cfg.trainer)  # cicfw's own switches' values (trainer.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
@@ -276,12 +320,15 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
-        found = re.search(r"Unsupported global: GLOBAL [\w.]+|Unsupported operand \d+", str(err))
-        detail = found.group(0) if found else _first_line(err)
-        raise ValueError(
-            f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
-            f"({detail}), which could run code when loaded; cicfw loads checkpoints with "
-            f"torch.load(weights_only=True) only") from None
+        name = disallowed_global(err)
+        if name:  # a class or function the safe unpickler will not build
+            raise ValueError(
+                f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
+                f"(Unsupported global: GLOBAL {name}), which could run code when loaded; cicfw loads "
+                f"checkpoints with torch.load(weights_only=True) only") from None
+        found = re.search(r"Unsupported operand \d+", str(err))  # a file that is no pickle at all
+        raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
+                         f"torch.save): UnpicklingError: {found.group(0) if found else _first_line(err)}") from None
     except Exception as err:  # truncated zip, not a torch file, ...
         raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
                          f"torch.save): {type(err).__name__}: {_first_line(err)}") from None
@@ -332,7 +379,7 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
     ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
     ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on."""
     run_dir = Path(run_dir)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(whole_number("seed", cfg.seed), workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes

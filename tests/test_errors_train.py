@@ -152,6 +152,17 @@ def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
         assert "\n" not in str(err.value)
 
 
+def test_a_file_that_is_no_pickle_is_not_called_unsafe(tmp_path, no_data):
+    """An 11-byte text file was refused as "pickled Python objects ... which could run code"."""
+    text = tmp_path / "text.ckpt"
+    text.write_text("not a ckpt\n")
+    with pytest.raises(ValueError) as err:
+        train(_cfg(tmp_path, f"ckpt_path={text}"), tmp_path / "run")
+    assert str(err.value) == (f"ckpt_path={text} is not a readable checkpoint (truncated, or not written by "
+                              f"torch.save): UnpicklingError: Unsupported operand 110")
+    assert not (tmp_path / "run").exists()
+
+
 def test_lightning_resumes_with_weights_only(tmp_path, monkeypatch):
     """Lightning's own load of ``ckpt_path`` is asked for ``weights_only=True`` (not torch's default)."""
     from lightning.pytorch.trainer.connectors.checkpoint_connector import _CheckpointConnector

@@ -118,3 +118,30 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
                              f"this filesystem allows (255); give a shorter one"]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("seed=abc", "seed must be an integer, got 'abc'"),
+    ("suite.limit=abc", "suite.limit must be an integer >= 1 (or null for every pair), got 'abc'"),
+    ("suite.pairs=[0,x]", "suite.pairs must be a list of pair indices such as [0, 2] (or null for every pair), "
+                          "got 'x'"),
+    ("suite.pairs=3", "suite.pairs must be a list of pair indices such as [0, 2] (or null for every pair), got 3"),
+    ("video_max=abc", "video_max must be an integer, got 'abc'"),
+])
+def test_a_value_that_is_no_whole_number_is_refused_by_its_key(tmp_path, override, message):
+    """They printed int()'s ``invalid literal for int() with base 10: 'abc'``, naming neither key."""
+    with pytest.raises(ValueError) as err:
+        evaluate(compose_config([*QUICK, override]), tmp_path / "run")
+    assert str(err.value) == message
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_folder_without_checkpoints_is_named_as_given(tmp_path):
+    """``checkpoint=<empty folder>`` printed ``checkpoint=PosixPath('...')``."""
+    (tmp_path / "empty").mkdir()
+    cfg = compose_config([*QUICK[1:], "policy=checkpoint", f"checkpoint={tmp_path}/empty"])
+    with pytest.raises(ValueError) as err:
+        evaluate(cfg, tmp_path / "run")
+    assert str(err.value) == (f"checkpoint='{tmp_path}/empty' is a folder with 0 .ckpt files besides last.ckpt "
+                              f"(none); give one .ckpt file")
+    assert not (tmp_path / "run").exists()

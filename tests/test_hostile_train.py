@@ -294,3 +294,75 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert _errors(proc) == [f"cicfw: error: hydra.job.name: the name {name[:20]}... is 304 bytes long, more than "
                              f"this filesystem allows (255); give a shorter one"]
+
+
+# ---- values of the wrong type or range, refused by name before any data (bad-input sweep) -------------
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["trainer.max_epochs=abc"], "trainer.max_epochs must be a number or null, got 'abc'"),
+    (["trainer.max_epochs=1.5"], "trainer.max_epochs must be a whole number or null, got 1.5"),
+    (["trainer.max_steps=abc"], "trainer.max_steps must be a number, got 'abc'"),
+    (["trainer.inference_mode=maybe"], "trainer.inference_mode must be true or false, got 'maybe'"),
+    (["trainer.deterministic=sure"], "trainer.deterministic must be true, false, 'warn' or null, got 'sure'"),
+    (["seed=abc"], "seed must be an integer, got 'abc'"),
+    (["keep_epoch_checkpoints=abc"], "keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
+                                     "checkpoints/epochNNN.ckpt), got 'abc'"),
+    (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each "
+                                       "keeps checkpoints/epochNNN.ckpt), got [0, 2]"),
+    (["data.batch_size=0"], "data.batch_size must be >= 1, got 0"),
+    (["data.val_batch_size=0"], "data.val_batch_size must be >= 1, got 0"),
+    (["data.cameras=5"], "data.cameras must be null (every camera) or a list of camera ids (targets[26]) such as "
+                         "[0, 1, 2] (0 centre, 1 left, 2 right), got 5"),
+    (["data.val_cameras=[]"], "data.val_cameras must be null (every camera) or a list of camera ids"),
+    (["data.cameras=[5]"], "data.val_cameras=[0] is not within data.cameras=[5]: only data.cameras are read, so "
+                           "camera id(s) [0] would validate on nothing; camera ids: 0 centre, 1 left, 2 right"),
+])
+def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, overrides, message):
+    with pytest.raises(ValueError) as err:
+        train(_cfg(tmp_path, *overrides), tmp_path / "run")
+    assert _one_line(err).startswith(message), str(err.value)
+    assert not (tmp_path / "run").exists()
+
+
+def test_trainer_values_of_every_accepted_type_pass_the_check(tmp_path):
+    cfg = _cfg(tmp_path, "trainer.max_epochs=null", "trainer.deterministic=warn", "trainer.limit_train_batches=0.5",
+               "trainer.fast_dev_run=2", "trainer.max_time=00:00:01:00", "trainer.devices=1")
+    kwargs = train_mod.trainer_kwargs(cfg)
+    assert kwargs["deterministic"] == "warn" and kwargs["max_epochs"] is None and kwargs["fast_dev_run"] == 2
+    assert train_mod.epoch_list(_cfg(tmp_path, "keep_epoch_checkpoints=[1,3]").keep_epoch_checkpoints) == [1, 3]
+
+
+def test_cameras_the_default_data_does_not_record_are_refused_before_collecting(tmp_path, no_data):
+    cfg = compose_train("data=sim_default", f"data.path={tmp_path}/sim", "+data.collect.cameras=[centre]",
+                        "data.cameras=[1,2]", "data.val_cameras=[1]", "progress_bar=false")
+    with pytest.raises(ValueError) as err:
+        train(cfg, tmp_path / "run")
+    assert _one_line(err) == ("data.cameras=[1, 2] chooses none of the cameras the default data records (0 centre; "
+                              "collect.cameras); choose among those, or train on your own files with data=cil_hdf5 "
+                              "data.path=...")
+    assert not (tmp_path / "sim").exists()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["data.cameras=[5]", "data.val_cameras=null"],
+     "data.cameras=[5] keeps none of the 144 samples: the files hold camera id(s) [0, 1, 2] (0 centre, 1 left, "
+     "2 right); choose among those, or data.cameras=null for every camera"),
+    (["data.cameras=null", "data.val_cameras=[5]"],
+     "data.val_cameras=[5] keeps none of the "),
+])
+def test_cameras_the_files_do_not_hold_are_named_not_zero_episodes(tmp_path, overrides, message):
+    """``data.cameras=[5]`` on a folder of 6 files said "the data holds 0 episode(s) ... at least 2 files"."""
+    write_tiny_dataset(tmp_path / "data")
+    with pytest.raises(ValueError) as err:
+        train(_cfg(tmp_path, *overrides), tmp_path / "run")
+    assert _one_line(err).startswith(message), str(err.value)
+    assert "episode" not in str(err.value)
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_bad_seed_in_the_evaluation_overrides_is_refused_before_the_first_batch(tmp_path, no_data):
+    cfg = _cfg(tmp_path, "evaluate_after=true", "evaluate_overrides=['seed=abc']")
+    with pytest.raises(ValueError) as err:
+        train(cfg, tmp_path / "run")
+    assert _one_line(err) == "evaluate_overrides: seed must be an integer, got 'abc'"

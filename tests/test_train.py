@@ -114,3 +114,18 @@ def test_cli_reports_bad_path_in_one_line(tmp_path):
     assert r.returncode == 2
     assert "cicfw: error: data.path=" in r.stderr and "matches no HDF5 file" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_cli_refuses_a_trainer_value_of_the_wrong_type_in_one_line_before_the_data(tmp_path):
+    """``trainer.max_epochs=abc`` passed the trainer's checks, waited for the data (collecting the default
+    dataset first) and then ended in a TypeError traceback from the speed settings."""
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    r = subprocess.run(
+        [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing", "progress_bar=false",
+         "trainer.max_epochs=abc", f"hydra.run.dir={tmp_path}/out"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    errors = [line for line in r.stderr.splitlines() if line.startswith("cicfw:")]
+    assert errors == ["cicfw: error: trainer.max_epochs must be a number or null, got 'abc'"], r.stderr[-2000:]
+    assert "Traceback" not in r.stderr

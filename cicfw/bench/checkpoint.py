@@ -36,12 +36,19 @@ def resolve_checkpoint(path: str | Path) -> Path:
             return (p / "checkpoints" / "last.ckpt").resolve()
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
-            f"checkpoint={path!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
+            f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
             f"give one .ckpt file")
     if not p.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
                                 f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
     return p.resolve()
+
+
+def disallowed_global(err: BaseException) -> str | None:
+    """The class or function a ``weights_only`` load refused to build (``exec`` for ``Unsupported global:
+    GLOBAL exec``): the file holds pickled code. None when it failed otherwise (not a pickle, damaged)."""
+    found = re.search(r"GLOBAL ([\w.]+)", str(err))
+    return found.group(1) if found else None
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -52,9 +59,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
-        found = re.search(r"GLOBAL ([\w.]+)", str(err))
-        if found:  # a class or function the safe unpickler will not build
-            name = found.group(1)
+        name = disallowed_global(err)
+        if name:  # a class or function the safe unpickler will not build
             raise CheckpointError(
                 f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers "
                 f"({name}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from cicfw.config_checks import whole_number
 from cicfw.registry import SIM_BACKENDS
 
 #: the paper's four weathers: two seen in training, two new
@@ -111,12 +112,18 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
     error listing the known ones.
     """
     manoeuvres = suite_manoeuvres(str(name))
+    if limit is not None:
+        limit = whole_number("suite.limit", limit, "an integer >= 1 (or null for every pair)")
+        if limit < 1:
+            raise ValueError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
+    if pairs is not None:
+        pairs = _pair_list(pairs)
     towns = check_names("town", towns, backend.towns(), path_ok=True)
     weathers = check_names("weather", weathers, backend.weathers())
     episodes: list[Episode] = []
     for town in towns:
         routes = suite_routes(backend, town)
-        chosen = range(len(routes)) if pairs is None else [int(p) for p in pairs]
+        chosen = range(len(routes)) if pairs is None else pairs
         bad = [p for p in chosen if not 0 <= p < len(routes)]
         if bad:
             raise ValueError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
@@ -126,9 +133,7 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
             raise ValueError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "
                              f"town {town!r}; pick other suite.pairs or suite=junctions")
         if limit is not None:
-            if int(limit) < 1:
-                raise ValueError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
-            chosen = list(chosen)[: int(limit)]
+            chosen = list(chosen)[:limit]
         town_set = "training" if town in training_towns or town_label(town) in training_towns else "new"
         for weather in weathers:
             for p in chosen:
@@ -138,6 +143,14 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
                     command=_turn_name(r), town_set=town_set,
                     weather_set="training" if weather in training_weathers else "new"))
     return episodes
+
+
+def _pair_list(pairs: Any) -> list[int]:
+    """``suite.pairs`` as a list of pair indices, else one line naming it (not int()'s own message)."""
+    accepted = "a list of pair indices such as [0, 2] (or null for every pair)"
+    if isinstance(pairs, str) or not isinstance(pairs, Sequence):
+        raise ValueError(f"suite.pairs must be {accepted}, got {pairs!r}")
+    return [whole_number("suite.pairs", p, accepted) for p in pairs]
 
 
 def _turn_name(route: Any) -> str:

@@ -16,8 +16,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from cicfw import COMMANDS
 from cicfw.data.augment import AugmentConfig, augment_batch
-from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
-from cicfw.data.frames import Frames, load_frames, split_by_episode
+from cicfw.config_checks import whole_number
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, KNOWN_CAMERA_IDS, image_key
+from cicfw.data.frames import Frames, camera_names, load_frames, split_by_episode
 from cicfw.data.sampler import CommandBalancedBatchSampler
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,24 @@ def _as_batch(batch: Any) -> Any:
     return batch
 
 
+def camera_ids(key: str, cameras: Any) -> tuple[int, ...] | None:
+    """``data.cameras`` / ``data.val_cameras`` as a tuple of camera ids (targets[26]), None for every
+    camera; anything else is one line naming ``key`` (a lone ``5`` is no list to filter by). Ids beyond
+    the known three are allowed: a user's own files may hold them (load_frames names any it drops)."""
+    if cameras is None:
+        return None
+    accepted = (f"null (every camera) or a list of camera ids (targets[26]) such as "
+                f"{list(KNOWN_CAMERA_IDS)} ({camera_names(KNOWN_CAMERA_IDS)})")
+    try:
+        listed = isinstance(cameras, Sequence) and not isinstance(cameras, str)  # a ListConfig too
+        ids = tuple(whole_number(f"data.{key}", c) for c in cameras) if listed else ()
+    except ValueError:
+        ids = ()
+    if not ids or min(ids) < 0:
+        raise ValueError(f"data.{key} must be {accepted}, got {cameras!r}")
+    return ids
+
+
 class CILDataModule(L.LightningDataModule):
     def __init__(
         self,
@@ -106,8 +125,9 @@ class CILDataModule(L.LightningDataModule):
         num_workers: int = 0,
     ) -> None:
         super().__init__()
-        if batch_size < 1 or val_batch_size < 1:
-            raise ValueError(f"batch sizes must be >= 1, got {batch_size} / {val_batch_size}")
+        for key, size in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
+            if size < 1:
+                raise ValueError(f"data.{key} must be >= 1, got {size}")
         if not 0.0 < max_abs_steer <= 1.0:
             raise ValueError(f"data.max_abs_steer must be in (0, 1], got {max_abs_steer}")
         # checked here, before any file is read (the sampler and the split check them again)
@@ -120,8 +140,13 @@ class CILDataModule(L.LightningDataModule):
         self.batch_size, self.val_batch_size = batch_size, val_batch_size
         self.val_fraction, self.seed = val_fraction, seed
         self.max_abs_steer, self.side_camera_correction = max_abs_steer, side_camera_correction
-        self.cameras = tuple(cameras) if cameras is not None else None
-        self.val_cameras = tuple(val_cameras) if val_cameras is not None else None
+        self.cameras, self.val_cameras = camera_ids("cameras", cameras), camera_ids("val_cameras", val_cameras)
+        both = self.cameras is not None and self.val_cameras is not None
+        left_out = sorted(set(self.val_cameras) - set(self.cameras)) if both else []
+        if left_out:  # the loader reads data.cameras only: these would validate on nothing
+            raise ValueError(f"data.val_cameras={list(self.val_cameras)} is not within data.cameras="
+                             f"{list(self.cameras)}: only data.cameras are read, so camera id(s) {left_out} would "
+                             f"validate on nothing; camera ids: {camera_names(KNOWN_CAMERA_IDS)} (or your files' own)")
         self.balanced, self.batches_per_epoch = balanced, batches_per_epoch
         if augment is True or augment is None:
             self.augment = AugmentConfig()
@@ -139,12 +164,23 @@ class CILDataModule(L.LightningDataModule):
         frames = load_frames(self.path, self.max_abs_steer, self.side_camera_correction, self.cameras)
         train, val = split_by_episode(frames, self.val_fraction, self.seed)
         if self.val_cameras is not None:
-            val = val.subset(np.isin(val.camera, self.val_cameras))
+            val = self._val_camera_subset(val)
         counts = dict(zip(COMMANDS, np.bincount(train.command, minlength=4).tolist()))
         log.info("data: %d train / %d val samples from %d files; train per command %s",
                  len(train), len(val), len(frames.files), counts)
         self.train_set = FrameDataset(train, ImageStore(train, self.in_memory), self.augment, self.seed)
         self.val_set = FrameDataset(val, ImageStore(val, self.in_memory), None, self.seed)
+
+    def _val_camera_subset(self, val: Frames) -> Frames:
+        """The validation samples of ``data.val_cameras``; none left is an error naming the ids the
+        validation episodes hold (the run would otherwise fail after its first epoch, with no metric)."""
+        kept = val.subset(np.isin(val.camera, self.val_cameras))
+        if len(val) and not len(kept):
+            held = sorted(set(np.unique(val.camera).tolist()))
+            raise ValueError(f"data.val_cameras={list(self.val_cameras)} keeps none of the {len(val)} validation "
+                             f"samples: they hold camera id(s) {held} ({camera_names(KNOWN_CAMERA_IDS)}); choose "
+                             f"among those, or data.val_cameras=null for every camera")
+        return kept
 
     def _rank(self) -> tuple[int, int]:
         trainer = getattr(self, "trainer", None)

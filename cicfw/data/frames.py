@@ -129,8 +129,25 @@ def load_frames(
                  *lowest)
     keep = np.abs(frames.steer) <= max_abs_steer
     if cameras is not None:
-        keep &= np.isin(frames.camera, list(cameras))
+        keep &= _chosen_cameras(frames.camera, cameras)
     return frames.subset(keep)
+
+
+def camera_names(ids: dict[int, str]) -> str:
+    """``0 centre, 1 left, 2 right``."""
+    return ", ".join(f"{i} {name}" for i, name in ids.items())
+
+
+def _chosen_cameras(camera: np.ndarray, cameras: tuple[int, ...]) -> np.ndarray:
+    """The samples of ``data.cameras``; choosing none of the ids the files hold is an error naming them
+    (it used to surface as "the data holds 0 episode(s)", for a folder of many)."""
+    chosen = np.isin(camera, list(cameras))
+    if len(camera) and not chosen.any():
+        held = sorted(set(np.unique(camera).tolist()))
+        raise ValueError(f"data.cameras={list(cameras)} keeps none of the {len(camera)} samples: the files hold "
+                         f"camera id(s) {held} ({camera_names(KNOWN_CAMERA_IDS)}); choose among those, or "
+                         f"data.cameras=null for every camera")
+    return chosen
 
 
 def _warn_unknown_cameras(path: Path, camera: np.ndarray, cameras: tuple[int, ...]) -> None:
@@ -139,7 +156,7 @@ def _warn_unknown_cameras(path: Path, camera: np.ndarray, cameras: tuple[int, ..
     if not unknown.any():
         return
     ids = sorted(set(np.unique(camera[unknown]).tolist()))
-    known = ", ".join(f"{i} {name}" for i, name in KNOWN_CAMERA_IDS.items())
+    known = camera_names(KNOWN_CAMERA_IDS)
     log.warning("%s: camera id(s) %s in targets[26] (%d sample(s)) are not among data.cameras %s (known ids: %s); "
                 "those samples are dropped: add the id(s) to data.cameras, or set data.cameras=null for every "
                 "camera, to train on them", path, ids, int(unknown.sum()), sorted(int(c) for c in cameras), known)
