@@ -2,6 +2,7 @@
 the statistics tests recompute with."""
 from __future__ import annotations
 
+import logging
 import math
 import os
 import signal
@@ -27,6 +28,19 @@ def pytest_configure(config):
         import torch
 
         torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
+@pytest.fixture(autouse=True)
+def _no_log_handler_outlives_its_test():
+    """An app run in-process (Hydra's job logging) hangs a handler on the root logger that writes to this
+    test's captured stream, which pytest closes after it; a later test's log line would then print
+    "--- Logging error ---" into that test's stderr. Take such handlers off when the test ends."""
+    root = logging.getLogger()
+    before = list(root.handlers)
+    yield
+    for handler in [h for h in root.handlers if h not in before and not type(h).__module__.startswith("_pytest")]:
+        root.removeHandler(handler)
+        handler.close()
 
 
 def wilson(k: int, n: int, z: float) -> tuple[float, float]:
