@@ -8,8 +8,6 @@ import errno
 import inspect
 import io
 import logging
-import pickle
-import re
 import shutil
 from pathlib import Path
 from typing import Any, Callable
@@ -22,7 +20,7 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.checkpoint import disallowed_global
+from cicfw.bench.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.config_checks import check_kwargs, type_problem, whole_number
 from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
@@ -251,6 +249,17 @@ SET_BY_CICFW = {
 }
 
 
+# Trainer arguments whose annotations let type_problem pass a wrong value (it does not check a union
+# with timedelta; a number is a str to it), which then failed inside Lightning with an AttributeError:
+# the types a config value may have, and what to say is accepted.
+LIGHTNING_TYPES = {
+    "max_time": ((str, dict), "a duration 'DD:HH:MM:SS' such as '00:12:00:00', a mapping such as "
+                              "{days: 1, hours: 2}, or null"),
+    "gradient_clip_algorithm": ((str,), "'value', 'norm' or null"),
+    "model_registry": ((str,), "a model name or null"),
+}
+
+
 def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
     """``cfg.trainer`` minus cicfw's speed switches; every key must be a ``lightning.Trainer``
     argument (the trainer node is open, so a typo arrives here and gets "did you mean")."""
@@ -272,6 +281,8 @@ def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
         problem = type_problem(signature[key].annotation, value)  # max_epochs=abc would pass Lightning
         if problem:
             raise ValueError(f"trainer.{key} {problem}")
+        if key in LIGHTNING_TYPES and value is not None and not isinstance(value, LIGHTNING_TYPES[key][0]):
+            raise ValueError(f"trainer.{key} must be {LIGHTNING_TYPES[key][1]}, got {value!r}")
     return kwargs
 
 
@@ -302,12 +313,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
 LIGHTNING_CKPT_NAMES = ("last", "best", "hpc", "registry")
 
 
-def _first_line(err: BaseException) -> str:
-    """The first sentence of an exception's message."""
-    text = str(err).strip()
-    return text.splitlines()[0].split(". ")[0].rstrip(".") if text else type(err).__name__
-
-
 def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[str, Any]:
     """``torch.load(path, weights_only=True)``: tensors and plain data only, never pickled code (a
     checkpoint that holds other objects is refused, whatever TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD says).
@@ -318,20 +323,15 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
     if not p.is_file():
         raise FileNotFoundError(f"{what}={path}: no such file")
     try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        name = disallowed_global(err)
-        if name:  # a class or function the safe unpickler will not build
+        ckpt = load_weights_only(p)
+    except UnloadableCheckpoint as err:
+        if err.code:
             raise ValueError(
                 f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
-                f"(Unsupported global: GLOBAL {name}), which could run code when loaded; cicfw loads "
-                f"checkpoints with torch.load(weights_only=True) only") from None
-        found = re.search(r"Unsupported operand \d+", str(err))  # a file that is no pickle at all
+                f"({err.reason}), which could run code when loaded; cicfw loads checkpoints with "
+                f"torch.load(weights_only=True) only") from None
         raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
-                         f"torch.save): UnpicklingError: {found.group(0) if found else _first_line(err)}") from None
-    except Exception as err:  # truncated zip, not a torch file, ...
-        raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
-                         f"torch.save): {type(err).__name__}: {_first_line(err)}") from None
+                         f"torch.save): {err.reason}") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise ValueError(f"{what}={path} is not a Lightning training checkpoint (no 'state_dict'); "
                          f"give a .ckpt written by cicfw train (<run>/checkpoints/last.ckpt)")

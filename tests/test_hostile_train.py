@@ -305,6 +305,13 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
     (["trainer.max_steps=abc"], "trainer.max_steps must be a number, got 'abc'"),
     (["trainer.inference_mode=maybe"], "trainer.inference_mode must be true or false, got 'maybe'"),
     (["trainer.deterministic=sure"], "trainer.deterministic must be true, false, 'warn' or null, got 'sure'"),
+    # a union with timedelta is not checked by type, and a number passes as a str: both were Lightning
+    # AttributeError tracebacks ('float' object has no attribute 'total_seconds' / 'lower')
+    (["trainer.max_time=1.5"], "trainer.max_time must be a duration 'DD:HH:MM:SS' such as '00:12:00:00', a mapping "
+                               "such as {days: 1, hours: 2}, or null, got 1.5"),
+    (["trainer.max_time=[1]"], "trainer.max_time must be a duration 'DD:HH:MM:SS'"),
+    (["trainer.gradient_clip_algorithm=1.5"], "trainer.gradient_clip_algorithm must be 'value', 'norm' or null, got 1.5"),
+    (["trainer.model_registry=3"], "trainer.model_registry must be a model name or null, got 3"),
     (["seed=abc"], "seed must be an integer, got 'abc'"),
     (["keep_epoch_checkpoints=abc"], "keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
                                      "checkpoints/epochNNN.ckpt), got 'abc'"),
@@ -327,8 +334,11 @@ def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, ov
 
 def test_trainer_values_of_every_accepted_type_pass_the_check(tmp_path):
     cfg = _cfg(tmp_path, "trainer.max_epochs=null", "trainer.deterministic=warn", "trainer.limit_train_batches=0.5",
-               "trainer.fast_dev_run=2", "trainer.max_time=00:00:01:00", "trainer.devices=1")
+               "trainer.fast_dev_run=2", "trainer.max_time=00:00:01:00", "trainer.devices=1",
+               "trainer.gradient_clip_algorithm=norm")
     kwargs = train_mod.trainer_kwargs(cfg)
+    assert train_mod.trainer_kwargs(_cfg(tmp_path, "trainer.max_time={days:1,hours:2}"))["max_time"] == \
+        {"days": 1, "hours": 2}
     assert kwargs["deterministic"] == "warn" and kwargs["max_epochs"] is None and kwargs["fast_dev_run"] == 2
     assert train_mod.epoch_list(_cfg(tmp_path, "keep_epoch_checkpoints=[1,3]").keep_epoch_checkpoints) == [1, 3]
 

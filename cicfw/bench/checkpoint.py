@@ -44,31 +44,53 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return p.resolve()
 
 
-def disallowed_global(err: BaseException) -> str | None:
-    """The class or function a ``weights_only`` load refused to build (``exec`` for ``Unsupported global:
-    GLOBAL exec``): the file holds pickled code. None when it failed otherwise (not a pickle, damaged)."""
-    found = re.search(r"GLOBAL ([\w.]+)", str(err))
-    return found.group(1) if found else None
+class UnloadableCheckpoint(Exception):
+    """``torch.load(weights_only=True)`` failed. ``code`` names the class or function the file would
+    have had built (``exec``): it holds pickled code; None when the file is no torch checkpoint or is
+    damaged. ``reason`` is torch's error in a few words."""
+
+    def __init__(self, reason: str, code: str | None = None) -> None:
+        super().__init__(reason)
+        self.reason, self.code = reason, code
+
+
+def load_weights_only(path: Path) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU: tensors and plain containers only, never an
+    arbitrary class. Every failure (torch raises many types) is one ``UnloadableCheckpoint``; the callers
+    word it for their own argument."""
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        code = re.search(r"GLOBAL ([\w.]+)", str(err)) if isinstance(err, pickle.UnpicklingError) else None
+        if code:  # a class or function the safe unpickler will not build
+            raise UnloadableCheckpoint(f"Unsupported global: GLOBAL {code.group(1)}", code.group(1)) from None
+        raise UnloadableCheckpoint(_short_reason(err)) from None
+
+
+def _short_reason(err: BaseException) -> str:
+    """``Type: first sentence`` of torch's error (``Unsupported operand 110`` for a file that is no
+    pickle: the rest of that message is advice about ``weights_only``)."""
+    text = str(err).strip()
+    if not text:
+        return type(err).__name__
+    found = re.search(r"Unsupported operand \d+", text)
+    return f"{type(err).__name__}: {found.group(0) if found else text.splitlines()[0].split('. ')[0].rstrip('.')}"
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one."""
-    import torch
-
     p = resolve_checkpoint(path)
     try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        name = disallowed_global(err)
-        if name:  # a class or function the safe unpickler will not build
+        ckpt = load_weights_only(p)
+    except UnloadableCheckpoint as err:
+        if err.code:
             raise CheckpointError(
                 f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers "
-                f"({name}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "
+                f"({err.code}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "
                 f"only those") from None
-        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is damaged") from None
-    except Exception as err:  # torch raises many types (KeyError, RuntimeError, EOFError ...) for non-checkpoints
-        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated "
-                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated ({err.reason})") from None
     return check_cicfw_checkpoint(ckpt, str(p))
 
 
