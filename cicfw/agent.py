@@ -112,13 +112,24 @@ def is_torchscript(path: Path) -> bool:
         return any(n.split("/", 1)[-1].startswith("code/") for n in z.namelist())
 
 
-def _torch_device(device: str) -> torch.device:
+def torch_device(device: str) -> torch.device:
+    """The torch device ``device`` names (``auto``: a CUDA GPU when there is one); one ``ValueError`` line
+    for a name torch does not know or a CUDA GPU this machine lacks (torch would fail later, deep inside)."""
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     try:
-        return torch.device(device)
+        dev = torch.device(device)
     except RuntimeError:
         raise ValueError(f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            why = "this torch is built without CUDA" if torch.version.cuda is None else "it sees no CUDA GPU"
+            raise ValueError(f"device={device!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
+        if dev.index is not None and dev.index >= count:
+            raise ValueError(f"device={device!r} is not on this machine: it has {count} CUDA GPU(s), "
+                             f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto")
+    return dev
 
 
 class Agent:
@@ -162,7 +173,7 @@ class Agent:
 
         if threads:
             torch.set_num_threads(int(threads))
-        dev = _torch_device(device)
+        dev = torch_device(device)
         model = prepare_for_inference(load_model(path), fuse).to(dev)
         hp = dict(model.hparams)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
@@ -173,7 +184,7 @@ class Agent:
     def _load_torchscript(cls, path: Path, threads: int | None, device: str) -> "Agent":
         if threads:
             torch.set_num_threads(int(threads))
-        dev = _torch_device(device)
+        dev = torch_device(device)
         extra = {METADATA_KEY: ""}
         try:
             module = torch.jit.load(str(path), map_location=dev, _extra_files=extra)

@@ -60,24 +60,14 @@ def check_options(cfg: DictConfig) -> None:
             raise ValueError(f"{key}={value!r} is not valid; use {accepted}")
 
 
-def torch_device(name: Any) -> str:
-    """The device to run on (``auto``: a CUDA GPU when there is one): a torch device name checked by
-    the agent's own check, then refused in one line when it is a CUDA device this machine lacks."""
-    import torch
+def run_device(name: Any) -> str:
+    """The device to run on: the agent's own check (``auto``, a torch device this machine has), limited to
+    the CPU and CUDA GPUs."""
+    from cicfw.agent import torch_device
 
-    from cicfw.agent import _torch_device
-
-    device = _torch_device(str(name or "auto"))
+    device = torch_device(str(name or "auto"))
     if device.type not in ("cpu", "cuda"):
         raise ValueError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N")
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            why = "this torch is built without CUDA" if torch.version.cuda is None else "it sees no CUDA GPU"
-            raise ValueError(f"device={str(name)!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
-        if device.index is not None and device.index >= count:
-            raise ValueError(f"device={str(name)!r} is not on this machine: it has {count} CUDA GPU(s), "
-                             f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto")
     return str(device)
 
 
@@ -169,7 +159,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     if cfg.split not in sd.SPLITS:
         raise ValueError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
     check_options(cfg)
-    device = torch_device(cfg.get("device"))
+    device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
     data, source = data_settings(cfg, ckpt_path)

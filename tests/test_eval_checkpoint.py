@@ -205,3 +205,19 @@ def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
     cfg.return_closed_loop = True
     assert train(cfg, tmp_path / "run2") == json.loads((tmp_path / "run2" / "evaluate" / "summary.json")
                                                        .read_text())["success"]
+
+
+def test_a_cuda_device_this_machine_lacks_is_one_line_before_driving(ckpt: Path, tmp_path: Path, monkeypatch):
+    """``policy.device=cuda`` on a machine without CUDA ended in torch's "Torch not compiled with CUDA
+    enabled" traceback; the agent's device check (shared with diagnose) refuses it in one line."""
+    from cicfw.bench.journal import LOG_NAME
+    from cicfw.evaluate import compose_config, evaluate
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = compose_config([f"checkpoint={ckpt}", "policy.device=cuda", f"suite.towns=[{TOWN}]",
+                          "suite.weathers=[ClearNoon]", "suite.limit=1", "runner.workers=1", "progress_bar=false"])
+    with pytest.raises(ValueError) as err:
+        evaluate(cfg, tmp_path / "run")
+    assert "device='cuda' needs a CUDA GPU, but " in str(err.value) and "use device=cpu (or auto)" in str(err.value)
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "run" / LOG_NAME).exists()  # not one episode driven
