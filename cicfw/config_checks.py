@@ -54,8 +54,14 @@ def keyword_parameters(fn: Callable) -> tuple[dict[str, inspect.Parameter], bool
     return found, True
 
 
-def _is_number(v: Any) -> bool:
+def is_number(v: Any) -> bool:
+    """A finite int or float, not a bool (YAML's ``true`` is an int to Python)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def is_integer(v: Any) -> bool:
+    """An int, not a bool."""
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 #: the annotation parts a config value can be checked against (classes, ``list[int]`` ... are not)
@@ -91,13 +97,13 @@ def _fits(names: list[str], literals: list[Any], value: Any) -> bool:
     if isinstance(value, bool):
         return "bool" in names
     return (("None" in names and value is None) or ("str" in names and isinstance(value, (str, int, float)))
-            or ("float" in names and _is_number(value)) or ("int" in names and isinstance(value, int)))
+            or ("float" in names and is_number(value)) or ("int" in names and isinstance(value, int)))
 
 
 def _accepted(names: list[str], literals: list[Any], value: Any) -> str:
     """``a number or null``, ``true or false``, ``true, false, 'warn' or null`` ...; an ``int`` is "a
     number" to a value that is none, and "a whole number" to a fraction."""
-    whole = "a whole number" if _is_number(value) else "a number"
+    whole = "a whole number" if is_number(value) else "a number"
     words = {"int": [whole] if "float" not in names else [], "float": ["a number"], "bool": ["true", "false"],
              "str": ["a string"]}
     said = [w for n in dict.fromkeys(names) for w in words.get(n, [])]
@@ -113,7 +119,7 @@ def type_problem(annotation: Any, value: Any) -> str | None:
     fixed = re.fullmatch(r"tuple\[((?:int|float)(?:, *(?:int|float))*)\]", ann.replace(" ", ""))
     if fixed:
         n = len(fixed.group(1).split(","))
-        ok = isinstance(value, (list, tuple)) and len(value) == n and all(_is_number(v) for v in value)
+        ok = isinstance(value, (list, tuple)) and len(value) == n and all(is_number(v) for v in value)
         return None if ok else f"must be a list of {n} numbers, got {value!r}"
     parts = _parts(annotation)
     if parts is None or set(parts[0]) <= {"None"} or _fits(*parts, value):
@@ -124,7 +130,7 @@ def type_problem(annotation: Any, value: Any) -> str | None:
 def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:
     """``value`` as an int (an int, or its digits as a string), else one ``ValueError`` naming ``key`` and
     what it accepts: ``seed must be an integer, got 'abc'`` rather than int()'s own message."""
-    if isinstance(value, int) and not isinstance(value, bool):
+    if is_integer(value):
         return value
     if isinstance(value, str) and re.fullmatch(r"\s*[-+]?\d+\s*", value):
         return int(value)

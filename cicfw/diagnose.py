@@ -21,7 +21,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import _is_number
+from cicfw.config_checks import is_integer, is_number
 from cicfw.errors import report_user_errors
 
 log = logging.getLogger("cicfw.diagnose")
@@ -32,21 +32,16 @@ SPLIT_KEYS = ("path", "seed", "val_fraction", "max_abs_steer", "side_camera_corr
 SEARCH_LEVELS = 3
 
 
-def _is_int(v: Any) -> bool:
-    """An integer, not a bool (YAML's ``true`` is an int to Python)."""
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
 #: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read
 OPTION_RULES = {
-    "batch_size": (lambda v: _is_int(v) and v >= 1, "a positive integer (frames per network call)"),
-    "max_frames": (lambda v: v is None or (_is_int(v) and v >= 1),
+    "batch_size": (lambda v: is_integer(v) and v >= 1, "a positive integer (frames per network call)"),
+    "max_frames": (lambda v: v is None or (is_integer(v) and v >= 1),
                    "null (every frame) or a positive integer (an evenly spaced subset)"),
-    "threads": (lambda v: v is None or (_is_int(v) and v >= 1), "null (torch's default) or a positive integer"),
-    "phases.approach_m": (lambda v: v is None or (_is_number(v) and v > 0),
+    "threads": (lambda v: v is None or (is_integer(v) and v >= 1), "null (torch's default) or a positive integer"),
+    "phases.approach_m": (lambda v: v is None or (is_number(v) and v > 0),
                           "null (the dataset's command_distance) or a number of metres > 0"),
-    "phases.exit_s": (lambda v: _is_number(v) and v >= 0, "a number of seconds >= 0"),
-    "phases.dt_s": (lambda v: _is_number(v) and v > 0,
+    "phases.exit_s": (lambda v: is_number(v) and v >= 0, "a number of seconds >= 0"),
+    "phases.dt_s": (lambda v: is_number(v) and v > 0,
                     "a number of seconds > 0 (the time step when the game time does not increase)"),
 }
 

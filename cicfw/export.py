@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
+from cicfw.config_checks import is_integer
 from cicfw.errors import report_user_errors
 from cicfw.files import write_together
 
@@ -441,7 +442,7 @@ def opset_range() -> tuple[int, int]:
 def _check_opset(opset: Any) -> None:
     """One line for an opset torch cannot write (``opset=abc``, ``opset=99``), before anything is loaded."""
     low, high = opset_range()
-    if not (isinstance(opset, int) and not isinstance(opset, bool) and low <= opset <= high):
+    if not (is_integer(opset) and low <= opset <= high):
         raise ExportError(f"opset={opset!r} is not valid; use an integer ONNX opset from {low} to {high} "
                           f"(torch {torch.__version__}'s exporter), e.g. {DEFAULT_OPSET} (the default)")
 

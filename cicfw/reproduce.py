@@ -39,6 +39,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw.config_checks import is_integer
 from cicfw.files import atomic_write
 from cicfw.results_lock import ResultsLock
 
@@ -158,16 +159,13 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
 def _seed_list(seeds: Any) -> list[int]:
     """``seeds=5``: seeds 0..4; ``seeds=[3,4]``: those seeds only (a second machine's share of a table that
     is continued with ``continue_from``); anything else: one error line."""
-    def whole(x: Any) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
-
     accepted = "a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4])"
     if OmegaConf.is_list(seeds) or isinstance(seeds, list):
         got = list(seeds)
-        if not got or not all(whole(x) and x >= 0 for x in got) or len(set(got)) != len(got):
+        if not got or not all(is_integer(x) and x >= 0 for x in got) or len(set(got)) != len(got):
             raise ReproduceError(f"seeds must be {accepted}, got {got!r}")
         return sorted(int(x) for x in got)
-    if not whole(seeds) or seeds < 1:
+    if not is_integer(seeds) or seeds < 1:
         raise ReproduceError(f"seeds must be {accepted}, got {seeds!r}")
     return list(range(int(seeds)))
 
@@ -181,7 +179,7 @@ def check_curve(budget: DictConfig) -> None:
         if got is None:
             continue
         values = list(got) if OmegaConf.is_list(got) else None
-        if values is None or not all(isinstance(x, int) and not isinstance(x, bool) and x >= least for x in values):
+        if values is None or not all(is_integer(x) and x >= least for x in values):
             shown = OmegaConf.to_container(got) if OmegaConf.is_config(got) else got
             raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
                                  f"null, got {shown!r}")
