@@ -24,6 +24,7 @@ from cicfw.bench.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.config_checks import check_kwargs, type_problem, whole_number
 from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
+from cicfw.data.frames import camera_names
 from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
@@ -130,7 +131,7 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
     recorded = {CAMERA_IDS[n][0]: n for n in names if n in CAMERA_IDS}  # unknown names: the collector says so
     for key, chosen in (("cameras", datamodule.cameras), ("val_cameras", datamodule.val_cameras)):
         if chosen is not None and recorded and not set(chosen) & set(recorded):
-            held = ", ".join(f"{i} {n}" for i, n in sorted(recorded.items()))
+            held = camera_names(dict(sorted(recorded.items())))
             raise ValueError(f"data.{key}={list(chosen)} chooses none of the cameras the default data records "
                              f"({held}; collect.cameras); choose among those, or train on your own files with "
                              f"data=cil_hdf5 data.path=...")

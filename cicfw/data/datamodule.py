@@ -18,7 +18,7 @@ from cicfw import COMMANDS
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.config_checks import whole_number
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, KNOWN_CAMERA_IDS, image_key
-from cicfw.data.frames import Frames, camera_names, load_frames, split_by_episode
+from cicfw.data.frames import Frames, camera_names, chosen_cameras, load_frames, split_by_episode
 from cicfw.data.sampler import CommandBalancedBatchSampler
 
 log = logging.getLogger(__name__)
@@ -164,23 +164,14 @@ class CILDataModule(L.LightningDataModule):
         frames = load_frames(self.path, self.max_abs_steer, self.side_camera_correction, self.cameras)
         train, val = split_by_episode(frames, self.val_fraction, self.seed)
         if self.val_cameras is not None:
-            val = self._val_camera_subset(val)
+            # none left: an error naming the ids the validation episodes hold (else no metric after epoch 1)
+            chosen = chosen_cameras(val.camera, self.val_cameras, "val_cameras", "validation samples: they")
+            val = val.subset(chosen)
         counts = dict(zip(COMMANDS, np.bincount(train.command, minlength=4).tolist()))
         log.info("data: %d train / %d val samples from %d files; train per command %s",
                  len(train), len(val), len(frames.files), counts)
         self.train_set = FrameDataset(train, ImageStore(train, self.in_memory), self.augment, self.seed)
         self.val_set = FrameDataset(val, ImageStore(val, self.in_memory), None, self.seed)
-
-    def _val_camera_subset(self, val: Frames) -> Frames:
-        """The validation samples of ``data.val_cameras``; none left is an error naming the ids the
-        validation episodes hold (the run would otherwise fail after its first epoch, with no metric)."""
-        kept = val.subset(np.isin(val.camera, self.val_cameras))
-        if len(val) and not len(kept):
-            held = sorted(set(np.unique(val.camera).tolist()))
-            raise ValueError(f"data.val_cameras={list(self.val_cameras)} keeps none of the {len(val)} validation "
-                             f"samples: they hold camera id(s) {held} ({camera_names(KNOWN_CAMERA_IDS)}); choose "
-                             f"among those, or data.val_cameras=null for every camera")
-        return kept
 
     def _rank(self) -> tuple[int, int]:
         trainer = getattr(self, "trainer", None)

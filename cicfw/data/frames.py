@@ -129,7 +129,7 @@ def load_frames(
                  *lowest)
     keep = np.abs(frames.steer) <= max_abs_steer
     if cameras is not None:
-        keep &= _chosen_cameras(frames.camera, cameras)
+        keep &= chosen_cameras(frames.camera, cameras)
     return frames.subset(keep)
 
 
@@ -138,15 +138,16 @@ def camera_names(ids: dict[int, str]) -> str:
     return ", ".join(f"{i} {name}" for i, name in ids.items())
 
 
-def _chosen_cameras(camera: np.ndarray, cameras: tuple[int, ...]) -> np.ndarray:
-    """The samples of ``data.cameras``; choosing none of the ids the files hold is an error naming them
+def chosen_cameras(camera: np.ndarray, cameras: tuple[int, ...], key: str = "cameras",
+                   what: str = "samples: the files") -> np.ndarray:
+    """The samples of ``data.<key>``; choosing none of the ids the samples hold is an error naming them
     (it used to surface as "the data holds 0 episode(s)", for a folder of many)."""
     chosen = np.isin(camera, list(cameras))
     if len(camera) and not chosen.any():
         held = sorted(set(np.unique(camera).tolist()))
-        raise ValueError(f"data.cameras={list(cameras)} keeps none of the {len(camera)} samples: the files hold "
-                         f"camera id(s) {held} ({camera_names(KNOWN_CAMERA_IDS)}); choose among those, or "
-                         f"data.cameras=null for every camera")
+        raise ValueError(f"data.{key}={list(cameras)} keeps none of the {len(camera)} {what} hold camera id(s) "
+                         f"{held} ({camera_names(KNOWN_CAMERA_IDS)}); choose among those, or data.{key}=null for "
+                         f"every camera")
     return chosen
 
 
