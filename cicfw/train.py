@@ -291,7 +291,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
-    epoch_list(cfg.get("keep_epoch_checkpoints"))  # here, not inside the try below that says "trainer:"
     SpeedConfig.from_trainer_cfg(cfg.trainer)  # cicfw's own switches' values (trainer.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
@@ -301,11 +300,11 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
         logger = LOGGERS[cfg.logger.name](run_dir)
     kwargs.setdefault("enable_progress_bar", bool(cfg.get("progress_bar", True)))
     kwargs["plugins"] = with_checkpoint_io(kwargs.get("plugins"))
+    callbacks = build_callbacks(cfg, run_dir)  # outside the try below: its errors name their own keys
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     try:
-        return L.Trainer(default_root_dir=str(run_dir), logger=logger,
-                         callbacks=build_callbacks(cfg, run_dir), **kwargs)
+        return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
     except (MisconfigurationException, ValueError, TypeError) as err:
         raise ValueError(f"trainer: {' '.join(str(err).split())}") from None
 
