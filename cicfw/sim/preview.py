@@ -9,6 +9,7 @@ file, an unwritable folder) prints one line, ``cicfw: error: ...``, and exits wi
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import os
 import secrets
@@ -18,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cicfw.files import write_together
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
 
@@ -27,27 +29,19 @@ COMMAND_STYLE = {2: ("follow", (255, 255, 255)), 3: ("left", (40, 120, 230)), 4:
                  5: ("straight", (40, 190, 70))}
 
 
-def _write_png(path: Path, rgb: np.ndarray, colours: int = 0) -> Path:
-    """Write atomically (temporary name, then rename); ``colours`` > 0 quantises to a palette (small
-    files for docs)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp.png")  # unique per process
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if colours:
-            from PIL import Image
+def _png(rgb: np.ndarray, colours: int = 0) -> bytes:
+    """The PNG file of ``rgb``; ``colours`` > 0 quantises to a palette (small files for docs)."""
+    if colours:
+        from PIL import Image
 
-            Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
-                                          dither=Image.Dither.NONE).save(tmp, optimize=True)
-        elif not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-            raise OSError(0, "the image could not be encoded or written")
-        os.replace(tmp, path)
-    except OSError as err:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass  # its folder is not there (or not a folder): nothing was written
-        raise ValueError(f"cannot write {path} ({err.strerror or err}); give a writable --out folder") from None
-    return path
+        buf = io.BytesIO()
+        Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
+                                      dither=Image.Dither.NONE).save(buf, format="PNG", optimize=True)
+        return buf.getvalue()
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise ValueError("the image could not be encoded as PNG")
+    return data.tobytes()
 
 
 def check_out_folder(out: Path) -> Path:
@@ -237,13 +231,17 @@ def _main(argv: list[str] | None = None) -> int:
     out = Path(a.out).expanduser().resolve()
     new_top = _first_missing(out)
     check_out_folder(out)  # before the seconds of rendering
-    try:  # every picture is made before the first is written: a late failure leaves no half set of PNGs
+    try:  # every picture is made, then all are written or none: a late failure leaves no half set of PNGs
         images = _render(a, towns)
-    except BaseException:
+        write_together((out / name, _png(rgb, a.colours)) for name, rgb in images.items())
+    except BaseException as err:
         _remove_empty_folders(out, new_top)
+        if isinstance(err, OSError):
+            raise ValueError(f"cannot write {err.filename} ({err.strerror or err}); give a writable --out "
+                             f"folder") from None
         raise
-    for name, rgb in images.items():
-        print(_write_png(out / name, rgb, a.colours))
+    for name in images:
+        print(out / name)
     return 0
 
 
