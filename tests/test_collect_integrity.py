@@ -1,4 +1,4 @@
-"""The collector never mixes or loses data (issue 11, section 2): fault tests of the engine's guarantees.
+"""The collector never mixes or loses data: fault tests of the engine's guarantees.
 
 Two collectors at once, a killed collector's workers, a full disk (a real 20 MB tmpfs where the machine
 lets us mount one, and ENOSPC simulated everywhere), an unwritable folder, a town given by path, and

@@ -1,4 +1,4 @@
-"""Issue 17, item 0: the public CoRL-2017 CIL data has negative speeds, and cicfw reads it.
+"""The public CoRL-2017 CIL data has negative speeds, and cicfw reads it.
 
 The files in circulation hold 200 samples each, ``rgb`` uint8 (200, 88, 200, 3) and ``targets`` float32
 (200, 28), and some rows have a negative forward speed (CARLA reports a car rolling backwards with a

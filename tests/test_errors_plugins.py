@@ -1,4 +1,4 @@
-"""A plugin that cannot even be imported never stops a cicfw app (issue 11, section 4), and
+"""A plugin that cannot even be imported never stops a cicfw app, and
 ``cicfw plugins --json`` lists the registry for scripts.
 
 The broken plugin is a fake installed distribution (a dist-info folder with RECORD and

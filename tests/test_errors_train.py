@@ -1,5 +1,5 @@
-"""One clear line for every user error of ``cicfw train`` (issue 11, section 3), each checked before
-any image is collected or read, and resuming that loads checkpoints with ``weights_only=True`` (§4).
+"""One clear line for every user error of ``cicfw train``, each checked before
+any image is collected or read, and resuming that loads checkpoints with ``weights_only=True``.
 
 ``train()`` raises the ``ValueError`` / ``FileNotFoundError`` whose message the app prints as
 ``cicfw: error: <message>`` (tests/test_train.py checks that wrapper on the command line)."""

@@ -1,4 +1,4 @@
-"""Issue 17, tracebacks where one line belongs, in the small apps: ``report --out`` at a file or a
+"""Tracebacks where one line belongs, in the small apps: ``report --out`` at a file or a
 read-only folder, ``preview --out <file>``, ``carla-check --port 99999``, and a town whose ``margin``
 (or extent) would make the renderer allocate ~150 GiB. Each is one line, ``cicfw: error: ...``, saying
 what was wrong and what is accepted, and nothing is half-written."""

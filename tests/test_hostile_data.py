@@ -1,4 +1,4 @@
-"""Issue 17, the data layer's hostile cases: nothing the reader drops is dropped without a word."""
+"""The data layer's hostile cases: nothing the reader drops is dropped without a word."""
 from __future__ import annotations
 
 import hashlib

@@ -1,4 +1,4 @@
-"""``cicfw evaluate`` as a hostile user runs it (issue 17): mistakes refused before any episode is
+"""``cicfw evaluate`` as a hostile user runs it: mistakes refused before any episode is
 driven, Ctrl-C says what is kept, an unusable run folder is one line, and the report is readable by
 the colleagues who share the results folder."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``cicfw train`` as a hostile user runs it (issue 17): every mistake refused in one line before the
+"""``cicfw train`` as a hostile user runs it: every mistake refused in one line before the
 first batch, Ctrl-C says what is kept, and a full disk never leaves a truncated checkpoint behind."""
 from __future__ import annotations
 

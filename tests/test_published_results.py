@@ -138,8 +138,8 @@ def folder_mismatches(folder: Path, legacy: bool = False) -> list[str]:
 
 #: docs/RESULTS.md, top to bottom: hand-written prose (docs/results/prose/) and the published reports it frames,
 #: each report's title replaced by the heading given here, its other headings moved down to sit under it and
-#: its pictures linked from docs/. The 6-epoch budget is the main table (every CIL seed clears the issue's
-#: bar there); the 4-epoch budget is the one that holds every Table-4 row.
+#: its pictures linked from docs/. The 6-epoch budget is the main table (every CIL seed clears the
+#: 90% bar there); the 4-epoch budget is the one that holds every Table-4 row.
 COMPOSITION = [
     ("prose", "head.md"),
     ("report", "converged6", "## The paper's Table 4 at 6 epochs (`budget=converged6`, generated)"),
@@ -289,7 +289,7 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     """docs/RESULTS.md's hand-written prose quotes intervals (``+7.5 [+3.9, +11.2]``); each must be one a
     generated report prints (the head and the tail quote both budgets, the head also the one-CPU-kind
     folder, converged4.md only the 4-epoch one),
-    so the prose cannot drift from the tables (issue 16, item 4)."""
+    so the prose cannot drift from the tables."""
     def text(*rels: str) -> str:
         return "".join((DOCS / "results" / r).read_text() for r in rels).replace("−", "-")
 

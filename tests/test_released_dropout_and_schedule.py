@@ -1,4 +1,4 @@
-"""cicfw 0.2's training recipe (issue 16): dropout where the CIL authors' released network has it, and
+"""cicfw 0.2's training recipe: dropout where the CIL authors' released network has it, and
 the cosine learning-rate schedule. Expected values are written out from their sources, not read back
 from the modules."""
 from __future__ import annotations

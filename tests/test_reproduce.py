@@ -87,7 +87,7 @@ def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
 
 
 def test_what_a_run_writes_is_readable_by_others(smoke_run):
-    """Under umask 022 a colleague can read the report, the manifest and every cell (issue 17, item 7)."""
+    """Under umask 022 a colleague can read the report, the manifest and every cell."""
     names = ["RESULTS.md", "results.json", "results.csv", "results.png", "reproduce.json"]
     files = [smoke_run / n for n in names] + list(smoke_run.glob("cells/*/seed*/cell.json"))
     files += list(smoke_run.glob("cells/*/seed*/train/trained.json"))
@@ -141,7 +141,7 @@ def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, t
 
 
 def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_path, capsys):
-    """A fresh clone continues a published folder (issue 16, item 5): the published cells are copied in and
+    """A fresh clone continues a published folder: the published cells are copied in and
     skipped (nothing is trained), the report covers them, and publishing back records where they came
     from, so the next machine continues from there (a new cell would train and be published like any)."""
     (tmp_path / "repo" / ".git").mkdir(parents=True)  # a clone: the manifest names the folder inside it

@@ -1,5 +1,5 @@
-"""``python -m cicfw.reproduce`` against a hostile user, without training anything (issue 17, items 2, 3, 4,
-7, 10 and the reproduce tracebacks): every bad plan is refused in one line *before the budget's dataset is
+"""``python -m cicfw.reproduce`` against a hostile user, without training anything (its
+tracebacks included): every bad plan is refused in one line *before the budget's dataset is
 collected* (the tests make collecting raise, so a check that comes too late fails them), one run per
 results folder (a lock naming its holder; a stale one taken over with a warning), unknown keys refused,
 the docs' own custom-row example parses, report files readable under umask 022, resumed cells marked."""

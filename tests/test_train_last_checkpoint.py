@@ -1,4 +1,4 @@
-"""Issue 17, item 1: ``checkpoints/last.ckpt`` is always the latest epoch, whatever the validation error
+"""``checkpoints/last.ckpt`` is always the latest epoch, whatever the validation error
 does. With ``ModelCheckpoint(monitor=..., save_last=True)`` Lightning refreshes ``last.ckpt`` only when
 a best-so-far checkpoint is saved, so after a run whose validation error rises at the end it held an
 older epoch: evaluating it, or resuming from it, silently used an older model."""

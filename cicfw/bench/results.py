@@ -90,7 +90,7 @@ from cicfw.bench.seed_spread import seed_spread
 from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.files import atomic_write
 
-#: what resuming a killed training changed, measured (issue 17): the report's footnote on resumed cells
+#: what resuming a killed training changed, measured once: the report's footnote on resumed cells
 RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last epoch was 0.12519 uninterrupted "
                   "and 0.12743 when the run was killed after epoch 1 and resumed")
 RESUMED_MARK = "‡"

@@ -1,5 +1,5 @@
 """Why a model misses turns: how its steering follows the expert's around junctions, and how much
-the command moves it (issue 16, item 1; ``python -m cicfw.diagnose`` is the app around this module).
+the command moves it (``python -m cicfw.diagnose`` is the app around this module).
 
 On a set of recorded frames (the training run's validation episodes) it measures two things:
 
