@@ -21,8 +21,9 @@ from cicfw.collection import collect_dataset, episode_plan, resolve_config  # no
 from cicfw.data.cil_hdf5 import T, check_file  # noqa: E402
 
 MAPS = maps_dir()
-pytestmark = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
-                                                     "../shared/carla-maps (or $CICFW_CARLA_MAPS)")
+pytestmark = [pytest.mark.slow,  # drives whole episodes (pytest -m "not slow" skips it)
+              pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
+                                                      "../shared/carla-maps (or $CICFW_CARLA_MAPS)")]
 SETTLE = 2
 STEPS = 30
 CFG = {"towns": ["town_a", "town_b"], "weathers": ["ClearNoon", "WetCloudySunset"], "episodes": 3,

@@ -23,8 +23,9 @@ from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
 from cicfw.sim.vehicle import VehicleParams  # noqa: E402
 
 MAPS = maps_dir()
-pytestmark = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
-                                                     "../shared/carla-maps (or $CICFW_CARLA_MAPS)")
+pytestmark = [pytest.mark.slow,  # drives whole episodes (pytest -m "not slow" skips it)
+              pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
+                                                      "../shared/carla-maps (or $CICFW_CARLA_MAPS)")]
 SETTLE = 2
 CAMS = ("centre", "left", "right")
 

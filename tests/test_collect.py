@@ -23,6 +23,8 @@ from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_target
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.backends import EmbeddedBackend
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 SMALL = {"episodes": 2, "seconds": 8, "workers": 0}  # 80 steps x 3 cameras = 240 samples = 2 files each
 
 

@@ -29,6 +29,8 @@ from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskF
                               collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
 COLLECTOR = ("import json, sys\nfrom cicfw.collection import collect_dataset\n"
              "collect_dataset(json.loads(sys.argv[1]), sys.argv[2], progress=False)\n")

@@ -13,6 +13,8 @@ from cicfw import N_COMMANDS
 from cicfw.train import build_datamodule, build_model, build_trainer
 from conftest import compose_train
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 class BatchRecorder(L.Callback):
     """Appends each training batch's (speed, command) pairs to ``rank<r>.jsonl``: speeds are

@@ -22,6 +22,8 @@ from cicfw.bench import steer_diagnostic as sd
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 REPO = Path(__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------------------------------------

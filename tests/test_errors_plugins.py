@@ -19,6 +19,8 @@ import pytest
 
 from cicfw.registry import MIXERS, as_json, listing, main
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 DIST = "broken-mixer"
 SEARCH_PATH_PLUGIN = '''
 from hydra.core.config_search_path import ConfigSearchPath

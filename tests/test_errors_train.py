@@ -19,6 +19,8 @@ from cicfw.override_hints import override_hints
 from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
 from conftest import compose_train, write_tiny_dataset
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 
 

@@ -19,6 +19,8 @@ from cicfw.bench.checkpoint import CheckpointError, CheckpointPolicy, load_model
 from cicfw.bench.policy import Observations
 from cicfw.model.module import CICModule
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 
 

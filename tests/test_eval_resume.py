@@ -19,6 +19,8 @@ from cicfw.bench.policies import ExpertPolicy
 from cicfw.bench.policy import POLICIES
 from cicfw.evaluate import evaluate_policy, run_fingerprint
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 SUITE = {"towns": [TOWN], "weathers": ["ClearNoon", "MidRainyNoon"], "training_towns": [], "limit": 2}
 RUNNER = {"workers": 1, "batch_size": 64}

@@ -13,6 +13,8 @@ from cicfw.bench.runner import RunnerConfig, run
 from cicfw.bench.suite import build_suite, make_backend
 from cicfw.sim.town import load_town
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 FAST = RunnerConfig(progress_bar=False)
 

@@ -35,6 +35,8 @@ from cicfw.model.module import CICModule
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.testing import make_targets, write_tiny_dataset
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TINY = "export_test_tiny"
 DEPLOY_DOC = Path(__file__).resolve().parents[1] / "docs" / "deploy.md"
 FORMATS = ("onnx", "torchscript")

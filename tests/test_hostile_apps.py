@@ -17,6 +17,8 @@ from cicfw.bench import report
 from cicfw.bench.report import Run, write_run
 from cicfw.sim.town import MAX_TOWN_SIDE_M, TownError, build_town, load_town, town_path
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 def _one_error_line(err: str) -> str:
     lines = err.strip().splitlines()

@@ -15,6 +15,8 @@ from cicfw.bench.journal import LOG_NAME, read_log
 from cicfw.evaluate import compose_config, evaluate
 from test_hostile_train import _errors, read_only_app
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 QUICK = ("policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]", "suite.limit=2",
          "progress_bar=false", "runner.workers=1")

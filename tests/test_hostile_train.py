@@ -15,6 +15,8 @@ import cicfw.train as train_mod
 from cicfw.train import train
 from conftest import compose_train, write_tiny_dataset
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}

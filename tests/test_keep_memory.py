@@ -14,6 +14,8 @@ from omegaconf import OmegaConf
 
 from cicfw.model.speed import SpeedConfig
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 STEPS = """
 import json, resource, sys
 import torch

@@ -8,6 +8,8 @@ import pytest
 
 from cicfw.override_hints import override_hints, run_app
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 def test_top_level_typo_suggests_the_key_and_lists_keys_and_groups():
     (hint,) = override_hints("train", ["trainr.max_epochs=1"])

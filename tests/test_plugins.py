@@ -22,6 +22,8 @@ from cicfw.testing import check_head, check_mixer
 from cicfw.train import train
 from conftest import compose_train
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 PLUGIN_DIST = "cicfw-attention-mixer"
 INSTALL = "pip install ./plugins/cicfw-attention-mixer"
 

@@ -21,6 +21,8 @@ from cicfw.bench.cells import load_cells
 from cicfw.bench.claims import load_claims
 from cicfw.bench.results import markdown, report_data
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 PUBLISHED = sorted(p for p in (DOCS / "results").glob("*/")
                    if (p / "cells").is_dir() and (p / "results.json").is_file())

@@ -21,6 +21,8 @@ import cicfw
 from cicfw import reproduce
 from cicfw.bench.published import publish
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 SMOKE = ["budget=smoke", "seeds=2"]
 
 

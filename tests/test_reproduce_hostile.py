@@ -23,6 +23,8 @@ from cicfw.bench import results
 from cicfw.bench.cells import COLUMNS, CellResult
 from cicfw.bench.published import publish
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "reproduce.md"
 
 

@@ -13,6 +13,8 @@ import pytest
 
 from cicfw.bench import analysis, cells, seed_stats
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 N_EP = np.array([96, 96, 64, 64])  # episodes per table column in the single-turn suite
 P_A = np.array([0.65, 0.55, 0.50, 0.45])  # the truth: row A's success probability per column ...
 P_B = np.array([0.60, 0.45, 0.45, 0.35])  # ... and row B's

@@ -4,6 +4,8 @@ import pytest
 
 from cicfw.sim import preview
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 def test_preview_writes_sheets_and_maps(tmp_path, capsys):
     out = tmp_path / "pics"

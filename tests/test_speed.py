@@ -17,6 +17,8 @@ from cicfw.train import train
 
 from conftest import compose_train
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 # The default variant against eager, same weights, same fixed batch, train mode without dropout (so
 # the step is deterministic). Measured differences: outputs and loss ~4e-8, gradients ~5e-6 of each
 # tensor's largest entry (fp32 summation order in the compiled and NHWC kernels). Stated tolerances:

@@ -20,6 +20,8 @@ from cicfw import errors
 from cicfw.registry import MIXERS
 from cicfw.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 TINY = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false"]
 
 

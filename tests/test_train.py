@@ -14,6 +14,8 @@ from cicfw.registry import UnknownNameError
 from cicfw.train import build_model, train
 from conftest import compose_train
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 def _batch(n=8, seed=0):
     g = torch.Generator().manual_seed(seed)

@@ -5,11 +5,14 @@ older epoch: evaluating it, or resuming from it, silently used an older model.""
 from __future__ import annotations
 
 import lightning as L
+import pytest
 import torch
 
 import cicfw.train as train_mod
 from cicfw.train import load_checkpoint_safely, train
 from conftest import compose_train, write_tiny_dataset
+
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 # validation error per epoch: best after epoch 2, then it rises to the end
 VAL_ERRORS = [0.50, 0.30, 0.40, 0.60]

@@ -12,6 +12,8 @@ from torch.utils.data import DataLoader
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 MIXERS = ["independent", "gtu", "re", "moe", "soft_sharing", "cross_stitch", "sluice"]
 HEADS = ["regression", "softmax", "hybrid", "coexistence", "sine"]
 PAIRS = list(itertools.product(MIXERS, HEADS))
