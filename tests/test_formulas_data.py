@@ -43,8 +43,8 @@ def conf(path: Path, **overrides) -> CILDataModule:
     return CILDataModule(**kw)
 
 
-def write_rows(path: Path) -> None:
-    t = make_targets(len(ROWS), np.random.default_rng(0))  # commands cycle 2, 3, 4, 5
+def write_rows(path: Path, seed: int = 0) -> None:
+    t = make_targets(len(ROWS), np.random.default_rng(seed))  # commands cycle 2, 3, 4, 5; speeds by seed
     for i, ((cam, yaw), steer, _) in enumerate(ROWS):
         t[i, T.CAMERA_ID], t[i, T.CAMERA_YAW], t[i, T.STEER] = cam, yaw, steer
     write_file(path, np.zeros((len(ROWS), 88, 200, 3), np.uint8), t)
@@ -57,8 +57,8 @@ def test_the_config_holds_the_papers_values():
 
 
 def test_side_camera_sign_and_the_filter_after_the_correction(tmp_path):
-    for i in range(2):  # two episodes, so the datamodule can split them
-        write_rows(tmp_path / f"ep{i}.h5")
+    for i in range(2):  # two episodes (not copies of one), so the datamodule can split them
+        write_rows(tmp_path / f"ep{i}.h5", seed=i)
     dm = conf(tmp_path, val_cameras=None)
     dm.setup("fit")
     labels = {}

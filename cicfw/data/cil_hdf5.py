@@ -62,18 +62,28 @@ def image_key(f: h5py.File) -> str:
     )
 
 
+HDF5_SUFFIXES = (".h5", ".hdf5")  # matched in any case: FILE.H5 is an HDF5 file too
+
+
+def is_hdf5_name(path: Path) -> bool:
+    """Whether ``path``'s suffix is an HDF5 one, in any case."""
+    return path.suffix.lower() in HDF5_SUFFIXES
+
+
 def find_files(path: str | os.PathLike) -> list[Path]:
-    """HDF5 files under a folder (recursively) or matching a glob, sorted; error if none."""
+    """HDF5 files under a folder (recursively; suffixes in any case) or matching a glob, sorted (a
+    folder's ``.h5`` files, then its ``.hdf5`` ones); error if none."""
     p = str(path)
     p = os.path.expanduser(p)
     if os.path.isdir(p):
-        files = sorted(Path(p).rglob("*.h5")) + sorted(Path(p).rglob("*.hdf5"))
+        found = [f for f in Path(p).rglob("*") if is_hdf5_name(f) and f.is_file()]
+        files = [f for suffix in HDF5_SUFFIXES for f in sorted(found) if f.suffix.lower() == suffix]
     else:
         files = sorted(Path(f) for f in glob.glob(p, recursive=True) if os.path.isfile(f))
     if not files:
         raise FileNotFoundError(
             f"data.path={path!r} matches no HDF5 file; give a folder that holds *.h5 / *.hdf5 "
-            f"files (searched recursively) or a glob such as 'data/**/*.h5'"
+            f"files (searched recursively, suffixes in any case) or a glob such as 'data/**/*.h5'"
         )
     return files
 
@@ -82,6 +92,31 @@ def find_files(path: str | os.PathLike) -> list[Path]:
 class FileInfo:
     path: Path
     n: int
+
+
+def _link(f: h5py.File, key: str) -> str:
+    """What the entry ``key`` is as a link: a soft or external link's target, else a plain entry."""
+    link = f.get(key, getlink=True)
+    if isinstance(link, h5py.SoftLink):
+        return f"a soft link to {link.path!r}"
+    if isinstance(link, h5py.ExternalLink):
+        return f"an external link to {link.path!r} in {link.filename!r}"
+    return "an entry"
+
+
+def _dataset(f: h5py.File, key: str, path: Path) -> h5py.Dataset:
+    """``f[key]`` when it is a dataset that can be opened; else CILFormatError naming the file, the key
+    and what it is (a group, a link that leads nowhere)."""
+    try:
+        obj = f[key]
+    except (KeyError, OSError) as err:
+        why = err.args[0] if isinstance(err, KeyError) and err.args else err
+        raise CILFormatError(f"{path}: {key!r} is {_link(f, key)} that cannot be opened ({why}); {LAYOUT} "
+                             f"that open from the file") from None
+    if not isinstance(obj, h5py.Dataset):
+        kind = "a group" if isinstance(obj, h5py.Group) else type(obj).__name__
+        raise CILFormatError(f"{path}: {key!r} is {kind}, not a dataset; {LAYOUT}")
+    return obj
 
 
 def check_file(path: Path) -> FileInfo:
@@ -96,7 +131,7 @@ def check_file(path: Path) -> FileInfo:
             raise CILFormatError(
                 f"{path}: no 'targets' dataset; {LAYOUT} (found: {', '.join(sorted(f.keys()))})"
             )
-        rgb, targets = f[key], f["targets"]
+        rgb, targets = _dataset(f, key, path), _dataset(f, "targets", path)
         if rgb.ndim != 4 or tuple(rgb.shape[1:]) != IMAGE_SHAPE or rgb.dtype != np.uint8:
             raise CILFormatError(
                 f"{path}: {key!r} is {rgb.dtype} {tuple(rgb.shape)}; expected uint8 (N, 88, 200, 3)"

@@ -4,8 +4,10 @@ Reads only ``targets`` (small); images stay on disk until the dataset asks for t
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,6 +47,35 @@ class Frames:
                                                         self.command, self.camera, self.group)))
 
 
+#: written by ``cicfw collect`` into every folder it collects: ``files`` maps a file name to its episode
+META_NAME = "dataset_metadata.json"
+META_LAYOUT = ('an object whose "files" maps each file name to an object such as {"episode": "ep0000"} '
+               "(cicfw collect writes it; without the file each file is its own episode)")
+
+
+def folder_metadata(folder: Path) -> dict:
+    """A folder's ``dataset_metadata.json`` (``{}`` when it has none), checked for what the loader reads;
+    anything else is one error naming the file and the layout it needs."""
+    meta = folder / META_NAME
+    if not meta.exists():
+        return {}
+    try:
+        data = json.loads(meta.read_text())
+    except OSError as err:
+        raise ValueError(f"{meta}: cannot be read ({err.strerror or err})") from None
+    except ValueError as err:  # json's message says where, not which file
+        raise ValueError(f"{meta}: not valid JSON ({err}); it must be {META_LAYOUT}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{meta}: holds a JSON {type(data).__name__}; it must be {META_LAYOUT}")
+    files = data.get("files", {})
+    if not isinstance(files, dict):
+        raise ValueError(f'{meta}: "files" is a JSON {type(files).__name__}; it must be {META_LAYOUT}')
+    for name, entry in files.items():
+        if not isinstance(entry, dict):
+            raise ValueError(f'{meta}: "files" entry {name!r} is {entry!r}, not an object; it must be {META_LAYOUT}')
+    return data
+
+
 def episode_groups(files: list[Path]) -> np.ndarray:
     """Episode id per file: from ``dataset_metadata.json`` (key ``files``: name -> {episode}) when a
     folder has one, else each file is its own episode (CoRL-2017 files are separate recordings)."""
@@ -52,12 +83,165 @@ def episode_groups(files: list[Path]) -> np.ndarray:
     keys: list[str] = []
     for f in files:
         if f.parent not in meta_cache:
-            meta = f.parent / "dataset_metadata.json"
-            meta_cache[f.parent] = json.loads(meta.read_text()).get("files", {}) if meta.exists() else {}
+            meta_cache[f.parent] = folder_metadata(f.parent).get("files", {})
         entry = meta_cache[f.parent].get(f.name)
         keys.append(f"{f.parent}/episode:{entry['episode']}" if entry and "episode" in entry else str(f))
     _, groups = np.unique(np.array(keys), return_inverse=True)
     return groups.astype(np.int32)
+
+
+def distinct_files(files: list[Path]) -> tuple[list[Path], list[tuple[Path, Path]]]:
+    """``files`` with each file once: a path that is the same file as an earlier one (a symlink, a hard
+    link) is left out. Also returns the (left out, kept) pairs."""
+    seen: dict[tuple[int, int], Path] = {}
+    kept, same = [], []
+    for f in files:
+        st = f.stat()
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            same.append((f, seen[key]))
+        else:
+            seen[key] = f
+            kept.append(f)
+    return kept, same
+
+
+def merge_copies(groups: np.ndarray, copies: list[tuple[int, int]]) -> np.ndarray:
+    """Episode ids where each (copy, original) pair of file indices shares one episode, whole episodes
+    merged, so no copy validates what its original trains."""
+    parent = {g: g for g in np.unique(groups).tolist()}
+
+    def root(g: int) -> int:
+        while parent[g] != g:
+            g = parent[g]
+        return g
+
+    for i, j in copies:
+        a, b = root(int(groups[i])), root(int(groups[j]))
+        parent[max(a, b)] = min(a, b)
+    _, merged = np.unique([root(int(g)) for g in groups], return_inverse=True)
+    return merged.astype(np.int32)
+
+
+def find_copies(files: list[Path], digests: dict[int, bytes]) -> list[tuple[int, int]]:
+    """(copy, original) file indices of files with the same size and the same ``targets`` digest."""
+    first: dict[tuple[int, bytes], int] = {}
+    pairs = []
+    for i, digest in sorted(digests.items()):
+        key = (files[i].stat().st_size, digest)
+        if key in first:
+            pairs.append((i, first[key]))
+        else:
+            first[key] = i
+    return pairs
+
+
+def _sizes_shared(files: list[Path]) -> set[int]:
+    """Indices of files whose size another file has: the only ones that can be copies."""
+    sizes = [f.stat().st_size for f in files]
+    counts = Counter(sizes)
+    return {i for i, size in enumerate(sizes) if counts[size] > 1}
+
+
+def _say_unfinished(files: list[Path]) -> None:
+    """One warning per folder whose metadata says its collection is unfinished (killed, or still running):
+    its files are whole (collect renames a file only once written), so it trains on what is there."""
+    for folder in dict.fromkeys(f.parent for f in files):
+        meta = folder_metadata(folder)
+        if meta.get("complete", True) is False:
+            counts = meta.get("counts")
+            done = counts.get("episodes", "?") if isinstance(counts, dict) else "?"
+            log.warning("%s: %s says complete: false (%s of %s episode(s) collected; a collect was stopped or is "
+                        "still running): training on the files it has; rerun the same collect command to finish it",
+                        folder, META_NAME, done, meta.get("planned_episodes", "?"))
+
+
+def _say_same_and_copies(same: list[tuple[Path, Path]], copies: list[tuple[Path, Path]]) -> None:
+    if same:
+        log.warning("%d path(s) are the same file as another (a symlink or a hard link; e.g. %s is %s): each file "
+                    "is read once", len(same), *same[0])
+    if copies:
+        log.warning("%d file(s) are byte-identical copies of another (same size, same targets; e.g. %s = %s): each "
+                    "copy is put in its original's episode, so no copy validates what its original trains",
+                    len(copies), *copies[0])
+
+
+@dataclass
+class _Tally:
+    """What the reader dropped or noticed across files, reported once per dataset."""
+
+    nan: int = 0  # steer or speed NaN/inf
+    nan_camera: int = 0  # camera id or yaw NaN/inf
+    neg_rows: int = 0
+    neg_files: int = 0
+    lowest: tuple[float, str, int] = (0.0, "", 0)  # the most negative speed: value, file, row
+
+
+def _columns(f: Path, i: int, t: np.ndarray, cameras: tuple[int, ...] | None, side_camera_correction: float,
+             tally: _Tally) -> tuple:
+    """One file's usable rows of ``t`` (its targets) as the Frames columns but the group; ``tally``
+    gathers the dropped and negative-speed rows. An unknown command code or an impossible speed is an
+    error naming the file."""
+    codes = t[:, T.COMMAND]
+    finite = np.isfinite(t[:, T.STEER]) & np.isfinite(t[:, T.SPEED])
+    camera_known = np.isfinite(t[:, T.CAMERA_ID]) & np.isfinite(t[:, T.CAMERA_YAW])
+    tally.nan += int((~finite).sum())
+    tally.nan_camera += int((finite & ~camera_known).sum())
+    bad = ~np.isin(codes[finite], COMMAND_CODES)
+    if bad.any():
+        found = sorted(set(np.unique(codes[finite][bad]).tolist()))
+        raise CILFormatError(
+            f"{f}: unknown high-level command code(s) {found} in targets[24]; accepted codes are "
+            f"2 (follow), 3 (left), 4 (right), 5 (straight)"
+        )
+    speed = t[:, T.SPEED]
+    beyond = np.flatnonzero(finite & (np.abs(speed) > MAX_ABS_SPEED_KMH))
+    if len(beyond):
+        r = int(beyond[0])
+        raise CILFormatError(
+            f"{f}: speed {float(speed[r]):g} km/h in targets[10] at row {r} ({len(beyond)} row(s) beyond "
+            f"±{MAX_ABS_SPEED_KMH:g} km/h); a CIL speed is km/h within ±{MAX_ABS_SPEED_KMH:g} (negative: the "
+            f"car rolling backwards, kept), so this file's targets are not in the CIL layout")
+    negative = finite & (speed < 0)
+    if negative.any():
+        tally.neg_rows += int(negative.sum())
+        tally.neg_files += 1
+        tally.lowest = min(tally.lowest, (float(speed[negative].min()), f.name,
+                                          int(np.argmin(np.where(negative, speed, 0)))))
+    rows = np.flatnonzero(finite & camera_known)
+    camera = t[rows, T.CAMERA_ID].astype(np.int32)
+    if cameras is not None:
+        _warn_unknown_cameras(f, camera, cameras)
+    steer = t[rows, T.STEER] - side_camera_correction * t[rows, T.CAMERA_YAW] / 30.0
+    return (np.full(len(rows), i, np.int32), rows.astype(np.int32), steer.astype(np.float32),
+            t[rows, T.SPEED].astype(np.float32), (codes[rows] - 2).astype(np.int64), camera)
+
+
+def _say_dropped(tally: _Tally, n_files: int) -> None:
+    if tally.nan:
+        log.warning("dropped %d sample(s) whose steer or speed is NaN or inf", tally.nan)
+    if tally.nan_camera:
+        log.warning("dropped %d sample(s) whose camera id (targets[26]) or yaw (targets[27]) is NaN or inf",
+                    tally.nan_camera)
+    if tally.neg_rows:
+        log.info("%d sample(s) in %d of %d file(s) have a negative speed (down to %.3g km/h, %s row %d): "
+                 "kept as recorded (the signed forward speed of a car rolling backwards, as the CoRL-2017 "
+                 "data has it; the encoder sees speed / model.speed_norm_kmh)", tally.neg_rows,
+                 tally.neg_files, n_files, *tally.lowest)
+
+
+def _nothing_left(path: str, n_files: int, tally: _Tally, read: int, by_steer: int, by_camera: int,
+                  max_abs_steer: float, cameras: tuple[int, ...] | None) -> ValueError:
+    """The error for filters that leave no sample: which filter removed how many."""
+    removed = [f"{tally.nan} for a NaN or inf steer or speed",
+               f"{tally.nan_camera} for a NaN or inf camera id or yaw",
+               f"{by_steer} by data.max_abs_steer={max_abs_steer:g} (|steer| after the side-camera correction "
+               f"above it; the paper keeps 0.8)"]
+    if cameras is not None:
+        removed.append(f"{by_camera} by data.cameras={list(cameras)}")
+    return ValueError(f"the filters leave no sample of the {n_files} file(s) of data.path={path!r}: of "
+                      f"{read + tally.nan + tally.nan_camera} sample(s), {', '.join(removed)}; loosen the "
+                      f"filter that removed them")
 
 
 def load_frames(
@@ -68,7 +252,9 @@ def load_frames(
 ) -> Frames:
     """Scan ``path`` (folder or glob), check every file, read targets and apply the filters.
 
-    - rows whose steer or speed is NaN/inf are dropped (counted, reported once);
+    - a path that is the same file as another (symlink, hard link) is read once; byte-identical copies
+      (same size, same targets) share their original's episode (both reported once);
+    - rows whose steer or speed, or camera id or yaw, is NaN/inf are dropped (counted, reported once);
     - negative speeds are kept as recorded (signed forward speed; counted, reported once per dataset);
       a speed beyond +-``MAX_ABS_SPEED_KMH`` is an error naming the file and the row;
     - steer of side cameras is corrected: ``steer - correction * yaw / 30`` (yaw in degrees,
@@ -77,59 +263,36 @@ def load_frames(
     - an unknown command code is an error naming the file;
     - samples of a camera id outside ``cameras`` are dropped; when the id is none of the known ones
       (``KNOWN_CAMERA_IDS``: 0 centre, 1 left, 2 right) the user cannot have meant to leave it out, so
-      a warning names the file, its unknown id(s) and the accepted ones, once per file.
+      a warning names the file, its unknown id(s) and the accepted ones, once per file;
+    - filters that leave nothing are an error saying which removed how many;
+    - a collected folder whose metadata says ``complete: false`` is named in a warning (trained on).
     """
-    files = find_files(path)
+    files, same = distinct_files(find_files(path))
     for f in files:
         check_file(f)
     groups_of_file = episode_groups(files)
-    parts, dropped_nan = [], 0
-    neg_rows, neg_files, lowest = 0, 0, (0.0, "", 0)  # negative speeds: counted, kept
+    _say_unfinished(files)
+    shared = _sizes_shared(files)
+    tally = _Tally()
+    parts, digests = [], {}
     for i, f in enumerate(files):
         t = read_targets(f)
-        codes = t[:, T.COMMAND]
-        finite = np.isfinite(t[:, T.STEER]) & np.isfinite(t[:, T.SPEED])
-        dropped_nan += int((~finite).sum())
-        bad = ~np.isin(codes[finite], COMMAND_CODES)
-        if bad.any():
-            found = sorted(set(np.unique(codes[finite][bad]).tolist()))
-            raise CILFormatError(
-                f"{f}: unknown high-level command code(s) {found} in targets[24]; accepted codes are "
-                f"2 (follow), 3 (left), 4 (right), 5 (straight)"
-            )
-        speed = t[:, T.SPEED]
-        beyond = np.flatnonzero(finite & (np.abs(speed) > MAX_ABS_SPEED_KMH))
-        if len(beyond):
-            r = int(beyond[0])
-            raise CILFormatError(
-                f"{f}: speed {float(speed[r]):g} km/h in targets[10] at row {r} ({len(beyond)} row(s) beyond "
-                f"±{MAX_ABS_SPEED_KMH:g} km/h); a CIL speed is km/h within ±{MAX_ABS_SPEED_KMH:g} (negative: the "
-                f"car rolling backwards, kept), so this file's targets are not in the CIL layout")
-        negative = finite & (speed < 0)
-        if negative.any():
-            neg_rows += int(negative.sum())
-            neg_files += 1
-            lowest = min(lowest, (float(speed[negative].min()), f.name, int(np.argmin(np.where(negative, speed, 0)))))
-        rows = np.flatnonzero(finite)
-        if cameras is not None:
-            _warn_unknown_cameras(f, np.nan_to_num(t[rows, T.CAMERA_ID]).astype(np.int32), cameras)
-        yaw = np.nan_to_num(t[rows, T.CAMERA_YAW])
-        steer = t[rows, T.STEER] - side_camera_correction * yaw / 30.0
-        parts.append((np.full(len(rows), i, np.int32), rows.astype(np.int32), steer.astype(np.float32),
-                      t[rows, T.SPEED].astype(np.float32), (codes[rows] - 2).astype(np.int64),
-                      np.nan_to_num(t[rows, T.CAMERA_ID]).astype(np.int32),
-                      np.full(len(rows), groups_of_file[i], np.int32)))
-    frames = Frames(files, *(np.concatenate(col) for col in zip(*parts)))
-    if dropped_nan:
-        log.warning("dropped %d sample(s) whose steer or speed is NaN or inf", dropped_nan)
-    if neg_rows:
-        log.info("%d sample(s) in %d of %d file(s) have a negative speed (down to %.3g km/h, %s row %d): "
-                 "kept as recorded (the signed forward speed of a car rolling backwards, as the CoRL-2017 "
-                 "data has it; the encoder sees speed / model.speed_norm_kmh)", neg_rows, neg_files, len(files),
-                 *lowest)
-    keep = np.abs(frames.steer) <= max_abs_steer
+        parts.append(_columns(f, i, t, cameras, side_camera_correction, tally))
+        if i in shared:
+            digests[i] = hashlib.blake2b(t.tobytes(), digest_size=16).digest()
+    copies = find_copies(files, digests)
+    groups_of_file = merge_copies(groups_of_file, copies)
+    _say_same_and_copies(same, [(files[i], files[j]) for i, j in copies])
+    _say_dropped(tally, len(files))
+    columns = [np.concatenate(col) for col in zip(*parts)]
+    frames = Frames(files, *columns, groups_of_file[columns[0]])
+    by_steer = np.abs(frames.steer) > max_abs_steer
+    keep = ~by_steer
     if cameras is not None:
         keep &= chosen_cameras(frames.camera, cameras)
+    if not keep.any():
+        raise _nothing_left(path, len(files), tally, len(frames), int(by_steer.sum()),
+                            int((~by_steer & ~keep).sum()), max_abs_steer, cameras)
     return frames.subset(keep)
 
 
