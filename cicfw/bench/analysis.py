@@ -2,13 +2,13 @@
 and the two-level episode bootstrap beside it (secondary)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from cicfw.bench.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
-from cicfw.bench.seed_stats import LEVEL, Estimate, pooled_clopper_pearson, t_interval
+from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS, Estimate, pooled_clopper_pearson, t_interval
 
 
 def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:
@@ -88,10 +88,75 @@ class Analysis:
     bootstrap: dict[str, list[Estimate]]  # row -> 5 estimates, the episode bootstrap
     replicates: dict[str, np.ndarray]  # row -> (n_boot, 5)
     n_boot: int
+    keys: list[str] = field(default_factory=list)  # the episodes, in the success matrices' order
+    draws: dict[str, np.ndarray] = field(default_factory=dict)  # the episode draws every row shares
 
     def per_seed(self, row: str, on: str) -> dict[int, float]:
         """seed -> ``row``'s success on a selector (``cells.SELECTORS``): what a claim's part compares."""
         return {c.seed: c.value(on) for c in self.rows[row]}
+
+    def replicates_of(self, row: str, cells: Sequence[CellResult]) -> np.ndarray:
+        """``row``'s bootstrap replicates on ``cells``: the stored ones when they are all its cells, else
+        drawn again on the shared episode draws (a comparison within one CPU kind), the seed draw from a
+        generator seeded by the cells' seeds so that the report is reproducible."""
+        if len(cells) == len(self.rows[row]):
+            return self.replicates[row]
+        rng = np.random.default_rng([1, *sorted(c.seed for c in cells)])
+        return bootstrap_replicates(_matrix(cells, self.keys), self.draws, rng, self.n_boot)
+
+    def pair(self, a: str, b: str, min_seeds: int = MIN_SEEDS) -> "Pairing":
+        """The cells a comparison of rows ``a`` and ``b`` uses (``pair_cells``)."""
+        return pair_cells(self.rows[a], self.rows[b], min_seeds)
+
+
+@dataclass(frozen=True)
+class Pairing:
+    """The cells a comparison of rows A and B uses, and the CPU kinds behind them: ``cpu`` names the one
+    kind they all ran on, or None where they mix kinds ("mixed CPUs"); ``left_out`` counts the cells of
+    other kinds a comparison within one kind leaves out; ``kinds``: each kind's cells of A and of B."""
+
+    a: tuple[CellResult, ...]
+    b: tuple[CellResult, ...]
+    cpu: str | None
+    left_out: int
+    kinds: dict[str, tuple[int, int]]
+
+    @property
+    def mixed(self) -> bool:
+        """The comparison pools cells of more than one kind of CPU."""
+        return self.cpu is None
+
+    def note(self) -> str:
+        """What the report's method column adds: "" on one kind throughout, else within which kind or
+        "mixed CPUs" with each kind's cells of A and of B."""
+        if len(self.kinds) == 1:
+            return ""
+        if self.cpu is not None:
+            return f"within {self.cpu} ({self.left_out} cell(s) of other CPUs left out)"
+        side = lambda i: ", ".join(f"{k} {n[i]}" for k, n in self.kinds.items() if n[i])  # noqa: E731
+        return f"mixed CPUs (A: {side(0)}; B: {side(1)})"
+
+
+def pair_cells(a: Sequence[CellResult], b: Sequence[CellResult], min_seeds: int = MIN_SEEDS) -> Pairing:
+    """Compare within one kind of CPU (the same seed trains another model on another kind): all cells when
+    both rows ran on one kind; where they span kinds, the cells of the kind on which both rows have at
+    least ``min_seeds`` (the most common seeds, then the most cells, then the name decide between kinds);
+    where no kind has that, all cells, marked mixed."""
+    kinds = sorted({c.cpu for c in (*a, *b)})
+    counts = {k: (sum(c.cpu == k for c in a), sum(c.cpu == k for c in b)) for k in kinds}
+    if len(kinds) == 1:
+        return Pairing(tuple(a), tuple(b), kinds[0], 0, counts)
+    shared = [k for k in kinds if min(counts[k]) >= min_seeds]
+    if not shared:
+        return Pairing(tuple(a), tuple(b), None, 0, counts)
+
+    def rank(k: str) -> tuple[int, int]:
+        common = {c.seed for c in a if c.cpu == k} & {c.seed for c in b if c.cpu == k}
+        return len(common), sum(counts[k])
+
+    best = max(shared, key=rank)  # the first of equals in name order
+    sa, sb = tuple(c for c in a if c.cpu == best), tuple(c for c in b if c.cpu == best)
+    return Pairing(sa, sb, best, len(a) + len(b) - len(sa) - len(sb), counts)
 
 
 def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> Analysis:
@@ -118,4 +183,4 @@ def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> A
         reps[row] = bootstrap_replicates(_matrix(cs, keys), draws, rng, n_boot)
         est[row] = [row_estimate(cs, on) for on in [*COLUMNS, "overall"]]
         boot[row] = [Estimate(e.mean, *percentile_interval(reps[row][:, i])) for i, e in enumerate(est[row])]
-    return Analysis(rows=rows, estimates=est, bootstrap=boot, replicates=reps, n_boot=n_boot)
+    return Analysis(rows=rows, estimates=est, bootstrap=boot, replicates=reps, n_boot=n_boot, keys=keys, draws=draws)

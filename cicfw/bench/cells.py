@@ -3,6 +3,7 @@ table's columns and selectors (a column, a town, a weather, overall) that result
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -44,11 +45,45 @@ class CellResult:
         """Success (%) on a selector of ``SELECTORS``: the mean of its columns' rates."""
         return float(np.mean([self.rate(COLUMNS[i]) for i in SELECTORS[on]]))
 
+    @property
+    def cpu(self) -> str:
+        """The kind of CPU the cell ran on (``cpu_kind`` of its ``machine``)."""
+        return cpu_kind(self.meta.get("machine"))
+
     def counts(self, column: str, command: str | None = None) -> tuple[int, int]:
         """(successes, episodes) in one table column, or in its episodes of one command."""
         v = [bool(e["success"]) for e in self.episodes.values()
              if e["column"] == column and (command is None or e.get("command") == command)]
         return sum(v), len(v)
+
+
+def cpu_kind(machine: str | None) -> str:
+    """The kind of CPU a cell's ``machine`` names, "2 cores (AMD EPYC), no GPU, ..." -> "AMD EPYC": the text
+    in its first parentheses without trademark marks or a trailing "Processor" / "CPU @ 2.9GHz". The same
+    seed trains another model on another kind, so rows are compared within one kind."""
+    if not machine:
+        return "unknown CPU"
+    text = str(machine)
+    start = text.find("(")
+    if start < 0:
+        return text.split(",")[0].strip() or "unknown CPU"
+    depth, end = 0, len(text)
+    for i in range(start, len(text)):
+        depth += {"(": 1, ")": -1}.get(text[i], 0)
+        if depth == 0:
+            end = i
+            break
+    name = re.sub(r"\((?:R|TM)\)", "", text[start + 1:end], flags=re.I)
+    name = re.sub(r"\s+(?:Processor|CPU)\b.*$", "", name)
+    return " ".join(name.split()) or "unknown CPU"
+
+
+def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
+    """CPU kind -> number of ``cells`` that ran on it, most cells first (ties by name)."""
+    counts: dict[str, int] = {}
+    for c in cells:
+        counts[c.cpu] = counts.get(c.cpu, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def load_cell(path: Path) -> CellResult | dict[str, Any]:

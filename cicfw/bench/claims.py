@@ -1,5 +1,7 @@
 """The paper's claims as tested parts (data: ``claims:`` in conf/reproduce.yaml) and their verdicts:
-each part's difference over seeds, its p-value, Holm's over the family, the paper's own figure."""
+each part's difference over seeds (within one CPU kind where it can be), its two-sided p-value against the
+part's null (0, or the equivalence margin for "not better than"), Holm's over the family, the paper's own
+figure."""
 from __future__ import annotations
 
 import math
@@ -8,13 +10,16 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.analysis import Analysis, boot_value, percentile_interval
-from cicfw.bench.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, pooled_counts
+from cicfw.bench.analysis import Analysis, Pairing, boot_value, percentile_interval
+from cicfw.bench.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
 from cicfw.bench.seed_stats import Estimate, difference, holm, ratio_interval, with_episode_floor
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
-TOO_FEW = "too few seeds"
-TESTS = ("greater", "less", "not_greater")
+TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
+#: greater / less: A beats B / A below B; not_greater / not_less: "A failed to improve on B" / "A is no worse
+#: than B", tested against the equivalence margin (``equivalence_margin`` in conf/reproduce.yaml)
+TESTS = ("greater", "less", "not_greater", "not_less")
+MARGIN_TESTS = ("not_greater", "not_less")
 
 
 def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
@@ -27,7 +32,7 @@ def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
 class Part:
     """One tested part of a claim: A - b_scale x B on ``on`` (a selector), or, with ``on="gap"``, A's
     advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
-    (``greater``, ``less``, ``not_greater``); ``relative`` also reports A / B - 1. ``on`` is the part's
+    (``TESTS``); ``relative`` also reports A / B - 1. ``on`` is the part's
     ``column:`` in conf/reproduce.yaml; ``b_scale`` multiplies B before the difference is taken (the
     statistics see B already scaled) and turns off the episodes' floor (``episode_terms``)."""
 
@@ -40,16 +45,23 @@ class Part:
     easy: str | None = None
     b_scale: float = 1.0
 
-    def text(self, labels: Mapping[str, str]) -> str:
-        """The part as the report words it, rows by their labels: "GTU > CIL (new town / new weathers)"."""
+    def text(self, labels: Mapping[str, str], margin: float | None = None) -> str:
+        """The part as the report words it, rows by their labels: "GTU > CIL (new town / new weathers)";
+        a margin test names its ``margin``: "Classification not better than CIL by 5 points or more"."""
         la, lb = labels.get(self.a, self.a), labels.get(self.b, self.b)
         lb = lb if self.b_scale == 1.0 else f"{self.b_scale:g} x {lb}"
+        by = f" by {margin:g} points or more" if self.test in MARGIN_TESTS and margin is not None else ""
         if self.on == "gap":
-            return (f"{la} − {lb} larger in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}"
-                    if self.test != "less" else
-                    f"{la} − {lb} smaller in {SELECTOR_NAMES[self.hard]} than in {SELECTOR_NAMES[self.easy]}")
-        op = {"greater": ">", "less": "<", "not_greater": "not better than"}[self.test]
-        return f"{la} {op} {lb} ({SELECTOR_NAMES[self.on]})"
+            how = {"greater": "larger", "less": "smaller", "not_greater": "not larger", "not_less": "not smaller"}
+            return (f"{la} − {lb} {how[self.test]} in {SELECTOR_NAMES[self.hard]} than in "
+                    f"{SELECTOR_NAMES[self.easy]}{by}")
+        op = {"greater": ">", "less": "<", "not_greater": "not better than", "not_less": "not worse than"}[self.test]
+        return f"{la} {op} {lb}{by} ({SELECTOR_NAMES[self.on]})"
+
+    def null(self, margin: float) -> float:
+        """The value of A - B the part's two-sided test is against: 0 for a direction, +margin for "not better
+        than" (supported below it), -margin for "not worse than" (supported above it)."""
+        return {"not_greater": margin, "not_less": -margin}.get(self.test, 0.0)
 
     def values(self, per_seed: Callable[[str, str], dict[int, float]], row: str) -> dict[int, float]:
         """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)``, e.g.
@@ -123,35 +135,54 @@ def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
 def default_claims() -> list[Claim]:
     """The paper's claims as shipped in ``conf/reproduce.yaml`` (``claims:``), read as plain YAML (no Hydra
     state is touched, so this works inside a running app too)."""
+    return load_claims(_shipped_config()["claims"])
+
+
+def default_margin() -> float:
+    """The equivalence margin shipped in ``conf/reproduce.yaml`` (``equivalence_margin``, points), checked."""
+    return check_margin(_shipped_config().get("equivalence_margin"))
+
+
+def _shipped_config() -> dict[str, Any]:
     from importlib.resources import files
 
     import yaml
 
-    return load_claims(yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["claims"])
+    return yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())
 
 
-def part_verdict(test: str, mean: float, significant: bool) -> str:
-    """A part's verdict from its direction and whether the difference is significant."""
-    if test == "not_greater":
-        return CONTRADICTED if significant and mean > 0 else SUPPORTED
-    if not significant or mean == 0:
-        return INCONCLUSIVE
-    up = mean > 0
-    return SUPPORTED if up == (test == "greater") else CONTRADICTED
+def check_margin(value: Any) -> float:
+    """``equivalence_margin`` as a number of points, or one error line saying what it takes."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    if not ok:
+        raise ValueError(f"equivalence_margin={value!r}: give a positive number of points of success (e.g. 5), the "
+                         f"margin a 'not better than' claim is tested against")
+    return float(value)
+
+
+def part_verdict(test: str, excess: float, significant: bool) -> str:
+    """A part's verdict from which side of its null A - B lies (``excess`` = A - B - null) and whether the
+    two-sided test rejects the null: on the claim's side *supported*, on the other *contradicted*;
+    otherwise *inconclusive*, or *not shown* for a margin test."""
+    if not significant or excess == 0:
+        return NOT_SHOWN if test in MARGIN_TESTS else INCONCLUSIVE
+    claims_above = test in ("greater", "not_less")
+    return SUPPORTED if (excess > 0) == claims_above else CONTRADICTED
 
 
 def combine(verdicts: Sequence[str]) -> str:
-    """A claim's verdict from its parts': contradicted > not run > too few seeds > inconclusive > supported."""
+    """A claim's verdict from its parts': contradicted > not run > too few seeds > inconclusive > not shown >
+    supported."""
     if not verdicts:
         return NOT_RUN
-    for v in (CONTRADICTED, NOT_RUN, TOO_FEW, INCONCLUSIVE):
+    for v in (CONTRADICTED, NOT_RUN, TOO_FEW, INCONCLUSIVE, NOT_SHOWN):
         if v in verdicts:
             return v
     return SUPPORTED
 
 
-def _excludes_zero(e: Estimate) -> bool:
-    return e.lo is not None and e.hi is not None and (e.lo > 0 or e.hi < 0)
+def _excludes(e: Estimate, null: float) -> bool:
+    return e.lo is not None and e.hi is not None and (e.lo > null or e.hi < null)
 
 
 def _pct_change(r: float | None) -> float | None:
@@ -159,38 +190,20 @@ def _pct_change(r: float | None) -> float | None:
 
 
 def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[float]],
-          labels: Mapping[str, str]) -> list[dict[str, Any]]:
-    """Every claim with each part's measured difference (t-interval over seeds), its two-sided p-value,
-    the Holm-adjusted p-value over the family of every claim's parts (fixed in advance: a part without a
-    verdict counts as p = 1), the paper's difference, the episode
-    bootstrap's interval (secondary) and the verdicts, uncorrected and Holm."""
+          labels: Mapping[str, str], margin: float | None = None) -> list[dict[str, Any]]:
+    """Every claim with each part's measured difference (t-interval over seeds, within one CPU kind where
+    both rows have the seeds there: ``analysis.pair_cells``), its two-sided p-value against the part's null
+    (``Part.null``: 0, or ``margin`` points for a margin test; the conf's ``equivalence_margin`` when not
+    given), the Holm-adjusted p-value over the family of every claim's parts (fixed in advance: a part
+    without a verdict counts as p = 1), the paper's difference, the episode bootstrap's interval
+    (secondary) and the verdicts, uncorrected and Holm."""
+    margin = default_margin() if margin is None else check_margin(margin)
     out, family = [], []
     for claim in claims:
         parts = []
         for p in claim.parts:
-            rec: dict[str, Any] = {"comparison": p.text(labels), "test": p.test, "on": p.on, "paper": p.paper(paper)}
-            if p.relative:
-                rec["relative"] = {"paper": _pct_change(None if p.paper_relative(paper) is None
-                                                        else 1.0 + p.paper_relative(paper))}
-            if p.a not in an.rows or p.b not in an.rows:
-                rec.update(verdict=NOT_RUN, verdict_holm=NOT_RUN, method="–")
-                parts.append(rec)
-                continue
-            va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
-            d = difference(va, {s: p.b_scale * v for s, v in vb.items()})
-            terms = episode_terms(an, p)
-            if terms:  # on single table columns: the episodes' floor, as ``analysis.row_estimate`` has for a row
-                d = with_episode_floor(d, terms)
-            rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method, seeds=list(d.n),
-                       means=[round(float(np.mean(list(va.values()))), 2), round(p.b_scale * float(np.mean(list(vb.values()))), 2)])
-            rec["bootstrap"] = _boot_part(an, p).as_dict()
-            if p.relative:
-                r, lo, hi = ratio_interval([va[s] for s in sorted(va)], [vb[s] for s in sorted(vb)], d.paired)
-                rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi))
-            if not d.enough_seeds:
-                rec.update(verdict=TOO_FEW, verdict_holm=TOO_FEW)
-            else:
-                rec["verdict"] = part_verdict(p.test, d.estimate.mean, _excludes_zero(d.estimate))
+            rec = _measure(an, p, paper, labels, margin)
+            if "excess" in rec:
                 family.append(rec)
             parts.append(rec)
         out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
@@ -199,38 +212,82 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
     adjusted, reject = holm([r["p"] for r in family], family_size=holm_family_size(out))
     for rec, padj, rej in zip(family, adjusted, reject):
         rec["p_holm"] = padj
-        rec["verdict_holm"] = part_verdict(rec["test"], rec["measured"]["mean"], rej)
+        rec["verdict_holm"] = part_verdict(rec["claim"], rec.pop("excess"), rej)
     for c in out:
         c["verdict"] = combine([p["verdict"] for p in c["parts"]])
         c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])
     return out
 
 
-def episode_terms(an: Analysis, p: Part) -> list[tuple[float, int, int]] | None:
-    """A part as a contrast of its rows' pooled episodes, ``(coefficient, successes, episodes)`` per
-    row and column, for the episodes' floor; None where it is not made of single table columns (overall,
-    a town or weather's mean of two columns: a mean of column rates, whose t-interval keeps its width) or
-    B is scaled."""
+def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels: Mapping[str, str],
+             margin: float) -> dict[str, Any]:
+    """One part's record: its difference, p-value, method and uncorrected verdict (``excess``, A - B -
+    null unrounded, is kept for the Holm verdict while the part is in the family)."""
+    null = p.null(margin)
+    rec: dict[str, Any] = {"comparison": p.text(labels, margin), "claim": p.test, "test": "two-sided",
+                           "null": null, "on": p.on, "paper": p.paper(paper)}
+    if p.relative:
+        rec["relative"] = {"paper": _pct_change(None if p.paper_relative(paper) is None
+                                                else 1.0 + p.paper_relative(paper))}
+    if p.a not in an.rows or p.b not in an.rows:
+        rec.update(verdict=NOT_RUN, verdict_holm=NOT_RUN, method="–")
+        return rec
+    pair = an.pair(p.a, p.b)
+    cells = {p.b: pair.b, p.a: pair.a}
+    per_seed = lambda row, on: {c.seed: c.value(on) for c in cells[row]}  # noqa: E731
+    va, vb = p.values(per_seed, p.a), p.values(per_seed, p.b)
+    d = difference(va, {s: p.b_scale * v for s, v in vb.items()}, null=null)
+    terms = episode_terms(cells, p)
+    if terms:  # on single table columns: the episodes' floor, as ``analysis.row_estimate`` has for a row
+        d = with_episode_floor(d, terms, null=null)
+    note = pair.note()
+    means = [float(np.mean(list(va.values()))), p.b_scale * float(np.mean(list(vb.values())))]
+    rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method + (f", {note}" if note else ""),
+               seeds=list(d.n), cpu=_cpu(pair), means=[round(m, 2) for m in means])
+    if len(pair.kinds) > 1:
+        rec["cpus"] = {k: list(n) for k, n in pair.kinds.items()}
+    rec["bootstrap"] = _boot_part(an, p, cells).as_dict()
+    if p.relative:
+        r, lo, hi = ratio_interval([va[s] for s in sorted(va)], [vb[s] for s in sorted(vb)], d.paired)
+        rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi))
+    if not d.enough_seeds:
+        rec.update(verdict=TOO_FEW, verdict_holm=TOO_FEW)
+    else:
+        rec["verdict"] = part_verdict(p.test, d.estimate.mean - null, _excludes(d.estimate, null))
+        rec["excess"] = d.estimate.mean - null
+    return rec
+
+
+def _cpu(pair: Pairing) -> str:
+    """results.json's ``cpu`` of a comparison: the one kind its cells ran on, or "mixed"."""
+    return "mixed" if pair.mixed else str(pair.cpu)
+
+
+def episode_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> list[tuple[float, int, int]] | None:
+    """A part as a contrast of its rows' pooled episodes (``cells``: each row's cells the comparison uses),
+    ``(coefficient, successes, episodes)`` per row and column, for the episodes' floor; None where it is not
+    made of single table columns (overall, a town or weather's mean of two columns: a mean of column rates,
+    whose t-interval keeps its width) or B is scaled."""
     if p.b_scale != 1.0:
         return None
     sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
     if any(col not in COLUMNS for col, _ in sides):
         return None
-    return [(sign * side, *pooled_counts(an.rows[row], col))
+    return [(sign * side, *pooled_counts(cells[row], col))
             for col, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))]
 
 
-def _boot_part(an: Analysis, p: Part) -> Estimate:
+def _boot_part(an: Analysis, p: Part, cells: Mapping[str, Sequence[CellResult]]) -> Estimate:
     """A part's difference in the episode bootstrap's replicates (secondary): the same statistic on
-    every replicate of A and B (paired by episode draw, seeds drawn per row)."""
-    ra, rb = an.replicates[p.a], an.replicates[p.b]
+    every replicate of A and B (paired by episode draw, seeds drawn per row), on the cells the comparison
+    uses (``cells``)."""
+    ra, rb = an.replicates_of(p.a, cells[p.a]), an.replicates_of(p.b, cells[p.b])
+    per_seed = lambda row, on: {c.seed: c.value(on) for c in cells[row]}  # noqa: E731
     if p.on == "gap":
         d = ((boot_value(ra, p.hard) - p.b_scale * boot_value(rb, p.hard))
              - (boot_value(ra, p.easy) - p.b_scale * boot_value(rb, p.easy)))
-        va, vb = p.values(an.per_seed, p.a), p.values(an.per_seed, p.b)
     else:
         d = boot_value(ra, p.on) - p.b_scale * boot_value(rb, p.on)
-        va, vb = an.per_seed(p.a, p.on), an.per_seed(p.b, p.on)
+    va, vb = p.values(per_seed, p.a), p.values(per_seed, p.b)
     mean = float(np.mean(list(va.values())) - p.b_scale * np.mean(list(vb.values())))
     return Estimate(mean, *percentile_interval(d))
-

@@ -14,7 +14,8 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     """Copy a reproduction's small results into ``dest`` (for committing): RESULTS.md, results.json/.csv,
     the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs)."""
     results_dir, dest = Path(results_dir), Path(dest)
-    names = ["RESULTS.md", "results.json", "results.csv", "results.png", "learning_curve.png", "reproduce.json"]
+    names = ["RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
+             "reproduce.json"]
     files = [results_dir / n for n in names if (results_dir / n).is_file()]
     files += cell_files(results_dir)
     out = []

@@ -5,11 +5,13 @@ A *cell* is one (row, seed) of a reproduction: a model trained with that seed an
 those outcomes, so ``cicfw report`` and the tests use it without training anything. This module writes
 the report (results.json/.csv, RESULTS.md, the pictures); the parts live beside it, one job each:
 ``cells`` (cell.json as data, the table's columns), ``seed_stats`` (the intervals, the episodes' floor,
-Holm), ``analysis`` (a folder's estimates and the episode bootstrap), ``claims`` (the paper's claims and
-their verdicts) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
+Holm), ``analysis`` (a folder's estimates, the episode bootstrap, which cells a comparison pairs),
+``claims`` (the paper's claims and their verdicts), ``ranking`` (which row drives best, each row against
+CIL) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
 a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference``
 -> ``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a
-relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``. The
+relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; the
+leader's lead and the forest plot, ``ranking.overall_difference``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
 ``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
 reading the paper's table), never the success pooled over all episodes; a seed's overall is the mean of
@@ -32,9 +34,13 @@ Newcombe's hybrid score interval), and its p-value is then the larger of the t-t
 that interval, so seeds whose differences happen to agree (a column's rates come in steps of 1/64 or 1/96,
 an easy column often sits at 100%) do not get a zero-width interval and p = 0; the method column says
 "widened to the episodes' interval" where it moved a bound. Overall and a town's or weather's mean of two
-columns keep their t-interval, as a row's overall does. A relative change (``A / B - 1``) gets Fieller's
-interval for a ratio of means, with the same variances, covariance (paired) and degrees of freedom; it is
-unbounded when B is not clearly above 0.
+columns keep their t-interval, as a row's overall does. Cells record their machine, and the same seed
+trains another model on another kind of CPU: a difference is computed on the cells of one CPU kind where
+both rows have at least 3 seeds there (the method says "within" that kind and how many cells of other
+kinds it left out), and where no kind has that, on all cells, marked "mixed CPUs" with each kind's cells.
+Every interval is two-sided at 95%, and every test is the two-sided t-test dual to it. A relative change
+(``A / B - 1``) gets Fieller's interval for a ratio of means, with the same variances, covariance (paired)
+and degrees of freedom; it is unbounded when B is not clearly above 0.
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
@@ -53,19 +59,29 @@ verdict.
 **Verdicts.** Each claim of the paper (``claims:`` in ``conf/reproduce.yaml``, with its sentence quoted)
 is one or more tested parts, each a difference A - B of per-seed values on a column, the mean of some
 columns, or a change of the gap between two columns. Each part's test is the two-sided t-test of that
-difference against 0 (paired t-test on the per-seed differences, or Welch's), so the uncorrected verdict
-and the 95% interval agree: *significant* means the interval excludes 0. A part ``greater`` (A beats B)
-is *supported* when A - B is significantly above 0, *contradicted* when significantly below,
-*inconclusive* otherwise; ``less`` is its mirror; ``not_greater`` ("A failed to improve on B") is
-*contradicted* only when A is significantly better than B and *supported* otherwise. A part whose rows
-have fewer than 3 seeds (either row) gets no verdict: *too few seeds* (its difference is still shown).
-**Family-wise control:** the family is fixed in advance, every part of every claim in the list (a part
-without a verdict, its rows not run or short of seeds, counts as p = 1), adjusted by Holm's step-down
-method (``statsmodels.stats.multitest.multipletests(method="holm")``, family-wise error 5%), so a Holm
-verdict does not weaken when another row's cells arrive; the Holm verdict uses the adjusted p-value in place of the interval and is shown beside the
-uncorrected one. A claim of several parts is *contradicted* when any part is, *not run* when a part's rows
-were not run, *too few seeds* when a part lacks seeds, *supported* when every part is, *inconclusive*
-otherwise.
+difference against the part's null (paired t-test on the per-seed differences, or Welch's), so the
+verdict and the 95% interval agree: *significant* means the interval excludes the null. A directional
+part, ``greater`` (A beats B) or ``less``, is tested against 0: *supported* when A - B is significantly on
+the claim's side, *contradicted* when significantly on the other, *inconclusive* otherwise (each side is
+the one-sided test at 2.5%). A margin part, ``not_greater`` ("A failed to improve on B") or ``not_less``
+("A is no worse than B"), is tested against the equivalence margin (``equivalence_margin`` points):
+``not_greater`` is *supported* when the interval lies below +margin (non-superiority: the upper of TOST's
+two one-sided tests, at 2.5%), *contradicted* when it lies above +margin (A better by more than the
+margin), *not shown* otherwise; ``not_less`` mirrors it at -margin. A part whose rows have fewer than 3
+seeds (either row) gets no verdict: *too few seeds* (its difference is still shown). **Family-wise
+control:** the family is fixed in advance, every part of every claim in the list (a part without a
+verdict, its rows not run or short of seeds, counts as p = 1), adjusted by Holm's step-down method
+(``statsmodels.stats.multitest.multipletests(method="holm")``, family-wise error 5%), so a Holm verdict
+does not weaken when another row's cells arrive; the Holm verdict uses the adjusted p-value in place of the
+interval and is shown beside the uncorrected one. A claim of several parts is *contradicted* when any part
+is, *not run* when a part's rows were not run, *too few seeds* when a part lacks seeds, *supported* when
+every part is, *inconclusive* (or *not shown*) otherwise.
+
+**Which row drives best.** The rows sorted by overall success; the leader (the best row with 3 seeds)
+against every other row, leader - row with its 95% t-interval (paired where the seeds pair, within one CPU
+kind as above): *separated* when the interval excludes 0, *tied* when it holds 0; and every row minus CIL
+with the paper's difference beside it (the forest plot). These are descriptive intervals, not claims: no
+Holm correction.
 
 **Resumed cells.** A cell whose training was stopped and resumed from an epoch checkpoint records it in
 ``cell.json`` (``resumed``); the report marks its row and seed (‡) with a footnote: a resumed training does
@@ -84,8 +100,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from cicfw.bench.analysis import analyse
-from cicfw.bench.cells import COLUMN_NAMES, COLUMNS, CellResult, load_cells
-from cicfw.bench.claims import Claim, default_claims, holm_family_size, judge
+from cicfw.bench.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
+from cicfw.bench.claims import Claim, check_margin, default_claims, default_margin, holm_family_size, judge
+from cicfw.bench.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
 from cicfw.bench.seed_spread import seed_spread
 from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.files import atomic_write
@@ -127,13 +144,25 @@ def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def machine_counts(cells: Sequence[CellResult]) -> dict[str, int]:
+    """Each machine the cells ran on (``cell.json``'s ``machine``) -> its number of cells, most first."""
+    counts: dict[str, int] = {}
+    for c in cells:
+        m = str(c.meta.get("machine") or "an unrecorded machine")
+        counts[m] = counts.get(m, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
                 catalogue: Mapping[str, Mapping[str, Any]], manifest: Mapping[str, Any],
-                n_boot: int = 4000, claims: Sequence[Claim] | None = None) -> dict[str, Any]:
-    """Everything RESULTS.md shows, as JSON-ready data (``claims``: the paper's, from conf/reproduce.yaml,
-    when not given)."""
+                n_boot: int = 4000, claims: Sequence[Claim] | None = None,
+                margin: float | None = None) -> dict[str, Any]:
+    """Everything RESULTS.md shows, as JSON-ready data (``claims`` and the equivalence ``margin``: the
+    paper's and conf/reproduce.yaml's when not given)."""
     an = analyse(cells, n_boot=n_boot)
     claims = default_claims() if claims is None else list(claims)
+    margin = default_margin() if margin is None else check_margin(margin)
+    kinds = cpu_counts(cells)
     labels = {r: str((catalogue.get(r) or {}).get("label", r)) for r in {*catalogue, *an.rows}}
     paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
     machines = {c.meta.get("machine") for cs in an.rows.values() for c in cs}
@@ -160,12 +189,17 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "code": {str(c.seed): c.meta["code"] for c in cs if c.meta.get("code")},
             # each cell's machine, only where the folder's cells come from more than one (``continue_from``)
             "machine": {str(c.seed): c.meta.get("machine") for c in cs} if len(machines) > 1 else {},
+            # the row's cells per CPU kind, only where the folder's cells span kinds
+            "cpus": cpu_counts(cs) if len(kinds) > 1 else {},
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
+    ranked = ranking(an, list(catalogue))
     return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
             "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
-            "rows": rows, "claims": judge(an, claims, paper, labels),
+            "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
+            "ranking": ranked, "leader": leader(an, ranked), "forest": forest(an, ranked, paper),
+            "rows": rows, "claims": judge(an, claims, paper, labels, margin),
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
@@ -259,17 +293,129 @@ def resumed_text(data: Mapping[str, Any]) -> str:
             f"({RESUME_EXAMPLE}); its evaluation, when resumed, is the uninterrupted one's.")
 
 
-def markdown(data: Mapping[str, Any]) -> str:
-    """RESULTS.md: the machine and budget, Table 4 with t-intervals over seeds and the paper's values, the
-    claims (uncorrected and Holm verdicts, each with its method, the episode bootstrap beside as a secondary
+def machine_line(data: Mapping[str, Any]) -> str:
+    """The header's bullet naming every machine the cells ran on, with its number of cells."""
+    machines = data.get("machines") or {}
+    if len(machines) <= 1:
+        m = next(iter(machines), data["manifest"].get("machine", "?"))
+        return f"- **Machine:** {m}" + (f" (all {machines[m]} cells)." if m in machines else ".")
+    line = "- **Machines:** " + "; ".join(f"{n} cells on {m}" for m, n in machines.items()) + "."
+    if len(data.get("cpus") or {}) > 1:
+        line += (f" {len(data['cpus'])} kinds of CPU (" + ", ".join(f"{k}: {n} cells" for k, n in data["cpus"].items())
+                 + "), and the same seed trains another model on another kind: rows are compared on the cells of "
+                 f"one kind where both have {data.get('min_seeds', MIN_SEEDS)} seeds there, and a comparison that "
+                 "pools kinds says *mixed CPUs*.")
+    return line
+
+
+def _cpus(counts: Mapping[str, int]) -> str:
+    return ", ".join(f"{k} {n}" for k, n in counts.items())
+
+
+def _lead_text(v: Mapping[str, Any], label: str) -> str:
+    """One comparison of the leader with ``label``'s row, as the answer's sentence quotes it."""
+    return f"{label} ({_est(v['measured'], '+')})"
+
+
+def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
+    """The report's opening: which row drives best, its lead over every other row with the intervals that
+    separate or tie them, the rows by overall success, and the forest plot (``pictures``: its folder prefix)."""
+    by = {r["row"]: r for r in data["rows"]}
+    lead = data.get("leader")
+    if not lead:
+        return []
+    top = by[lead["row"]]
+    vs = {v["b"]: v for v in lead["versus"]}
+    label = lambda row: by[row]["label"]  # noqa: E731
+    separated = [v for v in lead["versus"] if v["verdict"] == SEPARATED]
+    ahead = [_lead_text(v, label(v["b"])) for v in separated if v["measured"]["mean"] > 0]
+    behind = [_lead_text(v, label(v["b"])) for v in separated if v["measured"]["mean"] <= 0]
+    tied = [_lead_text(v, label(v["b"])) for v in lead["versus"] if v["verdict"] == TIED]
+    few = [label(v["b"]) for v in lead["versus"] if v["verdict"] not in (SEPARATED, TIED)]
+    text = f"**Which row drives best?** **{top['label']}**, {_est(top['columns']['overall'])}% overall."
+    if tied:
+        text += " Not separated from it (its lead's interval holds 0): " + "; ".join(tied) + "."
+    if ahead:
+        text += " Ahead of (its lead's interval above 0): " + "; ".join(ahead) + "."
+    if behind:
+        text += " Behind, on the cells of one CPU kind (the interval below 0): " + "; ".join(behind) + "."
+    if few:
+        text += " Too few seeds to tell against: " + ", ".join(few) + "."
+    mixed = sum(v["cpu"] == "mixed" for v in lead["versus"])
+    if mixed:
+        of = f"All {mixed}" if mixed == len(lead["versus"]) else f"{mixed} of these {len(lead['versus'])}"
+        text += f" {of} comparisons pool cells of different CPU kinds (*mixed CPUs* below)."
+    lines = [text, "", "Rows by overall success, best first: mean over seeds [95% t-interval], then the leader's "
+             "lead over the row, leader − row in points [95% t] (paired t where the seeds pair, else Welch; "
+             "uncorrected, descriptive):", ""]
+    for k, row in enumerate(data.get("ranking") or [], 1):
+        r = by[row]
+        cpus = f"; {_cpus(r['cpus'])}" if r.get("cpus") else ""
+        head = (f"{k}. **{r['label']}** {_est(r['columns']['overall'])}%, {len(r['seeds'])} seed(s)"
+                + ("" if r["enough_seeds"] else " †") + cpus)
+        v = vs.get(row)
+        lines.append(head + (": the leader." if v is None else
+                             f": leader − it {_est(v['measured'], '+')} ({v['method']}): {v['verdict']}."))
+    if data.get("forest"):
+        base = by[BASELINE]["label"]
+        lines += ["", f"![each row's overall success minus {base}'s, 95% t-intervals, the paper's difference beside]"
+                      f"({pictures}forest.png)"]
+    return lines + [""]
+
+
+def _table4_lines(data: Mapping[str, Any]) -> list[str]:
+    """Table 4: each row's mean over seeds [95% t] per column and overall, the paper's value below; a CPU
+    column where the folder's cells span kinds of CPU."""
+    cpu = len(data.get("cpus") or {}) > 1
+    lines = ["| Row | Decoder | Seeds | " + ("CPU (cells) | " if cpu else "") + " | ".join(COLUMN_NAMES)
+             + " | Overall |",
+             "|---|---|---:|" + ("---|" if cpu else "") + "---:|" * 5]
+    for r in data["rows"]:
+        cells = []
+        for i, col in enumerate([*COLUMNS, "overall"]):
+            paper = r["paper"]
+            pv = None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
+            cells.append(f"{_est(r['columns'][col])}<br>*{_pct(pv)}*")
+        seeds = (f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
+                 + (f" {RESUMED_MARK}" if r.get("resumed") else ""))
+        kinds = f"{_cpus(r.get('cpus') or {})} | " if cpu else ""
+        lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {seeds} | {kinds}" + " | ".join(cells) + " |")
+    return lines
+
+
+def _claims_intro(data: Mapping[str, Any]) -> str:
+    """The paragraph above the claims' table: how each part is tested and read."""
+    min_seeds = data.get("min_seeds", MIN_SEEDS)
+    margin = data.get("equivalence_margin")
+    return ("Each part of a claim is a difference of per-seed values (A − B, points) with its two-sided 95% "
+            "t-interval and the two-sided t-test dual to it: **paired t** over the per-seed differences when both "
+            "rows ran the same seeds (the same seed trains on the same split), **Welch t** otherwise; on the cells "
+            f"of one CPU kind where both rows have {min_seeds} seeds there (the method says *within* it), else on all "
+            "of them, marked *mixed CPUs*. A part that A beats B (>, or <) is tested against 0: *supported* when "
+            "the interval lies on the claim's side of 0, *contradicted* on the other side, *inconclusive* when "
+            "it holds 0. A part that A is *not better than* B is tested against the equivalence margin, "
+            f"+{margin:g} points (`equivalence_margin` in conf/reproduce.yaml): *supported* when the interval lies "
+            f"below +{margin:g} (non-superiority, the upper of TOST's two one-sided tests), *contradicted* when "
+            f"above +{margin:g}, *not shown* when it holds +{margin:g}; p is the test against the part's null. "
+            "*Holm*: the same with Holm-adjusted p-values over a family fixed in "
+            f"advance, the {holm_family_size(data['claims'])} parts of the claims below, a part "
+            f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
+            "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
+            "figure (too narrow with few seeds), not used for a verdict.")
+
+
+def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
+    """RESULTS.md: which row drives best (the answer, the rows by overall success, the forest plot), the
+    machines and budget, Table 4 with t-intervals over seeds and the paper's values, the claims
+    (uncorrected and Holm verdicts, each with its method, the episode bootstrap beside as a secondary
     figure, the paper's sentences), a generated summary, per-seed values, success by manoeuvre, the
-    learning curve and each cell's wall time."""
+    learning curve and each cell's wall time. ``pictures``: the prefix of the pictures' links."""
     m = data["manifest"]
     min_seeds = data.get("min_seeds", MIN_SEEDS)
-    lines = ["# Reproduction of the paper's Table 4", ""]
+    lines = ["# Reproduction of the paper's Table 4", "", *answer_lines(data, pictures)]
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
               f"({m.get('episodes', '?')} episodes per cell); dataset: {m.get('dataset_summary', '?')}.",
-              f"- **Machine:** {m.get('machine', '?')}.",
+              machine_line(data),
               *[f"- **Continued from:** `{c.get('from')}` ({len(c.get('cells') or [])} finished cells copied"
                 + (f", only those made on a machine with {c['only_machine']!r}" if c.get("only_machine") else
                    f", made on {c['machine']}" if c.get("machine") else "") + f", {c.get('date', '?')})."
@@ -280,36 +426,17 @@ def markdown(data: Mapping[str, Any]) -> str:
               "`mean ± t(0.975, n−1) · sd / √n` over the per-seed success rates; in a table column never narrower "
               "than the pooled episodes' Clopper-Pearson interval). Success in %; each cell "
               "`mean over seeds [95% interval]`, the paper's value in *italics* below. *Overall* is the mean of "
-              "the four columns (per seed, then over seeds), not the success pooled over episodes. "
+              "the four columns (per seed, then over seeds), not the success pooled over episodes. The rows keep "
+              "the paper's order here (by overall success above). "
               f"A row with fewer than {min_seeds} seeds is shown but gets no verdict (†).", ""]
-    lines += ["| Row | Decoder | Seeds | " + " | ".join(COLUMN_NAMES) + " | Overall |",
-              "|---|---|---:|" + "---:|" * 5]
-    for r in data["rows"]:
-        cells = []
-        for i, col in enumerate([*COLUMNS, "overall"]):
-            paper = r["paper"]
-            pv = None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
-            cells.append(f"{_est(r['columns'][col])}<br>*{_pct(pv)}*")
-        seeds = (f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
-                 + (f" {RESUMED_MARK}" if r.get("resumed") else ""))
-        lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {seeds} | " + " | ".join(cells) + " |")
+    lines += _table4_lines(data)
     if any(not r["enough_seeds"] for r in data["rows"]):
         lines += ["", f"† fewer than {min_seeds} seeds: too few seeds for a verdict (with 2 seeds the t-interval "
                       "uses t(0.975, 1) = 12.7; with 1 seed there is none)."]
     resumed = resumed_text(data)
     if resumed:
         lines += ["", resumed]
-    lines += ["", "## The paper's claims", "",
-              "Each part of a claim is a difference of per-seed values (A − B, points), tested two-sided: "
-              "**paired t** over the per-seed differences when both rows ran the same seeds (the same seed trains "
-              "on the same split), **Welch t** otherwise. *Verdict*: uncorrected, from the 95% t-interval "
-              "(*supported* when it lies on the claim's side of 0, *contradicted* on the other side, "
-              "*inconclusive* when it contains 0; a *not better than* part is contradicted only when A is "
-              "significantly better than B). *Holm*: the same with Holm-adjusted p-values over a family fixed in "
-              f"advance, the {holm_family_size(data['claims'])} parts of the claims below, a part "
-              f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
-              "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
-              "figure (too narrow with few seeds), not used for a verdict.", "",
+    lines += ["", "## The paper's claims", "", _claims_intro(data), "",
               "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
               "Holm verdict | Bootstrap (secondary) |",
               "|---|---|---|---:|---:|---:|---:|---|---|---:|"]
@@ -483,6 +610,50 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
     return _save(fig, Path(path))
 
 
+def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """Each row's overall success minus CIL's (``data["forest"]``, best first) with its 95% t-interval, the
+    paper's difference as a cross beside it, the numbers at the right; a hollow point where the comparison
+    pools CPU kinds. None (nothing drawn) without CIL or another row."""
+    rows = data.get("forest") or []
+    if not rows:
+        return None
+    from cicfw.bench.plots import _plt, _save
+
+    plt = _plt()
+    by = {r["row"]: r for r in data["rows"]}
+    colour = row_colours(list(by), order)
+    fig, ax = plt.subplots(figsize=(8.0, 0.55 * len(rows) + 1.9), layout="constrained")
+    for i, rec in enumerate(rows):
+        y, m, c = len(rows) - 1 - i, rec["measured"], _colour(plt, colour[rec["a"]])
+        face = "white" if rec["cpu"] == "mixed" else c
+        if m["lo"] is not None:
+            ax.errorbar(m["mean"], y, xerr=[[m["mean"] - m["lo"]], [m["hi"] - m["mean"]]], fmt="o", color=c,
+                        mfc=face, capsize=4, ms=7)
+        else:
+            ax.plot(m["mean"], y, "o", color=c, mfc=face, ms=7)
+        if rec["paper"] is not None:
+            ax.plot(rec["paper"], y - 0.25, "x", color=c, ms=8, mew=2)
+        ax.text(1.02, y, f"{_est(m, '+')}" + ("" if rec["paper"] is None else f"  (paper {rec['paper']:+.1f})"),
+                transform=ax.get_yaxis_transform(), va="center", fontsize=8)
+    labels = [by[r["a"]]["label"] + ("" if by[r["a"]]["enough_seeds"] else " †") for r in rows]
+    ax.set_yticks(range(len(rows) - 1, -1, -1), labels)
+    ax.set_ylim(-0.8, len(rows) - 0.4)
+    ax.axvline(0.0, color="grey", lw=1)
+    ax.grid(axis="x", alpha=0.3)
+    ax.set_xlabel(f"overall success minus {by[BASELINE]['label']}'s (points)")
+    handles = [ax.plot([], [], "o", color="black", label="this reproduction: mean over seeds, 95% t-interval")[0]]
+    if any(r["cpu"] == "mixed" for r in rows):
+        handles.append(ax.plot([], [], "o", color="black", mfc="white",
+                               label="hollow: pools CPU kinds (mixed CPUs)")[0])
+    if any(r["paper"] is not None for r in rows):
+        handles.append(ax.plot([], [], "x", color="black", mew=2, label="the paper's difference (its Table 4)")[0])
+    fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=len(handles), frameon=False)
+    suite = (data["manifest"].get("suite") or {}).get("name", "?")
+    ax.set_title(f"Each row against {by[BASELINE]['label']}, suite {suite}, budget {data['manifest'].get('budget')}",
+                 fontsize=10)
+    return _save(fig, Path(path))
+
+
 def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
     """Overall success against training samples seen, per row (mean over seeds, band = min..max), each row
     in its colour of ``plot_results``."""
@@ -509,37 +680,45 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     return _save(fig, Path(path))
 
 
-def _with_pictures(md: str, pics: Path | str, curve: bool) -> str:
+def _prefix(pics: Path | str) -> str:
+    """A pictures folder as the prefix of a Markdown link: "" for the report's own folder."""
     pics = str(pics).rstrip("/")
-    prefix = "" if pics in ("", ".") else pics + "/"
-    return (md + f"\n![success per column with 95% intervals]({prefix}results.png)\n"
+    return "" if pics in ("", ".") else pics + "/"
+
+
+def _with_pictures(data: Mapping[str, Any], pics: Path | str, curve: bool) -> str:
+    """The Markdown with its pictures linked from ``pics`` (the forest plot at the top, the others last)."""
+    prefix = _prefix(pics)
+    return (markdown(data, prefix) + f"\n![success per column with 95% intervals]({prefix}results.png)\n"
             + (f"\n![learning curve]({prefix}learning_curve.png)\n" if curve else ""))
 
 
 def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], n_boot: int = 4000,
-                 claims: Sequence[Claim] | None = None) -> dict[str, Any]:
-    """results.json, results.csv, RESULTS.md and the two pictures in ``results_dir``; returns the data.
-    ``claims``: the paper's (conf/reproduce.yaml) when not given."""
+                 claims: Sequence[Claim] | None = None, margin: float | None = None) -> dict[str, Any]:
+    """results.json, results.csv, RESULTS.md and the pictures (success per column, the forest plot, the
+    learning curve) in ``results_dir``; returns the data. ``claims`` and the equivalence ``margin``: the
+    paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
     manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
     cells, failed = load_cells(results_dir)
     if not cells:
         raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
-    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims)
+    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin)
     atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
     atomic_write(results_dir / "results.csv", results_csv(data))
     plot_results(data, results_dir / "results.png", order=list(catalogue))
+    plot_forest(data, results_dir / "forest.png", order=list(catalogue))
     curve = plot_curve(data, results_dir / "learning_curve.png", order=list(catalogue))
     data["has_curve"] = curve is not None
-    atomic_write(results_dir / "RESULTS.md", _with_pictures(markdown(data), ".", data["has_curve"]))
+    atomic_write(results_dir / "RESULTS.md", _with_pictures(data, ".", data["has_curve"]))
     return data
 
 
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
     """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
-    atomic_write(Path(path), _with_pictures(markdown(data), rel, bool(data.get("has_curve"))))
+    atomic_write(Path(path), _with_pictures(data, rel, bool(data.get("has_curve"))))
     return Path(path)
 
 
@@ -564,7 +743,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             cfg = compose("reproduce")
             catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
             claims = load_claims(OmegaConf.to_container(cfg.claims, resolve=True))
-        data = write_report(Path(a.results_dir), catalogue, claims=claims)
+            margin = cfg.get("equivalence_margin")
+        data = write_report(Path(a.results_dir), catalogue, claims=claims, margin=margin)
         if a.publish:
             publish(Path(a.results_dir), Path(a.publish))
         if a.markdown:

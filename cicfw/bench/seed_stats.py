@@ -120,10 +120,12 @@ class Difference:
         return min(self.n) >= MIN_SEEDS
 
 
-def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL) -> Difference:
+def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL, null: float = 0.0) -> Difference:
     """A - B from per-seed values (seed -> value): paired t when both have the same seeds, else Welch's t.
-    The p-value is the two-sided t-test's (``scipy.stats.ttest_1samp`` on the differences, or
-    ``ttest_ind(equal_var=False)``); with no spread at all it is 0 (a difference) or 1 (none)."""
+    The p-value is the two-sided t-test's of A - B = ``null`` (``scipy.stats.ttest_1samp`` on the
+    differences, or ``ttest_ind(equal_var=False)`` with A shifted by ``null``), dual to the interval: p <
+    1 - level exactly when the interval excludes ``null``. With no spread at all it is 1 (the difference is
+    ``null``) or 0."""
     na, nb = len(a), len(b)
     if sorted(a) == sorted(b):
         d = np.array([a[s] - b[s] for s in sorted(a)])
@@ -131,9 +133,9 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
         if na < 2:
             return Difference(Estimate(mean, None, None), None, "1 seed", True, (na, nb))
         if np.ptp(d) == 0:
-            p = 1.0 if mean == 0 else 0.0
+            p = 1.0 if mean == null else 0.0
         else:
-            p = float(stats.ttest_1samp(d, 0.0).pvalue)
+            p = float(stats.ttest_1samp(d, null).pvalue)
         return Difference(Estimate(mean, lo, hi), p, f"paired t, {na} seeds", True, (na, nb))
     va, vb = np.array(list(a.values()), dtype=float), np.array(list(b.values()), dtype=float)
     mean = float(va.mean() - vb.mean())
@@ -141,23 +143,25 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     if na < 2 or nb < 2:
         return Difference(Estimate(mean, None, None), None, method, False, (na, nb))
     if np.ptp(va) == 0 and np.ptp(vb) == 0:
-        return Difference(Estimate(mean, mean, mean), 1.0 if mean == 0 else 0.0, method, False, (na, nb))
+        return Difference(Estimate(mean, mean, mean), 1.0 if mean == null else 0.0, method, False, (na, nb))
     _, lo, hi = welch_t_interval(va, vb, level)
-    p = float(stats.ttest_ind(va, vb, equal_var=False).pvalue)
+    p = float(stats.ttest_ind(va - null, vb, equal_var=False).pvalue)
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
 
 
-def episode_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> tuple[float, float, float]:
+def episode_interval(terms: Sequence[tuple[float, int, int]], level: float = LEVEL,
+                     null: float = 0.0) -> tuple[float, float, float]:
     """A contrast of table columns on the episodes pooled over each row's seeds, ``sum c * k / n`` over
     ``terms`` of ``(c, successes, episodes)``, in points: its interval (``contrast_interval``; A - B is
-    Newcombe's) and the two-sided p-value dual to it, the level at which the bound nearer 0 reaches 0 (1
-    when the contrast is 0). The rows drove the same episodes, and treating them as independent ignores
-    that pairing, which widens the interval: it is a floor for the episodes' luck, not an estimate of its own."""
+    Newcombe's) and the two-sided p-value of contrast = ``null`` dual to it, the level at which the bound
+    nearer ``null`` reaches it (1 when the contrast is ``null``). The rows drove the same episodes, and
+    treating them as independent ignores that pairing, which widens the interval: it is a floor for the
+    episodes' luck, not an estimate of its own."""
     lo, hi = contrast_interval(terms, level)
-    value = sum(c * k / n for c, k, n in terms)
-    if abs(value) < 1e-12:
+    value = 100.0 * sum(c * k / n for c, k, n in terms)
+    if abs(value - null) < 1e-9:
         return lo, hi, 1.0
-    return lo, hi, contrast_level(terms, "lo" if value > 0 else "hi", 0.0)
+    return lo, hi, contrast_level(terms, "lo" if value > null else "hi", null)
 
 
 def contrast_level(terms: Sequence[tuple[float, int, int]], bound: str, target: float) -> float:
@@ -199,16 +203,17 @@ def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float
     return [(1.0, *a), (-1.0, *b)]
 
 
-def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL) -> Difference:
+def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL,
+                       null: float = 0.0) -> Difference:
     """``d`` (a contrast of table columns between rows A and B, its ``terms`` the pooled episodes)
-    widened to contain the episodes' interval (``episode_interval``), its p-value the larger of the two:
-    seeds whose differences happen to agree (rates come in steps of 1/64 or 1/96, and an easy column often sits at
-    100% for every seed) leave the t-interval no width, but never remove the episodes' luck. The method
-    says so where the floor moved a bound."""
+    widened to contain the episodes' interval (``episode_interval``), its p-value (of A - B = ``null``)
+    the larger of the two: seeds whose differences happen to agree (rates come in steps of 1/64 or 1/96,
+    and an easy column often sits at 100% for every seed) leave the t-interval no width, but never remove
+    the episodes' luck. The method says so where the floor moved a bound."""
     e = d.estimate
     if e.lo is None or e.hi is None or d.p is None:
         return d
-    lo, hi, p = episode_interval(terms, level)
+    lo, hi, p = episode_interval(terms, level, null)
     if lo >= e.lo and hi <= e.hi and p <= d.p:
         return d
     return Difference(Estimate(e.mean, min(e.lo, lo), max(e.hi, hi)), max(d.p, p),
