@@ -117,11 +117,12 @@ def line_diff(got: list[str], want: list[str], what: str) -> list[str]:
 def folder_mismatches(folder: Path, legacy: bool = False) -> list[str]:
     """Every difference between ``folder``'s committed results.json and RESULTS.md and what its cells give:
     the table rows (per-column means and intervals, per-seed values, manoeuvres, curves, wall times), the
-    claims (every part's estimate, p-values and verdicts), the failed cells, and the Markdown's tables.
-    ``legacy``: the folder was made by cicfw 0.1 (``legacy_view``); its claims are not compared."""
+    claims (every part's estimate, p-values and verdicts), the answer (the ranking, the leader's lead, the
+    forest plot's differences), the failed cells, and the Markdown's tables. ``legacy``: the folder was
+    made by cicfw 0.1 (``legacy_view``); its claims and answer are not compared."""
     committed = json.loads((folder / "results.json").read_text())
     data, md = recompute(folder)
-    keys = ["rows", "claims", "failed"]
+    keys = ["rows", "claims", "ranking", "leader", "forest", "failed"]
     if legacy:
         data, md_data = legacy_view(data)
         md, keys = markdown(md_data), ["rows", "failed"]
