@@ -314,6 +314,37 @@ def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
     return tcfg
 
 
+def suite_overrides(cfg: DictConfig) -> list[str]:
+    """The budget's evaluate overrides with the embedded simulator's weather family named (``weather_family``,
+    else the simulator's default): what every cell drives, and what a folder is pinned to."""
+    from cicfw.bench.suite import with_weather_family
+
+    family = cfg.get("weather_family")
+    return with_weather_family(OmegaConf.to_container(cfg.budget.suite, resolve=True),
+                               None if family is None else str(family))
+
+
+def with_legacy_family(pinned: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A folder's pinned fingerprint with its weather family named: a folder pinned before the families
+    names none and was driven under the legacy (harsh) presets."""
+    from cicfw.bench.suite import with_weather_family
+    from cicfw.sim.render.weather import LEGACY_FAMILY
+
+    if pinned.get("suite") is None:
+        return pinned
+    return {**pinned, "suite": with_weather_family(pinned["suite"], default=LEGACY_FAMILY)}
+
+
+def suite_difference(theirs: Sequence[str], ours: Sequence[str]) -> str:
+    """How two pinned suites differ, for a refusal: their weather families when those differ, else both lists."""
+    from cicfw.bench.suite import named_weather_family
+
+    a, b = named_weather_family(theirs), named_weather_family(ours)
+    if a != b:
+        return f" (weather_family={a} there, {b} here: name it with weather_family={a})"
+    return f" (suite {list(theirs)} there, {list(ours)} here)"
+
+
 def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str, Any]:
     """What a results folder is pinned to: the budget's training and suite settings and the dataset (None:
     not known yet). The training overrides are kept as written (``${oc.env:CICFW_CACHE,...}`` unresolved),
@@ -321,8 +352,7 @@ def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str,
     for folders pinned before that."""
     budget = OmegaConf.to_container(cfg.budget, resolve=False)
     pinned = {"budget": cfg.budget.name, "train": [str(o) for o in budget["train"]],
-              "suite": [str(o) for o in OmegaConf.to_container(cfg.budget.suite, resolve=True)],
-              "dataset": None if dataset is None else dataset.get("config_hash")}
+              "suite": suite_overrides(cfg), "dataset": None if dataset is None else dataset.get("config_hash")}
     pinned["hash"] = hashlib.sha256(json.dumps(pinned, sort_keys=True).encode()).hexdigest()[:16]
     return pinned
 
@@ -331,6 +361,7 @@ def pinned_differences(theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: 
                        keys: Sequence[str] = ("budget", "train", "suite", "dataset")) -> list[str]:
     """Which of ``keys`` a folder's pinned fingerprint (``theirs``) has otherwise than this plan's."""
     resolved = [str(o) for o in OmegaConf.to_container(cfg.budget.train, resolve=True)]
+    theirs = with_legacy_family(theirs)
     diff = []
     for k in keys:
         if k == "train" and theirs.get("train") in (ours["train"], resolved):
@@ -351,6 +382,8 @@ def refuse_other_pin(where: str, fix: str, theirs: Mapping[str, Any], ours: Mapp
         raise ReproduceError(f"{where} was made with budget={theirs.get('budget')}, this run asks for "
                              f"budget={ours['budget']}" + (f" (another {'/'.join(rest)})" if rest else "") + f"; {fix}")
     data = (f" (dataset {theirs.get('dataset')} there, {ours.get('dataset')} here)" if "dataset" in diff else "")
+    if "suite" in diff:
+        data += suite_difference(with_legacy_family(theirs)["suite"], ours["suite"])
     raise ReproduceError(f"{where} was made with budget={theirs.get('budget')} and another {'/'.join(diff)}{data}; "
                          f"{fix}")
 
@@ -574,8 +607,7 @@ def code() -> dict[str, Any]:
 def compose_eval(cfg: DictConfig, extra: Sequence[str]) -> DictConfig:
     from hydra import compose
 
-    return compose("evaluate", overrides=[*[str(o) for o in cfg.budget.suite], "progress_bar=false", "maps=false",
-                                          *extra])
+    return compose("evaluate", overrides=[*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
 
 
 def count_episodes(evcfg: DictConfig) -> int:

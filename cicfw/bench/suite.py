@@ -29,6 +29,8 @@ SUITES = {
     "junctions": ("left", "right", "straight"),  # every way through every junction
 }
 MANOEUVRES = ("left", "right", "straight")
+#: the evaluate override that picks how the embedded simulator renders a weather name (conf/sim/embedded.yaml)
+WEATHER_FAMILY_KEY = "sim.weather_family"
 
 
 @dataclass(frozen=True)
@@ -160,3 +162,28 @@ def _turn_name(route: Any) -> str:
     if code is None and route.turns:
         code = route.turns[0][1]
     return COMMAND_NAMES.get(int(code), "?") if code is not None else "?"
+
+
+def _override_value(overrides: Sequence[str], key: str) -> str | None:
+    """The value the last of ``overrides`` (``key=value`` strings) gives ``key``, or None."""
+    values = [o.split("=", 1)[1] for o in overrides if "=" in o and o.split("=", 1)[0].lstrip("+~") == key]
+    return values[-1] if values else None
+
+
+def named_weather_family(overrides: Sequence[str]) -> str | None:
+    """The weather family a list of evaluate overrides names, or None when it names none."""
+    return _override_value(overrides, WEATHER_FAMILY_KEY)
+
+
+def with_weather_family(overrides: Sequence[str], family: str | None = None, default: str | None = None) -> list[str]:
+    """``overrides`` naming the embedded simulator's weather family explicitly: ``family`` when given,
+    else the one they name, else ``default`` (the simulator's own default when None). Overrides that
+    pick another simulator come back as they are: its weathers are its own."""
+    from cicfw.sim.render.weather import DEFAULT_FAMILY
+
+    out = [str(o) for o in overrides]
+    if _override_value(out, "sim") not in (None, "embedded"):
+        return out
+    named = named_weather_family(out)
+    wanted = family if family is not None else named if named is not None else default or DEFAULT_FAMILY
+    return out if named == wanted else [*out, f"{WEATHER_FAMILY_KEY}={wanted}"]

@@ -198,10 +198,17 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
 
 def config_hash(cfg: dict) -> str:
     """Hash of everything that shapes the data: the config but its runtime keys, the simulator's name
-    when it is not the embedded one, and the contents of town files given by path."""
+    when it is not the embedded one, the embedded simulator's weather family where it renders one of
+    the weathers otherwise than before the families, and the contents of town files given by path."""
     keep = {k: v for k, v in cfg.items() if k not in _NOT_DATA}
     if cfg.get("sim", {}).get("name", "embedded") != "embedded":
         keep["sim"] = cfg["sim"]["name"]
+    else:
+        from cicfw.sim.render.weather import DEFAULT_FAMILY, family_data_tag
+
+        tag = family_data_tag(cfg["weathers"], cfg.get("sim", {}).get("weather_family", DEFAULT_FAMILY))
+        if tag:
+            keep["weather_family"] = tag
     files = {t: hashlib.sha256(Path(t).read_bytes()).hexdigest() for t in cfg["towns"] if _is_path(t)}
     if files:
         keep["town_files"] = files

@@ -24,13 +24,24 @@ from cicfw.sim.town import TownError, load_town, town_names
 
 @SIM_BACKENDS.register("embedded")
 class EmbeddedBackend:
-    """The simulator shipped with cicfw: towns from ``conf/town``, weathers from ``cicfw.sim.render``."""
+    """The simulator shipped with cicfw: towns from ``conf/town``, weathers from ``cicfw.sim.render``.
+
+    ``weather_family`` picks how a weather name is rendered: ``carla`` (derived from CARLA's parameters
+    for the name) or ``harsh`` (the hand-set presets of every result driven before the families)."""
 
     #: episodes of a run share nothing, so the runner steps them all together (one policy call a step)
     lockstep = True
 
     def __init__(self, command_distance: float = COMMAND_DISTANCE, success_radius: float = 2.0,
-                 max_deviation: float = 10.0, route_before: float = 30.0, route_after: float = 25.0) -> None:
+                 max_deviation: float = 10.0, route_before: float = 30.0, route_after: float = 25.0,
+                 weather_family: str = "carla") -> None:
+        from cicfw.sim.render.weather import weather_family as presets_of
+
+        try:
+            presets_of(weather_family)
+        except ValueError as err:
+            raise ValueError(f"sim.weather_family: {err}") from None
+        self.weather_family = weather_family
         self.command_distance = command_distance
         self.success_radius = success_radius
         self.max_deviation = max_deviation
@@ -41,9 +52,9 @@ class EmbeddedBackend:
         return town_names()
 
     def weathers(self) -> list[str]:
-        from cicfw.sim.render import WEATHERS
+        from cicfw.sim.render.weather import weather_family
 
-        return list(WEATHERS)
+        return list(weather_family(self.weather_family))
 
     def single_turn_routes(self, town: str) -> list[Route]:
         return single_turn_routes(load_town(town), self.route_before, self.route_after, self.command_distance)
@@ -80,10 +91,12 @@ class EmbeddedBackend:
         ``endless``: the episode never ends by itself (no success, timeout or lost), for collection."""
         from cicfw.sim.env import DrivingEnv
         from cicfw.sim.expert import ExpertParams
+        from cicfw.sim.render.weather import get_weather
 
         stop = (dict(timeout=1e9, max_deviation=1e9, success_radius=-1.0) if endless else
                 dict(success_radius=self.success_radius, max_deviation=self.max_deviation))
-        return DrivingEnv(load_town(town), route, weather=weather, seed=seed, cameras=cameras,
+        preset = get_weather(weather, self.weather_family)  # the name in this backend's family
+        return DrivingEnv(load_town(town), route, weather=preset, seed=seed, cameras=cameras,
                           renderer=renderer, expert=ExpertParams(**(expert or {})), time_offset=time_offset,
                           **stop)
 

@@ -3,6 +3,12 @@
 The paper trains under ClearNoon and ClearSunset and tests under MidRainyNoon and WetCloudySunset
 (CARLA's names); CloudyNoon and HardRainNoon are two more for wider tests. Colours are linear-ish
 RGB in 0-1; ``light`` values multiply the surface albedo.
+
+The presets come in two families that share the two training presets. ``carla`` (the default) derives
+every other preset from CARLA's own parameters for that name by a fixed rule (carla_weather.py).
+``harsh`` keeps the hand-set presets every result before the families was driven under: far wetter,
+foggier and darker than CARLA's (MidRainyNoon overcast with fog at 70 m, WetCloudySunset soaked with
+fog at 160 m), so that those results stay reproducible.
 """
 from __future__ import annotations
 
@@ -10,6 +16,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from cicfw.sim.render.carla_weather import derive_presets
 
 Colour = tuple[float, float, float]
 
@@ -47,14 +55,17 @@ class Weather:
         return np.asarray(self.sky_horizon, np.float32)
 
 
-WEATHERS: dict[str, Weather] = {w.name: w for w in (
-    Weather("ClearNoon", sun_elevation=62, sun_azimuth=140, sun=(0.62, 0.60, 0.54),
-            ambient=(0.50, 0.53, 0.60), sky_zenith=(0.26, 0.46, 0.82), sky_horizon=(0.72, 0.81, 0.93),
-            clouds=0.18, cloud_lit=(1.0, 1.0, 0.98), cloud_dark=(0.80, 0.83, 0.88), fog_distance=700.0),
-    Weather("ClearSunset", sun_elevation=7, sun_azimuth=200, sun=(1.05, 0.62, 0.32),
-            ambient=(0.40, 0.36, 0.44), sky_zenith=(0.20, 0.26, 0.52), sky_horizon=(0.98, 0.62, 0.40),
-            sun_glow=1.0, clouds=0.15, cloud_lit=(1.0, 0.62, 0.40), cloud_dark=(0.45, 0.35, 0.42),
-            fog_distance=380.0, saturation=1.1),
+CLEAR_NOON = Weather("ClearNoon", sun_elevation=62, sun_azimuth=140, sun=(0.62, 0.60, 0.54),
+                     ambient=(0.50, 0.53, 0.60), sky_zenith=(0.26, 0.46, 0.82), sky_horizon=(0.72, 0.81, 0.93),
+                     clouds=0.18, cloud_lit=(1.0, 1.0, 0.98), cloud_dark=(0.80, 0.83, 0.88), fog_distance=700.0)
+CLEAR_SUNSET = Weather("ClearSunset", sun_elevation=7, sun_azimuth=200, sun=(1.05, 0.62, 0.32),
+                       ambient=(0.40, 0.36, 0.44), sky_zenith=(0.20, 0.26, 0.52), sky_horizon=(0.98, 0.62, 0.40),
+                       sun_glow=1.0, clouds=0.15, cloud_lit=(1.0, 0.62, 0.40), cloud_dark=(0.45, 0.35, 0.42),
+                       fog_distance=380.0, saturation=1.1)
+
+#: the hand-set presets before calibration (every result before weather families was driven under them)
+HARSH_WEATHERS: dict[str, Weather] = {w.name: w for w in (
+    CLEAR_NOON, CLEAR_SUNSET,
     Weather("CloudyNoon", sun_elevation=62, sun_azimuth=140, sun=(0.10, 0.10, 0.10),
             ambient=(0.78, 0.80, 0.84), sky_zenith=(0.52, 0.57, 0.64), sky_horizon=(0.78, 0.80, 0.83),
             clouds=0.85, cloud_lit=(0.93, 0.93, 0.94), cloud_dark=(0.55, 0.57, 0.61), fog_distance=320.0,
@@ -73,12 +84,39 @@ WEATHERS: dict[str, Weather] = {w.name: w for w in (
             fog_distance=160.0, wetness=1.0, puddles=0.8, saturation=0.9, shadow_softness=1.0),
 )}
 
+#: the same names derived from CARLA's parameters (carla_weather.py); the training presets are shared
+CARLA_WEATHERS: dict[str, Weather] = derive_presets({w.name: w for w in (CLEAR_NOON, CLEAR_SUNSET)},
+                                                    tuple(HARSH_WEATHERS))
+WEATHER_FAMILIES: dict[str, dict[str, Weather]] = {"carla": CARLA_WEATHERS, "harsh": HARSH_WEATHERS}
+FAMILY_NOTES = {"carla": "derived from CARLA's presets", "harsh": "the hand-set presets before calibration"}
+DEFAULT_FAMILY = "carla"
+#: the family of every result driven before the families existed
+LEGACY_FAMILY = "harsh"
+WEATHERS = WEATHER_FAMILIES[DEFAULT_FAMILY]
+
 TRAINING_WEATHERS = ("ClearNoon", "ClearSunset")
 NEW_WEATHERS = ("MidRainyNoon", "WetCloudySunset")
 
 
-def get_weather(name: str) -> Weather:
-    """The preset called ``name``; an unknown name raises a ValueError listing the known ones."""
-    if name not in WEATHERS:
-        raise ValueError(f"unknown weather {name!r}; known weathers: {', '.join(WEATHERS)}")
-    return WEATHERS[name]
+def weather_family(family: str) -> dict[str, Weather]:
+    """The presets of ``family``; an unknown family raises a ValueError listing the known ones."""
+    if family not in WEATHER_FAMILIES:
+        known = ", ".join(f"{k} ({v})" for k, v in FAMILY_NOTES.items())
+        raise ValueError(f"unknown weather family {family!r}; known weather families: {known}")
+    return WEATHER_FAMILIES[family]
+
+
+def get_weather(name: str, family: str = DEFAULT_FAMILY) -> Weather:
+    """The preset called ``name`` in ``family``; an unknown name raises a ValueError listing the known ones."""
+    presets = weather_family(family)
+    if name not in presets:
+        raise ValueError(f"unknown weather {name!r}; known weathers: {', '.join(presets)}")
+    return presets[name]
+
+
+def family_data_tag(weathers: list[str] | tuple[str, ...], family: str) -> str | None:
+    """``family`` when it renders one of ``weathers`` otherwise than the legacy family, else None: what a
+    dataset's hash must add so that data collected before the families keeps its hash."""
+    presets, legacy = weather_family(family), WEATHER_FAMILIES[LEGACY_FAMILY]
+    changed = [w for w in weathers if w in presets and presets[w] != legacy.get(w)]
+    return family if changed else None
