@@ -92,6 +92,7 @@ def test_the_welch_margin_test_by_hand_and_against_statsmodels():
     assert d.estimate.lo < 5.0 < d.estimate.hi  # so "classification failed to improve on CIL" is not shown
 
 
+@pytest.mark.slow  # simulates thousands of experiments
 @pytest.mark.parametrize("paired", [True, False])
 def test_the_margin_test_has_its_size_at_the_margin(paired: bool):
     """At a true A - B of exactly +5 (the margin), "not better than" must read supported in 2.5% of

@@ -20,6 +20,8 @@ from cicfw.data.cil_hdf5 import T
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
 
+pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
+
 
 def _set_camera(path, ids) -> None:
     with h5py.File(path, "r+") as f:

@@ -73,6 +73,7 @@ def _lrs_seen(tmp_path, monkeypatch, *overrides: str) -> list[float]:
     return seen
 
 
+@pytest.mark.slow  # trains
 @pytest.mark.parametrize("final", [0.0, 0.1])
 def test_cosine_schedule_follows_half_a_cosine_over_the_run(tmp_path, monkeypatch, final):
     lr, total = 2e-4, 6  # 2 epochs x 3 batches
@@ -83,6 +84,7 @@ def test_cosine_schedule_follows_half_a_cosine_over_the_run(tmp_path, monkeypatc
     assert seen[0] == pytest.approx(lr) and seen[3] == pytest.approx(lr * (final + (1 - final) / 2))
 
 
+@pytest.mark.slow  # trains
 def test_constant_schedule_keeps_the_papers_rate(tmp_path, monkeypatch):
     assert _lrs_seen(tmp_path, monkeypatch) == [2e-4] * 6
 
