@@ -207,7 +207,7 @@ def inference_variants(batch: int, frames: int | None, rounds: int = 5) -> None:
     ``frames`` frames (split over two workers, each compiling once)."""
     import torch
 
-    from cicfw.bench.checkpoint import prepare_for_inference
+    from cicfw.model.checkpoint import prepare_for_inference
     from cicfw.model.module import CICModule
     from cicfw.model.speed import use_inductor_cache
 

@@ -175,7 +175,7 @@ def inference_ms(model, batch: int, repeats: int) -> float:
 
 
 def inference_section(repeats: int) -> None:
-    from cicfw.bench.checkpoint import prepare_for_inference
+    from cicfw.model.checkpoint import prepare_for_inference
 
     print(f"\ninference (eval, no grad), median ms per call; load {load1():.2f}")
     torch.manual_seed(0)

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from cicfw import COMMANDS
+from cicfw.model.checkpoint import describe, load_model, prepare_for_inference
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
@@ -169,8 +170,6 @@ class Agent:
 
     @classmethod
     def _load_checkpoint(cls, path: Path, threads: int | None, device: str, fuse: bool) -> "Agent":
-        from cicfw.bench.checkpoint import describe, load_model, prepare_for_inference
-
         if threads:
             torch.set_num_threads(int(threads))
         dev = torch_device(device)

@@ -147,7 +147,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     import torch
 
     from cicfw.bench import steer_diagnostic as sd
-    from cicfw.bench.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
+    from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
 
     if not cfg.get("checkpoint"):
         raise ValueError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")

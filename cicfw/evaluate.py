@@ -283,7 +283,7 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
     pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
     info: dict[str, Any] = {}
     if pol.get("checkpoint"):
-        from cicfw.bench.checkpoint import resolve_checkpoint
+        from cicfw.model.checkpoint import resolve_checkpoint
 
         path = resolve_checkpoint(pol.pop("checkpoint"))
         h = hashlib.sha256()

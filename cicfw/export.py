@@ -158,7 +158,7 @@ def random_inputs(n: int, seed: int = 0) -> CheckInputs:
 # ---- the graph ---------------------------------------------------------------------------------
 def graph_module(model: torch.nn.Module) -> torch.nn.Module:
     """The module that is exported: the driving function of an inference-prepared copy of ``model``."""
-    from cicfw.bench.checkpoint import prepare_for_inference
+    from cicfw.model.checkpoint import prepare_for_inference
 
     return DrivingFunction(prepare_for_inference(copy.deepcopy(model))).eval()
 
@@ -359,7 +359,7 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
 def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
     import cicfw
-    from cicfw.bench.checkpoint import describe
+    from cicfw.model.checkpoint import describe
 
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
@@ -489,7 +489,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
     simulator) plus as many random inputs. Returns the sidecar's content."""
-    from cicfw.bench.checkpoint import load_model, resolve_checkpoint
+    from cicfw.model.checkpoint import load_model, resolve_checkpoint
 
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):

@@ -20,12 +20,12 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.config_checks import check_kwargs, type_problem, whole_number
 from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.frames import camera_names
 from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
+from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SpeedConfig, apply_speed_from_config

@@ -292,7 +292,7 @@ def test_the_cli_lists_diagnose_and_a_missing_checkpoint_is_one_line(tmp_path: P
 
 
 def test_bad_inputs_are_one_clear_line(tmp_path: Path, episodes: Path):
-    from cicfw.bench.checkpoint import CheckpointError
+    from cicfw.model.checkpoint import CheckpointError
     from cicfw.diagnose import diagnose
 
     out = tmp_path / "out"

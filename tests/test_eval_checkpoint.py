@@ -15,7 +15,8 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from cicfw.bench.checkpoint import CheckpointError, CheckpointPolicy, load_model, read_checkpoint
+from cicfw.bench.checkpoint import CheckpointPolicy
+from cicfw.model.checkpoint import CheckpointError, load_model, read_checkpoint
 from cicfw.bench.policy import Observations
 from cicfw.model.module import CICModule
 

@@ -26,7 +26,8 @@ from torch import nn
 
 import cicfw.export as export
 from cicfw.agent import Agent, AgentInputError, DrivingFunction
-from cicfw.bench.checkpoint import CheckpointError, CheckpointPolicy, load_model
+from cicfw.bench.checkpoint import CheckpointPolicy
+from cicfw.model.checkpoint import CheckpointError, load_model
 from cicfw.bench.policy import Observations
 from cicfw.data.cil_hdf5 import T, write_file
 from cicfw.export import ExportError, export_model
@@ -419,7 +420,7 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
     (the h5py traceback and data.path= before), refused before the model loads; nothing written."""
     import h5py
 
-    import cicfw.bench.checkpoint as checkpoint
+    import cicfw.model.checkpoint as checkpoint
 
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
     (tmp_path / "notes.h5").write_text("hello\n")
@@ -459,7 +460,7 @@ def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
 def test_an_opset_torch_cannot_write_is_refused_up_front(tmp_path, monkeypatch, opset):
     """opset= outside the range torch.onnx states (its TorchScript-based exporter's) is one line with that
     range, before the checkpoint is read, not an export failure that asks to report a cicfw bug."""
-    import cicfw.bench.checkpoint as checkpoint
+    import cicfw.model.checkpoint as checkpoint
     from torch.onnx import _constants
 
     monkeypatch.setattr(checkpoint, "resolve_checkpoint", lambda *a: pytest.fail("the checkpoint was read first"))

@@ -1,7 +1,14 @@
-"""Imports run one way (issue 11, section 7; issue 17, the house)::
+"""Imports run one way, and every module of the package has its place in it::
 
-    apps (train, evaluate, collect, reproduce, cli, carla_check)
-      -> bench | collection | carla_client  ->  sim | model | data  ->  registry
+    apps (train, evaluate, collect, reproduce, export, diagnose, cli, carla_check, testing)
+      -> bench | collection | carla_client | results_lock
+      -> sim | model | data | agent
+      -> base (registry, errors, files, config_checks, override_hints, run_folder, sweeps, locks, progress)
+
+A module imports its own layer and those below, never one above, and no module imports itself back
+through others (no circle). ``cicfw.agent`` is the model's inference path (a checkpoint or an exported
+model in, steering out): it sits with the model, and the benchmark's checkpoint policy and the export
+app build on it. A new module must be placed in ``LAYER_OF`` (a package entry places all of its modules).
 
 ``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
 code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
@@ -23,7 +30,18 @@ import cicfw
 
 PKG = Path(cicfw.__file__).parent
 APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.cli", "cicfw.carla_check")
-LOWER = ("bench", "sim", "model", "data", "carla_client", "collection")
+#: the layers, lowest first
+LAYERS = ("base", "core", "stage", "app")
+#: module or package -> its layer (a package places every module under it)
+LAYER_OF = {
+    "cicfw": "base", "cicfw.registry": "base", "cicfw.errors": "base", "cicfw.files": "base",
+    "cicfw.config_checks": "base", "cicfw.override_hints": "base", "cicfw.run_folder": "base",
+    "cicfw.sweeps": "base", "cicfw.locks": "base", "cicfw.progress": "base",
+    "cicfw.sim": "core", "cicfw.model": "core", "cicfw.data": "core", "cicfw.agent": "core",
+    "cicfw.bench": "stage", "cicfw.collection": "stage", "cicfw.carla_client": "stage",
+    "cicfw.results_lock": "stage",
+    **{app: "app" for app in APPS}, "cicfw.export": "app", "cicfw.diagnose": "app", "cicfw.testing": "app",
+}
 #: package -> what none of its modules may import
 #: (``carla`` is CARLA's own client library: only the CARLA client may import it)
 FORBIDDEN = {
@@ -33,6 +51,8 @@ FORBIDDEN = {
     "carla_client": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.collection"),
     # the collection stage sits on the simulator interface and the data layer, nothing beside it
     "collection": ("cicfw.bench", "cicfw.model", "cicfw.carla_client", "carla"),
+    # the agent runs the model: no simulator, dataset or benchmark code
+    "agent": ("cicfw.bench", "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collection", "carla"),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
 APPS_ONLY = ("cicfw.collection", "cicfw.carla_check")
@@ -71,12 +91,76 @@ def _reaches(imported: set[str], target: str) -> bool:
     return any(m == target or m.startswith(target + ".") for m in imported)
 
 
-def _lower_modules() -> list[Path]:
-    return sorted(p for sub in LOWER for p in (PKG / sub).rglob("*.py"))
+def _modules_of(names) -> list[Path]:
+    """The files of each top-level package (every module under it) or module named in ``names``."""
+    return sorted(p for sub in names for p in ((PKG / sub).rglob("*.py") if (PKG / sub).is_dir()
+                                               else [PKG / f"{sub}.py"]))
 
 
-def _modules_of(packages) -> list[Path]:
-    return sorted(p for sub in packages for p in (PKG / sub).rglob("*.py"))
+def layer_of(name: str) -> str | None:
+    """The layer of module ``name``: its own entry in LAYER_OF or its nearest package's; None if unplaced."""
+    while name not in LAYER_OF and name.count(".") > 1:
+        name = name.rsplit(".", 1)[0]
+    return LAYER_OF.get(name)
+
+
+def upward_imports(path: Path, root: Path = PKG.parent) -> list[str]:
+    """The cicfw modules ``path`` imports from a layer above its own."""
+    rank = LAYERS.index(layer_of(_module_name(path, root)))
+    return sorted(m for m in imports_of(path, root) if m.startswith("cicfw.")
+                  and layer_of(m) is not None and LAYERS.index(layer_of(m)) > rank)
+
+
+def module_graph(root: Path = PKG.parent) -> dict[str, set[str]]:
+    """module -> the package modules it imports (``from pkg import sub`` counts as ``pkg.sub``; a module's
+    own parent packages are left out: importing a submodule always runs them, which is no circle)."""
+    files = {_module_name(p, root): p for p in (root / "cicfw").rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in files.items():
+        deps = set()
+        for m in imports_of(path, root):
+            if m not in files and m.rsplit(".", 1)[0] in files:
+                continue  # a name imported from a module (its module is in the set too)
+            while m and m not in files:
+                m = m.rsplit(".", 1)[0] if "." in m else ""
+            if m and m != name and not name.startswith(m + "."):
+                deps.add(m)
+        graph[name] = deps
+    return _without_package_edges(graph)
+
+
+def _without_package_edges(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """Drop ``pkg`` when a module imports ``pkg.sub`` from it too (``from pkg import sub``)."""
+    return {n: {d for d in deps if not any(o.startswith(d + ".") for o in deps)} for n, deps in graph.items()}
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Each set of modules that import each other round a circle (Tarjan's strongly connected components)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while part[-1:] != [v]:
+                part.append(stack.pop())
+            if len(part) > 1:
+                circles.append(sorted(part))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return circles
 
 
 def forbidden_imports(path: Path, root: Path = PKG.parent) -> list[str]:
@@ -109,11 +193,44 @@ def test_the_checker_sees_the_simulator_reaching_into_the_data_layer(tmp_path):
     assert forbidden_imports(fine, tmp_path) == []
 
 
-@pytest.mark.parametrize("path", _lower_modules(), ids=lambda p: str(p.relative_to(PKG)))
-def test_lower_layers_never_import_an_app(path):
-    found = imports_of(path)
-    upward = [app for app in APPS if _reaches(found, app)]
-    assert not upward, f"{path.relative_to(PKG.parent)} imports the app module(s) {upward}; move the shared code down"
+def test_every_module_has_a_layer():
+    unplaced = [_module_name(p) for p in sorted(PKG.rglob("*.py")) if layer_of(_module_name(p)) is None]
+    assert not unplaced, (f"{unplaced}: place each new module in its layer (LAYER_OF in tests/test_layering.py; "
+                          f"its docstring draws the layers)")
+
+
+def test_the_checker_refuses_an_unplaced_module_and_an_upward_import(tmp_path):
+    assert layer_of("cicfw.brand_new") is None and layer_of("cicfw.bench.brand_new") == "stage"
+    bad = tmp_path / "cicfw" / "agent.py"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("def f():\n    from cicfw.bench.checkpoint import CheckpointPolicy\n    from cicfw import files\n")
+    assert upward_imports(bad, tmp_path) == ["cicfw.bench.checkpoint", "cicfw.bench.checkpoint.CheckpointPolicy"]
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_each_module_imports_only_its_layer_and_below(path):
+    if layer_of(_module_name(path)) is None:
+        pytest.skip("unplaced: test_every_module_has_a_layer says so")
+    up = upward_imports(path)
+    assert not up, (f"{path.relative_to(PKG.parent)} ({layer_of(_module_name(path))}) imports {up} from a higher "
+                    f"layer; move the shared code down (tests/test_layering.py's docstring draws the layers)")
+
+
+def test_the_checker_finds_a_circle_but_not_a_package_importing_its_submodule(tmp_path):
+    pkg = tmp_path / "cicfw"
+    (pkg / "bench").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "bench" / "__init__.py").write_text("from cicfw.bench.a import A\n")
+    (pkg / "bench" / "a.py").write_text("from cicfw.bench import b\nA = 1\n")
+    (pkg / "bench" / "b.py").write_text("B = 2\n")
+    assert import_circles(module_graph(tmp_path)) == []
+    (pkg / "bench" / "b.py").write_text("def f():\n    from cicfw.bench.a import A\n")
+    assert import_circles(module_graph(tmp_path)) == [["cicfw.bench.a", "cicfw.bench.b"]]
+
+
+def test_no_import_circle():
+    circles = import_circles(module_graph())
+    assert not circles, f"modules that import each other (lazily or not): {circles}; move the shared piece down"
 
 
 @pytest.mark.parametrize("path", _modules_of(FORBIDDEN), ids=lambda p: str(p.relative_to(PKG)))

@@ -1,0 +1,168 @@
+"""Loading a cicfw checkpoint safely: the model it describes, rebuilt and checked.
+
+Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain containers are
+ever unpickled, never an arbitrary class. The hyper-parameters saved by ``CICModule`` (registry names
+and plain kwargs) rebuild the model exactly as ``CICModule.load_from_checkpoint`` would, after checking
+that every part it names is installed. Each way a checkpoint can be wrong is one clear error.
+"""
+from __future__ import annotations
+
+import pickle
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+#: the CICModule arguments that name registered parts, with the registry that must know each
+PART_KEYS = ("encoder", "mixer", "head")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used; the message says why and what is accepted."""
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
+    best checkpoint (``last.ckpt`` aside)."""
+    p = Path(str(path)).expanduser()
+    if p.is_dir():
+        found = sorted(f for f in p.rglob("*.ckpt") if f.name != "last.ckpt")
+        if len(found) == 1:
+            return found[0].resolve()
+        if not found and (p / "checkpoints" / "last.ckpt").is_file():
+            return (p / "checkpoints" / "last.ckpt").resolve()
+        listing = ", ".join(str(f) for f in found[:8]) or "none"
+        raise CheckpointError(
+            f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
+            f"give one .ckpt file")
+    if not p.is_file():
+        raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
+                                f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    return p.resolve()
+
+
+class UnloadableCheckpoint(Exception):
+    """``torch.load(weights_only=True)`` failed. ``code`` names the class or function the file would
+    have had built (``exec``): it holds pickled code; None when the file is no torch checkpoint or is
+    damaged. ``reason`` is torch's error in a few words."""
+
+    def __init__(self, reason: str, code: str | None = None) -> None:
+        super().__init__(reason)
+        self.reason, self.code = reason, code
+
+
+def load_weights_only(path: Path) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU: tensors and plain containers only, never an
+    arbitrary class. Every failure (torch raises many types) is one ``UnloadableCheckpoint``; the callers
+    word it for their own argument."""
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        code = re.search(r"GLOBAL ([\w.]+)", str(err)) if isinstance(err, pickle.UnpicklingError) else None
+        if code:  # a class or function the safe unpickler will not build
+            raise UnloadableCheckpoint(f"Unsupported global: GLOBAL {code.group(1)}", code.group(1)) from None
+        raise UnloadableCheckpoint(_short_reason(err)) from None
+
+
+def _short_reason(err: BaseException) -> str:
+    """``Type: first sentence`` of torch's error (``Unsupported operand 110`` for a file that is no
+    pickle: the rest of that message is advice about ``weights_only``)."""
+    text = str(err).strip()
+    if not text:
+        return type(err).__name__
+    found = re.search(r"Unsupported operand \d+", text)
+    return f"{type(err).__name__}: {found.group(0) if found else text.splitlines()[0].split('. ')[0].rstrip('.')}"
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one."""
+    p = resolve_checkpoint(path)
+    try:
+        ckpt = load_weights_only(p)
+    except UnloadableCheckpoint as err:
+        if err.code:
+            raise CheckpointError(
+                f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers "
+                f"({err.code}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "
+                f"only those") from None
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated ({err.reason})") from None
+    return check_cicfw_checkpoint(ckpt, str(p))
+
+
+def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
+    """Check ``ckpt`` is a cicfw CICModule checkpoint whose encoder, mixer and head are installed."""
+    from cicfw.registry import ENCODERS, HEADS, MIXERS
+
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, Mapping) else None
+    if not isinstance(hp, Mapping) or not isinstance(ckpt.get("state_dict"), Mapping) \
+            or not all(isinstance(hp.get(k), str) for k in PART_KEYS):
+        what = f"keys {sorted(map(str, ckpt))[:8]}" if isinstance(ckpt, Mapping) else type(ckpt).__name__
+        raise CheckpointError(
+            f"{where!r} is not a cicfw checkpoint: it needs Lightning's 'state_dict' and the CICModule "
+            f"'hyper_parameters' naming an encoder, mixer and head (found {what}); checkpoints come from "
+            f"cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    for key, reg in zip(PART_KEYS, (ENCODERS, MIXERS, HEADS)):
+        if hp[key] not in reg:
+            raise CheckpointError(
+                f"checkpoint {where!r} was trained with {key} {hp[key]!r}, which is not installed here; "
+                f"installed {key}s: {', '.join(reg.names())} (install the plugin that provides {hp[key]!r})")
+    return dict(ckpt)
+
+
+def load_model(path: str | Path):
+    """A ``CICModule`` in eval mode rebuilt from a checkpoint, on the CPU (what
+    ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
+    from cicfw.model.module import CICModule
+
+    ckpt = read_checkpoint(path)
+    hp = dict(ckpt["hyper_parameters"])
+    try:
+        model = CICModule(**hp)
+    except TypeError as err:
+        raise CheckpointError(f"checkpoint {str(path)!r}: its hyper_parameters do not fit this cicfw's "
+                              f"CICModule ({err})") from None
+    model.on_load_checkpoint(ckpt)
+    # cicfw saves plain keys even from a torch.compile'd run; a module compiled with the
+    # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights
+    state = {k.replace("_orig_mod.", ""): v for k, v in ckpt["state_dict"].items()}
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0]
+        raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its "
+                              f"hyper_parameters describe ({first})") from None
+    return model.eval()
+
+
+def prepare_for_inference(model, fuse: bool = True):
+    """Make an eval-mode model cheaper to run, computing the same function (up to float rounding):
+    each BatchNorm2d is folded into the Conv2d before it, and it and each Dropout (the identity in eval)
+    become ``nn.Identity`` in place, so a Sequential keeps its indices (cross_stitch and sluice slice
+    their branches by index); the weights go to the NHWC layout (``use_channels_last``). Done in place;
+    returns the model."""
+    if not fuse:
+        return model
+    from torch import nn
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    assert not model.training, "prepare_for_inference needs an eval-mode model"
+    dropouts = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)
+    for seq in [m for m in model.modules() if isinstance(m, nn.Sequential)]:
+        names, kids = list(seq._modules), list(seq.children())
+        for i, mod in enumerate(kids):
+            if isinstance(mod, nn.Conv2d) and i + 1 < len(kids) and isinstance(kids[i + 1], nn.BatchNorm2d):
+                seq._modules[names[i]] = fuse_conv_bn_eval(mod, kids[i + 1])
+                seq._modules[names[i + 1]] = nn.Identity()
+            elif isinstance(mod, dropouts):
+                seq._modules[names[i]] = nn.Identity()
+    if hasattr(model, "use_channels_last"):
+        model.use_channels_last()
+    return model
+
+
+def describe(hp: Mapping[str, Any]) -> str:
+    """A short model label from hyper-parameters, e.g. ``gtu+regression``, ``independent+hybrid/expectation``
+    (a classification head's decoder is part of the label: it changes how the model steers)."""
+    decode = (hp.get("head_kwargs") or {}).get("decode")
+    return f"{hp.get('mixer')}+{hp.get('head')}" + (f"/{decode}" if decode else "")
