@@ -17,14 +17,16 @@ import json
 import logging
 import math
 import os
-from contextlib import contextmanager
+from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, ContextManager, Mapping
 
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
+
+from cicfw.locks import FolderLock, flock_available
 
 log = logging.getLogger(__name__)
 
@@ -109,21 +111,16 @@ def job_row(config: DictConfig, job_return: JobReturn) -> dict[str, Any]:
     }
 
 
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    """An exclusive advisory lock on ``path`` (no lock where fcntl is missing, e.g. Windows)."""
-    try:
-        import fcntl
-    except ImportError:
-        yield
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+class RowsLock(FolderLock):
+    """The row files' lock while ``summary.csv`` is rebuilt: jobs finishing at once take turns, silently."""
+
+    lock_name = ".lock"
+    wait_level = logging.DEBUG
+
+
+def _locked(rows_dir: Path) -> ContextManager[Any]:
+    """``rows_dir`` held for one rebuild (waiting as long as it takes; no lock where flock is missing)."""
+    return RowsLock(rows_dir, wait=None) if flock_available() else nullcontext()
 
 
 def _split(override: str) -> tuple[str, str]:
@@ -180,7 +177,7 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
     """(Re)write ``<sweep_dir>/<filename>`` from the row files of every job finished so far."""
     sweep_dir = Path(sweep_dir)
     rows_dir = sweep_dir / ROWS_DIR
-    with _locked(rows_dir / ".lock"):
+    with _locked(rows_dir):
         rows, command_line = [], None
         if (rows_dir / SWEEP_FILE).is_file():
             command_line = json.loads((rows_dir / SWEEP_FILE).read_text())["overrides"]

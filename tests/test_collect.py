@@ -101,8 +101,9 @@ def test_same_seed_same_bytes_and_resume_after_an_interrupted_run(tmp_path: Path
     assert not meta["complete"] and meta["counts"]["episodes"] == 1
     monkeypatch.setattr(files_mod, "temp_beside", real_write)
     collect_dataset(SMALL, out, progress=False)
-    # no temporary files left (the lock file stays: it is how the next collector finds the holder)
-    assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == [LOCK_NAME]
+    # no temporary files left, nor the lock file (it exists while a collector holds the folder)
+    assert [p.name for p in out.rglob(".*") if p.is_file() and p.parent == out] == []
+    assert not (out / LOCK_NAME).exists()
     assert json.loads((out / "dataset_metadata.json").read_text())["complete"]
     for f in find_files(small_dataset):  # same seed, same bytes, whether interrupted or not
         assert (out / f.name).read_bytes() == f.read_bytes(), f.name

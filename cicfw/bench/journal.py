@@ -5,7 +5,8 @@ episode's result) and then one line per finished episode: its report row and its
 (each channel's dtype, shape and base64 bytes). Each line is written with one ``write`` on a file opened for appending, then
 flushed and fsynced, so a killed run loses at most the episode being written; a torn last line is
 dropped (and cut off) when the log is opened again. A run folder is locked for the whole run
-(``.evaluate.lock``, an ``flock``) so two evaluations never append to one log.
+(``.evaluate.lock``, the project's ``FolderLock``; removed when the run ends) so two evaluations never
+append to one log.
 
 ``EpisodeLog.open(run_dir, fingerprint)`` returns the log with the episodes already finished, or
 refuses (one line) when they were driven with another fingerprint.
@@ -13,13 +14,14 @@ refuses (one line) when they were driven with another fingerprint.
 from __future__ import annotations
 
 import base64
-import fcntl
 import json
 import os
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+
+from cicfw.locks import FolderLock
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"
@@ -100,11 +102,11 @@ class EpisodeLog:
     """The open, locked episode log of one run folder (use ``EpisodeLog.open``; close when done)."""
 
     def __init__(self, run_dir: Path, header: dict, rows: dict[int, dict], trajs: dict[str, dict],
-                 lock_fd: int) -> None:
+                 lock: FolderLock) -> None:
         self.run_dir, self.header = run_dir, header
         self.rows, self.trajectories = rows, trajs  # episodes finished so far (earlier attempts + this one)
         self.reused = len(rows)  # finished before this attempt
-        self._lock_fd = lock_fd
+        self._lock = lock
         self._fd = os.open(run_dir / LOG_NAME, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
 
     @classmethod
@@ -117,7 +119,7 @@ class EpisodeLog:
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         fp = json.loads(json.dumps(fingerprint))  # as it reads back from the file
-        lock_fd = _lock(run_dir)
+        lock = RunFolderLock(run_dir).acquire()
         try:
             header, rows, trajs, good = read_log(run_dir)
             if header is not None and header.get("fingerprint") != fp:
@@ -135,9 +137,9 @@ class EpisodeLog:
                     os.fsync(f.fileno())
             elif good < (run_dir / LOG_NAME).stat().st_size:
                 os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
-            return cls(run_dir, header, rows, trajs, lock_fd)
+            return cls(run_dir, header, rows, trajs, lock)
         except BaseException:
-            os.close(lock_fd)
+            lock.release()
             raise
 
     def add(self, row: Mapping[str, Any], traj: Mapping[str, np.ndarray]) -> None:
@@ -152,11 +154,13 @@ class EpisodeLog:
         self.trajectories[str(row["key"])] = {k: np.asarray(v) for k, v in traj.items()}
 
     def close(self) -> None:
-        for fd in (self._fd, self._lock_fd):
+        if self._fd is not None:
             try:
-                os.close(fd)
+                os.close(self._fd)
             except OSError:
                 pass
+            self._fd = None
+        self._lock.release()
 
     def __enter__(self) -> "EpisodeLog":
         return self
@@ -185,17 +189,11 @@ def _check_no_foreign_report(run_dir: Path, fp: Mapping[str, Any], hint: str) ->
                              f"configuration and no episode log to resume from; {hint or 'give a new output folder'}")
 
 
-def _lock(run_dir: Path) -> int:
-    """An exclusive lock on the run folder for this process, or one error naming the holder."""
-    path = run_dir / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise RunFolderError(f"another evaluation (pid {holder}) is writing {str(run_dir)!r}; wait for it to "
-                             f"finish or give another output folder") from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    return fd
+class RunFolderLock(FolderLock):
+    """An evaluation's hold on its run folder: a second evaluation into it is refused naming the first."""
+
+    lock_name = LOCK_NAME
+
+    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
+        return RunFolderError(f"another evaluation (pid {holder.get('pid', '?')}) is writing {str(self.folder)!r}; "
+                              f"wait for it to finish or give another output folder")

@@ -25,6 +25,7 @@ import numpy as np
 
 from cicfw.bench.policy import Observations, Policy, make_policy
 from cicfw.bench.suite import Episode, make_backend, suite_routes
+from cicfw.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
 
 #: the simulator's reasons mapped to the report's (the embedded env calls "far off route" "lost")
@@ -223,31 +224,18 @@ def _finish(ep: Episode, tr: _Track, info: Mapping[str, Any], reason: str) -> tu
 # progress, processes
 
 
-class Progress:
-    """A rich progress bar over episodes with the running success rate (or nothing when disabled)."""
+class EpisodeBar(ProgressBar):
+    """The project's progress bar over episodes, with the running success rate (nothing when disabled)."""
 
     def __init__(self, total: int, label: str, enabled: bool = True) -> None:
-        self.total, self.done, self.ok = total, 0, 0
-        self._bar = None
-        if enabled:
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn,
-                                       TimeElapsedColumn, TimeRemainingColumn)
-
-            self._bar = RichProgress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                     TextColumn("episodes, success {task.fields[rate]}"), TimeElapsedColumn(),
-                                     TextColumn("eta"), TimeRemainingColumn())
-            self._task = self._bar.add_task(label, total=total, rate="-")
-            self._bar.start()
+        super().__init__(enabled, total, label, "episodes, success {task.fields[rate]}", rate="-")
+        self.done, self.ok = 0, 0
 
     def update(self, success: bool) -> None:
+        """One more episode finished."""
         self.done += 1
         self.ok += bool(success)
-        if self._bar is not None:
-            self._bar.update(self._task, advance=1, rate=f"{100.0 * self.ok / self.done:.1f}%")
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.stop()
+        self.advance(rate=f"{100.0 * self.ok / self.done:.1f}%")
 
 
 def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: Any, cfg: RunnerConfig,
@@ -271,7 +259,7 @@ def run(episodes: Sequence[Episode], policy: Policy | Mapping[str, Any], sim: An
         raise ValueError("runner.workers > 1 needs the policy and the simulator as config specs "
                          "({name: ..., ...}) so each process can build its own")
     name = label or (policy.label if isinstance(policy, Policy) else str(policy.get("name")))
-    bar = Progress(len(episodes), name, cfg.progress_bar)
+    bar = EpisodeBar(len(episodes), name, cfg.progress_bar)
 
     def done(row: dict, traj: dict) -> None:
         if on_episode is not None:

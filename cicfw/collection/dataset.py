@@ -16,9 +16,9 @@ from cicfw.collection.integrity import read_markers, record_checksums
 from cicfw.collection.lock import FolderLock
 from cicfw.collection.metadata import META_NAME, SIM_VERSION, dataset_metadata
 from cicfw.collection.plan import episode_bytes, episode_plan, steps_per_episode
-from cicfw.collection.progress import ProgressBar
 from cicfw.collection.workers import run_workers
 from cicfw.collection.writing import check_free_space, write_json
+from cicfw.progress import ProgressBar
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
         write_json(meta_path, dataset_metadata(cfg, out_dir, plan, markers, started, sim_version, False))
         log.info("collecting %d episode(s) (%d already done) into %s", len(todo), len(markers), out_dir)
         bar = ProgressBar(progress, len(todo) * steps_per_episode(cfg) * len(cfg["cameras"]),
-                          f"collect {out_dir.name}")
+                          f"collect {out_dir.name}", "samples")
 
         def on_marker(m: dict) -> None:
             markers[m["id"]] = m
