@@ -117,8 +117,9 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     if not _number(out["seconds"]) or round(float(out["seconds"]) * 10) < 1:
         raise CollectConfigError(f"collect.seconds must be > 0 (at least 0.1: one step at 10 Hz), "
                                  f"got {out['seconds']!r}")
-    if not isinstance(out["seed"], int) or isinstance(out["seed"], bool):
-        raise CollectConfigError(f"collect.seed must be an integer, got {out['seed']!r}")
+    if not isinstance(out["seed"], int) or isinstance(out["seed"], bool) or out["seed"] < 0:
+        raise CollectConfigError(f"collect.seed must be an integer >= 0 (every episode's route, noise and rain "
+                                 f"derive from it), got {out['seed']!r}")
     if not isinstance(out["workers"], int) or isinstance(out["workers"], bool) or out["workers"] < 0:
         raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
                                  f"got {out['workers']!r}")
@@ -153,6 +154,10 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     for k, v in out["expert"].items():
         if not _number(v):
             raise CollectConfigError(f"collect.expert.{k} must be a number, got {v!r}")
+    try:  # values the expert cannot drive with (a negative speed, a look-ahead of 0)
+        ExpertParams(**out["expert"])
+    except ValueError as err:
+        raise CollectConfigError(f"collect.{err}") from None
     # only the overrides are kept: conf/collect.yaml spells out the defaults, and they must hash as {}
     out["expert"] = {k: v for k, v in out["expert"].items() if v != accepted[k]}
     out["sim"] = sim_node(out)

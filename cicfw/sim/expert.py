@@ -7,6 +7,7 @@ the noise is added on top of it only for what the car actually does (``Noiser``)
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,8 +16,17 @@ from cicfw.sim.roadgraph import Route
 from cicfw.sim.vehicle import DT, VehicleParams, VehicleState
 
 
+#: what each value must be: key -> (lowest, whether the lowest itself is allowed, unit)
+_BOUNDS = {"cruise_kmh": (0.0, False, "km/h"), "lateral_accel": (0.0, False, "m/s^2"), "min_kmh": (0.0, False, "km/h"),
+           "decel": (0.0, False, "m/s^2"), "lookahead_min": (0.0, False, "m"), "lookahead_base": (0.0, True, "m"),
+           "lookahead_gain": (0.0, True, "s"), "lookahead_max": (0.0, False, "m")}
+
+
 @dataclass
 class ExpertParams:
+    """The expert's driving values; a value it cannot drive with (a negative speed, a look-ahead of 0 that
+    steers +-1 bang-bang) is a ValueError naming ``expert.<key>`` and what is accepted."""
+
     cruise_kmh: float = 27.0  # target speed on straight roads
     lateral_accel: float = 1.6  # m/s^2 allowed in curves: ~13 km/h in right turns, ~17 in left
     min_kmh: float = 10.0  # never plan slower than this (except to stop)
@@ -25,6 +35,20 @@ class ExpertParams:
     lookahead_base: float = 1.5
     lookahead_gain: float = 0.55  # s
     lookahead_max: float = 9.0
+
+    def __post_init__(self) -> None:
+        for key, (low, inclusive, unit) in _BOUNDS.items():
+            v = getattr(self, key)
+            if not isinstance(v, numbers.Real) or isinstance(v, bool) or not math.isfinite(v):
+                raise ValueError(f"expert.{key} must be a number ({unit}), got {v!r}")
+            if v < low or (v == low and not inclusive):
+                raise ValueError(f"expert.{key} must be {'>=' if inclusive else '>'} {low:g} {unit}, got {v!r}")
+        if self.min_kmh > self.cruise_kmh:
+            raise ValueError(f"expert.min_kmh={self.min_kmh!r} is above expert.cruise_kmh={self.cruise_kmh!r}; the "
+                             f"slowest planned speed must be at most the cruise speed")
+        if self.lookahead_max < self.lookahead_min:
+            raise ValueError(f"expert.lookahead_max={self.lookahead_max!r} is below expert.lookahead_min="
+                             f"{self.lookahead_min!r}; the look-ahead is clip(base + gain * speed, min, max)")
 
 
 def speed_profile(route: Route, p: ExpertParams) -> np.ndarray:
