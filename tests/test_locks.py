@@ -16,7 +16,6 @@ from pathlib import Path
 
 import pytest
 
-from cicfw import locks
 from cicfw.bench.journal import LOCK_NAME as EVALUATE_LOCK
 from cicfw.bench.journal import EpisodeLog, RunFolderError
 from cicfw.collection import LOCK_NAME as COLLECT_LOCK
