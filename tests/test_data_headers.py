@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
+from cicfw.collection import CollectError, collect_dataset
 from cicfw.data.cil_hdf5 import CILFormatError, T, find_files, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.testing import make_targets, write_tiny_dataset
@@ -84,6 +85,14 @@ def test_upper_case_suffixes_are_hdf5_files_too(tmp_path):
     (folder / "data_00002.h5").rename(folder / "data_00002.HDF5")
     assert sorted(f.name for f in find_files(folder)) == ["data_00000.h5", "data_00001.H5", "data_00002.HDF5"]
     assert len(load_frames(str(folder), max_abs_steer=1.0).files) == 3
+
+
+def test_collect_refuses_a_folder_of_upper_case_hdf5_files_the_reader_would_mix_in(tmp_path):
+    folder = write_tiny_dataset(tmp_path / "data", n_files=1)
+    (folder / "data_00000.h5").rename(folder / "MINE.H5")
+    with pytest.raises(CollectError) as err:
+        collect_dataset({"episodes": 1, "seconds": 1, "workers": 0}, folder, progress=False)
+    assert "MINE.H5" in str(err.value)
 
 
 def test_an_unfinished_collection_is_named_in_one_warning(tmp_path, caplog):

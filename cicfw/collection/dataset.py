@@ -18,6 +18,7 @@ from cicfw.collection.metadata import META_NAME, SIM_VERSION, dataset_metadata
 from cicfw.collection.plan import episode_bytes, episode_plan, steps_per_episode
 from cicfw.collection.workers import run_workers
 from cicfw.collection.writing import check_free_space, write_json
+from cicfw.data.cil_hdf5 import is_hdf5_name
 from cicfw.progress import ProgressBar
 
 log = logging.getLogger(__name__)
@@ -45,9 +46,10 @@ def _remove_episodes(out_dir: Path, eps: list[dict]) -> None:
 
 
 def _foreign_files(out_dir: Path, plan: list[dict]) -> list[Path]:
+    """HDF5 files (suffixes in any case, as the reader finds them) that no planned episode writes."""
     ids = tuple(ep["id"] + "_" for ep in plan)
-    return [p for p in sorted(out_dir.rglob("*.h5")) + sorted(out_dir.rglob("*.hdf5"))
-            if p.parent != out_dir or not p.name.startswith(ids)]
+    return [p for p in sorted(out_dir.rglob("*")) if is_hdf5_name(p) and p.is_file()
+            and (p.parent != out_dir or not p.name.startswith(ids) or p.suffix != ".h5")]
 
 
 def _refuse_foreign_files(out_dir: Path, plan: list[dict]) -> None:
