@@ -6,7 +6,8 @@ its recorded size and SHA-256, one line per missing or corrupt file, exit status
 A thin Hydra app over the collection engine ``cicfw.collection`` (episodes, workers, files,
 metadata, resume, the folder lock and the other guarantees are documented there and in
 docs/simulator.md). Every config error, a locked or unwritable folder and a full disk print one line
-(``cicfw: error: ...``, exit status 2); Ctrl-C prints one line too (rerun the same command to resume).
+(``cicfw: error: ...``, exit status 2); Ctrl-C and SIGTERM print one line too (rerun the same command to
+resume; exit status 130, 143 for SIGTERM), after the workers are ended and half-written files removed.
 """
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from cicfw.collection import (  # noqa: F401  (the engine's API, re-exported for
 
 
 def run(cfg) -> str:
-    """Collect into ``cfg.out_dir``; the one-line summary."""
-    from cicfw.errors import report_user_errors
+    """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
+    from cicfw.errors import on_interrupt, report_user_errors
 
     @report_user_errors
     def go() -> str:
@@ -33,28 +34,29 @@ def run(cfg) -> str:
             raise CollectConfigError(f"collect: verify must be true or false, got {verify!r}")
         out_dir = Path(str(raw["out_dir"])).expanduser()
         if verify:
-            lock_wait = raw.get("lock_wait", 0)
-            if lock_wait is not None and (isinstance(lock_wait, bool) or not isinstance(lock_wait, (int, float))
-                                          or lock_wait < 0):
-                raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
-                                         f"(wait as long as it takes), got {lock_wait!r}")
-            report = verify_dataset(out_dir, lock_wait)
-            for line in report.lines():
-                print(f"cicfw: {line}", file=sys.stderr)
-            if not report.ok:
-                raise CollectError(report.summary())
-            return report.summary()
-        meta = collect_dataset(raw, out_dir)
+            return _verify(raw, out_dir)
+        with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
+            meta = collect_dataset(raw, out_dir)
         m = json.loads(meta.read_text())
         return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
                 f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
 
-    try:
-        return go()
-    except KeyboardInterrupt:
-        print(f"cicfw: interrupted; finished episodes are kept in {cfg.out_dir}: rerun the same command to resume",
-              file=sys.stderr)
-        sys.exit(130)
+    return go()
+
+
+def _verify(raw: dict, out_dir: Path) -> str:
+    """``verify=true``: every file of ``out_dir`` against its record, one line per problem; the summary."""
+    lock_wait = raw.get("lock_wait", 0)
+    if lock_wait is not None and (isinstance(lock_wait, bool) or not isinstance(lock_wait, (int, float))
+                                  or lock_wait < 0):
+        raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
+                                 f"(wait as long as it takes), got {lock_wait!r}")
+    report = verify_dataset(out_dir, lock_wait)
+    for line in report.lines():
+        print(f"cicfw: {line}", file=sys.stderr)
+    if not report.ok:
+        raise CollectError(report.summary())
+    return report.summary()
 
 
 def _main() -> None:

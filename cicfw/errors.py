@@ -4,7 +4,10 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import os
+import signal
 import sys
+import threading
 from contextlib import contextmanager
 from typing import Callable, Iterator, TypeVar
 
@@ -47,12 +50,53 @@ def on_interrupt(message: str) -> Iterator[None]:
         raise Interrupted(message) from None
 
 
+#: the signal that stopped the app, when it was not Ctrl-C (SIGTERM: a scheduler, ``timeout``, ``kill``)
+_stopped_by: int | None = None
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Inside, SIGTERM raises KeyboardInterrupt in this process, as Ctrl-C does, so every stage cleans up
+    and says what it kept; the previous handler is back afterwards. A forked child (a DataLoader worker)
+    that inherits the handler dies of SIGTERM as usual. Off the main thread it does nothing."""
+    global _stopped_by
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is None:
+        yield  # signals go to the main thread only; None: a handler Python cannot put back
+        return
+    owner = os.getpid()
+
+    def stop(signum: int, frame: object) -> None:
+        global _stopped_by
+        if os.getpid() != owner:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        _stopped_by = signum
+        raise KeyboardInterrupt
+
+    _stopped_by = None
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _exit_interrupted(err: KeyboardInterrupt) -> None:
+    """``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and exit 130 (Ctrl-C) or 128 + the signal."""
+    detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
+    by = f" ({signal.Signals(_stopped_by).name})" if _stopped_by else ""
+    print(f"cicfw: interrupted{by}{detail}", file=sys.stderr)
+    sys.exit(128 + _stopped_by if _stopped_by else 130)
+
+
 def _message(err: BaseException) -> object:
     return err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
 
 
 def report_user_errors(fn: F) -> F:
-    """Exit with ``cicfw: error: <message>`` (status 2) on a user error.
+    """Exit with ``cicfw: error: <message>`` (status 2) on a user error, and with ``cicfw: interrupted ...``
+    on Ctrl-C or SIGTERM (``sigterm_as_interrupt``; status 130, or 143 for SIGTERM).
 
     In a multirun every failure is logged to the job's log and re-raised, so Hydra marks the job
     FAILED: the sweep summary records it with its error and the other jobs go on (all jobs of a
@@ -64,7 +108,12 @@ def report_user_errors(fn: F) -> F:
     def wrapper(*args, **kwargs):
         multirun = _in_multirun()
         try:
-            result = fn(*args, **kwargs)
+            with sigterm_as_interrupt():
+                result = fn(*args, **kwargs)
+        except KeyboardInterrupt as err:
+            if multirun:
+                raise
+            _exit_interrupted(err)
         except USER_ERRORS as err:
             if multirun:
                 log.error("job failed: %s", _message(err))
@@ -88,7 +137,8 @@ def report_interrupts(fn: F) -> F:
     """Exit with ``cicfw: interrupted; <what is kept>`` (status 130) on Ctrl-C instead of a traceback.
 
     The message is the ``Interrupted``'s (a plain KeyboardInterrupt says only "interrupted"). In a
-    multirun it is re-raised, so the sweep stops as Ctrl-C means."""
+    multirun it is re-raised, so the sweep stops as Ctrl-C means. (``report_user_errors`` does the same,
+    SIGTERM included: this is for a function that is not wrapped by it.)"""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -97,8 +147,6 @@ def report_interrupts(fn: F) -> F:
         except KeyboardInterrupt as err:
             if _in_multirun():
                 raise
-            detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
-            print(f"cicfw: interrupted{detail}", file=sys.stderr)
-            sys.exit(130)
+            _exit_interrupted(err)
 
     return wrapper  # type: ignore[return-value]
