@@ -100,6 +100,7 @@ def _wait_for(pred, proc: subprocess.Popen, what: str, timeout: float = 600) -> 
         time.sleep(0.1)
 
 
+@pytest.mark.slow  # collects a dataset
 def test_sigterm_to_collect_ends_its_workers_and_leaves_no_part_file(tmp_path: Path):
     out = tmp_path / "ds"
     p = subprocess.Popen([sys.executable, "-m", "cicfw.collect", f"out_dir={out}", "episodes=6", "seconds=4",
@@ -125,6 +126,7 @@ def test_sigterm_to_collect_ends_its_workers_and_leaves_no_part_file(tmp_path: P
     assert _holder(out) == {}
 
 
+@pytest.mark.slow  # collects a dataset
 def test_collect_workers_hold_nothing_the_resource_tracker_must_clean(tmp_path: Path, monkeypatch):
     """Named semaphores (a spawn Queue's) are left to finalizers; the tracker warned of them after the
     app's last line. The workers' pipes register nothing."""
