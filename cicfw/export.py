@@ -40,7 +40,7 @@ from cicfw.files import write_together
 
 log = logging.getLogger("cicfw.export")
 
-#: format -> the file suffix it gets when ``out`` is not given
+#: format -> the file suffix it writes (``out`` must end in it; the default ``out`` gets it)
 FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
 #: steering difference the parity check accepts (steering lives in [-1, 1]; float32 rounding is ~1e-6)
 TOLERANCE = 1e-4
@@ -417,6 +417,30 @@ def output_path(out: str | None, checkpoint: Path, fmt: str) -> Path:
     return p
 
 
+def check_out_suffix(out: str | None, fmt: str) -> None:
+    """``out`` must end in the suffix of ``fmt`` (an ONNX graph named ``x.pt`` would be loaded as TorchScript
+    by ``Agent.load``, and the other way round): one line naming both formats' suffixes."""
+    if not out:
+        return
+    suffix = Path(str(out)).suffix
+    if suffix != FORMATS[fmt]:
+        each = ", ".join(f"format={f} writes {s}" for f, s in FORMATS.items())
+        raise ExportError(f"out={str(out)!r} ends in {suffix or 'no suffix'!r}, but format={fmt} writes a "
+                          f"{FORMATS[fmt]} file ({each}); give out=<name>{FORMATS[fmt]} or the format that fits")
+
+
+def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
+    """Neither the model nor its sidecar may be the checkpoint being exported (``out=`` the checkpoint's
+    own path would replace it with the exported bytes)."""
+    for what in (path, path.with_name(path.name + ".json")):
+        same = what.resolve() == checkpoint.resolve()
+        if not same and what.exists():
+            same = os.path.samefile(what, checkpoint)
+        if same:
+            raise ExportError(f"out={str(path)!r} would write over the checkpoint being exported "
+                              f"({str(checkpoint)!r}); give out=<another file>")
+
+
 def _check_format(fmt: str) -> None:
     if fmt not in FORMATS:
         raise ExportError(f"format={fmt!r} is not known; use one of {', '.join(FORMATS)}")
@@ -500,6 +524,8 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         _check_opset(opset)
     ckpt = resolve_checkpoint(checkpoint)
     path = output_path(str(out) if out else None, ckpt, fmt)
+    check_not_the_checkpoint(path, ckpt)
+    check_out_suffix(str(out) if out else None, fmt)
     real = dataset_frames(frames, n_frames) if frames else None  # bad frames=: refused before the model loads
     model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
     inputs = (real if real is not None else rendered_frames(n_frames)) + random_inputs(n_frames)

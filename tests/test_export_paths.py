@@ -1,0 +1,41 @@
+"""export owns the path it writes: never over the checkpoint it reads (by any name), never a model under
+the other format's suffix; both refused in one line before anything is loaded."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from cicfw.export import ExportError, export_model
+
+
+@pytest.fixture
+def checkpoint(tmp_path: Path) -> Path:
+    """A file where a checkpoint is expected: the checks under test run before it is loaded."""
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"checkpoint bytes")
+    return ckpt
+
+
+def test_export_refuses_to_write_over_its_checkpoint(checkpoint):
+    same = [checkpoint, checkpoint.parent / ".." / "checkpoints" / "last.ckpt"]
+    os.link(checkpoint, checkpoint.parent / "linked.ckpt")  # another name for the same file
+    same.append(checkpoint.parent / "linked.ckpt")
+    for out in same:
+        with pytest.raises(ExportError) as err:
+            export_model(checkpoint, "onnx", out)
+        assert str(err.value).startswith(f"out={str(out)!r} would write over the checkpoint"), str(err.value)
+    assert checkpoint.read_bytes() == b"checkpoint bytes"
+
+
+@pytest.mark.parametrize("fmt, out, wants", [("torchscript", "x.onnx", ".pt"), ("onnx", "x.pt", ".onnx"),
+                                             ("onnx", "x", ".onnx")])
+def test_export_refuses_an_out_suffix_of_the_other_format(checkpoint, tmp_path, fmt, out, wants):
+    with pytest.raises(ExportError) as err:
+        export_model(checkpoint, fmt, tmp_path / out)
+    text = str(err.value)
+    assert text.startswith(f"out={str(tmp_path / out)!r} ends in") and f"format={fmt} writes a {wants} file" in text
+    assert "format=onnx writes .onnx" in text and "format=torchscript writes .pt" in text
+    assert not (tmp_path / out).exists()
