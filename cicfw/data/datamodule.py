@@ -8,56 +8,30 @@ from __future__ import annotations
 import logging
 from typing import Any, Sequence
 
-import h5py
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
 
 from cicfw import COMMANDS
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.config_checks import whole_number
-from cicfw.data.cil_hdf5 import IMAGE_SHAPE, KNOWN_CAMERA_IDS, image_key
+from cicfw.data.batches import SeededBatches, batch_rng
+from cicfw.data.cil_hdf5 import KNOWN_CAMERA_IDS
 from cicfw.data.frames import Frames, camera_names, chosen_cameras, load_frames, split_by_episode
+from cicfw.data.images import ImageStore
+from cicfw.data.residency import decide, in_memory_setting
 from cicfw.data.sampler import CommandBalancedBatchSampler
 
 log = logging.getLogger(__name__)
 
 
-class ImageStore:
-    """Images of a Frames table, in RAM (one uint8 array) or read from the files on demand."""
-
-    def __init__(self, frames: Frames, in_memory: bool) -> None:
-        self.frames = frames
-        self.array: np.ndarray | None = None
-        self._handles: dict[int, h5py.File] = {}
-        if in_memory:
-            self.array = np.empty((len(frames), *IMAGE_SHAPE), np.uint8)
-            for fi in np.unique(frames.file_idx):
-                where = np.flatnonzero(frames.file_idx == fi)
-                with h5py.File(frames.files[fi], "r") as f:
-                    self.array[where] = f[image_key(f)][()][frames.row[where]]
-
-    def get(self, idx: np.ndarray) -> np.ndarray:
-        if self.array is not None:
-            return self.array[idx]  # fancy indexing copies, so augmentation never edits the store
-        out = np.empty((len(idx), *IMAGE_SHAPE), np.uint8)
-        fidx, rows = self.frames.file_idx[idx], self.frames.row[idx]
-        for fi in np.unique(fidx):
-            sel = np.flatnonzero(fidx == fi)
-            order = np.argsort(rows[sel])  # h5py wants increasing row indices
-            if fi not in self._handles:
-                self._handles[fi] = h5py.File(self.frames.files[fi], "r")
-            f = self._handles[fi]
-            out[sel[order]] = f[image_key(f)][rows[sel][order]]
-        return out
-
-    def __getstate__(self) -> dict:  # open HDF5 handles do not cross into worker processes
-        return {**self.__dict__, "_handles": {}}
-
-
 class FrameDataset(Dataset):
-    """Batches as dicts of tensors, fetched whole through ``__getitems__`` (one vectorised pass)."""
+    """Batches as dicts of tensors, fetched whole through ``__getitems__`` (one vectorised pass).
+
+    Augmentation draws from the batch's own stream when the batch carries one (``SeededBatches``), so
+    workers and ranks never repeat each other; a plain list of indices draws from the dataset's generator.
+    """
 
     def __init__(self, frames: Frames, store: ImageStore, augment: AugmentConfig | None, seed: int) -> None:
         self.frames, self.store, self.augment = frames, store, augment
@@ -70,7 +44,7 @@ class FrameDataset(Dataset):
         idx = np.asarray(indices)
         images = self.store.get(idx)
         if self.augment is not None:
-            augment_batch(images, self.augment, self.rng)
+            augment_batch(images, self.augment, batch_rng(indices, self.rng))
         fr = self.frames
         return {
             "image": torch.from_numpy(images).permute(0, 3, 1, 2).contiguous(),
@@ -121,7 +95,7 @@ class CILDataModule(L.LightningDataModule):
         balanced: bool = True,
         batches_per_epoch: int | None = None,
         augment: dict | bool | None = True,
-        in_memory: bool = True,
+        in_memory: bool | str = "auto",
         num_workers: int = 0,
     ) -> None:
         super().__init__()
@@ -154,7 +128,7 @@ class CILDataModule(L.LightningDataModule):
             self.augment = None
         else:
             self.augment = AugmentConfig.from_dict(augment)
-        self.in_memory, self.num_workers = in_memory, num_workers
+        self.in_memory, self.num_workers = in_memory_setting(in_memory), num_workers
         self.train_set: FrameDataset | None = None
         self.val_set: FrameDataset | None = None
 
@@ -170,8 +144,21 @@ class CILDataModule(L.LightningDataModule):
         counts = dict(zip(COMMANDS, np.bincount(train.command, minlength=4).tolist()))
         log.info("data: %d train / %d val samples from %d files; train per command %s",
                  len(train), len(val), len(frames.files), counts)
-        self.train_set = FrameDataset(train, ImageStore(train, self.in_memory), self.augment, self.seed)
-        self.val_set = FrameDataset(val, ImageStore(val, self.in_memory), None, self.seed)
+        residency = self._residency(len(train) + len(val))
+        log.info(residency.reason())
+        self.train_set = FrameDataset(train, ImageStore(train, residency.in_memory), self.augment, self.seed)
+        self.val_set = FrameDataset(val, ImageStore(val, residency.in_memory), None, self.seed)
+
+    def _residency(self, frames: int):
+        """RAM or streamed, decided once for every rank (rank 0's reading of the memory counts)."""
+        trainer = getattr(self, "trainer", None)
+        copies = 1
+        if trainer is not None and trainer.world_size > 1:
+            copies = max(1, trainer.world_size // max(1, trainer.num_nodes))
+        residency = decide(frames, self.in_memory, copies)
+        if trainer is not None and trainer.world_size > 1:
+            residency = trainer.strategy.broadcast(residency, src=0)
+        return residency
 
     def _rank(self) -> tuple[int, int]:
         trainer = getattr(self, "trainer", None)
@@ -180,14 +167,19 @@ class CILDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         assert self.train_set is not None, "call setup() first"
         rank, world = self._rank()
+        trainer = getattr(self, "trainer", None)
+        start_epoch = int(trainer.current_epoch) if trainer is not None else 0  # a resumed run's epoch
         if self.balanced:
-            sampler = CommandBalancedBatchSampler(
+            batches = CommandBalancedBatchSampler(
                 self.train_set.frames.command, self.batch_size, self.batches_per_epoch, self.seed, rank, world)
-            return DataLoader(self.train_set, batch_sampler=sampler, collate_fn=_as_batch,
-                              num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
-        gen = torch.Generator().manual_seed(self.seed + rank)
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, generator=gen,
-                          drop_last=True, collate_fn=_as_batch, num_workers=self.num_workers)
+        else:
+            gen = torch.Generator().manual_seed(self.seed + rank)
+            batches = BatchSampler(RandomSampler(self.train_set, generator=gen), self.batch_size, drop_last=True)
+        # one process draws from the dataset's generator; workers and ranks need a stream per batch
+        keyed = self.num_workers > 0 or world > 1
+        return DataLoader(self.train_set, batch_sampler=SeededBatches(batches, self.seed, rank, start_epoch, keyed),
+                          collate_fn=_as_batch, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         assert self.val_set is not None, "call setup() first"

@@ -1,0 +1,105 @@
+"""ImageStore: the images of a Frames table, in RAM (one uint8 array) or read from the files per batch.
+
+Streaming keeps at most ``MAX_OPEN_FILES`` files open per process (a public-size dataset has thousands,
+more than many systems let a process open) and checks, at each read (one ``stat``, microseconds against
+milliseconds of reading), that a file is still the one whose labels were read at setup: a file replaced,
+shrunk or removed mid-run stops the run with one line naming it, never images paired with other labels
+(HDF5 reads past the end of a shrunk file as zeros, without an error).
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
+from cicfw.data.frames import Frames
+
+MAX_OPEN_FILES = 128
+
+
+class DataChangedError(ValueError):
+    """A data file changed or vanished after setup; the message names it."""
+
+    def __init__(self, message: str) -> None:
+        # A DataLoader worker's error comes back with the worker's traceback in its message: keep our line.
+        marker = f"{type(self).__name__}: "
+        last = message.rstrip().splitlines()[-1] if message.strip() else message
+        super().__init__(last.split(marker, 1)[1] if marker in last else message)
+
+
+def identity(path: Path) -> tuple[int, int, int]:
+    """What says a file is still the one read at setup: inode, size, modification time."""
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+class ImageStore:
+    """Images by frame index, from RAM or from the files (``in_memory``)."""
+
+    def __init__(self, frames: Frames, in_memory: bool) -> None:
+        self.frames = frames
+        self.array: np.ndarray | None = None
+        self._handles: OrderedDict[int, h5py.File] = OrderedDict()
+        self._owner = os.getpid()
+        used = np.unique(frames.file_idx)
+        self._identity = {int(fi): identity(frames.files[fi]) for fi in used} if not in_memory else {}
+        if in_memory:
+            self.array = np.empty((len(frames), *IMAGE_SHAPE), np.uint8)
+            for fi in used:
+                where = np.flatnonzero(frames.file_idx == fi)
+                with h5py.File(frames.files[fi], "r") as f:
+                    self.array[where] = f[image_key(f)][()][frames.row[where]]
+
+    def get(self, idx: np.ndarray) -> np.ndarray:
+        if self.array is not None:
+            return self.array[idx]  # fancy indexing copies, so augmentation never edits the store
+        out = np.empty((len(idx), *IMAGE_SHAPE), np.uint8)
+        fidx, rows = self.frames.file_idx[idx], self.frames.row[idx]
+        for fi in np.unique(fidx):
+            sel = np.flatnonzero(fidx == fi)
+            order = np.argsort(rows[sel])  # h5py wants increasing row indices
+            path = self.frames.files[fi]
+            try:
+                f = self._open(int(fi))
+                out[sel[order]] = f[image_key(f)][rows[sel][order]]
+            except DataChangedError:
+                raise
+            except (OSError, KeyError, IndexError, ValueError) as err:
+                raise DataChangedError(f"{path}: its images can no longer be read ({type(err).__name__}: {err}); "
+                                       f"the file changed or vanished after the run started") from None
+        return out
+
+    def _open(self, fi: int) -> h5py.File:
+        """An open handle on file ``fi``, checked against its setup identity; least recently used handles
+        are closed beyond MAX_OPEN_FILES."""
+        if os.getpid() != self._owner:  # a forked worker: the parent's HDF5 handles are not ours to use
+            self._handles, self._owner = OrderedDict(), os.getpid()
+        self._check(fi)
+        if fi in self._handles:
+            self._handles.move_to_end(fi)
+            return self._handles[fi]
+        while len(self._handles) >= MAX_OPEN_FILES:
+            self._handles.popitem(last=False)[1].close()
+        # one image per chunk and random rows: HDF5's chunk cache would only hold memory
+        self._handles[fi] = h5py.File(self.frames.files[fi], "r", rdcc_nbytes=0)
+        return self._handles[fi]
+
+    def _check(self, fi: int) -> None:
+        """File ``fi`` is still the one whose labels were read at setup, or one line naming it."""
+        path = self.frames.files[fi]
+        try:
+            now = identity(path)
+        except OSError:
+            raise DataChangedError(f"{path}: removed after the run started; its labels were read at setup, "
+                                   f"so the run cannot go on (its checkpoints so far are kept)") from None
+        if now != self._identity[fi]:
+            raise DataChangedError(f"{path}: replaced or rewritten after the run started (size, inode or "
+                                   f"modification time changed): its images would not match the labels read "
+                                   f"at setup; restore it or start the run again")
+
+    def __getstate__(self) -> dict:  # open HDF5 handles do not cross into worker processes
+        return {**self.__dict__, "_handles": OrderedDict()}
