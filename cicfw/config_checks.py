@@ -11,12 +11,26 @@ from __future__ import annotations
 import difflib
 import inspect
 import math
+import os
 import re
 import types
 import typing
 from typing import Any, Callable, Mapping
 
 _KEYWORD = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+
+
+#: the environment variable naming cicfw's cache folder (datasets, compiled code); the configs read it
+#: with ``${oc.env:CICFW_CACHE,<default>}``
+CACHE_VARIABLE = "CICFW_CACHE"
+
+
+def forget_empty_cache_setting() -> None:
+    """Drop ``CICFW_CACHE`` from the environment when it is set but empty, so that it means unset (the
+    default ``~/.cache/cicfw``), as ``cicfw.model.speed.cache_dir`` reads it. ``oc.env`` takes an empty
+    value as given: ``/datasets/...`` at the file-system root."""
+    if os.environ.get(CACHE_VARIABLE) == "":
+        del os.environ[CACHE_VARIABLE]
 
 
 def did_you_mean(word: str, options: list[str]) -> str:
@@ -125,6 +139,26 @@ def type_problem(annotation: Any, value: Any) -> str | None:
     if parts is None or set(parts[0]) <= {"None"} or _fits(*parts, value):
         return None  # Literal values only (trainer.precision): the callee names the accepted ones
     return f"must be {_accepted(*parts, value)}, got {value!r}"
+
+
+def checked_probability(key: str, value: Any) -> float:
+    """``value`` as a probability: a number in [0, 1], else one ``ValueError`` naming ``key``."""
+    if not (is_number(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f"{key} is a probability in [0, 1], got {value!r}")
+    return float(value)
+
+
+def checked_range(key: str, value: Any, low: float, high: float, low_allowed: bool, words: str) -> tuple[float, float]:
+    """``value`` as a range ``[a, b]``: two numbers, a <= b, each within [low, high] (``low`` itself only
+    when ``low_allowed``); else one ``ValueError`` naming ``key`` and ``words``, what each end may be."""
+    pair = list(value) if isinstance(value, (list, tuple)) else None
+    if pair is None or len(pair) != 2 or not all(is_number(v) for v in pair):
+        raise ValueError(f"{key} must be a range [low, high] of two numbers, each {words}, got {value!r}")
+    a, b = float(pair[0]), float(pair[1])
+    inside = all((low <= v if low_allowed else low < v) and v <= high for v in (a, b))
+    if not inside or a > b:
+        raise ValueError(f"{key} must be a range [low, high] with low <= high, each {words}, got {pair!r}")
+    return a, b
 
 
 def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:

@@ -12,11 +12,13 @@ the same output folder (``hydra.run.dir=<the killed run's folder>``) resumes a k
 """
 from __future__ import annotations
 
+import errno
 import logging
 import shlex
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -165,16 +167,36 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                 log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
-        summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
-        save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
-        pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
-                 int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
+        with writing_outputs(out_dir):
+            summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
+            save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
+            pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
+                     int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
     steps = int(summary.get("steps", 0))
     rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
     log.info("%d episodes (%d driven now, %.1f s), %d steps%s\n%s", len(report.rows), len(missing), wall,
              steps, rate, markdown_table([report]))
     log.info("success %.2f%%; report in %s", summary["success"], out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+class OutputWriteError(ValueError):
+    """The report or a picture could not be written (a full disk ...); the driven episodes are kept."""
+
+
+@contextmanager
+def writing_outputs(out_dir: Path) -> Iterator[None]:
+    """An ``OSError`` while the report, trajectories and pictures are written becomes one
+    ``OutputWriteError`` line: which file, why, and that the episodes are kept (each file is written
+    whole or not at all, ``cicfw.files``); the same command writes them again without driving."""
+    try:
+        yield
+    except OSError as err:
+        where = err.filename or out_dir
+        why = "no space left on the device" if err.errno in (errno.ENOSPC, errno.EDQUOT) else (err.strerror or str(err))
+        raise OutputWriteError(f"could not write {str(where)!r} ({why}); every episode is driven and kept in "
+                               f"{str(out_dir)!r}: free some space, then run the same command with the same output "
+                               f"folder, which drives nothing again and writes the report and pictures") from None
 
 
 def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any],
@@ -197,9 +219,56 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     kwargs = {k: v for k, v in spec.items() if k != "name"}
     check_kwargs("policy", f"policy {spec.get('name')!r}", POLICIES.get(str(spec.get("name"))), kwargs,
                  extra_keys=("name",))
+    check_policy_device(kwargs.get("device"))
     episodes = build_suite(make_backend(sim), **suite)  # unknown towns and weathers, suite.limit=0 fail here
     select_episodes([{"episode": e.index, "key": e.key, "success": False} for e in episodes], video, video_max)
     return runner_cfg, episodes
+
+
+def check_policy_device(device: Any) -> None:
+    """``policy.device`` a torch device this machine has (``cuda`` on a CPU build failed when the policy
+    was built: after the training, for ``cicfw train evaluate_after=true``)."""
+    if device is None:
+        return
+    from cicfw.agent import torch_device
+
+    try:
+        torch_device(str(device))
+    except ValueError as err:
+        raise ValueError(str(err).replace("device=", "policy.device=", 1)) from None
+
+
+_DRIVES_THIS_RUN = ("it drives this run's best checkpoint and logs its success as this run's closed_loop/success; "
+                    "evaluate another checkpoint with python -m cicfw.evaluate checkpoint=...")
+#: what the evaluation after training does not take from ``evaluate_overrides``, and why
+NOT_AFTER_TRAINING = {
+    "checkpoint": _DRIVES_THIS_RUN,
+    "policy.checkpoint": _DRIVES_THIS_RUN,
+    "policy": "it drives this run's checkpoint (policy=checkpoint); evaluate another policy with "
+              "python -m cicfw.evaluate policy=...",
+    "hydra": "it writes into the run folder's evaluate/ and takes no hydra options",
+}
+
+
+def check_after_training_overrides(overrides: Any) -> None:
+    """One ``ValueError`` for an override the evaluation after training would ignore or that would make it
+    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``);
+    what is no override string is left to ``compose_overrides`` to name."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if OmegaConf.is_list(overrides):
+        overrides = OmegaConf.to_container(overrides, resolve=True)
+    parser = OverridesParser.create()
+    for o in overrides if isinstance(overrides, (list, tuple)) else []:
+        try:
+            key = parser.parse_override(o).key_or_group
+        except Exception:
+            continue
+        root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
+        if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
+            continue
+        if root in NOT_AFTER_TRAINING:
+            raise ValueError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
 
 
 def check_evaluation_overrides(overrides: Any) -> None:
@@ -210,6 +279,7 @@ def check_evaluation_overrides(overrides: Any) -> None:
     from cicfw.registry import UnknownNameError
 
     try:
+        check_after_training_overrides(overrides)
         cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
         check_top_level_keys(cfg, "evaluate")
         spec = policy_spec(cfg)

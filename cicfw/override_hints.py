@@ -4,7 +4,8 @@ is there (``did you mean 'trainer'?`` and the keys and config groups at that lev
 Hydra already lists a group's options for a bad choice (``mixer=gtuu``), so only keys are handled,
 plus options that need an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``).
 Apps call ``run_app(main, "train")`` instead of ``main()``; the hints cost a second config
-composition, on the failure path only.
+composition, on the failure path only. ``OneLineJobFailure`` (a Hydra callback) ends a multirun whose
+job failed with one line instead of the job's traceback.
 """
 from __future__ import annotations
 
@@ -12,8 +13,11 @@ import difflib
 import functools
 import sys
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from hydra.errors import CompactHydraException
+from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf, open_dict
 
 CONFIG_MODULE = "cicfw.conf"
@@ -200,3 +204,37 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
             for hint in hints:
                 print(hint, file=sys.stderr)
         raise
+
+
+class JobFailed(CompactHydraException):
+    """A multirun job's failure as one line: Hydra prints a compact exception without a traceback."""
+
+
+def failure_line(err: BaseException) -> str:
+    """A job's exception in one line: a user error's message, else its type and message."""
+    from cicfw.errors import USER_ERRORS
+
+    text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
+    line = " ".join(str(text).split())
+    return line if isinstance(err, USER_ERRORS) else f"{type(err).__name__}: {line}"
+
+
+class OneLineJobFailure(Callback):
+    """Hydra callback: a failed multirun job's exception, which the sweeper raises once the batch of jobs
+    is done (Hydra would print its traceback), becomes one ``cicfw: error:`` line naming the job, its
+    overrides and its log. The job stays failed (the sweep summary, listed after this callback, records
+    its own error; Optuna marks the trial failed); its log keeps the whole story."""
+
+    def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
+        from hydra.core.utils import JobStatus
+
+        err = getattr(job_return, "_return_value", None)
+        if job_return.status != JobStatus.FAILED or not isinstance(err, Exception) or isinstance(err, JobFailed):
+            return
+        hc = config.hydra
+        log_file = Path(str(hc.runtime.output_dir)) / f"{hc.job.name}.log"
+        summary = Path(str(hc.sweep.dir)) / "summary.csv"
+        every = f"; every job's status: {summary}" if summary.is_file() else ""
+        overrides = " ".join(job_return.overrides or [])
+        job_return._return_value = JobFailed(f"cicfw: error: job {hc.job.num} ({overrides}) failed: "
+                                             f"{failure_line(err)} (its log: {log_file}){every}")

@@ -2,17 +2,22 @@
 filesystem allows (``hydra.run.dir=<300 characters>``, ``hydra.job.name=...``) or a path through a
 file is one line (``cicfw: error: ...``, exit status 2), not a traceback from inside Hydra.
 
-``RunFolderCheck`` is a Hydra callback (``hydra.callbacks.run_folder`` in conf/train.yaml and
-conf/evaluate.yaml); ``check_run_folder`` is the check itself.
+``RunFolderCheck`` is a Hydra callback (``hydra.callbacks.run_folder`` in conf/evaluate.yaml);
+``check_run_folder`` is the check itself. ``hold_train_folder`` makes a folder a training run's own:
+its lock taken (``TrainFolderLock``), and no other run's checkpoints or metrics in it
+(``check_no_other_run``); ``TrainRunFolderCheck`` (conf/train.yaml) calls it before Hydra writes
+``.hydra`` there, and the app again around the training (a no-op for a folder this process holds).
 """
 from __future__ import annotations
 
 import os
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from hydra.experimental.callback import Callback
+
+from cicfw.locks import FolderBusy, FolderLock, describe_holder
 
 
 class RunFolderError(ValueError):
@@ -82,3 +87,111 @@ class RunFolderCheck(Callback):
         except RunFolderError as err:
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
+
+
+# ---- a training run's folder is its own ------------------------------------------------------------
+#: what a training run leaves in its folder (relative paths): another run's, when found at the start
+RUN_OUTPUTS = ("checkpoints", "csv/metrics.csv", "tensorboard", "metrics.json", "evaluate")
+#: ``ckpt_path`` values Lightning resolves inside the run's own folder
+OWN_CHECKPOINT_NAMES = ("last", "best", "hpc")
+
+
+def run_outputs(folder: str | Path) -> list[str]:
+    """The training outputs ``folder`` holds (``RUN_OUTPUTS`` that exist and are not empty folders)."""
+    folder = Path(folder)
+    found = []
+    for name in RUN_OUTPUTS:
+        p = folder / name
+        if p.is_file() or (p.is_dir() and any(p.iterdir())):
+            found.append(name)
+    return found
+
+
+def resumes_inside(folder: str | Path, ckpt_path: Any) -> bool:
+    """Whether ``ckpt_path`` is one of ``folder``'s own checkpoints (a file inside it, or a name Lightning
+    resolves there): resuming that run, not starting another over it."""
+    if ckpt_path is None or str(ckpt_path) == "":
+        return False
+    if str(ckpt_path) in OWN_CHECKPOINT_NAMES:
+        return True
+    ckpt = Path(os.path.realpath(Path(str(ckpt_path)).expanduser()))
+    return Path(os.path.realpath(folder)) in ckpt.parents
+
+
+def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir") -> None:
+    """One ``RunFolderError`` when ``folder`` holds another run's outputs (which this run would cut or
+    replace), unless ``ckpt_path`` resumes from a checkpoint inside it."""
+    found = run_outputs(folder)
+    if not found or resumes_inside(folder, ckpt_path):
+        return
+    last = Path(folder) / "checkpoints" / "last.ckpt"
+    resume = f" or resume that run with ckpt_path={last}" if last.is_file() else ""
+    raise RunFolderError(f"the run folder {str(folder)!r} already holds another run's outputs ({', '.join(found)}), "
+                         f"which this run would replace; give a fresh folder ({key}=<new folder>){resume}")
+
+
+class TrainFolderLock(FolderLock):
+    """``<run folder>/.train.lock``: one training run per folder, held while it runs."""
+
+    lock_name = ".train.lock"
+    activity = "trains into it"
+
+    def __init__(self, folder: str | Path, key: str = "hydra.run.dir") -> None:
+        super().__init__(folder)
+        self.key = key
+
+    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
+        tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
+        return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another training run "
+                          f"({describe_holder(holder)}); give a fresh folder ({self.key}=<new folder>) or wait for "
+                          f"it to finish{tail}")
+
+    def unusable(self, err: OSError, step: str) -> Exception:
+        return RunFolderError(f"cannot lock the run folder {str(self.folder)!r} ({err.strerror or err}); give a "
+                              f"local folder you can write: {self.key}=<folder>")
+
+
+_HELD: dict[str, TrainFolderLock] = {}  # the run folders this process holds, by absolute path
+
+
+def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir") -> None:
+    """Make ``folder`` this process's training folder: its lock taken (unless this process holds it
+    already), then ``check_no_other_run``, the lock given back when that fails. One line otherwise:
+    ``FolderBusy`` (another run holds it) or ``RunFolderError``. A DDP worker rank (its ``RANK`` ...
+    not 0) shares the folder rank 0 holds: nothing to take."""
+    from cicfw.sweeps import is_worker_process
+
+    if is_worker_process():
+        return
+    name = os.path.abspath(folder)
+    if name not in _HELD:
+        _HELD[name] = TrainFolderLock(name, key).acquire()
+    try:
+        check_no_other_run(folder, ckpt_path, key)
+    except RunFolderError:
+        release_run_folder(folder)
+        raise
+
+
+def release_run_folder(folder: str | Path) -> None:
+    """Give up the lock ``hold_train_folder`` took on ``folder`` (nothing when this process holds none)."""
+    lock = _HELD.pop(os.path.abspath(folder), None)
+    if lock is not None:
+        lock.release()
+
+
+class TrainRunFolderCheck(RunFolderCheck):
+    """Hydra callback (conf/train.yaml): ``RunFolderCheck``'s checks, then the run folder held for this run
+    (``hold_train_folder``) before Hydra writes its ``.hydra`` there; a folder another run holds or wrote
+    into is one line (exit status 2), the other run's files untouched."""
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        super().on_run_start(config, **kwargs)
+        try:
+            hold_train_folder(str(config.hydra.run.dir), config.get("ckpt_path"), "hydra.run.dir")
+        except ValueError as err:
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
+
+    def on_run_end(self, config: Any, **kwargs: Any) -> None:
+        release_run_folder(str(config.hydra.run.dir))

@@ -8,9 +8,10 @@ import errno
 import inspect
 import io
 import logging
+import math
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import hydra
 import lightning as L
@@ -20,7 +21,7 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import check_kwargs, type_problem, whole_number
+from cicfw.config_checks import check_kwargs, forget_empty_cache_setting, is_integer, type_problem, whole_number
 from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.frames import camera_names
@@ -31,6 +32,7 @@ from cicfw.model.module import CICModule
 from cicfw.model.speed import SpeedConfig, apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
 from cicfw.registry import ENCODERS, HEADS, MIXERS
+from cicfw.run_folder import hold_train_folder, release_run_folder
 
 log = logging.getLogger("cicfw.train")
 
@@ -74,6 +76,39 @@ def build_model(cfg: DictConfig) -> CICModule:
     return model
 
 
+#: metrics where higher is better: the best checkpoint is the one with the lowest ``optimized_metric``
+HIGHER_IS_BETTER = ("val/bin_acc",)
+
+
+def logged_metrics(model: CICModule) -> list[str]:
+    """The metrics ``CICModule`` logs while training (its training step and validation epochs)."""
+    from cicfw import COMMANDS
+
+    val = ["val/loss", "val/steer_mae", *(f"val/steer_mae/{c}" for c in COMMANDS)]
+    if model.head.bins is not None:
+        val.append("val/bin_acc")
+    return [*val, "train/loss", "train/task_loss", "train/steer_mae"]
+
+
+def check_optimized_metric(metric: Any, model: CICModule) -> None:
+    """``optimized_metric`` must be a lower-is-better metric the model logs while training (the best
+    checkpoint's monitor); Lightning refused any other only after the first epoch."""
+    logged = logged_metrics(model)
+    accepted = [m for m in logged if m not in HIGHER_IS_BETTER]
+    if metric in accepted:
+        return
+    names = ", ".join(accepted)
+    if metric in logged:
+        raise ValueError(f"optimized_metric={metric} is higher-is-better, but the best checkpoint is the one with the "
+                         f"lowest optimized_metric; choose one of {names}")
+    if str(metric).startswith("closed_loop/"):
+        raise ValueError(f"optimized_metric={metric} is measured after training, but optimized_metric picks the best "
+                         f"checkpoint while training; choose one of {names} (evaluate_after=true "
+                         f"return_closed_loop=true returns the closed-loop success rate to sweepers)")
+    raise ValueError(f"optimized_metric={metric} is not a metric the model logs; "
+                     f"{_did_you_mean(str(metric), accepted)}choose one of {names}")
+
+
 def ensure_data(data_cfg: DictConfig) -> None:
     """Collect (or finish collecting) the default simulator dataset; a complete one returns at once.
 
@@ -115,9 +150,18 @@ def make_datamodule(cfg: DictConfig) -> CILDataModule:
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
     check_kwargs("data", "the CIL datamodule", CILDataModule, kwargs)
+    check_batches_per_epoch(kwargs.get("batches_per_epoch"))
     datamodule = CILDataModule(**kwargs)
     check_collected_cameras(cfg.data, datamodule)
     return datamodule
+
+
+def check_batches_per_epoch(value: Any) -> None:
+    """``data.batches_per_epoch``: null (the training samples / the batch size) or an integer >= 1; 0 was
+    taken for null and -1 failed inside Lightning's sampler."""
+    if value is not None and not (is_integer(value) and value >= 1):
+        raise ValueError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
+                         f">= 1, got {value!r}")
 
 
 def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> None:
@@ -174,11 +218,13 @@ class EpochCheckpoints(Callback):
 
 
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
-    """``<dirpath>/last.ckpt`` rewritten after every epoch (after validation when it runs): always the
-    latest weights and training state, the one to resume from. A callback of its own because
-    ``ModelCheckpoint(monitor=..., save_last=True)`` refreshes ``last.ckpt`` only when it saves a new
-    best checkpoint (Lightning 2.x): after a run whose validation error rose it held an older epoch."""
-    return ModelCheckpoint(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False)
+    """``<dirpath>/last.ckpt`` rewritten at the end of every training epoch (after its validation, when one
+    runs): always the latest weights and training state, the one to resume from. A callback of its own
+    because ``ModelCheckpoint(monitor=..., save_last=True)`` refreshes ``last.ckpt`` only when it saves a
+    new best checkpoint, and saving at the epoch's end rather than after validation because validation
+    may skip epochs (``trainer.check_val_every_n_epoch=2``), whose weights would be saved nowhere."""
+    return ModelCheckpoint(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False,
+                           save_on_train_epoch_end=True)
 
 
 class CheckpointWriteError(ValueError):
@@ -338,9 +384,11 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
     return ckpt
 
 
-def check_resume_checkpoint(path: str | Path | None, model: CICModule) -> str | None:
+def check_resume_checkpoint(path: str | Path | None, model: CICModule,
+                            trainer_cfg: Mapping[str, Any] | None = None) -> str | None:
     """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
-    holds the training state (not weights only), and fits this run's model. Returns the path for
+    holds the training state (not weights only), fits this run's model, was trained with this run's
+    optimizer settings and, given ``trainer_cfg``, leaves something to train. Returns the path for
     ``Trainer.fit`` (None to start afresh)."""
     if path is None or str(path) == "":
         return None
@@ -365,7 +413,67 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule) -> str | 
             f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: {here}): "
             f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
             f"{first!r}; resume with the options the checkpoint was trained with")
+    check_resumed_optimizer(path, ckpt, model)
+    if trainer_cfg is not None:
+        check_epochs_left(path, ckpt, trainer_cfg)
     return str(path)
+
+
+#: ``model.*`` values a resumed run takes from the checkpoint (the optimizer's and its schedule's state)
+RESTORED_BY_RESUMING = ("lr", "betas", "weight_decay", "lr_schedule", "lr_final_factor")
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    """Config values equal as numbers, or element by element for lists and tuples."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+    return a == b
+
+
+def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CICModule) -> None:
+    """Resuming restores the optimizer (its lr, betas, weight decay) and its schedule from the checkpoint, so
+    a ``model.*`` value that differs from the checkpoint's would be recorded but not used: refused, naming
+    each key and both values."""
+    saved = ckpt.get("hyper_parameters") or {}
+    defaults = inspect.signature(CICModule.__init__).parameters
+    differ = []
+    for key in RESTORED_BY_RESUMING:
+        theirs = saved.get(key, defaults[key].default)
+        ours = model.hparams.get(key)
+        if not _same_value(ours, theirs):
+            differ.append(f"model.{key}={_plain(ours)} (the checkpoint's: {_plain(theirs)})")
+    if differ:
+        raise ValueError(f"ckpt_path={path}: resuming restores the optimizer and its schedule from the checkpoint, so "
+                         f"{', '.join(differ)} would not take effect; resume with the checkpoint's values, or start a "
+                         f"fresh run (no ckpt_path) with the new ones")
+
+
+def _plain(value: Any) -> str:
+    """A config value as it is written on the command line (``[0.7, 0.85]``, ``0.0002``)."""
+    return str(list(value)) if isinstance(value, tuple) else str(value)
+
+
+def epochs_finished(ckpt: Mapping[str, Any]) -> int:
+    """How many training epochs ``ckpt`` has finished (its fit loop's count; else its epoch index + 1)."""
+    try:
+        return int(ckpt["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
+    except (KeyError, TypeError, ValueError):
+        return int(ckpt.get("epoch", -1)) + 1
+
+
+def check_epochs_left(path: str | Path, ckpt: Mapping[str, Any], trainer_cfg: Mapping[str, Any]) -> None:
+    """A checkpoint that has reached ``trainer.max_epochs`` (or ``max_steps``) leaves nothing to train:
+    refused, rather than a run that trains nothing and reports no metric."""
+    done, step = epochs_finished(ckpt), int(ckpt.get("global_step", 0))
+    max_epochs, max_steps = trainer_cfg.get("max_epochs"), trainer_cfg.get("max_steps")
+    if is_integer(max_epochs) and max_epochs >= 0 and done >= max_epochs:
+        raise ValueError(f"ckpt_path={path} has finished {done} epoch(s) and trainer.max_epochs={max_epochs}: nothing "
+                         f"is left to train; give trainer.max_epochs greater than {done} to train on from it")
+    if is_integer(max_steps) and max_steps >= 0 and step >= max_steps:
+        raise ValueError(f"ckpt_path={path} has trained {step} step(s) and trainer.max_steps={max_steps}: nothing is "
+                         f"left to train; give trainer.max_steps greater than {step} to train on from it")
 
 
 def fit_kwargs() -> dict[str, Any]:
@@ -374,16 +482,21 @@ def fit_kwargs() -> dict[str, Any]:
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
-def train(cfg: DictConfig, run_dir: Path) -> float:
+def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False) -> float:
     """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
     ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
-    ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on."""
+    ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on.
+    ``refuse_finished``: refuse a ``ckpt_path`` with no epoch left to train (the app does; a caller that
+    resumes whatever it finds, as a reproduce cell does, gets a run that trains nothing and says so)."""
     run_dir = Path(run_dir)
+    forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
     L.seed_everything(whole_number("seed", cfg.seed), workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
-    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model)  # a safe, whole, matching checkpoint
+    check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
+    # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
+    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None)
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     if cfg.get("evaluate_after"):  # the evaluation's config, so that a typo there does not cost the training
@@ -396,12 +509,13 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
                       "was compiled is cached), run the same command again"):
         apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
                                 len(datamodule.train_dataloader()))      # channels_last, Adam's step
+    before = checkpoint_files(run_dir)
     fit(trainer, model, datamodule, ckpt_path, run_dir)
     ckpt = trainer.checkpoint_callback
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else float("nan")
-    log.info("%s = %.4f; checkpoints in %s", cfg.optimized_metric, metric, run_dir / "checkpoints")
+    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
         from cicfw.evaluate import evaluate_after_training
 
@@ -409,6 +523,26 @@ def train(cfg: DictConfig, run_dir: Path) -> float:
         if cfg.get("return_closed_loop"):
             return float(success)
     return metric
+
+
+def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
+    """The run's checkpoint files now: name -> (modification time in ns, size)."""
+    folder = run_dir / "checkpoints"
+    if not folder.is_dir():
+        return {}
+    return {p.name: (p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(folder.glob("*.ckpt"))}
+
+
+def outcome(metric_name: str, metric: float, run_dir: Path, before: Mapping[str, tuple[int, int]],
+            trainer: L.Trainer) -> str:
+    """The run's last line, saying what happened: the metric (or that no validation ran) and the
+    checkpoints this run wrote (or that it wrote none, and why when Lightning saves none)."""
+    said = f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else f"{metric_name}: no value (no validation ran)"
+    written = [name for name, stamp in checkpoint_files(run_dir).items() if before.get(name) != stamp]
+    if written:
+        return f"{said}; checkpoints written in {run_dir / 'checkpoints'}: {', '.join(written)}"
+    why = " (trainer.fast_dev_run saves none)" if trainer.fast_dev_run else ""
+    return f"{said}; no checkpoint written{why}"
 
 
 def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_path: str | None, run_dir: Path) -> None:
@@ -427,13 +561,26 @@ def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_pa
                           "command again") from None
 
 
+def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") -> float:
+    """The app's ``train``: ``run_dir`` held (``hold_train_folder``) until it ends, and a checkpoint with
+    nothing left to train refused."""
+    hold_train_folder(run_dir, cfg.get("ckpt_path"), key)
+    try:
+        return train(cfg, run_dir, refuse_finished=True)
+    finally:
+        release_run_folder(run_dir)
+
+
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="train")
 @report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
 
-    return train(cfg, Path(HydraConfig.get().runtime.output_dir))
+    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    return train_in_folder(cfg, Path(HydraConfig.get().runtime.output_dir), key)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
+from cicfw.config_checks import forget_empty_cache_setting
+
 OPEN_NODE = "cicfw_open_node"
 
 
@@ -18,3 +20,6 @@ def _open_node():
 
 
 ConfigStore.instance().store(name=OPEN_NODE, node=_open_node(), provider="cicfw")
+# The configs read the cache folder with ${oc.env:CICFW_CACHE,<default>}, which takes an empty value as
+# given; before any of them is resolved, an empty CICFW_CACHE is dropped, so that it means the default.
+forget_empty_cache_setting()

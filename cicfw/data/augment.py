@@ -34,17 +34,29 @@ class AugmentConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "AugmentConfig":
+        """The config from ``data.augment``'s overrides, every value checked by its key (a probability in
+        [0, 1], a range ``[low, high]`` of numbers inside its domain) before any batch is augmented."""
+        from cicfw.config_checks import checked_probability, checked_range
+
+        inf = float("inf")
+        domains = {  # each range's (lowest, highest, the lowest allowed, in words)
+            "blur_sigma": (0.0, inf, True, "a sigma >= 0 (pixels)"),
+            "noise_std": (0.0, inf, True, "a standard deviation >= 0 (pixel levels)"),
+            "dropout_fraction": (0.0, 1.0, True, "a fraction in [0, 1]"),
+            "coarse_fraction": (0.0, 1.0, True, "a fraction in [0, 1]"),
+            "coarse_size": (0.0, 1.0, False, "a size in (0, 1] of the image side"),
+            "add": (-255.0, 255.0, True, "pixel levels in [-255, 255]"),
+            "multiply": (0.0, inf, True, "a factor >= 0"),
+            "contrast": (0.0, inf, True, "a factor >= 0"),
+        }
         d = dict(d or {})
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown augmentation option(s) {sorted(unknown)}; accepted: {sorted(known)}")
-        cfg = cls(**{k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in d.items()})
-        for f in fields(cls):
-            v = getattr(cfg, f.name)
-            if f.name.startswith("p_") and not 0.0 <= v <= 1.0:
-                raise ValueError(f"data.augment.{f.name} is a probability in [0, 1], got {v}")
-        return cfg
+        checked = {k: checked_probability(f"data.augment.{k}", v) if k.startswith("p_")
+                   else checked_range(f"data.augment.{k}", v, *domains[k]) for k, v in d.items()}
+        return cls(**checked)
 
 
 def augment_batch(images: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,119 @@
+"""Every value checked before work starts: the checkpoint's monitor, the augmentation ranges and the
+batches per epoch are refused by key before any data; a multirun whose job failed ends in one line,
+not a traceback; a disk that fills while evaluate writes its pictures is one line and no torn file."""
+from __future__ import annotations
+
+import csv
+import errno
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import cicfw.files
+from cicfw.evaluate import OutputWriteError, evaluate_policy
+from cicfw.train import make_datamodule, train
+from conftest import compose_train, write_tiny_dataset
+
+BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
+TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
+
+
+def _cfg(tmp_path: Path, *overrides: str):
+    return compose_train(*BASE, f"data.path={tmp_path}/data", *overrides)
+
+
+def _refused(tmp_path: Path, *overrides: str) -> str:
+    with pytest.raises(ValueError) as err:
+        train(_cfg(tmp_path, *overrides), tmp_path / "run")
+    text = str(err.value)
+    assert "\n" not in text
+    return text
+
+
+@pytest.mark.parametrize("overrides, start", [
+    (["optimized_metric=val/stear_mae"], "optimized_metric=val/stear_mae is not a metric the model logs; did you "
+                                         "mean 'val/steer_mae'? choose one of val/loss, val/steer_mae,"),
+    (["optimized_metric=closed_loop/success"], "optimized_metric=closed_loop/success is measured after training"),
+    (["head=softmax", "optimized_metric=val/bin_acc"], "optimized_metric=val/bin_acc is higher-is-better"),
+])
+def test_an_optimized_metric_the_model_does_not_log_is_refused_before_any_data(tmp_path, no_data, overrides, start):
+    text = _refused(tmp_path, *overrides)
+    assert text.startswith(start), text
+    assert "train/steer_mae" in text
+
+
+@pytest.mark.parametrize("augment, start", [
+    ("{add: 5}", "data.augment.add must be a range [low, high] of two numbers"),
+    ("{coarse_size: [0, 0], p_coarse_dropout: 1}", "data.augment.coarse_size must be a range [low, high] with low "
+                                                   "<= high, each a size in (0, 1]"),
+    ("{multiply: [1.2, 0.8]}", "data.augment.multiply must be a range [low, high] with low <= high"),
+    ("{dropout_fraction: [0, 2]}", "data.augment.dropout_fraction must be a range"),
+    ("{blur_sigma: [-1, 1]}", "data.augment.blur_sigma must be a range"),
+    ("{noise_std: [0, abc]}", "data.augment.noise_std must be a range [low, high] of two numbers"),
+    ("{p_blur: abc}", "data.augment.p_blur is a probability in [0, 1], got 'abc'"),
+])
+def test_a_bad_augmentation_range_is_refused_by_key_before_any_data(tmp_path, no_data, augment, start):
+    text = _refused(tmp_path, f"data.augment={augment}")
+    assert text.startswith(start), text
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "1.5", "true", "abc"])
+def test_batches_per_epoch_other_than_null_or_a_positive_integer_is_refused(tmp_path, no_data, value):
+    text = _refused(tmp_path, f"data.batches_per_epoch={value}")
+    assert text.startswith("data.batches_per_epoch must be ") and "null" in text, text  # not the sampler's len()
+
+
+@pytest.mark.parametrize("value", ["null", "1", "7"])
+def test_batches_per_epoch_null_or_a_positive_integer_passes(tmp_path, value):
+    make_datamodule(_cfg(tmp_path, f"data.batches_per_epoch={value}"))
+
+
+# ---- a multirun with a failing job ---------------------------------------------------------------
+
+
+def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    sweep = tmp_path / "sweep"
+    res = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast",
+                          "trainer.compile=false", "model.lr=0.001,abc", f"hydra.sweep.dir={sweep}"],
+                         capture_output=True, text=True, env={**os.environ, "HYDRA_FULL_ERROR": "0"}, timeout=600)
+    assert res.returncode != 0
+    assert "Traceback" not in res.stderr, res.stderr[-3000:]
+    errors = [line for line in res.stderr.splitlines() if line.startswith("cicfw:")]
+    assert len(errors) == 1, res.stderr[-3000:]
+    assert errors[0].startswith("cicfw: error: job 1 (") and " model.lr=abc) failed" in errors[0], errors[0]
+    assert ") failed: model.lr must be a number, got 'abc' (its log: " in errors[0], errors[0]
+    assert f"every job's status: {sweep / 'summary.csv'}" in errors[0]
+    with open(sweep / "summary.csv", newline="") as f:
+        rows = {r["job"]: r for r in csv.DictReader(f)}
+    assert rows["0"]["status"] == "ok" and rows["1"]["status"] == "failed"
+    assert "model.lr must be a number" in rows["1"]["error"]
+
+
+# ---- a full disk while evaluate writes its pictures ----------------------------------------------
+
+
+def test_a_full_disk_while_writing_the_pictures_is_one_line_and_leaves_no_torn_file(tmp_path, monkeypatch):
+    write_all = cicfw.files.write_all
+
+    def full_for_pictures(fd, data):
+        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        write_all(fd, data)
+
+    out = tmp_path / "run"
+    spec, suite = {"name": "constant", "steer": 0.0}, {"towns": [TOWN], "weathers": ["ClearNoon"], "limit": 1}
+    with monkeypatch.context() as mp:
+        mp.setattr(cicfw.files, "write_all", full_for_pictures)
+        with pytest.raises(OutputWriteError) as err:
+            evaluate_policy(spec, suite, {"workers": 1}, out)
+    text = str(err.value)
+    assert text.startswith(f"could not write '{out}/map_") and "(no space left on the device)" in text, text
+    assert "\n" not in text and "drives nothing again" in text
+    assert not [p.name for p in out.rglob("*") if p.name.startswith(".") and ".tmp" in p.name]
+    assert not list(out.glob("*.png"))
+    again = evaluate_policy(spec, suite, {"workers": 1}, out)  # room again: the pictures, nothing driven
+    assert again.driven == 0 and list(out.glob("*.png"))

@@ -1,0 +1,118 @@
+"""A training run owns its folder: it refuses a folder another run holds or wrote into (unless it
+resumes from that folder's own checkpoint), before Hydra writes there; an empty CICFW_CACHE means the
+default cache, not the file-system root."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from cicfw.locks import FolderBusy
+from cicfw.run_folder import (RunFolderError, TrainFolderLock, TrainRunFolderCheck, hold_train_folder,
+                              release_run_folder)
+from conftest import write_tiny_dataset
+
+ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+
+
+def _errors(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith("cicfw:")]
+
+
+# ---- train: one run per folder -----------------------------------------------------------------
+
+
+def _train_cmd(data: Path, run: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={data}", "data.batch_size=8",
+            "data.val_batch_size=8", "progress_bar=false", "trainer.compile=false", "trainer.max_epochs=1",
+            "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
+            "trainer.enable_model_summary=false", f"hydra.run.dir={run}", *extra]
+
+
+def test_a_second_run_into_the_same_folder_is_refused_and_leaves_the_first_whole(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "run"
+    first = subprocess.run(_train_cmd(data, run), capture_output=True, text=True, env=ENV, timeout=600)
+    assert first.returncode == 0, first.stderr[-3000:]
+    kept = {p: p.read_bytes() for p in (run / "csv" / "metrics.csv", run / "checkpoints" / "last.ckpt",
+                                        run / ".hydra" / "config.yaml")}
+    second = subprocess.run(_train_cmd(data, run, "seed=1"), capture_output=True, text=True, env=ENV, timeout=600)
+    assert second.returncode == 2, second.stderr[-3000:]
+    errors = _errors(second.stderr)
+    assert len(errors) == 1 and errors[0].startswith(f"cicfw: error: the run folder {str(run)!r} already holds "
+                                                     f"another run's outputs"), second.stderr[-3000:]
+    assert "hydra.run.dir=" in errors[0] and f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}" in errors[0]
+    assert "Traceback" not in second.stderr
+    assert {p: p.read_bytes() for p in kept} == kept  # metrics, checkpoint and .hydra as the first run left them
+    assert not (run / ".train.lock").exists()
+
+
+def test_resuming_from_the_folders_own_checkpoint_is_allowed(tmp_path):
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    with pytest.raises(RunFolderError, match="already holds another run's outputs"):
+        hold_train_folder(run)
+    with pytest.raises(RunFolderError, match="already holds another run's outputs"):
+        hold_train_folder(run, tmp_path / "elsewhere" / "last.ckpt")
+    for own in (run / "checkpoints" / "last.ckpt", "last"):
+        hold_train_folder(run, own)
+        release_run_folder(run)
+
+
+def test_a_folder_another_run_holds_is_refused(tmp_path):
+    run = tmp_path / "run"
+    other = TrainFolderLock(run, "hydra.run.dir").acquire()  # what a run started in the same second holds
+    try:
+        with pytest.raises(FolderBusy) as err:
+            hold_train_folder(run)
+        assert str(err.value).startswith(f"the run folder {str(run)!r} is in use by another training run (pid "
+                                         f"{os.getpid()}"), str(err.value)
+        assert "hydra.run.dir=<new folder>" in str(err.value)
+    finally:
+        other.release()
+    hold_train_folder(run)  # free again
+    release_run_folder(run)
+
+
+def test_a_ddp_worker_rank_shares_the_folder_its_rank_0_holds(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    rank0 = TrainFolderLock(run, "hydra.run.dir").acquire()
+    try:
+        monkeypatch.setenv("LOCAL_RANK", "1")  # Lightning's DDP re-runs the app per rank, into the same folder
+        hold_train_folder(run)
+        release_run_folder(run)
+        assert (run / ".train.lock").exists()  # still rank 0's
+    finally:
+        rank0.release()
+
+
+def test_the_apps_callback_refuses_a_held_folder_in_one_line_before_hydra_writes_there(tmp_path, capsys):
+    run = tmp_path / "run"
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": "train"}}})
+    other = TrainFolderLock(run, "hydra.run.dir").acquire()
+    try:
+        with pytest.raises(SystemExit) as stop:
+            TrainRunFolderCheck().on_run_start(config)
+    finally:
+        other.release()
+    assert stop.value.code == 2
+    errors = _errors(capsys.readouterr().err)
+    assert len(errors) == 1 and "is in use by another training run" in errors[0]
+    assert not (run / ".hydra").exists()
+
+
+# ---- the cache folder ----------------------------------------------------------------------------
+
+
+def test_an_empty_cicfw_cache_means_the_default_cache(tmp_path):
+    env = {**ENV, "CICFW_CACHE": "", "HOME": str(tmp_path)}
+    res = subprocess.run([sys.executable, "-m", "cicfw.train", "--cfg", "job", "--resolve"],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    path = OmegaConf.create(res.stdout).data.path
+    assert path == f"{tmp_path}/.cache/cicfw/datasets/sim_default", res.stdout
