@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.config_checks import check_kwargs, forget_empty_cache_setting, is_integer, type_problem, whole_number
 from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
 from cicfw.data.datamodule import CILDataModule
+from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
 from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
@@ -272,13 +273,14 @@ def with_checkpoint_io(plugins: Any) -> list[Any]:
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     """The best checkpoint by ``optimized_metric`` (first: ``trainer.checkpoint_callback``, and it saves
     before ``last.ckpt`` so that file records the updated best), ``last.ckpt``, the mixer's diagnostics,
-    the kept epochs and the progress bar."""
+    the data-wait report, the kept epochs and the progress bar."""
     callbacks: list[Callback] = [
         ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
                         save_last=False, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
                         auto_insert_metric_name=False),
         last_checkpoint(run_dir / "checkpoints"),
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
+        DataWait(),  # the share of step time spent waiting for data, in the log each epoch
     ]
     epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
     if epochs:

@@ -204,3 +204,29 @@ def test_streaming_keeps_a_bounded_number_of_files_open(tmp_path, monkeypatch):
     assert len(store._handles) == 2
     open_fds = {os.path.realpath(f"/proc/self/fd/{fd}") for fd in os.listdir("/proc/self/fd")}
     assert sum(str(f.resolve()) in open_fds for f in files) <= 2
+
+
+# --- the step waiting for data -------------------------------------------------------------------
+
+def test_the_wait_share_is_the_gaps_between_batches_over_the_whole(caplog):
+    from cicfw.data.wait import WARMUP_BATCHES, DataWait
+
+    # batch i starts at starts[i] and ends at ends[i] (seconds); the gaps before the warm-up batches
+    # are the workers starting and do not count
+    starts = [0.0, 5.0, 5.5, 6.0, 6.3, 7.0, 7.4]
+    ends = [4.0, 5.2, 5.7, 6.1, 6.5, 7.1, 7.6]
+    clock = iter(t for pair in zip(starts, ends) for t in pair)
+    cb = DataWait(clock=lambda: next(clock))
+    trainer = SimpleNamespace(global_rank=0)
+    logged = {}
+    module = SimpleNamespace(log=lambda k, v, **_: logged.update({k: v}))
+    cb.on_train_epoch_start(trainer, module)
+    for i in range(len(starts)):
+        cb.on_train_batch_start(trainer, module, None, i)
+        cb.on_train_batch_end(trainer, module, None, None, i)
+    wait = sum(starts[i] - ends[i - 1] for i in range(WARMUP_BATCHES, len(starts)))  # 0.3 + 0.2 + 0.5 + 0.3
+    step = sum(ends[i] - starts[i] for i in range(WARMUP_BATCHES, len(starts)))  # 0.1 + 0.2 + 0.1 + 0.2
+    with caplog.at_level("INFO"):
+        cb.on_train_epoch_end(trainer, module)
+    assert logged["perf/data_wait_share"] == pytest.approx(wait / (wait + step)) == pytest.approx(1.3 / 1.9)
+    assert "waited for data 68%" in caplog.text and "slower than training" in caplog.text

@@ -1,0 +1,65 @@
+"""How long the training step waits for data: the gap between one batch's end and the next one's start.
+
+A disk slower than the loader shows up here, said once per epoch in the log (a warning when the wait is
+at least ``WARN_SHARE`` of the time) and logged as ``perf/data_wait_share``, instead of as a silently
+slow run.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable
+
+import lightning as L
+from lightning.pytorch.callbacks import Callback
+
+log = logging.getLogger(__name__)
+
+WARN_SHARE = 0.10
+WARMUP_BATCHES = 3  # the first batches wait for the workers to start: not the loader's pace
+
+
+class DataWait(Callback):
+    """Accumulates wait and step time per epoch; reports the wait's share of the whole."""
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.clock = clock
+        self.wait = self.step = 0.0
+        self.batches = 0
+        self._start = self._end = None
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.wait = self.step = 0.0
+        self.batches = 0
+        self._end = None
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+        self._start = self.clock()
+        if self._end is not None and batch_idx >= WARMUP_BATCHES:
+            self.wait += self._start - self._end
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        self._end = self.clock()
+        if batch_idx >= WARMUP_BATCHES:
+            self.step += self._end - self._start
+            self.batches += 1
+
+    @property
+    def share(self) -> float:
+        total = self.wait + self.step
+        return self.wait / total if total > 0 else 0.0
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not self.batches:
+            return
+        pl_module.log("perf/data_wait_share", self.share, rank_zero_only=True)
+        if trainer.global_rank:
+            return
+        line = (f"data: the step waited for data {self.share:.0%} of the time over {self.batches} batches "
+                f"({1000 * self.wait / self.batches:.1f} ms wait, {1000 * self.step / self.batches:.1f} ms step per batch)")
+        if self.share >= WARN_SHARE:
+            log.warning("%s; the loader is slower than training: more data.num_workers, data.in_memory, or "
+                        "faster storage", line)
+        else:
+            log.info(line)
