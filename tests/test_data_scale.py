@@ -230,3 +230,25 @@ def test_the_wait_share_is_the_gaps_between_batches_over_the_whole(caplog):
         cb.on_train_epoch_end(trainer, module)
     assert logged["perf/data_wait_share"] == pytest.approx(wait / (wait + step)) == pytest.approx(1.3 / 1.9)
     assert "waited for data 68%" in caplog.text and "slower than training" in caplog.text
+
+
+# --- where the bytes are read from ---------------------------------------------------------------
+
+@pytest.mark.parametrize("layout", [dict(chunks=(1, 88, 200, 3)), dict(), dict(chunks=(1, 88, 200, 3), compression="gzip"),
+                                    dict(chunks=(2, 88, 200, 3))])
+def test_every_storage_layout_reads_the_images_h5py_reads(tmp_path, layout):
+    """Raw reads (one chunk per image, or contiguous) and the h5py fallback (compressed, other chunks)
+    give the very bytes h5py gives, duplicated rows included."""
+    from cicfw.data.frames import load_frames
+
+    rng = np.random.default_rng(4)
+    for i in range(3):
+        with h5py.File(tmp_path / f"f{i}.h5", "w") as f:
+            f.create_dataset("rgb", data=rng.integers(0, 255, (10, 88, 200, 3), dtype=np.uint8), **layout)
+            f["targets"] = make_targets(10, rng)
+    frames = load_frames(str(tmp_path))
+    idx = np.array([0, 3, 3, 7, 12, 25, 29, 12])
+    want = np.stack([h5py.File(frames.files[frames.file_idx[i]], "r")["rgb"][frames.row[i]] for i in idx])
+    assert np.array_equal(ImageStore(frames, in_memory=False).get(idx), want)
+    raw = layout.get("compression") is None and layout.get("chunks", (1,))[0] == 1
+    assert (images_module.raw_offsets(h5py.File(frames.files[0], "r")["rgb"]) is not None) == raw

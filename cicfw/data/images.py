@@ -1,7 +1,11 @@
 """ImageStore: the images of a Frames table, in RAM (one uint8 array) or read from the files per batch.
 
-Streaming keeps at most ``MAX_OPEN_FILES`` files open per process (a public-size dataset has thousands,
-more than many systems let a process open) and checks, at each read (one ``stat``, microseconds against
+Streaming reads an image where its bytes lie: for images stored uncompressed (the CoRL-2017 files and
+cicfw's own: one chunk per image, no filter) the byte offsets are read once per file from HDF5's chunk
+index and each image is then one ``pread``, several times faster than h5py's selection machinery for
+single rows; compressed images go through h5py. Files stay open between batches, at most
+``MAX_OPEN_FILES`` per process: half of its open-file limit, since a public-size dataset has thousands
+of files, more than many systems let a process open. It checks, at each read (one ``stat``, microseconds against
 milliseconds of reading), that a file is still the one whose labels were read at setup: a file replaced,
 shrunk or removed mid-run stops the run with one line naming it, never images paired with other labels
 (HDF5 reads past the end of a shrunk file as zeros, without an error).
@@ -9,6 +13,7 @@ shrunk or removed mid-run stops the run with one line naming it, never images pa
 from __future__ import annotations
 
 import os
+import resource
 from collections import OrderedDict
 from pathlib import Path
 
@@ -18,7 +23,8 @@ import numpy as np
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
 from cicfw.data.frames import Frames
 
-MAX_OPEN_FILES = 128
+MAX_OPEN_FILES = max(64, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2)
+FRAME_BYTES = int(np.prod(IMAGE_SHAPE))
 
 
 class DataChangedError(ValueError):
@@ -37,13 +43,59 @@ def identity(path: Path) -> tuple[int, int, int]:
     return st.st_ino, st.st_size, st.st_mtime_ns
 
 
+class FileImages:
+    """The image rows of one file: ``pread`` at byte offsets where they are stored raw, else h5py."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.h5: h5py.File | None = h5py.File(path, "r", rdcc_nbytes=0)
+        self.offsets = raw_offsets(self.h5[image_key(self.h5)])
+        self.fd: int | None = None
+        if self.offsets is not None:  # the HDF5 handle is no longer needed: one descriptor per file
+            self.h5.close()
+            self.h5, self.fd = None, os.open(path, os.O_RDONLY)
+
+    def read(self, rows: np.ndarray, out: np.ndarray) -> None:
+        """Rows ``rows`` (increasing) into ``out``."""
+        if self.fd is None:  # h5py wants strictly increasing rows: read each once, then repeat
+            unique, back = np.unique(rows, return_inverse=True)
+            out[:] = self.h5[image_key(self.h5)][unique][back]
+            return
+        for i, r in enumerate(rows):
+            got = os.preadv(self.fd, [out[i]], int(self.offsets[r]))
+            if got != FRAME_BYTES:
+                raise OSError(f"read {got} of {FRAME_BYTES} bytes of row {int(r)}: the file is shorter than its index")
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+        elif self.h5 is not None:
+            self.h5.close()
+
+
+def raw_offsets(ds: h5py.Dataset) -> np.ndarray | None:
+    """Byte offset of each image row where the images are stored unfiltered, one row per chunk or
+    contiguous; None otherwise (compressed, or another chunk shape)."""
+    plist = ds.id.get_create_plist()
+    if plist.get_nfilters():
+        return None
+    if ds.chunks is None:
+        start = ds.id.get_offset()
+        return None if start is None else start + np.arange(ds.shape[0], dtype=np.int64) * FRAME_BYTES
+    if tuple(ds.chunks) != (1, *IMAGE_SHAPE) or ds.id.get_num_chunks() != ds.shape[0]:
+        return None
+    offsets = np.empty(ds.shape[0], np.int64)
+    ds.id.chunk_iter(lambda info: offsets.__setitem__(info.chunk_offset[0], info.byte_offset))
+    return offsets
+
+
 class ImageStore:
     """Images by frame index, from RAM or from the files (``in_memory``)."""
 
     def __init__(self, frames: Frames, in_memory: bool) -> None:
         self.frames = frames
         self.array: np.ndarray | None = None
-        self._handles: OrderedDict[int, h5py.File] = OrderedDict()
+        self._handles: OrderedDict[int, FileImages] = OrderedDict()
         self._owner = os.getpid()
         used = np.unique(frames.file_idx)
         self._identity = {int(fi): identity(frames.files[fi]) for fi in used} if not in_memory else {}
@@ -64,8 +116,9 @@ class ImageStore:
             order = np.argsort(rows[sel])  # h5py wants increasing row indices
             path = self.frames.files[fi]
             try:
-                f = self._open(int(fi))
-                out[sel[order]] = f[image_key(f)][rows[sel][order]]
+                block = np.empty((len(sel), *IMAGE_SHAPE), np.uint8)
+                self._open(int(fi)).read(rows[sel][order], block)
+                out[sel[order]] = block
             except DataChangedError:
                 raise
             except (OSError, KeyError, IndexError, ValueError) as err:
@@ -73,7 +126,7 @@ class ImageStore:
                                        f"the file changed or vanished after the run started") from None
         return out
 
-    def _open(self, fi: int) -> h5py.File:
+    def _open(self, fi: int) -> FileImages:
         """An open handle on file ``fi``, checked against its setup identity; least recently used handles
         are closed beyond MAX_OPEN_FILES."""
         if os.getpid() != self._owner:  # a forked worker: the parent's HDF5 handles are not ours to use
@@ -84,8 +137,7 @@ class ImageStore:
             return self._handles[fi]
         while len(self._handles) >= MAX_OPEN_FILES:
             self._handles.popitem(last=False)[1].close()
-        # one image per chunk and random rows: HDF5's chunk cache would only hold memory
-        self._handles[fi] = h5py.File(self.frames.files[fi], "r", rdcc_nbytes=0)
+        self._handles[fi] = FileImages(self.frames.files[fi])
         return self._handles[fi]
 
     def _check(self, fi: int) -> None:
