@@ -2,7 +2,7 @@
 
     python bench/data_scale.py write /scratch/corl --files 3300          # the layout, random images (~35 GB)
     python bench/data_scale.py measure /scratch/corl [--modes auto,false,true] [--workers 0,2] [--batches 150]
-    python bench/data_scale.py train /scratch/corl [--steps 300] [--workers 0] [-- extra overrides]
+    python bench/data_scale.py train /scratch/corl [--steps 300] [--workers 0] [Hydra overrides ...]
 
 ``write`` makes files as the public set has them (200 frames each, ``rgb`` uint8 chunked per image,
 ``targets`` float32 with 28 columns, the four commands, three cameras, a few negative speeds); the images
@@ -177,7 +177,11 @@ def main() -> None:
     t.add_argument("--workers", type=int, default=0)
     t.add_argument("--run-dir", default="outputs/bench_data_scale")
     t.add_argument("overrides", nargs="*")
-    args = ap.parse_args()
+    args, extra = ap.parse_known_args()  # Hydra overrides may follow the options
+    if extra and args.what != "train":
+        ap.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.what == "train":
+        args.overrides = [*args.overrides, *extra]
     {"write": lambda: write(args.folder, args.files, args.seed), "measure": lambda: measure(args),
      "train": lambda: train(args)}[args.what]()
 

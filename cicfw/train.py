@@ -506,6 +506,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False) -> floa
 
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
     ensure_data(cfg.data)  # then the data: collected if needed,
+    datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
                       "was compiled is cached), run the same command again"):

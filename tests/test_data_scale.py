@@ -252,3 +252,24 @@ def test_every_storage_layout_reads_the_images_h5py_reads(tmp_path, layout):
     assert np.array_equal(ImageStore(frames, in_memory=False).get(idx), want)
     raw = layout.get("compression") is None and layout.get("chunks", (1,))[0] == 1
     assert (images_module.raw_offsets(h5py.File(frames.files[0], "r")["rgb"]) is not None) == raw
+
+
+def test_train_counts_a_copy_per_rank_before_the_ranks_start(tmp_path, monkeypatch):
+    """train sets the data up before fit starts the ranks: the trainer's world size must count already."""
+    import cicfw.data.datamodule as dm_module
+    from hydra import compose, initialize_config_module
+
+    from cicfw import train as train_module
+
+    seen = []
+    real = dm_module.decide
+    monkeypatch.setattr(dm_module, "decide", lambda frames, setting, copies=1: seen.append(copies) or real(frames, setting, copies))
+    monkeypatch.setattr(train_module, "fit", lambda *a, **k: (_ for _ in ()).throw(SystemExit("stop before fit")))
+    data = write_tiny_dataset(tmp_path / "d", n_files=4, n=24)
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "trainer=ddp",
+                                          "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
+                                          "trainer.compile=false", "progress_bar=false"])
+    with pytest.raises(SystemExit, match="stop before fit"):
+        train_module.train(cfg, tmp_path / "run")
+    assert seen == [2]

@@ -150,13 +150,15 @@ class CILDataModule(L.LightningDataModule):
         self.val_set = FrameDataset(val, ImageStore(val, residency.in_memory), None, self.seed)
 
     def _residency(self, frames: int):
-        """RAM or streamed, decided once for every rank (rank 0's reading of the memory counts)."""
+        """RAM or streamed, counting a copy per rank on this node; once the ranks' process group is up,
+        rank 0's decision holds for all (before it, as when train sets up the data ahead of fit, each
+        rank decides from its own reading of the memory)."""
         trainer = getattr(self, "trainer", None)
         copies = 1
         if trainer is not None and trainer.world_size > 1:
             copies = max(1, trainer.world_size // max(1, trainer.num_nodes))
         residency = decide(frames, self.in_memory, copies)
-        if trainer is not None and trainer.world_size > 1:
+        if copies > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
             residency = trainer.strategy.broadcast(residency, src=0)
         return residency
 
