@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cicfw.bench.policy import POLICIES, Policy
+from cicfw.benchmark.policy import POLICIES, Policy
 
 
 def load() -> str:
@@ -57,7 +57,7 @@ class ExpertSteeredNetwork(Policy):
     expert's steering, so episodes last as long as a competent model's. Timing only."""
 
     def __init__(self, checkpoint: str) -> None:
-        from cicfw.bench.policies import CheckpointPolicy, ExpertPolicy
+        from cicfw.benchmark.builtin_policies import CheckpointPolicy, ExpertPolicy
 
         self.net = CheckpointPolicy(checkpoint=checkpoint)
         self.expert = ExpertPolicy()
@@ -73,7 +73,7 @@ class ExpertSteeredNetwork(Policy):
 
 
 def cells_line(rows) -> str:
-    from cicfw.bench.report import Run, summary
+    from cicfw.benchmark.evaluation_report import Run, summary
 
     s = summary(Run("x", rows))
     return ", ".join(f"{v['name']}: {v['rate']:.2f}% ({v['success']}/{v['episodes']})" for v in s["cells"].values())
@@ -97,10 +97,10 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    from cicfw.bench.policies import CheckpointPolicy, ExpertPolicy
-    from cicfw.bench.report import Run, markdown_table
-    from cicfw.bench.runner import RunnerConfig, run
-    from cicfw.bench.suite import PAPER_WEATHERS, build_suite, make_backend
+    from cicfw.benchmark.builtin_policies import CheckpointPolicy, ExpertPolicy
+    from cicfw.benchmark.evaluation_report import Run, markdown_table
+    from cicfw.benchmark.runner import RunnerConfig, run
+    from cicfw.benchmark.suite import PAPER_WEATHERS, build_suite, make_backend
 
     print(f"closed-loop bench: {os.cpu_count()} cores, torch {torch.__version__}, {load()}")
     if args.only_inference:

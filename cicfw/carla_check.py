@@ -185,9 +185,9 @@ def run_checks(host: str = "localhost", port: int = 2000, town: str = "Town01", 
 
 
 def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, collect_seconds: float) -> None:
-    from cicfw.bench.policies import ExpertPolicy
-    from cicfw.bench.runner import RunnerConfig, drive
-    from cicfw.bench.suite import build_suite, suite_routes
+    from cicfw.benchmark.builtin_policies import ExpertPolicy
+    from cicfw.benchmark.runner import RunnerConfig, drive
+    from cicfw.benchmark.suite import build_suite, suite_routes
     from cicfw.carla_client.routes import STRAIGHT_MAX_DEG
     from cicfw.sim.expert import Expert
 

@@ -12,8 +12,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("cicfw.evaluate", "closed-loop evaluation on the single-turn suite (Hydra app)"),
     "preview": ("cicfw.sim.preview", "write the camera contact sheet and town maps as PNGs"),
     "reproduce": ("cicfw.reproduce", "the paper's Table 4: rows x seeds x a budget, intervals and verdicts"),
-    "report": ("cicfw.bench.report", "join evaluation runs into one table (or report a reproduction folder)"),
-    "video": ("cicfw.bench.video", "film episodes of a finished evaluation run (MP4)"),
+    "report": ("cicfw.benchmark.evaluation_report",
+               "join evaluation runs into one table (or report a reproduction folder)"),
+    "video": ("cicfw.benchmark.video", "film episodes of a finished evaluation run (MP4)"),
     "diagnose": ("cicfw.diagnose", "why a model misses turns: steering vs expert per junction phase, command swaps"),
     "export": ("cicfw.export", "a checkpoint as one ONNX or TorchScript graph, parity-checked (format=onnx|torchscript)"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     module, _ = COMMANDS[argv[0]]
     if argv[0] == "report" and len(argv) > 1 and (Path(argv[1]) / "reproduce.json").is_file():
-        module = "cicfw.bench.results"  # a reproduction's folder: its Table 4 with intervals and verdicts
+        module = "cicfw.reproduction.report"  # a reproduction's folder: its Table 4 with intervals and verdicts
     from cicfw.registry import guard_hydra_plugins
 
     guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app

@@ -7,7 +7,7 @@
 
 Per command and per junction phase (approach / inside / exit), how the predicted steering follows the
 expert's (slope, offset, MAE), and how far swapping the command on the same image moves it
-(``cicfw.bench.steer_diagnostic`` does the measuring; docs/evaluation.md reads the report). The frames
+(``cicfw.steer_diagnostic`` does the measuring; docs/evaluation.md reads the report). The frames
 are the training run's validation episodes: the split's settings (data path, seed, fraction, filters)
 come from the training run's saved config beside the checkpoint (``<run>/.hydra/config.yaml`` of a
 ``cicfw train`` run, or a ``cicfw reproduce`` cell's), and any ``data.*`` given here overrides them.
@@ -102,7 +102,7 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
         if "data" in cfg and "path" in cfg.data:
             return _data_values(cfg.data, str(path)), f"{path} (the training run's config)"
         if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
-            from cicfw.reproduce import row_overrides
+            from cicfw.reproduction.app import row_overrides
 
             row, seed = str(cfg.cell.row), int(cfg.cell.seed)
             tcfg = _compose_train(row_overrides(cfg, row, seed))
@@ -114,8 +114,8 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
     """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here."""
     import inspect
 
-    from cicfw.bench.steer_diagnostic import DataSettings
     from cicfw.data.datamodule import CILDataModule
+    from cicfw.steer_diagnostic import DataSettings
 
     params = inspect.signature(CILDataModule.__init__).parameters
     values = {k: params[k].default for k in SPLIT_KEYS if k != "path"}
@@ -146,7 +146,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     """Load the checkpoint, pick its frames, measure, write the report into ``out_dir``; returns the paths."""
     import torch
 
-    from cicfw.bench import steer_diagnostic as sd
+    from cicfw import steer_diagnostic as sd
     from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
 
     if not cfg.get("checkpoint"):

@@ -23,7 +23,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.bench.runs import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
+from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
 from cicfw.config_checks import whole_number
 from cicfw.errors import Interrupted, report_interrupts, report_user_errors
 from cicfw.override_hints import check_top_level_keys
@@ -123,11 +123,11 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
     """
-    from cicfw.bench.journal import EpisodeLog
-    from cicfw.bench.policy import Policy, make_policy
-    from cicfw.bench.report import markdown_table
-    from cicfw.bench.runner import run
-    from cicfw.bench.video import select_episodes
+    from cicfw.benchmark.evaluation_report import markdown_table
+    from cicfw.benchmark.journal import EpisodeLog
+    from cicfw.benchmark.policy import Policy, make_policy
+    from cicfw.benchmark.runner import run
+    from cicfw.benchmark.video import select_episodes
 
     out_dir = Path(out_dir)
     spec = dict(policy)
@@ -206,10 +206,10 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
     weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
     raises one ``ValueError`` line before anything is driven or written."""
-    from cicfw.bench.policy import POLICIES
-    from cicfw.bench.runner import RunnerConfig, server_specs
-    from cicfw.bench.suite import build_suite, make_backend
-    from cicfw.bench.video import select_episodes
+    from cicfw.benchmark.policy import POLICIES
+    from cicfw.benchmark.runner import RunnerConfig, server_specs
+    from cicfw.benchmark.suite import build_suite, make_backend
+    from cicfw.benchmark.video import select_episodes
     from cicfw.config_checks import check_kwargs
 
     check_kwargs("runner", "the runner", RunnerConfig, runner,
@@ -378,8 +378,8 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
 def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
                   meta: dict[str, Any]):
     """The report of the episodes finished so far, marked complete only when every one is."""
-    from cicfw.bench.report import write_run
-    from cicfw.bench.runs import Run
+    from cicfw.benchmark.evaluation_report import write_run
+    from cicfw.benchmark.finished_run import Run
 
     rows = [rows_by_index[e.index] for e in episodes if e.index in rows_by_index]
     complete = len(rows) == len(episodes)
@@ -392,16 +392,16 @@ def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], 
 def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
              maps: bool, filmed: Sequence[dict]) -> None:
     """The map per town, the bar chart, and the requested videos."""
-    from cicfw.bench.plots import bar_chart, town_maps
+    from cicfw.benchmark.plots import bar_chart, town_maps
 
-    from cicfw.bench.suite import town_label
+    from cicfw.benchmark.suite import town_label
 
     towns = {town_label(t): str(t) for t in towns}
     if maps:
         town_maps(report, trajectories, run_dir, towns)
     bar_chart([report], run_dir / "success_bars.png")
     if filmed:
-        from cicfw.bench.video import write_video
+        from cicfw.benchmark.video import write_video
         from cicfw.sim.town import load_town
 
         if sim_name != "embedded":
@@ -425,7 +425,7 @@ def join_sweep() -> None:
         sweep_dir = Path(HydraConfig.get().sweep.dir)
     except Exception:
         return
-    from cicfw.bench.report import find_runs, write_joined
+    from cicfw.benchmark.evaluation_report import find_runs, write_joined
 
     runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
     write_joined(runs, sweep_dir)

@@ -14,9 +14,9 @@ import pytest
 
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
-from cicfw.bench.policies import ConstantPolicy, ExpertPolicy  # noqa: E402
-from cicfw.bench.runner import RunnerConfig, run, server_specs  # noqa: E402
-from cicfw.bench.suite import build_suite  # noqa: E402
+from cicfw.benchmark.builtin_policies import ConstantPolicy, ExpertPolicy  # noqa: E402
+from cicfw.benchmark.runner import RunnerConfig, run, server_specs  # noqa: E402
+from cicfw.benchmark.suite import build_suite  # noqa: E402
 from cicfw.carla_client.backend import (CarlaBackend, CarlaBusy, CarlaSensorTimeout,  # noqa: E402
                                         steer_for_car)
 from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 import cicfw
-from cicfw import reproduce
+from cicfw.reproduction import app as reproduce
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -56,7 +56,7 @@ def test_continuing_with_a_machine_copies_only_that_machines_finished_cells(tmp_
     whose ``machine`` holds the text; the others are named, not copied; a failed cell is never copied."""
     import json
 
-    from cicfw.bench.published import continue_published
+    from cicfw.reproduction.published import continue_published
 
     src, dst = tmp_path / "published", tmp_path / "results"
     made = {"seed0": ("2 cores (Alpha CPU), no GPU", "ok"), "seed1": ("2 cores (Beta CPU), no GPU", "ok"),

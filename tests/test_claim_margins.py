@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cicfw.bench.analysis import analyse
-from cicfw.bench.cells import COLUMNS, CellResult
-from cicfw.bench.claims import (CONTRADICTED, INCONCLUSIVE, NOT_SHOWN, SUPPORTED, Claim, Part, check_margin, combine,
-                                default_claims, default_margin, judge, load_claims, part_verdict)
-from cicfw.bench.results import markdown, report_data
-from cicfw.bench.seed_stats import difference
+from cicfw.reproduction.analysis import analyse
+from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_SHOWN, SUPPORTED, Claim, Part, check_margin,
+                                       combine, default_claims, default_margin, judge, load_claims, part_verdict)
+from cicfw.reproduction.report import markdown, report_data
+from cicfw.reproduction.seed_stats import difference
 
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
 

@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from cicfw.bench.analysis import analyse, pair_cells
-from cicfw.bench.cells import COLUMNS, CellResult, cpu_counts, cpu_kind
-from cicfw.bench.claims import SUPPORTED, Claim, Part, judge
-from cicfw.bench.results import markdown, report_data
+from cicfw.reproduction.analysis import analyse, pair_cells
+from cicfw.reproduction.cells import COLUMNS, CellResult, cpu_counts, cpu_kind
+from cicfw.reproduction.claims import SUPPORTED, Claim, Part, judge
+from cicfw.reproduction.report import markdown, report_data
 
 AMD = "2 cores (AMD EPYC), no GPU, Python 3.11.7, torch 2.13.0+cpu"
 XEON = "2 cores (Intel(R) Xeon(R) Processor), no GPU, Python 3.11.7, torch 2.13.0+cpu"

@@ -1,4 +1,4 @@
-"""The steering diagnostic (``cicfw diagnose``, ``cicfw.bench.steer_diagnostic``) on models with a known answer.
+"""The steering diagnostic (``cicfw diagnose``, ``cicfw.steer_diagnostic``) on models with a known answer.
 
 The frames are tiny episodes whose image carries its own expert steering in one pixel, so a plain
 ``steer_fn`` can be a model with an exact, known relation to the expert: half the expert's steering
@@ -18,7 +18,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from cicfw.bench import steer_diagnostic as sd
+from cicfw import steer_diagnostic as sd
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 

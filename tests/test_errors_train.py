@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cicfw.bench.suite import check_names
+from cicfw.benchmark.suite import check_names
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.override_hints import override_hints
 from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train

@@ -15,9 +15,9 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from cicfw.bench.checkpoint import CheckpointPolicy
+from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
+from cicfw.benchmark.policy import Observations
 from cicfw.model.checkpoint import CheckpointError, load_model, read_checkpoint
-from cicfw.bench.policy import Observations
 from cicfw.model.module import CICModule
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -178,7 +178,7 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
     cap.release()
     assert ok and n == data["episodes"][1]["steps"] and frame.shape == (88 * 3 + 84, 600, 3)
     # any episode of a finished run can be filmed afterwards, with the same frames
-    from cicfw.bench import video as video_cli
+    from cicfw.benchmark import video as video_cli
 
     assert video_cli.main([str(out), "bench_town/MidRainyNoon/013"]) == 0
     cap = cv2.VideoCapture(str(video))
@@ -213,7 +213,7 @@ def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
 def test_a_cuda_device_this_machine_lacks_is_one_line_before_driving(ckpt: Path, tmp_path: Path, monkeypatch):
     """``policy.device=cuda`` on a machine without CUDA ended in torch's "Torch not compiled with CUDA
     enabled" traceback; the agent's device check (shared with diagnose) refuses it in one line."""
-    from cicfw.bench.journal import LOG_NAME
+    from cicfw.benchmark.journal import LOG_NAME
     from cicfw.evaluate import compose_config, evaluate
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.bench import report
-from cicfw.bench.report import Run, find_runs, latex_table, markdown_table, summary, write_run
+from cicfw.benchmark import evaluation_report as report
+from cicfw.benchmark.evaluation_report import Run, find_runs, latex_table, markdown_table, summary, write_run
 
 
 def rows(successes: dict[tuple[str, str], tuple[int, int]]) -> list[dict]:
@@ -85,7 +85,7 @@ def test_runs_are_written_read_back_and_joined(tmp_path: Path):
 
 
 def test_report_command_errors_are_one_line(tmp_path: Path):
-    proc = subprocess.run([sys.executable, "-m", "cicfw.bench.report", str(tmp_path / "nope")],
+    proc = subprocess.run([sys.executable, "-m", "cicfw.benchmark.evaluation_report", str(tmp_path / "nope")],
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.strip() == (f"cicfw: error: report: {str(tmp_path / 'nope')!r} is not a folder; give "

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cicfw.bench import report
-from cicfw.bench.journal import LOG_NAME, EpisodeLog, RunFolderError, read_log
-from cicfw.bench.policies import ExpertPolicy
-from cicfw.bench.policy import POLICIES
+from cicfw.benchmark import evaluation_report as report
+from cicfw.benchmark.builtin_policies import ExpertPolicy
+from cicfw.benchmark.journal import LOG_NAME, EpisodeLog, RunFolderError, read_log
+from cicfw.benchmark.policy import POLICIES
 from cicfw.evaluate import evaluate_policy, run_fingerprint
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -166,9 +166,9 @@ def test_an_episode_does_not_depend_on_the_episodes_beside_it(tmp_path: Path):
     """The simulator and the renderer keep no state across episodes: an episode driven alone or with
     others (in one lockstep batch, sharing one renderer) gives the same row and trajectory, so the
     episodes a resume drives are the ones an uninterrupted run drives."""
-    from cicfw.bench.policy import Observations, Policy
-    from cicfw.bench.runner import RunnerConfig, run
-    from cicfw.bench.suite import build_suite, make_backend
+    from cicfw.benchmark.policy import Observations, Policy
+    from cicfw.benchmark.runner import RunnerConfig, run
+    from cicfw.benchmark.suite import build_suite, make_backend
 
     class Looker(Policy):  # steers from its image, row by row (so the policy itself is batch-independent)
         cameras = ("centre",)
@@ -228,7 +228,7 @@ def test_the_app_refuses_with_its_own_hint(whole):
 
 
 def test_a_checkpoint_counts_by_its_contents_not_its_path(tmp_path: Path):
-    from cicfw.bench.runner import RunnerConfig
+    from cicfw.benchmark.runner import RunnerConfig
 
     a = tmp_path / "a.ckpt"
     a.write_bytes(b"weights one")
@@ -294,8 +294,8 @@ def test_the_report_refuses_a_partial_run_unless_asked(whole, tmp_path: Path, ca
 
 KILLER = """
 import os, signal, sys
-from cicfw.bench.policies import ExpertPolicy
-from cicfw.bench.policy import POLICIES
+from cicfw.benchmark.builtin_policies import ExpertPolicy
+from cicfw.benchmark.policy import POLICIES
 
 class KillingExpert(ExpertPolicy):
     served = 0
@@ -344,7 +344,7 @@ ORPHAN = """
 import multiprocessing as mp, sys, time
 
 def child():
-    from cicfw.bench.runner import _exit_with_parent
+    from cicfw.benchmark.runner import _exit_with_parent
     _exit_with_parent(0.1)
     time.sleep(120)
 

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cicfw.bench.policies import ConstantPolicy, ExpertPolicy
-from cicfw.bench.policy import Observations, Policy
-from cicfw.bench.runner import RunnerConfig, run
-from cicfw.bench.suite import build_suite, make_backend
+from cicfw.benchmark.builtin_policies import ConstantPolicy, ExpertPolicy
+from cicfw.benchmark.policy import Observations, Policy
+from cicfw.benchmark.runner import RunnerConfig, run
+from cicfw.benchmark.suite import build_suite, make_backend
 from cicfw.sim.town import load_town
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -159,8 +159,8 @@ def test_a_policy_returning_garbage_is_named():
 
 
 def test_workers_get_whole_cells_balanced_and_videos_are_chosen_by_id(backend):
-    from cicfw.bench.runner import shard
-    from cicfw.bench.video import select_episodes
+    from cicfw.benchmark.runner import shard
+    from cicfw.benchmark.video import select_episodes
 
     eps = build_suite(backend, ["town_a", "town_b"], ["ClearNoon", "ClearSunset", "MidRainyNoon"], limit=4)
     parts = shard(eps, 2)

@@ -26,11 +26,11 @@ from torch import nn
 
 import cicfw.export as export
 from cicfw.agent import Agent, AgentInputError, DrivingFunction
-from cicfw.bench.checkpoint import CheckpointPolicy
-from cicfw.model.checkpoint import CheckpointError, load_model
-from cicfw.bench.policy import Observations
+from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
+from cicfw.benchmark.policy import Observations
 from cicfw.data.cil_hdf5 import T, write_file
 from cicfw.export import ExportError, export_model
+from cicfw.model.checkpoint import CheckpointError, load_model
 from cicfw.model.encoders import Encoder
 from cicfw.model.module import CICModule
 from cicfw.registry import ENCODERS, HEADS, MIXERS

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cicfw.bench import report
-from cicfw.bench.report import Run, write_run
+from cicfw.benchmark import evaluation_report as report
+from cicfw.benchmark.evaluation_report import Run, write_run
 from cicfw.sim.town import MAX_TOWN_SIDE_M, TownError, build_town, load_town, town_path
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.bench.journal import LOG_NAME, read_log
+from cicfw.benchmark.journal import LOG_NAME, read_log
 from cicfw.evaluate import compose_config, evaluate
 from test_hostile_train import _errors, read_only_app
 
@@ -68,8 +68,8 @@ def test_report_files_are_readable_by_others_under_umask_022(tmp_path):
 
 INTERRUPTING = """
 import os, signal, sys
-from cicfw.bench.policies import ExpertPolicy
-from cicfw.bench.policy import POLICIES
+from cicfw.benchmark.builtin_policies import ExpertPolicy
+from cicfw.benchmark.policy import POLICIES
 
 
 class InterruptedExpert(ExpertPolicy):

@@ -1,20 +1,23 @@
 """Imports run one way, and every module of the package has its place in it::
 
-    apps (train, evaluate, collect, reproduce, export, diagnose, cli, carla_check, testing)
-      -> bench | collection | carla_client | results_lock
+    apps (train, evaluate, collect, reproduce and reproduction.app, export, diagnose, cli, carla_check, testing)
+      -> benchmark | reproduction | collection | carla_client | steer_diagnostic
       -> sim | model | data | agent
       -> base (registry, errors, files, config_checks, override_hints, run_folder, sweeps, locks, progress)
 
 A module imports its own layer and those below, never one above, and no module imports itself back
 through others (no circle). ``cicfw.agent`` is the model's inference path (a checkpoint or an exported
 model in, steering out): it sits with the model, and the benchmark's checkpoint policy and the export
-app build on it. A new module must be placed in ``LAYER_OF`` (a package entry places all of its modules).
+app build on it. ``cicfw.reproduction`` (a reproduction's lock, statistics and report) builds on the
+benchmark, never the other way; its ``app`` trains and evaluates through the apps, so it is one of them
+(``python -m cicfw.reproduce`` is its entry module). A new module must be placed in ``LAYER_OF`` (a package
+entry places all of its modules).
 
 ``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
 code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
 and ``cicfw.data`` import no simulator (and no benchmark). The CARLA client implements sim's interface
 and imports no benchmark, dataset or collection code. The collection stage (sim + data) and the CARLA
-check (bench + the CARLA client + collection) are imported by apps only.
+check (benchmark + the CARLA client + collection) are imported by apps only.
 
 Every ``import`` and ``from ... import`` in the package is read with ``ast`` (function-level ones
 included: a lazy import is still a dependency), so a lower layer reaching up fails here.
@@ -29,7 +32,8 @@ import pytest
 import cicfw
 
 PKG = Path(cicfw.__file__).parent
-APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.cli", "cicfw.carla_check")
+APPS = ("cicfw.train", "cicfw.evaluate", "cicfw.collect", "cicfw.reproduce", "cicfw.reproduction.app", "cicfw.cli",
+        "cicfw.carla_check")
 #: the layers, lowest first
 LAYERS = ("base", "core", "stage", "app")
 #: module or package -> its layer (a package places every module under it)
@@ -38,21 +42,24 @@ LAYER_OF = {
     "cicfw.config_checks": "base", "cicfw.override_hints": "base", "cicfw.run_folder": "base",
     "cicfw.sweeps": "base", "cicfw.locks": "base", "cicfw.progress": "base",
     "cicfw.sim": "core", "cicfw.model": "core", "cicfw.data": "core", "cicfw.agent": "core",
-    "cicfw.bench": "stage", "cicfw.collection": "stage", "cicfw.carla_client": "stage",
-    "cicfw.results_lock": "stage",
+    "cicfw.benchmark": "stage", "cicfw.reproduction": "stage", "cicfw.collection": "stage",
+    "cicfw.carla_client": "stage", "cicfw.steer_diagnostic": "stage",
     **{app: "app" for app in APPS}, "cicfw.export": "app", "cicfw.diagnose": "app", "cicfw.testing": "app",
 }
 #: package -> what none of its modules may import
 #: (``carla`` is CARLA's own client library: only the CARLA client may import it)
+BENCH = ("cicfw.benchmark", "cicfw.reproduction")
 FORBIDDEN = {
-    "sim": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "model": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "data": ("cicfw.bench", "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "carla_client": ("cicfw.bench", "cicfw.data", "cicfw.model", "cicfw.collection"),
+    "sim": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "model": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "data": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "carla_client": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.collection"),
     # the collection stage sits on the simulator interface and the data layer, nothing beside it
-    "collection": ("cicfw.bench", "cicfw.model", "cicfw.carla_client", "carla"),
+    "collection": (*BENCH, "cicfw.model", "cicfw.carla_client", "carla"),
     # the agent runs the model: no simulator, dataset or benchmark code
-    "agent": ("cicfw.bench", "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "agent": (*BENCH, "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collection", "carla"),
+    # the benchmark drives and reports runs; a reproduction builds on it, never the other way
+    "benchmark": ("cicfw.reproduction", "cicfw.steer_diagnostic"),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
 APPS_ONLY = ("cicfw.collection", "cicfw.carla_check")
@@ -171,7 +178,7 @@ def forbidden_imports(path: Path, root: Path = PKG.parent) -> list[str]:
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):
-    bad = tmp_path / "cicfw" / "bench" / "bad.py"
+    bad = tmp_path / "cicfw" / "benchmark" / "bad.py"
     bad.parent.mkdir(parents=True)
     bad.write_text("def f():\n    from cicfw.evaluate import load_trajectories\n    from .. import train\n")
     found = imports_of(bad, tmp_path)
@@ -200,11 +207,14 @@ def test_every_module_has_a_layer():
 
 
 def test_the_checker_refuses_an_unplaced_module_and_an_upward_import(tmp_path):
-    assert layer_of("cicfw.brand_new") is None and layer_of("cicfw.bench.brand_new") == "stage"
+    assert layer_of("cicfw.brand_new") is None and layer_of("cicfw.benchmark.brand_new") == "stage"
+    assert layer_of("cicfw.reproduction.cells") == "stage" and layer_of("cicfw.reproduction.app") == "app"
     bad = tmp_path / "cicfw" / "agent.py"
     bad.parent.mkdir(parents=True)
-    bad.write_text("def f():\n    from cicfw.bench.checkpoint import CheckpointPolicy\n    from cicfw import files\n")
-    assert upward_imports(bad, tmp_path) == ["cicfw.bench.checkpoint", "cicfw.bench.checkpoint.CheckpointPolicy"]
+    bad.write_text("def f():\n    from cicfw.benchmark.checkpoint_policy import CheckpointPolicy\n"
+                   "    from cicfw import files\n")
+    assert upward_imports(bad, tmp_path) == ["cicfw.benchmark.checkpoint_policy",
+                                             "cicfw.benchmark.checkpoint_policy.CheckpointPolicy"]
 
 
 @pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
@@ -218,14 +228,14 @@ def test_each_module_imports_only_its_layer_and_below(path):
 
 def test_the_checker_finds_a_circle_but_not_a_package_importing_its_submodule(tmp_path):
     pkg = tmp_path / "cicfw"
-    (pkg / "bench").mkdir(parents=True)
+    (pkg / "benchmark").mkdir(parents=True)
     (pkg / "__init__.py").write_text("")
-    (pkg / "bench" / "__init__.py").write_text("from cicfw.bench.a import A\n")
-    (pkg / "bench" / "a.py").write_text("from cicfw.bench import b\nA = 1\n")
-    (pkg / "bench" / "b.py").write_text("B = 2\n")
+    (pkg / "benchmark" / "__init__.py").write_text("from cicfw.benchmark.a import A\n")
+    (pkg / "benchmark" / "a.py").write_text("from cicfw.benchmark import b\nA = 1\n")
+    (pkg / "benchmark" / "b.py").write_text("B = 2\n")
     assert import_circles(module_graph(tmp_path)) == []
-    (pkg / "bench" / "b.py").write_text("def f():\n    from cicfw.bench.a import A\n")
-    assert import_circles(module_graph(tmp_path)) == [["cicfw.bench.a", "cicfw.bench.b"]]
+    (pkg / "benchmark" / "b.py").write_text("def f():\n    from cicfw.benchmark.a import A\n")
+    assert import_circles(module_graph(tmp_path)) == [["cicfw.benchmark.a", "cicfw.benchmark.b"]]
 
 
 def test_no_import_circle():
@@ -253,10 +263,11 @@ def test_only_apps_import_the_collection_stage_and_the_carla_check():
 
 
 def test_plots_and_report_do_not_import_each_other():
-    plots, report = PKG / "bench" / "plots.py", PKG / "bench" / "report.py"
-    assert not _reaches(imports_of(plots), "cicfw.bench.report"), "bench/plots.py imports bench/report.py"
+    plots, report = PKG / "benchmark" / "plots.py", PKG / "benchmark" / "evaluation_report.py"
+    assert not _reaches(imports_of(plots), "cicfw.benchmark.evaluation_report"), \
+        "benchmark/plots.py imports benchmark/evaluation_report.py"
     # report may draw its bar chart with plots, so only one direction is allowed
-    assert _reaches(imports_of(report), "cicfw.bench.plots")
+    assert _reaches(imports_of(report), "cicfw.benchmark.plots")
 
 
 def test_registry_is_the_bottom_layer():

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.bench.journal import LOCK_NAME as EVALUATE_LOCK
-from cicfw.bench.journal import EpisodeLog, RunFolderError
+from cicfw.benchmark.journal import LOCK_NAME as EVALUATE_LOCK
+from cicfw.benchmark.journal import EpisodeLog, RunFolderError
 from cicfw.collection import LOCK_NAME as COLLECT_LOCK
 from cicfw.collection import FolderLock as CollectLock
 from cicfw.collection import FolderLockedError
 from cicfw.locks import FolderBusy, FolderLock
-from cicfw.results_lock import LOCK_FILE, FolderInUse, ResultsLock
+from cicfw.reproduction.lock import LOCK_FILE, FolderInUse, ResultsLock
 from cicfw.sweeps import ROWS_DIR, RowsLock, rebuild_summary
 
 HOLDER = """

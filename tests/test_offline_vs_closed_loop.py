@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cicfw.bench.cells import COLUMNS
-from cicfw.bench.offline_vs_closed_loop import (Corr, Point, collect_points, pooled_within, selection_gain,
+from cicfw.reproduction.cells import COLUMNS
+from cicfw.reproduction.offline_vs_closed_loop import (Corr, Point, collect_points, pooled_within, selection_gain,
                                                 spearman_ci, t_interval, write_report)
 
 

@@ -1,4 +1,4 @@
-"""The paired switch comparison (cicfw.bench.paired_switch): its TOST recomputed by hand from Student's t,
+"""The paired switch comparison (cicfw.reproduction.paired_switch): its TOST recomputed by hand from Student's t,
 its verdicts on cells with a known answer, and its one-line errors."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from scipy import stats
 
-from cicfw.bench import paired_switch as ps
-from cicfw.bench.cells import COLUMNS
+from cicfw.reproduction import paired_switch as ps
+from cicfw.reproduction.cells import COLUMNS
 
 from conftest import wilson
 

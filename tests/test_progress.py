@@ -1,7 +1,7 @@
 """The project's progress bar: what the collection's and the runner's bars show, and silence when disabled."""
 from __future__ import annotations
 
-from cicfw.bench.runner import EpisodeBar
+from cicfw.benchmark.runner import EpisodeBar
 from cicfw.progress import ProgressBar
 
 

@@ -17,9 +17,9 @@ from typing import Any
 import pytest
 import yaml
 
-from cicfw.bench.cells import load_cells
-from cicfw.bench.claims import load_claims
-from cicfw.bench.results import markdown, report_data
+from cicfw.reproduction.cells import load_cells
+from cicfw.reproduction.claims import load_claims
+from cicfw.reproduction.report import markdown, report_data
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 

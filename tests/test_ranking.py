@@ -8,10 +8,10 @@ import math
 
 import pytest
 
-from cicfw.bench.analysis import analyse
-from cicfw.bench.cells import COLUMNS, CellResult
-from cicfw.bench.ranking import SEPARATED, TIED, TOO_FEW, forest, leader, ranking
-from cicfw.bench.results import markdown, report_data, write_report
+from cicfw.reproduction.analysis import analyse
+from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.ranking import SEPARATED, TIED, TOO_FEW, forest, leader, ranking
+from cicfw.reproduction.report import markdown, report_data, write_report
 
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
 CATALOGUE = {"cil": {"label": "CIL", "paper": [94.74, 86.84, 52.5, 46.25]},

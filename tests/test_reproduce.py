@@ -18,8 +18,8 @@ import stat
 import pytest
 
 import cicfw
-from cicfw import reproduce
-from cicfw.bench.published import publish
+from cicfw.reproduction import app as reproduce
+from cicfw.reproduction.published import publish
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 

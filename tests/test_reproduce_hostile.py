@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from cicfw import reproduce
-from cicfw.bench import results
-from cicfw.bench.cells import COLUMNS, CellResult
-from cicfw.bench.published import publish
+from cicfw.reproduction import app as reproduce
+from cicfw.reproduction import report as results
+from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.published import publish
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -202,7 +202,7 @@ def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsy
 HOLDER = """
 import sys, time
 from pathlib import Path
-from cicfw.results_lock import ResultsLock
+from cicfw.reproduction.lock import ResultsLock
 lock = ResultsLock(Path(sys.argv[1]))
 lock.acquire()
 print("held", flush=True)

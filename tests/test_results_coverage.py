@@ -1,7 +1,7 @@
 """Do the reproduction's 95% intervals cover the truth 95% of the time? Simulated experiments with a known
 truth: two rows with known success probabilities per table column, a seed-to-seed spread like the laptop
 cells' (about 6 points overall), the suite's single-turn columns (96 / 96 / 64 / 64 episodes, 320 in all),
-3 or 5 seeds per row. The t-intervals over seeds (``cicfw.bench.seed_stats``) must cover the true difference
+3 or 5 seeds per row. The t-intervals over seeds (``cicfw.reproduction.seed_stats``) must cover the true difference
 in at least 93% of experiments, and Fieller's interval the true ratio; the old two-level episode bootstrap is measured beside them (it covers
 less: printed, and only asserted to be below the t-interval's on the same experiments).
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cicfw.bench import analysis, cells, seed_stats
+from cicfw.reproduction import analysis, cells, seed_stats
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 

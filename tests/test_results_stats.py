@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cicfw.bench import results, seed_stats
-from cicfw.bench.cells import COLUMNS, CellResult
-from cicfw.bench.analysis import analyse, row_estimate
-from cicfw.bench.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, NOT_SHOWN, SUPPORTED, TOO_FEW, Claim, Part,
-                                _boot_part, combine, default_claims, judge, load_claims)
-from cicfw.bench.results import markdown, report_data
-from cicfw.bench.seed_stats import difference, holm, ratio_interval, t_interval
+from cicfw.reproduction import report as results
+from cicfw.reproduction import seed_stats
+from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.analysis import analyse, row_estimate
+from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, NOT_SHOWN, SUPPORTED, TOO_FEW, Claim,
+                                       Part, _boot_part, combine, default_claims, judge, load_claims)
+from cicfw.reproduction.report import markdown, report_data
+from cicfw.reproduction.seed_stats import difference, holm, ratio_interval, t_interval
 
 from conftest import wilson
 
@@ -531,7 +532,7 @@ def test_wall_time_table_names_each_cells_machine_where_they_differ():
 def test_a_row_keeps_its_colour_whichever_rows_the_folder_holds(tmp_path, monkeypatch):
     """Two folders' pictures are compared by colour: CIL's points are drawn in the same colour with GTU
     present or absent (its place in the catalogue fixes it), and two rows never share one."""
-    from cicfw.bench import plots
+    from cicfw.benchmark import plots
 
     drawn = []
     monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.append(fig) or path)

@@ -1,4 +1,4 @@
-"""The seeds' spread test (cicfw.bench.seed_spread) against hand computations: Pearson's statistic from its
+"""The seeds' spread test (cicfw.reproduction.seed_spread) against hand computations: Pearson's statistic from its
 formula, the p-value against an exact enumeration of every table with the same margins, its calibration
 when the seeds truly share one rate, and its place in the generated RESULTS.md."""
 from __future__ import annotations
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cicfw.bench.cells import COLUMNS, CellResult
-from cicfw.bench.results import markdown, report_data
-from cicfw.bench.seed_spread import seed_spread
+from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.report import markdown, report_data
+from cicfw.reproduction.seed_spread import seed_spread
 
 
 def pearson_by_hand(successes, episodes):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from cicfw.bench.checkpoint import CheckpointPolicy
+from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
+from cicfw.benchmark.policy import Observations
 from cicfw.model.checkpoint import load_model
-from cicfw.bench.policy import Observations
 from cicfw.model.module import CICModule
 from cicfw.model.speed import AUTO_COMPILE_MIN_STEPS, SpeedConfig, apply_speed, dummy_batch, planned_steps, time_steps
 from cicfw.train import train

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cicfw.bench.report import Run, markdown_table, summary
-from cicfw.bench.suite import build_suite, make_backend
+from cicfw.benchmark.evaluation_report import Run, markdown_table, summary
+from cicfw.benchmark.suite import build_suite, make_backend
 from cicfw.sim.town import load_town
 
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")

@@ -162,7 +162,7 @@ def test_a_dataset_hash_names_the_family_only_where_it_changes_the_data():
 
 
 def test_overrides_name_a_family_explicitly():
-    from cicfw.bench.suite import named_weather_family, with_weather_family
+    from cicfw.benchmark.suite import named_weather_family, with_weather_family
 
     assert with_weather_family(["suite=single_turn"]) == ["suite=single_turn", "sim.weather_family=carla"]
     assert with_weather_family(["suite=single_turn"], default="harsh")[-1] == "sim.weather_family=harsh"
@@ -174,7 +174,7 @@ def test_overrides_name_a_family_explicitly():
 
 
 def test_continuing_a_folder_pinned_before_the_families_keeps_its_harsh_weathers():
-    from cicfw import reproduce
+    from cicfw.reproduction import app as reproduce
 
     published = json.loads((REPO / "docs" / "results" / "converged6" / "reproduce.json").read_text())["pinned"]
     assert "sim.weather_family" not in " ".join(published["suite"])  # pinned before the families

@@ -52,7 +52,7 @@ class Policy(abc.ABC):
         """Steering (B,) in [-1, 1] for the batch; called once per step per chunk of episodes."""
 
 
-POLICIES: Registry = Registry("policy", "cicfw.policies", "cicfw.bench.policies")
+POLICIES: Registry = Registry("policy", "cicfw.policies", "cicfw.benchmark.builtin_policies")
 
 
 def make_policy(spec: Mapping[str, Any]) -> Policy:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cicfw.bench.policy import Observations, Policy
+from cicfw.benchmark.policy import Observations, Policy
 
 
 class CheckpointPolicy(Policy):

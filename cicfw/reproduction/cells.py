@@ -10,8 +10,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from cicfw.bench.runs import cell_key, cell_name
-from cicfw.bench.suite import CELLS
+from cicfw.benchmark.finished_run import cell_key, cell_name
+from cicfw.benchmark.suite import CELLS
 
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
 COLUMN_NAMES = tuple(cell_name(*c) for c in CELLS)

@@ -3,7 +3,7 @@
 A run folder holds ``episodes.json`` (rows + run metadata), ``episodes.csv``, ``summary.json``,
 ``table.md`` / ``table.tex`` (the paper's layout: rows are models; columns Training town / New town x
 Training weathers / New weathers; reach-destination success in percent), and pictures.
-``python -m cicfw.bench.report DIR...`` (or ``cicfw report DIR...``) joins run folders, or folders
+``python -m cicfw.benchmark.evaluation_report DIR...`` (or ``cicfw report DIR...``) joins run folders, or folders
 holding them (a multirun sweep), into one table with its bar chart.
 """
 from __future__ import annotations
@@ -18,10 +18,10 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from cicfw.bench.runs import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
+from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
     SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
 )
-from cicfw.bench.suite import CELLS
+from cicfw.benchmark.suite import CELLS
 
 ROW_FIELDS = (
     "model", "episode", "key", "town", "weather", "town_set", "weather_set", "pair", "route", "command",
@@ -211,7 +211,7 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
 def load_current_run(run_dir: str | Path) -> Run:
     """``load_run``, with a partial run's rows read from its episode log (what has finished so far,
     even when its evaluation was killed after writing the report)."""
-    from cicfw.bench.journal import read_log
+    from cicfw.benchmark.journal import read_log
 
     run = load_run(Path(run_dir))
     if not is_complete(run):
@@ -284,7 +284,7 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
         atomic_write(out_dir / "table.tex", latex_table(runs))
         atomic_write(out_dir / "table.csv", table_csv(runs))
         if plots:
-            from cicfw.bench.plots import bar_chart
+            from cicfw.benchmark.plots import bar_chart
 
             bar_chart(_marked(runs), out_dir / "success_bars.png")
     except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)

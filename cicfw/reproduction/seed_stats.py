@@ -1,6 +1,6 @@
 """Intervals with the seed as the unit of replication, the episodes' floor under them and Holm's control
 of a family of tests: plain numbers in, no cells (the method as the report states it is
-``cicfw.bench.results``'s docstring)."""
+``cicfw.reproduction.report``'s docstring)."""
 from __future__ import annotations
 
 import math

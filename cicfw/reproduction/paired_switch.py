@@ -1,9 +1,9 @@
 """Does a switch change driving? Two sets of cells of one row, the same seeds, one setting changed.
 
-    python -m cicfw.bench.paired_switch docs/results/converged6_bf16_xeon/cells/cil_bf16 \\
+    python -m cicfw.reproduction.paired_switch docs/results/converged6_bf16_xeon/cells/cil_bf16 \\
         docs/results/converged6_xeon/cells/cil --margin 5
 
-    python -m cicfw.bench.paired_switch --episodes docs/results/converged/cells/cil/seed2/cell.json \\
+    python -m cicfw.reproduction.paired_switch --episodes docs/results/converged/cells/cil/seed2/cell.json \\
         outputs/cil_seed2_6epochs/eval_epoch6            # one seed, two models: the same episodes
 
 A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, not by a short run's loss
@@ -30,9 +30,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.cells import COLUMNS, CellResult, load_cell, pooled_counts
-from cicfw.bench.seed_stats import MIN_SEEDS, contrast_level, difference, difference_terms, with_episode_floor
-from cicfw.bench.runs import cell_key
+from cicfw.benchmark.finished_run import cell_key
+from cicfw.reproduction.cells import COLUMNS, CellResult, load_cell, pooled_counts
+from cicfw.reproduction.seed_stats import MIN_SEEDS, contrast_level, difference, difference_terms, with_episode_floor
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
@@ -201,7 +201,8 @@ def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[boo
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line: two rows' cells (or, with --episodes, two runs' episodes) -> the table, rc 0."""
-    ap = argparse.ArgumentParser(prog="python -m cicfw.bench.paired_switch", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m cicfw.reproduction.paired_switch",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
     ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")
     ap.add_argument("--margin", type=float, default=5.0, help="equivalence margin in points (default 5)")

@@ -102,15 +102,15 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m cicfw.bench.video RUN_DIR [EPISODE ...]``: film episodes of a finished run."""
+    """``python -m cicfw.benchmark.video RUN_DIR [EPISODE ...]``: film episodes of a finished run."""
     import argparse
     import sys
 
-    from cicfw.bench.runs import load_run, load_trajectories
-    from cicfw.bench.suite import town_label
+    from cicfw.benchmark.finished_run import load_run, load_trajectories
+    from cicfw.benchmark.suite import town_label
     from cicfw.sim.town import load_town
 
-    ap = argparse.ArgumentParser(prog="python -m cicfw.bench.video",
+    ap = argparse.ArgumentParser(prog="python -m cicfw.benchmark.video",
                                  description="Film episodes of a finished evaluation run (MP4, centre camera).")
     ap.add_argument("run_dir", help="an evaluation run folder (episodes.json, trajectories.npz)")
     ap.add_argument("episodes", nargs="*", default=["failures"],

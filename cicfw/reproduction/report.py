@@ -45,7 +45,7 @@ Simulated experiments with a known truth (``tests/test_results_coverage.py``) ch
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
 Whether a row's seeds differ beyond the episodes' luck (the premise of the seed as the unit) is tested per
-row and column by ``cicfw.bench.seed_spread`` and shown as a table of its own.
+row and column by ``cicfw.reproduction.seed_spread`` and shown as a table of its own.
 
 **Secondary: the episode bootstrap.** Beside it, for comparison with earlier reports, a two-level
 percentile bootstrap (``n_boot`` replicates): each replicate draws the row's seeds with replacement and,
@@ -99,13 +99,13 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.analysis import analyse
-from cicfw.bench.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
-from cicfw.bench.claims import Claim, check_margin, default_claims, default_margin, holm_family_size, judge
-from cicfw.bench.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
-from cicfw.bench.seed_spread import seed_spread
-from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.files import atomic_write
+from cicfw.reproduction.analysis import analyse
+from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
+from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_family_size, judge
+from cicfw.reproduction.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
+from cicfw.reproduction.seed_spread import seed_spread
+from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
 
 #: what resuming a killed training changed, measured once: the report's footnote on resumed cells
 RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last epoch was 0.12519 uninterrupted "
@@ -127,7 +127,7 @@ def _method_text() -> str:
 
 def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
     """Per column (and per command in the bar's column, training town / training weathers): do the row's seeds
-    differ beyond the episodes' luck (``cicfw.bench.seed_spread``)? Empty with fewer than two seeds."""
+    differ beyond the episodes' luck (``cicfw.reproduction.seed_spread``)? Empty with fewer than two seeds."""
     if len(cs) < 2:
         return {}
 
@@ -519,8 +519,8 @@ def spread_lines(data: Mapping[str, Any]) -> list[str]:
     lines = ["", "## Do the seeds differ beyond the episodes' luck?", "",
              "Each entry: the p-value of the test that every seed of the row has the same success rate there "
              "(Pearson's chi-square of the seeds' successes and failures, p by Monte Carlo over tables with the "
-             "same margins, `cicfw.bench.seed_spread`), then each seed's failures in seed order. A small p: the "
-             "seeds trained models of different quality, beyond what the episodes' luck gives.", "",
+             "same margins, `cicfw.reproduction.seed_spread`), then each seed's failures in seed order. A small p: "
+             "the seeds trained models of different quality, beyond what the episodes' luck gives.", "",
              "| Row | Seeds | " + " | ".join(COLUMN_NAMES) + " | "
              + " | ".join(f"{COLUMN_NAMES[0]}: {m} turns" if m != "straight" else f"{COLUMN_NAMES[0]}: straight"
                           for m in commands) + " |",
@@ -579,7 +579,7 @@ def _colour(plt: Any, k: int) -> Any:
 def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
     """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses
     in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
-    from cicfw.bench.plots import _plt, _save
+    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     rows = data["rows"]
@@ -617,7 +617,7 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     rows = data.get("forest") or []
     if not rows:
         return None
-    from cicfw.bench.plots import _plt, _save
+    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     by = {r["row"]: r for r in data["rows"]}
@@ -660,7 +660,7 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     pts = curve_points(data)
     if not pts:
         return None
-    from cicfw.bench.plots import _plt, _save
+    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
@@ -723,12 +723,12 @@ def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m cicfw.bench.results RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
+    """``python -m cicfw.reproduction.report RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
     import argparse
     import sys
 
-    from cicfw.bench.claims import load_claims
-    from cicfw.bench.published import publish
+    from cicfw.reproduction.claims import load_claims
+    from cicfw.reproduction.published import publish
 
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
     ap.add_argument("results_dir")

@@ -7,8 +7,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
-from cicfw.bench.seed_stats import LEVEL, MIN_SEEDS, Estimate, pooled_clopper_pearson, t_interval
+from cicfw.reproduction.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
+from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS, Estimate, pooled_clopper_pearson, t_interval
 
 
 def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:

@@ -7,8 +7,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.analysis import Analysis
-from cicfw.bench.seed_stats import MIN_SEEDS, difference
+from cicfw.reproduction.analysis import Analysis
+from cicfw.reproduction.seed_stats import MIN_SEEDS, difference
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"

@@ -1,4 +1,5 @@
-"""Does a lower validation error mean a model that drives better? ``python -m cicfw.bench.offline_vs_closed_loop``.
+"""Does a lower validation error mean a model that drives better?
+``python -m cicfw.reproduction.offline_vs_closed_loop``.
 
 Reads every published cell (``docs/results/*/cells/*/seed*/cell.json``: a row trained with one seed, its
 best validation steer MAE and its closed-loop success per table column), keeps each distinct cell once
@@ -21,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from cicfw.bench.cells import COLUMN_NAMES, COLUMNS, load_cells
+from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
 
 Z95 = 1.959963984540054  # the standard normal's 97.5% point
 TARGETS = ("overall", *COLUMNS)
@@ -208,7 +209,7 @@ def _c(d: dict[str, Any]) -> str:
 def scatter(points: Sequence[Point], path: Path) -> Path:
     """Validation error against success, one panel per target and one within rows (both centred on
     their row's mean); colour by row, marker by CPU kind."""
-    from cicfw.bench.plots import _plt, _save
+    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     rows = sorted({p.row for p in points})
@@ -314,7 +315,7 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
     for g, d in res["groups"].items():
         lines.append(f"| {g} | " + " | ".join(_c(d[t]) for t in TARGETS) + " |")
     lines += ["", "![validation error vs success](offline_vs_closed_loop.png)", "",
-              "Made by `python -m cicfw.bench.offline_vs_closed_loop` (figures in results.json).", ""]
+              "Made by `python -m cicfw.reproduction.offline_vs_closed_loop` (figures in results.json).", ""]
     return "\n".join(lines)
 
 
@@ -381,7 +382,7 @@ def write_report(results: Path, out: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m cicfw.bench.offline_vs_closed_loop",
+    ap = argparse.ArgumentParser(prog="python -m cicfw.reproduction.offline_vs_closed_loop",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--results", default="docs/results", help="the folder of published studies (default: %(default)s)")
     ap.add_argument("--out", default="docs/results/offline_vs_closed_loop", help="report folder (default: %(default)s)")

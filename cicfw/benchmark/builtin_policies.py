@@ -6,8 +6,8 @@ from typing import Sequence
 
 import numpy as np
 
-from cicfw.bench.checkpoint import CheckpointPolicy
-from cicfw.bench.policy import POLICIES, Observations, Policy
+from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
+from cicfw.benchmark.policy import POLICIES, Observations, Policy
 
 POLICIES.register("checkpoint")(CheckpointPolicy)
 

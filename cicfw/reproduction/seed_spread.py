@@ -1,6 +1,6 @@
 """Do a row's seeds differ by more than their episodes' luck? One test per row and group of episodes.
 
-cicfw's intervals take the seed as the unit of replication (``cicfw.bench.results``); this looks at what the
+cicfw's intervals take the seed as the unit of replication (``cicfw.reproduction.report``); this looks at what the
 seeds' spread is made of. If every seed of a row had the same true success rate on a group of episodes (a
 table column, or one command inside it), the seeds' (successes, failures) there would form a 2 x k table
 whose spread is the episodes' luck alone. The test is Pearson's chi-square of that table, its p-value by

@@ -1,6 +1,7 @@
 """A finished evaluation run on disk, as the apps, the report and the pictures all read it: the
 ``Run`` (label, episode rows, metadata), its folder (``episodes.json``, ``trajectories.npz``), the
-paper's table cells. It imports nothing from the apps or from the report and plot modules, so every layer above can share it (apps -> bench -> sim/model/data -> registry).
+paper's table cells. It imports nothing from the apps or from the report and plot modules, so every layer
+above can share it (apps -> benchmark -> sim/model/data -> registry).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.suite import CELLS
+from cicfw.benchmark.suite import CELLS
 from cicfw.files import atomic_write
 
 SET_NAMES = {"training": "Training", "new": "New"}

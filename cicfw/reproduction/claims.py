@@ -10,9 +10,9 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.analysis import Analysis, Pairing, boot_value, percentile_interval
-from cicfw.bench.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
-from cicfw.bench.seed_stats import Estimate, difference, holm, ratio_interval, with_episode_floor
+from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
+from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
+from cicfw.reproduction.seed_stats import Estimate, difference, holm, ratio_interval, with_episode_floor
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
 TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"

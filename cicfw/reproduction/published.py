@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from cicfw.bench.cells import cell_files, finished_cells
 from cicfw.files import atomic_write
+from cicfw.reproduction.cells import cell_files, finished_cells
 
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:

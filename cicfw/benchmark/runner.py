@@ -23,8 +23,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.bench.policy import Observations, Policy, make_policy
-from cicfw.bench.suite import Episode, make_backend, suite_routes
+from cicfw.benchmark.policy import Observations, Policy, make_policy
+from cicfw.benchmark.suite import Episode, make_backend, suite_routes
 from cicfw.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
 

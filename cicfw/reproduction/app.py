@@ -1,0 +1,840 @@
+"""The reproduction app (``python -m cicfw.reproduce`` runs it): the paper's Table 4 as rows x seeds x one
+budget, with intervals and verdicts.
+
+    python -m cicfw.reproduce rows=[cil,gtu] seeds=3 budget=laptop
+    python -m cicfw.reproduce budget=smoke rows=[cil,gtu] seeds=2 results_dir=/tmp/smoke
+    python -m cicfw.reproduce launcher=joblib hydra.launcher.n_jobs=4      # cells in parallel processes
+
+    python -m cicfw.reproduce budget=converged continue_from=docs/results/converged \
+        publish_dir=docs/results/converged                                   # grow a published table
+
+Before anything is collected or trained, the app checks the plan: every key it was given (an unknown one
+is refused), the rows (each custom row's experiment, head, mixer and overrides compose), the seeds, the
+budget, the claims, ``publish_dir`` and ``continue_from``; it takes the results folder's lock (one run
+per folder: ``reproduce.lock`` names the holder; a stale lock, whose process on this host is gone, is
+taken over with a warning) and checks a folder (or a published one to continue) made with another
+budget or suite. Then it collects the budget's dataset once (every row trains on it) and pins the
+results folder to this budget, suite and dataset (``reproduce.json``): a folder made with another dataset
+is refused, and so is a finished cell trained on another dataset or with another model configuration
+(its ``recipe``). Each (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed``
+swept), so ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite
+and writes ``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch
+checkpoint (marked ``resumed`` in cell.json and in the report: resuming does not restore the data
+pipeline's random state) and its evaluation from the episodes it kept, a failed one records its one-line
+error and the others go on (the app then exits 1, naming the cells that did not finish). The report
+(``cicfw.reproduction.report``) is written at the end, and by ``cicfw report <results_dir>`` at any time.
+"""
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from cicfw.config_checks import is_integer
+from cicfw.files import atomic_write
+from cicfw.reproduction.lock import ResultsLock
+
+log = logging.getLogger("cicfw.reproduce")
+
+MANIFEST = "reproduce.json"
+CELL_FILE = "cell.json"
+#: the config groups conf/reproduce.yaml's defaults choose (``budget=...``, ``launcher=...``)
+GROUPS = ("budget", "launcher")
+#: what a catalogue entry (a row) may say
+ROW_KEYS = ("experiment", "overrides", "label", "paper")
+
+
+class ReproduceError(ValueError):
+    """A bad row, seed count, budget or results folder: one clear line."""
+
+
+# ------------------------------------------------------------------------------------------------
+# the plan: checked before anything runs
+
+
+def known_budgets() -> list[str]:
+    from importlib.resources import files
+
+    return sorted(p.name[:-5] for p in files("cicfw.conf").joinpath("budget").iterdir() if p.name.endswith(".yaml"))
+
+
+def _hydra_line(err: BaseException) -> str:
+    """A Hydra composition error as one line (its options list folded in)."""
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    if not lines:
+        return type(err).__name__
+    if any(ln.startswith("Available options in") for ln in lines):
+        start = next(i for i, ln in enumerate(lines) if ln.startswith("Available options in")) + 1
+        opts = []
+        for ln in lines[start:]:
+            if ln.startswith("Config search path"):
+                break
+            opts.append(ln)
+        return f"{lines[0]}; available: {', '.join(opts)}"
+    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://"))
+
+
+def _parse(overrides: Sequence[str]) -> list[Any]:
+    """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    parser, out = OverridesParser.create(), []
+    for o in overrides:
+        try:
+            out.extend(parser.parse_overrides([o]))
+        except OverrideParseException as err:
+            raise ReproduceError(
+                f"cannot parse the override {o!r}: {str(err).splitlines()[0]}; quote a value that holds '=', "
+                f"spaces or brackets, e.g. '+catalogue.mine={{experiment: paper_gtu, overrides: [\"head=hybrid\"], "
+                f"label: GTU+hybrid}}'") from None
+    return out
+
+
+def _unknown(what: str, key: str, override: str, accepted: Sequence[str], where: str) -> ReproduceError:
+    close = difflib.get_close_matches(key.split(".")[-1], list(accepted), n=1, cutoff=0.6)
+    hint = f" did you mean {close[0]!r}?" if close else ""
+    return ReproduceError(f"unknown key {what!r} ({override});{hint} accepted {where}: {', '.join(accepted)}")
+
+
+def compose_plan(overrides: Sequence[str]) -> DictConfig:
+    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch). Every
+    override must parse and name a key the app has (``+foo=1`` is refused, not silently carried)."""
+    from hydra import compose, initialize_config_module
+    from hydra.errors import HydraException
+
+    plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
+    parsed = _parse(plain)
+    for o in plain:
+        if o.split("=", 1)[0].lstrip("+~") == "budget" and "=" in o and o.split("=", 1)[1] not in known_budgets():
+            raise ReproduceError(f"unknown budget {o.split('=', 1)[1]!r}; known budgets: {', '.join(known_budgets())}")
+    group_choices = [o for o, p in zip(plain, parsed) if p.key_or_group in GROUPS]
+    try:
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            base = compose("reproduce", overrides=group_choices)
+            for o, p in zip(plain, parsed):
+                key = p.key_or_group
+                top = key.split(".")[0]
+                if key in GROUPS or top == "cell":
+                    continue
+                if top not in base:
+                    raise _unknown(top, top, o, [k for k in base if k != "cell"], "top-level keys")
+                if top == "budget" and "." in key and key.split(".")[1] not in base.budget:
+                    raise _unknown(".".join(key.split(".")[:2]), key.split(".")[1], o, list(base.budget),
+                                   f"keys of budget {base.budget.name}")
+            return compose("reproduce", overrides=plain)
+    except HydraException as err:
+        raise ReproduceError(_hydra_line(err)) from None
+
+
+def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
+    """The rows and seeds to run, or one error naming what is wrong and what is accepted."""
+    from cicfw.reproduction.claims import load_claims
+
+    catalogue = cfg.catalogue
+    rows = [str(r) for r in (cfg.rows if OmegaConf.is_list(cfg.rows) else [cfg.rows])]
+    if not rows:
+        raise ReproduceError(f"rows is empty; known rows: {', '.join(catalogue)}")
+    for r in rows:
+        if r not in catalogue:
+            raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
+        check_row_entry(r, catalogue[r])
+    if len(set(rows)) != len(rows):
+        raise ReproduceError(f"rows lists a row twice: {rows}")
+    seeds = _seed_list(cfg.seeds)
+    check_curve(cfg.budget)
+    load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
+    return rows, seeds
+
+
+def _seed_list(seeds: Any) -> list[int]:
+    """``seeds=5``: seeds 0..4; ``seeds=[3,4]``: those seeds only (a second machine's share of a table that
+    is continued with ``continue_from``); anything else: one error line."""
+    accepted = "a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4])"
+    if OmegaConf.is_list(seeds) or isinstance(seeds, list):
+        got = list(seeds)
+        if not got or not all(is_integer(x) and x >= 0 for x in got) or len(set(got)) != len(got):
+            raise ReproduceError(f"seeds must be {accepted}, got {got!r}")
+        return sorted(int(x) for x in got)
+    if not is_integer(seeds) or seeds < 1:
+        raise ReproduceError(f"seeds must be {accepted}, got {seeds!r}")
+    return list(range(int(seeds)))
+
+
+def check_curve(budget: DictConfig) -> None:
+    """``budget.curve_seeds`` and ``budget.curve_epochs`` lists of whole numbers (or null): read only after a
+    cell has trained, so a bad one is refused here instead of failing every curve cell."""
+    for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
+                             ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
+        got = budget.get(key)
+        if got is None:
+            continue
+        values = list(got) if OmegaConf.is_list(got) else None
+        if values is None or not all(is_integer(x) and x >= least for x in values):
+            shown = OmegaConf.to_container(got) if OmegaConf.is_config(got) else got
+            raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
+                                 f"null, got {shown!r}")
+
+
+def check_row_entry(row: str, entry: Any) -> None:
+    """A catalogue entry: ``{experiment, overrides, label, paper}``, each of the right kind."""
+    if not OmegaConf.is_dict(entry):
+        raise ReproduceError(f"catalogue.{row} must be {{experiment: <name>, overrides: [...], label: <text>, "
+                             f"paper: [4 values] or null}}, got {entry!r}")
+    unknown = [str(k) for k in entry if k not in ROW_KEYS]
+    if unknown:
+        raise ReproduceError(f"catalogue.{row}: unknown key {unknown[0]!r}; accepted: {', '.join(ROW_KEYS)}")
+    if not entry.get("experiment"):
+        raise ReproduceError(f"catalogue.{row} has no experiment; give experiment: <one of conf/experiment/> "
+                             f"(e.g. paper_gtu), with overrides: [...] for what the row changes")
+    ov = entry.get("overrides")
+    if ov is not None and not (OmegaConf.is_list(ov) and all(isinstance(o, str) for o in ov)):
+        raise ReproduceError(f"catalogue.{row}.overrides must be a list of train overrides (quoted when they hold "
+                             f"'=': [\"head=hybrid\"]), got {OmegaConf.to_container(ov) if OmegaConf.is_config(ov) else ov!r}")
+    paper = entry.get("paper")
+    if paper is not None and not (OmegaConf.is_list(paper) and len(paper) == 4
+                                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in paper)):
+        raise ReproduceError(f"catalogue.{row}.paper must be the paper's 4 Table-4 values (training town: training / "
+                             f"new weathers, new town: training / new weathers) or null")
+
+
+def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
+    """Every row's training config composes and names a registered encoder, mixer and head: a custom row
+    with an unknown experiment, head or mixer is refused before anything is collected or trained."""
+    from hydra import initialize_config_module
+    from hydra.errors import HydraException, MissingConfigException
+
+    from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        for r in rows:
+            entry = cfg.catalogue[r]
+            ov = [str(o) for o in entry.get("overrides") or []]
+            what = f"row {r!r} (experiment {entry.experiment}" + (f", overrides {ov})" if ov else ")")
+            try:
+                tcfg = compose_train(cfg, r, 0)
+            except MissingConfigException as err:
+                line = _hydra_line(err)
+                import re
+
+                m = re.search(r"Could not find '([\w-]+)/([^']+)'", line)
+                if m and m.group(1) == "experiment":
+                    raise ReproduceError(f"row {r!r}: unknown experiment {m.group(2)!r}; known experiments: "
+                                         f"{line.split('available: ', 1)[-1]}") from None
+                if m:
+                    raise ReproduceError(f"{what}: unknown {m.group(1)} {m.group(2)!r}; known {m.group(1)}s: "
+                                         f"{line.split('available: ', 1)[-1]}") from None
+                raise ReproduceError(f"{what}: {line}") from None
+            except HydraException as err:
+                raise ReproduceError(f"{what}: {_hydra_line(err)}") from None
+            except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
+                raise ReproduceError(f"{what}: {_error_line(err)}") from None
+            for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
+                try:
+                    registry.get(str(tcfg[group].get("name")))
+                except UnknownNameError as err:
+                    raise ReproduceError(f"{what}: {err}") from None
+            try:
+                check_training(tcfg)
+            except (ValueError, TypeError, UnknownNameError) as err:
+                raise ReproduceError(f"{what}: {_error_line(err)}") from None
+
+
+def check_training(tcfg: DictConfig) -> None:
+    """What ``cicfw.train.train`` checks before it reads any data (top-level keys, the model's names, keys
+    and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
+    the dataset is collected rather than failing every cell of the row."""
+    from cicfw.model.speed import SpeedConfig
+    from cicfw.override_hints import check_top_level_keys
+    from cicfw.train import build_model, make_datamodule, trainer_kwargs
+
+    check_top_level_keys(tcfg, "train")
+    build_model(tcfg)
+    make_datamodule(tcfg)
+    trainer_kwargs(tcfg)
+    SpeedConfig.from_trainer_cfg(tcfg.trainer)
+
+
+def check_outputs(cfg: DictConfig) -> None:
+    """results_dir and publish_dir writable folders (or creatable), continue_from a published folder:
+    checked before any cell, so nothing fails after the work is done."""
+    from cicfw.reproduction.published import published_manifest
+
+    check_folder(Path(cfg.results_dir))
+    if cfg.get("publish_dir"):
+        pub = Path(cfg.publish_dir)
+        if pub.exists() and not pub.is_dir():
+            raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
+                                 f"(created if missing)")
+        check_folder(pub, "publish_dir")
+    if cfg.get("continue_from"):
+        published_manifest(Path(cfg.continue_from))
+    if cfg.get("continue_machine") is not None:
+        check_continue_machine(cfg)
+
+
+def check_continue_machine(cfg: DictConfig) -> None:
+    """``continue_machine`` filters the cells of ``continue_from``: without it, or matching none of its
+    finished cells, it is a typo, refused in one line that lists the machines there."""
+    from cicfw.reproduction.cells import finished_cells
+
+    text = str(cfg.continue_machine)
+    if not cfg.get("continue_from"):
+        raise ReproduceError(f"continue_machine={text!r} selects cells of a published folder; give "
+                             f"continue_from=<folder> too, or drop continue_machine")
+    machines = sorted({str(d.get("machine")) for d in finished_cells(Path(cfg.continue_from)).values()})
+    if not text or not any(text in m for m in machines):
+        raise ReproduceError(f"continue_machine={text!r} is in no finished cell's machine of "
+                             f"{str(cfg.continue_from)!r}; its machines: {'; '.join(machines) or 'none'}")
+
+
+def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
+    """conf/train.yaml overrides of one cell: the row's experiment, the budget, the seed."""
+    entry = cfg.catalogue[row]
+    return [f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
+            *[str(o) for o in cfg.budget.train], f"seed={seed}", f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
+
+
+def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
+    """The cell's training config; it keeps a checkpoint after every epoch (``epochNNN.ckpt``): the final
+    weights, the learning curve's points, and where a killed cell resumes."""
+    from hydra import compose
+
+    tcfg = compose("train", overrides=row_overrides(cfg, row, seed))
+    tcfg.keep_epoch_checkpoints = list(range(1, int(tcfg.trainer.max_epochs) + 1))
+    return tcfg
+
+
+def suite_overrides(cfg: DictConfig) -> list[str]:
+    """The budget's evaluate overrides with the embedded simulator's weather family named (``weather_family``,
+    else the simulator's default): what every cell drives, and what a folder is pinned to."""
+    from cicfw.benchmark.suite import with_weather_family
+
+    family = cfg.get("weather_family")
+    return with_weather_family(OmegaConf.to_container(cfg.budget.suite, resolve=True),
+                               None if family is None else str(family))
+
+
+def with_legacy_family(pinned: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A folder's pinned fingerprint with its weather family named: a folder pinned before the families
+    names none and was driven under the legacy (harsh) presets."""
+    from cicfw.benchmark.suite import with_weather_family
+    from cicfw.sim.render.weather import LEGACY_FAMILY
+
+    if pinned.get("suite") is None:
+        return pinned
+    return {**pinned, "suite": with_weather_family(pinned["suite"], default=LEGACY_FAMILY)}
+
+
+def suite_difference(theirs: Sequence[str], ours: Sequence[str]) -> str:
+    """How two pinned suites differ, for a refusal: their weather families when those differ, else both lists."""
+    from cicfw.benchmark.suite import named_weather_family
+
+    a, b = named_weather_family(theirs), named_weather_family(ours)
+    if a != b:
+        return f" (weather_family={a} there, {b} here: name it with weather_family={a})"
+    return f" (suite {list(theirs)} there, {list(ours)} here)"
+
+
+def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str, Any]:
+    """What a results folder is pinned to: the budget's training and suite settings and the dataset (None:
+    not known yet). The training overrides are kept as written (``${oc.env:CICFW_CACHE,...}`` unresolved),
+    so that a folder made on one machine is the same plan on another; ``train_resolved`` is compared too,
+    for folders pinned before that."""
+    budget = OmegaConf.to_container(cfg.budget, resolve=False)
+    pinned = {"budget": cfg.budget.name, "train": [str(o) for o in budget["train"]],
+              "suite": suite_overrides(cfg), "dataset": None if dataset is None else dataset.get("config_hash")}
+    pinned["hash"] = hashlib.sha256(json.dumps(pinned, sort_keys=True).encode()).hexdigest()[:16]
+    return pinned
+
+
+def pinned_differences(theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
+                       keys: Sequence[str] = ("budget", "train", "suite", "dataset")) -> list[str]:
+    """Which of ``keys`` a folder's pinned fingerprint (``theirs``) has otherwise than this plan's."""
+    resolved = [str(o) for o in OmegaConf.to_container(cfg.budget.train, resolve=True)]
+    theirs = with_legacy_family(theirs)
+    diff = []
+    for k in keys:
+        if k == "train" and theirs.get("train") in (ours["train"], resolved):
+            continue
+        if theirs.get(k) != ours.get(k):
+            diff.append(k)
+    return diff
+
+
+def refuse_other_pin(where: str, fix: str, theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
+                     keys: Sequence[str]) -> None:
+    """One line when a folder (``where``) is pinned to another budget, training, suite or dataset."""
+    diff = pinned_differences(theirs, ours, cfg, keys)
+    if not diff:
+        return
+    if "budget" in diff:
+        rest = [k for k in diff if k != "budget"]
+        raise ReproduceError(f"{where} was made with budget={theirs.get('budget')}, this run asks for "
+                             f"budget={ours['budget']}" + (f" (another {'/'.join(rest)})" if rest else "") + f"; {fix}")
+    data = (f" (dataset {theirs.get('dataset')} there, {ours.get('dataset')} here)" if "dataset" in diff else "")
+    if "suite" in diff:
+        data += suite_difference(with_legacy_family(theirs)["suite"], ours["suite"])
+    raise ReproduceError(f"{where} was made with budget={theirs.get('budget')} and another {'/'.join(diff)}{data}; "
+                         f"{fix}")
+
+
+#: the parts of a cell's training config that decide what it learns, kept in its cell.json (``recipe``):
+#: the network, the losses, the optimizer, the data pipeline (not where the data lies or how it is read)
+RECIPE = ("encoder", "mixer", "head", "model", "data")
+RECIPE_DATA_SKIP = ("path", "collect", "num_workers", "in_memory", "val_batch_size", "seed")
+
+
+def recipe(tcfg: DictConfig) -> dict[str, Any]:
+    """The cell's ``recipe``: what decides its model besides the seed (a continued cell is checked against it)."""
+    out = {k: OmegaConf.to_container(tcfg[k], resolve=True) for k in RECIPE if k in tcfg}
+    for k in RECIPE_DATA_SKIP:
+        (out.get("data") or {}).pop(k, None)
+    return json.loads(json.dumps(out))
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out = {}
+        for k, v in d.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: d}
+
+
+def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: str,
+                recipes: dict[str, dict[str, Any]]) -> None:
+    """Every finished cell under ``folder`` was trained on this dataset and as this cicfw trains its row
+    (its ``recipe``: a value both give that differs, e.g. another dropout, is refused; a key only one has
+    is not, since a new option's default keeps the old behaviour). Cells written before cells recorded
+    them (no ``dataset``/``recipe``) are not checked."""
+    from hydra import initialize_config_module
+
+    from cicfw.reproduction.cells import finished_cells
+
+    for name, d in finished_cells(folder).items():
+        if d.get("dataset") and dataset and d["dataset"] != dataset:
+            raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
+                                 f"{dataset}; {fix}")
+        row = str(d.get("row"))
+        if not d.get("recipe") or row not in cfg.catalogue:
+            continue
+        if row not in recipes:
+            with initialize_config_module("cicfw.conf", version_base="1.3"):
+                recipes[row] = recipe(compose_train(cfg, row, 0))
+        theirs, ours = _flat(d["recipe"]), _flat(recipes[row])
+        for k in sorted(set(theirs) & set(ours)):
+            if theirs[k] != ours[k]:
+                raise ReproduceError(f"cell {name} of {where} was trained with {k}={theirs[k]}, this run trains row "
+                                     f"{row} with {k}={ours[k]}; {fix}")
+
+
+def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
+    """Check the results folder (and the published folder to continue) against this plan's budget and
+    suite, collect the budget's dataset once, check its hash and the finished cells, copy a published
+    folder's finished cells in, then pin the folder; returns the manifest. Everything that can be checked
+    before collecting is."""
+    from hydra import initialize_config_module
+
+    from cicfw.reproduction.published import continue_published, published_manifest
+    from cicfw.train import ensure_data
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        tcfg = compose_train(cfg, rows[0], 0)
+        evcfg = compose_eval(cfg, [])
+        n_episodes = count_episodes(evcfg)
+    results_dir = Path(cfg.results_dir)
+    path = results_dir / MANIFEST
+    old = json.loads(path.read_text()) if path.is_file() else None
+    src = Path(cfg.continue_from) if cfg.get("continue_from") else None
+    published = published_manifest(src) if src is not None else None
+    folders = []  # (where, what to do instead, its pinned fingerprint)
+    if old is not None:
+        folders.append((f"results folder {str(results_dir)!r}",
+                        "start a new folder (results_dir=<new path>) or delete this one", old.get("pinned") or {}))
+    if published is not None:
+        folders.append((f"continue_from={str(src)!r}", f"continue it with budget={(published.get('pinned') or {}).get('budget')} "
+                        "and its dataset, or start a new folder without continue_from", published.get("pinned") or {}))
+    ours = fingerprint(cfg, None)
+    for where, fix, theirs in folders:  # before collecting: another budget, training or suite
+        refuse_other_pin(where, fix, theirs, ours, cfg, ("budget", "train", "suite"))
+    data_path = Path(tcfg.data.path).expanduser()
+    if folders and dataset_is_complete(data_path):  # collected before: its hash is known without collecting
+        early = fingerprint(cfg, dataset_info(data_path))
+        for where, fix, theirs in folders:
+            refuse_other_pin(where, fix, theirs, early, cfg, ("dataset",))
+    ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
+    dataset = dataset_info(data_path)
+    pinned = fingerprint(cfg, dataset)
+    for where, fix, theirs in folders:
+        refuse_other_pin(where, fix, theirs, pinned, cfg, ("budget", "train", "suite", "dataset"))
+    recipes: dict[str, dict[str, Any]] = {}
+    for where, fix, _ in folders:
+        folder = src if where.startswith("continue_from") else results_dir
+        label = repr(str(folder))
+        check_cells(folder, label, fix, cfg, pinned["dataset"], recipes)
+    manifest = old or {
+        "budget": pinned["budget"], "pinned": pinned, "suite": OmegaConf.to_container(evcfg.suite, resolve=True),
+        "episodes": n_episodes, "dataset": dataset,
+        "dataset_summary": f"{dataset.get('episodes')} episodes of {dataset.get('seconds')} s in "
+                           f"{'/'.join(dataset.get('towns') or [])} under {'/'.join(dataset.get('weathers') or [])}, "
+                           f"{dataset.get('samples')} samples in {dataset.get('files')} files",
+        "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
+    changed = old is None
+    if src is not None:
+        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
+        got = continue_published(src, results_dir, machine=only)
+        log.info("continue_from=%s: %d finished cell(s) copied, %d already here%s", src, len(got["copied"]),
+                 len(got["kept"]), f", {len(got['other_machine'])} left out (machine without {only!r})"
+                 if only is not None else "")
+        if got["copied"]:
+            entry = {"from": shown_path(src), "cells": got["copied"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+                     "machine": (published or {}).get("machine"), "created": (published or {}).get("created")}
+            if only is not None:
+                entry["only_machine"] = only
+            manifest.setdefault("continued_from", []).append(entry)
+            changed = True
+    if changed:
+        atomic_write(path, json.dumps(manifest, indent=1))
+    return manifest
+
+
+def shown_path(folder: Path) -> str:
+    """``folder`` as a published manifest records it: relative to the git work tree that holds it (what a
+    clone elsewhere can follow), else its absolute path; a machine's absolute path means nothing on the next one."""
+    folder = Path(folder).resolve()
+    for top in (folder, *folder.parents):
+        if (top / ".git").exists():
+            return folder.relative_to(top).as_posix()
+    return str(folder)
+
+
+def dataset_is_complete(path: Path) -> bool:
+    """Whether the collector's metadata says the dataset at ``path`` is complete (then collecting is a no-op)."""
+    for name in ("dataset_metadata.json", "metadata.json"):
+        try:
+            return bool(json.loads((path / name).read_text()).get("complete"))
+        except (OSError, ValueError, AttributeError):
+            continue
+    return False
+
+
+def check_folder(folder: Path, key: str = "results_dir") -> None:
+    """A folder must be writable (or creatable) before anything is collected or trained."""
+    p = folder
+    while not p.exists():
+        p = p.parent
+    if not p.is_dir() or not os.access(p, os.W_OK):
+        raise ReproduceError(f"{key} {str(folder)!r} cannot be written ({str(p)!r} is not a writable "
+                             f"folder); give {key}=<a writable path>")
+
+
+# ------------------------------------------------------------------------------------------------
+# where a folder and its cells were made: the dataset, the machine, the code
+
+
+def dataset_info(path: Path) -> dict[str, Any]:
+    """What a results folder pins of its dataset: a hash of its files' names and sizes, plus the collector's
+    metadata (episodes, seconds, towns, weathers, samples) for the report."""
+    meta = {}
+    for name in ("dataset_metadata.json", "metadata.json"):
+        if (path / name).is_file():
+            meta = json.loads((path / name).read_text())
+            break
+    files = sorted(path.rglob("*.h5")) + sorted(path.rglob("*.hdf5"))
+    chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
+    counts = meta.get("counts") or {}
+    cfg = meta.get("config") or {}
+    return {"path": str(path), "files": len(files), "samples": counts.get("samples"), "episodes": counts.get("episodes"),
+            "seconds": cfg.get("seconds"), "towns": cfg.get("towns"), "weathers": cfg.get("weathers"),
+            "config_hash": chash, "collect_config_hash": meta.get("config_hash"), "complete": meta.get("complete")}
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return f"{os.cpu_count()} cores ({cpu}), {gpu}, Python {platform.python_version()}, torch {torch.__version__}"
+
+
+def code() -> dict[str, Any]:
+    """Which cicfw made a cell: its version and, in a git clone, the commit and whether files differed from it.
+
+    Cells of one folder may come from several machines and commits (``continue_from``); this says which."""
+    import subprocess
+
+    import cicfw
+
+    here = Path(cicfw.__file__).resolve().parent.parent
+    out: dict[str, Any] = {"version": cicfw.__version__, "commit": None, "modified": None}
+    try:
+        git = ["git", "-C", str(here)]
+        top = subprocess.run([*git, "rev-parse", "--show-toplevel"], capture_output=True, text=True, timeout=10)
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != here:
+            return out  # not a clone of cicfw (an installed wheel, or a clone of something else around it)
+        head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        diff = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                              text=True, timeout=10)
+        if head.returncode == 0:
+            out["commit"] = head.stdout.strip()
+            out["modified"] = bool(diff.stdout.strip()) if diff.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass  # no git on this machine: the version alone
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# one cell
+
+
+def compose_eval(cfg: DictConfig, extra: Sequence[str]) -> DictConfig:
+    from hydra import compose
+
+    return compose("evaluate", overrides=[*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
+
+
+def count_episodes(evcfg: DictConfig) -> int:
+    from cicfw.benchmark.suite import build_suite, make_backend
+
+    return len(build_suite(make_backend(OmegaConf.to_container(evcfg.sim, resolve=True)),
+                           **OmegaConf.to_container(evcfg.suite, resolve=True)))
+
+
+def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
+    """Train and drive one (row, seed) cell into ``cell_dir``; ``cell.json`` is written last."""
+    row, seed = str(cfg.cell.row), int(cfg.cell.seed)
+    done = cell_dir / CELL_FILE
+    if done.is_file() and json.loads(done.read_text()).get("status") == "ok":
+        log.info("cell %s seed %d: finished before, skipped", row, seed)
+        return "skipped"
+    t0 = time.time()
+    try:
+        pinned = json.loads((Path(cfg.results_dir) / MANIFEST).read_text()).get("pinned") or {}
+    except (OSError, ValueError):
+        pinned = {}
+    try:
+        result = _train_and_drive(cfg, row, seed, cell_dir)
+        status = "ok"
+    except Exception as err:  # recorded with its one-line error (and the whole text); the other cells go on
+        import traceback
+
+        lines = [ln.strip() for ln in str(err).strip().splitlines() if ln.strip()]
+        # a worker's error is "evaluation worker k failed:" + its traceback: its last line says what failed
+        line = lines[0] if len(lines) < 2 or not lines[0].endswith(":") else f"{lines[0]} {lines[-1]}"
+        result = {"error": f"{type(err).__name__}: {line}",
+                  "detail": "".join(traceback.format_exception(err))[-4000:]}
+        status = "failed"
+        log.error("cell %s seed %d failed: %s\n%s", row, seed, result["error"], result["detail"])
+    atomic_write(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
+                                   "dataset": pinned.get("dataset"), **result}, indent=1))
+    return status
+
+
+def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> dict[str, Any]:
+    import torch
+
+    from cicfw.evaluate import evaluate
+    from cicfw.train import train
+
+    tcfg = compose_train(cfg, row, seed)
+    train_dir, ckpts = cell_dir / "train", cell_dir / "train" / "checkpoints"
+    trained = cell_dir / "train" / "trained.json"
+    epochs = int(tcfg.trainer.max_epochs)
+    if not trained.is_file():
+        saved = sorted(ckpts.glob("epoch[0-9][0-9][0-9].ckpt"))
+        resumed = None
+        if saved:  # a killed cell: resume its training from the latest epoch it saved
+            log.info("cell %s seed %d: resuming training from %s (the batch order and augmentation after it will "
+                     "not be the uninterrupted run's: the cell is marked resumed)", row, seed, saved[-1])
+            tcfg.ckpt_path = str(saved[-1])
+            resumed = {"training": {"from_epoch": int(saved[-1].stem[len("epoch"):])}}
+        log.info("cell %s seed %d: training (%s)", row, seed, tcfg.experiment if "experiment" in tcfg else row)
+        t = time.time()
+        val = train(tcfg, train_dir)
+        atomic_write(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
+                                          "resumed": resumed}))
+    info = json.loads(trained.read_text())
+    resumed = info.get("resumed")
+    if resumed is True:  # written by cicfw before the epoch was recorded
+        resumed = {"training": {"from_epoch": None}}
+    final = ckpts / f"epoch{epochs:03d}.ckpt"  # the final weights (last.ckpt follows the best-val checkpoints)
+
+    def drive(ckpt: Path, out: Path) -> tuple[dict, float]:
+        t = time.time()
+        evcfg = compose_eval(cfg, [f"checkpoint='{ckpt}'", f"name={row}"])
+        summary = evaluate(evcfg, out)
+        return summary, time.time() - t
+
+    log.info("cell %s seed %d: driving the suite", row, seed)
+    summary, eval_s = drive(final, cell_dir / "evaluate")
+    episodes = _episodes(cell_dir / "evaluate")
+    ck = torch.load(final, map_location="cpu", weights_only=True)
+    batch = int(tcfg.data.batch_size)
+    curve, curve_s = [], 0.0
+    if seed in [int(s) for s in cfg.budget.get("curve_seeds") or []]:
+        for e in cfg.budget.get("curve_epochs") or []:
+            p = ckpts / f"epoch{int(e):03d}.ckpt"
+            if int(e) >= epochs or not p.is_file():
+                continue
+            s, dt = drive(p, cell_dir / "curve" / f"epoch{int(e):03d}")
+            curve_s += dt
+            curve.append(_curve_point(p, s, batch))
+        curve.append(_curve_point(final, summary, batch))
+    hp = ck.get("hyper_parameters", {})
+    return {"decoder": (hp.get("head_kwargs") or {}).get("decode"), "head": hp.get("head"), "mixer": hp.get("mixer"),
+            "epochs": int(ck.get("epoch", -1)) + 1, "samples_seen": int(ck.get("global_step", 0)) * batch,
+            "val_steer_mae": info.get("val_steer_mae"), "success": summary["success"],
+            "cells": {k: v["rate"] for k, v in summary["cells"].items()},
+            "wall_s": {"train": info.get("train_s"), "evaluate": round(eval_s, 1), "curve": round(curve_s, 1)},
+            "curve": curve, "episodes": episodes, "machine": machine(), "code": code(), "resumed": resumed or None,
+            "recipe": recipe(tcfg)}
+
+
+def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
+    import torch
+
+    from cicfw.reproduction.cells import COLUMNS
+
+    ck = torch.load(ckpt, map_location="cpu", weights_only=True)
+    rates = {k: v["rate"] for k, v in summary["cells"].items()}
+    return {"epoch": int(ck.get("epoch", -1)) + 1, "samples": int(ck.get("global_step", 0)) * batch,
+            **rates, "overall": round(sum(rates.get(c, 0.0) for c in COLUMNS) / len(COLUMNS), 2)}
+
+
+def _episodes(run_dir: Path) -> dict[str, dict[str, Any]]:
+    from cicfw.benchmark.finished_run import cell_key, load_run
+
+    return {r["key"]: {"success": bool(r["success"]), "column": cell_key(r["town_set"], r["weather_set"]),
+                       "command": r["command"], "reason": r["reason"]}
+            for r in load_run(run_dir).rows}
+
+
+# ------------------------------------------------------------------------------------------------
+# the app
+
+
+@hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="reproduce")
+def _cell_job(cfg: DictConfig) -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    if cfg.cell.row is None:
+        raise ReproduceError("cell.row is set by `python -m cicfw.reproduce` itself; give rows=[...] instead")
+    return run_cell(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+def write_report(cfg: DictConfig) -> dict[str, Any] | None:
+    from cicfw.reproduction.claims import load_claims
+    from cicfw.reproduction.published import publish
+    from cicfw.reproduction.report import write_report as write
+
+    results_dir = Path(cfg.results_dir)
+    catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
+    data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
+                 margin=cfg.get("equivalence_margin"))
+    if cfg.get("publish_dir"):
+        publish(results_dir, Path(cfg.publish_dir))
+    return data
+
+
+def _error_line(err: BaseException) -> str:
+    if isinstance(err, OSError) and err.strerror and not isinstance(err, FileNotFoundError):
+        return f"cannot write {err.filename!r}: {err.strerror}" if err.filename else str(err.strerror)
+    return str(err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
+    write the report (and publish it)."""
+    from cicfw.errors import USER_ERRORS
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--resolve") or a.startswith("--cfg")
+           for a in args):
+        sys.argv = [sys.argv[0], *args]
+        _cell_job()
+        return 0
+    args = [a for a in args if a not in ("-m", "--multirun")]
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    lock = None
+    try:
+        cfg = compose_plan(args)
+        rows, seeds = check_plan(cfg)
+        check_rows(cfg, rows)
+        check_outputs(cfg)
+        lock = ResultsLock(Path(cfg.results_dir)).acquire()
+        manifest = prepare(cfg, rows)
+    except USER_ERRORS as err:
+        if lock is not None:
+            lock.release()
+        print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
+        return 2
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+    log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
+             manifest["budget"], manifest["episodes"], cfg.results_dir)
+    # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still
+    # compares every row on the same seeds
+    sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
+    t0 = time.time()
+    code = 0
+    try:
+        _cell_job()
+    except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
+        if e.code not in (0, None):
+            log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
+    finally:
+        try:
+            data = write_report(cfg)
+            log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
+                     time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
+        except ValueError as err:
+            log.error("no report: %s", err)
+        except OSError as err:  # a publish_dir that became unwritable, a full disk: one line, the cells are kept
+            print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
+            code = 1
+        finally:
+            lock.release()
+    unfinished = unfinished_cells(Path(cfg.results_dir), rows, seeds)
+    if unfinished and not code:
+        print(f"cicfw: error: {len(unfinished)} of {len(rows) * len(seeds)} cells did not finish "
+              f"({', '.join(unfinished[:6])}{', ...' if len(unfinished) > 6 else ''}): their cell.json or the log "
+              f"above says why; a rerun of the same command retries them", file=sys.stderr)
+        code = 1
+    return code
+
+
+def unfinished_cells(results_dir: Path, rows: Sequence[str], seeds: Sequence[int]) -> list[str]:
+    """``row/seedK`` of this run's cells without a finished ``cell.json`` (failed, or never run because the
+    launcher stopped): the app then exits 1, so that a script sees the table is incomplete."""
+    out = []
+    for seed in seeds:
+        for row in rows:
+            p = results_dir / "cells" / row / f"seed{seed}" / CELL_FILE
+            try:
+                ok = json.loads(p.read_text()).get("status") == "ok"
+            except (OSError, ValueError, AttributeError):
+                ok = False
+            if not ok:
+                out.append(f"{row}/seed{seed}")
+    return out
+
