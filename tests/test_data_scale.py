@@ -273,3 +273,15 @@ def test_train_counts_a_copy_per_rank_before_the_ranks_start(tmp_path, monkeypat
     with pytest.raises(SystemExit, match="stop before fit"):
         train_module.train(cfg, tmp_path / "run")
     assert seen == [2]
+
+
+def test_batches_are_pinned_for_a_cuda_gpu_only(tmp_path):
+    from lightning.pytorch.accelerators import CPUAccelerator, CUDAAccelerator
+
+    dm = CILDataModule(str(write_tiny_dataset(tmp_path, n_files=4, n=24)), batch_size=8, in_memory=False)
+    dm.setup()
+    pinned = {}
+    for name, accelerator in (("cuda", CUDAAccelerator()), ("cpu", CPUAccelerator())):
+        dm.trainer = SimpleNamespace(**vars(fake_trainer(0, 1)), accelerator=accelerator)
+        pinned[name] = (dm.train_dataloader().pin_memory, dm.val_dataloader().pin_memory)
+    assert pinned == {"cuda": (True, True), "cpu": (False, False)}

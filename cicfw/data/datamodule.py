@@ -162,6 +162,13 @@ class CILDataModule(L.LightningDataModule):
             residency = trainer.strategy.broadcast(residency, src=0)
         return residency
 
+    def _pin_memory(self) -> bool:
+        """Page-locked batches when training on a CUDA GPU: the copy to the device overlaps the step."""
+        from lightning.pytorch.accelerators import CUDAAccelerator
+
+        trainer = getattr(self, "trainer", None)
+        return trainer is not None and isinstance(getattr(trainer, "accelerator", None), CUDAAccelerator)
+
     def _rank(self) -> tuple[int, int]:
         trainer = getattr(self, "trainer", None)
         return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
@@ -181,9 +188,9 @@ class CILDataModule(L.LightningDataModule):
         keyed = self.num_workers > 0 or world > 1
         return DataLoader(self.train_set, batch_sampler=SeededBatches(batches, self.seed, rank, start_epoch, keyed),
                           collate_fn=_as_batch, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0)
+                          persistent_workers=self.num_workers > 0, pin_memory=self._pin_memory())
 
     def val_dataloader(self) -> DataLoader:
         assert self.val_set is not None, "call setup() first"
         return DataLoader(self.val_set, batch_size=self.val_batch_size, shuffle=False,
-                          collate_fn=_as_batch, num_workers=self.num_workers)
+                          collate_fn=_as_batch, num_workers=self.num_workers, pin_memory=self._pin_memory())
