@@ -195,7 +195,7 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
     try:
         main()
     except SystemExit as exit_:
-        if exit_.code not in (None, 0, 130):  # 130: interrupted, no config to hint at
+        if exit_.code not in (None, 0, 130, 143):  # interrupted (Ctrl-C, SIGTERM): no config to hint at
             hints = missing_extras(sys.argv[1:])
             try:
                 hints += override_hints(config_name, sys.argv[1:], config_module)

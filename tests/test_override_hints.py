@@ -93,3 +93,16 @@ def test_a_key_under_an_empty_node_is_told_to_take_a_plus():
     assert hint == ("cicfw: hint: 'data.collect' is empty in the config (the keys it takes are documented beside "
                     "it), so a key under it is added with '+': +data.collect.towns=[town_b]")
     assert override_hints("train", ["+data.collect.towns=[town_b]"]) == []
+
+
+@pytest.mark.parametrize("code", [130, 143])
+def test_an_interrupted_app_gets_no_hints(monkeypatch, capsys, code):
+    """Ctrl-C (130) and SIGTERM (143) are stops, not config mistakes: no second composition, no hint."""
+    monkeypatch.setattr(sys, "argv", ["cicfw.train", "data.batchsize=3"])
+
+    def stopped_app() -> None:
+        sys.exit(code)
+
+    with pytest.raises(SystemExit):
+        run_app(stopped_app, "train")
+    assert capsys.readouterr().err == ""
