@@ -290,7 +290,8 @@ def test_results_folder_of_another_configuration_is_refused(cache, smoke_run, ca
     assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={smoke_run}", "budget.suite=['suite=single_turn','suite.limit=2']"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"cicfw: error: results folder '{smoke_run}' was made with budget=smoke "
-                                               f"and another suite; start a new folder (results_dir=<new path>)")
+                                               f"and another suite")
+    assert "suite.limit=2" in err[0] and "start a new folder (results_dir=<new path>)" in err[0]
 
 
 @pytest.mark.parametrize("args, message", [
