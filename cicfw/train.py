@@ -40,8 +40,21 @@ log = logging.getLogger("cicfw.train")
 # Trainer-config keys that are cicfw switches rather than Lightning Trainer arguments.
 SPEED_SWITCHES = ("compile", "channels_last", "adam", "keep_memory")
 
+def csv_logger(run_dir: Path) -> CSVLogger:
+    """``<run dir>/csv/metrics.csv``. Lightning's CSV logger deletes a metrics.csv it finds there, which a run
+    resumed in its own folder has: that file is kept first as ``metrics.<n>.csv``, and the log says so."""
+    metrics = Path(run_dir) / "csv" / "metrics.csv"
+    if metrics.is_file():
+        n = 1
+        while metrics.with_name(f"metrics.{n}.csv").exists():
+            n += 1
+        metrics.rename(metrics.with_name(f"metrics.{n}.csv"))
+        log.info("the metrics logged before this resume are kept in %s", metrics.with_name(f"metrics.{n}.csv"))
+    return CSVLogger(str(run_dir), name="csv", version="")
+
+
 LOGGERS: dict[str, Callable[[Path], Logger]] = {
-    "csv": lambda run_dir: CSVLogger(str(run_dir), name="csv", version=""),
+    "csv": csv_logger,
     "tensorboard": lambda run_dir: TensorBoardLogger(str(run_dir), name="tensorboard", version=""),
 }
 
