@@ -65,3 +65,35 @@ def test_two_cpu_processes_each_see_their_own_balanced_batches(tiny_data, tmp_pa
         seen[rank] = {s for b in batches for s in b["speed"]}
         assert len(seen[rank]) == 16  # no sample twice within a rank's two batches
     assert not seen[0] & seen[1], "the two ranks drew the same samples"
+
+
+class ImageRecorder(L.Callback):
+    """Appends a digest of each training batch's images to ``images<r>.txt``."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        import hashlib
+
+        with open(self.folder / f"images{trainer.global_rank}.txt", "a") as f:
+            f.write(hashlib.sha256(batch["image"].cpu().numpy().tobytes()).hexdigest() + "\n")
+
+
+def test_two_ranks_draw_different_augmentation(tmp_path):
+    """Every image one grey: the ranks' batches can differ only by their augmentation."""
+    import numpy as np
+
+    from cicfw.data.cil_hdf5 import write_file
+    from cicfw.testing import make_targets
+
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        write_file(tmp_path / "grey" / f"data_{i:05d}.h5", np.full((24, 88, 200, 3), 128, np.uint8), make_targets(24, rng))
+    cfg = _ddp_cfg(tmp_path / "grey", "trainer.strategy=ddp_spawn")
+    trainer = build_trainer(cfg, tmp_path / "run")
+    trainer.callbacks.append(ImageRecorder(tmp_path))
+    trainer.fit(build_model(cfg), datamodule=build_datamodule(cfg))
+    digests = [(tmp_path / f"images{rank}.txt").read_text().split() for rank in (0, 1)]
+    assert len(digests[0]) == len(digests[1]) == 2
+    assert not set(digests[0]) & set(digests[1]), "the two ranks drew the same augmentation"
