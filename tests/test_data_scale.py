@@ -285,3 +285,12 @@ def test_batches_are_pinned_for_a_cuda_gpu_only(tmp_path):
         dm.trainer = SimpleNamespace(**vars(fake_trainer(0, 1)), accelerator=accelerator)
         pinned[name] = (dm.train_dataloader().pin_memory, dm.val_dataloader().pin_memory)
     assert pinned == {"cuda": (True, True), "cpu": (False, False)}
+
+
+@pytest.mark.parametrize("augment", [0, 1, "", "off", [], [1]])
+def test_data_augment_takes_true_false_or_a_dict_only(augment):
+    """0, '' and [] used to switch CIL's full augmentation on; 1 was a TypeError deep in from_dict."""
+    with pytest.raises(ValueError, match="data.augment must be true"):
+        CILDataModule("unused", augment=augment)
+    assert CILDataModule("unused", augment=False).augment is None
+    assert CILDataModule("unused", augment={"p_blur": 0.2}).augment.p_blur == 0.2

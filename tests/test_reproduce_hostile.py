@@ -144,6 +144,15 @@ def test_bad_curve_lists_are_refused_up_front(arg, message, no_collect, tmp_path
     assert not out.exists()
 
 
+@pytest.mark.parametrize("margin", ["-1", "0", "abc", "nan"])
+def test_a_bad_equivalence_margin_is_refused_before_any_cell(margin, no_collect, tmp_path, capsys):
+    """The report needs the margin after every cell has run: a bad one is refused first, naming the key."""
+    out = tmp_path / "results"
+    msg = refused(["budget=smoke", "rows=[cil]", f"equivalence_margin={margin}", f"results_dir={out}"], capsys)
+    assert msg.startswith("equivalence_margin="), msg
+    assert not out.exists()
+
+
 def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
     """Every cell raising (its training, here): each records its error and the app ends with one line
     naming the cells that did not finish and rc 1, so that a script sees the table is incomplete."""

@@ -6,7 +6,7 @@ command), side cameras with a steering correction, CIL augmentation for training
 from __future__ import annotations
 
 import logging
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import lightning as L
 import numpy as np
@@ -126,8 +126,11 @@ class CILDataModule(L.LightningDataModule):
             self.augment = AugmentConfig()
         elif augment is False:
             self.augment = None
-        else:
+        elif isinstance(augment, Mapping):
             self.augment = AugmentConfig.from_dict(augment)
+        else:  # 0, '' or [] would read as "the defaults", 1 or 'off' as nothing a user means
+            raise ValueError(f"data.augment must be true (CIL's augmentation), false (none) or a dict of "
+                             f"overrides such as {{p_blur: 0.2}}, got {augment!r}")
         self.in_memory, self.num_workers = in_memory_setting(in_memory), num_workers
         self.train_set: FrameDataset | None = None
         self.val_set: FrameDataset | None = None

@@ -139,7 +139,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted."""
-    from cicfw.reproduction.claims import load_claims
+    from cicfw.reproduction.claims import check_margin, load_claims
 
     catalogue = cfg.catalogue
     rows = [str(r) for r in (cfg.rows if OmegaConf.is_list(cfg.rows) else [cfg.rows])]
@@ -154,6 +154,11 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     seeds = _seed_list(cfg.seeds)
     check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
+    if cfg.get("equivalence_margin") is not None:  # the report needs it after every cell: check it first
+        try:
+            check_margin(cfg.equivalence_margin)
+        except ValueError as err:
+            raise ReproduceError(str(err)) from None
     return rows, seeds
 
 
