@@ -294,3 +294,13 @@ def test_data_augment_takes_true_false_or_a_dict_only(augment):
         CILDataModule("unused", augment=augment)
     assert CILDataModule("unused", augment=False).augment is None
     assert CILDataModule("unused", augment={"p_blur": 0.2}).augment.p_blur == 0.2
+
+
+def test_a_dangling_link_in_the_data_folder_is_named(tmp_path, caplog):
+    from cicfw.data.cil_hdf5 import find_files
+
+    write_tiny_dataset(tmp_path, n_files=2, n=8)
+    (tmp_path / "data_00099.h5").symlink_to(tmp_path / "gone.h5")
+    with caplog.at_level("WARNING"):
+        assert len(find_files(tmp_path)) == 2
+    assert "data_00099.h5" in caplog.text and "point at nothing" in caplog.text

@@ -7,6 +7,7 @@ CoRL-2017 dataset's own README gives them (the files in circulation use ``rgb``;
 from __future__ import annotations
 
 import glob
+import logging
 import io
 import os
 from dataclasses import dataclass
@@ -16,6 +17,8 @@ import h5py
 import numpy as np
 
 from cicfw.files import atomic_write
+
+log = logging.getLogger(__name__)
 
 IMAGE_SHAPE = (88, 200, 3)  # rows, columns, RGB
 N_TARGETS = 28
@@ -76,7 +79,12 @@ def find_files(path: str | os.PathLike) -> list[Path]:
     p = str(path)
     p = os.path.expanduser(p)
     if os.path.isdir(p):
-        found = [f for f in Path(p).rglob("*") if is_hdf5_name(f) and f.is_file()]
+        named = [f for f in Path(p).rglob("*") if is_hdf5_name(f)]
+        found = [f for f in named if f.is_file()]
+        dangling = sorted(str(f) for f in named if f.is_symlink() and not f.exists())
+        if dangling:  # a link whose file is gone: its episodes are missing from the data, say so
+            log.warning("%d HDF5 link(s) under %s point at nothing and are skipped: %s", len(dangling), p,
+                        ", ".join(dangling[:5]) + (" ..." if len(dangling) > 5 else ""))
         files = [f for suffix in HDF5_SUFFIXES for f in sorted(found) if f.suffix.lower() == suffix]
     else:
         files = sorted(Path(f) for f in glob.glob(p, recursive=True) if os.path.isfile(f))
