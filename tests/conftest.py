@@ -81,3 +81,12 @@ def no_data(monkeypatch):
 
     monkeypatch.setattr(train_mod, "ensure_data", touched)
     monkeypatch.setattr(CILDataModule, "setup", touched)
+
+
+def process_alive(pid: int) -> bool:
+    """Running: not gone, and not a zombie waiting to be reaped (its new parent may not reap it at once)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")

@@ -28,6 +28,7 @@ import cicfw.files as files_mod
 from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
                               collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files
+from conftest import process_alive
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -62,13 +63,6 @@ def _wait_for(pred, timeout: float, what: str, proc: subprocess.Popen | None = N
         time.sleep(0.1)
 
 
-def _alive(pid: int) -> bool:
-    """Running (not gone, not a zombie waiting to be reaped)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 
 def _collector(out: Path, cfg: dict) -> subprocess.Popen:
@@ -170,11 +164,11 @@ def test_workers_end_when_their_collector_is_killed(tmp_path: Path):
         _wait_for(lambda: len(_holder(out).get("workers", [])) == 2, 600, "two workers", p)
         workers = _holder(out)["workers"]
         _wait_for(lambda: any((out / ".episodes").glob("*.json")), 600, "a first finished episode", p)
-        assert all(_alive(w) for w in workers)
+        assert all(process_alive(w) for w in workers)
         os.kill(p.pid, signal.SIGKILL)
         p.wait()
         t0 = time.monotonic()
-        _wait_for(lambda: not any(_alive(w) for w in workers), 10, "the workers to end after their parent")
+        _wait_for(lambda: not any(process_alive(w) for w in workers), 10, "the workers to end after their parent")
         print(f"workers gone {time.monotonic() - t0:.2f} s after the collector was killed")
     finally:
         if p.poll() is None:
@@ -231,14 +225,14 @@ def test_a_worker_process_dies_with_its_parent(mode: str):
     child = None
     try:
         child = int(parent.stdout.readline())
-        assert parent.stdout.readline().strip() == "ready" and _alive(child)
+        assert parent.stdout.readline().strip() == "ready" and process_alive(child)
         os.kill(parent.pid, signal.SIGKILL)
         parent.wait()
-        _wait_for(lambda: not _alive(child), 10, f"the child to die with its parent ({mode})")
+        _wait_for(lambda: not process_alive(child), 10, f"the child to die with its parent ({mode})")
     finally:
         if parent.poll() is None:
             parent.kill()
-        if child is not None and _alive(child):
+        if child is not None and process_alive(child):
             os.kill(child, signal.SIGKILL)
 
 
@@ -260,7 +254,7 @@ def test_ctrl_c_ends_the_workers_and_leaves_one_line(tmp_path: Path):
     assert p.returncode == 130 and "Traceback" not in err, err
     assert err.strip().splitlines()[-1] == (f"cicfw: interrupted; finished episodes are kept in {out}: rerun the "
                                             f"same command to resume")
-    assert not any(_alive(w) for w in workers) and _temp_files(out) == [] and _holder(out) == {}
+    assert not any(process_alive(w) for w in workers) and _temp_files(out) == [] and _holder(out) == {}
 
 
 def test_what_a_stopped_worker_left_is_removed_by_its_parent(tmp_path: Path, monkeypatch):

@@ -18,6 +18,7 @@ from cicfw.benchmark.builtin_policies import ExpertPolicy
 from cicfw.benchmark.journal import LOG_NAME, EpisodeLog, RunFolderError, read_log
 from cicfw.benchmark.policy import POLICIES
 from cicfw.evaluate import evaluate_policy, run_fingerprint
+from conftest import process_alive
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -367,22 +368,16 @@ def test_worker_processes_end_when_their_evaluation_is_killed(tmp_path: Path):
     child = 0
     try:
         child = int(parent.stdout.readline())
-        assert _alive(child)
+        assert process_alive(child)
         parent.send_signal(signal.SIGKILL)
         parent.wait()
         deadline = time.monotonic() + 10
-        while _alive(child) and time.monotonic() < deadline:
+        while process_alive(child) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert not _alive(child)
+        assert not process_alive(child)
     finally:
         parent.kill()
-        if child and _alive(child):
+        if child and process_alive(child):
             os.kill(child, signal.SIGKILL)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (FileNotFoundError, ProcessLookupError):
-        return False
-    return state not in ("Z", "X")  # a zombie has ended; its new parent may not reap it at once

@@ -16,6 +16,7 @@ import pytest
 
 from cicfw.collection import LOCK_NAME, collect_dataset
 from cicfw.errors import report_user_errors
+from conftest import process_alive
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"]}
 
@@ -82,12 +83,6 @@ def _holder(out: Path) -> dict:
         return {}
 
 
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 
 def _wait_for(pred, proc: subprocess.Popen, what: str, timeout: float = 600) -> None:
@@ -121,7 +116,7 @@ def test_sigterm_to_collect_ends_its_workers_and_leaves_no_part_file(tmp_path: P
     assert "Traceback" not in err and "resource_tracker" not in err, err
     assert err.strip().splitlines()[-1] == (f"cicfw: interrupted (SIGTERM); finished episodes are kept in {out}: "
                                             f"rerun the same command to resume")
-    assert not any(_alive(w) for w in workers)
+    assert not any(process_alive(w) for w in workers)
     assert not [q.name for q in out.rglob(".*") if q.is_file() and q.name != LOCK_NAME]
     assert _holder(out) == {}
 
