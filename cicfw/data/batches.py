@@ -41,22 +41,15 @@ class SeededBatches(Sampler[list[int]]):
     def __init__(self, batches: Sampler[list[int]], seed: int, rank: int = 0, start_epoch: int = 0,
                  keyed: bool = True) -> None:
         self.batches, self.seed, self.rank, self.keyed = batches, seed, rank, keyed
-        self.epoch: int | None = None  # None: count passes ourselves, from start_epoch (a resumed run's)
-        self._passes = start_epoch
+        self._passes = start_epoch  # each pass is an epoch; a resumed run starts at its own
         if start_epoch and hasattr(batches, "set_epoch"):
             batches.set_epoch(start_epoch)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Lightning calls this each epoch; the inner sampler's order follows it too."""
-        self.epoch = epoch
-        if hasattr(self.batches, "set_epoch"):
-            self.batches.set_epoch(epoch)
 
     def __len__(self) -> int:
         return len(self.batches)
 
     def __iter__(self) -> Iterator[SeededBatch]:
-        epoch = self._passes if self.epoch is None else self.epoch
+        epoch = self._passes
         self._passes += 1
         for i, indices in enumerate(self.batches):
             yield _seeded_batch(list(indices), (self.seed, self.rank, epoch, i) if self.keyed else ())
