@@ -1,0 +1,83 @@
+"""Choosing the relationship matrix R of the paper's "fine tuning" row (C = R . E) by validation error.
+
+The paper sets R "manually before training" and does not publish it. A reproduction needs a rule that
+does not peek at the driving suite: train each candidate R (conf/reproduce.yaml ``relation_candidates``)
+with the same seeds, and keep the one whose mean validation steering error (``val_steer_mae`` of its
+cells: the held-out part of the training town's data) is lowest; a tie keeps the earlier candidate.
+
+    python -m cicfw.reproduction.relation_choice outputs/reproduce/converged6_carla
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from cicfw.reproduction.cells import finished_cells
+
+
+@dataclass(frozen=True)
+class RelationChoice:
+    """The candidates' mean validation errors over the seeds they share, and the row kept."""
+
+    seeds: tuple[int, ...]
+    errors: dict[str, float]  # candidate row -> mean val_steer_mae over ``seeds``
+    chosen: str | None  # None while some candidate has no finished cell at a shared seed
+
+
+def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> dict[str, dict[int, float]]:
+    """row -> {seed: val_steer_mae} of the finished cells (``row/seedK`` -> cell.json) of ``rows``."""
+    out: dict[str, dict[int, float]] = {r: {} for r in rows}
+    for key, cell in cells.items():
+        row, seed = key.split("/seed")
+        value = cell.get("val_steer_mae")
+        if row in out and value is not None and math.isfinite(float(value)):
+            out[row][int(seed)] = float(value)
+    return out
+
+
+def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str]) -> RelationChoice:
+    """The lowest mean validation error over the seeds every candidate has (ties: the earlier candidate)."""
+    if not candidates:
+        raise ValueError("relation_candidates is empty; give the rows to choose R from, e.g. [re_all, re_pairs, re_none]")
+    shared = set.intersection(*(set(errors_by_seed.get(r, {})) for r in candidates))
+    seeds = tuple(sorted(shared))
+    if not seeds:
+        return RelationChoice((), {}, None)
+    errors = {r: sum(errors_by_seed[r][s] for s in seeds) / len(seeds) for r in candidates}
+    chosen = min(candidates, key=lambda r: (errors[r], candidates.index(r)))
+    return RelationChoice(seeds, errors, chosen)
+
+
+def choose_in(folder: Path, candidates: Sequence[str]) -> RelationChoice:
+    """``choose`` over the finished cells of a results (or published) folder."""
+    return choose(val_errors(finished_cells(folder), candidates), candidates)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m cicfw.reproduction.relation_choice",
+                                description="The R of the fine-tuning row, chosen by validation error.")
+    p.add_argument("folder", type=Path, help="a reproduction's results folder (or a published one)")
+    p.add_argument("--candidates", nargs="+", default=["re_all", "re_pairs", "re_none"],
+                   help="the candidate rows, in order of preference on a tie (default: %(default)s)")
+    args = p.parse_args(argv)
+    if not args.folder.is_dir():
+        print(f"relation_choice: {str(args.folder)!r} is not a folder; give a reproduction's results folder",
+              file=sys.stderr)
+        return 2
+    c = choose_in(args.folder, args.candidates)
+    if c.chosen is None:
+        print(f"no seed has a finished cell for every candidate ({', '.join(args.candidates)}); run "
+              f"python -m cicfw.reproduce 'rows=[{','.join(args.candidates)}]' 'seeds=[0]' first")
+        return 1
+    print(f"validation steering error (mean over seeds {list(c.seeds)}):")
+    for r in args.candidates:
+        print(f"  {r:12s} {c.errors[r]:.5f}{'  <- chosen' if r == c.chosen else ''}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

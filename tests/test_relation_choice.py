@@ -1,0 +1,58 @@
+"""Fine tuning's R chosen by validation error: the rule against hand arithmetic, and the command line."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cicfw.reproduction.relation_choice import choose, choose_in, main, val_errors
+
+
+def test_the_lowest_mean_over_shared_seeds_wins():
+    errors = {"re_all": {0: 0.050, 1: 0.070}, "re_pairs": {0: 0.040, 1: 0.090}, "re_none": {0: 0.060, 1: 0.055}}
+    c = choose(errors, ["re_all", "re_pairs", "re_none"])
+    # by hand: re_all (0.050 + 0.070) / 2 = 0.060, re_pairs 0.065, re_none 0.0575
+    assert c.seeds == (0, 1)
+    assert c.errors == pytest.approx({"re_all": 0.060, "re_pairs": 0.065, "re_none": 0.0575})
+    assert c.chosen == "re_none"
+
+
+def test_only_seeds_every_candidate_has_count():
+    errors = {"a": {0: 0.05, 1: 0.01}, "b": {0: 0.04}}
+    c = choose(errors, ["a", "b"])
+    assert c.seeds == (0,)  # seed 1 of a alone would make a win
+    assert c.chosen == "b"
+
+
+def test_a_tie_keeps_the_earlier_candidate():
+    assert choose({"x": {0: 0.05}, "y": {0: 0.05}}, ["y", "x"]).chosen == "y"
+
+
+def test_no_shared_seed_chooses_nothing():
+    assert choose({"a": {0: 0.05}, "b": {1: 0.04}}, ["a", "b"]).chosen is None
+    with pytest.raises(ValueError, match="relation_candidates"):
+        choose({}, [])
+
+
+def test_cells_without_a_finite_error_are_left_out():
+    cells = {"a/seed0": {"val_steer_mae": 0.05}, "a/seed1": {"val_steer_mae": None},
+             "b/seed0": {"val_steer_mae": float("nan")}, "other/seed0": {"val_steer_mae": 0.01}}
+    assert val_errors(cells, ["a", "b"]) == {"a": {0: 0.05}, "b": {}}
+
+
+def _cell(folder: Path, row: str, seed: int, mae: float, status: str = "ok") -> None:
+    d = folder / "cells" / row / f"seed{seed}"
+    d.mkdir(parents=True)
+    (d / "cell.json").write_text(json.dumps({"row": row, "seed": seed, "status": status, "val_steer_mae": mae}))
+
+
+def test_a_results_folder_and_the_command_line(tmp_path, capsys):
+    _cell(tmp_path, "re_all", 0, 0.048)
+    _cell(tmp_path, "re_pairs", 0, 0.046)
+    _cell(tmp_path, "re_none", 0, 0.044, status="failed")  # a failed cell is no candidate's evidence
+    assert choose_in(tmp_path, ["re_all", "re_pairs"]).chosen == "re_pairs"
+    assert main([str(tmp_path), "--candidates", "re_all", "re_pairs"]) == 0
+    assert "re_pairs" in capsys.readouterr().out.split("<- chosen")[0].splitlines()[-1]
+    assert main([str(tmp_path)]) == 1  # re_none has no finished cell
+    assert main([str(tmp_path / "missing")]) == 2
