@@ -79,16 +79,17 @@ def video_list(video: Any) -> list[Any]:
 class EvalResult:
     """What ``evaluate_policy`` returns (the run folder holds the same, see docs/evaluation.md)."""
 
-    summary: dict[str, Any]  # summary.json: success % overall and per table column ("cells"), reasons, complete
+    summary: dict[str, Any]  # summary.json: success % overall (null before any episode) and per table column ("cells"), reasons, complete
     rows: list[dict[str, Any]]  # one per episode of the suite, in episode order (episodes.json's rows)
     run_dir: Path
     driven: int  # episodes driven by this call
     reused: int  # episodes kept from earlier, interrupted calls into the same run_dir
 
     @property
-    def success(self) -> float:
-        """Overall reach-destination success rate in percent."""
-        return float(self.summary["success"])
+    def success(self) -> float | None:
+        """Overall reach-destination success rate in percent; None when no episode has finished."""
+        value = self.summary["success"]
+        return None if value is None else float(value)
 
 
 def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any] | None,
@@ -176,8 +177,13 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
     log.info("%d episodes (%d driven now, %.1f s), %d steps%s\n%s", len(report.rows), len(missing), wall,
              steps, rate, markdown_table([report]))
-    log.info("success %.2f%%; report in %s", summary["success"], out_dir)
+    log.info("success %s; report in %s", percent(summary["success"]), out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+def percent(value: float | None) -> str:
+    """A success rate as the log says it: ``72.50%``, or ``none (no episodes)`` for summary.json's null."""
+    return "none (no episodes)" if value is None else f"{float(value):.2f}%"
 
 
 class OutputWriteError(ValueError):
@@ -467,9 +473,9 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])
     summary = evaluate_checkpoint(path, out, overrides, resume_hint=f"training finished (checkpoints in "
                                   f"{Path(path).parent}); drive the rest with {command}")
-    metrics = {"closed_loop/success": summary["success"],
+    metrics = {**({"closed_loop/success": summary["success"]} if summary["success"] is not None else {}),
                **{f"closed_loop/success/{k}": v["rate"] for k, v in summary["cells"].items()}}
-    if trainer.logger is not None:
+    if trainer.logger is not None and metrics:
         trainer.logger.log_metrics(metrics, step=trainer.global_step)
         trainer.logger.save()
     from cicfw.sweeps import write_job_metrics
@@ -494,7 +500,8 @@ def main(cfg: DictConfig) -> float:
     key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
     hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"
     resume = f"run the same command with {key}={out if key == 'hydra.run.dir' else out.parent} to drive the rest"
-    return float(evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume)["success"])
+    success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume)["success"]
+    return float("nan") if success is None else float(success)  # null: no episode (a finished suite has some)
 
 
 if __name__ == "__main__":

@@ -32,13 +32,19 @@ CAPTION = "Reach destination success rate (%)"
 
 
 def summary(run: Run) -> dict[str, Any]:
-    """The run's success overall and per cell (what ``summary.json`` holds and ``evaluate`` returns)."""
+    """The run's success overall and per cell (what ``summary.json`` holds and ``evaluate`` returns).
+
+    ``success`` is the overall reach-destination rate in percent over the episodes driven (pooled: each
+    episode weighs the same), ``null`` while none is (an evaluation stopped before its first episode
+    finished: no episodes, no rate); ``cells`` and ``manoeuvres`` hold only what has episodes, each with
+    its ``success`` count, ``episodes`` and ``rate`` (%)."""
     cells = run.cells()
+    rate = run.success_rate()
     reasons: dict[str, int] = {}
     for r in run.rows:
         reasons[r["reason"]] = reasons.get(r["reason"], 0) + 1
     return {
-        "model": run.label, "episodes": len(run.rows), "success": round(run.success_rate(), 2),
+        "model": run.label, "episodes": len(run.rows), "success": None if rate is None else round(rate, 2),
         "cells": {cell_key(*c): {"name": cell_name(*c), "success": ok, "episodes": n,
                                  "rate": round(100.0 * ok / n, 2)}
                   for c in CELLS if c in cells for ok, n in [cells[c]]},

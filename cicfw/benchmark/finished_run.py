@@ -62,8 +62,11 @@ class Run:
         suite = self.meta.get("suite") or {}
         return str(suite.get("name", "junctions")) if isinstance(suite, Mapping) else "junctions"
 
-    def success_rate(self) -> float:
-        return 100.0 * sum(bool(r["success"]) for r in self.rows) / max(len(self.rows), 1)
+    def success_rate(self) -> float | None:
+        """Reach-destination success (%) over the episodes driven; None before any (no episodes, no rate)."""
+        if not self.rows:
+            return None
+        return 100.0 * sum(bool(r["success"]) for r in self.rows) / len(self.rows)
 
 
 def table_rows(runs: Sequence[Run]) -> list[tuple[str, list[float | None], list[int]]]:

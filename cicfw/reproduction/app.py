@@ -720,8 +720,10 @@ def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
 
     ck = torch.load(ckpt, map_location="cpu", weights_only=True)
     rates = {k: v["rate"] for k, v in summary["cells"].items()}
+    # the report's overall: the mean of the four columns; a column the suite lacks has no rate (not 0)
+    overall = round(sum(rates[c] for c in COLUMNS) / len(COLUMNS), 2) if all(c in rates for c in COLUMNS) else None
     return {"epoch": int(ck.get("epoch", -1)) + 1, "samples": int(ck.get("global_step", 0)) * batch,
-            **rates, "overall": round(sum(rates.get(c, 0.0) for c in COLUMNS) / len(COLUMNS), 2)}
+            **rates, "overall": overall}
 
 
 def _episodes(run_dir: Path) -> dict[str, dict[str, Any]]:

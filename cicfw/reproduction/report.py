@@ -534,13 +534,14 @@ def spread_lines(data: Mapping[str, Any]) -> list[str]:
 
 def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, float, float, int]]]:
     """row -> [(samples seen, mean, min, max of overall success over seeds, number of seeds)] for rows
-    with a curve."""
+    with a curve (a point without an overall, from a suite that lacks a column, is left out)."""
     out = {}
     for r in data["rows"]:
         by_samples: dict[int, list[float]] = {}
         for pts in r["curve"].values():
             for p in pts:
-                by_samples.setdefault(int(p["samples"]), []).append(float(p["overall"]))
+                if p.get("overall") is not None:
+                    by_samples.setdefault(int(p["samples"]), []).append(float(p["overall"]))
         if by_samples:
             out[r["label"]] = [(s, float(np.mean(v)), float(np.min(v)), float(np.max(v)), len(v))
                                for s, v in sorted(by_samples.items())]
