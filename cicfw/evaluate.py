@@ -456,20 +456,55 @@ def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: 
     return evaluate(cfg, Path(run_dir), resume_hint=resume_hint)
 
 
+#: what ``evaluate_after=true`` drives after a ``trainer.fast_dev_run`` (one batch: a check that the
+#: config runs, not a model worth the whole suite): the first pair of each town, under every weather
+FAST_DEV_RUN_SUITE = "suite.limit=1"
+#: evaluate_overrides keys that choose the suite's size: given one, a fast_dev_run drives what it says
+_SUITE_SIZE_KEYS = ("suite.limit", "suite.pairs")
+
+
+def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tuple[list[str], str]:
+    """``evaluate_overrides`` as the evaluation after training applies them, and what that drives in words:
+    after ``trainer.fast_dev_run`` a short suite (``FAST_DEV_RUN_SUITE``) unless the overrides size it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides = [str(o) for o in overrides]
+    if not fast_dev_run:
+        return overrides, "the suite of conf/evaluate.yaml with evaluate_overrides"
+    parser = OverridesParser.create()
+    keys = set()
+    for o in overrides:
+        try:
+            keys.add(parser.parse_override(o).key_or_group)
+        except Exception:
+            continue  # compose_overrides names it
+    if keys & set(_SUITE_SIZE_KEYS):
+        return overrides, "the suite as evaluate_overrides size it"
+    return [*overrides, FAST_DEV_RUN_SUITE], (f"a short suite after trainer.fast_dev_run ({FAST_DEV_RUN_SUITE}: the "
+                                              f"first pair of each town; evaluate_overrides=[suite.limit=null] drives "
+                                              f"the whole suite)")
+
+
 def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
     """``cicfw train evaluate_after=true``: the suite on the run's best checkpoint (else its last one,
-    else the final weights saved now), into ``<run_dir>/evaluate``. Logs ``closed_loop/success`` and
-    one ``closed_loop/success/<cell>`` per table column to the trainer's logger and to the job's
-    ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary."""
+    else the final weights saved now as ``checkpoints/final.ckpt``: a ``trainer.fast_dev_run`` saves
+    none), into ``<run_dir>/evaluate``; after a ``trainer.fast_dev_run``, a short suite
+    (``after_training_overrides``). Logs what it saved and drives, then ``closed_loop/success`` and one
+    ``closed_loop/success/<cell>`` per table column to the trainer's logger and to the job's
+    ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary, whose
+    ``success`` is a number: it returns only once every episode is driven (a stop raises ``Interrupted``)."""
     run_dir = Path(run_dir)
     cb = trainer.checkpoint_callback
     path = (cb.best_model_path or cb.last_model_path) if cb is not None else ""
     if not path or not Path(path).is_file():
         path = str(run_dir / "checkpoints" / "final.ckpt")
         trainer.save_checkpoint(path)
-    log.info("closed-loop evaluation of %s", path)
-    overrides = [str(o) for o in cfg.get("evaluate_overrides") or []]
+        why = "trainer.fast_dev_run saves none" if trainer.fast_dev_run else "none was saved"
+        log.info("training wrote no checkpoint (%s): wrote its final weights to %s for the closed-loop evaluation",
+                 why, path)
+    overrides, what = after_training_overrides(cfg.get("evaluate_overrides") or [], trainer.fast_dev_run)
     out = run_dir / "evaluate"
+    log.info("closed-loop evaluation of %s: %s, into %s", path, what, out)
     command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])
     summary = evaluate_checkpoint(path, out, overrides, resume_hint=f"training finished (checkpoints in "
                                   f"{Path(path).parent}); drive the rest with {command}")
