@@ -451,6 +451,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     before collecting is."""
     from hydra import initialize_config_module
 
+    from cicfw.reproduction.cells import finished_cells
     from cicfw.reproduction.published import continue_published, published_manifest
     from cicfw.train import ensure_data
 
@@ -479,6 +480,11 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         for where, fix, theirs in folders:
             refuse_other_pin(where, fix, theirs, early, cfg, ("dataset",))
     ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
+    finished = set(finished_cells(results_dir)) if results_dir.is_dir() else set()
+    if src is not None:
+        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
+        finished |= {k for k, d in finished_cells(src).items() if only is None or only in str(d.get("machine") or "")}
+    check_splits(cfg, rows, _seed_list(cfg.seeds), finished)  # a seed whose split cannot train: before any cell
     dataset = dataset_info(data_path)
     pinned = fingerprint(cfg, dataset)
     for where, fix, theirs in folders:
@@ -512,6 +518,52 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     if changed:
         atomic_write(path, json.dumps(manifest, indent=1))
     return manifest
+
+
+def check_splits(cfg: DictConfig, rows: Sequence[str], seeds: Sequence[int], finished: set[str] = frozenset()) -> None:
+    """Each cell's train/validation split of the collected dataset, made now as its training will make it
+    (``split_by_episode`` seeded by the cell's ``data.seed``, then its ``data.val_cameras``), without training
+    anything: a seed whose split cannot train (its train split lacks a command, its validation split a
+    camera) is refused in one ``ReproduceError`` line naming the seed(s), what is missing and what to do,
+    before any cell trains, rather than failing every row's cell of that seed after the others trained.
+    ``finished``: ``row/seedK`` of finished cells, which train nothing."""
+    from hydra import initialize_config_module
+
+    from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
+    from cicfw.train import make_datamodule
+
+    frames: dict[tuple, Any] = {}
+    failed: dict[tuple[str, int], str] = {}
+    todo = [(row, seed) for seed in seeds for row in rows if f"{row}/seed{seed}" not in finished]
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        for row, seed in todo:
+            dm = make_datamodule(compose_train(cfg, row, seed))
+            key = (dm.path, dm.max_abs_steer, dm.side_camera_correction, dm.cameras)
+            if key not in frames:
+                frames[key] = load_frames(*key)  # the targets only: no image is read
+            try:
+                _, val = split_by_episode(frames[key], dm.val_fraction, dm.seed)
+                if dm.val_cameras is not None:
+                    chosen_cameras(val.camera, dm.val_cameras, "val_cameras", "validation samples: they")
+            except ValueError as err:
+                failed[(row, seed)] = str(err).split("; ")[0]  # what is missing; the advice is the reproduction's
+    if not failed:
+        return
+    bad = sorted({seed for _, seed in failed})
+    whole = all((row, seed) in failed or f"{row}/seed{seed}" in finished for seed in bad for row in rows)
+    where = {k: f"seed {k[1]}" if whole else f"{k[0]}/seed{k[1]}" for k in failed}
+    said = dict.fromkeys((where[k], why) for k, why in sorted(failed.items(), key=lambda kv: kv[0][::-1]))
+    reasons = "; ".join(f"{at}: {why}" if len({at for at, _ in said}) > 1 else why for at, why in said)
+    what = (f"seed{'s' if len(bad) > 1 else ''} {', '.join(map(str, bad))}" if whole
+            else f"cell{'s' if len(failed) > 1 else ''} {', '.join(dict.fromkeys(where.values()))}")
+    ok = [s for s in seeds if s not in bad]
+    fewer = f"run only the seeds that split (seeds=[{','.join(map(str, ok))}])" if ok else "run other seeds"
+    groups = {int(len(set(f.group.tolist()))) for f in frames.values()}
+    others = [b for b in known_budgets() if b != str(cfg.budget.get("name"))]
+    raise ReproduceError(
+        f"{what} cannot train on budget {cfg.budget.get('name')}'s dataset ({'/'.join(map(str, sorted(groups)))} "
+        f"episodes in {next(iter(frames))[0]}): {reasons}; nothing was trained: give the budget more data (more "
+        f"episodes), {fewer}, or choose another budget ({', '.join(others)})")
 
 
 def shown_path(folder: Path) -> str:
