@@ -13,8 +13,9 @@ is refused), the rows (each custom row's experiment, head, mixer and overrides c
 budget, the claims, ``publish_dir`` and ``continue_from``; it takes the results folder's lock (one run
 per folder: ``reproduce.lock`` names the holder; a stale lock, whose process on this host is gone, is
 taken over with a warning) and checks a folder (or a published one to continue) made with another
-budget or suite. Then it collects the budget's dataset once (every row trains on it) and pins the
-results folder to this budget, suite and dataset (``reproduce.json``): a folder made with another dataset
+budget or suite. Then it collects the budget's dataset once (every row trains on it), makes every cell's
+train/validation split of it (a seed whose split cannot train is refused before any cell trains) and pins
+the results folder to this budget, suite and dataset (``reproduce.json``): a folder made with another dataset
 is refused, and so is a finished cell trained on another dataset or with another model configuration
 (its ``recipe``). Each (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed``
 swept), so ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite
