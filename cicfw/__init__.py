@@ -5,3 +5,25 @@ __version__ = "0.2.0"
 # Branch order of every mixer output: CIL command code - 2 (codes 2, 3, 4, 5).
 COMMANDS = ("follow", "left", "right", "straight")
 N_COMMANDS = len(COMMANDS)
+
+
+def _started_as_app() -> bool:
+    """Whether this process is an app started from the command line: ``python -m cicfw[.<app>]`` (while
+    ``-m`` imports this package, ``sys.argv[0]`` is ``-m``) or the ``cicfw`` console script."""
+    import os
+    import sys
+
+    argv = list(getattr(sys, "orig_argv", None) or [])
+    if sys.argv[:1] == ["-m"]:
+        for i, arg in enumerate(argv[1:], 1):
+            if arg == "-m" or (arg.startswith("-m") and not arg.startswith("--")):
+                module = arg[2:] or (argv[i + 1] if i + 1 < len(argv) else "")
+                return module == "cicfw" or module.startswith("cicfw.")
+        return False
+    return os.path.basename(sys.argv[0]) == "cicfw" if sys.argv else False
+
+
+if _started_as_app():  # SIGTERM (and Ctrl-C) during the app's imports: one line, not silence or a traceback
+    from cicfw.errors import install_app_handlers
+
+    install_app_handlers()

@@ -54,16 +54,9 @@ def on_interrupt(message: str) -> Iterator[None]:
 _stopped_by: int | None = None
 
 
-@contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Inside, SIGTERM raises KeyboardInterrupt in this process, as Ctrl-C does, so every stage cleans up
-    and says what it kept; the previous handler is back afterwards. A forked child (a DataLoader worker)
-    that inherits the handler dies of SIGTERM as usual. Off the main thread it does nothing."""
-    global _stopped_by
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is None:
-        yield  # signals go to the main thread only; None: a handler Python cannot put back
-        return
-    owner = os.getpid()
+def _interrupting_handler(owner: int) -> Callable[[int, object], None]:
+    """A SIGTERM handler raising KeyboardInterrupt in process ``owner`` (recording the signal for the
+    one line); a forked child that inherited it (a DataLoader worker) dies of SIGTERM as usual."""
 
     def stop(signum: int, frame: object) -> None:
         global _stopped_by
@@ -74,20 +67,78 @@ def sigterm_as_interrupt() -> Iterator[None]:
         _stopped_by = signum
         raise KeyboardInterrupt
 
+    return stop
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Inside, SIGTERM raises KeyboardInterrupt in this process, as Ctrl-C does, so every stage cleans up
+    and says what it kept; the previous handler is back afterwards. A forked child (a DataLoader worker)
+    that inherits the handler dies of SIGTERM as usual. Off the main thread it does nothing."""
+    global _stopped_by
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is None:
+        yield  # signals go to the main thread only; None: a handler Python cannot put back
+        return
     _stopped_by = None
-    previous = signal.signal(signal.SIGTERM, stop)
+    previous = signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _exit_interrupted(err: KeyboardInterrupt) -> None:
-    """``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and exit 130 (Ctrl-C) or 128 + the signal."""
+def _interrupted_line(err: BaseException) -> tuple[str, int]:
+    """``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and its exit status: 130 (Ctrl-C) or 128 + the signal."""
     detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
     by = f" ({signal.Signals(_stopped_by).name})" if _stopped_by else ""
-    print(f"cicfw: interrupted{by}{detail}", file=sys.stderr)
-    sys.exit(128 + _stopped_by if _stopped_by else 130)
+    return f"cicfw: interrupted{by}{detail}", 128 + _stopped_by if _stopped_by else 130
+
+
+def _exit_interrupted(err: KeyboardInterrupt) -> None:
+    """Print ``_interrupted_line`` and exit with its status."""
+    line, status = _interrupted_line(err)
+    print(line, file=sys.stderr)
+    sys.exit(status)
+
+
+def install_app_handlers() -> None:
+    """From the moment ``cicfw`` is imported by an app started from the command line (``python -m
+    cicfw.<app>``, the ``cicfw`` script; ``cicfw/__init__.py`` calls this), before the app's own imports
+    and Hydra's config composition: SIGTERM raises KeyboardInterrupt as Ctrl-C does, and a
+    KeyboardInterrupt no app code caught (one during those imports or that composition, or re-raised by
+    a multirun job) ends with the one line every later stop prints (``cicfw: interrupted (SIGTERM)``)
+    and its status (130, 143), instead of a traceback (Ctrl-C) or a silent exit (SIGTERM). Other
+    uncaught exceptions keep their traceback. Off the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is None:
+        return
+    signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
+    previous = sys.excepthook
+
+    def uncaught(kind: type[BaseException], err: BaseException, tb: object) -> None:
+        if not issubclass(kind, KeyboardInterrupt):
+            previous(kind, err, tb)
+            return
+        line, status = _interrupted_line(err)
+        print(line, file=sys.stderr)
+        _exit_now(status)
+
+    sys.excepthook = uncaught
+
+
+def _exit_now(status: int) -> None:
+    """Exit with ``status`` from ``sys.excepthook`` (where ``sys.exit`` would only be reported as an error
+    in the hook): the exit handlers run (log files are flushed), then the process ends."""
+    import atexit
+
+    try:
+        atexit._run_exitfuncs()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+        os._exit(status)
 
 
 def _message(err: BaseException) -> object:

@@ -1,0 +1,99 @@
+"""SIGTERM (``timeout``, a scheduler, ``kill``) and Ctrl-C while an app is still importing its modules or
+composing its config: one line (``cicfw: interrupted (SIGTERM)``), status 143 (130 for Ctrl-C), as a stop
+later in the run says it, not a silent exit 143 (SIGTERM's default) or a KeyboardInterrupt traceback.
+``import cicfw`` installs the handler first thing in such an app; a library user's import changes nothing."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.slow,  # starts the apps (each is stopped while it imports)
+              pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="reads /proc/<pid>/status")]
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _catches_sigterm(pid: int) -> bool:
+    """Whether process ``pid`` has a handler for SIGTERM now (SigCgt in /proc/<pid>/status)."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    mask = next(int(line.split()[1], 16) for line in text.splitlines() if line.startswith("SigCgt:"))
+    return bool(mask >> (signal.SIGTERM - 1) & 1)
+
+
+def _stopped_while_importing(args: list[str], sig: int, tmp_path: Path) -> subprocess.CompletedProcess:
+    """Start ``args``; send ``sig`` as soon as the process catches SIGTERM (``import cicfw`` is done: the app's
+    own imports, torch's and Hydra's among them, and its config composition still to come)."""
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        while not _catches_sigterm(proc.pid):
+            if proc.poll() is not None or time.monotonic() - t0 > 120:
+                pytest.fail(f"{args} never caught SIGTERM (exit {proc.poll()}): {proc.communicate()[1][-2000:]}")
+            time.sleep(0.001)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return subprocess.CompletedProcess(args, proc.returncode, out, err)
+
+
+APPS = [
+    ["-m", "cicfw.evaluate", "policy=expert"],
+    ["-m", "cicfw.train", "debug=fast"],
+    ["-m", "cicfw.collect", "episodes=1"],
+    ["-m", "cicfw.reproduce", "budget=smoke"],
+    ["-m", "cicfw.cli", "export"],
+]
+
+
+@pytest.mark.parametrize("app", APPS, ids=lambda a: a[1])
+def test_sigterm_while_an_app_imports_is_one_line_and_143(app, tmp_path):
+    proc = _stopped_while_importing([sys.executable, *app, f"hydra.run.dir={tmp_path / 'run'}"], signal.SIGTERM,
+                                    tmp_path)
+    assert proc.returncode == 143, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines() == ["cicfw: interrupted (SIGTERM)"], proc.stderr[-3000:]
+    assert not (tmp_path / "run").exists()  # stopped before the app began: no run folder
+
+
+def test_ctrl_c_while_an_app_imports_is_one_line_and_130(tmp_path):
+    proc = _stopped_while_importing([sys.executable, "-m", "cicfw.evaluate", "policy=expert",
+                                     f"hydra.run.dir={tmp_path / 'run'}"], signal.SIGINT, tmp_path)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines() == ["cicfw: interrupted"], proc.stderr[-3000:]
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_console_script_catches_sigterm_first_thing(tmp_path):
+    script = Path(sys.executable).parent / "cicfw"
+    if not script.is_file():
+        pytest.skip("no cicfw console script beside this Python")
+    proc = _stopped_while_importing([str(script), "evaluate", "policy=expert", f"hydra.run.dir={tmp_path / 'run'}"],
+                                    signal.SIGTERM, tmp_path)
+    assert proc.returncode == 143 and proc.stderr.strip().splitlines() == ["cicfw: interrupted (SIGTERM)"], proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_importing_cicfw_as_a_library_installs_nothing():
+    code = ("import signal, sys; hook = sys.excepthook; import cicfw, cicfw.errors; "
+            "print(signal.getsignal(signal.SIGTERM) == signal.SIG_DFL, sys.excepthook is hook)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["True", "True"], out.stderr
+
+
+def test_other_errors_keep_their_traceback(tmp_path):
+    """The hook speaks for interrupts only: an app's crash during its imports still shows where."""
+    code = ("import runpy, sys; sys.argv = ['-m']; sys.orig_argv = [sys.executable, '-m', 'cicfw.nosuch']; "
+            "import cicfw; raise RuntimeError('boom')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert out.returncode == 1 and "Traceback" in out.stderr and "RuntimeError: boom" in out.stderr, out.stderr
