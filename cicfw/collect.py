@@ -29,9 +29,7 @@ def run(cfg) -> str:
         from omegaconf import DictConfig, OmegaConf
 
         raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-        verify = raw.pop("verify", False)
-        if not isinstance(verify, bool):
-            raise CollectConfigError(f"collect: verify must be true or false, got {verify!r}")
+        verify = raw.pop("verify", False)  # a bool: conf/collect.yaml's schema (CollectAppConfig) checks it
         out_dir = Path(str(raw["out_dir"])).expanduser()
         if verify:
             return _verify(raw, out_dir)
@@ -46,11 +44,10 @@ def run(cfg) -> str:
 
 def _verify(raw: dict, out_dir: Path) -> str:
     """``verify=true``: every file of ``out_dir`` against its record, one line per problem; the summary."""
-    lock_wait = raw.get("lock_wait", 0)
-    if lock_wait is not None and (isinstance(lock_wait, bool) or not isinstance(lock_wait, (int, float))
-                                  or lock_wait < 0):
-        raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
-                                 f"(wait as long as it takes), got {lock_wait!r}")
+    from cicfw.collection.config import check_lock_wait
+
+    lock_wait = raw.get("lock_wait")  # CollectConfig's default: wait while a collection is under way
+    check_lock_wait(lock_wait)
     report = verify_dataset(out_dir, lock_wait)
     for line in report.lines():
         print(f"cicfw: {line}", file=sys.stderr)

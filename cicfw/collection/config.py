@@ -1,32 +1,57 @@
-"""The collect config: its defaults, its validation (one clear error per bad key), its hash, and the
-simulator backend it names."""
+"""The collect config: ``CollectConfig``, the one place its keys, types and defaults live (conf/collect.yaml
+and ``data.collect`` take them from it through the config schema); its validation (one clear error per bad
+key), its hash, and the simulator backend it names."""
 from __future__ import annotations
 
 import hashlib
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
+
+from omegaconf import MISSING
 
 from cicfw.collection.errors import CollectConfigError, CollectError
+from cicfw.config_checks import SchemaError, checked
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
+from cicfw.sim.expert import ExpertParams
 
 CAMERA_IDS = {"centre": (0, 0.0), "left": (1, -30.0), "right": (2, 30.0)}  # name -> (targets[26], [27])
-DEFAULTS: dict[str, Any] = {
-    "towns": ["town_a"],
-    "weathers": ["ClearNoon", "ClearSunset"],
-    "episodes": 36,  # in total, spread round-robin over towns x weathers
-    "seconds": 40.0,  # per episode (10 steps a second)
-    "seed": 0,
-    "cameras": ["centre", "left", "right"],
-    "noise": {"episode_fraction": 0.75, "frequency": 15, "intensity": 10.0},
-    "expert": {},  # overrides of cicfw.sim.expert.ExpertParams (cruise_kmh, lateral_accel ...; defaults dropped)
-    "command_distance": 12.0,  # metres before a junction where its turn command starts
-    "workers": 2,  # processes; 0 or 1 = in this process
-    "lock_wait": None,  # seconds to wait for another process collecting into the folder; None: wait
-    "sim": {"name": "embedded"},  # the simulator backend: conf/sim/<name>.yaml
-}
+
+
+@dataclass
+class NoiseConfig:
+    """CIL's steering-noise injection (the label stays the expert's steer)."""
+
+    episode_fraction: float = 0.75  # share of episodes with noise on
+    frequency: int = 15  # spikes start with probability frequency/61 each second
+    intensity: float = 10.0  # +-2 per episode; the spike grows by 0.03*intensity per second
+
+
+@dataclass
+class CollectConfig:
+    """What a collection records and how. ``towns``, ``weathers`` and ``cameras`` are lists of names (one
+    name alone counts as a list of one); ``expert`` is ``cicfw.sim.expert.ExpertParams``."""
+
+    __cicfw_what__ = "the collection (CollectConfig)"  # config_checks.WHAT: how messages name it
+
+    towns: Any = field(default_factory=lambda: ["town_a"])  # conf/town/<name>.yaml, or paths to town files
+    weathers: Any = field(default_factory=lambda: ["ClearNoon", "ClearSunset"])  # cicfw.sim.render.WEATHERS
+    episodes: int = 36  # in total, spread round-robin over towns x weathers
+    seconds: float = 40.0  # per episode (10 steps a second)
+    seed: int = 0  # every episode's route, noise and rain derive from it
+    cameras: Any = field(default_factory=lambda: ["centre", "left", "right"])  # ids 0, 1, 2; yaw 0, -30, +30
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    expert: ExpertParams = field(default_factory=ExpertParams)  # the expert driver's values
+    command_distance: float = 12.0  # metres before a junction where its turn command starts
+    workers: int = 2  # processes; 0 or 1 = in this process
+    lock_wait: Optional[float] = None  # seconds to wait for another process collecting into the folder
+    #                                    (0: refuse at once, naming it; None: wait as long as it takes)
+    sim: Any = field(default_factory=lambda: {"name": "embedded"})  # the backend: conf/sim/<name>.yaml
+
+
+DEFAULTS: dict[str, Any] = asdict(CollectConfig())
 # keys that do not change the data (left out of the config hash, so a rerun may change them)
 _NOT_DATA = ("workers", "lock_wait", "sim", "_hash")
 
@@ -95,37 +120,33 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     Towns given by path come back as absolute paths. ``backend``: the sim backend, if already built
     (otherwise one is built for the check and closed)."""
     cfg = plain_config(cfg)
-    unknown = sorted(set(cfg) - set(DEFAULTS))
-    if unknown:
-        raise CollectConfigError(f"collect: unknown key {unknown[0]!r}; accepted keys: {', '.join(DEFAULTS)}")
-    out = json.loads(json.dumps(DEFAULTS))
-    for k, v in cfg.items():
-        if isinstance(out[k], dict):
-            if not isinstance(v, dict):
-                raise CollectConfigError(f"collect.{k} must be a mapping, got {v!r}")
-            out[k].update(v)
-        else:
-            out[k] = v
+    try:  # unknown keys and types (the schema); the values each key accepts are checked below
+        typed = checked(CollectConfig, cfg, "collect")
+    except SchemaError as err:
+        refused = CollectConfigError(str(err))
+        refused.key, refused.kind = err.key, err.kind
+        raise refused from None
+    from omegaconf import OmegaConf
+
+    out = OmegaConf.to_container(typed, resolve=True)
     for k in ("towns", "weathers", "cameras"):
         if isinstance(out[k], str):
             out[k] = [out[k]]
         if not isinstance(out[k], (list, tuple)) or not all(isinstance(x, str) for x in out[k]):
             raise CollectConfigError(f"collect.{k} must be a list of names, got {out[k]!r}")
         out[k] = list(out[k])
-    if not isinstance(out["episodes"], int) or isinstance(out["episodes"], bool) or out["episodes"] < 1:
+    if out["episodes"] < 1:
         raise CollectConfigError(f"collect.episodes must be an integer >= 1, got {out['episodes']!r}")
-    if not _number(out["seconds"]) or round(float(out["seconds"]) * 10) < 1:
+    if not math.isfinite(out["seconds"]) or round(out["seconds"] * 10) < 1:
         raise CollectConfigError(f"collect.seconds must be > 0 (at least 0.1: one step at 10 Hz), "
                                  f"got {out['seconds']!r}")
-    if not isinstance(out["seed"], int) or isinstance(out["seed"], bool) or out["seed"] < 0:
+    if out["seed"] < 0:
         raise CollectConfigError(f"collect.seed must be an integer >= 0 (every episode's route, noise and rain "
                                  f"derive from it), got {out['seed']!r}")
-    if not isinstance(out["workers"], int) or isinstance(out["workers"], bool) or out["workers"] < 0:
+    if out["workers"] < 0:
         raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
                                  f"got {out['workers']!r}")
-    if out["lock_wait"] is not None and (not _number(out["lock_wait"]) or out["lock_wait"] < 0):
-        raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
-                                 f"(wait as long as it takes), got {out['lock_wait']!r}")
+    check_lock_wait(out["lock_wait"])
     if not _number(out["command_distance"]) or out["command_distance"] <= 0:
         raise CollectConfigError(f"collect.command_distance must be metres > 0, got {out['command_distance']!r}")
     if not out["cameras"]:
@@ -136,29 +157,18 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     if len(set(out["cameras"])) != len(out["cameras"]):
         raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
     nz = out["noise"]
-    extra = sorted(set(nz) - set(DEFAULTS["noise"]))
-    if extra:
-        raise CollectConfigError(f"collect.noise: unknown key {extra[0]!r}; accepted: {', '.join(DEFAULTS['noise'])}")
     if not _number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
         raise CollectConfigError(f"collect.noise.episode_fraction must be in [0, 1], got {nz['episode_fraction']!r}")
-    if not isinstance(nz["frequency"], int) or isinstance(nz["frequency"], bool) or nz["frequency"] < 0:
+    if nz["frequency"] < 0:
         raise CollectConfigError(f"collect.noise.frequency must be an integer >= 0, got {nz['frequency']!r}")
     if not _number(nz["intensity"]) or nz["intensity"] < 0:
         raise CollectConfigError(f"collect.noise.intensity must be >= 0, got {nz['intensity']!r}")
-    from cicfw.sim.expert import ExpertParams
-
-    accepted = asdict(ExpertParams())
-    extra = sorted(set(out["expert"]) - set(accepted))
-    if extra:
-        raise CollectConfigError(f"collect.expert: unknown key {extra[0]!r}; accepted: {', '.join(accepted)}")
-    for k, v in out["expert"].items():
-        if not _number(v):
-            raise CollectConfigError(f"collect.expert.{k} must be a number, got {v!r}")
+    accepted = DEFAULTS["expert"]
     try:  # values the expert cannot drive with (a negative speed, a look-ahead of 0)
         ExpertParams(**out["expert"])
     except ValueError as err:
         raise CollectConfigError(f"collect.{err}") from None
-    # only the overrides are kept: conf/collect.yaml spells out the defaults, and they must hash as {}
+    # only the values that differ from the defaults are kept: the defaults hash as {}
     out["expert"] = {k: v for k, v in out["expert"].items() if v != accepted[k]}
     out["sim"] = sim_node(out)
     if backend is None:
@@ -201,6 +211,13 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     return out
 
 
+def check_lock_wait(value: Any) -> None:
+    """``lock_wait``: seconds >= 0, or None (wait as long as it takes)."""
+    if value is not None and (not _number(value) or value < 0):
+        raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
+                                 f"(wait as long as it takes), got {value!r}")
+
+
 def config_hash(cfg: dict) -> str:
     """Hash of everything that shapes the data: the config but its runtime keys, the simulator's name
     when it is not the embedded one, the embedded simulator's weather family where it renders one of
@@ -218,3 +235,19 @@ def config_hash(cfg: dict) -> str:
     if files:
         keep["town_files"] = files
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass
+class CollectAppConfig(CollectConfig):
+    """``python -m cicfw.collect``'s config (conf/collect.yaml): a collection, the folder it goes to, and the
+    switch that checks a collected folder instead."""
+
+    out_dir: str = MISSING  # conf/collect.yaml: under the cache folder
+    verify: bool = False  # true (or --verify): check out_dir's files against their recorded SHA-256
+
+
+def register_schema() -> None:
+    """``cicfw_collect`` in Hydra's ConfigStore: conf/collect.yaml's schema (its first default)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="cicfw_collect", node=CollectAppConfig, provider="cicfw")
