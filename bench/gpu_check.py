@@ -8,9 +8,10 @@ dataset this script writes itself, then check the run. One line per check, PASS 
                         no GPU (CUDA_VISIBLE_DEVICES=""), and acting on a few frames gives finite steering
                         in [-1, 1].
   throughput measured   training samples/s, the share of step time spent waiting for the next batch (from
-                        the end of one batch to the start of the next, timed by a Lightning callback) and,
-                        on a GPU, the peak GPU memory (torch.cuda.max_memory_allocated); it passes when the
-                        steps were timed, on the device the recipe asks for.
+                        the end of one batch to the start of the next, timed by the training's own
+                        cicfw.data.wait.DataWait, the first batches of each epoch left out) and, on a GPU,
+                        the peak GPU memory (torch.cuda.max_memory_allocated); it passes when the steps
+                        were timed, on the device the recipe asks for.
 
     python bench/gpu_check.py                        # a CUDA GPU: bf16-mixed, 4 loader workers, compile, 300 steps
     python bench/gpu_check.py data.in_memory=false   # extra Hydra overrides go to the training (streamed images)
@@ -19,8 +20,9 @@ dataset this script writes itself, then check the run. One line per check, PASS 
 Training is the project's own ``cicfw.train.train`` on a config composed as ``python -m cicfw.train``
 composes it (data=cil_hdf5 on the written files; docs/scaling.md section 2's overrides:
 trainer.accelerator=gpu trainer.precision=bf16-mixed data.num_workers=4, plus trainer.compile=true and
-the default trainer's channels_last). The only addition is the timing callback, appended to the
-callbacks ``cicfw.train.build_callbacks`` returns.
+the default trainer's channels_last). The only addition is a callback recording each step's loss and the
+recipe the run got, appended to the callbacks ``cicfw.train.build_callbacks`` returns; the timing is the
+training's own ``DataWait`` (the data-wait line every training logs).
 
 Exit status: 0 when every check passes, 1 when one fails, 2 without a CUDA GPU and without --dry-run.
 """
@@ -73,16 +75,14 @@ def steering_ok(steer: Any, n_frames: int) -> tuple[bool, str]:
     return True, f"{n_frames} frames, steering {s.min():+.3f} .. {s.max():+.3f}"
 
 
-def throughput(batch_sizes: Sequence[int], waits: Sequence[float], busy: Sequence[float],
-               skip: int) -> tuple[float, float, int]:
-    """(samples/s, the share of step time spent waiting for data, steps measured) over the steps after
-    the first ``skip`` (compilation and the workers' start); a step's time is its wait plus its work."""
-    n = list(batch_sizes)[skip:]
-    w, b = np.asarray(waits[skip:], float), np.asarray(busy[skip:], float)
-    total = float(w.sum() + b.sum())
-    if not n or total <= 0:
+def throughput(samples: int, wait: float, step: float, steps: int) -> tuple[float, float, int]:
+    """(samples/s, the share of step time spent waiting for data, steps measured) from the measured steps'
+    totals (``DataWait.run``: each epoch's first batches, the workers' start, left out); a step's time is
+    its wait plus its work."""
+    total = float(wait + step)
+    if steps <= 0 or total <= 0:
         return float("nan"), float("nan"), 0
-    return sum(n) / total, float(w.sum()) / total, len(n)
+    return samples / total, float(wait) / total, int(steps)
 
 
 def line(ok: bool, name: str, detail: str) -> bool:
@@ -115,18 +115,17 @@ def write_dataset(folder: Path, frames: int, files: int, seed: int = 0) -> Path:
 
 # ---- timing ------------------------------------------------------------------------------------------
 def step_timer():
-    """A Lightning callback recording each training step's loss, batch size, the time it waited for its
-    batch (from the end of the previous step, or the epoch's start) and the time it took."""
+    """A Lightning callback recording each training step's loss and the recipe the run got; its ``data_wait``
+    is the training's own ``DataWait`` (the steps' wait and work), found among the trainer's callbacks."""
     import lightning as L
+
+    from cicfw.data.wait import DataWait
 
     class StepTimer(L.Callback):
         def __init__(self) -> None:
             self.losses: list = []
-            self.batch_sizes: list[int] = []
-            self.waits: list[float] = []
-            self.busy: list[float] = []
             self.recipe: dict[str, Any] = {}
-            self._ready = self._start = 0.0
+            self.data_wait: DataWait | None = None
 
         def on_train_start(self, trainer, pl_module) -> None:
             loader = trainer.train_dataloader
@@ -135,20 +134,11 @@ def step_timer():
                            "pin_memory": bool(getattr(loader, "pin_memory", False)),
                            "channels_last": bool(getattr(pl_module, "channels_last", False)),
                            "compiled": getattr(pl_module, "_compiled_step", None) is not None}
-
-        def on_train_epoch_start(self, trainer, pl_module) -> None:
-            self._ready = time.perf_counter()  # the epoch's first batch waits from here (validation excluded)
-
-        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-            self._start = time.perf_counter()
-            self.waits.append(self._start - self._ready)
-            self.batch_sizes.append(int(batch["steer"].shape[0]))
+            self.data_wait = next((c for c in trainer.callbacks if isinstance(c, DataWait)), None)
 
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
             loss = outputs["loss"] if isinstance(outputs, dict) else outputs
             self.losses.append(loss.detach().float())  # read after training: no device sync per step
-            self._ready = time.perf_counter()
-            self.busy.append(self._ready - self._start)
 
     return StepTimer()
 
@@ -259,8 +249,10 @@ def run_checks(args: argparse.Namespace, cuda: bool) -> bool:
         ok, detail = loss_falls([float(v) for v in timer.losses])
         results = [line(ok, "loss falls", detail)]
         results.append(check_checkpoint(run_dir, data))
-        skip = max(1, len(timer.batch_sizes) // 10)
-        rate, wait, measured = throughput(timer.batch_sizes, timer.waits, timer.busy, skip)
+        from cicfw.data.wait import WARMUP_BATCHES
+
+        run = timer.data_wait.run if timer.data_wait is not None else None
+        rate, wait, measured = throughput(run.samples, run.wait, run.step, run.batches) if run else (0.0, 0.0, 0)
         if cuda and not args.dry_run:
             import torch
 
@@ -273,9 +265,11 @@ def run_checks(args: argparse.Namespace, cuda: bool) -> bool:
             want = "cpu"
         ok = measured > 0 and math.isfinite(rate) and rate > 0 and str(r.get("device", "")).startswith(want)
         where = "" if ok or measured == 0 else f" (trained on {r.get('device')}, expected {want})"
+        if run is None:
+            where = " (the training has no cicfw.data.wait.DataWait callback to time its steps)"
         results.append(line(ok, "throughput measured",
                             f"{rate:.1f} samples/s, waiting for data {100 * wait:.1f}% of step time over "
-                            f"{measured} steps (the first {skip} skipped), {memory}{where}"))
+                            f"{measured} steps (the first {WARMUP_BATCHES} of each epoch skipped), {memory}{where}"))
     return all(results)
 
 

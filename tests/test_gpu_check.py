@@ -35,9 +35,38 @@ def test_steering_and_throughput_rules():
     assert not m.steering_ok([0.1, 1.2, 0.0], 3)[0]
     assert not m.steering_ok([0.1, float("inf"), 0.0], 3)[0]
     assert not m.steering_ok([0.1, 0.2], 3)[0]
-    rate, wait, n = m.throughput([10, 10, 10], [5.0, 0.5, 0.5], [5.0, 1.5, 1.5], skip=1)
-    assert (rate, wait, n) == (5.0, 0.25, 2)  # 20 samples in 4 s, 1 s of it waiting; the first step skipped
-    assert m.throughput([10], [1.0], [1.0], skip=1)[2] == 0
+    rate, wait, n = m.throughput(20, 1.0, 3.0, 2)
+    assert (rate, wait, n) == (5.0, 0.25, 2)  # 20 samples in 4 s, 1 s of it waiting
+    assert m.throughput(0, 0.0, 0.0, 0)[2] == 0
+
+
+def test_the_steps_are_timed_by_the_trainings_own_data_wait():
+    """One implementation of the wait timing: the script reads cicfw.data.wait.DataWait's run totals (the
+    callback every training has), it does not time the steps itself."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from cicfw.data.wait import WARMUP_BATCHES, DataWait
+
+    timer = load_script().step_timer()
+    assert not hasattr(timer, "waits") and type(timer).on_train_batch_start is type(timer).__mro__[1].on_train_batch_start
+    clock = iter(float(t) for t in range(100))
+    wait = DataWait(clock=lambda: next(clock))
+    trainer = SimpleNamespace(callbacks=[object(), wait], train_dataloader=None, precision="32-true", global_rank=0)
+    timer.on_train_start(trainer, SimpleNamespace(device="cpu"))
+    assert timer.data_wait is wait
+    batch = {"rgb": torch.zeros(8, 3, 2, 2), "steer": torch.zeros(8)}
+    module = SimpleNamespace(log=lambda *a, **k: None)
+    for _ in range(2):  # two epochs: the first WARMUP_BATCHES of each are left out
+        wait.on_train_epoch_start(trainer, module)
+        for i in range(WARMUP_BATCHES + 2):
+            wait.on_train_batch_start(trainer, module, batch, i)
+            wait.on_train_batch_end(trainer, module, None, batch, i)
+        wait.on_train_epoch_end(trainer, module)
+    run = wait.run
+    assert (run.batches, run.samples) == (4, 32) and run.wait == run.step == 4.0  # clock ticks of 1 s each
+    assert load_script().throughput(run.samples, run.wait, run.step, run.batches) == (4.0, 0.5, 4)
 
 
 def test_without_cuda_it_says_so_and_exits_2():

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
 
 import lightning as L
 from lightning.pytorch.callbacks import Callback
@@ -19,13 +20,41 @@ WARN_SHARE = 0.10
 WARMUP_BATCHES = 3  # the first batches wait for the workers to start: not the loader's pace
 
 
+def batch_size(batch: Any) -> int:
+    """The samples in a batch: the length of its first tensor (a dict's first value, a tuple's first item);
+    0 when it has none."""
+    while isinstance(batch, (Mapping, list, tuple)) and len(batch):
+        batch = next(iter(batch.values())) if isinstance(batch, Mapping) else batch[0]
+    shape = getattr(batch, "shape", None)
+    return int(shape[0]) if shape else 0
+
+
+@dataclass
+class RunTotals:
+    """Wait and step seconds, batches and samples measured over a whole run (every epoch so far)."""
+
+    wait: float = 0.0
+    step: float = 0.0
+    batches: int = 0
+    samples: int = 0
+
+    @property
+    def share(self) -> float:
+        """The wait's share of wait + step (0 before any measured batch)."""
+        total = self.wait + self.step
+        return self.wait / total if total > 0 else 0.0
+
+
 class DataWait(Callback):
-    """Accumulates wait and step time per epoch; reports the wait's share of the whole."""
+    """Accumulates wait and step time per epoch; reports the wait's share of the whole. ``run`` holds the
+    same over every epoch so far, with the samples of the measured batches (``bench/gpu_check.py``'s
+    throughput): the first ``WARMUP_BATCHES`` of each epoch are left out of both."""
 
     def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
         self.clock = clock
         self.wait = self.step = 0.0
         self.batches = 0
+        self.run = RunTotals()
         self._start = self._end = None
 
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -37,6 +66,7 @@ class DataWait(Callback):
         self._start = self.clock()
         if self._end is not None and batch_idx >= WARMUP_BATCHES:
             self.wait += self._start - self._end
+            self.run.wait += self._start - self._end
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
@@ -44,6 +74,9 @@ class DataWait(Callback):
         if batch_idx >= WARMUP_BATCHES:
             self.step += self._end - self._start
             self.batches += 1
+            self.run.step += self._end - self._start
+            self.run.batches += 1
+            self.run.samples += batch_size(batch)
 
     @property
     def share(self) -> float:
