@@ -22,10 +22,24 @@ TESTS = ("greater", "less", "not_greater", "not_less")
 MARGIN_TESTS = ("not_greater", "not_less")
 
 
+#: the family of a claim that names none: the paper's main comparison (Tables 1 and 4)
+MAIN_FAMILY = "main"
+
+
+def holm_families(claims: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """Holm's families, fixed in advance, and their sizes: every part of every claim of a family, whether
+    it could be tested or not (``claims``: the judged claims, ``judge``'s output, each with its ``parts``
+    and ``family``), in the order the families first appear."""
+    sizes: dict[str, int] = {}
+    for c in claims:
+        fam = c.get("family", MAIN_FAMILY)
+        sizes[fam] = sizes.get(fam, 0) + len(c["parts"])
+    return sizes
+
+
 def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
-    """Holm's family, fixed in advance: every part of every claim, whether it could be tested or not
-    (``claims``: the judged claims, ``judge``'s output, each with its ``parts``)."""
-    return sum(len(c["parts"]) for c in claims)
+    """The size of the main family (every part of every claim when all are in it)."""
+    return holm_families(claims).get(MAIN_FAMILY, 0)
 
 
 @dataclass(frozen=True)
@@ -99,6 +113,7 @@ class Claim:
     parts: tuple[Part, ...]
     quote: str = ""
     source: str = ""
+    family: str = MAIN_FAMILY  # Holm adjusts within a family: a separate question (Tables 2 and 3) is its own
 
 
 def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
@@ -128,7 +143,7 @@ def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
                               relative=bool(p.get("relative", False)), hard=p.get("hard"), easy=p.get("easy"),
                               b_scale=float(p.get("b_scale", 1.0))))
         out.append(Claim(id=str(c["id"]), text=str(c["claim"]), parts=tuple(parts), quote=str(c.get("quote") or ""),
-                         source=str(c.get("source") or "")))
+                         source=str(c.get("source") or ""), family=str(c.get("family") or MAIN_FAMILY)))
     return out
 
 
@@ -198,21 +213,23 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
     without a verdict counts as p = 1), the paper's difference, the episode bootstrap's interval
     (secondary) and the verdicts, uncorrected and Holm."""
     margin = default_margin() if margin is None else check_margin(margin)
-    out, family = [], []
+    out, tested = [], {}
     for claim in claims:
         parts = []
         for p in claim.parts:
             rec = _measure(an, p, paper, labels, margin)
             if "excess" in rec:
-                family.append(rec)
+                tested.setdefault(claim.family, []).append(rec)
             parts.append(rec)
         out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
-                    "parts": parts})
-    # the family is fixed in advance: every part of every claim, tested or not (``holm``'s family_size)
-    adjusted, reject = holm([r["p"] for r in family], family_size=holm_family_size(out))
-    for rec, padj, rej in zip(family, adjusted, reject):
-        rec["p_holm"] = padj
-        rec["verdict_holm"] = part_verdict(rec["claim"], rec.pop("excess"), rej)
+                    "parts": parts, **({"family": claim.family} if claim.family != MAIN_FAMILY else {})})
+    # each family is fixed in advance: every part of its claims, tested or not (``holm``'s family_size)
+    sizes = holm_families(out)
+    for fam, recs in tested.items():
+        adjusted, reject = holm([r["p"] for r in recs], family_size=sizes[fam])
+        for rec, padj, rej in zip(recs, adjusted, reject):
+            rec["p_holm"] = padj
+            rec["verdict_holm"] = part_verdict(rec["claim"], rec.pop("excess"), rej)
     for c in out:
         c["verdict"] = combine([p["verdict"] for p in c["parts"]])
         c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])

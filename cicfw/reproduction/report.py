@@ -102,7 +102,8 @@ import numpy as np
 from cicfw.files import atomic_write
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
-from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_family_size, judge
+from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families,
+                                       holm_family_size, judge)
 from cicfw.reproduction.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
@@ -111,6 +112,15 @@ from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
 RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last epoch was 0.12519 uninterrupted "
                   "and 0.12743 when the run was killed after epoch 1 and resumed")
 RESUMED_MARK = "‡"
+
+
+def _families(claims: Sequence[Mapping[str, Any]]) -> str:
+    """The Holm families, fixed in advance, in words: one family, or each adjusted on its own."""
+    sizes = holm_families(claims)
+    if len(sizes) <= 1:
+        return f"a family fixed in advance, the {holm_family_size(claims)} parts of the claims below"
+    named = [f"the {n} parts of the {f!r} claims" for f, n in sizes.items()]
+    return f"families fixed in advance, each adjusted on its own: {', '.join(named)}"
 
 
 def _row_order(rows: Sequence[str], catalogue: Mapping[str, Mapping[str, Any]]) -> list[str]:
@@ -397,8 +407,7 @@ def _claims_intro(data: Mapping[str, Any]) -> str:
             f"+{margin:g} points (`equivalence_margin` in conf/reproduce.yaml): *supported* when the interval lies "
             f"below +{margin:g} (non-superiority, the upper of TOST's two one-sided tests), *contradicted* when "
             f"above +{margin:g}, *not shown* when it holds +{margin:g}; p is the test against the part's null. "
-            "*Holm*: the same with Holm-adjusted p-values over a family fixed in "
-            f"advance, the {holm_family_size(data['claims'])} parts of the claims below, a part "
+            f"*Holm*: the same with Holm-adjusted p-values over {_families(data['claims'])}, a part "
             f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
             "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
             "figure (too narrow with few seeds), not used for a verdict.")
