@@ -83,8 +83,9 @@ def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:
 
 # ---- schemas from signatures -----------------------------------------------------------------------
 
-#: the attribute of a schema dataclass that says what it configures (``mixer 'gtu'``), for messages
-WHAT = "__cicfw_what__"
+#: attributes of a schema dataclass, for messages: what it configures (``mixer 'gtu'``), the arguments cicfw
+#: passes itself (key -> what to do instead), what an unknown key is not (``an argument of mixer 'gtu'``)
+WHAT, NOT_SETTABLE, IS_NOT = "__cicfw_what__", "__cicfw_not_settable__", "__cicfw_is_not__"
 
 
 def _builds():
@@ -120,18 +121,22 @@ def _signatures(fn: Callable) -> list[Callable]:
 
 
 def kwargs_schema(fn: Callable, what: str, exclude: tuple[str, ...] = (),
-                  fields: Mapping[str, tuple[Any, Any]] | None = None) -> type:
+                  fields: Mapping[str, tuple[Any, Any]] | None = None, not_settable: Mapping[str, str] | None = None,
+                  is_not: str | None = None) -> type:
     """A dataclass with a field per keyword argument of ``fn`` (its type and default; an argument without
     a default is ``'???'``, mandatory), ``exclude`` left out, plus ``fields`` (name -> (type, default)).
-    ``what`` names what it configures in messages (``mixer 'gtu'``)."""
+    For messages: ``what`` names what it configures (``mixer 'gtu'``), ``not_settable`` maps the arguments
+    cicfw passes itself (left out too) to what to do instead, ``is_not`` says what an unknown key is not
+    (``a Lightning Trainer argument``; default: ``an argument of <what>``)."""
     from omegaconf import MISSING
 
     builds = _builds()
     out: dict[str, tuple[Any, dataclasses.Field]] = {}
     for name, (type_, default) in (fields or {}).items():
         out[name] = (type_, dataclasses.field(default=default))
+    left_out = ("self", *exclude, *(not_settable or {}))
     for target in _signatures(fn):
-        for f in dataclasses.fields(builds.kwargs_of(target, zen_exclude=("self", *exclude))):
+        for f in dataclasses.fields(builds.kwargs_of(target, zen_exclude=left_out)):
             if f.name == "_target_" or f.name in out:
                 continue
             if f.default_factory is not dataclasses.MISSING:
@@ -140,7 +145,8 @@ def kwargs_schema(fn: Callable, what: str, exclude: tuple[str, ...] = (),
                 field = dataclasses.field(default=MISSING if f.default is dataclasses.MISSING else f.default)
             out[f.name] = (f.type, field)
     name = re.sub(r"\W", "_", f"{getattr(fn, '__name__', 'fn')}Config")
-    return dataclasses.make_dataclass(name, [(n, t, f) for n, (t, f) in out.items()], namespace={WHAT: what})
+    namespace = {WHAT: what, NOT_SETTABLE: dict(not_settable or {}), IS_NOT: is_not or f"an argument of {what}"}
+    return dataclasses.make_dataclass(name, [(n, t, f) for n, (t, f) in out.items()], namespace=namespace)
 
 
 # ---- a refusal as one line -------------------------------------------------------------------------
@@ -163,15 +169,22 @@ def _what(object_type: Any, where: str) -> str:
 
 
 def _field_type(object_type: Any, key: Any) -> Any:
-    fields = getattr(object_type, "__dataclass_fields__", {})
-    return fields[key].type if isinstance(key, str) and key in fields else None
+    try:
+        return typing.get_type_hints(object_type).get(key) if dataclasses.is_dataclass(object_type) else None
+    except Exception:  # an annotation that does not resolve: the message goes without "or null"
+        return None
 
 
 def _accepted_words(err: Any, msg: str) -> str | None:
     m = re.search(r"could not be converted to (\w+)", msg)
-    if not m:
+    if m:
+        words = _ACCEPTED.get(m.group(1), m.group(1))
+    elif "is not a ListConfig" in msg:
+        words = "a list"
+    elif "is not a subclass of" in msg or "is not a DictConfig" in msg:
+        words = "a mapping"
+    else:
         return None
-    words = _ACCEPTED.get(m.group(1), m.group(1))
     type_ = _field_type(getattr(err, "object_type", None), getattr(err, "key", None))
     return f"{words} or null" if type(None) in typing.get_args(type_) else words
 
@@ -197,8 +210,11 @@ def config_error(err: BaseException, prefix: str = "") -> SchemaError | None:
         if not where:
             return SchemaError(f"{prefix}unknown top-level key {last!r}; {hint}accepted top-level keys: "
                                f"{', '.join(keys)}", key, "unknown key")
+        reason = getattr(object_type, NOT_SETTABLE, {}).get(last)
+        if reason:
+            return SchemaError(f"{prefix}{key} cannot be set: {reason}", key, "not settable")
         what = getattr(object_type, WHAT, None)
-        is_not = f"an argument of {what}" if what else f"a key of '{where}'"
+        is_not = getattr(object_type, IS_NOT, None) or (f"an argument of {what}" if what else f"a key of '{where}'")
         return SchemaError(f"{prefix}{key} is not {is_not}; {hint}accepted keys: {', '.join(keys)}", key, "unknown key")
     if isinstance(cause, MissingMandatoryValue):
         return SchemaError(f"{prefix}{key} has no value (???); give {key}=...", key, "missing")
@@ -245,105 +261,5 @@ def check_kwargs(where: str, what: str, fn: Callable, kwargs: Mapping[str, Any],
     cicfw sets itself (``set_by_cicfw``: key -> what to do instead), a value of the wrong type or an
     argument without a default left out. ``where`` is the config node (``runner``), ``what`` the thing
     built (``policy 'expert'``); ``extra_keys`` are taken too (``name``)."""
-    set_by_cicfw = set_by_cicfw or {}
-    for key in kwargs:
-        if key in set_by_cicfw:
-            raise SchemaError(f"{where}.{key} cannot be set: {set_by_cicfw[key]}", f"{where}.{key}", "not settable")
     extra = {k: (Any, None) for k in extra_keys}
-    checked(kwargs_schema(fn, what, tuple(set_by_cicfw), extra), kwargs, where)
-
-
-# ---- the hand-written checks the schema replaces (removed with cicfw.train_schema) ----
-_KEYWORD = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-
-
-def _inits(fn: Callable) -> list[Callable]:
-    """``fn`` itself, or a class's ``__init__``s along its MRO (``object``'s excluded)."""
-    if not inspect.isclass(fn):
-        return [fn]
-    return [k.__dict__["__init__"] for k in fn.__mro__ if "__init__" in k.__dict__ and k is not object]
-
-
-def _is_module_init(init: Callable) -> bool:
-    """``torch.nn.Module.__init__`` (told apart without importing torch)."""
-    return getattr(init, "__module__", "") == "torch.nn.modules.module" and init.__qualname__ == "Module.__init__"
-
-
-def keyword_parameters(fn: Callable) -> tuple[dict[str, inspect.Parameter], bool]:
-    """The keyword parameters ``fn`` takes, and whether it takes any others. A class whose
-    ``__init__`` passes ``**kwargs`` on to its base (``HybridHead(W, **bins_kwargs)``) takes its
-    bases' arguments too, up to the first ``__init__`` without ``**kwargs``."""
-    found: dict[str, inspect.Parameter] = {}
-    for init in _inits(fn):
-        if inspect.isclass(fn) and _is_module_init(init):
-            return found, False  # nn.Module takes no keyword arguments of its own
-        params = inspect.signature(init).parameters
-        for name, p in params.items():
-            if name != "self" and p.kind in _KEYWORD and name not in found:
-                found[name] = p
-        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            return found, False
-    return found, True
-
-
-#: the annotation parts a config value can be checked against (classes, ``list[int]`` ... are not)
-_PLAIN = ("int", "float", "bool", "str", "None")
-
-
-def _parts(annotation: Any) -> tuple[list[str], list[Any]] | None:
-    """An annotation's type names and ``Literal`` values, from its text (``int | None``, as
-    ``from __future__ import annotations`` keeps it) or its typing object (``Optional[int]``, as
-    ``lightning.Trainer`` has it); None when a part is none of ``_PLAIN`` (nothing to check)."""
-    if isinstance(annotation, str):
-        names = [p.strip() for p in annotation.split("|")]
-        return (names, []) if all(n in _PLAIN for n in names) else None
-    if annotation is type(None) or annotation is None:
-        return ["None"], []
-    origin = typing.get_origin(annotation)
-    if origin is typing.Literal:
-        return [], list(typing.get_args(annotation))
-    if origin in (typing.Union, types.UnionType):
-        found = [_parts(a) for a in typing.get_args(annotation)]
-        if any(f is None for f in found):
-            return None
-        return [n for f in found for n in f[0]], [v for f in found for v in f[1]]
-    name = getattr(annotation, "__name__", None)
-    return ([name], []) if origin is None and name in _PLAIN else None
-
-
-def _fits(names: list[str], literals: list[Any], value: Any) -> bool:
-    """Whether ``value`` is one of ``names``' types or ``literals`` (a number is a valid ``str``: Hydra
-    reads ``name=123`` as one)."""
-    if any(value == v and type(value) is type(v) for v in literals):
-        return True
-    if isinstance(value, bool):
-        return "bool" in names
-    return (("None" in names and value is None) or ("str" in names and isinstance(value, (str, int, float)))
-            or ("float" in names and is_number(value)) or ("int" in names and isinstance(value, int)))
-
-
-def _accepted(names: list[str], literals: list[Any], value: Any) -> str:
-    """``a number or null``, ``true or false``, ``true, false, 'warn' or null`` ...; an ``int`` is "a
-    number" to a value that is none, and "a whole number" to a fraction."""
-    whole = "a whole number" if is_number(value) else "a number"
-    words = {"int": [whole] if "float" not in names else [], "float": ["a number"], "bool": ["true", "false"],
-             "str": ["a string"]}
-    said = [w for n in dict.fromkeys(names) for w in words.get(n, [])]
-    said += [repr(v) for v in literals] + (["null"] if "None" in names else [])
-    return said[0] if len(said) == 1 else f"{', '.join(said[:-1])} or {said[-1]}"
-
-
-def type_problem(annotation: Any, value: Any) -> str | None:
-    """What is wrong with ``value`` for a parameter annotated ``annotation``, else None. Checked: unions of
-    ``int``, ``float``, ``bool``, ``str``, ``None`` and ``Literal`` values (as text or typing objects),
-    and ``tuple[float, ...]`` of a fixed length; any other annotation passes (its callee checks it)."""
-    ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation))
-    fixed = re.fullmatch(r"tuple\[((?:int|float)(?:, *(?:int|float))*)\]", ann.replace(" ", ""))
-    if fixed:
-        n = len(fixed.group(1).split(","))
-        ok = isinstance(value, (list, tuple)) and len(value) == n and all(is_number(v) for v in value)
-        return None if ok else f"must be a list of {n} numbers, got {value!r}"
-    parts = _parts(annotation)
-    if parts is None or set(parts[0]) <= {"None"} or _fits(*parts, value):
-        return None  # Literal values only (trainer.precision): the callee names the accepted ones
-    return f"must be {_accepted(*parts, value)}, got {value!r}"
+    checked(kwargs_schema(fn, what, fields=extra, not_settable=set_by_cicfw), kwargs, where)

@@ -9,6 +9,7 @@ job failed with one line instead of the job's traceback.
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 import sys
@@ -175,7 +176,9 @@ def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
     """One ``ValueError`` for a top-level key ``config_name`` does not have (``+evaluate_aftr=true``:
     added with ``+``, never read, so it would silently change nothing), naming the accepted keys, as
     ``cicfw collect`` does for its keys. ``where`` prefixes the message (``evaluate_overrides: ``)."""
-    accepted = top_level_keys(config_name)
+    typed = OmegaConf.get_type(cfg)  # a config with a schema (train's) knows its keys; else compose the app's
+    accepted = tuple(f.name for f in dataclasses.fields(typed)) if dataclasses.is_dataclass(typed) else \
+        top_level_keys(config_name)
     if accepted is None:
         return
     unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]

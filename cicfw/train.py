@@ -21,8 +21,8 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import check_kwargs, forget_empty_cache_setting, is_integer, type_problem, whole_number
-from cicfw.config_checks import did_you_mean as _did_you_mean  # noqa: F401  (importable from here)
+from cicfw.config_checks import did_you_mean as _did_you_mean
+from cicfw.config_checks import forget_empty_cache_setting, is_integer, whole_number
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -32,13 +32,10 @@ from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SpeedConfig, apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
-from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.run_folder import hold_train_folder, release_run_folder
+from cicfw.train_schema import DATA, MODEL, SPEED_SWITCHES, TRAINER, checked_node, checked_part
 
 log = logging.getLogger("cicfw.train")
-
-# Trainer-config keys that are cicfw switches rather than Lightning Trainer arguments.
-SPEED_SWITCHES = ("compile", "channels_last", "adam", "keep_memory")
 
 def csv_logger(run_dir: Path) -> CSVLogger:
     """``<run dir>/csv/metrics.csv``. Lightning's CSV logger deletes a metrics.csv it finds there, which a run
@@ -69,20 +66,13 @@ def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
 
 
 def build_model(cfg: DictConfig) -> CICModule:
-    """The model from the encoder/mixer/head/model nodes; an unknown name or key fails here with one
-    line naming what is accepted (before any data is read)."""
-    enc, enc_kw = name_and_kwargs(cfg.encoder)
-    mix, mix_kw = name_and_kwargs(cfg.mixer)
-    head, head_kw = name_and_kwargs(cfg.head)
-    model_kw = OmegaConf.to_container(cfg.model, resolve=True)
-    dims = "cicfw sets it from the encoder's and the head's sizes"
-    check_kwargs("encoder", f"encoder {enc!r}", ENCODERS.get(enc), enc_kw, extra_keys=("name",))
-    check_kwargs("mixer", f"mixer {mix!r}", MIXERS.get(mix), mix_kw,
-                 {"in_dim": dims, "out_dim": dims}, extra_keys=("name",))
-    check_kwargs("head", f"head {head!r}", HEADS.get(head), head_kw, extra_keys=("name",))
-    parts = "choose it with the encoder/mixer/head config groups (mixer=gtu mixer.hidden=128)"
-    check_kwargs("model", "the model (CICModule)", CICModule, model_kw,
-                 {k: parts for k in ("encoder", "encoder_kwargs", "mixer", "mixer_kwargs", "head", "head_kwargs")})
+    """The model from the encoder/mixer/head/model nodes, each checked against its schema
+    (cicfw/train_schema): an unknown name or key fails here with one line naming what is accepted (before
+    any data is read)."""
+    enc, enc_kw = checked_part(cfg, "encoder")
+    mix, mix_kw = checked_part(cfg, "mixer")
+    head, head_kw = checked_part(cfg, "head")
+    model_kw = checked_node(cfg, "model", MODEL)
     model = CICModule(encoder=enc, encoder_kwargs=enc_kw, mixer=mix, mixer_kwargs=mix_kw,
                       head=head, head_kwargs=head_kw, **model_kw)
     if cfg.trainer.get("channels_last"):
@@ -160,10 +150,9 @@ def check_not_your_own_data(path: Path) -> None:
 def make_datamodule(cfg: DictConfig) -> CILDataModule:
     """The datamodule from ``cfg.data``: its arguments are checked (batch size a multiple of 4 for
     balanced batches, ...) but no file is read or collected yet."""
-    kwargs = OmegaConf.to_container(cfg.data, resolve=True)
+    kwargs = checked_node(cfg, "data", DATA)
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
-    check_kwargs("data", "the CIL datamodule", CILDataModule, kwargs)
     check_batches_per_epoch(kwargs.get("batches_per_epoch"))
     datamodule = CILDataModule(**kwargs)
     check_collected_cameras(cfg.data, datamodule)
@@ -171,9 +160,9 @@ def make_datamodule(cfg: DictConfig) -> CILDataModule:
 
 
 def check_batches_per_epoch(value: Any) -> None:
-    """``data.batches_per_epoch``: null (the training samples / the batch size) or an integer >= 1; 0 was
-    taken for null and -1 failed inside Lightning's sampler."""
-    if value is not None and not (is_integer(value) and value >= 1):
+    """``data.batches_per_epoch`` (a whole number or null: the schema): null (the training samples / the
+    batch size) or >= 1; 0 was taken for null and -1 failed inside Lightning's sampler."""
+    if value is not None and value < 1:
         raise ValueError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
                          f">= 1, got {value!r}")
 
@@ -303,48 +292,12 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     return callbacks
 
 
-# Trainer arguments cicfw passes itself, and what to use instead.
-SET_BY_CICFW = {
-    "default_root_dir": "cicfw uses the run folder (hydra.run.dir=...)",
-    "logger": "choose the logger with logger=csv, logger=tensorboard or logger=null",
-    "callbacks": "cicfw adds its checkpoint and diagnostics callbacks (progress_bar=false drops the bar)",
-}
-
-
-# Trainer arguments whose annotations let type_problem pass a wrong value (it does not check a union
-# with timedelta; a number is a str to it), which then failed inside Lightning with an AttributeError:
-# the types a config value may have, and what to say is accepted.
-LIGHTNING_TYPES = {
-    "max_time": ((str, dict), "a duration 'DD:HH:MM:SS' such as '00:12:00:00', a mapping such as "
-                              "{days: 1, hours: 2}, or null"),
-    "gradient_clip_algorithm": ((str,), "'value', 'norm' or null"),
-    "model_registry": ((str,), "a model name or null"),
-}
-
-
 def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
-    """``cfg.trainer`` minus cicfw's speed switches; every key must be a ``lightning.Trainer``
-    argument (the trainer node is open, so a typo arrives here and gets "did you mean")."""
-    kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
-    assert isinstance(kwargs, dict)
+    """``lightning.Trainer``'s arguments: ``cfg.trainer`` checked against its schema (every argument of
+    ``Trainer.__init__`` with its type, and cicfw's speed switches), minus the speed switches."""
+    kwargs = checked_node(cfg, "trainer", TRAINER)
     for key in SPEED_SWITCHES:
         kwargs.pop(key, None)
-    signature = inspect.signature(L.Trainer.__init__).parameters
-    params = [n for n in signature if n != "self"]
-    for key, value in kwargs.items():
-        if key in SET_BY_CICFW:
-            raise ValueError(f"trainer.{key} cannot be set: {SET_BY_CICFW[key]}")
-        if key not in params:
-            accepted = [p for p in params if p not in SET_BY_CICFW]
-            raise ValueError(
-                f"trainer.{key} is not a Lightning Trainer argument; {_did_you_mean(str(key), accepted + list(SPEED_SWITCHES))}"
-                f"accepted keys: the arguments of lightning.Trainer ({', '.join(accepted)}) and cicfw's "
-                f"switches ({', '.join(SPEED_SWITCHES)})")
-        problem = type_problem(signature[key].annotation, value)  # max_epochs=abc would pass Lightning
-        if problem:
-            raise ValueError(f"trainer.{key} {problem}")
-        if key in LIGHTNING_TYPES and value is not None and not isinstance(value, LIGHTNING_TYPES[key][0]):
-            raise ValueError(f"trainer.{key} must be {LIGHTNING_TYPES[key][1]}, got {value!r}")
     return kwargs
 
 
@@ -359,14 +312,15 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
         raise ValueError(f"unknown logger {cfg.logger.name!r}; known loggers: {', '.join(sorted(LOGGERS))}")
     else:
         logger = LOGGERS[cfg.logger.name](run_dir)
-    kwargs.setdefault("enable_progress_bar", bool(cfg.get("progress_bar", True)))
+    if kwargs.get("enable_progress_bar") is None:  # Lightning's default: follow progress_bar
+        kwargs["enable_progress_bar"] = bool(cfg.get("progress_bar", True))
     kwargs["plugins"] = with_checkpoint_io(kwargs.get("plugins"))
     callbacks = build_callbacks(cfg, run_dir)  # outside the try below: its errors name their own keys
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     try:
         return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
-    except (MisconfigurationException, ValueError, TypeError) as err:
+    except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=5: AttributeError
         raise ValueError(f"trainer: {' '.join(str(err).split())}") from None
 
 

@@ -55,7 +55,7 @@ def test_resuming_a_checkpoint_with_nothing_left_to_train_is_refused(run, no_dat
         assert str(err.value).startswith(f"ckpt_path={last} has finished 3 epoch(s) and {limit}: nothing is left"), \
             str(err.value)
     with pytest.raises(ValueError, match=r"has trained 3 step\(s\) and trainer.max_steps=3"):
-        train_in_folder(_cfg(run[1], "trainer.max_epochs=9", "+trainer.max_steps=3", f"ckpt_path={last}"),
+        train_in_folder(_cfg(run[1], "trainer.max_epochs=9", "trainer.max_steps=3", f"ckpt_path={last}"),
                         tmp_path / "r")
 
 

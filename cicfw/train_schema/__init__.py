@@ -1,0 +1,128 @@
+"""The train app's config schema, taken from what each node builds, and registered with Hydra.
+
+conf/train.yaml puts this package on its search path, so Hydra imports it (registering the schema in its
+ConfigStore) before it composes a train config, and the defaults list lays the schema under the config:
+``cicfw_train`` under the whole of it (``model``: ``CICModule``'s arguments, ``data``: ``CILDataModule``'s,
+``trainer``: ``lightning.Trainer``'s plus cicfw's speed switches), and ``cicfw_schema/<group>/<name>``
+under each chosen encoder, mixer and head option (the registered class's arguments, plugins' included).
+OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key,
+before any run folder exists. ``part`` and ``checked`` apply the same schemas to a composed config again:
+for keys added with ``+`` (which Hydra lets through), an option file whose name is not the registered
+name it selects, or a config composed elsewhere.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import lightning as L
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from cicfw.collection.config import CollectConfig
+from cicfw.config_checks import SchemaError, checked, kwargs_schema
+from cicfw.data.datamodule import CILDataModule
+from cicfw.model.module import CICModule
+from cicfw.model.speed import SpeedConfig
+from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry
+
+#: the model's parts: config group -> registry
+PARTS: dict[str, Registry] = {"encoder": ENCODERS, "mixer": MIXERS, "head": HEADS}
+#: arguments cicfw passes itself, and what to do instead
+NOT_SETTABLE = {
+    "mixer": dict.fromkeys(("in_dim", "out_dim"), "cicfw sets it from the encoder's and the head's sizes"),
+    "model": dict.fromkeys(("encoder", "encoder_kwargs", "mixer", "mixer_kwargs", "head", "head_kwargs"),
+                           "choose it with the encoder/mixer/head config groups (mixer=gtu mixer.hidden=128)"),
+    "trainer": {
+        "default_root_dir": "cicfw uses the run folder (hydra.run.dir=...)",
+        "logger": "choose the logger with logger=csv, logger=tensorboard or logger=null",
+        "callbacks": "cicfw adds its checkpoint and diagnostics callbacks (progress_bar=false drops the bar)",
+    },
+}
+#: cicfw's speed switches, set in the trainer node beside Lightning's arguments (cicfw/model/speed.py)
+SPEED_SWITCHES = tuple(f.name for f in dataclasses.fields(SpeedConfig))
+
+
+@functools.lru_cache(maxsize=None)
+def part(group: str, name: str) -> type:
+    """The schema of the ``group`` option that builds registered ``name``: its class's arguments and
+    ``name``. An unknown name is the registry's ``UnknownNameError``, listing the registered ones."""
+    return kwargs_schema(PARTS[group].get(name), f"{group} {name!r}", fields={"name": (str, name)},
+                         not_settable=NOT_SETTABLE.get(group))
+
+
+def _speed_fields() -> dict[str, tuple[Any, Any]]:
+    speed = kwargs_schema(SpeedConfig, "cicfw's speed switches")
+    return {f.name: (f.type, f.default) for f in dataclasses.fields(speed)}
+
+
+MODEL = kwargs_schema(CICModule, "the model (CICModule)", not_settable=NOT_SETTABLE["model"])
+TRAINER = kwargs_schema(L.Trainer, "the Lightning Trainer", fields=_speed_fields(),
+                        not_settable=NOT_SETTABLE["trainer"], is_not="a Lightning Trainer argument")
+DATA = dataclasses.make_dataclass(  # data=sim_default collects its data: data.collect is a collection's config
+    "CILDataModuleConfig", [("collect", Optional[CollectConfig], field(default=None))],
+    bases=(kwargs_schema(CILDataModule, "the CIL datamodule"),))
+
+
+@dataclass
+class LoggerConfig:
+    name: str = MISSING  # cicfw.train.LOGGERS: csv | tensorboard
+
+
+@dataclass
+class TrainConfig:
+    """conf/train.yaml: its own keys (their values are written there) and the nodes of what it builds."""
+
+    __cicfw_what__ = "the train config"
+
+    seed: int = MISSING
+    model: MODEL = field(default_factory=MODEL)  # type: ignore[valid-type]
+    ckpt_path: Optional[str] = MISSING
+    optimized_metric: str = MISSING
+    progress_bar: bool = MISSING
+    keep_epoch_checkpoints: Optional[list[int]] = MISSING
+    evaluate_after: bool = MISSING
+    evaluate_overrides: Any = MISSING  # conf/evaluate.yaml's overrides (cicfw.evaluate checks them)
+    return_closed_loop: bool = MISSING
+    encoder: Any = MISSING  # cicfw_schema/encoder/<name>, then the chosen option
+    mixer: Any = MISSING
+    head: Any = MISSING
+    data: DATA = field(default_factory=DATA)  # type: ignore[valid-type]
+    trainer: TRAINER = field(default_factory=TRAINER)  # type: ignore[valid-type]
+    logger: Optional[LoggerConfig] = None
+
+
+def register() -> None:
+    """``cicfw_train`` and ``cicfw_schema/<group>/<name>`` for every registered part in the ConfigStore."""
+    store = ConfigStore.instance()
+    store.store(name="cicfw_train", node=TrainConfig, provider="cicfw")
+    for group, registry in PARTS.items():
+        for name in registry.names():
+            store.store(group=f"cicfw_schema/{group}", name=name, node=part(group, name), provider="cicfw")
+
+
+def checked_part(cfg: DictConfig, group: str) -> tuple[str, dict[str, Any]]:
+    """The registered name and the keyword arguments of ``cfg[group]``, checked against its name's schema
+    (a key added with ``+``, a wrong type: one ``SchemaError`` naming the full key)."""
+    node = OmegaConf.to_container(cfg[group], resolve=True)
+    if not isinstance(node, dict) or "name" not in node:
+        raise SchemaError(f"{group} must be a config node with a 'name:' key naming the registered {group}, "
+                          f"got {node!r}", f"{group}.name", "missing")
+    kwargs = OmegaConf.to_container(checked(part(group, str(node["name"])), node, group), resolve=True)
+    return str(kwargs.pop("name")), kwargs
+
+
+def checked_node(cfg: DictConfig, key: str, schema: type) -> dict[str, Any]:
+    """``cfg[key]`` as plain data, checked against ``schema`` (``model``, ``data``, ``trainer``)."""
+    return OmegaConf.to_container(checked(schema, OmegaConf.to_container(cfg[key], resolve=True), key),
+                                  resolve=True)
+
+
+def top_level_keys() -> list[str]:
+    """The top-level keys of a train config."""
+    return [f.name for f in dataclasses.fields(TrainConfig)]
+
+
+register()
