@@ -7,11 +7,16 @@ file is one line (``cicfw: error: ...``, exit status 2), not a traceback from in
 its lock taken (``TrainFolderLock``), and no other run's checkpoints or metrics in it
 (``check_no_other_run``); ``TrainRunFolderCheck`` (conf/train.yaml) calls it before Hydra writes
 ``.hydra`` there, and the app again around the training (a no-op for a folder this process holds).
+A training run refused before it trains leaves nothing behind: ``TrainRunFolderCheck`` notes what the
+folder held before Hydra wrote into it (``note_run_folder``) and the app puts it back
+(``undo_run_folder``).
 """
 from __future__ import annotations
 
 import os
+import shutil
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -180,18 +185,83 @@ def release_run_folder(folder: str | Path) -> None:
         lock.release()
 
 
+# ---- a refused run leaves nothing behind -------------------------------------------------------------
+@dataclass
+class FolderBefore:
+    """What a run folder held before a run wrote into it: whether it existed (and the first of its parents
+    that did not), its entries, the bytes of its ``.hydra`` files and the size of its logs."""
+
+    existed: bool
+    first_made: Path | None = None
+    entries: set[str] = field(default_factory=set)
+    hydra_files: dict[str, bytes] = field(default_factory=dict)
+    log_sizes: dict[str, int] = field(default_factory=dict)
+
+
+_BEFORE: dict[str, FolderBefore] = {}  # run folders noted by note_run_folder, by absolute path
+
+
+def note_run_folder(folder: str | Path) -> None:
+    """Note what ``folder`` holds now, before Hydra creates it or writes ``.hydra`` and the job's log."""
+    folder = Path(os.path.abspath(folder))
+    if not _exists(folder):
+        first = folder
+        while not _exists(first.parent) and first.parent != first:
+            first = first.parent
+        _BEFORE[str(folder)] = FolderBefore(existed=False, first_made=first)
+        return
+    try:
+        hydra = {str(p.relative_to(folder)): p.read_bytes() for p in (folder / ".hydra").glob("*") if p.is_file()}
+        logs = {p.name: p.stat().st_size for p in folder.glob("*.log") if p.is_file()}
+        _BEFORE[str(folder)] = FolderBefore(True, None, {p.name for p in folder.iterdir()}, hydra, logs)
+    except OSError:
+        pass  # an unreadable folder: check_run_folder says so; nothing will be undone in it
+
+
+def undo_run_folder(folder: str | Path) -> None:
+    """Put ``folder`` back as ``note_run_folder`` found it: removed, with the parents made for it, when it
+    did not exist; else what the run added removed, ``.hydra`` rewritten as it was and the logs cut back.
+    Nothing happens to a folder that was not noted (a multirun job's folder keeps its log)."""
+    folder = Path(os.path.abspath(folder))
+    before = _BEFORE.pop(str(folder), None)
+    if before is None or not _exists(folder):
+        return
+    if not before.existed:
+        shutil.rmtree(folder, ignore_errors=True)
+        parent = folder.parent
+        while before.first_made is not None and before.first_made in (parent, *parent.parents):
+            try:
+                parent.rmdir()  # only while empty: another run may have written beside it since
+            except OSError:
+                break
+            parent = parent.parent
+        return
+    for entry in folder.iterdir():
+        if entry.name not in before.entries:
+            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+    for p in (folder / ".hydra").glob("*") if before.hydra_files else ():
+        if str(p.relative_to(folder)) not in before.hydra_files:
+            p.unlink()
+    for rel, data in before.hydra_files.items():
+        (folder / rel).write_bytes(data)
+    for name, size in before.log_sizes.items():
+        if (folder / name).is_file():
+            os.truncate(folder / name, size)
+
+
 class TrainRunFolderCheck(RunFolderCheck):
     """Hydra callback (conf/train.yaml): ``RunFolderCheck``'s checks, then the run folder held for this run
-    (``hold_train_folder``) before Hydra writes its ``.hydra`` there; a folder another run holds or wrote
-    into is one line (exit status 2), the other run's files untouched."""
+    (``hold_train_folder``) before Hydra writes its ``.hydra`` there, and what it held noted for
+    ``undo_run_folder``; a folder another run holds or wrote into is one line (exit status 2), the other
+    run's files untouched."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        folder = str(config.hydra.run.dir)
+        note_run_folder(folder)
         super().on_run_start(config, **kwargs)
         try:
-            hold_train_folder(str(config.hydra.run.dir), config.get("ckpt_path"), "hydra.run.dir")
+            hold_train_folder(folder, config.get("ckpt_path"), "hydra.run.dir")
         except ValueError as err:
+            undo_run_folder(folder)
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
-
-    def on_run_end(self, config: Any, **kwargs: Any) -> None:
-        release_run_folder(str(config.hydra.run.dir))

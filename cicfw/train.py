@@ -26,13 +26,13 @@ from cicfw.config_checks import forget_empty_cache_setting, is_integer, whole_nu
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
-from cicfw.errors import Interrupted, on_interrupt, report_interrupts, report_user_errors
+from cicfw.errors import USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SpeedConfig, apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
-from cicfw.run_folder import hold_train_folder, release_run_folder
+from cicfw.run_folder import hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.train_schema import DATA, MODEL, SPEED_SWITCHES, TRAINER, checked_node, checked_part
 
 log = logging.getLogger("cicfw.train")
@@ -451,12 +451,14 @@ def fit_kwargs() -> dict[str, Any]:
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
-def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False) -> float:
+def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
+          on_start: Callable[[], Any] | None = None) -> float:
     """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
     ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
     ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on.
     ``refuse_finished``: refuse a ``ckpt_path`` with no epoch left to train (the app does; a caller that
-    resumes whatever it finds, as a reproduce cell does, gets a run that trains nothing and says so)."""
+    resumes whatever it finds, as a reproduce cell does, gets a run that trains nothing and says so).
+    ``on_start`` is called when everything is checked and training starts."""
     run_dir = Path(run_dir)
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
     L.seed_everything(whole_number("seed", cfg.seed), workers=True)
@@ -480,6 +482,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False) -> floa
         apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
                                 len(datamodule.train_dataloader()))      # channels_last, Adam's step
     before = checkpoint_files(run_dir)
+    if on_start is not None:
+        on_start()
     fit(trainer, model, datamodule, ckpt_path, run_dir)
     ckpt = trainer.checkpoint_callback
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
@@ -533,10 +537,18 @@ def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_pa
 
 def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") -> float:
     """The app's ``train``: ``run_dir`` held (``hold_train_folder``) until it ends, and a checkpoint with
-    nothing left to train refused."""
+    nothing left to train refused. A run refused before it trains leaves the folder as it found it
+    (``undo_run_folder``: no ``.hydra`` or empty log of a run that never was); a multirun job's folder
+    keeps its log, which the sweep's failure line names."""
     hold_train_folder(run_dir, cfg.get("ckpt_path"), key)
+    started = []
     try:
-        return train(cfg, run_dir, refuse_finished=True)
+        return train(cfg, run_dir, refuse_finished=True, on_start=lambda: started.append(True))
+    except USER_ERRORS:
+        if not started and key == "hydra.run.dir":
+            release_run_folder(run_dir)
+            undo_run_folder(run_dir)
+        raise
     finally:
         release_run_folder(run_dir)
 

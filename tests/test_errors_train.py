@@ -63,18 +63,20 @@ def test_any_trainer_argument_passes_without_plus(tmp_path):
 
 def test_trainer_argument_from_the_command_line(tmp_path):
     """The whole app: ``trainer.fast_dev_run=true`` (no ``+``) trains one step; a value Lightning refuses
-    is one line."""
+    is one line, and the refused run leaves no run folder behind."""
     data = write_tiny_dataset(tmp_path / "data")
     env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
     common = [sys.executable, "-m", "cicfw.train", *BASE, f"data.path={data}", f"hydra.run.dir={tmp_path}/out"]
     ok = subprocess.run([*common, "trainer.fast_dev_run=true"], capture_output=True, text=True, env=env, timeout=300)
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert "`Trainer.fit` stopped: `max_steps=1` reached." in ok.stderr + ok.stdout
+    common[-1] = f"hydra.run.dir={tmp_path}/refused/run"
     bad = subprocess.run([*common, "trainer.max_epochs=-2"], capture_output=True, text=True, env=env, timeout=300)
     assert bad.returncode == 2
     errors = [line for line in bad.stderr.splitlines() if line.startswith("cicfw:")]
     assert len(errors) == 1 and errors[0].startswith("cicfw: error: trainer") and "max_epochs" in errors[0], errors
     assert "Traceback" not in bad.stderr
+    assert not (tmp_path / "refused").exists()  # neither .hydra nor an empty train.log, nor the parent made for it
 
 
 # ---- checkpoints given to ckpt_path= --------------------------------------------------------------

@@ -106,6 +106,43 @@ def test_the_apps_callback_refuses_a_held_folder_in_one_line_before_hydra_writes
     assert not (run / ".hydra").exists()
 
 
+# ---- a refused run leaves nothing behind ----------------------------------------------------------
+
+
+def test_a_refused_run_puts_a_folder_that_existed_back_as_it_was(tmp_path):
+    """A run refused after Hydra wrote ``.hydra`` and its log (a value a constructor refuses) restores
+    them: the folder holds what it held, byte for byte, and nothing else."""
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    before = {run / ".hydra" / "config.yaml": b"seed: 7\n", run / "train.log": b"an earlier line\n",
+              run / "notes.txt": b"mine\n"}
+    for path, data_ in before.items():
+        path.write_bytes(data_)
+    proc = subprocess.run(_train_cmd(data, run, "data.batch_size=6"), capture_output=True, text=True, env=ENV,
+                          timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = _errors(proc.stderr)
+    assert len(errors) == 1 and errors[0].startswith("cicfw: error: data.batch_size"), proc.stderr[-3000:]
+    assert {p for p in run.rglob("*") if p.is_file()} == set(before)
+    assert {p: p.read_bytes() for p in before} == before
+
+
+def test_undo_removes_a_new_folder_and_the_parents_made_for_it_only(tmp_path):
+    from cicfw.run_folder import note_run_folder, undo_run_folder
+
+    (tmp_path / "outputs").mkdir()
+    run = tmp_path / "outputs" / "day" / "time"
+    note_run_folder(run)
+    (run / ".hydra").mkdir(parents=True)
+    (run / "train.log").write_text("")
+    (tmp_path / "outputs" / "kept.txt").write_text("not the run's")
+    undo_run_folder(run)
+    assert sorted(p.name for p in (tmp_path / "outputs").iterdir()) == ["kept.txt"]  # outputs/ existed before
+    undo_run_folder(tmp_path / "outputs")  # never noted: left alone
+    assert (tmp_path / "outputs" / "kept.txt").exists()
+
+
 # ---- the cache folder ----------------------------------------------------------------------------
 
 
