@@ -9,7 +9,8 @@ its lock taken (``TrainFolderLock``), and no other run's checkpoints or metrics 
 ``.hydra`` there, and the app again around the training (a no-op for a folder this process holds).
 A training run refused before it trains leaves nothing behind: ``TrainRunFolderCheck`` notes what the
 folder held before Hydra wrote into it (``note_run_folder``) and the app puts it back
-(``undo_run_folder``).
+(``undo_run_folder``); a sweep folder holding another multirun is refused before Hydra writes over it
+(``check_no_other_sweep``).
 """
 from __future__ import annotations
 
@@ -249,11 +250,26 @@ def undo_run_folder(folder: str | Path) -> None:
             os.truncate(folder / name, size)
 
 
+def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> None:
+    """One ``RunFolderError`` when ``folder`` holds another multirun (its ``multirun.yaml``, or a job folder
+    with Hydra's record), which this one would write over before any of its jobs could refuse."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    jobs = sorted(p.name for p in folder.iterdir() if (p / ".hydra").is_dir())
+    if not jobs and not (folder / "multirun.yaml").is_file():
+        return
+    held = ["multirun.yaml"] if (folder / "multirun.yaml").is_file() else []
+    held += [f"{len(jobs)} job folder(s): {', '.join(jobs[:5])}{' ...' if len(jobs) > 5 else ''}"] if jobs else []
+    raise RunFolderError(f"the sweep folder {str(folder)!r} already holds another multirun ({'; '.join(held)}), "
+                         f"which this one would write over; give a fresh folder ({key}=<new folder>)")
+
+
 class TrainRunFolderCheck(RunFolderCheck):
     """Hydra callback (conf/train.yaml): ``RunFolderCheck``'s checks, then the run folder held for this run
     (``hold_train_folder``) before Hydra writes its ``.hydra`` there, and what it held noted for
-    ``undo_run_folder``; a folder another run holds or wrote into is one line (exit status 2), the other
-    run's files untouched."""
+    ``undo_run_folder``; a folder another run holds or wrote into, or a sweep folder holding another
+    multirun, is one line (exit status 2), the other run's files untouched."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         folder = str(config.hydra.run.dir)
@@ -265,3 +281,17 @@ class TrainRunFolderCheck(RunFolderCheck):
             undo_run_folder(folder)
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        from cicfw.sweeps import is_worker_process
+
+        if not is_worker_process():  # a DDP rank re-running the sweep of its rank 0 shares its folder
+            try:
+                check_no_other_sweep(str(config.hydra.sweep.dir))
+            except RunFolderError as err:
+                print(f"cicfw: error: {err}", file=sys.stderr)
+                sys.exit(2)
+        super().on_multirun_start(config, **kwargs)
+
+    def on_run_end(self, config: Any, **kwargs: Any) -> None:
+        release_run_folder(str(config.hydra.run.dir))

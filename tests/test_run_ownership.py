@@ -143,6 +143,33 @@ def test_undo_removes_a_new_folder_and_the_parents_made_for_it_only(tmp_path):
     assert (tmp_path / "outputs" / "kept.txt").exists()
 
 
+def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_there(tmp_path):
+    sweep = tmp_path / "sweep"
+    (sweep / "0" / ".hydra").mkdir(parents=True)
+    kept = {sweep / "multirun.yaml": b"hydra: {}\n", sweep / "0" / ".hydra" / "config.yaml": b"seed: 0\n"}
+    for path, data in kept.items():
+        path.write_bytes(data)
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
+                           f"hydra.sweep.dir={sweep}", "mixer=independent,gtu"], capture_output=True, text=True,
+                          env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = _errors(proc.stderr)
+    assert len(errors) == 1 and str(sweep) in errors[0] and "hydra.sweep.dir=" in errors[0], proc.stderr[-3000:]
+    assert {p for p in sweep.rglob("*") if p.is_file()} == set(kept)
+    assert {p: p.read_bytes() for p in kept} == kept
+
+
+def test_a_ddp_worker_rank_rerunning_its_sweep_is_not_refused(tmp_path, monkeypatch):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra: {}\n")  # written by rank 0 of the same sweep
+    config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}, "job": {"name": "train"}}})
+    with pytest.raises(SystemExit):
+        TrainRunFolderCheck().on_multirun_start(config)
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    TrainRunFolderCheck().on_multirun_start(config)
+
+
 # ---- the cache folder ----------------------------------------------------------------------------
 
 
