@@ -231,9 +231,12 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
 def one_line_config_errors() -> Iterator[None]:
     """Inside, what Hydra refuses before running the app (``composition_error_line``) is printed as one
     ``cicfw: error:`` line and ends the app with status 2, instead of Hydra's message and its advice to set
-    HYDRA_FULL_ERROR. Hydra calls its ``run_and_report``
+    HYDRA_FULL_ERROR; a sweep folder made before Hydra refused a job's config is removed again
+    (``run_folder.undo_noted_folders``). Hydra calls its ``run_and_report``
     around composing and running: that is where this steps in (HYDRA_FULL_ERROR=1 still shows it all)."""
     import hydra._internal.utils as hydra_utils
+
+    from cicfw.run_folder import undo_noted_folders
 
     report = hydra_utils.run_and_report
 
@@ -245,6 +248,7 @@ def one_line_config_errors() -> Iterator[None]:
             if line is None:
                 raise
             print(f"cicfw: error: {line}", file=sys.stderr)
+            undo_noted_folders()  # a sweep folder made before Hydra refused a job's config
             sys.exit(2)
 
     hydra_utils.run_and_report = lambda func: report(lambda: one_line(func))

@@ -10,7 +10,7 @@ its lock taken (``TrainFolderLock``), and no other run's checkpoints or metrics 
 A training run refused before it trains leaves nothing behind: ``TrainRunFolderCheck`` notes what the
 folder held before Hydra wrote into it (``note_run_folder``) and the app puts it back
 (``undo_run_folder``); a sweep folder holding another multirun is refused before Hydra writes over it
-(``check_no_other_sweep``).
+(``check_no_other_sweep``), and one made for a sweep whose job configs Hydra refused is removed.
 """
 from __future__ import annotations
 
@@ -250,6 +250,13 @@ def undo_run_folder(folder: str | Path) -> None:
             os.truncate(folder / name, size)
 
 
+def undo_noted_folders() -> None:
+    """``undo_run_folder`` for every folder noted and not yet undone or forgotten: the app stopped before
+    running a job (Hydra refused a job's config while the sweeper checked the sweep)."""
+    for folder in list(_BEFORE):
+        undo_run_folder(folder)
+
+
 def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> None:
     """One ``RunFolderError`` when ``folder`` holds another multirun (its ``multirun.yaml``, or a job folder
     with Hydra's record), which this one would write over before any of its jobs could refuse."""
@@ -291,7 +298,14 @@ class TrainRunFolderCheck(RunFolderCheck):
             except RunFolderError as err:
                 print(f"cicfw: error: {err}", file=sys.stderr)
                 sys.exit(2)
+            note_run_folder(str(config.hydra.sweep.dir))  # undone if Hydra refuses a job's config up front
         super().on_multirun_start(config, **kwargs)
+
+    def on_job_start(self, config: Any, **kwargs: Any) -> None:
+        from hydra.types import RunMode
+
+        if config.hydra.mode == RunMode.MULTIRUN:  # a job runs: the sweep folder is the sweep's now
+            _BEFORE.pop(os.path.abspath(str(config.hydra.sweep.dir)), None)
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_run_folder(str(config.hydra.run.dir))

@@ -60,10 +60,23 @@ def test_a_bad_augmentation_range_is_refused_by_key_before_any_data(tmp_path, no
     assert text.startswith(start), text
 
 
-@pytest.mark.parametrize("value", ["0", "-1", "1.5", "true", "abc"])
+@pytest.mark.parametrize("value", ["0", "-1"])
 def test_batches_per_epoch_other_than_null_or_a_positive_integer_is_refused(tmp_path, no_data, value):
     text = _refused(tmp_path, f"data.batches_per_epoch={value}")
-    assert text.startswith("data.batches_per_epoch must be ") and "null" in text, text  # not the sampler's len()
+    assert text.startswith("data.batches_per_epoch") and "null" in text, text  # not the sampler's len()
+
+
+@pytest.mark.parametrize("value", ["1.5", "true", "abc"])
+def test_batches_per_epoch_of_another_type_is_refused_while_composing(value):
+    """Not a whole number: the schema (CILDataModule's ``int | None``) refuses it before the app runs."""
+    from hydra.errors import HydraException
+
+    from cicfw.config_checks import config_error
+
+    with pytest.raises(HydraException) as err:
+        compose_train(f"data.batches_per_epoch={value}")
+    refused = config_error(err.value)
+    assert (refused.kind, refused.key) == ("wrong type", "data.batches_per_epoch"), refused
 
 
 @pytest.mark.parametrize("value", ["null", "1", "7"])
@@ -78,19 +91,19 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     sweep = tmp_path / "sweep"
     res = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast",
-                          "trainer.compile=false", "model.lr=0.001,abc", f"hydra.sweep.dir={sweep}"],
+                          "trainer.compile=false", "data.batch_size=8,6", f"hydra.sweep.dir={sweep}"],
                          capture_output=True, text=True, env={**os.environ, "HYDRA_FULL_ERROR": "0"}, timeout=600)
     assert res.returncode != 0
     assert "Traceback" not in res.stderr, res.stderr[-3000:]
     errors = [line for line in res.stderr.splitlines() if line.startswith("cicfw:")]
     assert len(errors) == 1, res.stderr[-3000:]
-    assert errors[0].startswith("cicfw: error: job 1 (") and " model.lr=abc) failed" in errors[0], errors[0]
-    assert ") failed: model.lr must be a number, got 'abc' (its log: " in errors[0], errors[0]
-    assert f"every job's status: {sweep / 'summary.csv'}" in errors[0]
+    assert errors[0].startswith("cicfw: error: job 1 (") and " data.batch_size=6 " in errors[0], errors[0]
+    assert ") failed: data.batch_size" in errors[0], errors[0]
+    assert "(its log: " in errors[0] and f"every job's status: {sweep / 'summary.csv'}" in errors[0], errors[0]
     with open(sweep / "summary.csv", newline="") as f:
         rows = {r["job"]: r for r in csv.DictReader(f)}
     assert rows["0"]["status"] == "ok" and rows["1"]["status"] == "failed"
-    assert "model.lr must be a number" in rows["1"]["error"]
+    assert "data.batch_size must be a multiple of 4" in rows["1"]["error"]
 
 
 # ---- a full disk while evaluate writes its pictures ----------------------------------------------

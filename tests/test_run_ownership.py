@@ -159,6 +159,19 @@ def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_
     assert {p: p.read_bytes() for p in kept} == kept
 
 
+def test_a_sweep_whose_job_config_is_refused_leaves_no_sweep_folder(tmp_path):
+    """Hydra checks every job's config before the first runs, after the sweep folder and its
+    multirun.yaml are written: a refused sweep removes them, so the same folder takes the fixed command."""
+    sweep = tmp_path / "sweeps" / "one"
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
+                           f"hydra.sweep.dir={sweep}", "model.lr=0.001,abc"], capture_output=True, text=True,
+                          env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = _errors(proc.stderr)
+    assert len(errors) == 1 and errors[0].startswith("cicfw: error: model.lr"), proc.stderr[-3000:]
+    assert not (tmp_path / "sweeps").exists()
+
+
 def test_a_ddp_worker_rank_rerunning_its_sweep_is_not_refused(tmp_path, monkeypatch):
     sweep = tmp_path / "sweep"
     sweep.mkdir()
