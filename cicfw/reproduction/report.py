@@ -114,6 +114,19 @@ RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last
 RESUMED_MARK = "‡"
 
 
+def weathers_said(manifest: Mapping[str, Any]) -> str:
+    """``; weathers: the `carla` family`` for a folder pinned to a weather family of the embedded simulator (a
+    folder pinned before the families were driven under the harsh one); nothing for another simulator."""
+    from cicfw.benchmark.suite import named_weather_family, with_weather_family
+    from cicfw.sim.render.weather import LEGACY_FAMILY
+
+    suite = (manifest.get("pinned") or {}).get("suite")
+    if suite is None:
+        return ""
+    family = named_weather_family(with_weather_family(suite, default=LEGACY_FAMILY))
+    return f"; weathers: the `{family}` family" if family else ""
+
+
 def _families(claims: Sequence[Mapping[str, Any]]) -> str:
     """The Holm families, fixed in advance, in words: one family, or each adjusted on its own."""
     sizes = holm_families(claims)
@@ -423,7 +436,7 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     min_seeds = data.get("min_seeds", MIN_SEEDS)
     lines = ["# Reproduction of the paper's Table 4", "", *answer_lines(data, pictures)]
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
-              f"({m.get('episodes', '?')} episodes per cell); dataset: {m.get('dataset_summary', '?')}.",
+              f"({m.get('episodes', '?')} episodes per cell){weathers_said(m)}; dataset: {m.get('dataset_summary', '?')}.",
               machine_line(data),
               *[f"- **Continued from:** `{c.get('from')}` ({len(c.get('cells') or [])} finished cells copied"
                 + (f", only those made on a machine with {c['only_machine']!r}" if c.get("only_machine") else
