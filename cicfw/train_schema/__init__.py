@@ -26,7 +26,7 @@ from cicfw.config_checks import SchemaError, checked, kwargs_schema
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SpeedConfig
-from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry
+from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry, guard_hydra_plugins
 
 #: the model's parts: config group -> registry
 PARTS: dict[str, Registry] = {"encoder": ENCODERS, "mixer": MIXERS, "head": HEADS}
@@ -95,7 +95,10 @@ class TrainConfig:
 
 
 def register() -> None:
-    """``cicfw_train`` and ``cicfw_schema/<group>/<name>`` for every registered part in the ConfigStore."""
+    """``cicfw_train`` and ``cicfw_schema/<group>/<name>`` for every registered part in the ConfigStore. The
+    plugins' Hydra modules are guarded first (``guard_hydra_plugins``), as the apps do before Hydra starts:
+    a distribution whose entry point and Hydra module both fail to load is then named in one warning."""
+    guard_hydra_plugins()
     store = ConfigStore.instance()
     store.store(name="cicfw_train", node=TrainConfig, provider="cicfw")
     for group, registry in PARTS.items():
