@@ -195,7 +195,7 @@ def config_error(err: BaseException, prefix: str = "") -> SchemaError | None:
     from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue,
                                   OmegaConfBaseException, ValidationError)
 
-    cause = err if isinstance(err, OmegaConfBaseException) else err.__cause__
+    cause = err if isinstance(err, OmegaConfBaseException) else err.__cause__ or err.__context__
     if not isinstance(cause, OmegaConfBaseException):
         return None
     key = str(getattr(cause, "full_key", "") or "")

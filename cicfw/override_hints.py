@@ -15,6 +15,7 @@ import dataclasses
 import difflib
 import functools
 import os
+import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -202,15 +203,16 @@ def composition_error_line(err: BaseException, args: list[str]) -> str | None:
 
     if isinstance(err, OverrideParseException):
         return _unparsable(err.override, err.message, args)
-    refused = config_error(err)
+    if not isinstance(err, ConfigCompositionException):
+        return None  # raised by the app itself (its own errors keep their report)
+    where = re.match(r"In '([^']+)': ", str(err))  # a value in a config file, not on the command line
+    refused = config_error(err, f"{where.group(1)}.yaml: " if where else "")
     if refused is not None:
         return str(refused)
     if isinstance(err, MissingConfigException) and err.options is not None:
         group, _, option = str(err.missing_cfg_file or "").rpartition("/")
         return f"{group}={option}: no option {option!r} in config group {group!r}; options: {', '.join(err.options)}"
-    if isinstance(err, ConfigCompositionException):
-        return " ".join(str(err).split())
-    return None
+    return " ".join(str(err).split())
 
 
 def _unparsable(override: str, message: str, args: list[str]) -> str:

@@ -156,3 +156,30 @@ def test_a_schema_reads_optional_unions_and_bases_kwargs():
     schema.a = "3"
     assert schema.a == 3  # int | None: checked as Optional[int]
     schema.b = "anything"  # a union OmegaConf cannot represent: left to fn
+
+
+def test_a_wrong_type_in_a_config_file_names_the_file_and_the_key(tmp_path):
+    from cicfw.override_hints import composition_error_line
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "bad.yaml").write_text("# @package _global_\nmixer:\n  hidden: wide\n")
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        with pytest.raises(HydraException) as err:
+            compose("train", overrides=[f"hydra.searchpath=[file://{tmp_path}]", "experiment=bad"])
+    refused = config_error(err.value)
+    assert (refused.kind, refused.key) == ("wrong type", "mixer.hidden"), refused
+    assert composition_error_line(err.value, []).startswith("experiment/bad.yaml: mixer.hidden")
+
+
+def test_an_omegaconf_error_the_app_raises_itself_keeps_its_report():
+    """Only what Hydra refuses while composing becomes a user's one line; a bug reading a missing key
+    inside the app is not dressed up as a config mistake."""
+    from omegaconf.errors import ConfigAttributeError
+
+    from cicfw.override_hints import composition_error_line
+
+    cfg = OmegaConf.create({"a": 1})
+    OmegaConf.set_struct(cfg, True)
+    with pytest.raises(ConfigAttributeError) as err:
+        cfg.b  # noqa: B018
+    assert composition_error_line(err.value, []) is None
