@@ -489,7 +489,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else float("nan")
-    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer))
+    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
         from cicfw.evaluate import evaluate_after_training
 
@@ -508,7 +508,7 @@ def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
 
 
 def outcome(metric_name: str, metric: float, run_dir: Path, before: Mapping[str, tuple[int, int]],
-            trainer: L.Trainer) -> str:
+            trainer: L.Trainer, evaluate_after: bool = False) -> str:
     """The run's last line, saying what happened: the metric (or that no validation ran) and the
     checkpoints this run wrote (or that it wrote none, and why when Lightning saves none)."""
     said = f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else f"{metric_name}: no value (no validation ran)"
@@ -516,7 +516,8 @@ def outcome(metric_name: str, metric: float, run_dir: Path, before: Mapping[str,
     if written:
         return f"{said}; checkpoints written in {run_dir / 'checkpoints'}: {', '.join(written)}"
     why = " (trainer.fast_dev_run saves none)" if trainer.fast_dev_run else ""
-    return f"{said}; no checkpoint written{why}"
+    then = "; evaluate_after saves the final weights as checkpoints/final.ckpt and drives them" if evaluate_after else ""
+    return f"{said}; no checkpoint written{why}{then}"
 
 
 def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_path: str | None, run_dir: Path) -> None:

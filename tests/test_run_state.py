@@ -114,3 +114,14 @@ def test_a_cuda_device_on_a_machine_without_one_is_refused_before_training(tmp_p
     with pytest.raises(ValueError) as err:
         train(cfg, tmp_path / "run")
     assert str(err.value).startswith("evaluate_overrides: policy.device='cuda' needs a CUDA GPU"), str(err.value)
+
+
+def test_the_last_line_says_what_evaluate_after_will_save_after_a_fast_dev_run(tmp_path):
+    """With evaluate_after, "no checkpoint written" is followed by what the evaluation writes and drives."""
+    from types import SimpleNamespace
+
+    from cicfw.train import outcome
+
+    line = outcome("val/steer_mae", float("nan"), tmp_path, {}, SimpleNamespace(fast_dev_run=True), evaluate_after=True)
+    assert "no checkpoint written" in line and line.endswith("checkpoints/final.ckpt and drives them"), line
+    assert "final.ckpt" not in outcome("val/steer_mae", float("nan"), tmp_path, {}, SimpleNamespace(fast_dev_run=True))

@@ -242,7 +242,10 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
                                          f"{line.split('available: ', 1)[-1]}") from None
                 raise ReproduceError(f"{what}: {line}") from None
             except HydraException as err:
-                raise ReproduceError(f"{what}: {_hydra_line(err)}") from None
+                from cicfw.config_checks import config_error
+
+                schema = config_error(err)  # a wrong type or unknown key the train schema refused
+                raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
             for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
