@@ -103,7 +103,7 @@ def test_the_docs_custom_row_example_parses(no_collect, tmp_path):
     ("{experiment: paper_gtu, overrides: ['mixer=gtuu'], label: x}",
      "row 'mine' (experiment paper_gtu, overrides ['mixer=gtuu']): unknown mixer 'gtuu'; known mixers: "),
     ("{experiment: paper_gtu, overrides: ['head.WW=3'], label: x}",
-     "row 'mine' (experiment paper_gtu, overrides ['head.WW=3']): Could not override 'head.WW'"),
+     "row 'mine' (experiment paper_gtu, overrides ['head.WW=3']): head.WW is not an argument of head 'regression'"),
     ("{experiment: paper_gtu, overides: ['head=hybrid'], label: x}",
      "catalogue.mine: unknown key 'overides'; accepted: experiment, overrides, label, paper"),
     ("{label: x}", "catalogue.mine has no experiment; give experiment: <one of conf/experiment/> "),
