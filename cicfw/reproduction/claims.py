@@ -37,11 +37,6 @@ def holm_families(claims: Sequence[Mapping[str, Any]]) -> dict[str, int]:
     return sizes
 
 
-def holm_family_size(claims: Sequence[Mapping[str, Any]]) -> int:
-    """The size of the main family (every part of every claim when all are in it)."""
-    return holm_families(claims).get(MAIN_FAMILY, 0)
-
-
 @dataclass(frozen=True)
 class Part:
     """One tested part of a claim: A - b_scale x B on ``on`` (a selector), or, with ``on="gap"``, A's

@@ -102,8 +102,7 @@ import numpy as np
 from cicfw.files import atomic_write
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
-from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families,
-                                       holm_family_size, judge)
+from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge
 from cicfw.reproduction.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
@@ -131,7 +130,7 @@ def _families(claims: Sequence[Mapping[str, Any]]) -> str:
     """The Holm families, fixed in advance, in words: one family, or each adjusted on its own."""
     sizes = holm_families(claims)
     if len(sizes) <= 1:
-        return f"a family fixed in advance, the {holm_family_size(claims)} parts of the claims below"
+        return f"a family fixed in advance, the {sum(sizes.values())} parts of the claims below"
     named = [f"the {n} parts of the {f!r} claims" for f, n in sizes.items()]
     return f"families fixed in advance, each adjusted on its own: {', '.join(named)}"
 
