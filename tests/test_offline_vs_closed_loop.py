@@ -115,3 +115,26 @@ def test_the_report_is_written(tmp_path):
         assert heading in text
     assert (out / "offline_vs_closed_loop.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((out / "results.json").read_text())["cells"] == 6
+
+
+def test_another_weather_family_is_analysed_on_its_own(tmp_path):
+    root = results_tree(tmp_path / "results")
+    calibrated = root / "calibrated"
+    calibrated.mkdir()
+    pinned = {"suite": ["suite=single_turn", "sim.weather_family=carla"]}
+    (calibrated / "reproduce.json").write_text(json.dumps({"budget": "converged", "pinned": pinned}))
+    for seed in range(4):  # the same models as the study's Xeon cells, other new-weather outcomes
+        write_cell(calibrated, "cil", seed + 1, 0.04 + 0.001 * (seed + 1), dict(zip(COLUMNS, (4, 4, 3, 3 - seed))), XEON)
+    pts = collect_points(root)
+    assert {p.family for p in pts if "calibrated" in p.folders} == {"carla"}
+    assert {p.family for p in pts if "study" in p.folders} == {"harsh"}  # no family pinned: the harsh presets
+    out = root / "offline_vs_closed_loop"
+    res = write_report(root, out)
+    assert res["cells"] == 6  # the main analysis holds the harsh family's cells only
+    carla = res["families"]["carla"]
+    assert carla["cells"] == 4
+    # by hand: validation errors 0.041..0.044 against new-town/new-weather wins 3, 2, 1, 0: rho = -1
+    assert carla["scopes"]["both kinds (pooled)"]["pooled"][COLUMNS[3]]["rho"] == pytest.approx(-1.0)
+    text = (out / "README.md").read_text()
+    assert "## Under the `carla` weathers" in text and "`calibrated`" in text.split("## Under")[-1]
+    assert "`calibrated`" not in text.split("**Data.**")[1].split("**Method.**")[0]

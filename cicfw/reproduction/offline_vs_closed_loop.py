@@ -7,7 +7,9 @@ best validation steer MAE and its closed-loop success per table column), keeps e
 rank correlation and a 95% interval (Fisher z with the Bonett-Wright standard error): pooled over every
 cell, within rows (the fixed-effect mean over rows of the per-row z), and per row; overall and per
 column; for both CPU kinds together (said so) and for each kind. It also measures what picking the
-lowest validation error among a row's cells gains in success. Writes ``README.md``, ``results.json`` and
+lowest validation error among a row's cells gains in success. A folder driven under another weather family
+(``sim.weather_family``, docs/simulator.md) re-drives models the others already hold, so each family is
+analysed on its own: the main analysis is the ``harsh`` family's, every other family gets its own section. Writes ``README.md``, ``results.json`` and
 ``offline_vs_closed_loop.png`` into ``--out`` (default ``docs/results/offline_vs_closed_loop``).
 """
 from __future__ import annotations
@@ -41,6 +43,7 @@ class Point:
     val_mae: float
     success: dict[str, float]
     folders: list[str] = field(default_factory=list)
+    family: str = "harsh"  # the weather family its new-weather columns were driven under
 
     @property
     def group(self) -> str:
@@ -132,19 +135,30 @@ def _fingerprint(cell: Any) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
+def weather_family(manifest: dict[str, Any]) -> str:
+    """The weather family a results folder's suite was driven under; folders pinned before there were
+    families name none and were driven under the ``harsh`` presets."""
+    from cicfw.benchmark.suite import named_weather_family
+    from cicfw.sim.render.weather import LEGACY_FAMILY
+
+    return named_weather_family(manifest.get("pinned", {}).get("suite", [])) or LEGACY_FAMILY
+
+
 def collect_points(results: Path, skip: Sequence[str] = ()) -> list[Point]:
     """Every distinct finished cell with a validation error under ``results``/<folder>/cells."""
     points: dict[str, Point] = {}
     for folder in sorted(p for p in Path(results).iterdir() if p.is_dir() and p.name not in skip):
-        manifest = folder / "reproduce.json"
-        budget = json.loads(manifest.read_text()).get("budget", "?") if manifest.is_file() else "?"
+        path = folder / "reproduce.json"
+        manifest = json.loads(path.read_text()) if path.is_file() else {}
+        budget, family = manifest.get("budget", "?"), weather_family(manifest)
         for cell in load_cells(folder)[0]:
             if cell.meta.get("val_steer_mae") is None:
                 continue
             key = _fingerprint(cell)
             if key not in points:
                 points[key] = Point(cell.row, cell.seed, cell.cpu, budget, float(cell.meta["val_steer_mae"]),
-                                    {t: cell.rate(None if t == "overall" else t) for t in TARGETS})
+                                    {t: cell.rate(None if t == "overall" else t) for t in TARGETS},
+                                    family=family)
             points[key].folders.append(folder.name)
     return sorted(points.values(), key=lambda p: (p.group, p.seed))
 
@@ -254,7 +268,7 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
     """The README: question, data, method, answer and the tables."""
     both = res["scopes"][BOTH]
     kinds = [k for k in res["scopes"] if k != BOTH]
-    folders = sorted({f for p in points for f in p.folders})
+    folders = sorted({f for p in points if p.family not in res.get("families", {}) for f in p.folders})
     lines = [
         "# Offline validation error vs closed-loop success",
         "",
@@ -270,7 +284,8 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
         "epochs, converged6: 6 epochs), and so do rows (architectures, heads). The validation error is "
         "the best epoch's, the success the final epoch's weights' (the two are one checkpoint when the last "
         "epoch is the best, which the cells do not record). Overall success is the mean of the four table columns. Every "
-        "new-weather column was driven under the `harsh` weather family (docs/simulator.md, Weathers).",
+        "new-weather column here was driven under the `harsh` weather family (docs/simulator.md, Weathers); cells "
+        "driven under another family have their own section below.",
         "",
         "**Method.** Spearman's rank correlation rho (`scipy.stats.spearmanr`, ties averaged) between "
         "validation error and success; a negative rho means lower error goes with higher success. 95% "
@@ -289,11 +304,7 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
         "",
     ]
     lines += _answer(res, kinds)
-    lines += ["", "## Pooled and within rows", "",
-              "| scope | target | pooled rho [95%] | within rows rho [95%] |", "|---|---|---:|---:|"]
-    for scope, s in res["scopes"].items():
-        for t in TARGETS:
-            lines.append(f"| {scope} | {TARGET_NAMES[t]} | {_c(s['pooled'][t])} | {_c(s['within_rows'][t])} |")
+    lines += ["", "## Pooled and within rows", ""] + _scope_table(res)
     lines += ["", "## Pooled within one budget (overall)", "",
               "| scope | " + " | ".join(budgets := sorted(both["by_budget"])) + " |", "|---|" + "---:|" * len(budgets)]
     for scope, s in res["scopes"].items():
@@ -314,9 +325,30 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
               "|---|" + "---:|" * len(TARGETS)]
     for g, d in res["groups"].items():
         lines.append(f"| {g} | " + " | ".join(_c(d[t]) for t in TARGETS) + " |")
+    for family, fres in res.get("families", {}).items():
+        fboth = fres["scopes"][BOTH]
+        ffolders = sorted({f for p in points if p.family == family for f in p.folders})
+        lines += ["", f"## Under the `{family}` weathers", "",
+                  f"{fres['cells']} cells from " + ", ".join(f"`{f}`" for f in ffolders) + " drove their "
+                  f"new-weather columns under the `{family}` family. Their models are trained as the cells "
+                  "above are (a seed trains the same weights on the same kind of CPU), so they are kept out of "
+                  "the analysis above and read here on their own. Overall rho, pooled: "
+                  f"{_c(fboth['pooled']['overall'])}, {_verdict(fboth['pooled']['overall'])}; within rows: "
+                  f"{_c(fboth['within_rows']['overall'])}, {_verdict(fboth['within_rows']['overall'])}.",
+                  ""] + _scope_table(fres)
     lines += ["", "![validation error vs success](offline_vs_closed_loop.png)", "",
               "Made by `python -m cicfw.reproduction.offline_vs_closed_loop` (figures in results.json).", ""]
     return "\n".join(lines)
+
+
+def _scope_table(res: dict[str, Any]) -> list[str]:
+    """Pooled and within-row rho, per scope and target."""
+    lines = ["| scope | target | pooled rho [95%] | within rows rho [95%] |", "|---|---|---:|---:|"]
+    scopes_ = list(res["scopes"].items())
+    for scope, s in scopes_[1:] if len(scopes_) == 2 else scopes_:  # one kind: "both kinds" is that kind
+        for t in TARGETS:
+            lines.append(f"| {scope} | {TARGET_NAMES[t]} | {_c(s['pooled'][t])} | {_c(s['within_rows'][t])} |")
+    return lines
 
 
 def _answer(res: dict[str, Any], kinds: list[str]) -> list[str]:
@@ -371,11 +403,16 @@ def write_report(results: Path, out: Path) -> dict[str, Any]:
     """Analyse the cells under ``results`` and write README.md, results.json and the picture into ``out``."""
     from cicfw.files import atomic_write
 
+    from cicfw.sim.render.weather import LEGACY_FAMILY
+
     points = collect_points(results, skip=(out.name,))
-    res = analyse(points)
+    main = [p for p in points if p.family == LEGACY_FAMILY]
+    res = analyse(main)
+    res["families"] = {family: analyse([p for p in points if p.family == family])
+                       for family in sorted({p.family for p in points} - {LEGACY_FAMILY})}
     res["points"] = [vars(p) for p in points]
     out.mkdir(parents=True, exist_ok=True)
-    scatter(points, out / "offline_vs_closed_loop.png")
+    scatter(main, out / "offline_vs_closed_loop.png")
     atomic_write(out / "results.json", json.dumps(res, indent=1) + "\n")
     atomic_write(out / "README.md", markdown(res, points))
     return res
