@@ -51,6 +51,19 @@ def wilson(k: int, n: int, z: float) -> tuple[float, float]:
     return centre - half, centre + half
 
 
+def at(row: str, seed: int, pct: int, n: int = 100):
+    """A reproduction cell with ``pct`` successes of ``n`` episodes in every column: overall ``pct``%."""
+    from cicfw.reproduction.cells import COLUMNS, CellResult
+
+    eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left"} for c in COLUMNS for k in range(n)}
+    return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}})
+
+
+def p_two_sided_2df(t: float) -> float:
+    """Two-sided p of Student's t with 2 df, in closed form: 1 - |t| / sqrt(2 + t^2)."""
+    return 1.0 - abs(t) / math.sqrt(2.0 + t * t)
+
+
 @pytest.fixture
 def tiny_data(tmp_path: Path) -> Path:
     return write_tiny_dataset(tmp_path / "data")

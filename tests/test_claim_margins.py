@@ -11,24 +11,14 @@ import pytest
 from scipy import stats
 
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMNS, CellResult
+from cicfw.reproduction.cells import CellResult
 from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_SHOWN, SUPPORTED, Claim, Part, check_margin,
                                        combine, default_claims, default_margin, judge, load_claims, part_verdict)
 from cicfw.reproduction.report import markdown, report_data
 from cicfw.reproduction.seed_stats import difference
+from conftest import at, p_two_sided_2df
 
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
-
-
-def at(row: str, seed: int, pct: int, n: int = 100) -> CellResult:
-    """A cell with ``pct`` successes of ``n`` episodes in every column: its overall success is ``pct``%."""
-    eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left"} for c in COLUMNS for k in range(n)}
-    return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}})
-
-
-def p_two_sided_2df(t: float) -> float:
-    """Two-sided p of Student's t with 2 df, in closed form: 1 - |t| / sqrt(2 + t^2)."""
-    return 1.0 - abs(t) / math.sqrt(2.0 + t * t)
 
 
 def one_part(cells: list[CellResult], part: Part, margin: float = 5.0) -> dict:

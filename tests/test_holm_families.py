@@ -7,18 +7,8 @@ import math
 import pytest
 
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMNS, CellResult
 from cicfw.reproduction.claims import Claim, Part, default_claims, holm_families, judge, load_claims
-
-
-def at(row: str, seed: int, pct: int, n: int = 100) -> CellResult:
-    eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left"} for c in COLUMNS for k in range(n)}
-    return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}})
-
-
-def p_two_sided_2df(t: float) -> float:
-    """Two-sided p of Student's t with 2 df, in closed form."""
-    return 1.0 - abs(t) / math.sqrt(2.0 + t * t)
+from conftest import at, p_two_sided_2df
 
 
 def test_each_family_is_adjusted_on_its_own_by_hand():
