@@ -179,6 +179,8 @@ def _accepted_words(err: Any, msg: str) -> str | None:
     m = re.search(r"could not be converted to (\w+)", msg)
     if m:
         words = _ACCEPTED.get(m.group(1), m.group(1))
+    elif "is not a valid bool" in msg:
+        words = "true or false"
     elif "is not a ListConfig" in msg:
         words = "a list"
     elif "is not a subclass of" in msg or "is not a DictConfig" in msg:

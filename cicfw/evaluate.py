@@ -23,10 +23,10 @@ from typing import Any, Iterator, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw import evaluate_schema
 from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
-from cicfw.config_checks import whole_number
+from cicfw.config_checks import SchemaError, checked
 from cicfw.errors import Interrupted, report_interrupts, report_user_errors
-from cicfw.override_hints import check_top_level_keys
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -52,27 +52,16 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
     ``resume_hint`` its ``Interrupted`` message)."""
-    check_top_level_keys(cfg, "evaluate")  # +vide=[0] would silently film nothing
+    evaluate_schema.check(cfg)  # what composing lets through: +vide=[0] would silently film nothing
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
-        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=whole_number("seed", cfg.seed),
-        label=str(cfg.name) if cfg.get("name") else None, progress_bar=bool(cfg.get("progress_bar", True)),
-        maps=bool(cfg.get("maps", True)), video=video_list(cfg.get("video")),
-        video_max=whole_number("video_max", cfg.get("video_max", 8)),
-        new_folder_hint=new_folder_hint, resume_hint=resume_hint)
+        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=cfg.seed,
+        label=str(cfg.name) if cfg.name else None, progress_bar=cfg.progress_bar, maps=cfg.maps,
+        video=list(cfg.video or []), video_max=cfg.video_max, new_folder_hint=new_folder_hint,
+        resume_hint=resume_hint)
     join_sweep()
     return res.summary
-
-
-def video_list(video: Any) -> list[Any]:
-    """``video=`` as a list (a lone episode index or key would otherwise be read one character at a time)."""
-    if video is None:
-        return []
-    if not OmegaConf.is_list(video) and not isinstance(video, (list, tuple)):
-        raise ValueError(f"video must be a list of episodes (indices, keys such as town_a/ClearNoon/003, or "
-                         f"'failures'), got {video!r}")
-    return list(video)
 
 
 @dataclass
@@ -218,9 +207,8 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     from cicfw.benchmark.video import select_episodes
     from cicfw.config_checks import check_kwargs
 
-    check_kwargs("runner", "the runner", RunnerConfig, runner,
-                 {"seed": "it is the top-level seed=...", "progress_bar": "it is the top-level progress_bar=..."})
-    runner_cfg = RunnerConfig(**{**runner, "seed": whole_number("seed", seed), "progress_bar": bool(progress_bar)})
+    checked(evaluate_schema.RUNNER, runner, "runner")
+    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
     server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
     kwargs = {k: v for k, v in spec.items() if k != "name"}
     check_kwargs("policy", f"policy {spec.get('name')!r}", POLICIES.get(str(spec.get("name"))), kwargs,
@@ -281,28 +269,27 @@ def check_evaluation_overrides(overrides: Any) -> None:
     """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
     ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
     training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
-    starting ``evaluate_overrides:``."""
+    starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key kept, for what the schema refuses)."""
     from cicfw.registry import UnknownNameError
 
     try:
         check_after_training_overrides(overrides)
         cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
-        check_top_level_keys(cfg, "evaluate")
-        spec = policy_spec(cfg)
-        plan_evaluation(spec, OmegaConf.to_container(cfg.suite, resolve=True),
+        evaluate_schema.check(cfg)
+        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
                         OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
-                        whole_number("seed", cfg.seed), False, video_list(cfg.get("video")),
-                        whole_number("video_max", cfg.get("video_max", 8)))
+                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
+    except SchemaError as err:
+        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
     except (ValueError, FileNotFoundError, UnknownNameError) as err:
         text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
         raise ValueError(f"evaluate_overrides: {text}") from None
 
 
 def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
-    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); Hydra's
-    parse and composition errors become one ``ValueError`` line naming the override."""
+    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); an override
+    Hydra cannot parse is one ``ValueError`` line naming it, a composition error ``compose_config``'s."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import ConfigCompositionException, MissingConfigException
 
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
@@ -316,29 +303,7 @@ def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
             parser.parse_override(o)
         except Exception as err:
             raise ValueError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
-    try:
-        return compose_config([*first, *overrides])
-    except MissingConfigException as err:
-        raise ValueError(_missing_option(err, overrides)) from None
-    except ConfigCompositionException as err:
-        raise ValueError(_composition_error(err, overrides)) from None
-
-
-def _missing_option(err: Any, overrides: Sequence[str]) -> str:
-    """``suite=nosuch: no option 'nosuch' in config group 'suite'; options: junctions, single_turn``."""
-    group, _, option = str(err.missing_cfg_file or "").rpartition("/")
-    culprit = next((o for o in overrides if o.lstrip("+~").split("=", 1)[0] == group), f"{group}={option}")
-    return f"{culprit}: no option {option!r} in config group {group!r}; options: {', '.join(err.options or [])}"
-
-
-def _composition_error(err: Exception, overrides: Sequence[str]) -> str:
-    """The override Hydra could not apply, with what exists there (the override hints, on one line)."""
-    from cicfw.override_hints import override_hints
-
-    for o in overrides:
-        for hint in override_hints("evaluate", [o]):
-            return f"{o}: " + hint.removeprefix("cicfw: hint: ").replace("\n  ", "; ")
-    return str(err).strip().splitlines()[0]
+    return compose_config([*first, *overrides])
 
 
 #: policy keys that change how fast or where a policy runs, never which episodes it drives
@@ -439,14 +404,22 @@ def join_sweep() -> None:
 
 
 def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app."""
+    """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app. What Hydra refuses
+    is one line: a ``SchemaError`` naming the key for what the schema refuses, else a ``ValueError``."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import ConfigCompositionException
 
-    if GlobalHydra.instance().is_initialized():
-        return compose("evaluate", overrides=list(overrides))
-    with initialize_config_module("cicfw.conf", version_base="1.3"):
-        return compose("evaluate", overrides=list(overrides))
+    from cicfw.config_checks import config_error
+    from cicfw.override_hints import composition_error_line
+
+    try:
+        if GlobalHydra.instance().is_initialized():
+            return compose("evaluate", overrides=list(overrides))
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            return compose("evaluate", overrides=list(overrides))
+    except ConfigCompositionException as err:
+        raise config_error(err) or ValueError(composition_error_line(err, list(overrides))) from None
 
 
 def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),

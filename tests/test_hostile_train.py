@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import cicfw.train as train_mod
+from cicfw.config_checks import SchemaError
 from cicfw.train import train
 from conftest import compose_train, write_tiny_dataset
 
@@ -52,24 +53,34 @@ def test_an_unknown_top_level_key_is_refused_before_any_data(tmp_path, no_data, 
 
 @pytest.mark.parametrize("overrides, message", [
     (["suite.towns=[town_z]"], "evaluate_overrides: unknown town 'town_z'; known towns: town_a, town_b"),
-    (["suite.foo=1"], "evaluate_overrides: suite.foo=1: 'suite' has no key 'foo'"),
     (["suite.limit=0"], "evaluate_overrides: suite.limit must be >= 1 (or null for every pair), got 0"),
     (["suite.towns=[town_a"], "evaluate_overrides: cannot parse 'suite.towns=[town_a': "),
     (["suite=nosuch"], "evaluate_overrides: suite=nosuch: no option 'nosuch' in config group 'suite'; "
                        "options: junctions, single_turn"),
-    (["+foo=1"], "evaluate_overrides: unknown top-level key 'foo'; accepted top-level keys: checkpoint,"),
-    (["runner.workers=0"], "evaluate_overrides: runner.workers must be an integer >= 1 or 'auto', got 0"),
-    (["+runner.foo=1"], "evaluate_overrides: runner.foo is not an argument of the runner; accepted keys: batch_size, "
-                         "off_road_level, off_road_s, target_speed_kmh, threads, workers"),
     (["video=[nosuch]"], "evaluate_overrides: video: unknown episode 'nosuch'; give episode indices, keys such as"),
-    (["+policy.nosuch=1"], "evaluate_overrides: policy.nosuch is not an argument of policy 'checkpoint'; "
-                           "accepted keys: camera, checkpoint, device, fuse, label, name, threads"),
 ])
 def test_bad_evaluate_overrides_are_refused_before_the_first_batch(tmp_path, no_data, overrides, message):
     cfg = _cfg(tmp_path, "evaluate_after=true", f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
     with pytest.raises(ValueError) as err:
         train(cfg, tmp_path / "run")
     assert _one_line(err).startswith(message), str(err.value)
+
+
+@pytest.mark.parametrize("overrides, kind, key", [
+    (["suite.foo=1"], "unknown key", "suite.foo"),
+    (["+foo=1"], "unknown key", "foo"),
+    (["runner.workers=0"], "wrong type", "runner.workers"),
+    (["+runner.foo=1"], "unknown key", "runner.foo"),
+    (["+policy.nosuch=1"], "unknown key", "policy.nosuch"),
+    (["seed=abc"], "wrong type", "seed"),
+])
+def test_evaluate_overrides_the_schema_refuses_are_refused_before_the_first_batch(tmp_path, no_data, overrides,
+                                                                                  kind, key):
+    cfg = _cfg(tmp_path, "evaluate_after=true", f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
+    with pytest.raises(SchemaError) as err:
+        train(cfg, tmp_path / "run")
+    assert (err.value.kind, err.value.key) == (kind, key), str(err.value)
+    assert _one_line(err).startswith("evaluate_overrides: ")
 
 
 def test_good_evaluate_overrides_pass_the_check():
@@ -362,10 +373,3 @@ def test_cameras_the_files_do_not_hold_are_named_not_zero_episodes(tmp_path, ove
     assert _one_line(err).startswith(message), str(err.value)
     assert "episode" not in str(err.value)
     assert not (tmp_path / "run" / "checkpoints").exists()
-
-
-def test_a_bad_seed_in_the_evaluation_overrides_is_refused_before_the_first_batch(tmp_path, no_data):
-    cfg = _cfg(tmp_path, "evaluate_after=true", "evaluate_overrides=['seed=abc']")
-    with pytest.raises(ValueError) as err:
-        train(cfg, tmp_path / "run")
-    assert _one_line(err) == "evaluate_overrides: seed must be an integer, got 'abc'"

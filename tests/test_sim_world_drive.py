@@ -181,4 +181,4 @@ def test_sim_and_town_configs_are_valid_hydra_options():
                                             if k != "name"})
         assert b.command_distance == 12.0
         for town in town_names():
-            assert compose("evaluate", overrides=[f"+town={town}"]).town.name == load_town(town).name
+            assert compose(f"town/{town}").town.name == load_town(town).name  # no app config takes +town
