@@ -5,15 +5,13 @@ space the shell split: ``model.lr=1 e-3``), an unknown key or a value of the wro
 with the schema's accepted keys or type: ``config_checks.config_error``) and an unknown option of a config
 group each end the app as one ``cicfw: error:`` line, exit status 2, before Hydra creates any run folder;
 an option that needs an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``) adds a hint.
-``override_hints`` (the keys that exist where a mistyped override points, from a second composition) serves
-a config composed inside an app (``evaluate_overrides``). ``OneLineJobFailure`` (a Hydra callback) ends a
+``check_top_level_keys`` refuses a top-level key added with ``+`` (which Hydra lets through) by the app's
+schema. ``OneLineJobFailure`` (a Hydra callback) ends a
 multirun whose job failed with one line instead of the job's traceback.
 """
 from __future__ import annotations
 
 import dataclasses
-import difflib
-import functools
 import os
 import re
 import sys
@@ -23,7 +21,7 @@ from typing import Any, Callable, Iterator
 
 from hydra.errors import CompactHydraException
 from hydra.experimental.callback import Callback
-from omegaconf import OmegaConf, open_dict
+from omegaconf import OmegaConf
 
 CONFIG_MODULE = "cicfw.conf"
 
@@ -54,143 +52,26 @@ def missing_extras(args: list[str]) -> list[str]:
     return hints
 
 
-def _parse(args: list[str]) -> list[Any]:
-    """Hydra overrides among command-line ``args`` (flags like ``-m`` or ``--cfg job`` skipped)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    parser = OverridesParser.create()
-    out = []
-    for arg in args:
-        if arg.startswith("-") or "=" not in arg:
-            continue
-        try:
-            out.append(parser.parse_override(arg))
-        except Exception:
-            continue  # Hydra reports unparsable overrides itself
-    return out
-
-
-def _describe(path: str, missing: str, keys: list[str], groups: list[str]) -> str:
-    where = f"'{path}'" if path else "the top level of the config"
-    close = difflib.get_close_matches(missing, list(dict.fromkeys(keys + groups)), n=3, cutoff=0.6)
-    msg = f"cicfw: hint: {where} has no key '{missing}'"
-    if close:
-        msg += "; did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
-    if keys:
-        msg += f"\n  keys there: {', '.join(sorted(keys))}"
-    if groups:
-        msg += f"\n  config groups there (choose with group=option): {', '.join(sorted(groups))}"
-    return msg
-
-
-def _describe_empty(path: str, override: str) -> str:
-    """The hint for a key under an empty node (``data.collect: {}``): its keys are the app's, added with ``+``."""
-    return (f"cicfw: hint: '{path}' is empty in the config (the keys it takes are documented beside it), so a key "
-            f"under it is added with '+': +{override}")
-
-
-def _is_open(cfg: Any, path: list[str]) -> bool:
-    """Whether the config node at ``path`` accepts new keys (its struct flag is explicitly off)."""
-    node = OmegaConf.select(cfg, ".".join(path)) if path else cfg
-    return OmegaConf.is_dict(node) and node._get_node_flag("struct") is False
-
-
-@contextmanager
-def hydra_context(config_module: str = CONFIG_MODULE) -> Iterator[None]:
-    """Hydra initialised for ``compose``: the running app's (inside ``cicfw train``, composing the
-    evaluation's config up front), else ``config_module`` for the duration."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    if GlobalHydra.instance().is_initialized():
-        yield
-        return
-    with initialize_config_module(config_module, version_base="1.3"):
-        yield
-
-
-def override_hints(config_name: str, args: list[str], config_module: str = CONFIG_MODULE) -> list[str]:
-    """One hint per override in ``args`` whose key the composed config lacks (added ``+key`` and
-    ``hydra.*`` keys excepted)."""
-    from hydra import compose
-    from hydra.core.global_hydra import GlobalHydra
-
-    overrides = _parse(args)
-    if not overrides:
-        return []
-    hints: list[str] = []
-    with hydra_context(config_module):
-        loader = GlobalHydra.instance().config_loader()
-
-        def groups_at(path: str) -> list[str]:
-            """The config groups under ``path`` that this app's defaults use (not every group in conf/)."""
-            prefix = path.replace(".", "/") + "/" if path else ""
-            try:
-                return [g for g in loader.list_groups(prefix.rstrip("/")) if f"{prefix}{g}" in used]
-            except Exception:
-                return []
-
-        def is_group(key: str) -> bool:
-            return bool(loader.get_group_options(key.replace(".", "/")))
-
-        choices = [o.input_line for o in overrides if is_group(o.key_or_group) and not o.is_sweep_override()]
-        try:
-            cfg = compose(config_name, overrides=choices, return_hydra_config=True)
-        except Exception:
-            return []  # a bad group choice: Hydra's own message lists the options
-        used = {g for g in cfg.hydra.runtime.choices if not g.startswith("hydra/")}
-        with open_dict(cfg):
-            del cfg["hydra"]
-        tree = OmegaConf.to_container(cfg, resolve=False)  # plain dicts: '???' values count as present
-        for o in overrides:
-            key = o.key_or_group
-            if o.is_add() or o.is_force_add() or key.startswith("hydra.") or key == "hydra" or is_group(key):
-                continue
-            node: Any = tree
-            parts = key.split(".")
-            for i, part in enumerate(parts):
-                if _is_open(cfg, parts[:i]):
-                    break  # an open node (trainer: any Trainer argument) takes new keys; the app checks them
-                if not isinstance(node, dict) or part not in node:
-                    path = ".".join(parts[:i])
-                    keys = [str(k) for k in node] if isinstance(node, dict) else []
-                    if path and node == {} and not groups_at(path):
-                        hints.append(_describe_empty(path, o.input_line))
-                    else:
-                        hints.append(_describe(path, part, keys, groups_at(path)))
-                    break
-                node = node[part]
-    return hints
-
-
-@functools.lru_cache(maxsize=8)
-def top_level_keys(config_name: str, config_module: str = CONFIG_MODULE) -> tuple[str, ...] | None:
-    """The top-level keys of ``config_name`` composed with its defaults (its own keys and its config
-    groups' nodes): the keys the app reads. None when it cannot be composed here."""
-    from hydra import compose
-
-    try:
-        with hydra_context(config_module):
-            return tuple(compose(config_name))
-    except Exception:  # another app's config search path: the check is skipped, not the run
-        return None
-
-
 def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
-    """One ``ValueError`` for a top-level key ``config_name`` does not have (``+evaluate_aftr=true``:
-    added with ``+``, never read, so it would silently change nothing), naming the accepted keys, as
-    ``cicfw collect`` does for its keys. ``where`` prefixes the message (``evaluate_overrides: ``)."""
-    typed = OmegaConf.get_type(cfg)  # a config with a schema (train's) knows its keys; else compose the app's
-    accepted = tuple(f.name for f in dataclasses.fields(typed)) if dataclasses.is_dataclass(typed) else \
-        top_level_keys(config_name)
-    if accepted is None:
+    """One ``ValueError`` for a top-level key the schema of ``config_name`` (``cfg``'s type, else the
+    ``cicfw_<config_name>`` schema in Hydra's ConfigStore) does not have: ``+evaluate_aftr=true``, added with
+    ``+``, which Hydra lets through, would silently change nothing. ``where`` prefixes the message
+    (``evaluate_overrides: ``); an app without a schema is not checked."""
+    from hydra.core.config_store import ConfigStore
+
+    from cicfw.config_checks import did_you_mean
+
+    typed = OmegaConf.get_type(cfg)
+    if not dataclasses.is_dataclass(typed):
+        stored = ConfigStore.instance().repo.get(f"cicfw_{config_name}.yaml")
+        typed = OmegaConf.get_type(stored.node) if stored is not None else None
+    if not dataclasses.is_dataclass(typed):
         return
+    accepted = [f.name for f in dataclasses.fields(typed)]
     unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]
     if unknown:
-        close = difflib.get_close_matches(unknown[0], list(accepted), n=1, cutoff=0.6)
-        hint = f"did you mean {close[0]!r}? " if close else ""
-        raise ValueError(f"{where}unknown top-level key {unknown[0]!r}; {hint}accepted top-level keys: "
-                         f"{', '.join(sorted(accepted))}")
+        raise ValueError(f"{where}unknown top-level key {unknown[0]!r}; {did_you_mean(unknown[0], accepted)}"
+                         f"accepted top-level keys: {', '.join(sorted(accepted))}")
 
 
 def composition_error_line(err: BaseException, args: list[str]) -> str | None:
