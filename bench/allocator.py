@@ -1,4 +1,4 @@
-"""``trainer.keep_memory`` on the training step: samples/s and page faults per step, with and without.
+"""``speed.keep_memory`` on the training step: samples/s and page faults per step, with and without.
 
     python bench/allocator.py [--rounds 3] [--steps 12]
 

@@ -19,8 +19,8 @@ dataset this script writes itself, then check the run. One line per check, PASS 
 
 Training is the project's own ``cicfw.train.train`` on a config composed as ``python -m cicfw.train``
 composes it (data=cil_hdf5 on the written files; docs/scaling.md section 2's overrides:
-trainer.accelerator=gpu trainer.precision=bf16-mixed data.num_workers=4, plus trainer.compile=true and
-the default trainer's channels_last). The only addition is a callback recording each step's loss and the
+trainer.accelerator=gpu trainer.precision=bf16-mixed data.num_workers=4, plus speed.compile=true and
+the default speed.channels_last). The only addition is a callback recording each step's loss and the
 recipe the run got, appended to the callbacks ``cicfw.train.build_callbacks`` returns; the timing is the
 training's own ``DataWait`` (the data-wait line every training logs).
 
@@ -42,10 +42,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-#: docs/scaling.md, "2. One GPU", plus compile (trainer.compile=auto would choose it at >= 200 steps)
-GPU_RECIPE = ("trainer.accelerator=gpu", "trainer.precision=bf16-mixed", "data.num_workers=4", "trainer.compile=true")
+#: docs/scaling.md, "2. One GPU", plus compile (speed.compile=auto would choose it at >= 200 steps)
+GPU_RECIPE = ("trainer.accelerator=gpu", "trainer.precision=bf16-mixed", "data.num_workers=4", "speed.compile=true")
 #: the same run on a CPU, kept short: fp32, eager, the main process loads the data
-DRY_RUN_RECIPE = ("trainer.accelerator=cpu", "trainer.precision=32-true", "data.num_workers=0", "trainer.compile=false")
+DRY_RUN_RECIPE = ("trainer.accelerator=cpu", "trainer.precision=32-true", "data.num_workers=0", "speed.compile=false")
 
 
 # ---- the checks (pure: unit-tested without training) -------------------------------------------------

@@ -3,7 +3,7 @@
     python bench/row_cost.py --rows cil,moe,gtu [--rounds 3] [--steps 10]
 
 bench/models.py times every mixer x head eagerly; a cell of ``budget=converged`` trains with
-``trainer.compile=true trainer.channels_last=true``, where a mixer can cost more (or less) than its
+``speed.compile=true speed.channels_last=true``, where a mixer can cost more (or less) than its
 eager figure says. Here each row's model is built from its ``paper_*`` experiment (conf/reproduce.yaml's
 catalogue), given the converged budget's speed switches (``apply_speed``: compile + channels_last,
 Adam's for-loop step), and timed on the same random batch (``dummy_batch``) for the whole optimizer
@@ -28,7 +28,7 @@ BATCH = 120
 
 def build(row: str, keep_memory: bool = False):
     """The row's model as its cell builds it, with the speed switches applied (compiled, warmed up);
-    ``keep_memory`` as ``trainer.keep_memory`` (bench/allocator.py compares it)."""
+    ``keep_memory`` as ``speed.keep_memory`` (bench/allocator.py compares it)."""
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         spec = compose("reproduce").catalogue[row]
         cfg = compose("train", overrides=[f"experiment={spec['experiment']}", *spec.get("overrides", [])])

@@ -5,7 +5,7 @@ interleaved over several rounds so a change of load cannot pass for a loop overh
     python bench/train_throughput.py                       # all variants, 3 rounds (~10 min on 2 cores)
     python bench/train_throughput.py --variants eager,default --rounds 2
 
-Variants (``--variants``, comma-separated; ``default`` = conf/trainer/default.yaml's switches):
+Variants (``--variants``, comma-separated; ``default`` = conf/speed/default.yaml's switches):
   eager                      NCHW, Adam's for-loop step (torch's CPU default)
   channels_last              NHWC layout for the convolutions
   channels_last+fused        ... and Adam's fused step (the fallback when compile is not usable)
@@ -71,9 +71,9 @@ def cpu_has_native_bf16() -> bool:
 
 
 def default_variant() -> str:
-    """The variant conf/trainer/default.yaml selects."""
+    """The variant conf/speed/default.yaml selects (its precision: conf/trainer/default.yaml's)."""
     cfg = OmegaConf.load(ROOT / "conf" / "trainer" / "default.yaml")
-    s = SpeedConfig.from_trainer_cfg(cfg)
+    s = SpeedConfig.from_cfg(OmegaConf.load(ROOT / "conf" / "speed" / "default.yaml"))
     key = (s.channels_last, s.compile in (True, "auto"), s.adam, str(cfg.get("precision", "32-true")), False)
     for name, spec in VARIANTS.items():
         if spec == key:
@@ -115,7 +115,8 @@ class Variant:
         torch.manual_seed(0)  # the same initial weights for every variant
         self.model = (FloatInput if f32in else CICModule)()
         t0 = time.perf_counter()
-        self.applied = apply_speed(self.model, SpeedConfig(channels_last=cl, compile=comp, adam=adam), BATCH)
+        speed = SpeedConfig(channels_last=cl, compile=comp, adam=adam, keep_memory=False)  # bench/allocator.py's
+        self.applied = apply_speed(self.model, speed, BATCH)
         if comp and self.precision == "bf16-mixed" and self.model._compiled_step is not None:
             with self.autocast():  # the autocast graph is another compilation
                 warm_up(self.model, BATCH)
@@ -254,7 +255,7 @@ def main() -> None:
     cache = use_inductor_cache()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, native bf16: {bf16}, "
           f"inductor cache {cache}, load {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print(f"default (conf/trainer/default.yaml): {default}")
+    print(f"default (conf/speed/default.yaml): {default}")
 
     with tempfile.TemporaryDirectory() as tmp:
         write_dataset(Path(tmp) / "data", args.files, np.random.default_rng(0))

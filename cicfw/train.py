@@ -1,4 +1,4 @@
-"""``python -m cicfw.train``: compose encoder/mixer/head/data/trainer from the config and fit.
+"""``python -m cicfw.train``: compose encoder/mixer/head/data/trainer/speed from the config and fit.
 
 Returns the validation metric (``optimized_metric``) so Hydra sweepers can optimise it.
 """
@@ -30,10 +30,10 @@ from cicfw.errors import USER_ERRORS, Interrupted, on_interrupt, report_interrup
 from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
-from cicfw.model.speed import SpeedConfig, apply_speed_from_config
+from cicfw.model.speed import apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
 from cicfw.run_folder import hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train_schema import DATA, MODEL, SPEED_SWITCHES, TRAINER, checked_node, checked_part
+from cicfw.train_schema import DATA, MODEL, TRAINER, checked_node, checked_part, checked_speed
 
 log = logging.getLogger("cicfw.train")
 
@@ -75,7 +75,7 @@ def build_model(cfg: DictConfig) -> CICModule:
     model_kw = checked_node(cfg, "model", MODEL)
     model = CICModule(encoder=enc, encoder_kwargs=enc_kw, mixer=mix, mixer_kwargs=mix_kw,
                       head=head, head_kwargs=head_kw, **model_kw)
-    if cfg.trainer.get("channels_last"):
+    if cfg.speed.get("channels_last"):
         model.use_channels_last()
     return model
 
@@ -294,18 +294,15 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
 
 def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
     """``lightning.Trainer``'s arguments: ``cfg.trainer`` checked against its schema (every argument of
-    ``Trainer.__init__`` with its type, and cicfw's speed switches), minus the speed switches."""
-    kwargs = checked_node(cfg, "trainer", TRAINER)
-    for key in SPEED_SWITCHES:
-        kwargs.pop(key, None)
-    return kwargs
+    ``Trainer.__init__`` with its type)."""
+    return checked_node(cfg, "trainer", TRAINER)
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
-    SpeedConfig.from_trainer_cfg(cfg.trainer)  # cicfw's own switches' values (trainer.adam=fusd), before any data
+    checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:
@@ -479,8 +476,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
                       "was compiled is cached), run the same command again"):
-        apply_speed_from_config(model, cfg.trainer, cfg.data.batch_size,  # compile (or its one-line fallback),
-                                len(datamodule.train_dataloader()))      # channels_last, Adam's step
+        apply_speed_from_config(model, checked_speed(cfg), cfg.trainer,  # compile (or its one-line fallback),
+                                cfg.data.batch_size, len(datamodule.train_dataloader()))  # channels_last, Adam
     before = checkpoint_files(run_dir)
     if on_start is not None:
         on_start()

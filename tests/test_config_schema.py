@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 
 from cicfw.config_checks import SchemaError, check_kwargs, config_error, kwargs_schema
 from cicfw.train import build_model, make_datamodule, trainer_kwargs
+from cicfw.train_schema import checked_speed
 from conftest import compose_train
 
 HAS_ATTENTION = importlib.util.find_spec("cicfw_attention_mixer") is not None
@@ -39,7 +40,10 @@ def refused_while_composing(*overrides: str) -> SchemaError:
     (["trainer.max_epoch=3"], "unknown key", "trainer.max_epoch"),
     (["trainer.logger=true"], "not settable", "trainer.logger"),
     (["trainer.callbacks=[]"], "not settable", "trainer.callbacks"),
-    (["trainer.channels_last=sometimes"], "wrong type", "trainer.channels_last"),
+    (["speed.channels_last=sometimes"], "wrong type", "speed.channels_last"),
+    (["speed.keep_memory=maybe"], "wrong type", "speed.keep_memory"),
+    (["speed.foo=1"], "unknown key", "speed.foo"),
+    (["trainer.compile=true"], "not settable", "trainer.compile"),  # a speed switch: speed.compile
     (["mixer=gtu", "mixer.hiden=64"], "unknown key", "mixer.hiden"),
     (["mixer=gtu", "mixer.hidden=wide"], "wrong type", "mixer.hidden"),
     (["mixer.in_dim=64"], "not settable", "mixer.in_dim"),
@@ -103,6 +107,39 @@ def test_the_data_and_trainer_nodes_are_checked_again_when_built(tmp_path):
     assert (err.value.kind, err.value.key) == ("unknown key", "trainer.foo")
 
 
+@pytest.mark.parametrize("switch", ["compile", "channels_last", "adam", "keep_memory"])
+def test_a_speed_switch_under_trainer_names_its_key_in_the_speed_node(switch):
+    refused = refused_while_composing(f"trainer.{switch}=true")
+    assert (refused.kind, refused.key) == ("not settable", f"trainer.{switch}"), refused
+    assert f"speed.{switch}" in str(refused), refused
+    with pytest.raises(SchemaError) as err:  # added with +: the trainer node's check says the same
+        trainer_kwargs(compose_train(f"+trainer.{switch}=true"))
+    assert (err.value.kind, err.value.key) == ("not settable", f"trainer.{switch}"), err.value
+
+
+@pytest.mark.parametrize("overrides, key", [
+    (["speed.compile=maybe"], "speed.compile"),      # true | false | auto: a union the schema leaves open
+    (["speed.adam=fusd"], "speed.adam"),
+    (["+speed.foo=1"], "speed.foo"),
+])
+def test_the_speed_node_is_checked_again_when_built(overrides, key):
+    with pytest.raises(SchemaError) as err:
+        checked_speed(compose_train(*overrides))
+    assert err.value.key == key and "\n" not in str(err.value), err.value
+    assert err.value.kind == ("unknown key" if key == "speed.foo" else "wrong type"), err.value
+
+
+def test_the_speed_node_takes_its_defaults_from_speed_config():
+    """conf/speed/default.yaml states SpeedConfig's defaults; the trainer node holds Lightning's arguments only."""
+    import dataclasses
+
+    from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
+
+    assert OmegaConf.to_container(compose_train().speed) == dataclasses.asdict(SpeedConfig())
+    assert checked_speed(compose_train("speed.compile=true")) == SpeedConfig(compile=True)
+    assert not set(SPEED_SWITCHES) & set(trainer_kwargs(compose_train()))
+
+
 def test_every_lightning_trainer_argument_is_in_the_schema_with_its_default():
     """``trainer.<any Trainer argument>`` without ``+``; the ones cicfw passes itself are not settable."""
     import inspect
@@ -112,6 +149,7 @@ def test_every_lightning_trainer_argument_is_in_the_schema_with_its_default():
     kwargs = trainer_kwargs(compose_train("trainer.accumulate_grad_batches=2"))
     params = {n: p.default for n, p in inspect.signature(L.Trainer.__init__).parameters.items() if n != "self"}
     assert set(params) - set(kwargs) == {"logger", "callbacks", "default_root_dir"}
+    assert set(kwargs) <= set(params)  # nothing but Lightning's arguments
     assert kwargs["accumulate_grad_batches"] == 2 and kwargs["max_epochs"] == 10  # conf/trainer/default.yaml
     assert kwargs["overfit_batches"] == params["overfit_batches"]  # a default Lightning's signature gives
 

@@ -269,7 +269,7 @@ def test_train_counts_a_copy_per_rank_before_the_ranks_start(tmp_path, monkeypat
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         cfg = compose("train", overrides=["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "trainer=ddp",
                                           "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
-                                          "trainer.compile=false", "progress_bar=false"])
+                                          "speed.compile=false", "progress_bar=false"])
     with pytest.raises(SystemExit, match="stop before fit"):
         train_module.train(cfg, tmp_path / "run")
     assert seen == [2]

@@ -91,7 +91,7 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     sweep = tmp_path / "sweep"
     res = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast",
-                          "trainer.compile=false", "data.batch_size=8,6", f"hydra.sweep.dir={sweep}"],
+                          "speed.compile=false", "data.batch_size=8,6", f"hydra.sweep.dir={sweep}"],
                          capture_output=True, text=True, env={**os.environ, "HYDRA_FULL_ERROR": "0"}, timeout=600)
     assert res.returncode != 0
     assert "Traceback" not in res.stderr, res.stderr[-3000:]

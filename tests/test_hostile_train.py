@@ -169,7 +169,7 @@ def test_a_full_disk_while_saving_a_checkpoint_is_one_line_and_leaves_no_truncat
     ckpts.mkdir(parents=True)
     (ckpts / "last.ckpt").write_bytes(b"the previous last.ckpt")
     cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
-                        "trainer.limit_val_batches=1", "trainer.compile=false")
+                        "trainer.limit_val_batches=1", "speed.compile=false")
     full_disk(ckpts)
     with pytest.raises(ValueError) as err:
         train(cfg, run)
@@ -183,7 +183,7 @@ def test_a_full_disk_while_saving_a_checkpoint_is_one_line_and_leaves_no_truncat
 def test_checkpoints_are_whole_files_readable_by_others(tmp_path):
     data = write_tiny_dataset(tmp_path / "data")
     cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
-                        "trainer.limit_val_batches=1", "trainer.compile=false")
+                        "trainer.limit_val_batches=1", "speed.compile=false")
     old = os.umask(0o022)
     try:
         train(cfg, tmp_path / "run")
@@ -213,7 +213,7 @@ def test_ctrl_c_during_training_names_the_checkpoint_to_resume_from(tmp_path, mo
     monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*real(cfg, run_dir), CtrlC()])
     data = write_tiny_dataset(tmp_path / "data")
     cfg = compose_train(*BASE, f"data.path={data}", "trainer.max_epochs=3", "trainer.limit_train_batches=1",
-                        "trainer.limit_val_batches=1", "trainer.compile=false")
+                        "trainer.limit_val_batches=1", "speed.compile=false")
     handler = signal.getsignal(signal.SIGINT)
     try:
         with pytest.raises(Interrupted) as err:
@@ -251,7 +251,7 @@ def test_ctrl_c_during_the_compile_warm_up_is_one_line(tmp_path):
     data = write_tiny_dataset(tmp_path / "data")
     script = tmp_path / "interrupt.py"
     script.write_text(INTERRUPT_WARM_UP)
-    proc = subprocess.run([sys.executable, str(script), *BASE, f"data.path={data}", "trainer.compile=true",
+    proc = subprocess.run([sys.executable, str(script), *BASE, f"data.path={data}", "speed.compile=true",
                            "debug=fast", f"hydra.run.dir={tmp_path}/out"], capture_output=True, text=True,
                           env=ENV, timeout=600)
     assert proc.returncode == 130, proc.stderr[-3000:]
@@ -321,6 +321,7 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
     # unions with timedelta are Any to the schema: Lightning's AttributeError becomes one line naming the node
     (["trainer.max_time=1.5"], "trainer"),
     (["trainer.max_time=[1]"], "trainer"),
+    (["speed.compile=maybe"], "speed.compile"),
     (["trainer.gradient_clip_algorithm=1.5"], "trainer"),
     (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints"),
     (["data.batch_size=0"], "data.batch_size"),
@@ -333,6 +334,19 @@ def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, ov
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, *overrides), tmp_path / "run")
     assert _one_line(err).startswith(key), str(err.value)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("override, key", [
+    ("speed.compile=maybe", "speed.compile"),
+    ("trainer.compile=true", "speed.compile"),  # the switch's key under trainer: the line names the speed node's
+])
+def test_the_app_refuses_a_speed_or_trainer_value_in_one_line_without_a_run_folder(tmp_path, override, key):
+    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data", override,
+                           f"hydra.run.dir={tmp_path}/run"], capture_output=True, text=True, env=ENV, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = _errors(proc)
+    assert len(errors) == 1 and key in errors[0], errors
     assert not (tmp_path / "run").exists()
 
 

@@ -1,4 +1,4 @@
-"""``trainer.keep_memory`` (cicfw/model/memory.py): the training step stops page-faulting its activations
+"""``speed.keep_memory`` (cicfw/model/memory.py): the training step stops page-faulting its activations
 in again, and computes exactly what it computed without the switch. Each variant runs in a fresh process
 (the switch is process-wide), through ``apply_speed_from_config`` as cicfw.train applies it."""
 from __future__ import annotations
@@ -12,6 +12,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
+from cicfw.config_checks import SchemaError
 from cicfw.model.speed import SpeedConfig
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -20,18 +21,17 @@ STEPS = """
 import json, resource, sys
 import torch
 from hydra import compose, initialize_config_module
-from omegaconf import OmegaConf
 from cicfw.model.speed import apply_speed_from_config, dummy_batch
 from cicfw.train import build_model
+from cicfw.train_schema import checked_speed
 
 torch.set_num_threads(1)
 with initialize_config_module("cicfw.conf", version_base="1.3"):
-    cfg = compose("train", overrides=["experiment=paper_cil"])
+    cfg = compose("train", overrides=["experiment=paper_cil", "speed.compile=false", "speed.channels_last=true",
+                                      "speed.adam=for-loop", f"speed.keep_memory={sys.argv[1]}"])
 torch.manual_seed(0)
 model = build_model(cfg).train()
-trainer = OmegaConf.create({"compile": False, "channels_last": True, "adam": "for-loop",
-                            "keep_memory": sys.argv[1] == "true"})
-variant = apply_speed_from_config(model, trainer, 16, 6)
+variant = apply_speed_from_config(model, checked_speed(cfg), cfg.trainer, 16, 6)
 opt = model.configure_optimizers()
 opt = opt["optimizer"] if isinstance(opt, dict) else opt
 batch = dummy_batch(None, 16)
@@ -69,9 +69,10 @@ def test_kept_memory_stops_the_page_faults_and_computes_the_same():
 
 
 def test_keep_memory_takes_true_or_false_only():
-    with pytest.raises(ValueError, match=r"trainer.keep_memory='yes'; choose true or false"):
-        SpeedConfig.from_trainer_cfg(OmegaConf.create({"keep_memory": "yes"}))
-    assert SpeedConfig.from_trainer_cfg(OmegaConf.create({})).keep_memory is False
+    with pytest.raises(SchemaError) as err:
+        SpeedConfig.from_cfg(OmegaConf.create({"keep_memory": "yes"}))
+    assert (err.value.kind, err.value.key) == ("wrong type", "speed.keep_memory"), err.value
+    assert SpeedConfig.from_cfg(OmegaConf.create({})).keep_memory is True  # the default (conf/speed/default.yaml)
 
 
 def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():
@@ -80,8 +81,8 @@ def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():
     from cicfw.train import trainer_kwargs
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
-        cfg = compose("train", overrides=["trainer.keep_memory=true"])
-    assert cfg.trainer.keep_memory is True and "keep_memory" not in trainer_kwargs(cfg)
+        cfg = compose("train", overrides=["speed.keep_memory=false"])
+    assert cfg.speed.keep_memory is False and "keep_memory" not in trainer_kwargs(cfg)
 
 
 def test_a_bad_value_is_refused_before_any_data_is_collected(tmp_path, monkeypatch):
@@ -99,6 +100,6 @@ def test_a_bad_value_is_refused_before_any_data_is_collected(tmp_path, monkeypat
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         with pytest.raises(HydraException) as err:  # the schema: SpeedConfig's keep_memory is a bool
-            compose("train", overrides=["trainer.keep_memory=maybe"])
+            compose("train", overrides=["speed.keep_memory=maybe"])
     refused = config_error(err.value)
-    assert (refused.kind, refused.key) == ("wrong type", "trainer.keep_memory"), refused
+    assert (refused.kind, refused.key) == ("wrong type", "speed.keep_memory"), refused

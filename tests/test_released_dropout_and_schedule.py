@@ -66,7 +66,7 @@ def _lrs_seen(tmp_path, monkeypatch, *overrides: str) -> list[float]:
     monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), Record()])
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
     cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
-                        "progress_bar=false", "trainer.compile=false", "trainer.max_epochs=2",
+                        "progress_bar=false", "speed.compile=false", "trainer.max_epochs=2",
                         "trainer.limit_train_batches=3", "trainer.limit_val_batches=1",
                         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", *overrides)
     train(cfg, tmp_path / "run")

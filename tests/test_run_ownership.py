@@ -28,7 +28,7 @@ def _errors(text: str) -> list[str]:
 
 def _train_cmd(data: Path, run: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={data}", "data.batch_size=8",
-            "data.val_batch_size=8", "progress_bar=false", "trainer.compile=false", "trainer.max_epochs=1",
+            "data.val_batch_size=8", "progress_bar=false", "speed.compile=false", "trainer.max_epochs=1",
             "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
             "trainer.enable_model_summary=false", f"hydra.run.dir={run}", *extra]
 

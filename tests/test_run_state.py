@@ -13,7 +13,7 @@ import torch
 from cicfw.train import build_model, check_resume_checkpoint, load_checkpoint_safely, train, train_in_folder
 from conftest import compose_train, write_tiny_dataset
 
-BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "trainer.compile=false",
+BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
         "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
         "trainer.enable_model_summary=false")
 

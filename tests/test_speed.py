@@ -1,4 +1,4 @@
-"""The training speed switches (cicfw/model/speed.py, conf/trainer/default.yaml): the default variant
+"""The training speed switches (cicfw/model/speed.py, conf/speed/default.yaml): the default variant
 computes what eager computes, falls back to eager with one warning where compile cannot work, and
 writes checkpoints that load in an eager process and in the closed-loop policy."""
 from __future__ import annotations
@@ -29,7 +29,7 @@ NO_DROPOUT = {"encoder_kwargs": {"dropout_conv": 0.0, "dropout_fc": 0.0}, "mixer
 
 
 def default_speed() -> SpeedConfig:
-    speed = SpeedConfig.from_trainer_cfg(compose_train().trainer)
+    speed = SpeedConfig.from_cfg(compose_train().speed)
     speed.compile = speed.compile in (True, "auto")  # the main job's runs are long enough for auto
     return speed
 
@@ -125,7 +125,8 @@ def test_compile_failure_falls_back_with_one_warning(monkeypatch, caplog, when):
     model = CICModule()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     with caplog.at_level(logging.WARNING):
-        variant = apply_speed(model, SpeedConfig(channels_last=True, compile=True, adam="fused"), batch_size=8)
+        variant = apply_speed(model, SpeedConfig(channels_last=True, compile=True, adam="fused", keep_memory=False),
+                              batch_size=8)
     assert variant == "channels_last, Adam fused" and model._compiled_step is None
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and "\n" not in warnings[0].getMessage() and not warnings[0].exc_info, \
@@ -138,7 +139,7 @@ def test_compile_failure_falls_back_with_one_warning(monkeypatch, caplog, when):
 
 def test_train_with_compile_forced_and_no_compiler_still_trains(monkeypatch, caplog, fast_cfg, tmp_path):
     monkeypatch.setattr(torch, "compile", _failing_compile("first step"))
-    fast_cfg.trainer.compile = True
+    fast_cfg.speed.compile = True
     with caplog.at_level(logging.WARNING):
         train(fast_cfg, tmp_path / "run")
     assert sum("torch.compile is not usable" in r.getMessage() for r in caplog.records) == 1
@@ -146,7 +147,7 @@ def test_train_with_compile_forced_and_no_compiler_still_trains(monkeypatch, cap
 
 def test_auto_compiles_only_runs_long_enough_to_pay():
     cfg = compose_train().trainer
-    assert cfg.compile == "auto"
+    assert compose_train().speed.compile == "auto"
     assert planned_steps(cfg, 250) == 250 * cfg.max_epochs >= AUTO_COMPILE_MIN_STEPS
     assert planned_steps(compose_train("trainer.max_epochs=1").trainer, 3) == 3 < AUTO_COMPILE_MIN_STEPS
     assert planned_steps(compose_train("trainer.fast_dev_run=true").trainer, 250) == 1
@@ -162,14 +163,14 @@ def test_every_trainer_config_and_experiment_gets_the_default_speed():
     experiments = sorted(p.stem for p in (Path(conf_init).parent / "experiment").glob("*.yaml"))
     default = default_speed()
     for over in [[], ["trainer=ddp"], *[[f"experiment={e}"] for e in experiments]]:
-        speed = SpeedConfig.from_trainer_cfg(compose_train(*over).trainer)
+        speed = SpeedConfig.from_cfg(compose_train(*over).speed)
         speed.compile = speed.compile in (True, "auto")
         assert speed == default, over
 
 
 def test_checkpoint_of_a_compiled_run_loads_eager_and_in_the_policy(tiny_data, tmp_path, caplog):
     cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.val_batch_size=16",
-                        "data.batches_per_epoch=2", "trainer.max_epochs=1", "trainer.compile=true",
+                        "data.batches_per_epoch=2", "trainer.max_epochs=1", "speed.compile=true",
                         "encoder.dropout_conv=0", "encoder.dropout_fc=0", "mixer.dropout=0",  # test 1's graph: cached
                         "progress_bar=false")
     with caplog.at_level(logging.INFO, logger="cicfw.speed"):

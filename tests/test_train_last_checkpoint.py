@@ -30,7 +30,7 @@ class RisingValError(L.Callback):
 def _cfg(tmp_path, *extra):
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     return compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
-                         "progress_bar=false", "trainer.compile=false",
+                         "progress_bar=false", "speed.compile=false",
                          f"trainer.max_epochs={len(VAL_ERRORS)}", "trainer.limit_train_batches=1",
                          "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
                          "trainer.enable_model_summary=false", *extra)

@@ -1,4 +1,4 @@
-"""``trainer.keep_memory``: let glibc's malloc keep freed memory in the process instead of returning it.
+"""``speed.keep_memory``: let glibc's malloc keep freed memory in the process instead of returning it.
 
 A training step allocates and frees activations of tens of MB. By default glibc serves every block
 above its mmap threshold with fresh pages from the kernel and hands them back when freed, so each step

@@ -1,4 +1,5 @@
-"""Training speed switches (``conf/trainer/*.yaml``): memory layout, torch.compile, Adam's step, malloc.
+"""Training speed switches (the ``speed`` node, ``conf/speed/default.yaml``): memory layout, torch.compile,
+Adam's step, malloc.
 
 None of them changes what is computed, only how fast (float rounding aside; the tolerance is tested
 in ``tests/test_speed.py``). ``bench/train_throughput.py`` measures each one; the fastest correct
@@ -15,6 +16,7 @@ training goes on eager with one warning line.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import time
@@ -57,24 +59,36 @@ AUTO_COMPILE_MIN_STEPS = 200
 
 @dataclass
 class SpeedConfig:
-    channels_last: bool = False
-    compile: bool | str = False  # true | false | auto
+    """The ``speed`` node: its schema (cicfw/train_schema) and its defaults, which conf/speed/default.yaml
+    states. The defaults are the fastest variant that computes what eager does (docs/training.md#speed)."""
+
+    channels_last: bool = True   # NHWC memory layout for the encoder's convolutions
+    compile: bool | str = "auto"  # true | false | auto: compile the training step when it runs >= 200 steps
     adam: str = "for-loop"       # for-loop | foreach | fused: how Adam's step is computed
-    keep_memory: bool = False    # malloc keeps freed memory (cicfw/model/memory.py): no page faults per step
+    keep_memory: bool = True     # malloc keeps freed memory (cicfw/model/memory.py): no page faults per step
 
     def __post_init__(self) -> None:
+        from cicfw.config_checks import SchemaError
+
         if self.adam not in ADAM_IMPLS:
-            raise ValueError(f"trainer.adam={self.adam!r}; choose one of {', '.join(ADAM_IMPLS)}")
-        if self.compile not in (True, False, "auto"):
-            raise ValueError(f"trainer.compile={self.compile!r}; choose true, false or auto")
-        if not isinstance(self.keep_memory, bool):
-            raise ValueError(f"trainer.keep_memory={self.keep_memory!r}; choose true or false")
+            raise SchemaError(f"speed.adam must be one of {', '.join(ADAM_IMPLS)}, got {self.adam!r}",
+                              "speed.adam", "wrong type")
+        if not any(type(self.compile) is type(c) and self.compile == c for c in (True, False, "auto")):
+            raise SchemaError(f"speed.compile must be true, false or auto, got {self.compile!r}",
+                              "speed.compile", "wrong type")
+        for key in ("channels_last", "keep_memory"):
+            if not isinstance(getattr(self, key), bool):
+                raise SchemaError(f"speed.{key} must be true or false, got {getattr(self, key)!r}",
+                                  f"speed.{key}", "wrong type")
 
     @classmethod
-    def from_trainer_cfg(cls, cfg) -> "SpeedConfig":
-        return cls(channels_last=bool(cfg.get("channels_last", False)), compile=cfg.get("compile", False),
-                   adam=str(cfg.get("adam", "for-loop") or "for-loop"),
-                   keep_memory=cfg.get("keep_memory", False))
+    def from_cfg(cls, node) -> "SpeedConfig":
+        """The switches of a ``speed`` node (a mapping); a switch it leaves out keeps its default."""
+        return cls(**{name: node[name] for name in SPEED_SWITCHES if name in node})
+
+
+#: the speed switches' names: the keys of the ``speed`` node
+SPEED_SWITCHES = tuple(f.name for f in dataclasses.fields(SpeedConfig))
 
 
 def dummy_batch(model, batch_size: int) -> dict[str, torch.Tensor]:
@@ -128,7 +142,7 @@ def apply_speed(model, speed: SpeedConfig, batch_size: int = 120, warm: bool = T
         if why is None:
             name += ", freed memory kept"
         else:
-            log.warning("trainer.keep_memory: %s; freed memory goes back to the kernel as usual", why)
+            log.warning("speed.keep_memory: %s; freed memory goes back to the kernel as usual", why)
     if not speed.compile:
         return name
     cache = use_inductor_cache()
@@ -193,15 +207,15 @@ def planned_steps(trainer_cfg, batches_per_epoch: int) -> float:
     return epochs * batches_per_epoch
 
 
-def apply_speed_from_config(model, trainer_cfg, batch_size: int, batches_per_epoch: int) -> str:
-    """``apply_speed`` with the switches of ``cfg.trainer`` (``compile: auto`` resolved from the run's
-    length); logs and returns the variant."""
-    speed = SpeedConfig.from_trainer_cfg(trainer_cfg)
+def apply_speed_from_config(model, speed: SpeedConfig, trainer_cfg, batch_size: int, batches_per_epoch: int) -> str:
+    """``apply_speed`` with ``speed`` (the ``speed`` node's switches), ``compile: auto`` resolved from the run's
+    length and device in ``trainer_cfg`` (``cfg.trainer``); logs and returns the variant."""
+    speed = dataclasses.replace(speed)
     if speed.compile == "auto":
         steps = planned_steps(trainer_cfg, batches_per_epoch)
         speed.compile = steps >= AUTO_COMPILE_MIN_STEPS
         if not speed.compile:
-            log.info("trainer.compile=auto: %d training steps, too few to pay for compiling; running eager", steps)
+            log.info("speed.compile=auto: %d training steps, too few to pay for compiling; running eager", steps)
     on_cpu = str(trainer_cfg.get("accelerator", "cpu")) == "cpu" or (
         str(trainer_cfg.get("accelerator")) == "auto" and not torch.cuda.is_available())
     variant = apply_speed(model, speed, batch_size, warm=on_cpu)

@@ -33,6 +33,7 @@ import json
 import logging
 import os
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -263,15 +264,15 @@ def check_training(tcfg: DictConfig) -> None:
     """What ``cicfw.train.train`` checks before it reads any data (top-level keys, the model's names, keys
     and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
     the dataset is collected rather than failing every cell of the row."""
-    from cicfw.model.speed import SpeedConfig
     from cicfw.override_hints import check_top_level_keys
     from cicfw.train import build_model, make_datamodule, trainer_kwargs
+    from cicfw.train_schema import checked_speed
 
     check_top_level_keys(tcfg, "train")
     build_model(tcfg)
     make_datamodule(tcfg)
     trainer_kwargs(tcfg)
-    SpeedConfig.from_trainer_cfg(tcfg.trainer)
+    checked_speed(tcfg)
 
 
 def check_outputs(cfg: DictConfig) -> None:
@@ -311,7 +312,8 @@ def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
     """conf/train.yaml overrides of one cell: the row's experiment, the budget, the seed."""
     entry = cfg.catalogue[row]
     return [f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
-            *[str(o) for o in cfg.budget.train], f"seed={seed}", f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
+            *speed_node_spelling(cfg.budget.train), f"seed={seed}",
+            f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
 
 
 def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
@@ -367,14 +369,25 @@ def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str,
     return pinned
 
 
+def speed_node_spelling(overrides: Sequence[Any]) -> list[str]:
+    """Training overrides with the speed switches spelled ``speed.<switch>=``: a folder pinned, or a cell
+    recorded, while they were keys of the trainer node says ``trainer.<switch>=`` for the same setting."""
+    from cicfw.model.speed import SPEED_SWITCHES
+
+    legacy = re.compile(rf"^trainer\.({'|'.join(SPEED_SWITCHES)})=")
+    return [legacy.sub(r"speed.\1=", str(o)) for o in overrides]
+
+
 def pinned_differences(theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
                        keys: Sequence[str] = ("budget", "train", "suite", "dataset")) -> list[str]:
     """Which of ``keys`` a folder's pinned fingerprint (``theirs``) has otherwise than this plan's."""
-    resolved = [str(o) for o in OmegaConf.to_container(cfg.budget.train, resolve=True)]
+    resolved = speed_node_spelling(OmegaConf.to_container(cfg.budget.train, resolve=True))
     theirs = with_legacy_family(theirs)
     diff = []
     for k in keys:
-        if k == "train" and theirs.get("train") in (ours["train"], resolved):
+        pinned = theirs.get("train")
+        if k == "train" and isinstance(pinned, list) and speed_node_spelling(pinned) in (
+                speed_node_spelling(ours["train"]), resolved):
             continue
         if theirs.get(k) != ours.get(k):
             diff.append(k)

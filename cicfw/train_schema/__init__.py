@@ -3,12 +3,14 @@
 conf/train.yaml puts this package on its search path, so Hydra imports it (registering the schema in its
 ConfigStore) before it composes a train config, and the defaults list lays the schema under the config:
 ``cicfw_train`` under the whole of it (``model``: ``CICModule``'s arguments, ``data``: ``CILDataModule``'s,
-``trainer``: ``lightning.Trainer``'s plus cicfw's speed switches), and ``cicfw_schema/<group>/<name>``
-under each chosen encoder, mixer and head option (the registered class's arguments, plugins' included).
+``trainer``: ``lightning.Trainer``'s, ``speed``: cicfw's speed switches from ``SpeedConfig``), and
+``cicfw_schema/<group>/<name>`` under each chosen encoder, mixer and head option (the registered class's
+arguments, plugins' included).
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key,
 before any run folder exists. ``part`` and ``checked`` apply the same schemas to a composed config again:
 for keys added with ``+`` (which Hydra lets through), an option file whose name is not the registered
-name it selects, or a config composed elsewhere.
+name it selects, or a config composed elsewhere. ``checked_speed`` also checks the values a type cannot
+say (``speed.compile``: a union of a flag and a word).
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from cicfw.collection.config import CollectConfig
 from cicfw.config_checks import SchemaError, checked, kwargs_schema
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
-from cicfw.model.speed import SpeedConfig
+from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
 from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry, guard_hydra_plugins
 
 #: the model's parts: config group -> registry
@@ -39,10 +41,10 @@ NOT_SETTABLE = {
         "default_root_dir": "cicfw uses the run folder (hydra.run.dir=...)",
         "logger": "choose the logger with logger=csv, logger=tensorboard or logger=null",
         "callbacks": "cicfw adds its checkpoint and diagnostics callbacks (progress_bar=false drops the bar)",
+        **{k: f"it is a cicfw speed switch, not a Lightning Trainer argument; did you mean speed.{k}?"
+           for k in SPEED_SWITCHES},
     },
 }
-#: cicfw's speed switches, set in the trainer node beside Lightning's arguments (cicfw/model/speed.py)
-SPEED_SWITCHES = tuple(f.name for f in dataclasses.fields(SpeedConfig))
 
 
 @functools.lru_cache(maxsize=None)
@@ -53,14 +55,10 @@ def part(group: str, name: str) -> type:
                          not_settable=NOT_SETTABLE.get(group))
 
 
-def _speed_fields() -> dict[str, tuple[Any, Any]]:
-    speed = kwargs_schema(SpeedConfig, "cicfw's speed switches")
-    return {f.name: (f.type, f.default) for f in dataclasses.fields(speed)}
-
-
 MODEL = kwargs_schema(CICModule, "the model (CICModule)", not_settable=NOT_SETTABLE["model"])
-TRAINER = kwargs_schema(L.Trainer, "the Lightning Trainer", fields=_speed_fields(),
-                        not_settable=NOT_SETTABLE["trainer"], is_not="a Lightning Trainer argument")
+TRAINER = kwargs_schema(L.Trainer, "the Lightning Trainer", not_settable=NOT_SETTABLE["trainer"],
+                        is_not="a Lightning Trainer argument")
+SPEED = kwargs_schema(SpeedConfig, "cicfw's speed switches", is_not="one of cicfw's speed switches")
 DATA = dataclasses.make_dataclass(  # data=sim_default collects its data: data.collect is a collection's config
     "CILDataModuleConfig", [("collect", Optional[CollectConfig], field(default=None))],
     bases=(kwargs_schema(CILDataModule, "the CIL datamodule"),))
@@ -91,6 +89,7 @@ class TrainConfig:
     head: Any = MISSING
     data: DATA = field(default_factory=DATA)  # type: ignore[valid-type]
     trainer: TRAINER = field(default_factory=TRAINER)  # type: ignore[valid-type]
+    speed: SPEED = field(default_factory=SPEED)  # type: ignore[valid-type]
     logger: Optional[LoggerConfig] = None
 
 
@@ -121,6 +120,12 @@ def checked_node(cfg: DictConfig, key: str, schema: type) -> dict[str, Any]:
     """``cfg[key]`` as plain data, checked against ``schema`` (``model``, ``data``, ``trainer``)."""
     return OmegaConf.to_container(checked(schema, OmegaConf.to_container(cfg[key], resolve=True), key),
                                   resolve=True)
+
+
+def checked_speed(cfg: DictConfig) -> SpeedConfig:
+    """``cfg.speed`` checked against its schema, then its values (``speed.compile=maybe``, ``speed.adam=fusd``)
+    by ``SpeedConfig``: one ``SchemaError`` naming the full key."""
+    return SpeedConfig(**checked_node(cfg, "speed", SPEED))
 
 
 def top_level_keys() -> list[str]:
