@@ -33,7 +33,7 @@ from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
 from cicfw.run_folder import hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train_schema import DATA, MODEL, TRAINER, checked_node, checked_part, checked_speed
+from cicfw.train_schema import DATA, MODEL, checked_node, checked_part, checked_speed, checked_trainer
 
 log = logging.getLogger("cicfw.train")
 
@@ -295,7 +295,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
 def trainer_kwargs(cfg: DictConfig) -> dict[str, Any]:
     """``lightning.Trainer``'s arguments: ``cfg.trainer`` checked against its schema (every argument of
     ``Trainer.__init__`` with its type)."""
-    return checked_node(cfg, "trainer", TRAINER)
+    return checked_trainer(cfg)
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
@@ -317,7 +317,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
 
     try:
         return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
-    except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=5: AttributeError
+    except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=1:00
         raise ValueError(f"trainer: {' '.join(str(err).split())}") from None
 
 

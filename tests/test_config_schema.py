@@ -140,6 +140,21 @@ def test_the_speed_node_takes_its_defaults_from_speed_config():
     assert not set(SPEED_SWITCHES) & set(trainer_kwargs(compose_train()))
 
 
+@pytest.mark.parametrize("overrides, key", [
+    (["trainer.deterministic=sure"], "trainer.deterministic"),  # bool | "warn": a union the schema leaves open
+    (["trainer.deterministic=1"], "trainer.deterministic"),
+    (["trainer.max_time=5"], "trainer.max_time"),               # str | dict | timedelta: likewise
+    (["trainer.max_time=[1]"], "trainer.max_time"),
+])
+def test_trainer_unions_are_checked_by_what_lightning_takes(overrides, key):
+    with pytest.raises(SchemaError) as err:
+        trainer_kwargs(compose_train(*overrides))
+    assert (err.value.kind, err.value.key) == ("wrong type", key), err.value
+    assert "\n" not in str(err.value)
+    accepted = "warn" if key == "trainer.deterministic" else "DD:HH:MM:SS"
+    assert accepted in str(err.value), err.value  # what it takes
+
+
 def test_every_lightning_trainer_argument_is_in_the_schema_with_its_default():
     """``trainer.<any Trainer argument>`` without ``+``; the ones cicfw passes itself are not settable."""
     import inspect

@@ -318,9 +318,11 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("overrides, key", [
-    # unions with timedelta are Any to the schema: Lightning's AttributeError becomes one line naming the node
-    (["trainer.max_time=1.5"], "trainer"),
-    (["trainer.max_time=[1]"], "trainer"),
+    # unions the schema leaves open (Any): checked by what Lightning takes (cicfw/train_schema), or its own error
+    (["trainer.max_time=1.5"], "trainer.max_time"),
+    (["trainer.max_time=[1]"], "trainer.max_time"),
+    (["trainer.max_time=1:00"], "trainer"),
+    (["trainer.deterministic=sure"], "trainer.deterministic"),
     (["speed.compile=maybe"], "speed.compile"),
     (["trainer.gradient_clip_algorithm=1.5"], "trainer"),
     (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints"),
@@ -340,6 +342,8 @@ def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, ov
 @pytest.mark.parametrize("override, key", [
     ("speed.compile=maybe", "speed.compile"),
     ("trainer.compile=true", "speed.compile"),  # the switch's key under trainer: the line names the speed node's
+    ("trainer.deterministic=sure", "trainer.deterministic"),
+    ("trainer.max_time=5", "trainer.max_time"),
 ])
 def test_the_app_refuses_a_speed_or_trainer_value_in_one_line_without_a_run_folder(tmp_path, override, key):
     proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data", override,

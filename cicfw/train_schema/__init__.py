@@ -9,8 +9,8 @@ arguments, plugins' included).
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key,
 before any run folder exists. ``part`` and ``checked`` apply the same schemas to a composed config again:
 for keys added with ``+`` (which Hydra lets through), an option file whose name is not the registered
-name it selects, or a config composed elsewhere. ``checked_speed`` also checks the values a type cannot
-say (``speed.compile``: a union of a flag and a word).
+name it selects, or a config composed elsewhere. ``checked_trainer`` and ``checked_speed`` also check the
+values a type cannot say (a union of a flag and a word, such as ``trainer.deterministic``).
 """
 from __future__ import annotations
 
@@ -120,6 +120,25 @@ def checked_node(cfg: DictConfig, key: str, schema: type) -> dict[str, Any]:
     """``cfg[key]`` as plain data, checked against ``schema`` (``model``, ``data``, ``trainer``)."""
     return OmegaConf.to_container(checked(schema, OmegaConf.to_container(cfg[key], resolve=True), key),
                                   resolve=True)
+
+
+def _is_one_of(value: Any, accepted: tuple[Any, ...]) -> bool:
+    return any(type(value) is type(a) and value == a for a in accepted)  # True is not 1
+
+
+def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg.trainer`` as ``checked_node`` gives it, and the Trainer arguments whose union type the schema
+    leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``."""
+    kwargs = checked_node(cfg, "trainer", TRAINER)
+    deterministic, max_time = kwargs.get("deterministic"), kwargs.get("max_time")
+    if not _is_one_of(deterministic, (True, False, "warn", None)):
+        raise SchemaError(f"trainer.deterministic must be true, false, warn or null, got {deterministic!r}",
+                          "trainer.deterministic", "wrong type")
+    if max_time is not None and not isinstance(max_time, (str, dict)):
+        raise SchemaError(f'trainer.max_time must be a "DD:HH:MM:SS" string (e.g. 00:12:00:00), a mapping of '
+                          f"days/hours/minutes/seconds (e.g. {{days:1,hours:2}}) or null, got {max_time!r}",
+                          "trainer.max_time", "wrong type")
+    return kwargs
 
 
 def checked_speed(cfg: DictConfig) -> SpeedConfig:
