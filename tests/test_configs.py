@@ -20,7 +20,7 @@ def options(group: str) -> list[str]:
 
 def test_conf_ships_in_the_package():
     assert (CONF / "train.yaml").exists()
-    for group in ("encoder", "mixer", "head", "data", "trainer", "logger", "debug", "experiment"):
+    for group in ("encoder", "mixer", "head", "data", "trainer", "speed", "logger", "debug", "experiment"):
         assert options(group) or group == "experiment", f"conf/{group}/ is empty"
 
 
