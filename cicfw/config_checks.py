@@ -181,6 +181,8 @@ def _accepted_words(err: Any, msg: str) -> str | None:
         words = _ACCEPTED.get(m.group(1), m.group(1))
     elif "is not a valid bool" in msg:
         words = "true or false"
+    elif re.match(r"Cannot convert '\w+' to string", msg):
+        words = "a string"
     elif "is not a ListConfig" in msg:
         words = "a list"
     elif "is not a subclass of" in msg or "is not a DictConfig" in msg:
@@ -249,6 +251,14 @@ def checked(schema: type, values: Mapping[str, Any], where: str) -> Any:
         raise SchemaError(f"{_what(schema, where)} needs {missing[0]} (it has no default); add {missing[0]}=...",
                           missing[0], "missing")
     return OmegaConf.select(merged, where) if parts else merged
+
+
+def plain_values(cfg: Any) -> dict[str, Any]:
+    """A composed app config as plain data (resolved), its ``hydra`` node left out: what ``checked`` takes."""
+    from omegaconf import OmegaConf
+
+    return {str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+            for k in cfg if k != "hydra"}
 
 
 def _nest(parts: list[str], values: Any) -> Any:

@@ -6,8 +6,9 @@ with the schema's accepted keys or type: ``config_checks.config_error``) and an 
 group each end the app as one ``cicfw: error:`` line, exit status 2, before Hydra creates any run folder;
 an option that needs an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``) adds a hint.
 ``check_top_level_keys`` refuses a top-level key added with ``+`` (which Hydra lets through) by the app's
-schema. ``OneLineJobFailure`` (a Hydra callback) ends a
-multirun whose job failed with one line instead of the job's traceback.
+schema. ``SchemaCheck`` (a Hydra callback) runs an app's schema check on the composed config before the run
+folder is created; ``OneLineJobFailure`` (another) ends a multirun whose job failed with one line instead
+of the job's traceback.
 """
 from __future__ import annotations
 
@@ -156,6 +157,32 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
             for hint in missing_extras(sys.argv[1:]):
                 print(hint, file=sys.stderr)
         raise
+
+
+class SchemaCheck(Callback):
+    """Hydra callback, listed first in an app config's callbacks: ``check`` (the dotted path of a function
+    taking the composed config) before the run or sweep folder is created, for what composing lets through
+    (keys added with ``+``); its ``SchemaError`` is one ``cicfw: error:`` line, exit status 2."""
+
+    def __init__(self, check: str) -> None:
+        self.check = check
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        self._check(config)
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        self._check(config)
+
+    def _check(self, config: Any) -> None:
+        from hydra.utils import get_method
+
+        from cicfw.config_checks import SchemaError
+
+        try:
+            get_method(self.check)(config)
+        except SchemaError as err:
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
 
 
 class JobFailed(CompactHydraException):

@@ -4,39 +4,30 @@ conf/evaluate.yaml puts this package on its search path (cicfw.evaluate imports 
 (registering the schema in its ConfigStore) before it composes an evaluate config, and the defaults list
 lays the schema under the config: ``cicfw_evaluate`` under the whole of it (``runner``: ``RunnerConfig``'s
 fields, ``suite``: ``build_suite``'s arguments) and ``cicfw_schema/sim/<name>`` under the chosen simulator
-(the registered backend's arguments, plugins' included). OmegaConf then refuses an unknown key or a value
-of the wrong type while composing, naming its full key. ``check`` applies the same schemas to a composed
-config again, for what composing lets through: keys added with ``+``, a ``sim.name`` other than the option
-file's, and ``runner.workers``, whose union OmegaConf cannot type; ``ConfigCheck`` runs it before Hydra
+(the registered backend's arguments, plugins' included: ``cicfw.sim.schema``, shared with the collect app).
+OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key.
+``check`` applies the same schemas to a composed config again, for what composing lets through: keys added
+with ``+``, a ``sim.name`` other than the option file's, and ``runner.workers``, whose union OmegaConf cannot
+type; conf/evaluate.yaml's first callback (``cicfw.override_hints.SchemaCheck``) runs it before Hydra
 creates the run folder.
 """
 from __future__ import annotations
 
-import functools
-import sys
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
-from hydra.experimental.callback import Callback
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig
 
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
-from cicfw.config_checks import SchemaError, checked, kwargs_schema
-from cicfw.registry import SIM_BACKENDS, guard_hydra_plugins
+from cicfw.config_checks import SchemaError, checked, kwargs_schema, plain_values
+from cicfw.registry import guard_hydra_plugins
+from cicfw.sim.schema import check_sim_node, store_backend_schemas
 
 RUNNER = kwargs_schema(RunnerConfig, "the runner", not_settable={
     "seed": "it is the top-level seed=...", "progress_bar": "it is the top-level progress_bar=..."})
 SUITE = kwargs_schema(build_suite, "the suite (build_suite)", exclude=("backend",))
-
-
-@functools.lru_cache(maxsize=None)
-def sim(name: str) -> type:
-    """The schema of the ``sim`` option that builds registered backend ``name``: its arguments and ``name``.
-    An unknown name is the registry's ``UnknownNameError``, listing the registered ones."""
-    return kwargs_schema(SIM_BACKENDS.get(name), f"sim {name!r}", fields={"name": (str, name)},
-                         not_settable={"client": "cicfw connects to the server itself (sim.host, sim.port)"})
 
 
 @dataclass
@@ -66,8 +57,7 @@ def register() -> None:
     guard_hydra_plugins()
     store = ConfigStore.instance()
     store.store(name="cicfw_evaluate", node=EvaluateConfig, provider="cicfw")
-    for name in SIM_BACKENDS.names():
-        store.store(group="cicfw_schema/sim", name=name, node=sim(name), provider="cicfw")
+    store_backend_schemas()
 
 
 def check_workers(workers: Any) -> None:
@@ -83,32 +73,10 @@ def check(cfg: DictConfig) -> None:
     """A composed evaluate config checked again: a key added with ``+`` anywhere in its nodes (policy
     excepted), the ``sim`` node against the backend its ``name`` builds, and ``runner.workers``. One
     ``SchemaError`` naming the full key."""
-    values = {str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-              for k in cfg if k != "hydra"}
+    values = plain_values(cfg)
     checked(EvaluateConfig, values, "")
-    node = values.get("sim")
-    if isinstance(node, dict) and str(node.get("name")) in SIM_BACKENDS:
-        checked(sim(str(node["name"])), node, "sim")
+    check_sim_node(values.get("sim"))
     check_workers((values.get("runner") or {}).get("workers", 1))
-
-
-class ConfigCheck(Callback):
-    """Hydra callback, listed first in conf/evaluate.yaml: ``check`` before the run (or sweep) folder is
-    created; a refusal is one ``cicfw: error:`` line, exit status 2."""
-
-    def on_run_start(self, config: Any, **kwargs: Any) -> None:
-        self._check(config)
-
-    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        self._check(config)
-
-    @staticmethod
-    def _check(config: Any) -> None:
-        try:
-            check(config)
-        except SchemaError as err:
-            print(f"cicfw: error: {err}", file=sys.stderr)
-            sys.exit(2)
 
 
 register()
