@@ -29,7 +29,7 @@ def run(cfg) -> str:
         from omegaconf import DictConfig, OmegaConf
 
         raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-        verify = raw.pop("verify", False)  # a bool: conf/collect.yaml's schema (CollectAppConfig) checks it
+        verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect_schema) checks it
         out_dir = Path(str(raw["out_dir"])).expanduser()
         if verify:
             return _verify(raw, out_dir)

@@ -1,6 +1,7 @@
 """The collect config: ``CollectConfig``, the one place its keys, types and defaults live (conf/collect.yaml
-and ``data.collect`` take them from it through the config schema); its validation (one clear error per bad
-key), its hash, and the simulator backend it names."""
+and ``data.collect`` take them from it through the apps' config schemas, cicfw/collect_schema and
+cicfw/train_schema); its validation (one clear error per bad key), its hash, and the simulator backend it
+names."""
 from __future__ import annotations
 
 import hashlib
@@ -9,8 +10,6 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
-
-from omegaconf import MISSING
 
 from cicfw.collection.errors import CollectConfigError, CollectError
 from cicfw.config_checks import SchemaError, checked
@@ -236,18 +235,3 @@ def config_hash(cfg: dict) -> str:
         keep["town_files"] = files
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
-
-@dataclass
-class CollectAppConfig(CollectConfig):
-    """``python -m cicfw.collect``'s config (conf/collect.yaml): a collection, the folder it goes to, and the
-    switch that checks a collected folder instead."""
-
-    out_dir: str = MISSING  # conf/collect.yaml: under the cache folder
-    verify: bool = False  # true (or --verify): check out_dir's files against their recorded SHA-256
-
-
-def register_schema() -> None:
-    """``cicfw_collect`` in Hydra's ConfigStore: conf/collect.yaml's schema (its first default)."""
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(name="cicfw_collect", node=CollectAppConfig, provider="cicfw")
