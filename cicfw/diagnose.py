@@ -21,7 +21,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import is_integer, is_number
+from cicfw.config_checks import is_number
 from cicfw.errors import report_user_errors
 
 log = logging.getLogger("cicfw.diagnose")
@@ -32,12 +32,12 @@ SPLIT_KEYS = ("path", "seed", "val_fraction", "max_abs_steer", "side_camera_corr
 SEARCH_LEVELS = 3
 
 
-#: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read
+#: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read; their
+#: types are the schema's (cicfw/diagnose_schema), refused while composing
 OPTION_RULES = {
-    "batch_size": (lambda v: is_integer(v) and v >= 1, "a positive integer (frames per network call)"),
-    "max_frames": (lambda v: v is None or (is_integer(v) and v >= 1),
-                   "null (every frame) or a positive integer (an evenly spaced subset)"),
-    "threads": (lambda v: v is None or (is_integer(v) and v >= 1), "null (torch's default) or a positive integer"),
+    "batch_size": (lambda v: v >= 1, "a positive integer (frames per network call)"),
+    "max_frames": (lambda v: v is None or v >= 1, "null (every frame) or a positive integer (an evenly spaced subset)"),
+    "threads": (lambda v: v is None or v >= 1, "null (torch's default) or a positive integer"),
     "phases.approach_m": (lambda v: v is None or (is_number(v) and v > 0),
                           "null (the dataset's command_distance) or a number of metres > 0"),
     "phases.exit_s": (lambda v: is_number(v) and v >= 0, "a number of seconds >= 0"),
@@ -125,9 +125,6 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
         values.update(found[0])
         source = found[1]
     given = {k: v for k, v in (OmegaConf.to_container(cfg.data, resolve=True) or {}).items() if v is not None}
-    unknown = sorted(set(given) - set(SPLIT_KEYS))
-    if unknown:
-        raise ValueError(f"data.{unknown[0]} is not a diagnose option; data options: {', '.join(SPLIT_KEYS)}")
     values.update(given)
     if given:
         source += f"; given here: {', '.join(sorted(given))}"

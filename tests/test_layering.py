@@ -1,7 +1,8 @@
 """Imports run one way, and every module of the package has its place in it::
 
     apps (train and its train_schema, evaluate and its evaluate_schema, collect and its collect_schema,
-          reproduce and reproduction.app, export and its export_schema, diagnose, cli, carla_check, testing)
+          reproduce and reproduction.app, export and its export_schema, diagnose and its diagnose_schema, cli,
+          carla_check, testing)
       -> benchmark | reproduction | collection | carla_client | steer_diagnostic
       -> sim | model | data | agent
       -> base (registry, errors, files, config_checks, override_hints, run_folder, sweeps, locks, progress)
@@ -46,7 +47,7 @@ LAYER_OF = {
     "cicfw.benchmark": "stage", "cicfw.reproduction": "stage", "cicfw.collection": "stage",
     "cicfw.carla_client": "stage", "cicfw.steer_diagnostic": "stage",
     **{app: "app" for app in APPS}, "cicfw.export": "app", "cicfw.export_schema": "app", "cicfw.diagnose": "app",
-    "cicfw.testing": "app",
+    "cicfw.diagnose_schema": "app", "cicfw.testing": "app",
 }
 #: package -> what none of its modules may import
 #: (``carla`` is CARLA's own client library: only the CARLA client may import it)
