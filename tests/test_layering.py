@@ -1,8 +1,8 @@
 """Imports run one way, and every module of the package has its place in it::
 
     apps (train and its train_schema, evaluate and its evaluate_schema, collect and its collect_schema,
-          reproduce and reproduction.app, export and its export_schema, diagnose and its diagnose_schema, cli,
-          carla_check, testing)
+          reproduce, its reproduce_schema and reproduction.app, export and its export_schema, diagnose and its
+          diagnose_schema, cli, carla_check, testing)
       -> benchmark | reproduction | collection | carla_client | steer_diagnostic
       -> sim | model | data | agent
       -> base (registry, errors, files, config_checks, override_hints, run_folder, sweeps, locks, progress)
@@ -35,7 +35,8 @@ import cicfw
 
 PKG = Path(cicfw.__file__).parent
 APPS = ("cicfw.train", "cicfw.train_schema", "cicfw.evaluate", "cicfw.evaluate_schema", "cicfw.collect",
-        "cicfw.collect_schema", "cicfw.reproduce", "cicfw.reproduction.app", "cicfw.cli", "cicfw.carla_check")
+        "cicfw.collect_schema", "cicfw.reproduce", "cicfw.reproduce_schema", "cicfw.reproduction.app", "cicfw.cli",
+        "cicfw.carla_check")
 #: the layers, lowest first
 LAYERS = ("base", "core", "stage", "app")
 #: module or package -> its layer (a package places every module under it)

@@ -317,12 +317,16 @@ def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
     """``seeds=3`` runs 0, 1, 2; ``seeds=[4,1]`` runs 1 and 4 only (a second machine's share)."""
     from omegaconf import OmegaConf
 
-    assert reproduce._seed_list(3) == [0, 1, 2]
-    assert reproduce._seed_list(OmegaConf.create([4, 1])) == [1, 4]
-    assert reproduce._seed_list([0]) == [0]
-    for bad in (True, 0, [True], [1.5], []):
-        with pytest.raises(reproduce.ReproduceError, match="seeds must be"):
-            reproduce._seed_list(bad)
+    from cicfw.config_checks import SchemaError
+    from cicfw.reproduce_schema import seed_list
+
+    assert seed_list(3) == [0, 1, 2]
+    assert seed_list(OmegaConf.create([4, 1])) == [1, 4]
+    assert seed_list([0]) == [0]
+    for bad in (True, 0, [True], [1.5], [], "3"):
+        with pytest.raises(SchemaError) as err:
+            seed_list(bad)
+        assert (err.value.kind, err.value.key) == ("wrong type", "seeds"), err.value
 
 
 def test_converged6_is_converged_two_epochs_longer():

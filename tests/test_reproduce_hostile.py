@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from cicfw.config_checks import SchemaError
 from cicfw.reproduction import app as reproduce
 from cicfw.reproduction import report as results
 from cicfw.reproduction.cells import COLUMNS, CellResult
@@ -54,17 +55,22 @@ def refused(args: list[str], capsys) -> str:
 # item 4: unknown keys; unparsable overrides
 
 
-@pytest.mark.parametrize("arg, message", [
-    ("+foo=1", "unknown key 'foo' (+foo=1); accepted top-level keys: rows, seeds, results_dir, "),
-    ("+evaluate_aftr=true", "unknown key 'evaluate_aftr' (+evaluate_aftr=true); accepted top-level keys: "),
-    ("publish_dirr=x", "unknown key 'publish_dirr' (publish_dirr=x); did you mean 'publish_dir'? accepted "),
-    ("+budget.foo=1", "unknown key 'budget.foo' (+budget.foo=1); accepted keys of budget smoke: name, train, suite"),
+@pytest.mark.parametrize("arg, kind, key", [
+    ("+foo=1", "unknown key", "foo"),
+    ("+evaluate_aftr=true", "unknown key", "evaluate_aftr"),
+    ("publish_dirr=x", "unknown key", "publish_dirr"),
+    ("+budget.foo=1", "unknown key", "budget.foo"),
 ])
-def test_unknown_keys_are_refused_in_one_line(arg, message, no_collect, tmp_path, capsys):
+def test_unknown_keys_are_refused_in_one_line(arg, kind, key, no_collect, tmp_path, capsys):
     out = tmp_path / "results"
+    with pytest.raises(SchemaError) as err:
+        reproduce.compose_plan(["budget=smoke", arg, f"results_dir={out}"])
+    assert (err.value.kind, err.value.key) == (kind, key), err.value
     msg = refused(["budget=smoke", arg, f"results_dir={out}"], capsys)
-    assert msg.startswith(message), msg
+    assert msg == str(err.value) and "accepted" in msg, msg
     assert not out.exists()
+    if arg == "publish_dirr=x":
+        assert "did you mean 'publish_dir'?" in msg, msg
 
 
 def test_an_unparsable_override_is_one_line(no_collect, tmp_path, capsys):
@@ -104,14 +110,26 @@ def test_the_docs_custom_row_example_parses(no_collect, tmp_path):
      "row 'mine' (experiment paper_gtu, overrides ['mixer=gtuu']): unknown mixer 'gtuu'; known mixers: "),
     ("{experiment: paper_gtu, overrides: ['head.WW=3'], label: x}",
      "row 'mine' (experiment paper_gtu, overrides ['head.WW=3']): head.WW is not an argument of head 'regression'"),
-    ("{experiment: paper_gtu, overides: ['head=hybrid'], label: x}",
-     "catalogue.mine: unknown key 'overides'; accepted: experiment, overrides, label, paper"),
-    ("{label: x}", "catalogue.mine has no experiment; give experiment: <one of conf/experiment/> "),
 ])
 def test_a_bad_custom_row_is_refused_up_front(row, message, no_collect, tmp_path, capsys):
     out = tmp_path / "results"
     msg = refused([f"+catalogue.mine={row}", "rows=[cil,mine]", f"results_dir={out}"], capsys)
     assert msg.startswith(message), msg
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("row, kind, key", [
+    ("{experiment: paper_gtu, overides: ['head=hybrid'], label: x}", "unknown key", "catalogue.mine.overides"),
+    ("{label: x}", "missing", "catalogue.mine.experiment"),
+    ("{experiment: paper_gtu, label: x, paper: [1, a, 3, 4]}", "wrong type", "catalogue.mine.paper[1]"),
+])
+def test_a_custom_row_against_the_schema_is_refused_up_front(row, kind, key, no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    args = [f"+catalogue.mine={row}", "rows=[cil,mine]", f"results_dir={out}"]
+    with pytest.raises(SchemaError) as err:
+        reproduce.compose_plan(args)
+    assert (err.value.kind, err.value.key) == (kind, key), err.value
+    assert refused(args, capsys) == str(err.value)
     assert not out.exists()
 
 
@@ -131,20 +149,30 @@ def test_a_custom_row_with_a_bad_value_is_refused_up_front(override, message, no
     assert not out.exists()
 
 
-@pytest.mark.parametrize("arg, message", [
-    ("budget.curve_epochs=[abc]", "budget.curve_epochs must be a list of whole numbers >= 1 "),
-    ("budget.curve_epochs=[0]", "budget.curve_epochs must be a list of whole numbers >= 1 "),
-    ("budget.curve_seeds=abc", "budget.curve_seeds must be a list of whole numbers >= 0 "),
-    ("budget.curve_seeds=[1.5]", "budget.curve_seeds must be a list of whole numbers >= 0 "),
+@pytest.mark.parametrize("arg, kind, key", [
+    ("budget.curve_epochs=[abc]", "wrong type", "budget.curve_epochs[0]"),
+    ("budget.curve_seeds=abc", "wrong type", "budget.curve_seeds"),
+    ("budget.curve_seeds=[1.5]", "wrong type", "budget.curve_seeds[0]"),
+    ("equivalence_margin=abc", "wrong type", "equivalence_margin"),
 ])
-def test_bad_curve_lists_are_refused_up_front(arg, message, no_collect, tmp_path, capsys):
+def test_bad_curve_lists_and_margins_are_refused_by_the_schema(arg, kind, key, no_collect, tmp_path, capsys):
     out = tmp_path / "results"
-    msg = refused(["budget=smoke", "rows=[cil]", arg, f"results_dir={out}"], capsys)
-    assert msg.startswith(message) and f"or null, got {arg.split('=', 1)[1]}" in msg.replace("'", ""), msg
+    args = ["budget=smoke", "rows=[cil]", arg, f"results_dir={out}"]
+    with pytest.raises(SchemaError) as err:
+        reproduce.compose_plan(args)
+    assert (err.value.kind, err.value.key) == (kind, key), err.value
+    assert refused(args, capsys) == str(err.value)
     assert not out.exists()
 
 
-@pytest.mark.parametrize("margin", ["-1", "0", "abc", "nan"])
+def test_a_curve_epoch_below_1_is_refused_up_front(no_collect, tmp_path, capsys):
+    out = tmp_path / "results"
+    msg = refused(["budget=smoke", "rows=[cil]", "budget.curve_epochs=[0]", f"results_dir={out}"], capsys)
+    assert msg.startswith("budget.curve_epochs must be a list of whole numbers >= 1 ") and msg.endswith("got [0]"), msg
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("margin", ["-1", "0", "nan"])
 def test_a_bad_equivalence_margin_is_refused_before_any_cell(margin, no_collect, tmp_path, capsys):
     """The report needs the margin after every cell has run: a bad one is refused first, naming the key."""
     out = tmp_path / "results"

@@ -1,7 +1,7 @@
 """The reproduction: the paper's Table 4 as rows x seeds x one budget, its lock, its statistics and its report.
 
-``app`` is the app (``python -m cicfw.reproduce`` runs it: plan, cells, report) and ``lock`` holds one run
-per results folder. The rest is numpy/scipy/statsmodels over the cells' episode outcomes, so ``cicfw report``
+``app`` is the app (``python -m cicfw.reproduce`` runs it: plan, cells, report), ``lock`` holds one run
+per results folder and ``catalogue`` says what a row is. The rest is numpy/scipy/statsmodels over the cells' episode outcomes, so ``cicfw report``
 and the tests use it without training anything: ``cells`` (cell.json as data, the table's columns),
 ``seed_stats`` (intervals over seeds, the episodes' floor, Holm), ``analysis`` (a folder's estimates, the
 episode bootstrap, which cells a comparison pairs), ``claims`` (the paper's claims and their verdicts),

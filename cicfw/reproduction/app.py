@@ -8,26 +8,26 @@ budget, with intervals and verdicts.
     python -m cicfw.reproduce budget=converged continue_from=docs/results/converged \
         publish_dir=docs/results/converged                                   # grow a published table
 
-Before anything is collected or trained, the app checks the plan: every key it was given (an unknown one
-is refused), the rows (each custom row's experiment, head, mixer and overrides compose), the seeds, the
-budget, the claims, ``publish_dir`` and ``continue_from``; it takes the results folder's lock (one run
-per folder: ``reproduce.lock`` names the holder; a stale lock, whose process on this host is gone, is
-taken over with a warning) and checks a folder (or a published one to continue) made with another
-budget or suite. Then it collects the budget's dataset once (every row trains on it), makes every cell's
-train/validation split of it (a seed whose split cannot train is refused before any cell trains) and pins
-the results folder to this budget, suite and dataset (``reproduce.json``): a folder made with another dataset
-is refused, and so is a finished cell trained on another dataset or with another model configuration
-(its ``recipe``). Each (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed``
-swept), so ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite
-and writes ``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch
-checkpoint (marked ``resumed`` in cell.json and in the report: resuming does not restore the data
-pipeline's random state) and its evaluation from the episodes it kept, a failed one records its one-line
-error and the others go on (the app then exits 1, naming the cells that did not finish). The report
-(``cicfw.reproduction.report``) is written at the end, and by ``cicfw report <results_dir>`` at any time.
+Before anything is collected or trained, the app checks the plan: the config against its schema
+(cicfw/reproduce_schema: an unknown key or a wrong type anywhere is refused), the rows (each custom row's
+experiment, head, mixer and overrides compose), the seeds, the budget's curve, the claims, ``publish_dir`` and
+``continue_from``; it takes the results folder's lock (one run per folder: ``reproduce.lock`` names the
+holder; a stale lock, whose process on this host is gone, is taken over with a warning) and checks a folder
+(or a published one to continue) made with another budget or suite. Then it collects the budget's dataset once
+(every row trains on it), makes every cell's train/validation split of it (a seed whose split cannot train is
+refused before any cell trains) and pins the results folder to this budget, suite and dataset
+(``reproduce.json``): a folder made with another dataset is refused, and so is a finished cell trained on
+another dataset or with another model configuration (its ``recipe``). Each (row, seed) cell is one job of
+Hydra's launcher (``cell.row``/``cell.seed`` swept), so ``launcher=joblib|slurm`` spreads cells with no other
+change. A cell trains, drives the suite and writes ``cell.json`` last: a finished cell is skipped, a killed
+one resumes from its last epoch checkpoint (marked ``resumed`` in cell.json and in the report: resuming does
+not restore the data pipeline's random state) and its evaluation from the episodes it kept, a failed one
+records its one-line error and the others go on (the app then exits 1, naming the cells that did not finish).
+The report (``cicfw.reproduction.report``) is written at the end, and by ``cicfw report <results_dir>`` at any
+time.
 """
 from __future__ import annotations
 
-import difflib
 import hashlib
 import json
 import logging
@@ -42,7 +42,6 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import is_integer
 from cicfw.files import atomic_write
 from cicfw.reproduction.lock import ResultsLock
 
@@ -50,10 +49,6 @@ log = logging.getLogger("cicfw.reproduce")
 
 MANIFEST = "reproduce.json"
 CELL_FILE = "cell.json"
-#: the config groups conf/reproduce.yaml's defaults choose (``budget=...``, ``launcher=...``)
-GROUPS = ("budget", "launcher")
-#: what a catalogue entry (a row) may say
-ROW_KEYS = ("experiment", "overrides", "label", "paper")
 
 
 class ReproduceError(ValueError):
@@ -86,133 +81,85 @@ def _hydra_line(err: BaseException) -> str:
     return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://"))
 
 
-def _parse(overrides: Sequence[str]) -> list[Any]:
+def _parse(overrides: Sequence[str]) -> None:
     """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import OverrideParseException
 
-    parser, out = OverridesParser.create(), []
+    parser = OverridesParser.create()
     for o in overrides:
         try:
-            out.extend(parser.parse_overrides([o]))
+            parser.parse_overrides([o])
         except OverrideParseException as err:
             raise ReproduceError(
                 f"cannot parse the override {o!r}: {str(err).splitlines()[0]}; quote a value that holds '=', "
                 f"spaces or brackets, e.g. '+catalogue.mine={{experiment: paper_gtu, overrides: [\"head=hybrid\"], "
                 f"label: GTU+hybrid}}'") from None
-    return out
-
-
-def _unknown(what: str, key: str, override: str, accepted: Sequence[str], where: str) -> ReproduceError:
-    close = difflib.get_close_matches(key.split(".")[-1], list(accepted), n=1, cutoff=0.6)
-    hint = f" did you mean {close[0]!r}?" if close else ""
-    return ReproduceError(f"unknown key {what!r} ({override});{hint} accepted {where}: {', '.join(accepted)}")
 
 
 def compose_plan(overrides: Sequence[str]) -> DictConfig:
-    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch). Every
-    override must parse and name a key the app has (``+foo=1`` is refused, not silently carried)."""
+    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch), checked by
+    its schema (``cicfw.reproduce_schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
+    wrong type is one error naming it."""
     from hydra import compose, initialize_config_module
     from hydra.errors import HydraException
 
+    from cicfw.config_checks import config_error
+    from cicfw.reproduce_schema import check
+
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
-    parsed = _parse(plain)
+    _parse(plain)
     for o in plain:
         if o.split("=", 1)[0].lstrip("+~") == "budget" and "=" in o and o.split("=", 1)[1] not in known_budgets():
             raise ReproduceError(f"unknown budget {o.split('=', 1)[1]!r}; known budgets: {', '.join(known_budgets())}")
-    group_choices = [o for o, p in zip(plain, parsed) if p.key_or_group in GROUPS]
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            base = compose("reproduce", overrides=group_choices)
-            for o, p in zip(plain, parsed):
-                key = p.key_or_group
-                top = key.split(".")[0]
-                if key in GROUPS or top == "cell":
-                    continue
-                if top not in base:
-                    raise _unknown(top, top, o, [k for k in base if k != "cell"], "top-level keys")
-                if top == "budget" and "." in key and key.split(".")[1] not in base.budget:
-                    raise _unknown(".".join(key.split(".")[:2]), key.split(".")[1], o, list(base.budget),
-                                   f"keys of budget {base.budget.name}")
-            return compose("reproduce", overrides=plain)
+            cfg = compose("reproduce", overrides=plain)
     except HydraException as err:
-        raise ReproduceError(_hydra_line(err)) from None
+        raise config_error(err) or ReproduceError(_hydra_line(err)) from None
+    check(cfg)
+    return cfg
 
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
-    """The rows and seeds to run, or one error naming what is wrong and what is accepted."""
+    """The rows and seeds to run, or one error naming what is wrong and what is accepted: the values the
+    schema cannot say (a row not in the catalogue, a curve epoch < 1, an unknown claim column, the margin)."""
+    from cicfw.reproduce_schema import seed_list
+    from cicfw.reproduction.catalogue import PAPER_VALUES
     from cicfw.reproduction.claims import check_margin, load_claims
 
     catalogue = cfg.catalogue
-    rows = [str(r) for r in (cfg.rows if OmegaConf.is_list(cfg.rows) else [cfg.rows])]
+    rows = [str(r) for r in cfg.rows]
     if not rows:
         raise ReproduceError(f"rows is empty; known rows: {', '.join(catalogue)}")
     for r in rows:
         if r not in catalogue:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
-        check_row_entry(r, catalogue[r])
+        paper = catalogue[r].get("paper")
+        if paper is not None and len(paper) != PAPER_VALUES:
+            raise ReproduceError(f"catalogue.{r}.paper must be the paper's {PAPER_VALUES} Table-4 values (training "
+                                 f"town: training / new weathers, new town: training / new weathers) or null")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
-    seeds = _seed_list(cfg.seeds)
+    seeds = seed_list(cfg.seeds)
     check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
-    if cfg.get("equivalence_margin") is not None:  # the report needs it after every cell: check it first
-        try:
-            check_margin(cfg.equivalence_margin)
-        except ValueError as err:
-            raise ReproduceError(str(err)) from None
+    try:  # the report needs it after every cell: check it first
+        check_margin(cfg.equivalence_margin)
+    except ValueError as err:
+        raise ReproduceError(str(err)) from None
     return rows, seeds
 
 
-def _seed_list(seeds: Any) -> list[int]:
-    """``seeds=5``: seeds 0..4; ``seeds=[3,4]``: those seeds only (a second machine's share of a table that
-    is continued with ``continue_from``); anything else: one error line."""
-    accepted = "a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4])"
-    if OmegaConf.is_list(seeds) or isinstance(seeds, list):
-        got = list(seeds)
-        if not got or not all(is_integer(x) and x >= 0 for x in got) or len(set(got)) != len(got):
-            raise ReproduceError(f"seeds must be {accepted}, got {got!r}")
-        return sorted(int(x) for x in got)
-    if not is_integer(seeds) or seeds < 1:
-        raise ReproduceError(f"seeds must be {accepted}, got {seeds!r}")
-    return list(range(int(seeds)))
-
-
 def check_curve(budget: DictConfig) -> None:
-    """``budget.curve_seeds`` and ``budget.curve_epochs`` lists of whole numbers (or null): read only after a
-    cell has trained, so a bad one is refused here instead of failing every curve cell."""
+    """``budget.curve_seeds`` >= 0 and ``budget.curve_epochs`` >= 1 (whole numbers: the schema): read only
+    after a cell has trained, so a bad one is refused here instead of failing every curve cell."""
     for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
                              ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
-        got = budget.get(key)
-        if got is None:
-            continue
-        values = list(got) if OmegaConf.is_list(got) else None
-        if values is None or not all(is_integer(x) and x >= least for x in values):
-            shown = OmegaConf.to_container(got) if OmegaConf.is_config(got) else got
+        got = list(budget.get(key) or [])
+        if any(x < least for x in got):
             raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
-                                 f"null, got {shown!r}")
-
-
-def check_row_entry(row: str, entry: Any) -> None:
-    """A catalogue entry: ``{experiment, overrides, label, paper}``, each of the right kind."""
-    if not OmegaConf.is_dict(entry):
-        raise ReproduceError(f"catalogue.{row} must be {{experiment: <name>, overrides: [...], label: <text>, "
-                             f"paper: [4 values] or null}}, got {entry!r}")
-    unknown = [str(k) for k in entry if k not in ROW_KEYS]
-    if unknown:
-        raise ReproduceError(f"catalogue.{row}: unknown key {unknown[0]!r}; accepted: {', '.join(ROW_KEYS)}")
-    if not entry.get("experiment"):
-        raise ReproduceError(f"catalogue.{row} has no experiment; give experiment: <one of conf/experiment/> "
-                             f"(e.g. paper_gtu), with overrides: [...] for what the row changes")
-    ov = entry.get("overrides")
-    if ov is not None and not (OmegaConf.is_list(ov) and all(isinstance(o, str) for o in ov)):
-        raise ReproduceError(f"catalogue.{row}.overrides must be a list of train overrides (quoted when they hold "
-                             f"'=': [\"head=hybrid\"]), got {OmegaConf.to_container(ov) if OmegaConf.is_config(ov) else ov!r}")
-    paper = entry.get("paper")
-    if paper is not None and not (OmegaConf.is_list(paper) and len(paper) == 4
-                                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in paper)):
-        raise ReproduceError(f"catalogue.{row}.paper must be the paper's 4 Table-4 values (training town: training / "
-                             f"new weathers, new town: training / new weathers) or null")
+                                 f"null, got {got!r}")
 
 
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
@@ -468,6 +415,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     before collecting is."""
     from hydra import initialize_config_module
 
+    from cicfw.reproduce_schema import seed_list
     from cicfw.reproduction.cells import finished_cells
     from cicfw.reproduction.published import continue_published, published_manifest
     from cicfw.train import ensure_data
@@ -501,7 +449,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     if src is not None:
         only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
         finished |= {k for k, d in finished_cells(src).items() if only is None or only in str(d.get("machine") or "")}
-    check_splits(cfg, rows, _seed_list(cfg.seeds), finished)  # a seed whose split cannot train: before any cell
+    check_splits(cfg, rows, seed_list(cfg.seeds), finished)  # a seed whose split cannot train: before any cell
     dataset = dataset_info(data_path)
     pinned = fingerprint(cfg, dataset)
     for where, fix, theirs in folders:

@@ -4,9 +4,10 @@ part's null (0, or the equivalence margin for "not better than"), Holm's over th
 figure."""
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -111,6 +112,43 @@ class Claim:
     family: str = MAIN_FAMILY  # Holm adjusts within a family: a separate question (Tables 2 and 3) is its own
 
 
+def claim_part(a: str, b: str, column: str = "overall", test: str = "greater", relative: bool = False,
+               hard: Optional[str] = None, easy: Optional[str] = None, b_scale: float = 1.0) -> Part:
+    """A part as ``claims:`` in conf/reproduce.yaml writes it (these arguments are its keys: the reproduce
+    config's schema takes them from here), its column(s) and test checked: a ValueError naming what is accepted."""
+    for s in ([hard, easy] if column == "gap" else [column]):
+        if s not in SELECTORS:
+            raise ValueError(f"unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
+                             + (" (a gap needs hard and easy)" if column == "gap" else ", gap"))
+    if test not in TESTS:
+        raise ValueError(f"unknown test {test!r}; accepted: {', '.join(TESTS)}")
+    return Part(a=str(a), b=str(b), on=column, test=test, relative=bool(relative), hard=hard, easy=easy,
+                b_scale=float(b_scale))
+
+
+def claim_entry(id: str, claim: str, parts: Sequence[Mapping[str, Any]], quote: str = "", source: str = "",
+                family: str = MAIN_FAMILY) -> Claim:
+    """A claim as ``claims:`` in conf/reproduce.yaml writes it (these arguments are its keys), each part
+    through ``claim_part``."""
+    out = []
+    for j, p in enumerate(parts):
+        unknown = sorted({str(k) for k in p} - set(PART_KEYS))
+        if unknown or "a" not in p or "b" not in p:
+            raise ValueError(f"part {j}: needs a and b; accepted keys: {', '.join(PART_KEYS)}"
+                             + (f" (unknown: {', '.join(unknown)})" if unknown else ""))
+        try:
+            out.append(claim_part(**p))
+        except ValueError as err:
+            raise ValueError(f"part {j}: {err}") from None
+    return Claim(id=str(id), text=str(claim), parts=tuple(out), quote=str(quote or ""), source=str(source or ""),
+                 family=str(family or MAIN_FAMILY))
+
+
+#: the keys of a claim and of its part: ``claim_entry``'s and ``claim_part``'s arguments
+CLAIM_KEYS = tuple(inspect.signature(claim_entry).parameters)
+PART_KEYS = tuple(inspect.signature(claim_part).parameters)
+
+
 def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
     """Claims from their data (``claims:`` in conf/reproduce.yaml), checked: one clear error per bad entry."""
     out = []
@@ -119,26 +157,13 @@ def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
         for key in ("id", "claim", "parts"):
             if not c.get(key):
                 raise ValueError(f"{where} has no {key!r}; a claim needs id, claim, quote, source and parts")
-        parts = []
-        for j, p in enumerate(c["parts"]):
-            p = dict(p)
-            unknown = {str(k) for k in p} - {"a", "b", "column", "test", "relative", "hard", "easy", "b_scale"}
-            if unknown or "a" not in p or "b" not in p:
-                raise ValueError(f"{where} part {j}: needs a and b; accepted keys: a, b, column, test, relative, hard, "
-                                 f"easy, b_scale" + (f" (unknown: {', '.join(sorted(unknown))})" if unknown else ""))
-            on = p.get("column", "overall")
-            sels = [p.get("hard"), p.get("easy")] if on == "gap" else [on]
-            for s in sels:
-                if s not in SELECTORS:
-                    raise ValueError(f"{where} part {j}: unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
-                                     + (" (a gap needs hard and easy)" if on == "gap" else ", gap"))
-            if p.get("test", "greater") not in TESTS:
-                raise ValueError(f"{where} part {j}: unknown test {p.get('test')!r}; accepted: {', '.join(TESTS)}")
-            parts.append(Part(a=str(p["a"]), b=str(p["b"]), on=on, test=p.get("test", "greater"),
-                              relative=bool(p.get("relative", False)), hard=p.get("hard"), easy=p.get("easy"),
-                              b_scale=float(p.get("b_scale", 1.0))))
-        out.append(Claim(id=str(c["id"]), text=str(c["claim"]), parts=tuple(parts), quote=str(c.get("quote") or ""),
-                         source=str(c.get("source") or ""), family=str(c.get("family") or MAIN_FAMILY)))
+        unknown = sorted({str(key) for key in c} - set(CLAIM_KEYS))
+        if unknown:
+            raise ValueError(f"{where}: unknown key {unknown[0]!r}; accepted: {', '.join(CLAIM_KEYS)}")
+        try:
+            out.append(claim_entry(**c))
+        except ValueError as err:
+            raise ValueError(f"{where} {err}") from None
     return out
 
 
