@@ -33,7 +33,7 @@ from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.override_hints import check_top_level_keys
 from cicfw.run_folder import hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train_schema import DATA, MODEL, checked_node, checked_part, checked_speed, checked_trainer
+from cicfw.train_schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 
 log = logging.getLogger("cicfw.train")
 
@@ -150,7 +150,7 @@ def check_not_your_own_data(path: Path) -> None:
 def make_datamodule(cfg: DictConfig) -> CILDataModule:
     """The datamodule from ``cfg.data``: its arguments are checked (batch size a multiple of 4 for
     balanced batches, ...) but no file is read or collected yet."""
-    kwargs = checked_node(cfg, "data", DATA)
+    kwargs = checked_data(cfg)
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
     check_batches_per_epoch(kwargs.get("batches_per_epoch"))

@@ -107,6 +107,33 @@ def test_the_data_and_trainer_nodes_are_checked_again_when_built(tmp_path):
     assert (err.value.kind, err.value.key) == ("unknown key", "trainer.foo")
 
 
+@pytest.mark.parametrize("overrides, kind, key", [
+    (["+data.collect.sim.typo=1"], "unknown key", "data.collect.sim.typo"),
+    (["+data.collect.sim.command_distance=abc"], "wrong type", "data.collect.sim.command_distance"),
+    (["data.collect.sim=abc"], "wrong type", "data.collect.sim"),
+    (["data.collect.sim.name=carla", "+data.collect.sim.port=abc"], "wrong type", "data.collect.sim.port"),
+    (["data.collect.sim.name=carla", "+data.collect.sim.client=1"], "not settable", "data.collect.sim.client"),
+])
+def test_the_collections_sim_node_is_checked_by_its_backends_schema_before_collecting(overrides, kind, key, tmp_path,
+                                                                                   monkeypatch):
+    """``data.collect.sim`` gets the collect app's per-backend schema (cicfw/sim/schema.py): refused when the
+    datamodule is made, which training does before it collects anything."""
+    import cicfw.train
+
+    def collect(*args, **kwargs):
+        raise AssertionError("the training went on to collect its data")
+
+    monkeypatch.setattr(cicfw.train, "ensure_data", collect)
+    cfg = compose_train(f"data.path={tmp_path / 'sim'}", *overrides)
+    with pytest.raises(SchemaError) as err:
+        make_datamodule(cfg)
+    assert (err.value.kind, err.value.key) == (kind, key), err.value
+    with pytest.raises(SchemaError) as err:
+        cicfw.train.train(cfg, tmp_path / "run")
+    assert err.value.key == key and not (tmp_path / "sim").exists()
+    make_datamodule(compose_train("data.collect.sim.name=carla", "+data.collect.sim.port=2000"))  # a good one
+
+
 @pytest.mark.parametrize("switch", ["compile", "channels_last", "adam", "keep_memory"])
 def test_a_speed_switch_under_trainer_names_its_key_in_the_speed_node(switch):
     refused = refused_while_composing(f"trainer.{switch}=true")

@@ -10,7 +10,8 @@ OmegaConf then refuses an unknown key or a value of the wrong type while composi
 before any run folder exists. ``part`` and ``checked`` apply the same schemas to a composed config again:
 for keys added with ``+`` (which Hydra lets through), an option file whose name is not the registered
 name it selects, or a config composed elsewhere. ``checked_trainer`` and ``checked_speed`` also check the
-values a type cannot say (a union of a flag and a word, such as ``trainer.deterministic``).
+values a type cannot say (a union of a flag and a word, such as ``trainer.deterministic``), and
+``checked_data`` the collection's ``data.collect.sim`` against the backend it names (``cicfw.sim.schema``).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
 from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry, guard_hydra_plugins
+from cicfw.sim.schema import check_sim_node
 
 #: the model's parts: config group -> registry
 PARTS: dict[str, Registry] = {"encoder": ENCODERS, "mixer": MIXERS, "head": HEADS}
@@ -120,6 +122,21 @@ def checked_node(cfg: DictConfig, key: str, schema: type) -> dict[str, Any]:
     """``cfg[key]`` as plain data, checked against ``schema`` (``model``, ``data``, ``trainer``)."""
     return OmegaConf.to_container(checked(schema, OmegaConf.to_container(cfg[key], resolve=True), key),
                                   resolve=True)
+
+
+def checked_data(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg.data`` as ``checked_node`` gives it, and ``data.collect.sim`` against the backend its ``name``
+    builds (the collect app's schemas, ``cicfw.sim.schema``): the node is open in ``CollectConfig``, so a key
+    added with ``+`` or a wrong type there is refused here, before anything is collected."""
+    kwargs = checked_node(cfg, "data", DATA)
+    if kwargs.get("collect") is None:  # data=cil_hdf5: the user's files, nothing collected
+        return kwargs
+    sim = kwargs["collect"]["sim"]
+    if not isinstance(sim, dict):
+        raise SchemaError(f"data.collect.sim must be a simulator backend's node (e.g. {{name: embedded}}), got "
+                          f"{sim!r}", "data.collect.sim", "wrong type")
+    check_sim_node({"name": "embedded", **sim}, "data.collect.sim")
+    return kwargs
 
 
 def _is_one_of(value: Any, accepted: tuple[Any, ...]) -> bool:
