@@ -79,7 +79,7 @@ def test_known_cameras_left_out_on_purpose_raise_no_warning(tmp_path, caplog):
 
 
 # ------------------------------------------------------------------------------------------------
-# item 6: a checksum per collected file, verified on resume and by `cicfw collect --verify`
+# a checksum per collected file, verified on resume and by `cicfw collect --verify`
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
 FIRST = "ep0000_town_a_ClearNoon_000.h5"

@@ -33,7 +33,7 @@ def _one_line(err: pytest.ExceptionInfo) -> str:
     return text
 
 
-# ---- item 4: unknown top-level keys --------------------------------------------------------------
+# ---- unknown top-level keys -----------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("override, message", [
@@ -48,7 +48,7 @@ def test_an_unknown_top_level_key_is_refused_before_any_data(tmp_path, no_data, 
     assert "trainer" in str(err.value) and "seed" in str(err.value)
 
 
-# ---- item 8: the evaluation's config, checked before the first batch -----------------------------
+# ---- the evaluation's config, checked before the first batch --------------------------------------
 
 
 @pytest.mark.parametrize("overrides, message", [

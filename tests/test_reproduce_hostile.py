@@ -52,7 +52,7 @@ def refused(args: list[str], capsys) -> str:
 
 
 # ------------------------------------------------------------------------------------------------
-# item 4: unknown keys; unparsable overrides
+# unknown keys; unparsable overrides
 
 
 @pytest.mark.parametrize("arg, kind, key", [
@@ -201,7 +201,7 @@ def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------------
-# item 10: checked before any cell and before collecting
+# checked before any cell and before collecting
 
 
 def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys):
@@ -233,7 +233,7 @@ def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsy
 
 
 # ------------------------------------------------------------------------------------------------
-# item 2: one run per results folder
+# one run per results folder
 
 
 HOLDER = """
@@ -298,7 +298,7 @@ def test_a_lock_held_on_another_host_is_refused(no_collect, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------------
-# item 7: report files readable by a colleague; item 3: resumed cells marked
+# report files readable by a colleague; resumed cells marked
 
 
 def synthetic(row: str, seed: int, pct: int, resumed: dict | None = None) -> CellResult:
