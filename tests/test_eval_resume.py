@@ -352,8 +352,7 @@ def child():
 if __name__ == "__main__":
     p = mp.get_context("spawn").Process(target=child, daemon=True)
     p.start()
-    time.sleep(1.0)  # the child has started its watch
-    print(p.pid, flush=True)
+    print(p.pid, flush=True)  # killed now: most likely before the child has imported cicfw and started its watch
     time.sleep(120)
 """
 

@@ -404,10 +404,13 @@ def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, 
 
 def _exit_with_parent(poll_s: float = 1.0) -> None:
     """End this worker process as soon as its parent is gone (a killed evaluation leaves no workers
-    driving on; the rerun resumes from the episodes the parent kept)."""
+    driving on; the rerun resumes from the episodes the parent kept). The parent is the process that
+    started this one, so a parent killed while the worker was still importing torch counts too."""
+    import multiprocessing
     import threading
 
-    parent = os.getppid()
+    started_by = multiprocessing.parent_process()
+    parent = started_by.pid if started_by is not None else os.getppid()
 
     def watch() -> None:
         while True:
