@@ -87,6 +87,7 @@ def test_batches_per_epoch_null_or_a_positive_integer_passes(tmp_path, value):
 # ---- a multirun with a failing job ---------------------------------------------------------------
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it(tmp_path):
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     sweep = tmp_path / "sweep"

@@ -33,6 +33,7 @@ def _train_cmd(data: Path, run: Path, *extra: str) -> list[str]:
             "trainer.enable_model_summary=false", f"hydra.run.dir={run}", *extra]
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_a_second_run_into_the_same_folder_is_refused_and_leaves_the_first_whole(tmp_path):
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     run = tmp_path / "run"
@@ -109,6 +110,7 @@ def test_the_apps_callback_refuses_a_held_folder_in_one_line_before_hydra_writes
 # ---- a refused run leaves nothing behind ----------------------------------------------------------
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_a_refused_run_puts_a_folder_that_existed_back_as_it_was(tmp_path):
     """A run refused after Hydra wrote ``.hydra`` and its log (a value a constructor refuses) restores
     them: the folder holds what it held, byte for byte, and nothing else."""
@@ -143,6 +145,7 @@ def test_undo_removes_a_new_folder_and_the_parents_made_for_it_only(tmp_path):
     assert (tmp_path / "outputs" / "kept.txt").exists()
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_there(tmp_path):
     sweep = tmp_path / "sweep"
     (sweep / "0" / ".hydra").mkdir(parents=True)
@@ -159,6 +162,7 @@ def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_
     assert {p: p.read_bytes() for p in kept} == kept
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_a_sweep_whose_job_config_is_refused_leaves_no_sweep_folder(tmp_path):
     """Hydra checks every job's config before the first runs, after the sweep folder and its
     multirun.yaml are written: a refused sweep removes them, so the same folder takes the fixed command."""
@@ -186,6 +190,7 @@ def test_a_ddp_worker_rank_rerunning_its_sweep_is_not_refused(tmp_path, monkeypa
 # ---- the cache folder ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # starts the app in a subprocess
 def test_an_empty_cicfw_cache_means_the_default_cache(tmp_path):
     env = {**ENV, "CICFW_CACHE": "", "HOME": str(tmp_path)}
     res = subprocess.run([sys.executable, "-m", "cicfw.train", "--cfg", "job", "--resolve"],
