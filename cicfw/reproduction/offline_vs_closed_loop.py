@@ -25,6 +25,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
+from cicfw.reproduction.report import pinned_weather_family
 
 Z95 = 1.959963984540054  # the standard normal's 97.5% point
 TARGETS = ("overall", *COLUMNS)
@@ -135,22 +136,13 @@ def _fingerprint(cell: Any) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
-def weather_family(manifest: dict[str, Any]) -> str:
-    """The weather family a results folder's suite was driven under; folders pinned before there were
-    families name none and were driven under the ``harsh`` presets."""
-    from cicfw.benchmark.suite import named_weather_family
-    from cicfw.sim.render.weather import LEGACY_FAMILY
-
-    return named_weather_family(manifest.get("pinned", {}).get("suite", [])) or LEGACY_FAMILY
-
-
 def collect_points(results: Path, skip: Sequence[str] = ()) -> list[Point]:
     """Every distinct finished cell with a validation error under ``results``/<folder>/cells."""
     points: dict[str, Point] = {}
     for folder in sorted(p for p in Path(results).iterdir() if p.is_dir() and p.name not in skip):
         path = folder / "reproduce.json"
         manifest = json.loads(path.read_text()) if path.is_file() else {}
-        budget, family = manifest.get("budget", "?"), weather_family(manifest)
+        budget, family = manifest.get("budget", "?"), pinned_weather_family(manifest) or "another simulator"
         for cell in load_cells(folder)[0]:
             if cell.meta.get("val_steer_mae") is None:
                 continue

@@ -113,16 +113,22 @@ RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last
 RESUMED_MARK = "‡"
 
 
-def weathers_said(manifest: Mapping[str, Any]) -> str:
-    """``; weathers: the `carla` family`` for a folder pinned to a weather family of the embedded simulator (a
-    folder pinned before the families were driven under the harsh one); nothing for another simulator."""
+def pinned_weather_family(manifest: Mapping[str, Any]) -> str | None:
+    """The weather family a results folder's suite was driven under: the one its pinned suite names, the
+    harsh one for a folder pinned before the families were, None for another simulator."""
     from cicfw.benchmark.suite import named_weather_family, with_weather_family
     from cicfw.sim.render.weather import LEGACY_FAMILY
 
-    suite = (manifest.get("pinned") or {}).get("suite")
-    if suite is None:
+    suite = (manifest.get("pinned") or {}).get("suite") or []
+    return named_weather_family(with_weather_family(suite, default=LEGACY_FAMILY))
+
+
+def weathers_said(manifest: Mapping[str, Any]) -> str:
+    """``; weathers: the `carla` family`` for a folder pinned to a weather family of the embedded simulator;
+    nothing for a folder without a pinned suite or driven by another simulator."""
+    if (manifest.get("pinned") or {}).get("suite") is None:
         return ""
-    family = named_weather_family(with_weather_family(suite, default=LEGACY_FAMILY))
+    family = pinned_weather_family(manifest)
     return f"; weathers: the `{family}` family" if family else ""
 
 
