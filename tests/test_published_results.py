@@ -272,10 +272,10 @@ def test_the_docs_state_the_family_size_the_claims_have():
 
 
 def test_every_interval_the_prose_quotes_is_in_the_generated_report():
-    """docs/RESULTS.md's hand-written prose quotes intervals (``+7.5 [+3.9, +11.2]``); each must be one a
-    generated report prints (the head and the tail quote both budgets, the head also the one-CPU-kind
-    folder, converged4.md only the 4-epoch one),
-    so the prose cannot drift from the tables."""
+    """docs/RESULTS.md's hand-written prose, the README's results and the studies' index quote intervals
+    (``+7.5 [+3.9, +11.2]``); each must be one a generated report prints (the head and the tail quote both
+    budgets, the head, the README and the index also the one-CPU-kind folder and the carla weathers',
+    converged4.md only the 4-epoch one), so the prose cannot drift from the tables."""
     def text(*rels: str) -> str:
         return "".join((DOCS / "results" / r).read_text() for r in rels).replace("−", "-")
 
@@ -286,10 +286,17 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     sources = {"head.md": both + carla, "converged4.md": text("converged/RESULTS.md"),
                "tail.md": both}
     assert set(sources) == {p[1] for p in COMPOSITION if p[0] == "prose"}
+    prose = {name: text(f"prose/{name}") for name in sources}
+    # the README's results section quotes the head's reports; the index of studies, each study's own pages
+    prose |= {"README.md": (DOCS.parent / "README.md").read_text().replace("−", "-"), "results/README.md":
+              text("README.md")}
+    studies = "".join(f.read_text() for f in sorted((DOCS / "results").glob("*/*.md"))).replace("−", "-")
+    sources |= {"README.md": both + carla, "results/README.md": studies}
     missing, counts = [], {}
     for name, report in sources.items():
-        quoted = re.findall(r"([+-]?\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])", text(f"prose/{name}"))
+        quoted = re.findall(r"([+-]?\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])", prose[name])
         counts[name] = len(quoted)
         missing += [f"{name}: {m} {iv}" for m, iv in quoted if f"{m} {iv}" not in report]
-    assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10, f"the prose quotes the tables' intervals: {counts}"
+    assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10, \
+        f"the prose quotes the tables' intervals: {counts}"
     assert missing == []
