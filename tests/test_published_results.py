@@ -300,3 +300,25 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10, \
         f"the prose quotes the tables' intervals: {counts}"
     assert missing == []
+
+
+def test_the_carla_folder_quotes_paired_switch_as_it_computes():
+    """converged6_carla/README.md's carla − harsh table is pasted from ``paired_switch``: each row's three
+    intervals and per-seed values must be what it computes from the two folders' committed cells."""
+    from cicfw.reproduction.paired_switch import compare, load_row
+
+    readme = (DOCS / "results" / "converged6_carla" / "README.md").read_text().replace("−", "-")
+    rows = dict(re.findall(r"^\| (CIL|GTU|CCE\+MSE) \| (.+) \|$", readme, re.M))
+    assert set(rows) == {"CIL", "GTU", "CCE+MSE"}, rows
+    for label, row in {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid"}.items():
+        a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in ("converged6_carla", "converged6_xeon"))
+        got = {e.on: e for e in compare(a, b, 5.0)}
+
+        def cell(on: str, seeds: bool) -> str:
+            e = got[on]
+            text = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]"
+            return text + (f" ({', '.join(f'{x:.1f}' for x in e.b)} → {', '.join(f'{x:.1f}' for x in e.a)})" if seeds else "")
+
+        want = " | ".join([cell("training_town/new_weathers", True), cell("new_town/new_weathers", True),
+                           cell("overall", False)])
+        assert rows[label] == want, (label, rows[label], want)
