@@ -308,9 +308,10 @@ def test_the_carla_folder_quotes_paired_switch_as_it_computes():
     from cicfw.reproduction.paired_switch import compare, load_row
 
     readme = (DOCS / "results" / "converged6_carla" / "README.md").read_text().replace("−", "-")
-    rows = dict(re.findall(r"^\| (CIL|GTU|CCE\+MSE) \| (.+) \|$", readme, re.M))
-    assert set(rows) == {"CIL", "GTU", "CCE+MSE"}, rows
-    for label, row in {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid"}.items():
+    labels = {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid", "Classification": "classification"}
+    rows = dict(re.findall(rf"^\| ({'|'.join(map(re.escape, labels))}) \| (.+) \|$", readme, re.M))
+    assert set(rows) == set(labels), rows
+    for label, row in labels.items():
         a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in ("converged6_carla", "converged6_xeon"))
         got = {e.on: e for e in compare(a, b, 5.0)}
 
