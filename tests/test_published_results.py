@@ -308,7 +308,8 @@ def test_the_carla_folder_quotes_paired_switch_as_it_computes():
     from cicfw.reproduction.paired_switch import compare, load_row
 
     readme = (DOCS / "results" / "converged6_carla" / "README.md").read_text().replace("−", "-")
-    labels = {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid", "Classification": "classification"}
+    labels = {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid", "Classification": "classification",
+              "Co-existence": "coexistence"}
     rows = dict(re.findall(rf"^\| ({'|'.join(map(re.escape, labels))}) \| (.+) \|$", readme, re.M))
     assert set(rows) == set(labels), rows
     for label, row in labels.items():
