@@ -126,6 +126,28 @@ def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
     assert not list(out.rglob("*.tmp"))
 
 
+def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path, monkeypatch):
+    """A run of many cells publishes its table after each one, not only at its end: when the second cell
+    starts, the first is in publish_dir, in its cells and its report. (Cells stand in for training and
+    driving: the published cell's results, returned again.)"""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    out, published = tmp_path / "results", tmp_path / "published"
+    seen = {}
+
+    def train_and_drive(cfg, row, seed, cell_dir):
+        md = published / "RESULTS.md"
+        seen[seed] = (sorted(p.parent.name for p in published.glob("cells/cil/seed*/cell.json")),
+                      md.read_text() if md.is_file() else None)
+        return result
+
+    monkeypatch.setattr(reproduce, "_train_and_drive", train_and_drive)
+    assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={out}", f"publish_dir={published}"]) == 0
+    assert seen[0] == ([], None)
+    assert seen[1][0] == ["seed0"] and "| Regression (CIL) | – | 1 † |" in seen[1][1]
+    assert "| Regression (CIL) | – | 2 † |" in (published / "RESULTS.md").read_text()  # and after the last
+
+
 def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, tmp_path):
     """A cell whose training resumed from an epoch checkpoint (here: the first epoch's, as a killed run
     leaves it) says so in cell.json and in the report's table, with the difference resuming can make."""

@@ -761,7 +761,23 @@ def _cell_job(cfg: DictConfig) -> str:
 
     if cfg.cell.row is None:
         raise ReproduceError("cell.row is set by `python -m cicfw.reproduce` itself; give rows=[...] instead")
-    return run_cell(cfg, Path(HydraConfig.get().runtime.output_dir))
+    hydra_cfg = HydraConfig.get()
+    status = run_cell(cfg, Path(hydra_cfg.runtime.output_dir))
+    # cells one after another in this process: the report as it stands after each one. Cells in parallel
+    # (joblib, SLURM) would write it side by side; their run's report comes at its end.
+    if status != "skipped" and str(hydra_cfg.launcher.get("_target_", "")).endswith("BasicLauncher"):
+        report_so_far(cfg)
+    return status
+
+
+def report_so_far(cfg: DictConfig) -> None:
+    """The report (and ``publish_dir``) as the finished cells stand: a run of many hours stopped at any
+    point has its table up to date. A report that cannot be written is logged and the cells go on (the
+    report at the end of the run says so in its exit status)."""
+    try:
+        write_report(cfg)
+    except (ValueError, OSError) as err:
+        log.error("the report after this cell was not written: %s", _error_line(err))
 
 
 def write_report(cfg: DictConfig) -> dict[str, Any] | None:
