@@ -325,3 +325,8 @@ def table_cell(e, seeds: bool = False) -> str:
     """One cell of the carla − harsh table: ``+26.0 [+10.7, +41.4]``, then (harsh per seed → carla per seed)."""
     text = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]"
     return text + (f" ({', '.join(f'{x:.1f}' for x in e.b)} → {', '.join(f'{x:.1f}' for x in e.a)})" if seeds else "")
+
+
+if __name__ == "__main__":  # after editing the prose: python tests/test_published_results.py recomposes docs/RESULTS.md
+    (DOCS / "RESULTS.md").write_text(composed_results_md(DOCS))
+    print(f"wrote {DOCS / 'RESULTS.md'} from {', '.join(p for _, p in COMPOSITION)}")
