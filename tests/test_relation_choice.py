@@ -56,3 +56,54 @@ def test_a_results_folder_and_the_command_line(tmp_path, capsys):
     assert "re_pairs" in capsys.readouterr().out.split("<- chosen")[0].splitlines()[-1]
     assert main([str(tmp_path)]) == 1  # re_none has no finished cell
     assert main([str(tmp_path / "missing")]) == 2
+
+
+# ---- the report's account of the choice
+
+
+def _result(row: str, seed: int, mae: float | None):
+    from cicfw.reproduction.cells import COLUMNS, CellResult
+
+    eps = {f"{c}/{k}": {"success": k < 3, "column": c, "command": "left"} for c in COLUMNS for k in range(4)}
+    return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}, "val_steer_mae": mae})
+
+
+CANDIDATES = ["re_all", "re_pairs", "re_none"]
+LABELS = {"re_all": "R: every pair", "re_pairs": "R: pairs", "re_none": "R: none", "cil": "CIL"}
+
+
+def test_the_report_shows_each_candidates_error_and_the_choice():
+    """Seed 0 all three, seed 1 only re_all and re_none: the means are over seed 0 alone (by hand: 0.048,
+    0.046, 0.050), so re_pairs is chosen although re_none's seed 1 is the lowest error of all."""
+    from cicfw.reproduction.report import markdown, report_data
+
+    cells = [_result("cil", 0, 0.040), _result("re_all", 0, 0.048), _result("re_pairs", 0, 0.046),
+             _result("re_none", 0, 0.050), _result("re_all", 1, 0.047), _result("re_none", 1, 0.030)]
+    catalogue = {r: {"label": LABELS[r]} for r in LABELS}
+    data = report_data(cells, [], catalogue, {}, n_boot=20, claims=[], margin=5.0, relation_candidates=CANDIDATES)
+    rel = data["relation"]
+    assert rel["seeds"] == [0] and rel["chosen"] == "re_pairs"
+    assert [c["mean"] for c in rel["candidates"]] == pytest.approx([0.048, 0.046, 0.050])
+    assert rel["candidates"][2]["val_steer_mae"] == {"0": 0.050, "1": 0.030}
+    md = markdown(json.loads(json.dumps(data)))
+    section = md.split("## Fine tuning's R, chosen by validation error")[1].split("\n## ")[0]
+    assert "| Candidate | Seed 0 | Seed 1 | Mean over shared seeds |" in section
+    assert "| **R: pairs** | 0.04600 | – | 0.04600 (chosen) |" in section
+    assert "| R: none | 0.05000 | 0.03000 | 0.05000 |" in section
+    # without a candidate's cell there is no section; with a candidate short of a shared seed, no choice
+    plain = report_data(cells[:1], [], catalogue, {}, n_boot=20, claims=[], margin=5.0, relation_candidates=CANDIDATES)
+    assert plain["relation"] is None and "Fine tuning's R" not in markdown(plain)
+    part = report_data(cells[:3], [], catalogue, {}, n_boot=20, claims=[], margin=5.0,
+                       relation_candidates=CANDIDATES)["relation"]
+    assert part["chosen"] is None and part["seeds"] == []
+
+
+def test_the_shipped_candidates_are_catalogue_rows_and_the_commands_default():
+    from cicfw.reproduction.relation_choice import shipped_candidates
+
+    assert shipped_candidates() == CANDIDATES
+    import yaml
+    from importlib.resources import files
+
+    catalogue = yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["catalogue"]
+    assert set(shipped_candidates()) <= set(catalogue)

@@ -62,6 +62,8 @@ AUDIT = [
     (["rows=cil"], "wrong type", "rows"),
     (["continue_from=[1]"], "wrong type", "continue_from"),
     (["equivalence_margin=abc"], "wrong type", "equivalence_margin"),
+    (["relation_candidates=abc"], "wrong type", "relation_candidates"),
+    (["relation_candidates=[re_all,re_pears]"], "wrong type", "relation_candidates"),
     (["budget.name=[1]"], "wrong type", "budget.name"),
     (["budget.curve_epochs=[abc]"], "wrong type", "budget.curve_epochs[0]"),
     (["+budget.foo=1"], "unknown key", "budget.foo"),
@@ -92,6 +94,7 @@ def test_seeds_and_weather_family_say_what_they_accept():
     assert "a list of distinct seeds" in str(refused("seeds=abc"))
     assert "carla" in str(refused("weather_family=3")) and "harsh" in str(refused("weather_family=3"))
     assert "'publish_dir'" in str(refused("publish_dirr=x"))  # did you mean
+    assert "'re_pears', not a catalogue row" in str(refused("relation_candidates=[re_all,re_pears]"))
 
 
 @pytest.mark.parametrize("budget", BUDGETS)

@@ -65,6 +65,7 @@ class ReproduceConfig:
     progress_bar: bool = MISSING
     weather_family: Optional[str] = MISSING  # checked against WEATHER_FAMILIES by ``check``
     equivalence_margin: float = MISSING
+    relation_candidates: List[str] = MISSING  # catalogue rows, checked by ``check``
     catalogue: Dict[str, Any] = MISSING  # row name -> ROW, checked by ``check``
     claims: List[Any] = MISSING  # CLAIM, its parts PART, checked by ``check``
     budget: BudgetConfig = field(default_factory=BudgetConfig)
@@ -105,6 +106,10 @@ def check(cfg: DictConfig) -> None:
     for i, claim in enumerate(values["claims"]):
         for j, part in enumerate(_checked_item(CLAIM, claim, f"claims[{i}]")["parts"]):
             _checked_item(PART, part, f"claims[{i}].parts[{j}]")
+    unknown = [r for r in values["relation_candidates"] if r not in values["catalogue"]]
+    if unknown:
+        raise SchemaError(f"relation_candidates names {', '.join(map(repr, unknown))}, not a catalogue row; give rows of "
+                          f"catalogue: ({', '.join(values['catalogue'])})", "relation_candidates", "wrong type")
     seed_list(values.get("seeds"))
     family = values.get("weather_family")
     if family is not None and family not in WEATHER_FAMILIES:

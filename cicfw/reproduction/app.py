@@ -788,7 +788,7 @@ def write_report(cfg: DictConfig) -> dict[str, Any] | None:
     results_dir = Path(cfg.results_dir)
     catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
     data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
-                 margin=cfg.get("equivalence_margin"))
+                 margin=cfg.get("equivalence_margin"), relation_candidates=list(cfg.relation_candidates))
     if cfg.get("publish_dir"):
         publish(results_dir, Path(cfg.publish_dir))
     return data

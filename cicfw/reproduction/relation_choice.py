@@ -3,7 +3,8 @@
 The paper sets R "manually before training" and does not publish it. A reproduction needs a rule that
 does not peek at the driving suite: train each candidate R (conf/reproduce.yaml ``relation_candidates``)
 with the same seeds, and keep the one whose mean validation steering error (``val_steer_mae`` of its
-cells: the held-out part of the training town's data) is lowest; a tie keeps the earlier candidate.
+cells: the held-out part of the training town's data) is lowest; a tie keeps the earlier candidate. The
+report shows the choice (``relation_data``); so does
 
     python -m cicfw.reproduction.relation_choice outputs/reproduce/converged6_carla
 """
@@ -52,6 +53,29 @@ def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequen
     return RelationChoice(seeds, errors, chosen)
 
 
+def shipped_candidates() -> list[str]:
+    """The candidate rows shipped in conf/reproduce.yaml (``relation_candidates``), read as plain YAML."""
+    from importlib.resources import files
+
+    import yaml
+
+    return list(yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["relation_candidates"])
+
+
+def relation_data(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str],
+                  labels: Mapping[str, str]) -> dict[str, Any] | None:
+    """The report's account of the choice: each candidate's validation error per seed, the seeds they share,
+    their means over those and the row chosen (None until every candidate has a cell at a shared seed);
+    None when no candidate has a cell."""
+    if not candidates or not any(errors_by_seed.get(r) for r in candidates):
+        return None
+    c = choose(errors_by_seed, candidates)
+    return {"seeds": list(c.seeds), "chosen": c.chosen,
+            "candidates": [{"row": r, "label": labels.get(r, r),
+                            "val_steer_mae": {str(s): v for s, v in sorted((errors_by_seed.get(r) or {}).items())},
+                            "mean": c.errors.get(r)} for r in candidates]}
+
+
 def choose_in(folder: Path, candidates: Sequence[str]) -> RelationChoice:
     """``choose`` over the finished cells of a results (or published) folder."""
     return choose(val_errors(finished_cells(folder), candidates), candidates)
@@ -61,8 +85,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cicfw.reproduction.relation_choice",
                                 description="The R of the fine-tuning row, chosen by validation error.")
     p.add_argument("folder", type=Path, help="a reproduction's results folder (or a published one)")
-    p.add_argument("--candidates", nargs="+", default=["re_all", "re_pairs", "re_none"],
-                   help="the candidate rows, in order of preference on a tie (default: %(default)s)")
+    p.add_argument("--candidates", nargs="+", default=shipped_candidates(),
+                   help="the candidate rows, in order of preference on a tie (default: conf/reproduce.yaml's "
+                        "relation_candidates, %(default)s)")
     args = p.parse_args(argv)
     if not args.folder.is_dir():
         print(f"relation_choice: {str(args.folder)!r} is not a folder; give a reproduction's results folder",

@@ -104,6 +104,7 @@ from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
 from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge
 from cicfw.reproduction.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
+from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
 
@@ -184,12 +185,13 @@ def machine_counts(cells: Sequence[CellResult]) -> dict[str, int]:
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
                 catalogue: Mapping[str, Mapping[str, Any]], manifest: Mapping[str, Any],
                 n_boot: int = 4000, claims: Sequence[Claim] | None = None,
-                margin: float | None = None) -> dict[str, Any]:
-    """Everything RESULTS.md shows, as JSON-ready data (``claims`` and the equivalence ``margin``: the
-    paper's and conf/reproduce.yaml's when not given)."""
+                margin: float | None = None, relation_candidates: Sequence[str] | None = None) -> dict[str, Any]:
+    """Everything RESULTS.md shows, as JSON-ready data (``claims``, the equivalence ``margin`` and fine tuning's
+    ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given)."""
     an = analyse(cells, n_boot=n_boot)
     claims = default_claims() if claims is None else list(claims)
     margin = default_margin() if margin is None else check_margin(margin)
+    candidates = shipped_candidates() if relation_candidates is None else list(relation_candidates)
     kinds = cpu_counts(cells)
     labels = {r: str((catalogue.get(r) or {}).get("label", r)) for r in {*catalogue, *an.rows}}
     paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
@@ -228,6 +230,8 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
             "ranking": ranked, "leader": leader(an, ranked), "forest": forest(an, ranked, paper),
             "rows": rows, "claims": judge(an, claims, paper, labels, margin),
+            "relation": relation_data(val_errors({f"{c.row}/seed{c.seed}": c.meta for c in cells}, candidates),
+                                      candidates, labels),
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
@@ -483,6 +487,7 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     if quoted:
         lines += ["", "### The claims in the paper's words", ""]
         lines += [f"- **{c['claim']}** — “{c['quote']}” ({c['source']})" for c in quoted]
+    lines += relation_lines(data.get("relation"))
     lines += ["", "## Summary (generated from the numbers above)", "", *summary_lines(data)]
     lines += ["", "## Per seed (success %, overall = mean of the four columns)", "",
               "| Row | Seed | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
@@ -527,6 +532,31 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
+
+
+def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
+    """Fine tuning's R: each candidate's validation steering error per seed and over the seeds all share, and
+    the row chosen (the lowest mean; the paper sets R by hand and does not publish it)."""
+    if not rel:
+        return []
+    seeds = [str(s) for s in rel["seeds"]]
+    every = sorted({s for c in rel["candidates"] for s in c["val_steer_mae"]}, key=int)
+    lines = ["", "## Fine tuning's R, chosen by validation error", "",
+             "The paper sets Table 1's relationship matrix R by hand and does not publish it. Each candidate R "
+             "trains as a row of its own; the one with the lowest mean validation steering error (the held-out "
+             "part of the training town's data, never the suite) over the seeds every candidate has "
+             f"({', '.join(seeds) or 'none yet'}) is the fine-tuning row, a tie keeping the earlier.", "",
+             "| Candidate | " + " | ".join(f"Seed {s}" for s in every) + " | Mean over shared seeds |",
+             "|---|" + "---:|" * (len(every) + 1)]
+    for c in rel["candidates"]:
+        chosen = c["row"] == rel["chosen"]
+        mean = "–" if c["mean"] is None else f"{c['mean']:.5f}" + (" (chosen)" if chosen else "")
+        lines.append(f"| {'**' + c['label'] + '**' if chosen else c['label']} | "
+                     + " | ".join(f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else "–" for s in every)
+                     + f" | {mean} |")
+    if rel["chosen"] is None:
+        lines += ["", "Not chosen yet: some candidate has no finished cell at a seed the others have."]
+    return lines
 
 
 def _spread(t: Mapping[str, Any] | None) -> str:
@@ -722,17 +752,19 @@ def _with_pictures(data: Mapping[str, Any], pics: Path | str, curve: bool) -> st
 
 
 def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], n_boot: int = 4000,
-                 claims: Sequence[Claim] | None = None, margin: float | None = None) -> dict[str, Any]:
+                 claims: Sequence[Claim] | None = None, margin: float | None = None,
+                 relation_candidates: Sequence[str] | None = None) -> dict[str, Any]:
     """results.json, results.csv, RESULTS.md and the pictures (success per column, the forest plot, the
-    learning curve) in ``results_dir``; returns the data. ``claims`` and the equivalence ``margin``: the
-    paper's and conf/reproduce.yaml's when not given."""
+    learning curve) in ``results_dir``; returns the data. ``claims``, the equivalence ``margin`` and
+    ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
     manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
     cells, failed = load_cells(results_dir)
     if not cells:
         raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
-    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin)
+    data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin,
+                       relation_candidates=relation_candidates)
     atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
     atomic_write(results_dir / "results.csv", results_csv(data))
     plot_results(data, results_dir / "results.png", order=list(catalogue))
@@ -772,7 +804,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
             claims = load_claims(OmegaConf.to_container(cfg.claims, resolve=True))
             margin = cfg.get("equivalence_margin")
-        data = write_report(Path(a.results_dir), catalogue, claims=claims, margin=margin)
+            candidates = list(cfg.relation_candidates)
+        data = write_report(Path(a.results_dir), catalogue, claims=claims, margin=margin,
+                            relation_candidates=candidates)
         if a.publish:
             publish(Path(a.results_dir), Path(a.publish))
         if a.markdown:
