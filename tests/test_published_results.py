@@ -322,6 +322,27 @@ def test_the_carla_folder_quotes_paired_switch_as_it_computes():
         assert rows[label] == want, (label, rows[label], want)
 
 
+def test_the_carla_folder_counts_its_matching_training_weather_episodes_right():
+    """The carla cells and their harsh-weather twins (the same weights) drove the same training-weather
+    episodes: the README's count of those that ended alike is recomputed from both folders' cells."""
+    carla, harsh = (DOCS / "results" / f for f in ("converged6_carla", "converged6_xeon"))
+    same = total = n_cells = 0
+    for p in sorted(carla.glob("cells/*/seed*/cell.json")):
+        twin = harsh / p.relative_to(carla)
+        if not twin.is_file():
+            continue
+        a, b = (json.loads(f.read_text())["episodes"] for f in (p, twin))
+        keys = [k for k in a if a[k]["column"].endswith("/training_weathers")]
+        n_cells, total = n_cells + 1, total + len(keys)
+        same += sum(a[k]["success"] == b[k]["success"] for k in keys)
+    assert n_cells >= 20 and same < total  # one episode is known to differ
+    said = {p.name: " ".join(p.read_text().split())
+            for p in (carla / "README.md", DOCS / "results" / "prose" / "head.md", DOCS / "evaluation.md")}
+    assert f"agree in {same:,} of their {total:,} episodes ({n_cells} cells)" in said["README.md"]
+    assert f"agree in {same:,} of {total:,} episodes" in said["head.md"]
+    assert f"agree in {same:,} of {total:,} training-weather episodes" in said["evaluation.md"]
+
+
 def table_cell(e, seeds: bool = False) -> str:
     """One cell of the carla − harsh table: ``+26.0 [+10.7, +41.4]``, then (harsh per seed → carla per seed)."""
     text = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]"
