@@ -170,15 +170,17 @@ def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
 def default_claims() -> list[Claim]:
     """The paper's claims as shipped in ``conf/reproduce.yaml`` (``claims:``), read as plain YAML (no Hydra
     state is touched, so this works inside a running app too)."""
-    return load_claims(_shipped_config()["claims"])
+    return load_claims(shipped_config()["claims"])
 
 
 def default_margin() -> float:
     """The equivalence margin shipped in ``conf/reproduce.yaml`` (``equivalence_margin``, points), checked."""
-    return check_margin(_shipped_config().get("equivalence_margin"))
+    return check_margin(shipped_config().get("equivalence_margin"))
 
 
-def _shipped_config() -> dict[str, Any]:
+def shipped_config() -> dict[str, Any]:
+    """conf/reproduce.yaml as shipped, read as plain YAML (its claims, margin and fine tuning's candidates
+    hold no interpolation, so these are the composed values) without touching Hydra's state."""
     from importlib.resources import files
 
     import yaml

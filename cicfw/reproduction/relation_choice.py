@@ -54,12 +54,10 @@ def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequen
 
 
 def shipped_candidates() -> list[str]:
-    """The candidate rows shipped in conf/reproduce.yaml (``relation_candidates``), read as plain YAML."""
-    from importlib.resources import files
+    """The candidate rows shipped in conf/reproduce.yaml (``relation_candidates``)."""
+    from cicfw.reproduction.claims import shipped_config
 
-    import yaml
-
-    return list(yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())["relation_candidates"])
+    return list(shipped_config()["relation_candidates"])
 
 
 def relation_data(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str],
