@@ -312,7 +312,7 @@ def test_the_carla_folder_quotes_paired_switch_as_it_computes():
     readme = (DOCS / "results" / "converged6_carla" / "README.md").read_text().replace("−", "-")
     labels = {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid", "Classification": "classification",
               "Co-existence": "coexistence", "Sine encoding": "sine",
-              "MoE": "moe", "Soft sharing": "soft_sharing"}
+              "MoE": "moe", "Soft sharing": "soft_sharing", "Sluice": "sluice"}
     rows = dict(re.findall(rf"^\| ({'|'.join(map(re.escape, labels))}) \| (.+) \|$", readme, re.M))
     assert set(rows) == set(labels), rows
     for label, row in labels.items():
