@@ -276,18 +276,28 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     """docs/RESULTS.md's hand-written prose, the README's results and the studies' index quote intervals
     (``+7.5 [+3.9, +11.2]``); each must be one a generated report prints (the head and the tail quote both
     budgets, the head and the README also the one-CPU-kind folder and the carla weathers', converged4.md only
-    the 4-epoch one) or, for the index, one its study's pages give, so the prose cannot drift from the tables."""
+    the 4-epoch one) or, for the index, one its study's pages give, so the prose cannot drift from the tables.
+    The carla folder's answer is checked too, against the reports and its forest plot's row − CIL labels.
+    An interval broken over two lines is still one quote."""
     def text(*rels: str) -> str:
         return "".join((DOCS / "results" / r).read_text() for r in rels).replace("−", "-")
 
     both = text("converged6/RESULTS.md", "converged/RESULTS.md")
-    # the head also quotes the one-CPU-kind folder (converged6's Xeon cells), the carla weathers' folder and
-    # its comparison with the harsh weathers (its README's table, made by paired_switch)
-    carla = text("converged6_xeon/RESULTS.md", "converged6_carla/RESULTS.md", "converged6_carla/README.md")
+    # the head also quotes the one-CPU-kind folder (converged6's Xeon cells), the carla weathers' folder, its
+    # comparison with the harsh weathers (its README's table, made by paired_switch and checked below) and its
+    # forest plot's differences to CIL (results.json, as the picture labels them)
+    carla_readme = text("converged6_carla/README.md").splitlines()
+    forest = json.loads((DOCS / "results" / "converged6_carla" / "results.json").read_text())["forest"]
+    carla = text("converged6_xeon/RESULTS.md", "converged6_carla/RESULTS.md") + "\n".join(
+        [line for line in carla_readme if line.startswith("|")]
+        + [f"{m['mean']:+.1f} [{m['lo']:+.1f}, {m['hi']:+.1f}]" for m in (f["measured"] for f in forest)
+           if m["lo"] is not None])
     sources = {"head.md": both + carla, "converged4.md": text("converged/RESULTS.md"),
                "tail.md": both}
     assert set(sources) == {p[1] for p in COMPOSITION if p[0] == "prose"}
     prose = {name: text(f"prose/{name}") for name in sources}
+    prose["converged6_carla/README.md"] = "\n".join(line for line in carla_readme if not line.startswith("|"))
+    sources["converged6_carla/README.md"] = carla + both
     # the README's results section quotes the head's reports; the index of studies, each study's own pages
     prose |= {"README.md": (DOCS.parent / "README.md").read_text().replace("−", "-"), "results/README.md":
               text("README.md")}
@@ -296,10 +306,12 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     sources |= {"README.md": both + carla, "results/README.md": studies}
     missing, counts = [], {}
     for name, report in sources.items():
-        quoted = re.findall(r"([+-]?\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])", prose[name])
+        quoted = re.findall(r"([+-]?\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])",
+                            " ".join(prose[name].split()))
         counts[name] = len(quoted)
         missing += [f"{name}: {m} {iv}" for m, iv in quoted if f"{m} {iv}" not in report]
-    assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10, \
+    assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10 \
+        and counts["converged6_carla/README.md"] >= 10, \
         f"the prose quotes the tables' intervals: {counts}"
     assert missing == []
 
