@@ -313,7 +313,7 @@ def test_every_interval_the_prose_quotes_is_in_the_generated_report():
     assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10 \
         and counts["converged6_carla/README.md"] >= 10, \
         f"the prose quotes the tables' intervals: {counts}"
-    assert missing == []
+    assert missing == [], missing
 
 
 def test_the_carla_folder_quotes_paired_switch_as_it_computes():
