@@ -24,6 +24,6 @@ def _started_as_app() -> bool:
 
 
 if _started_as_app():  # SIGTERM (and Ctrl-C) during the app's imports: one line, not silence or a traceback
-    from cicfw.errors import install_app_handlers
+    from cicfw.core.errors import install_app_handlers
 
     install_app_handlers()

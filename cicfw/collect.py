@@ -22,7 +22,7 @@ from cicfw.collection import (  # noqa: F401  (the engine's API, re-exported for
 
 def run(cfg) -> str:
     """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
-    from cicfw.errors import on_interrupt, report_user_errors
+    from cicfw.core.errors import on_interrupt, report_user_errors
 
     @report_user_errors
     def go() -> str:
@@ -70,6 +70,6 @@ def _main() -> None:
 
 
 if __name__ == "__main__":
-    from cicfw.override_hints import run_app
+    from cicfw.core.override_hints import run_app
 
     run_app(_main, "collect")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

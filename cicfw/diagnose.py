@@ -21,8 +21,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import is_number
-from cicfw.errors import report_user_errors
+from cicfw.core.config_checks import is_number
+from cicfw.core.errors import report_user_errors
 
 log = logging.getLogger("cicfw.diagnose")
 
@@ -199,6 +199,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    from cicfw.override_hints import run_app
+    from cicfw.core.override_hints import run_app
 
     run_app(main, "diagnose")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

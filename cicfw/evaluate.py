@@ -25,8 +25,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw import evaluate_schema
 from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
-from cicfw.config_checks import SchemaError, checked
-from cicfw.errors import Interrupted, report_interrupts, report_user_errors
+from cicfw.core.config_checks import SchemaError, checked
+from cicfw.core.errors import Interrupted, report_interrupts, report_user_errors
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -183,7 +183,7 @@ class OutputWriteError(ValueError):
 def writing_outputs(out_dir: Path) -> Iterator[None]:
     """An ``OSError`` while the report, trajectories and pictures are written becomes one
     ``OutputWriteError`` line: which file, why, and that the episodes are kept (each file is written
-    whole or not at all, ``cicfw.files``); the same command writes them again without driving."""
+    whole or not at all, ``cicfw.core.files``); the same command writes them again without driving."""
     try:
         yield
     except OSError as err:
@@ -205,7 +205,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     from cicfw.benchmark.runner import RunnerConfig, server_specs
     from cicfw.benchmark.suite import build_suite, make_backend
     from cicfw.benchmark.video import select_episodes
-    from cicfw.config_checks import check_kwargs
+    from cicfw.core.config_checks import check_kwargs
 
     checked(evaluate_schema.RUNNER, runner, "runner")
     runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
@@ -410,8 +410,8 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import ConfigCompositionException
 
-    from cicfw.config_checks import config_error
-    from cicfw.override_hints import composition_error_line
+    from cicfw.core.config_checks import config_error
+    from cicfw.core.override_hints import composition_error_line
 
     try:
         if GlobalHydra.instance().is_initialized():
@@ -486,7 +486,7 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     if trainer.logger is not None and metrics:
         trainer.logger.log_metrics(metrics, step=trainer.global_step)
         trainer.logger.save()
-    from cicfw.sweeps import write_job_metrics
+    from cicfw.core.sweeps import write_job_metrics
 
     write_job_metrics(run_dir, metrics)
     return summary
@@ -513,6 +513,6 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    from cicfw.override_hints import run_app
+    from cicfw.core.override_hints import run_app
 
     run_app(main, "evaluate")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

@@ -34,9 +34,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
-from cicfw.config_checks import is_integer
-from cicfw.errors import report_user_errors
-from cicfw.files import write_together
+from cicfw.core.config_checks import is_integer
+from cicfw.core.errors import report_user_errors
+from cicfw.core.files import write_together
 
 log = logging.getLogger("cicfw.export")
 
@@ -392,7 +392,7 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
 
 def write_files(files: Mapping[Path, bytes]) -> None:
     """Write each file under a temporary name (fsynced), then rename them all, in order
-    (``cicfw.files.write_together``): a failure while writing (a full disk, a folder that turns out
+    (``cicfw.core.files.write_together``): a failure while writing (a full disk, a folder that turns out
     read-only) leaves nothing behind."""
     try:
         write_together(files, fsync=True)
@@ -566,6 +566,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    from cicfw.override_hints import run_app
+    from cicfw.core.override_hints import run_app
 
     run_app(main, "export")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

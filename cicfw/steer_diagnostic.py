@@ -42,7 +42,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cicfw import COMMANDS, N_COMMANDS
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import T, read_targets
 from cicfw.data.frames import Frames, episode_groups
 

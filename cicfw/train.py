@@ -21,18 +21,18 @@ from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.config_checks import did_you_mean as _did_you_mean
-from cicfw.config_checks import forget_empty_cache_setting, is_integer, whole_number
+from cicfw.core.config_checks import did_you_mean as _did_you_mean
+from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, whole_number
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
-from cicfw.errors import USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
+from cicfw.core.errors import USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
-from cicfw.override_hints import check_top_level_keys
-from cicfw.run_folder import hold_train_folder, release_run_folder, undo_run_folder
+from cicfw.core.override_hints import check_top_level_keys
+from cicfw.core.run_folder import hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.train_schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 
 log = logging.getLogger("cicfw.train")
@@ -243,7 +243,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
         if storage_options is not None:
             return super().save_checkpoint(checkpoint, path, storage_options)  # refuses them, with its message
-        from cicfw.files import atomic_write
+        from cicfw.core.files import atomic_write
 
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)
@@ -564,6 +564,6 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    from cicfw.override_hints import run_app
+    from cicfw.core.override_hints import run_app
 
     run_app(main, "train")  # a mistyped key also prints the keys that exist (did you mean ...?)

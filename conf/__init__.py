@@ -3,7 +3,7 @@
 # The apps' config schemas are registered by the packages each app config puts on its search path
 # (cicfw.train_schema, cicfw.evaluate_schema, cicfw.collect_schema, ...): Hydra imports one when it
 # composes that app's config only.
-from cicfw.config_checks import forget_empty_cache_setting
+from cicfw.core.config_checks import forget_empty_cache_setting
 
 # The configs read the cache folder with ${oc.env:CICFW_CACHE,<default>}, which takes an empty value as
 # given; before any of them is resolved, an empty CICFW_CACHE is dropped, so that it means the default.

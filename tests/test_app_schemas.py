@@ -17,7 +17,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
-from cicfw.config_checks import SchemaError, config_error
+from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.registry import SIM_BACKENDS
 
 CHECKS = {"collect": "cicfw.collect_schema", "export": "cicfw.export_schema", "diagnose": "cicfw.diagnose_schema"}

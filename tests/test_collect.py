@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_module
 
 import cicfw.collect as collect_mod
 import cicfw.collection.dataset as dataset_mod
-import cicfw.files as files_mod
+import cicfw.core.files as files_mod
 from cicfw.collect import CollectConfigError, collect_dataset, resolve_config
 from cicfw.collection import LOCK_NAME
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
@@ -188,7 +188,7 @@ def test_the_schema_refuses_a_type_or_key_while_composing(override: str, kind: s
     """conf/collect.yaml's schema is CollectAppConfig: OmegaConf refuses these before the app runs."""
     from hydra.errors import HydraException
 
-    from cicfw.config_checks import config_error
+    from cicfw.core.config_checks import config_error
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         with pytest.raises(HydraException) as err:

@@ -24,7 +24,7 @@ from omegaconf import OmegaConf
 
 import cicfw.collection.dataset as dataset_mod
 import cicfw.collection.writing as writing
-import cicfw.files as files_mod
+import cicfw.core.files as files_mod
 from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
                               collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files

@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
-from cicfw.config_checks import SchemaError, check_kwargs, config_error, kwargs_schema
+from cicfw.core.config_checks import SchemaError, check_kwargs, config_error, kwargs_schema
 from cicfw.train import build_model, make_datamodule, trainer_kwargs
 from cicfw.train_schema import checked_speed
 from conftest import compose_train
@@ -239,7 +239,7 @@ def test_a_schema_reads_optional_unions_and_bases_kwargs():
 
 
 def test_a_wrong_type_in_a_config_file_names_the_file_and_the_key(tmp_path):
-    from cicfw.override_hints import composition_error_line
+    from cicfw.core.override_hints import composition_error_line
 
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "bad.yaml").write_text("# @package _global_\nmixer:\n  hidden: wide\n")
@@ -256,7 +256,7 @@ def test_an_omegaconf_error_the_app_raises_itself_keeps_its_report():
     inside the app is not dressed up as a config mistake."""
     from omegaconf.errors import ConfigAttributeError
 
-    from cicfw.override_hints import composition_error_line
+    from cicfw.core.override_hints import composition_error_line
 
     cfg = OmegaConf.create({"a": 1})
     OmegaConf.set_struct(cfg, True)

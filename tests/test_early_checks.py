@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-import cicfw.files
+import cicfw.core.files
 from cicfw.evaluate import OutputWriteError, evaluate_policy
 from cicfw.train import make_datamodule, train
 from conftest import compose_train, write_tiny_dataset
@@ -71,7 +71,7 @@ def test_batches_per_epoch_of_another_type_is_refused_while_composing(value):
     """Not a whole number: the schema (CILDataModule's ``int | None``) refuses it before the app runs."""
     from hydra.errors import HydraException
 
-    from cicfw.config_checks import config_error
+    from cicfw.core.config_checks import config_error
 
     with pytest.raises(HydraException) as err:
         compose_train(f"data.batches_per_epoch={value}")
@@ -111,7 +111,7 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
 
 
 def test_a_full_disk_while_writing_the_pictures_is_one_line_and_leaves_no_torn_file(tmp_path, monkeypatch):
-    write_all = cicfw.files.write_all
+    write_all = cicfw.core.files.write_all
 
     def full_for_pictures(fd, data):
         if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
@@ -121,7 +121,7 @@ def test_a_full_disk_while_writing_the_pictures_is_one_line_and_leaves_no_torn_f
     out = tmp_path / "run"
     spec, suite = {"name": "constant", "steer": 0.0}, {"towns": [TOWN], "weathers": ["ClearNoon"], "limit": 1}
     with monkeypatch.context() as mp:
-        mp.setattr(cicfw.files, "write_all", full_for_pictures)
+        mp.setattr(cicfw.core.files, "write_all", full_for_pictures)
         with pytest.raises(OutputWriteError) as err:
             evaluate_policy(spec, suite, {"workers": 1}, out)
     text = str(err.value)

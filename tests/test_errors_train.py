@@ -15,7 +15,7 @@ import torch
 
 from cicfw.benchmark.suite import check_names
 from cicfw.data.frames import load_frames, split_by_episode
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
 from conftest import compose_train, write_tiny_dataset
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from cicfw.benchmark.journal import LOCK_NAME
-from cicfw.errors import Interrupted
+from cicfw.core.errors import Interrupted
 from cicfw.evaluate import evaluate_policy
 
 pytestmark = pytest.mark.slow  # drives the suite (one episode)

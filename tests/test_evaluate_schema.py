@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.evaluate import check_evaluation_overrides, compose_config
 from cicfw.evaluate_schema import check
 from cicfw.registry import SIM_BACKENDS

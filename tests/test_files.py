@@ -1,4 +1,4 @@
-"""The one atomic writer (cicfw.files) and its users below the apps: files get the umask's mode, a failed
+"""The one atomic writer (cicfw.core.files) and its users below the apps: files get the umask's mode, a failed
 write leaves the final name untouched and no temporary file behind, and the module sits at the bottom."""
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import pytest
 from matplotlib.figure import Figure
 
 import cicfw
-import cicfw.files as files_mod
+import cicfw.core.files as files_mod
 from cicfw.data.cil_hdf5 import N_TARGETS, write_file
-from cicfw.files import atomic_write, replacing, write_together
+from cicfw.core.files import atomic_write, replacing, write_together
 from cicfw.model.diagnostics import save_png
 
 
@@ -100,7 +100,7 @@ def test_a_group_of_files_appears_whole_or_not_at_all(tmp_path, monkeypatch):
 
 
 def test_the_writer_is_the_bottom_layer():
-    tree = ast.parse((Path(cicfw.__file__).parent / "files.py").read_text())
+    tree = ast.parse((Path(cicfw.__file__).parent / "core" / "files.py").read_text())
     found = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     found |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert not [m for m in found if m == "cicfw" or m.startswith("cicfw.")], sorted(found)

@@ -272,20 +272,20 @@ def test_a_preview_that_fails_after_rendering_started_writes_nothing(tmp_path: P
 
 
 def test_a_preview_whose_disk_fills_while_writing_leaves_no_png(tmp_path: Path, capsys, monkeypatch):
-    """The PNGs are written together (``cicfw.files.write_together``): the disk filling on the second one
+    """The PNGs are written together (``cicfw.core.files.write_together``): the disk filling on the second one
     leaves none of them, nor a temporary file or the --out the run created, and says which file in one line."""
     import errno
 
     import numpy as np
 
-    import cicfw.files
+    import cicfw.core.files
     from cicfw.sim import preview
 
     picture = lambda *a, **k: np.zeros((4, 4, 3), np.uint8)  # noqa: E731
     for name in ("contact_sheet", "turn_sheet", "town_map"):
         monkeypatch.setattr(preview, name, picture)
     monkeypatch.setattr(preview, "sample_routes", lambda *a, **k: [])
-    real, calls = cicfw.files.write_all, []
+    real, calls = cicfw.core.files.write_all, []
 
     def full_disk(fd, data):
         calls.append(fd)
@@ -293,7 +293,7 @@ def test_a_preview_whose_disk_fills_while_writing_leaves_no_png(tmp_path: Path, 
             raise OSError(errno.ENOSPC, "No space left on device")
         real(fd, data)
 
-    monkeypatch.setattr(cicfw.files, "write_all", full_disk)
+    monkeypatch.setattr(cicfw.core.files, "write_all", full_disk)
     out = tmp_path / "out"
     with pytest.raises(SystemExit) as exc:
         preview.main(["--out", str(out), "--towns", "town_b"])

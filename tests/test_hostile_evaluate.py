@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from cicfw.benchmark.journal import LOG_NAME, read_log
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.evaluate import compose_config, evaluate
 from test_hostile_train import _errors, read_only_app
 
@@ -46,7 +46,7 @@ def test_an_unknown_video_episode_is_refused_before_driving(tmp_path, video, mes
 
 
 def test_report_files_are_readable_by_others_under_umask_022(tmp_path):
-    from cicfw.sweeps import write_job_metrics
+    from cicfw.core.sweeps import write_job_metrics
 
     old = os.umask(0o022)
     try:

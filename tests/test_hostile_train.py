@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import cicfw.train as train_mod
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.train import train
 from conftest import compose_train, write_tiny_dataset
 
@@ -202,7 +202,7 @@ def test_ctrl_c_during_training_names_the_checkpoint_to_resume_from(tmp_path, mo
 
     from lightning.pytorch.callbacks import Callback
 
-    from cicfw.errors import Interrupted
+    from cicfw.core.errors import Interrupted
 
     class CtrlC(Callback):
         def on_train_batch_start(self, trainer, *args):

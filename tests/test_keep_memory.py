@@ -12,7 +12,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.model.speed import SpeedConfig
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -96,7 +96,7 @@ def test_a_bad_value_is_refused_before_any_data_is_collected(tmp_path, monkeypat
     monkeypatch.setattr(train_app, "ensure_data", no_data)
     from hydra.errors import HydraException
 
-    from cicfw.config_checks import config_error
+    from cicfw.core.config_checks import config_error
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         with pytest.raises(HydraException) as err:  # the schema: SpeedConfig's keep_memory is a bool

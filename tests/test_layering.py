@@ -5,7 +5,8 @@
           diagnose_schema, cli, carla_check, testing)
       -> benchmark | reproduction | collection | carla_client | steer_diagnostic
       -> sim | model | data | agent
-      -> base (registry, errors, files, config_checks, override_hints, run_folder, sweeps, locks, progress)
+      -> base (registry, core: errors, files, config_checks, override_hints, run_folder, sweeps, locks,
+               progress)
 
 A module imports its own layer and those below, never one above, and no module imports itself back
 through others (no circle). ``cicfw.agent`` is the model's inference path (a checkpoint or an exported
@@ -41,9 +42,7 @@ APPS = ("cicfw.train", "cicfw.train_schema", "cicfw.evaluate", "cicfw.evaluate_s
 LAYERS = ("base", "core", "stage", "app")
 #: module or package -> its layer (a package places every module under it)
 LAYER_OF = {
-    "cicfw": "base", "cicfw.registry": "base", "cicfw.errors": "base", "cicfw.files": "base",
-    "cicfw.config_checks": "base", "cicfw.override_hints": "base", "cicfw.run_folder": "base",
-    "cicfw.sweeps": "base", "cicfw.locks": "base", "cicfw.progress": "base",
+    "cicfw": "base", "cicfw.registry": "base", "cicfw.core": "base",
     "cicfw.sim": "core", "cicfw.model": "core", "cicfw.data": "core", "cicfw.agent": "core",
     "cicfw.benchmark": "stage", "cicfw.reproduction": "stage", "cicfw.collection": "stage",
     "cicfw.carla_client": "stage", "cicfw.steer_diagnostic": "stage",
@@ -216,7 +215,7 @@ def test_the_checker_refuses_an_unplaced_module_and_an_upward_import(tmp_path):
     bad = tmp_path / "cicfw" / "agent.py"
     bad.parent.mkdir(parents=True)
     bad.write_text("def f():\n    from cicfw.benchmark.checkpoint_policy import CheckpointPolicy\n"
-                   "    from cicfw import files\n")
+                   "    from cicfw.core import files\n")
     assert upward_imports(bad, tmp_path) == ["cicfw.benchmark.checkpoint_policy",
                                              "cicfw.benchmark.checkpoint_policy.CheckpointPolicy"]
 
@@ -280,7 +279,7 @@ def test_registry_is_the_bottom_layer():
 
 
 def test_the_error_reporter_sits_at_the_bottom():
-    """Every app and the simulator's preview use cicfw.errors: it may import the registry only, so using
+    """Every app and the simulator's preview use cicfw.core.errors: it may import the registry only, so using
     it never pulls a layer in by the back door (it once imported the data layer for one exception)."""
-    found = imports_of(PKG / "errors.py")
+    found = imports_of(PKG / "core" / "errors.py")
     assert not [m for m in found if m.startswith("cicfw.") and not m.startswith("cicfw.registry")], sorted(found)

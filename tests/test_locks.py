@@ -1,4 +1,4 @@
-"""The project's folder lock (``cicfw.locks.FolderLock``) and its users: the collection, the evaluation's run
+"""The project's folder lock (``cicfw.core.locks.FolderLock``) and its users: the collection, the evaluation's run
 folder, the reproduction's results folder and the sweep summary. A holder is named in a refusal, a dead
 holder's record is taken over with a warning, a waiter waits as long as it is told, and no lock file is
 left behind when a run ends."""
@@ -21,13 +21,13 @@ from cicfw.benchmark.journal import EpisodeLog, RunFolderError
 from cicfw.collection import LOCK_NAME as COLLECT_LOCK
 from cicfw.collection import FolderLock as CollectLock
 from cicfw.collection import FolderLockedError
-from cicfw.locks import FolderBusy, FolderLock
+from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.reproduction.lock import LOCK_FILE, FolderInUse, ResultsLock
-from cicfw.sweeps import ROWS_DIR, RowsLock, rebuild_summary
+from cicfw.core.sweeps import ROWS_DIR, RowsLock, rebuild_summary
 
 HOLDER = """
 import sys, time
-from cicfw.locks import FolderLock
+from cicfw.core.locks import FolderLock
 FolderLock(sys.argv[1], info={"what": "the holder"}).acquire()
 print("held", flush=True)
 time.sleep(120)
@@ -85,7 +85,7 @@ def test_a_waiter_waits_as_long_as_it_is_told(tmp_path: Path, caplog):
         FolderLock(tmp_path, wait=0.6).acquire()
     threading.Timer(0.8, first.release).start()
     t0 = time.monotonic()
-    with caplog.at_level(logging.WARNING, logger="cicfw.locks"), FolderLock(tmp_path, wait=30):
+    with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"), FolderLock(tmp_path, wait=30):
         assert time.monotonic() - t0 >= 0.7
     assert f"waiting for {tmp_path}: another process holds it (pid {os.getpid()}" in caplog.text
     assert not (tmp_path / ".lock").exists()
@@ -111,7 +111,7 @@ def test_a_waiter_on_a_file_its_holder_removed_takes_the_new_one(tmp_path: Path)
 def test_a_dead_holders_record_is_taken_over_with_a_warning(tmp_path: Path, caplog):
     pid = dead_pid()
     path = leave_record(tmp_path, ".lock", pid=pid, host="elsewhere", started="2020-01-01 00:00:00")
-    with caplog.at_level(logging.WARNING, logger="cicfw.locks"), FolderLock(tmp_path) as lock:
+    with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"), FolderLock(tmp_path) as lock:
         assert json.loads(path.read_text())["pid"] == os.getpid() and lock.fd is not None
     assert (f"{tmp_path}: taking over the stale lock of pid {pid} on elsewhere (started 2020-01-01 00:00:00), "
             f"which is no longer running") in caplog.text
@@ -131,7 +131,7 @@ def test_with_check_pid_only_a_gone_pid_on_this_host_is_taken_over(tmp_path: Pat
         Careful(tmp_path).acquire()  # alive here, though its flock is free: not taken
     assert path.is_file()
     leave_record(tmp_path, ".lock", pid=dead_pid(), host=host, started="2020-01-01 00:00:00")
-    with caplog.at_level(logging.WARNING, logger="cicfw.locks"), Careful(tmp_path):
+    with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"), Careful(tmp_path):
         pass
     assert "taking over the stale lock" in caplog.text and not path.exists()
 
@@ -167,7 +167,7 @@ def test_an_evaluation_folder_is_refused_to_a_second_writer_and_left_without_a_l
     assert not (tmp_path / "run" / EVALUATE_LOCK).exists()
     pid = dead_pid()
     leave_record(tmp_path / "run", EVALUATE_LOCK, pid=pid, host=socket.gethostname(), started="2020-01-01 00:00:00")
-    with caplog.at_level(logging.WARNING, logger="cicfw.locks"):
+    with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"):
         EpisodeLog.open(tmp_path / "run", fp).close()
     assert f"taking over the stale lock of pid {pid}" in caplog.text
     assert not (tmp_path / "run" / EVALUATE_LOCK).exists()

@@ -8,14 +8,14 @@ import sys
 
 import pytest
 
-from cicfw.override_hints import run_app
+from cicfw.core.override_hints import run_app
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 
 def test_run_app_adds_a_hint_only_on_failure(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["cicfw.train", "hparams_search=optuna"])
-    monkeypatch.setattr("cicfw.override_hints.missing_extras", lambda args: ["cicfw: hint: needs an extra"])
+    monkeypatch.setattr("cicfw.core.override_hints.missing_extras", lambda args: ["cicfw: hint: needs an extra"])
 
     def failing_app() -> None:
         sys.exit(2)
@@ -30,7 +30,7 @@ def test_run_app_adds_a_hint_only_on_failure(monkeypatch, capsys):
 def test_an_option_whose_plugin_is_missing_names_the_extra(monkeypatch):
     import importlib.util
 
-    from cicfw import override_hints as hints_module
+    from cicfw.core import override_hints as hints_module
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",

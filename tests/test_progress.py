@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from cicfw.benchmark.runner import EpisodeBar
-from cicfw.progress import ProgressBar
+from cicfw.core.progress import ProgressBar
 
 
 def test_the_bar_shows_its_label_count_and_unit(capsys):

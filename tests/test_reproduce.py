@@ -339,7 +339,7 @@ def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
     """``seeds=3`` runs 0, 1, 2; ``seeds=[4,1]`` runs 1 and 4 only (a second machine's share)."""
     from omegaconf import OmegaConf
 
-    from cicfw.config_checks import SchemaError
+    from cicfw.core.config_checks import SchemaError
     from cicfw.reproduce_schema import seed_list
 
     assert seed_list(3) == [0, 1, 2]

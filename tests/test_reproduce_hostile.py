@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.config_checks import SchemaError
+from cicfw.core.config_checks import SchemaError
 from cicfw.reproduction import app as reproduce
 from cicfw.reproduction import report as results
 from cicfw.reproduction.cells import COLUMNS, CellResult

@@ -15,7 +15,7 @@ import yaml
 from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
-from cicfw.config_checks import SchemaError, config_error
+from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.reproduce_schema import BudgetConfig, check
 from cicfw.reproduction import app as reproduce
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from cicfw.locks import FolderBusy
-from cicfw.run_folder import (RunFolderError, TrainFolderLock, TrainRunFolderCheck, hold_train_folder,
+from cicfw.core.locks import FolderBusy
+from cicfw.core.run_folder import (RunFolderError, TrainFolderLock, TrainRunFolderCheck, hold_train_folder,
                               release_run_folder)
 from conftest import write_tiny_dataset
 
@@ -131,7 +131,7 @@ def test_a_refused_run_puts_a_folder_that_existed_back_as_it_was(tmp_path):
 
 
 def test_undo_removes_a_new_folder_and_the_parents_made_for_it_only(tmp_path):
-    from cicfw.run_folder import note_run_folder, undo_run_folder
+    from cicfw.core.run_folder import note_run_folder, undo_run_folder
 
     (tmp_path / "outputs").mkdir()
     run = tmp_path / "outputs" / "day" / "time"

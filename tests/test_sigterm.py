@@ -15,14 +15,14 @@ from pathlib import Path
 import pytest
 
 from cicfw.collection import LOCK_NAME, collect_dataset
-from cicfw.errors import report_user_errors
+from cicfw.core.errors import report_user_errors
 from conftest import process_alive
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"]}
 
 STOPPED = """
 import os, signal, sys, time
-from cicfw.errors import on_interrupt, report_user_errors
+from cicfw.core.errors import on_interrupt, report_user_errors
 
 @report_user_errors
 def main():

@@ -85,7 +85,7 @@ def test_the_console_script_catches_sigterm_first_thing(tmp_path):
 
 
 def test_importing_cicfw_as_a_library_installs_nothing():
-    code = ("import signal, sys; hook = sys.excepthook; import cicfw, cicfw.errors; "
+    code = ("import signal, sys; hook = sys.excepthook; import cicfw, cicfw.core.errors; "
             "print(signal.getsignal(signal.SIGTERM) == signal.SIG_DFL, sys.excepthook is hook)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stdout.split() == ["True", "True"], out.stderr

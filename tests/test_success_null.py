@@ -14,7 +14,7 @@ import torch
 
 from cicfw.benchmark import evaluation_report as report
 from cicfw.benchmark.finished_run import Run
-from cicfw.errors import Interrupted
+from cicfw.core.errors import Interrupted
 from cicfw.evaluate import EvalResult, evaluate_policy, percent
 
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")

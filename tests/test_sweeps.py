@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from cicfw import errors
+from cicfw.core import errors
 from cicfw.registry import MIXERS
-from cicfw.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
+from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -149,7 +149,7 @@ def test_launcher_configs_compose():
 def test_job_row_reads_status_error_and_closed_loop_success(tmp_path):
     from hydra.core.utils import JobReturn, JobStatus
 
-    from cicfw.sweeps import job_row
+    from cicfw.core.sweeps import job_row
 
     def config(num: int, out: Path, **top):
         return OmegaConf.create({"optimized_metric": "val/steer_mae", **top, "hydra": {

@@ -14,7 +14,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from cicfw.benchmark.suite import CELLS
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 
 SET_NAMES = {"training": "Training", "new": "New"}
 

@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from cicfw.locks import FolderLock
+from cicfw.core.locks import FolderLock
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"

@@ -9,7 +9,7 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import Run, cell_name, table_rows
 from cicfw.benchmark.suite import CELLS
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"
 REASON_MARKERS = {"off_road": "X", "off_route": "P", "timeout": "s"}

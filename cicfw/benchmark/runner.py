@@ -25,7 +25,7 @@ import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy, make_policy
 from cicfw.benchmark.suite import Episode, make_backend, suite_routes
-from cicfw.progress import ProgressBar
+from cicfw.core.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
 
 #: the simulator's reasons mapped to the report's (the embedded env calls "far off route" "lost")

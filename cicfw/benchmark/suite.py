@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from cicfw.config_checks import whole_number
+from cicfw.core.config_checks import whole_number
 from cicfw.registry import SIM_BACKENDS
 
 #: the paper's four weathers: two seen in training, two new

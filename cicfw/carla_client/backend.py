@@ -62,7 +62,7 @@ DEFAULT_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset
 
 class CarlaError(RuntimeError, ValueError):
     """A CARLA problem a user can fix (server, version, package, config); the apps print it as one
-    line (it is a ValueError for ``cicfw.errors``)."""
+    line (it is a ValueError for ``cicfw.core.errors``)."""
 
 
 class CarlaNotInstalled(CarlaError, ImportError):

@@ -18,7 +18,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from cicfw.collection.config import CollectConfig
-from cicfw.config_checks import checked, plain_values
+from cicfw.core.config_checks import checked, plain_values
 from cicfw.registry import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from cicfw.collection.errors import CollectConfigError, CollectError
-from cicfw.config_checks import SchemaError, checked
+from cicfw.core.config_checks import SchemaError, checked
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
 

@@ -19,7 +19,7 @@ from cicfw.collection.plan import episode_bytes, episode_plan, steps_per_episode
 from cicfw.collection.workers import run_workers
 from cicfw.collection.writing import check_free_space, write_json
 from cicfw.data.cil_hdf5 import is_hdf5_name
-from cicfw.progress import ProgressBar
+from cicfw.core.progress import ProgressBar
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Mapping
 
-from cicfw import locks
+from cicfw.core import locks
 from cicfw.collection.errors import CollectError, FolderLockedError
 from cicfw.collection.writing import disk_error
 

@@ -1,5 +1,5 @@
 """Writing files with nothing half-written: bytes built in memory (``cil_hdf5.file_bytes``), written
-under temporary names unique to the process, then renamed (``cicfw.files.write_together``); a full disk
+under temporary names unique to the process, then renamed (``cicfw.core.files.write_together``); a full disk
 is one clear error."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 from cicfw.collection.errors import CollectError, DiskFullError
-from cicfw.files import write_together
+from cicfw.core.files import write_together
 
 
 def disk_error(err: OSError, path: Path, what: str) -> CollectError:
@@ -26,7 +26,7 @@ def disk_error(err: OSError, path: Path, what: str) -> CollectError:
 
 def write_files(files: Mapping[Path, bytes] | Iterable[tuple[Path, bytes]], suffix: str = ".part",
                 before_rename: Callable[[], None] | None = None) -> None:
-    """``cicfw.files.write_together``, fsynced: every file gets its final name or none does. A failed
+    """``cicfw.core.files.write_together``, fsynced: every file gets its final name or none does. A failed
     write is one CollectError naming the file (DiskFullError on ENOSPC)."""
     try:
         write_together(files, fsync=True, suffix=suffix, before_rename=before_rename)

@@ -36,7 +36,7 @@ class AugmentConfig:
     def from_dict(cls, d: dict | None) -> "AugmentConfig":
         """The config from ``data.augment``'s overrides, every value checked by its key (a probability in
         [0, 1], a range ``[low, high]`` of numbers inside its domain) before any batch is augmented."""
-        from cicfw.config_checks import checked_probability, checked_range
+        from cicfw.core.config_checks import checked_probability, checked_range
 
         inf = float("inf")
         domains = {  # each range's (lowest, highest, the lowest allowed, in words)

@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 
 log = logging.getLogger(__name__)
 

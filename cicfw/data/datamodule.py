@@ -15,7 +15,7 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
 
 from cicfw import COMMANDS
 from cicfw.data.augment import AugmentConfig, augment_batch
-from cicfw.config_checks import whole_number
+from cicfw.core.config_checks import whole_number
 from cicfw.data.batches import SeededBatches, batch_rng
 from cicfw.data.cil_hdf5 import KNOWN_CAMERA_IDS
 from cicfw.data.frames import Frames, camera_names, chosen_cameras, load_frames, split_by_episode

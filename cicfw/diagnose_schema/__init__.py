@@ -17,7 +17,7 @@ from typing import List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
-from cicfw.config_checks import checked, kwargs_schema, plain_values
+from cicfw.core.config_checks import checked, kwargs_schema, plain_values
 from cicfw.steer_diagnostic import DataSettings, measure
 
 #: camera lists, which DataSettings annotates as any sequence (a type OmegaConf cannot check)

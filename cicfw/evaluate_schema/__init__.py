@@ -8,7 +8,7 @@ fields, ``suite``: ``build_suite``'s arguments) and ``cicfw_schema/sim/<name>`` 
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key.
 ``check`` applies the same schemas to a composed config again, for what composing lets through: keys added
 with ``+``, a ``sim.name`` other than the option file's, and ``runner.workers``, whose union OmegaConf cannot
-type; conf/evaluate.yaml's first callback (``cicfw.override_hints.SchemaCheck``) runs it before Hydra
+type; conf/evaluate.yaml's first callback (``cicfw.core.override_hints.SchemaCheck``) runs it before Hydra
 creates the run folder.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ from omegaconf import MISSING, DictConfig
 
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
-from cicfw.config_checks import SchemaError, checked, kwargs_schema, plain_values
+from cicfw.core.config_checks import SchemaError, checked, kwargs_schema, plain_values
 from cicfw.registry import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 

@@ -15,7 +15,7 @@ from typing import Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
-from cicfw.config_checks import checked, kwargs_schema, plain_values
+from cicfw.core.config_checks import checked, kwargs_schema, plain_values
 from cicfw.export import export_model
 
 #: the paths are given as text on the command line; ``format`` is ``export_model``'s ``fmt``

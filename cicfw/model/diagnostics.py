@@ -23,7 +23,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from cicfw import COMMANDS, N_COMMANDS
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 
 # Axis titles by matrix name (prefix match); rows first.
 AXES = {
@@ -90,7 +90,7 @@ def figure_rgb(fig: Figure) -> np.ndarray:
 
 
 def save_png(fig: Figure, path: str) -> None:
-    """Write atomically, with the umask's mode (the shared writer, ``cicfw.files``)."""
+    """Write atomically, with the umask's mode (the shared writer, ``cicfw.core.files``)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     atomic_write(path, buf.getbuffer())

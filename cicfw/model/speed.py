@@ -68,7 +68,7 @@ class SpeedConfig:
     keep_memory: bool = True     # malloc keeps freed memory (cicfw/model/memory.py): no page faults per step
 
     def __post_init__(self) -> None:
-        from cicfw.config_checks import SchemaError
+        from cicfw.core.config_checks import SchemaError
 
         if self.adam not in ADAM_IMPLS:
             raise SchemaError(f"speed.adam must be one of {', '.join(ADAM_IMPLS)}, got {self.adam!r}",

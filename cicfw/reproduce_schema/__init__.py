@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from cicfw.config_checks import SchemaError, checked, is_integer, kwargs_schema, plain_values
+from cicfw.core.config_checks import SchemaError, checked, is_integer, kwargs_schema, plain_values
 from cicfw.reproduction.catalogue import Row
 from cicfw.reproduction.claims import claim_entry, claim_part
 from cicfw.sim.render.weather import WEATHER_FAMILIES

@@ -42,7 +42,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 from cicfw.reproduction.lock import ResultsLock
 
 log = logging.getLogger("cicfw.reproduce")
@@ -104,7 +104,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
     from hydra import compose, initialize_config_module
     from hydra.errors import HydraException
 
-    from cicfw.config_checks import config_error
+    from cicfw.core.config_checks import config_error
     from cicfw.reproduce_schema import check
 
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
@@ -190,7 +190,7 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
                                          f"{line.split('available: ', 1)[-1]}") from None
                 raise ReproduceError(f"{what}: {line}") from None
             except HydraException as err:
-                from cicfw.config_checks import config_error
+                from cicfw.core.config_checks import config_error
 
                 schema = config_error(err)  # a wrong type or unknown key the train schema refused
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
@@ -211,7 +211,7 @@ def check_training(tcfg: DictConfig) -> None:
     """What ``cicfw.train.train`` checks before it reads any data (top-level keys, the model's names, keys
     and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
     the dataset is collected rather than failing every cell of the row."""
-    from cicfw.override_hints import check_top_level_keys
+    from cicfw.core.override_hints import check_top_level_keys
     from cicfw.train import build_model, make_datamodule, trainer_kwargs
     from cicfw.train_schema import checked_speed
 
@@ -803,7 +803,7 @@ def _error_line(err: BaseException) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
     write the report (and publish it)."""
-    from cicfw.errors import USER_ERRORS
+    from cicfw.core.errors import USER_ERRORS
 
     args = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--resolve") or a.startswith("--cfg")

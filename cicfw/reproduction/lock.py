@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Mapping
 
-from cicfw import locks
+from cicfw.core import locks
 
 LOCK_FILE = "reproduce.lock"
 

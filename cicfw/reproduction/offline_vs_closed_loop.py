@@ -393,7 +393,7 @@ def _selection_reading(s: dict[str, Any]) -> str:
 
 def write_report(results: Path, out: Path) -> dict[str, Any]:
     """Analyse the cells under ``results`` and write README.md, results.json and the picture into ``out``."""
-    from cicfw.files import atomic_write
+    from cicfw.core.files import atomic_write
 
     from cicfw.sim.render.weather import LEGACY_FAMILY
 

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 from cicfw.reproduction.cells import cell_files, finished_cells
 
 

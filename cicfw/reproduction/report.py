@@ -99,7 +99,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from cicfw.files import atomic_write
+from cicfw.core.files import atomic_write
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
 from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge

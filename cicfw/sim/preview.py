@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cicfw.files import write_together
+from cicfw.core.files import write_together
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
 
@@ -207,7 +207,7 @@ def check_weathers(weathers: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """The command line; every bad value is one line (``cicfw: error: ...``, exit status 2)."""
-    from cicfw.errors import report_user_errors
+    from cicfw.core.errors import report_user_errors
 
     return report_user_errors(_main)(argv)
 

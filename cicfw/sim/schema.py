@@ -8,7 +8,7 @@ from __future__ import annotations
 import functools
 from typing import Any, Mapping
 
-from cicfw.config_checks import checked, kwargs_schema
+from cicfw.core.config_checks import checked, kwargs_schema
 from cicfw.registry import SIM_BACKENDS
 
 #: the config group the schemas are stored under: an app's defaults list lays ``cicfw_schema/sim/<name>``

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cicfw.files import write_together
+from cicfw.core.files import write_together
 from cicfw.sim.preview import _png, approach_pose, check_out_folder
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather

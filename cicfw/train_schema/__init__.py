@@ -25,7 +25,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.collection.config import CollectConfig
-from cicfw.config_checks import SchemaError, checked, kwargs_schema
+from cicfw.core.config_checks import SchemaError, checked, kwargs_schema
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig

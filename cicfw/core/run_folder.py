@@ -23,7 +23,7 @@ from typing import Any, Mapping, Sequence
 
 from hydra.experimental.callback import Callback
 
-from cicfw.locks import FolderBusy, FolderLock, describe_holder
+from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 
 
 class RunFolderError(ValueError):
@@ -165,7 +165,7 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     already), then ``check_no_other_run``, the lock given back when that fails. One line otherwise:
     ``FolderBusy`` (another run holds it) or ``RunFolderError``. A DDP worker rank (its ``RANK`` ...
     not 0) shares the folder rank 0 holds: nothing to take."""
-    from cicfw.sweeps import is_worker_process
+    from cicfw.core.sweeps import is_worker_process
 
     if is_worker_process():
         return
@@ -290,7 +290,7 @@ class TrainRunFolderCheck(RunFolderCheck):
             sys.exit(2)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        from cicfw.sweeps import is_worker_process
+        from cicfw.core.sweeps import is_worker_process
 
         if not is_worker_process():  # a DDP rank re-running the sweep of its rank 0 shares its folder
             try:

@@ -26,7 +26,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from cicfw.locks import FolderLock, flock_available
+from cicfw.core.locks import FolderLock, flock_available
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +40,8 @@ LAST = ["overrides", "error", "output_dir"]
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write to a temporary file beside ``path``, then rename: readers never see half a file (the
-    shared writer, ``cicfw.files.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
-    from cicfw.files import atomic_write
+    shared writer, ``cicfw.core.files.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
+    from cicfw.core.files import atomic_write
 
     atomic_write(path, text)
 

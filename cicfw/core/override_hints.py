@@ -60,7 +60,7 @@ def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
     (``evaluate_overrides: ``); an app without a schema is not checked."""
     from hydra.core.config_store import ConfigStore
 
-    from cicfw.config_checks import did_you_mean
+    from cicfw.core.config_checks import did_you_mean
 
     typed = OmegaConf.get_type(cfg)
     if not dataclasses.is_dataclass(typed):
@@ -81,7 +81,7 @@ def composition_error_line(err: BaseException, args: list[str]) -> str | None:
     group; None for anything else."""
     from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
 
-    from cicfw.config_checks import config_error
+    from cicfw.core.config_checks import config_error
 
     if isinstance(err, OverrideParseException):
         return _unparsable(err.override, err.message, args)
@@ -120,7 +120,7 @@ def one_line_config_errors() -> Iterator[None]:
     around composing and running: that is where this steps in (HYDRA_FULL_ERROR=1 still shows it all)."""
     import hydra._internal.utils as hydra_utils
 
-    from cicfw.run_folder import undo_noted_folders
+    from cicfw.core.run_folder import undo_noted_folders
 
     report = hydra_utils.run_and_report
 
@@ -176,7 +176,7 @@ class SchemaCheck(Callback):
     def _check(self, config: Any) -> None:
         from hydra.utils import get_method
 
-        from cicfw.config_checks import SchemaError
+        from cicfw.core.config_checks import SchemaError
 
         try:
             get_method(self.check)(config)
@@ -191,7 +191,7 @@ class JobFailed(CompactHydraException):
 
 def failure_line(err: BaseException) -> str:
     """A job's exception in one line: a user error's message, else its type and message."""
-    from cicfw.errors import USER_ERRORS
+    from cicfw.core.errors import USER_ERRORS
 
     text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
     line = " ".join(str(text).split())
