@@ -13,14 +13,20 @@ dataset this script writes itself, then check the run. One line per check, PASS 
                         the peak GPU memory (torch.cuda.max_memory_allocated); it passes when the steps
                         were timed, on the device the recipe asks for.
 
-    python bench/gpu_check.py                        # a CUDA GPU: bf16-mixed, 4 loader workers, compile, 300 steps
+    python bench/gpu_check.py                        # a CUDA GPU: fp32 (32-true), 4 loader workers, compile, 300 steps
     python bench/gpu_check.py data.in_memory=false   # extra Hydra overrides go to the training (streamed images)
     python bench/gpu_check.py --dry-run              # no GPU: the same path on the CPU, fp32, eager, 0 workers, 20 steps
+    python bench/gpu_check.py --license-study        # only print the bf16 license study's commands and rule
 
 Training is the project's own ``cicfw.train.train`` on a config composed as ``python -m cicfw.train``
 composes it (data=cil_hdf5 on the written files; docs/scaling.md section 2's overrides:
-trainer.accelerator=gpu trainer.precision=bf16-mixed data.num_workers=4, plus speed.compile=true and
-the default speed.channels_last). The only addition is a callback recording each step's loss and the
+trainer.accelerator=gpu trainer.precision=32-true data.num_workers=4, plus speed.compile=true and
+the default speed.channels_last).
+
+Last it prints the commands of the bf16 license study on this GPU (``license_study``): the catalogue rows
+``cil`` and ``cil_bf16`` at ``budget=converged6`` trained and driven on the GPU, eight paired seeds, and the
+rule that decides it, fixed before its first cell, as docs/results/bf16_license_xeon/ was run on a CPU.
+Until that study says otherwise the GPU recipes train in 32-true with TF32 off (docs/training.md). The only addition is a callback recording each step's loss and the
 recipe the run got, appended to the callbacks ``cicfw.train.build_callbacks`` returns; the timing is the
 training's own ``DataWait`` (the data-wait line every training logs).
 
@@ -42,8 +48,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-#: docs/scaling.md, "2. One GPU", plus compile (speed.compile=auto would choose it at >= 200 steps)
-GPU_RECIPE = ("trainer.accelerator=gpu", "trainer.precision=bf16-mixed", "data.num_workers=4", "speed.compile=true")
+#: docs/scaling.md, "2. One GPU", plus compile (speed.compile=auto would choose it at >= 200 steps); fp32, the
+#: precision the evidence licenses (docs/training.md): bf16 autocast waits for its license study on a GPU
+GPU_RECIPE = ("trainer.accelerator=gpu", "trainer.precision=32-true", "data.num_workers=4", "speed.compile=true")
 #: the same run on a CPU, kept short: fp32, eager, the main process loads the data
 DRY_RUN_RECIPE = ("trainer.accelerator=cpu", "trainer.precision=32-true", "data.num_workers=0", "speed.compile=false")
 
@@ -88,6 +95,85 @@ def throughput(samples: int, wait: float, step: float, steps: int) -> tuple[floa
 def line(ok: bool, name: str, detail: str) -> bool:
     print(f"{'PASS' if ok else 'FAIL'} {name}: {detail}", flush=True)
     return ok
+
+
+# ---- the bf16 license study on a GPU -----------------------------------------------------------------
+#: the design, fixed before the study's first cell (docs/results/bf16_license_xeon/README.md's, on a GPU):
+#: eight pairs, a fixed number (no early stop), judged once by the paired TOST at +-5 points overall
+LICENSE_ROWS = ("cil", "cil_bf16")  # conf/reproduce.yaml: cil_bf16 is cil plus trainer.precision=bf16-mixed
+LICENSE_SEEDS = tuple(range(8))
+LICENSE_MARGIN = 5
+LICENSE_BUDGET = "converged6"
+#: what moves the budget's training onto the GPU (its suite drives there too: policy.device=auto)
+LICENSE_GPU_TRAIN = ("trainer.accelerator=gpu", "data.num_workers=4")
+
+
+def gpu_slug(name: str) -> str:
+    """A folder-name part for a GPU kind: "NVIDIA H100 80GB HBM3" -> "h100_80gb_hbm3"."""
+    words = [w for w in "".join(c if c.isalnum() else " " for c in name.lower()).split() if w not in ("nvidia", "geforce")]
+    return "_".join(words) or "gpu"
+
+
+def budget_train(budget: str = LICENSE_BUDGET) -> list[str]:
+    """The training overrides of a reproduction budget (conf/budget/<budget>.yaml's ``train``)."""
+    from importlib.resources import files
+
+    from omegaconf import OmegaConf
+
+    return [str(o) for o in OmegaConf.load(str(files("cicfw.conf") / "budget" / f"{budget}.yaml")).train]
+
+
+def license_study(gpu_name: str, budget_train: Sequence[str]) -> dict[str, Any]:
+    """The bf16 license study on the GPU ``gpu_name``: its results folder, one ``cicfw.reproduce`` command per
+    seed (both rows of the pair, the order alternating from seed to seed: fp32 first on even seeds) and the
+    test that decides it. ``budget_train``: the converged6 budget's training overrides (conf/budget), to
+    which the GPU's are added, so the cells train on the GPU what the published budget trains on a CPU."""
+    slug = gpu_slug(gpu_name)
+    folder = f"docs/results/bf16_license_{slug}"
+    train = "[" + ",".join(f'"{o}"' for o in (*budget_train, *LICENSE_GPU_TRAIN)) + "]"
+    commands = []
+    for seed in LICENSE_SEEDS:
+        rows = LICENSE_ROWS if seed % 2 == 0 else LICENSE_ROWS[::-1]
+        commands.append(f"python -m cicfw.reproduce budget={LICENSE_BUDGET} 'rows=[{','.join(rows)}]' "
+                        f"'seeds=[{seed}]' 'budget.train={train}' results_dir=outputs/reproduce/bf16_license_{slug} "
+                        f"publish_dir={folder}")
+    test = (f"python -m cicfw.reproduction.paired_switch {folder}/cells/{LICENSE_ROWS[1]} "
+            f"{folder}/cells/{LICENSE_ROWS[0]} --margin {LICENSE_MARGIN}")
+    return {"folder": folder, "commands": commands, "test": test}
+
+
+#: the GPU a run without one prints the study's commands for (a GPU run prints them with its own name)
+EXAMPLE_GPU = "NVIDIA H100 80GB HBM3"
+
+
+def print_license_study(gpu_name: str, wait_share: float | None = None, example: bool = False) -> dict[str, Any]:
+    """Print the bf16 license study's design, commands and rule for ``gpu_name`` (and, after a GPU run, the
+    most a faster precision could save there: the share of step time not spent waiting for data);
+    ``example``: no GPU here, the commands are shown for ``gpu_name``."""
+    study = license_study(gpu_name, budget_train())
+    seeds = f"{LICENSE_SEEDS[0]}-{LICENSE_SEEDS[-1]}"
+    print(f"\nbf16 license study on {gpu_name} (the GPU recipes stay 32-true, TF32 off, until it licenses bf16)"
+          + (" -- no GPU here: shown for that GPU; a run on a GPU prints them with its own name" if example else "")
+          + ":", flush=True)
+    print(f"  design, fixed before its first cell: write it into {study['folder']}/README.md and commit it first.\n"
+          f"  Rows {LICENSE_ROWS[0]} (fp32) and {LICENSE_ROWS[1]} (trainer.precision=bf16-mixed, nothing else), "
+          f"budget={LICENSE_BUDGET} trained and driven on this GPU, seeds {seeds}: {len(LICENSE_SEEDS)} pairs, a fixed "
+          f"number (no early stop, nothing pooled with the CPU studies); within a pair the order alternates "
+          f"(even seeds fp32 first); every cell on this one kind of GPU, one cell at a time, from one commit.\n"
+          f"  Rule: licensed iff the overall row of the test below reads \"equivalent within ±{LICENSE_MARGIN}\" "
+          f"(paired TOST p < 0.05 by seed, the 90% t-interval of the {len(LICENSE_SEEDS)} per-seed differences inside "
+          f"±{LICENSE_MARGIN} points); the columns are reported, not required. A license holds for this GPU kind only.",
+          flush=True)
+    if wait_share is not None and math.isfinite(wait_share):
+        print(f"  What it could buy here: this run's step waited for data {100 * wait_share:.0f}% of the time, so a "
+              f"faster precision can shorten at most the other {100 * (1 - wait_share):.0f}%.", flush=True)
+    print("  No TF32 arm: TF32 stays off (cicfw.model.speed.keep_fp32); licensing it needs a switch for it and a "
+          "study of its own with the same design.", flush=True)
+    print("  The cells, one command per seed:", flush=True)
+    for c in study["commands"]:
+        print(f"    {c}", flush=True)
+    print(f"  The test, once all {len(LICENSE_SEEDS)} pairs are in, run once:\n    {study['test']}", flush=True)
+    return study
 
 
 # ---- the data ----------------------------------------------------------------------------------------
@@ -270,6 +356,12 @@ def run_checks(args: argparse.Namespace, cuda: bool) -> bool:
         results.append(line(ok, "throughput measured",
                             f"{rate:.1f} samples/s, waiting for data {100 * wait:.1f}% of step time over "
                             f"{measured} steps (the first {WARMUP_BATCHES} of each epoch skipped), {memory}{where}"))
+    if cuda and not args.dry_run:
+        import torch
+
+        print_license_study(torch.cuda.get_device_name(0), wait if measured else None)
+    else:
+        print_license_study(EXAMPLE_GPU, example=True)
     return all(results)
 
 
@@ -287,6 +379,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, help="Adam's learning rate (default: the paper's, model.lr in conf/train.yaml)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workdir", help="write the data and the run here and keep them (default: a temporary folder)")
+    p.add_argument("--license-study", action="store_true",
+                   help="only print the bf16 license study's design, commands and rule for this GPU (no training)")
     p.add_argument("--act-on-cpu", nargs=2, metavar=("CKPT", "FRAMES"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     dry = args.dry_run
@@ -304,6 +398,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     import torch
 
     cuda = torch.cuda.is_available()
+    if args.license_study:
+        print_license_study(torch.cuda.get_device_name(0) if cuda else EXAMPLE_GPU, example=not cuda)
+        return 0
     if not cuda and not args.dry_run:
         print("gpu_check needs a CUDA GPU (torch sees none); run it with --dry-run to check the script on the CPU",
               flush=True)

@@ -40,7 +40,7 @@ def _ddp_cfg(tiny_data: Path, *extra: str):
 def test_ddp_config_is_lightning_ddp_with_selectable_precision(tiny_data, tmp_path):
     cfg = compose_train("trainer=ddp")
     assert cfg.trainer.strategy == "ddp" and cfg.trainer.accelerator == "gpu"
-    assert cfg.trainer.precision == "bf16-mixed" and cfg.trainer.use_distributed_sampler is False
+    assert cfg.trainer.precision == "32-true" and cfg.trainer.use_distributed_sampler is False  # the licensed precision
     assert cfg.trainer.max_epochs == compose_train().trainer.max_epochs  # inherits trainer/default
     trainer = build_trainer(_ddp_cfg(tiny_data, "trainer.precision=bf16-mixed"), tmp_path)
     assert isinstance(trainer.strategy, DDPStrategy) and trainer.world_size == 2

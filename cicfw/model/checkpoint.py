@@ -114,7 +114,9 @@ def load_model(path: str | Path):
     """A ``CICModule`` in eval mode rebuilt from a checkpoint, on the CPU (what
     ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
     from cicfw.model.module import CICModule
+    from cicfw.model.speed import keep_fp32
 
+    keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
     hp = dict(ckpt["hyper_parameters"])
     try:

@@ -27,6 +27,20 @@ import torch
 
 log = logging.getLogger("cicfw.speed")
 
+
+def keep_fp32() -> None:
+    """fp32 stays fp32 on a GPU: TensorFloat-32 off for matrix multiplies and cuDNN convolutions.
+
+    On Ampere and newer GPUs TF32 runs an fp32 matmul or convolution with 10-bit mantissas in its
+    products (fp32 has 23), and PyTorch's defaults already use it for cuDNN convolutions, which are most
+    of the CIL encoder's arithmetic. That is another numerical recipe, as bf16 autocast is, and it has no
+    license from driving (docs/training.md: the same paired test would license it), so ``32-true``
+    means IEEE fp32 here: every training and every checkpoint loaded to drive calls this. It changes
+    nothing on a CPU (the flags are CUDA's; oneDNN's fp32 stays fp32 by default)."""
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
+    torch.set_float32_matmul_precision("highest")
+
 ADAM_IMPLS = ("for-loop", "foreach", "fused")
 
 
@@ -218,6 +232,7 @@ def apply_speed_from_config(model, speed: SpeedConfig, trainer_cfg, batch_size: 
             log.info("speed.compile=auto: %d training steps, too few to pay for compiling; running eager", steps)
     on_cpu = str(trainer_cfg.get("accelerator", "cpu")) == "cpu" or (
         str(trainer_cfg.get("accelerator")) == "auto" and not torch.cuda.is_available())
+    keep_fp32()
     variant = apply_speed(model, speed, batch_size, warm=on_cpu)
     log.info("training speed variant: %s", variant)
     return variant
