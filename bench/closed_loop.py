@@ -2,6 +2,8 @@
 
     python bench/closed_loop.py                      # everything (about 10-15 minutes on 2 cores)
     python bench/closed_loop.py --skip-suite         # expert table + batched vs one-by-one only
+    python bench/closed_loop.py --parts --episodes 48 --rounds 3 --threads 2
+                                                     # [5] only: the runner against its parts (below)
 
 1. The expert on the whole suite (both towns x the four paper weathers): success per table column.
 2. The whole suite for one CIL-size checkpoint (an untrained CICModule with the CIL encoder,
@@ -11,6 +13,18 @@
    cost but the car is steered by the expert (``--steer model`` steers with the network instead).
 3. Lockstep-batched vs one-by-one (each episode alone, batch-1 inference) on the same episodes, both
    in one process, and the network alone at batch 1 vs the batch size, to show where time goes.
+
+5. ``--parts``: the runner against its parts, on the same episodes, in one process on the same threads,
+   interleaved rounds (each figure the median over the rounds), frames per second of:
+   - the whole runner (``benchmark.runner.run``: simulator + renderer + the network as the checkpoint
+     policy runs it, BatchNorm folded + NHWC, in the runner's batches; expert-steered as in 2.);
+   - the simulator and the runner alone (the expert policy on the same episodes: no camera, no network);
+   - the renderer alone (the centre camera re-rendered at every pose the runner served, at its time);
+   - the network alone on batches of the sizes the runner's calls had: eager (NCHW, BatchNorm unfolded,
+     ``predict_steer``) and as the runner runs it (``Agent.act`` on uint8 NHWC frames);
+   and the arithmetic limit beside them: this process's fp32 matmul GFLOP/s (bench/model_cost.py's
+   ``matmul_gflops``) over the network's FLOP per frame forward (``count``): the frames/s no fp32 forward
+   of this network can beat on these threads.
 
 Timings on a shared machine are noisy: the load average is printed before and after.
 """
@@ -90,6 +104,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch threads in this process (default: all cores)")
     ap.add_argument("--only-inference", action="store_true",
                     help="only [4]: the inference variants at the runner's batch size (1 thread, as each of 2 workers)")
+    ap.add_argument("--parts", action="store_true",
+                    help="only [5]: frames/s of the whole runner, the simulator, the renderer and the network alone, "
+                         "on the same episodes, beside the arithmetic limit")
+    ap.add_argument("--episodes", type=int, default=48, help="[5]: episodes, spread over the suite's cells")
+    ap.add_argument("--rounds", type=int, default=3, help="[5]: interleaved rounds (the median is printed)")
+    ap.add_argument("--matmul", type=int, default=2048, help="[5]: the N of the N x N fp32 matmul measuring GFLOP/s")
     args = ap.parse_args()
 
     import torch
@@ -105,6 +125,8 @@ def main() -> None:
     print(f"closed-loop bench: {os.cpu_count()} cores, torch {torch.__version__}, {load()}")
     if args.only_inference:
         return inference_variants(args.batch_size, frames=None)
+    if args.parts:
+        return runner_parts(args.episodes, args.batch_size, args.rounds, args.matmul)
     sim = {"name": "embedded"}
     suite_frames = None  # set by the whole-suite run below, unless --skip-suite
     backend = make_backend(sim)
@@ -198,6 +220,130 @@ def main() -> None:
         print(f"render centre camera: {1e3 * statistics.median(ts):.2f} ms/frame (median); {load()}")
     print(f"\nexpert suite steps for reference: {expert_steps}")
     inference_variants(args.batch_size, frames=suite_frames or expert_steps)
+
+
+def load_bench(name: str):
+    """Another bench/ script as a module (bench/ is a folder of scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def spread(episodes: list, n: int) -> list:
+    """``n`` episodes evenly spread over the suite (every cell gets its share)."""
+    return [e for k, e in enumerate(episodes) if k % max(len(episodes) // max(n, 1), 1) == 0][:n]
+
+
+def runner_parts(n_episodes: int, batch: int, rounds: int, matmul: int) -> None:
+    """[5] Frames/s of the whole runner, the simulator + runner alone, the renderer alone and the network
+    alone (eager, and as the runner runs it) on the same episodes, one process, the same threads,
+    interleaved rounds; beside the arithmetic limit of an fp32 forward on these threads."""
+    import cv2
+    import torch
+
+    from cicfw.benchmark.builtin_policies import ExpertPolicy
+    from cicfw.benchmark.runner import RunnerConfig, run
+    from cicfw.benchmark.suite import PAPER_WEATHERS, build_suite, make_backend, suite_routes
+    from cicfw.model.checkpoint import load_model
+
+    cost = load_bench("model_cost")
+    cv2.setNumThreads(1)  # as each runner worker sets it
+    backend = make_backend({"name": "embedded"})
+    suite = build_suite(backend, ["town_a", "town_b"], PAPER_WEATHERS, training_towns=["town_a"])
+    episodes = spread(suite, n_episodes)
+    cfg = RunnerConfig(batch_size=batch, progress_bar=False)
+
+    class Sized(ExpertSteeredNetwork):
+        """The runner's policy, recording the size of every call."""
+
+        sizes: list[int] = []
+
+        def act(self, obs):
+            self.sizes.append(len(obs))
+            return super().act(obs)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt = str(make_checkpoint(Path(tmp)))
+        policy = Sized(ckpt)
+        eager = load_model(ckpt)  # eval mode, NCHW, BatchNorm unfolded
+        flop = cost.totals(cost.count(cost.build()))["forward_flop"]
+        print(f"[5] the runner against its parts: {len(episodes)} episodes over "
+              f"{len({(e.town, e.weather) for e in episodes})} (town, weather) cells, batch {batch}, one process, "
+              f"{torch.get_num_threads()} torch threads, cv2 1 thread, {rounds} interleaved rounds; {load()}", flush=True)
+        envs = {}
+        for e in episodes:  # the renderers bake their textures outside the timings
+            route = suite_routes(backend, e.town)[e.pair]
+            envs[e.key] = backend.make_env(e.town, route, e.weather, seed=cfg.seed, cameras=("centre",))
+        run(episodes[:2], policy, backend, cfg)  # warm-up: weights paged in, thread pools started
+        rates: list[float] = []  # the matmul's GFLOP/s, measured in every round as the figures are
+
+        figures: dict[str, list[float]] = {k: [] for k in (
+            "whole runner (sim + renderer + network)", "simulator + runner alone (expert, no camera)",
+            "renderer alone (centre camera)", "network alone, eager (NCHW, BatchNorm unfolded)",
+            "network alone, as the runner runs it (folded + NHWC)")}
+        names = list(figures)
+        frames = 0
+        for r in range(rounds):
+            Sized.sizes = []
+            t = time.perf_counter()
+            res = run(episodes, policy, backend, cfg)
+            figures[names[0]].append(res.steps / (time.perf_counter() - t))
+            frames, sizes = res.steps, list(Sized.sizes)
+
+            t = time.perf_counter()
+            sim = run(episodes, ExpertPolicy(), backend, cfg)
+            figures[names[1]].append(sim.steps / (time.perf_counter() - t))
+            assert [row["steps"] for row in sim.rows] == [row["steps"] for row in res.rows]
+
+            poses = [(envs[k].renderer, res.trajectories[k]) for k in (e.key for e in episodes)]
+            t = time.perf_counter()
+            n = 0
+            for renderer, tr in poses:
+                for k in range(len(tr["x"])):
+                    renderer.render(float(tr["x"][k]), float(tr["y"][k]), float(tr["yaw"][k]), k * 0.1)
+                    n += 1
+            figures[names[2]].append(n / (time.perf_counter() - t))
+
+            big = max(sizes)
+            g = torch.Generator().manual_seed(r)
+            x = torch.randint(0, 256, (big, 3, 88, 200), dtype=torch.uint8, generator=g)
+            speed, cmd = torch.rand(big, generator=g) * 30, torch.arange(big) % 4
+            frames_nhwc = x.permute(0, 2, 3, 1).contiguous().numpy()
+            t = time.perf_counter()
+            with torch.inference_mode():
+                for b in sizes:
+                    eager.predict_steer(x[:b], speed[:b], cmd[:b])
+            figures[names[3]].append(sum(sizes) / (time.perf_counter() - t))
+            agent = policy.net.agent
+            speed_np, codes = speed.numpy(), (cmd + 2).numpy()
+            t = time.perf_counter()
+            for b in sizes:
+                agent.act(frames_nhwc[:b], speed_np[:b], codes[:b])
+            figures[names[4]].append(sum(sizes) / (time.perf_counter() - t))
+            rates.append(cost.matmul_gflops(matmul))
+            print(f"  round {r + 1}: " + ", ".join(f"{v[-1]:.0f}" for v in figures.values())
+                  + f" frames/s; matmul {rates[-1]:.1f} GFLOP/s; {load()}", flush=True)
+
+        gflops = statistics.median(rates)
+        limit = gflops * 1e9 / flop
+        print(f"\n{frames} frames per round ({len(sizes)} network calls, mean batch {frames / max(len(sizes), 1):.1f}); "
+              f"medians over {rounds} rounds:")
+        for i, (k, v) in enumerate(figures.items()):
+            med = statistics.median(v)
+            share = f"{100 * med / limit:5.1f}% of the limit" if i in (0, 3, 4) else "(no network)"
+            print(f"  {k:<56} {med:8.1f} frames/s  {1e3 / med:7.2f} ms/frame  {share}")
+        print(f"  {'arithmetic limit (fp32 forward at the matmul rate)':<56} {limit:8.1f} frames/s  {1e3 / limit:7.2f} ms/frame"
+              f"  = {gflops:.1f} GFLOP/s ({matmul}x{matmul} fp32 matmul, {torch.get_num_threads()} threads, median) "
+              f"/ {flop / 1e9:.3f} GFLOP a frame")
+        whole, rend, net = (statistics.median(figures[names[i]]) for i in (0, 2, 4))
+        print(f"  per frame: whole {1e3 / whole:.2f} ms = renderer {1e3 / rend:.2f} + network {1e3 / net:.2f} "
+              f"+ the rest (simulator, runner, batching) {1e3 / whole - 1e3 / rend - 1e3 / net:.2f}; {load()}")
+        print(f"SUMMARY runner {whole:.1f} frames/s, renderer {rend:.1f}, network (as run) {net:.1f}, "
+              f"limit {limit:.1f} ({gflops:.1f} GFLOP/s, {torch.get_num_threads()} threads): runner / limit "
+              f"{whole / limit:.3f}, network / limit {net / limit:.3f}")
 
 
 def inference_variants(batch: int, frames: int | None, rounds: int = 5) -> None:

@@ -5,6 +5,10 @@ Each step gathers the observations of all running episodes, calls ``policy.act``
 and the speed controller's throttle/brake (so the suite measures steering only). Episodes end on
 success (within the backend's success radius of the goal), at their timeout, far off their route,
 or once the car has spent more than ``off_road_s`` seconds (in total) with its centre off the road.
+An episode is decided by the step that ends it and leaves the batch at once: it is never stepped or
+acted on again, and the frame after its last step is not rendered either (an env whose ``step`` takes
+``render=False`` renders with ``render()`` only for the episodes that go on), so a policy that reads a
+camera costs one rendered frame per observation it is served, no more.
 ``workers`` > 1 splits the episodes over processes (spawned; each builds its own policy and
 simulator from plain config); results are merged in episode order, so a run is deterministic for a
 seed, batch size and worker count.
@@ -92,10 +96,12 @@ class RunResult:
 class _Track:
     """What the runner keeps per running episode."""
 
-    __slots__ = ("env", "obs", "route", "rec", "off_time", "dist", "last_xy")
+    __slots__ = ("env", "obs", "route", "rec", "off_time", "dist", "last_xy", "on_demand")
 
-    def __init__(self, env: Any, route: Any) -> None:
+    def __init__(self, env: Any, route: Any, cameras: tuple = ()) -> None:
         self.env, self.route = env, route
+        # render a frame only once the episode is known to go on (an env that can: DrivingEnv)
+        self.on_demand = bool(cameras) and renders_on_demand(env)
         self.rec: list[tuple] = []
         self.off_time = 0.0
         self.dist = 0.0
@@ -133,7 +139,7 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
         route = suite_routes(backend, ep.town)[ep.pair]
         env = backend.make_env(ep.town, route, ep.weather, seed=cfg.seed, cameras=cams or ("centre",),
                                renderer=bool(cams))
-        tr = _Track(env, route)
+        tr = _Track(env, route, cams)
         tr.obs = env.reset()
         tr.last_xy = tr.obs["pose"][:2]
         tracks.append(tr)
@@ -154,7 +160,8 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
             tr, ep = tracks[i], episodes[i]
             o = tr.obs
             target = cfg.target_speed_kmh if cfg.target_speed_kmh is not None else o["target_speed_kmh"]
-            new, done, info = tr.env.step(float(steer[i]), target_speed_kmh=float(target))
+            new, done, info = tr.env.step(float(steer[i]), target_speed_kmh=float(target),
+                                          **({"render": False} if tr.on_demand else {}))
             x, y, yaw = o["pose"]
             tr.rec.append((x, y, yaw, o["speed_kmh"], steer[i], o["command"],
                            info.get("off_road", 0.0), info.get("opposite_lane", 0.0)))
@@ -169,6 +176,8 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
                 if tr.off_time > cfg.off_road_s + 1e-9:
                     reason = "off_road"
             if reason is None:
+                if tr.on_demand:  # it goes on: the frame its policy will be served next
+                    new["images"] = tr.env.render()
                 still.append(i)
                 continue
             rows[i], trajs[ep.key] = _finish(ep, tr, info, reason)
@@ -178,6 +187,20 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
         active = still
     return RunResult(rows=[rows[i] for i in range(len(episodes))], trajectories=trajs,
                      wall_s=time.perf_counter() - t0, steps=steps)
+
+
+def renders_on_demand(env: Any) -> bool:
+    """Whether ``env.step`` takes ``render=False`` and ``env.render()`` draws the frame afterwards (the
+    embedded simulator's env); a backend whose frames come with every tick (CARLA's sensors) has not."""
+    import inspect
+
+    step, render = getattr(env, "step", None), getattr(env, "render", None)
+    if not callable(step) or not callable(render):
+        return False
+    try:
+        return "render" in inspect.signature(step).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _act(policy: Policy, tracks: list[_Track], indices: list[int], cams: tuple) -> np.ndarray:

@@ -1,6 +1,8 @@
 """A driving episode on a route: ``DrivingEnv(town, route, weather, seed, cameras)``.
 
-``reset() -> obs``; ``step(steer, target_speed_kmh=... | throttle=..., brake=...) -> (obs, done, info)``.
+``reset() -> obs``; ``step(steer, target_speed_kmh=... | throttle=..., brake=..., render=True) -> (obs, done, info)``;
+``render() -> images`` of the current state (after ``step(..., render=False)``: a caller that decides
+whether it needs the frame, as the benchmark's runner does, renders only the frames it serves).
 obs: ``images`` (camera -> (88, 200, 3) uint8, empty without a renderer), ``speed_kmh``, ``command``
 (CIL code at the car's place on the route), ``pose`` (x, y, yaw of the rear axle), ``t`` (s),
 ``target_speed_kmh`` (the expert's planned speed here, for steering-only policies).
@@ -108,7 +110,10 @@ class DrivingEnv:
         return steer, v * 3.6
 
     def step(self, steer: float, target_speed_kmh: float | None = None, throttle: float | None = None,
-             brake: float | None = None) -> tuple[dict, bool, dict]:
+             brake: float | None = None, render: bool = True) -> tuple[dict, bool, dict]:
+        """Advance 0.1 s. ``render=False``: the new observation's ``images`` are left empty ({}) and
+        ``render()`` draws them on demand (the same frame: the renderer is a function of the pose and the
+        time), so a frame nobody will see, such as the one after the step that ends an episode, is not drawn."""
         if self.vehicle is None:
             raise RuntimeError("DrivingEnv.step before reset()")
         if self.done:
@@ -123,10 +128,18 @@ class DrivingEnv:
         self.steps += 1
         s = self.vehicle.s
         i = self.expert.locate(s.x, s.y)  # once per step; _obs and info reuse it
-        obs = self._obs(i)
+        obs = self._obs(i, render=render)
         info = self.info(i)
         self.done = info["reason"] is not None
         return obs, self.done, info
+
+    def render(self) -> dict:
+        """The cameras' images of the current state ({} without a renderer): what ``step`` puts in the
+        observation when it renders."""
+        if self.renderer is None or self.vehicle is None:
+            return {}
+        s = self.vehicle.s
+        return self.renderer.render(s.x, s.y, s.yaw, self.t + self.time_offset)
 
     def info(self, i: int | None = None) -> dict:
         s = self.vehicle.s
@@ -136,12 +149,11 @@ class DrivingEnv:
         return step_info(self.route, s.x, s.y, i, self.t, self.success_radius, self.timeout, self.max_deviation,
                          (in_j, opp, off))
 
-    def _obs(self, i: int | None = None) -> dict:
+    def _obs(self, i: int | None = None, render: bool = True) -> dict:
         s = self.vehicle.s
         if i is None:
             i = self.expert.locate(s.x, s.y)
-        images = (self.renderer.render(s.x, s.y, s.yaw, self.t + self.time_offset)
-                  if self.renderer is not None else {})
+        images = self.render() if render else {}
         return {"images": images, "speed_kmh": s.speed * 3.6, "command": int(self.route.commands[i]),
                 "pose": (s.x, s.y, s.yaw), "t": self.t,
                 "target_speed_kmh": float(self.expert.profile[min(i + 4, len(self.expert.profile) - 1)]) * 3.6}
