@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import cicfw.sim.env as sim_env
-from cicfw.collection import DEFAULTS, collect_dataset, episode_plan, make_backend, resolve_config, run_episode
+from cicfw.collect import DEFAULTS, collect_dataset, episode_plan, make_backend, resolve_config, run_episode
 
 
 def main() -> None:

@@ -83,7 +83,7 @@ def runner(runtime: str, model: str, threads: int):
         session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
         return (lambda img, speed, cmd: session.run(["steer"], {"images": img, "speed_kmh": speed,
                                                               "command": cmd})[0]), base
-    from cicfw.agent import Agent
+    from cicfw.export.agent import Agent
 
     base = status_mb("VmRSS")
     agent = Agent.load(model, threads=threads, device="cpu", fuse=runtime != "eager")
@@ -158,7 +158,7 @@ def main() -> None:
     if args.quick:
         args.warmup, args.reps, args.min_s = 1, 2, 0.0
 
-    from cicfw.export import TOLERANCE, export_model
+    from cicfw.export.app import TOLERANCE, export_model
 
     batches = [int(b) for b in args.batches.split(",")]
     threads_list = [int(t) for t in args.threads_list.split(",")]

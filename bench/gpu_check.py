@@ -232,7 +232,7 @@ def step_timer():
 @contextlib.contextmanager
 def with_callback(callback):
     """``cicfw.train.build_callbacks`` returning its callbacks plus ``callback``, while the block runs."""
-    import cicfw.train as train_module
+    import cicfw.train.app as train_module
 
     original = train_module.build_callbacks
     train_module.build_callbacks = lambda cfg, run_dir: [*original(cfg, run_dir), callback]
@@ -248,7 +248,7 @@ def train_run(data: Path, run_dir: Path, overrides: Sequence[str]):
     returns the timing callback."""
     from hydra import compose, initialize_config_module
 
-    from cicfw.train import train
+    from cicfw.train.app import train
 
     timer = step_timer()
     with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -261,7 +261,7 @@ def train_run(data: Path, run_dir: Path, overrides: Sequence[str]):
 def act_on_cpu(checkpoint: Path, frames: Path) -> dict[str, Any]:
     """Load ``checkpoint`` with ``Agent.load(device="cpu")`` and act on the frames of ``frames`` (.npz:
     rgb, speed, command); run in a process that sees no GPU."""
-    from cicfw.agent import Agent
+    from cicfw.export.agent import Agent
 
     agent = Agent.load(checkpoint, device="cpu")
     f = np.load(frames)

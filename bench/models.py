@@ -31,7 +31,7 @@ LIMIT = 1.5
 def build(mixer: str, head: str):
     from hydra import compose, initialize_config_module
 
-    from cicfw.train import build_model
+    from cicfw.train.app import build_model
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         cfg = compose("train", overrides=[f"mixer={mixer}", f"head={head}"])

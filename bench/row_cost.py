@@ -21,7 +21,7 @@ import torch
 from hydra import compose, initialize_config_module
 
 from cicfw.model.speed import SpeedConfig, apply_speed, dummy_batch, time_steps
-from cicfw.train import build_model
+from cicfw.train.app import build_model
 
 BATCH = 120
 

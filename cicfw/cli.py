@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "diagnose": ("cicfw.diagnose", "why a model misses turns: steering vs expert per junction phase, command swaps"),
     "export": ("cicfw.export", "a checkpoint as one ONNX or TorchScript graph, parity-checked (format=onnx|torchscript)"),
     "plugins": ("cicfw.registry", "list registered encoders, mixers, heads and where they come from"),
-    "carla-check": ("cicfw.carla_check", "test a CARLA server in a minute: PASS/FAIL per guarantee"),
+    "carla-check": ("cicfw.carla_client.check", "test a CARLA server in a minute: PASS/FAIL per guarantee"),
 }
 
 

@@ -123,7 +123,7 @@ def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
     run one training and one validation batch; returns the validation metric (finite)."""
     from hydra import compose, initialize_config_module
 
-    from cicfw.train import train
+    from cicfw.train.app import train
 
     tmp_path = Path(tmp_path)
     data = write_tiny_dataset(tmp_path / "data")

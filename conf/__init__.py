@@ -1,7 +1,7 @@
 # The Hydra config tree, installed as the package ``cicfw.conf`` (see setup.py).
 #
 # The apps' config schemas are registered by the packages each app config puts on its search path
-# (cicfw.train_schema, cicfw.evaluate_schema, cicfw.collect_schema, ...): Hydra imports one when it
+# (cicfw.train.schema, cicfw.benchmark.schema, cicfw.collect.schema, ...): Hydra imports one when it
 # composes that app's config only.
 from cicfw.core.config_checks import forget_empty_cache_setting
 

@@ -86,7 +86,7 @@ def fast_cfg(tiny_data: Path):
 @pytest.fixture
 def no_data(monkeypatch):
     """Fail loudly if training reaches the data (collecting or reading any file)."""
-    import cicfw.train as train_mod
+    import cicfw.train.app as train_mod
     from cicfw.data.datamodule import CILDataModule
 
     def touched(*_a, **_k):

@@ -1,5 +1,5 @@
-"""The collect, export and diagnose configs are checked by their schemas (cicfw/collect_schema,
-cicfw/export_schema, cicfw/diagnose_schema; the collect app's ``sim`` node by cicfw/sim/schema.py, as the
+"""The collect, export and diagnose configs are checked by their schemas (cicfw/collect/schema.py,
+cicfw/export/schema.py, cicfw/diagnose/schema.py; the collect app's ``sim`` node by cicfw/sim/schema.py, as the
 evaluate app's): OmegaConf refuses a wrong type or an unknown key in any node while composing, naming its
 full key, and what composing lets through (keys added with ``+``) is refused by the same schema before the
 run folder exists or anything is read. Each test asserts the refusal's kind and the key it names, not its
@@ -20,7 +20,7 @@ from hydra.errors import HydraException
 from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.registry import SIM_BACKENDS
 
-CHECKS = {"collect": "cicfw.collect_schema", "export": "cicfw.export_schema", "diagnose": "cicfw.diagnose_schema"}
+CHECKS = {"collect": "cicfw.collect.schema", "export": "cicfw.export.schema", "diagnose": "cicfw.diagnose.schema"}
 
 
 def compose_app(app: str, *overrides: str):
@@ -114,9 +114,9 @@ def test_the_default_config_passes_its_check(app):
 
 
 def test_the_nodes_take_their_keys_from_the_code():
-    from cicfw.collection.config import CollectConfig
-    from cicfw.export import export_model
-    from cicfw.steer_diagnostic import DataSettings, measure
+    from cicfw.collect.config import CollectConfig
+    from cicfw.export.app import export_model
+    from cicfw.diagnose.steer_diagnostic import DataSettings, measure
 
     collect = compose_app("collect")
     assert set(collect) == {f.name for f in dataclasses.fields(CollectConfig)} | {"out_dir", "verify"}

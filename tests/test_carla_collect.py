@@ -1,4 +1,4 @@
-"""``collect sim=carla`` offline: the collection engine (``cicfw.collection``) drives the CARLA backend
+"""``collect sim=carla`` offline: the collection engine (``cicfw.collect``) drives the CARLA backend
 against the recording stand-in server (real Town01/Town02 maps, autospecs of the real classes).
 
 The same CIL files as the embedded collector (three cameras, CIL noise, metadata, resume, the lock),
@@ -17,7 +17,7 @@ carla = pytest.importorskip("carla", reason="the CARLA client is not installed: 
 from cicfw.carla_client import backend as carla_backend  # noqa: E402
 from cicfw.carla_client.backend import CarlaBackend  # noqa: E402
 from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
-from cicfw.collection import collect_dataset, episode_plan, resolve_config  # noqa: E402
+from cicfw.collect import collect_dataset, episode_plan, resolve_config  # noqa: E402
 from cicfw.data.cil_hdf5 import T, check_file  # noqa: E402
 
 MAPS = maps_dir()

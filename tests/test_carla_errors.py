@@ -1,5 +1,5 @@
 """CARLA's errors are one line each (no server, the client missing, versions differing), found fast with the
-real ``carla.Client``; and ``python -m cicfw.carla_check`` reports PASS / FAIL per guarantee (here
+real ``carla.Client``; and ``python -m cicfw.carla_client.check`` reports PASS / FAIL per guarantee (here
 against the recording stand-in; against a real server it is the user's one-minute self-test)."""
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest
 
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
-from cicfw import carla_check  # noqa: E402
+from cicfw.carla_client import check as carla_check  # noqa: E402
 from cicfw.carla_client.backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
                                         CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
 from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
@@ -147,4 +147,4 @@ def test_carla_check_without_a_server_says_so(capsys):
 def test_cli_has_carla_check():
     from cicfw.cli import COMMANDS
 
-    assert COMMANDS["carla-check"][0] == "cicfw.carla_check"
+    assert COMMANDS["carla-check"][0] == "cicfw.carla_client.check"

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-import cicfw.collect as collect_mod
-import cicfw.collection.dataset as dataset_mod
+import cicfw.collect.app as collect_mod
+import cicfw.collect.dataset as dataset_mod
 import cicfw.core.files as files_mod
-from cicfw.collect import CollectConfigError, collect_dataset, resolve_config
-from cicfw.collection import LOCK_NAME
+from cicfw.collect import DEFAULTS, CollectConfigError, collect_dataset, resolve_config
+from cicfw.collect import LOCK_NAME
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.backends import EmbeddedBackend
@@ -340,7 +340,7 @@ def test_hydra_collect_config_composes_and_resolves():
     resolved = resolve_config(cfg)
     assert resolved["episodes"] == 3 and resolved["towns"] == ["town_a", "town_b"]
     assert resolve_config({}) == resolve_config(None)  # data.collect: {} = the defaults
-    assert set(resolve_config({})) == set(collect_mod.DEFAULTS)
+    assert set(resolve_config({})) == set(DEFAULTS)
 
 
 def test_the_documented_expert_keys_are_set_without_plus():
@@ -350,7 +350,7 @@ def test_the_documented_expert_keys_are_set_without_plus():
 
     from omegaconf import OmegaConf
 
-    from cicfw.collection import config_hash
+    from cicfw.collect import config_hash
     from cicfw.sim.expert import ExpertParams
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):

@@ -22,10 +22,10 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-import cicfw.collection.dataset as dataset_mod
-import cicfw.collection.writing as writing
+import cicfw.collect.dataset as dataset_mod
+import cicfw.collect.writing as writing
 import cicfw.core.files as files_mod
-from cicfw.collection import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
+from cicfw.collect import (LOCK_NAME, CollectConfigError, CollectError, DiskFullError, FolderLock, FolderLockedError,
                               collect_dataset, episode_bytes, episode_plan, resolve_config)
 from cicfw.data.cil_hdf5 import check_file, find_files
 from conftest import process_alive
@@ -33,7 +33,7 @@ from conftest import process_alive
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
-COLLECTOR = ("import json, sys\nfrom cicfw.collection import collect_dataset\n"
+COLLECTOR = ("import json, sys\nfrom cicfw.collect import collect_dataset\n"
              "collect_dataset(json.loads(sys.argv[1]), sys.argv[2], progress=False)\n")
 
 
@@ -95,7 +95,7 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
         assert f"is being collected into by another process (pid {a.pid} on {socket.gethostname()}, started " in msg
         assert "seed 0" in msg and "\n" not in msg
         # a third with the first one's config waits for it, then finds nothing left to do
-        with caplog.at_level(logging.WARNING, logger="cicfw.collection"):
+        with caplog.at_level(logging.WARNING, logger="cicfw.collect"):
             meta = json.loads(collect_dataset({**a_cfg, "lock_wait": 300}, out, progress=False).read_text())
         assert f"waiting for {out}: another process is collecting into it (pid {a.pid}" in caplog.text
         assert a.wait(600) == 0, a.stderr.read()
@@ -121,7 +121,7 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
 def test_a_training_job_waits_for_the_one_filling_the_same_cache(tmp_path: Path, caplog):
     """train's ensure_data calls the collector with data.collect (lock_wait defaults to waiting), as two
     jobs of a multirun on data=sim_default do."""
-    from cicfw.train import ensure_data
+    from cicfw.train.app import ensure_data
 
     out = tmp_path / "sim_default"
     out.mkdir()
@@ -129,7 +129,7 @@ def test_a_training_job_waits_for_the_one_filling_the_same_cache(tmp_path: Path,
     threading.Timer(1.5, lock.release).start()
     collect = {k: v for k, v in TINY.items() if k != "workers"} | {"episodes": 1}
     t0 = time.monotonic()
-    with caplog.at_level(logging.WARNING, logger="cicfw.collection"):
+    with caplog.at_level(logging.WARNING, logger="cicfw.collect"):
         ensure_data(OmegaConf.create({"path": str(out), "collect": collect}))
     assert time.monotonic() - t0 >= 1.4
     assert f"pid {os.getpid()} on {socket.gethostname()}" in caplog.text and "(the other job)" in caplog.text
@@ -200,7 +200,7 @@ if mode == "death signal only":  # no parent-pid poll
         def start(self):
             pass
     threading.Thread = NoThread
-from cicfw.collection import workers
+from cicfw.collect import workers
 if mode == "a collect worker":  # the real worker entry point, waiting for its next episode
     class Tasks:
         def get(self):
@@ -447,7 +447,7 @@ def _listing(folder: Path) -> dict[str, bytes]:
 def test_a_folder_of_the_users_own_hdf5_files_is_left_exactly_as_it_was(tmp_path: Path, capsys, monkeypatch):
     """``cicfw collect out_dir=<a folder of my .h5 files>``: one line, exit 2, and no ``.collect.lock`` (nor
     a removed ``.*.tmp``) left in the user's folder: the refusal comes before the lock is taken."""
-    import cicfw.collect as collect_mod
+    import cicfw.collect.app as collect_mod
 
     monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     mine = tmp_path / "mine"

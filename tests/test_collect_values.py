@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 
-import cicfw.collect as collect_mod
-import cicfw.collection.dataset as dataset_mod
+import cicfw.collect.app as collect_mod
+import cicfw.collect.dataset as dataset_mod
 from cicfw.sim.expert import ExpertParams
 
 

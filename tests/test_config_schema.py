@@ -1,4 +1,4 @@
-"""The train config's schema comes from the code it configures (cicfw/train_schema): OmegaConf refuses a
+"""The train config's schema comes from the code it configures (cicfw/train/schema.py): OmegaConf refuses a
 wrong type or an unknown key while composing, naming its full key; keys added with ``+`` are refused by
 the same schema before any data; a plugin's mixer gets its checks from its own signature. Each test
 asserts the refusal's kind and the key it names, not its sentence."""
@@ -12,8 +12,8 @@ from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
 from cicfw.core.config_checks import SchemaError, check_kwargs, config_error, kwargs_schema
-from cicfw.train import build_model, make_datamodule, trainer_kwargs
-from cicfw.train_schema import checked_speed
+from cicfw.train.app import build_model, make_datamodule, trainer_kwargs
+from cicfw.train.schema import checked_speed
 from conftest import compose_train
 
 HAS_ATTENTION = importlib.util.find_spec("cicfw_attention_mixer") is not None
@@ -118,18 +118,18 @@ def test_the_collections_sim_node_is_checked_by_its_backends_schema_before_colle
                                                                                    monkeypatch):
     """``data.collect.sim`` gets the collect app's per-backend schema (cicfw/sim/schema.py): refused when the
     datamodule is made, which training does before it collects anything."""
-    import cicfw.train
+    import cicfw.train.app
 
     def collect(*args, **kwargs):
         raise AssertionError("the training went on to collect its data")
 
-    monkeypatch.setattr(cicfw.train, "ensure_data", collect)
+    monkeypatch.setattr(cicfw.train.app, "ensure_data", collect)
     cfg = compose_train(f"data.path={tmp_path / 'sim'}", *overrides)
     with pytest.raises(SchemaError) as err:
         make_datamodule(cfg)
     assert (err.value.kind, err.value.key) == (kind, key), err.value
     with pytest.raises(SchemaError) as err:
-        cicfw.train.train(cfg, tmp_path / "run")
+        cicfw.train.app.train(cfg, tmp_path / "run")
     assert err.value.key == key and not (tmp_path / "sim").exists()
     make_datamodule(compose_train("data.collect.sim.name=carla", "+data.collect.sim.port=2000"))  # a good one
 
@@ -199,7 +199,7 @@ def test_every_lightning_trainer_argument_is_in_the_schema_with_its_default():
 def test_the_model_and_the_collection_take_their_defaults_from_the_code():
     import inspect
 
-    from cicfw.collection.config import CollectConfig
+    from cicfw.collect.config import CollectConfig
     from cicfw.model.module import CICModule
 
     cfg = compose_train()

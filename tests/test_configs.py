@@ -8,7 +8,7 @@ import pytest
 
 import cicfw.conf
 from cicfw.data.datamodule import CILDataModule
-from cicfw.train import build_model, build_trainer, name_and_kwargs
+from cicfw.train.app import build_model, build_trainer, name_and_kwargs
 from conftest import compose_train
 
 CONF = Path(cicfw.conf.__file__).parent

@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
-from cicfw.collection import CollectError, collect_dataset
+from cicfw.collect import CollectError, collect_dataset
 from cicfw.data.cil_hdf5 import CILFormatError, T, find_files, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.testing import make_targets, write_tiny_dataset

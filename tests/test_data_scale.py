@@ -259,7 +259,7 @@ def test_train_counts_a_copy_per_rank_before_the_ranks_start(tmp_path, monkeypat
     import cicfw.data.datamodule as dm_module
     from hydra import compose, initialize_config_module
 
-    from cicfw import train as train_module
+    from cicfw.train import app as train_module
 
     seen = []
     real = dm_module.decide

@@ -10,7 +10,7 @@ import pytest
 from lightning.pytorch.strategies import DDPStrategy
 
 from cicfw import N_COMMANDS
-from cicfw.train import build_datamodule, build_model, build_trainer
+from cicfw.train.app import build_datamodule, build_model, build_trainer
 from conftest import compose_train
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

@@ -1,4 +1,4 @@
-"""The steering diagnostic (``cicfw diagnose``, ``cicfw.steer_diagnostic``) on models with a known answer.
+"""The steering diagnostic (``cicfw diagnose``, ``cicfw.diagnose.steer_diagnostic``) on models with a known answer.
 
 The frames are tiny episodes whose image carries its own expert steering in one pixel, so a plain
 ``steer_fn`` can be a model with an exact, known relation to the expert: half the expert's steering
@@ -18,7 +18,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from cicfw import steer_diagnostic as sd
+from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 
@@ -293,7 +293,7 @@ def test_the_cli_lists_diagnose_and_a_missing_checkpoint_is_one_line(tmp_path: P
 
 def test_bad_inputs_are_one_clear_line(tmp_path: Path, episodes: Path):
     from cicfw.model.checkpoint import CheckpointError
-    from cicfw.diagnose import diagnose
+    from cicfw.diagnose.app import diagnose
 
     out = tmp_path / "out"
     with pytest.raises(ValueError, match="give checkpoint="):
@@ -319,7 +319,7 @@ def test_bad_inputs_are_one_clear_line(tmp_path: Path, episodes: Path):
 def test_a_reproduce_cell_gives_its_training_split(tmp_path: Path, episodes: Path):
     """A cicfw reproduce cell saves the reproduction's config, not the training one: the cell's training
     config is composed again from its row, seed and budget."""
-    from cicfw.diagnose import training_data
+    from cicfw.diagnose.app import training_data
 
     cell = tmp_path / "cells" / "cil" / "seed2"
     ckpt = save_checkpoint(cell / "train")
@@ -350,7 +350,7 @@ BAD_OPTIONS = [  # override, the key its one line names (each refused before the
 def test_bad_numbers_and_devices_are_refused_before_anything_loads(tmp_path: Path, override: str, key: str):
     """A value outside its domain is one line naming the key and what is accepted, before the checkpoint
     (here a missing one, which would otherwise be the error) or the data is read; nothing is written."""
-    from cicfw.diagnose import diagnose
+    from cicfw.diagnose.app import diagnose
 
     out = tmp_path / "out"
     with pytest.raises(ValueError) as err:
@@ -362,7 +362,7 @@ def test_bad_numbers_and_devices_are_refused_before_anything_loads(tmp_path: Pat
 
 def test_a_cuda_device_this_machine_lacks_is_one_line(tmp_path: Path, monkeypatch):
     """device=cuda without CUDA, or a GPU index past the machine's: one line offering cpu / auto / the GPUs there."""
-    from cicfw.diagnose import diagnose
+    from cicfw.diagnose.app import diagnose
 
     nope = f"checkpoint={tmp_path / 'nope.ckpt'}"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 import cicfw.core.files
-from cicfw.evaluate import OutputWriteError, evaluate_policy
-from cicfw.train import make_datamodule, train
+from cicfw.benchmark.app import OutputWriteError, evaluate_policy
+from cicfw.train.app import make_datamodule, train
 from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")

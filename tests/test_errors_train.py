@@ -16,7 +16,7 @@ import torch
 from cicfw.benchmark.suite import check_names
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.core.config_checks import SchemaError
-from cicfw.train import build_model, build_trainer, check_resume_checkpoint, train
+from cicfw.train.app import build_model, build_trainer, check_resume_checkpoint, train
 from conftest import compose_train, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -209,7 +209,7 @@ def test_a_registered_mixer_with_a_required_argument_names_it(tmp_path, no_data,
 
     from cicfw.model.mixers import Mixer
     from cicfw.registry import MIXERS
-    from cicfw.train_schema import part
+    from cicfw.train.schema import part
 
     class NeedsWidth(Mixer):
         def __init__(self, in_dim: int, out_dim: int, width: int, hidden: int = 8) -> None:

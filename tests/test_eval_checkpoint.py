@@ -117,7 +117,7 @@ def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
 
 
 def test_evaluate_config_errors(tmp_path: Path):
-    from cicfw.evaluate import compose_config, evaluate
+    from cicfw.benchmark.app import compose_config, evaluate
 
     cases = [
         ([f"checkpoint={tmp_path}/nope.ckpt"], FileNotFoundError,
@@ -150,7 +150,7 @@ def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
 
 
 def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, tmp_path: Path):
-    from cicfw.evaluate import compose_config, evaluate, load_trajectories
+    from cicfw.benchmark.app import compose_config, evaluate, load_trajectories
 
     cfg = compose_config([f"checkpoint={ckpt}", f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]",
                           "suite.training_towns=[]", "suite.pairs=[0,13]", "runner.batch_size=2", "runner.threads=1",
@@ -189,7 +189,7 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
 
 
 def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
-    from cicfw.train import train
+    from cicfw.train.app import train
     from conftest import compose_train
 
     overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "suite.pairs=[4]", "progress_bar=false",
@@ -214,7 +214,7 @@ def test_a_cuda_device_this_machine_lacks_is_one_line_before_driving(ckpt: Path,
     """``policy.device=cuda`` on a machine without CUDA ended in torch's "Torch not compiled with CUDA
     enabled" traceback; the agent's device check (shared with diagnose) refuses it in one line."""
     from cicfw.benchmark.journal import LOG_NAME
-    from cicfw.evaluate import compose_config, evaluate
+    from cicfw.benchmark.app import compose_config, evaluate
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     cfg = compose_config([f"checkpoint={ckpt}", "policy.device=cuda", f"suite.towns=[{TOWN}]",

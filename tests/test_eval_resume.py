@@ -17,7 +17,7 @@ from cicfw.benchmark import evaluation_report as report
 from cicfw.benchmark.builtin_policies import ExpertPolicy
 from cicfw.benchmark.journal import LOG_NAME, EpisodeLog, RunFolderError, read_log
 from cicfw.benchmark.policy import POLICIES
-from cicfw.evaluate import evaluate_policy, run_fingerprint
+from cicfw.benchmark.app import evaluate_policy, run_fingerprint
 from conftest import process_alive
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -309,7 +309,7 @@ class KillingExpert(ExpertPolicy):
         return super().act(obs)
 
 POLICIES.register("killing_expert")(KillingExpert)
-from cicfw.evaluate import main
+from cicfw.benchmark.app import main
 main()
 """
 

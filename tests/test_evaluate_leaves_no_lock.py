@@ -8,7 +8,7 @@ import pytest
 
 from cicfw.benchmark.journal import LOCK_NAME
 from cicfw.core.errors import Interrupted
-from cicfw.evaluate import evaluate_policy
+from cicfw.benchmark.app import evaluate_policy
 
 pytestmark = pytest.mark.slow  # drives the suite (one episode)
 

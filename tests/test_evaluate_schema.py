@@ -1,4 +1,4 @@
-"""The evaluate config's schema comes from the code it configures (cicfw/evaluate_schema): OmegaConf refuses
+"""The evaluate config's schema comes from the code it configures (cicfw/benchmark/schema.py): OmegaConf refuses
 a wrong type or an unknown key while composing, naming its full key; what composing lets through (keys
 added with ``+``, ``runner.workers``) is refused by the same schema before the run folder exists. Each test
 asserts the refusal's kind and the key it names, not its sentence."""
@@ -16,8 +16,8 @@ from omegaconf import OmegaConf
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
 from cicfw.core.config_checks import SchemaError
-from cicfw.evaluate import check_evaluation_overrides, compose_config
-from cicfw.evaluate_schema import check
+from cicfw.benchmark.app import check_evaluation_overrides, compose_config
+from cicfw.benchmark.schema import check
 from cicfw.registry import SIM_BACKENDS
 
 
@@ -113,7 +113,7 @@ def test_the_evaluation_after_training_is_checked_by_the_schema(overrides, kind,
 
 
 def test_the_schema_is_a_dataclass_of_the_configs_top_level_keys():
-    from cicfw.evaluate_schema import EvaluateConfig
+    from cicfw.benchmark.schema import EvaluateConfig
 
     keys = {f.name for f in dataclasses.fields(EvaluateConfig)}
     assert keys == set(OmegaConf.load(os.path.join(os.path.dirname(__file__), "..", "conf", "evaluate.yaml"))) \

@@ -24,12 +24,12 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-import cicfw.export as export
-from cicfw.agent import Agent, AgentInputError, DrivingFunction
+import cicfw.export.app as export
+from cicfw.export.agent import Agent, AgentInputError, DrivingFunction
 from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
 from cicfw.benchmark.policy import Observations
 from cicfw.data.cil_hdf5 import T, write_file
-from cicfw.export import ExportError, export_model
+from cicfw.export.app import ExportError, export_model
 from cicfw.model.checkpoint import CheckpointError, load_model
 from cicfw.model.encoders import Encoder
 from cicfw.model.module import CICModule

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.export import ExportError, export_model
+from cicfw.export.app import ExportError, export_model
 
 
 @pytest.fixture

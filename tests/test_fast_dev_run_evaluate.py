@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import pytest
 from omegaconf import OmegaConf
 
-import cicfw.evaluate as evaluate
+import cicfw.benchmark.app as evaluate
 
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 
@@ -59,7 +59,7 @@ def test_a_real_training_drives_the_whole_suite_it_is_given(tmp_path, monkeypatc
 
 @pytest.mark.slow  # trains one batch and drives the suite
 def test_debug_fast_with_evaluate_after_drives_the_first_pair(tiny_data: Path, tmp_path: Path):
-    from cicfw.train import train
+    from cicfw.train.app import train
     from conftest import compose_train
 
     overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "progress_bar=false", "maps=false",

@@ -156,7 +156,7 @@ def test_preview_out_at_a_read_only_folder_is_one_line(capsys, monkeypatch, read
     (["--timeout", "nan"], "--timeout must be seconds > 0, got nan"),
 ])
 def test_carla_check_bad_values_are_one_line(capsys, args: list, message: str):
-    from cicfw import carla_check
+    from cicfw.carla_client import check as carla_check
 
     assert carla_check.main(args) == 2
     line = _one_error_line(capsys.readouterr().err)

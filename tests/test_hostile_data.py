@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-import cicfw.collect as collect_mod
-import cicfw.collection.dataset as dataset_mod
-from cicfw.collection import collect_dataset
+import cicfw.collect.app as collect_mod
+import cicfw.collect.dataset as dataset_mod
+from cicfw.collect import collect_dataset
 from cicfw.data.cil_hdf5 import T
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
@@ -133,7 +133,7 @@ def test_flipped_bytes_are_named_on_rerun_and_the_episode_collected_again(collec
     """A finished file with bytes flipped (same size, still opens as HDF5): a rerun used to say complete=True."""
     out, files = collected
     _flip(out / FIRST)
-    with caplog.at_level(logging.INFO, logger="cicfw.collection"):
+    with caplog.at_level(logging.INFO, logger="cicfw.collect"):
         meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
     said = [r.getMessage() for r in caplog.records if FIRST in r.getMessage() and r.levelno >= logging.WARNING]
     assert len(said) == 1, said
@@ -198,7 +198,7 @@ def test_a_dataset_collected_before_checksums_gets_them_on_rerun(collected, capl
     for f in meta["files"].values():
         f.pop("sha256", None)
     (out / "dataset_metadata.json").write_text(json.dumps(meta))
-    with caplog.at_level(logging.INFO, logger="cicfw.collection"):
+    with caplog.at_level(logging.INFO, logger="cicfw.collect"):
         meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
     assert meta["complete"]
     assert meta["files"][FIRST]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()

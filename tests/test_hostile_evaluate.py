@@ -13,7 +13,7 @@ import pytest
 
 from cicfw.benchmark.journal import LOG_NAME, read_log
 from cicfw.core.config_checks import SchemaError
-from cicfw.evaluate import compose_config, evaluate
+from cicfw.benchmark.app import compose_config, evaluate
 from test_hostile_train import _errors, read_only_app
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import cicfw.train as train_mod
+import cicfw.train.app as train_mod
 from cicfw.core.config_checks import SchemaError
-from cicfw.train import train
+from cicfw.train.app import train
 from conftest import compose_train, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -84,7 +84,7 @@ def test_evaluate_overrides_the_schema_refuses_are_refused_before_the_first_batc
 
 
 def test_good_evaluate_overrides_pass_the_check():
-    from cicfw.evaluate import check_evaluation_overrides
+    from cicfw.benchmark.app import check_evaluation_overrides
 
     check_evaluation_overrides([f"suite.towns=[{TOWN}]", "suite.limit=1", "runner.workers=2", "video=[0]"])
     check_evaluation_overrides(["suite=single_turn", "policy.device=cpu"])
@@ -318,7 +318,7 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("overrides, key", [
-    # unions the schema leaves open (Any): checked by what Lightning takes (cicfw/train_schema), or its own error
+    # unions the schema leaves open (Any): checked by what Lightning takes (cicfw/train/schema.py), or its own error
     (["trainer.max_time=1.5"], "trainer.max_time"),
     (["trainer.max_time=[1]"], "trainer.max_time"),
     (["trainer.max_time=1:00"], "trainer"),

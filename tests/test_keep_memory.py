@@ -22,8 +22,8 @@ import json, resource, sys
 import torch
 from hydra import compose, initialize_config_module
 from cicfw.model.speed import apply_speed_from_config, dummy_batch
-from cicfw.train import build_model
-from cicfw.train_schema import checked_speed
+from cicfw.train.app import build_model
+from cicfw.train.schema import checked_speed
 
 torch.set_num_threads(1)
 with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -78,7 +78,7 @@ def test_keep_memory_takes_true_or_false_only():
 def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():
     from hydra import compose, initialize_config_module
 
-    from cicfw.train import trainer_kwargs
+    from cicfw.train.app import trainer_kwargs
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         cfg = compose("train", overrides=["speed.keep_memory=false"])
@@ -88,7 +88,7 @@ def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():
 def test_a_bad_value_is_refused_before_any_data_is_collected(tmp_path, monkeypatch):
     from hydra import compose, initialize_config_module
 
-    import cicfw.train as train_app
+    import cicfw.train.app as train_app
 
     def no_data(*args, **kwargs):
         raise AssertionError("the data was reached before the bad switch was refused")

@@ -1,26 +1,27 @@
 """Imports run one way, and every module of the package has its place in it::
 
-    apps (train and its train_schema, evaluate and its evaluate_schema, collect and its collect_schema,
-          reproduce, its reproduce_schema and reproduction.app, export and its export_schema, diagnose and its
-          diagnose_schema, cli, carla_check, testing)
-      -> benchmark | reproduction | collection | carla_client | steer_diagnostic
-      -> sim | model | data | agent
-      -> base (registry, core: errors, files, config_checks, override_hints, run_folder, sweeps, locks,
-               progress)
+    apps (each feature package's app, schema and __main__ modules, cli, testing, the entry modules
+          evaluate.py and reproduce.py, carla_client.check)
+      -> feature libraries (benchmark | reproduction | collect | carla_client | diagnose)
+      -> sim | model | data | export.agent
+      -> core, registry
 
 A module imports its own layer and those below, never one above, and no module imports itself back
-through others (no circle). ``cicfw.agent`` is the model's inference path (a checkpoint or an exported
-model in, steering out): it sits with the model, and the benchmark's checkpoint policy and the export
-app build on it. ``cicfw.reproduction`` (a reproduction's lock, statistics and report) builds on the
-benchmark, never the other way; its ``app`` trains and evaluates through the apps, so it is one of them
-(``python -m cicfw.reproduce`` is its entry module). A new module must be placed in ``LAYER_OF`` (a package
-entry places all of its modules).
+through others (no circle). ``cicfw.export.agent`` is the model's inference path (a checkpoint or an
+exported model in, steering out): it sits with the model, and the benchmark's checkpoint policy and the
+export app build on it. ``cicfw.reproduction`` (a reproduction's lock, statistics and report) builds on the
+benchmark, never the other way. A feature package's ``__init__`` imports its own ``schema`` and nothing else
+above it: Hydra's ``pkg://cicfw.<package>`` search path imports the package, which registers the schema. No
+module imports an app (``cicfw.<package>.app``) but the entry points (cli, the entry modules, a package's
+``__main__`` and schema) and the apps that run other apps (``APP_USERS``). A new module must be placed in
+``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins).
 
 ``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
 code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
 and ``cicfw.data`` import no simulator (and no benchmark). The CARLA client implements sim's interface
 and imports no benchmark, dataset or collection code. The collection stage (sim + data) and the CARLA
-check (benchmark + the CARLA client + collection) are imported by apps only.
+check (benchmark + the CARLA client + collection) are imported by apps only. ``FORBIDDEN`` holds a
+package's library modules to this; its app modules are apps.
 
 Every ``import`` and ``from ... import`` in the package is read with ``ast`` (function-level ones
 included: a lazy import is still a dependency), so a lower layer reaching up fails here.
@@ -35,37 +36,45 @@ import pytest
 import cicfw
 
 PKG = Path(cicfw.__file__).parent
-APPS = ("cicfw.train", "cicfw.train_schema", "cicfw.evaluate", "cicfw.evaluate_schema", "cicfw.collect",
-        "cicfw.collect_schema", "cicfw.reproduce", "cicfw.reproduce_schema", "cicfw.reproduction.app", "cicfw.cli",
-        "cicfw.carla_check")
+#: the feature packages: each holds its library, and its app modules (``app``, ``schema``, ``__main__``)
+FEATURES = ("train", "collect", "benchmark", "export", "reproduction", "diagnose", "carla_client")
+#: the apps: the feature packages' app modules, the console script, the entry modules and the plugin checks
+APPS = ("cicfw.train", "cicfw.cli", "cicfw.testing", "cicfw.evaluate", "cicfw.reproduce", "cicfw.carla_client.check",
+        *(f"cicfw.{f}.{m}" for f in FEATURES for m in ("app", "schema", "__main__")))
 #: the layers, lowest first
-LAYERS = ("base", "core", "stage", "app")
+LAYERS = ("base", "lib", "feature", "app")
 #: module or package -> its layer (a package places every module under it)
 LAYER_OF = {
     "cicfw": "base", "cicfw.registry": "base", "cicfw.core": "base",
-    "cicfw.sim": "core", "cicfw.model": "core", "cicfw.data": "core", "cicfw.agent": "core",
-    "cicfw.benchmark": "stage", "cicfw.reproduction": "stage", "cicfw.collection": "stage",
-    "cicfw.carla_client": "stage", "cicfw.steer_diagnostic": "stage",
-    **{app: "app" for app in APPS}, "cicfw.export": "app", "cicfw.export_schema": "app", "cicfw.diagnose": "app",
-    "cicfw.diagnose_schema": "app", "cicfw.testing": "app",
+    "cicfw.sim": "lib", "cicfw.model": "lib", "cicfw.data": "lib", "cicfw.export.agent": "lib",
+    "cicfw.benchmark": "feature", "cicfw.reproduction": "feature", "cicfw.collect": "feature",
+    "cicfw.carla_client": "feature", "cicfw.diagnose": "feature",
+    "cicfw.export": "app",  # its __init__ (which registers the schema), app and schema; its agent is "lib"
+    **{app: "app" for app in APPS},
 }
-#: package -> what none of its modules may import
+#: package -> what none of its library modules may import
 #: (``carla`` is CARLA's own client library: only the CARLA client may import it)
 BENCH = ("cicfw.benchmark", "cicfw.reproduction")
 FORBIDDEN = {
-    "sim": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "model": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "data": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collection", "carla"),
-    "carla_client": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.collection"),
+    "sim": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.export", "cicfw.carla_client", "cicfw.collect", "carla"),
+    "model": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collect", "carla"),
+    "data": (*BENCH, "cicfw.sim", "cicfw.carla_client", "cicfw.collect", "carla"),
+    "carla_client": (*BENCH, "cicfw.data", "cicfw.model", "cicfw.collect"),
     # the collection stage sits on the simulator interface and the data layer, nothing beside it
-    "collection": (*BENCH, "cicfw.model", "cicfw.carla_client", "carla"),
+    "collect": (*BENCH, "cicfw.model", "cicfw.carla_client", "carla"),
     # the agent runs the model: no simulator, dataset or benchmark code
-    "agent": (*BENCH, "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collection", "carla"),
+    "export": (*BENCH, "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collect", "carla"),
     # the benchmark drives and reports runs; a reproduction builds on it, never the other way
-    "benchmark": ("cicfw.reproduction", "cicfw.steer_diagnostic"),
+    "benchmark": ("cicfw.reproduction", "cicfw.diagnose"),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
-APPS_ONLY = ("cicfw.collection", "cicfw.carla_check")
+APPS_ONLY = ("cicfw.collect", "cicfw.carla_client.check")
+#: the apps that run another app: a reproduction trains and evaluates its cells, ``evaluate_after=true``
+#: evaluates the trained model through the evaluate app, ``cicfw.testing.fast_dev_run`` trains through the
+#: train app
+APP_USERS = ("cicfw.reproduction.app", "cicfw.train.app", "cicfw.testing")
+#: the most entries the top level of the package holds besides ``__init__.py`` (DESIGN's "Layout")
+TOP_LEVEL_MAX = 16
 
 
 def _module_name(path: Path, root: Path = PKG.parent) -> str:
@@ -115,9 +124,13 @@ def layer_of(name: str) -> str | None:
 
 
 def upward_imports(path: Path, root: Path = PKG.parent) -> list[str]:
-    """The cicfw modules ``path`` imports from a layer above its own."""
-    rank = LAYERS.index(layer_of(_module_name(path, root)))
-    return sorted(m for m in imports_of(path, root) if m.startswith("cicfw.")
+    """The cicfw modules ``path`` imports from a layer above its own (a package's ``__init__`` may import its
+    own ``schema``: Hydra's ``pkg://`` search path imports the package to register it)."""
+    name = _module_name(path, root)
+    rank = LAYERS.index(layer_of(name))
+    own_schema = f"{name}.schema" if path.name == "__init__.py" else None
+    return sorted(m for m in imports_of(path, root) if m.startswith("cicfw.") and m != name
+                  and not (own_schema and (m == own_schema or m.startswith(own_schema + ".")))
                   and layer_of(m) is not None and LAYERS.index(layer_of(m)) > rank)
 
 
@@ -174,8 +187,11 @@ def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def forbidden_imports(path: Path, root: Path = PKG.parent) -> list[str]:
-    """What ``path`` imports that FORBIDDEN denies its package."""
-    package = _module_name(path, root).split(".")[1]
+    """What ``path`` imports that FORBIDDEN denies its package's library modules (its apps are apps)."""
+    name = _module_name(path, root)
+    if layer_of(name) == "app":
+        return []
+    package = name.split(".")[1]
     found = imports_of(path, root)
     return [m for m in FORBIDDEN.get(package, ()) if _reaches(found, m)]
 
@@ -210,9 +226,11 @@ def test_every_module_has_a_layer():
 
 
 def test_the_checker_refuses_an_unplaced_module_and_an_upward_import(tmp_path):
-    assert layer_of("cicfw.brand_new") is None and layer_of("cicfw.benchmark.brand_new") == "stage"
-    assert layer_of("cicfw.reproduction.cells") == "stage" and layer_of("cicfw.reproduction.app") == "app"
-    bad = tmp_path / "cicfw" / "agent.py"
+    assert layer_of("cicfw.brand_new") is None and layer_of("cicfw.benchmark.brand_new") == "feature"
+    assert layer_of("cicfw.reproduction.cells") == "feature" and layer_of("cicfw.reproduction.app") == "app"
+    assert layer_of("cicfw.export.agent") == "lib" and layer_of("cicfw.export.app") == "app"
+    assert layer_of("cicfw.core.files") == "base" and layer_of("cicfw.benchmark.schema") == "app"
+    bad = tmp_path / "cicfw" / "export" / "agent.py"
     bad.parent.mkdir(parents=True)
     bad.write_text("def f():\n    from cicfw.benchmark.checkpoint_policy import CheckpointPolicy\n"
                    "    from cicfw.core import files\n")
@@ -257,7 +275,7 @@ def test_only_apps_import_the_collection_stage_and_the_carla_check():
     offenders = []
     for path in sorted(PKG.rglob("*.py")):
         name = _module_name(path)
-        if name in APPS:
+        if layer_of(name) == "app" or (path.name == "__init__.py" and name in APPS_ONLY):
             continue
         found = imports_of(path)
         offenders += [f"{name} imports {target}" for target in APPS_ONLY
@@ -283,3 +301,43 @@ def test_the_error_reporter_sits_at_the_bottom():
     it never pulls a layer in by the back door (it once imported the data layer for one exception)."""
     found = imports_of(PKG / "core" / "errors.py")
     assert not [m for m in found if m.startswith("cicfw.") and not m.startswith("cicfw.registry")], sorted(found)
+
+
+def app_imports(path: Path, root: Path = PKG.parent) -> list[str]:
+    """The apps (``cicfw.<package>.app``) ``path`` imports that it may not: only the entry points (cli, the
+    entry modules, a package's ``__main__``, and its ``schema`` its own app) and ``APP_USERS`` may."""
+    name = _module_name(path, root)
+    if name in ("cicfw.cli", "cicfw.evaluate", "cicfw.reproduce") or name in APP_USERS or name.endswith(".__main__"):
+        return []
+    package = name.rsplit(".", 1)[0] if name.endswith(".schema") else None
+    return sorted({a for m in imports_of(path, root) if m.startswith("cicfw.")
+                   for a in [".".join(m.split(".")[:3])] if a.endswith(".app") and a.count(".") == 2
+                   and a != name and a != f"{package}.app"})
+
+
+def test_the_checker_sees_an_app_importing_another_app(tmp_path):
+    bad = tmp_path / "cicfw" / "diagnose" / "app.py"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("def f():\n    from cicfw.reproduction.app import row_overrides\n")
+    assert app_imports(bad, tmp_path) == ["cicfw.reproduction.app"]
+    schema = tmp_path / "cicfw" / "export" / "schema.py"
+    schema.parent.mkdir(parents=True)
+    schema.write_text("from cicfw.export.app import export_model\n")
+    assert app_imports(schema, tmp_path) == []  # a schema taken from its own app's signature
+    main = tmp_path / "cicfw" / "train" / "__main__.py"
+    main.parent.mkdir(parents=True)
+    main.write_text("from cicfw.train.app import main\n")
+    assert app_imports(main, tmp_path) == []
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_no_module_imports_an_app_but_the_entry_points(path):
+    bad = app_imports(path)
+    assert not bad, (f"{path.relative_to(PKG.parent)} imports {bad}: move what it needs out of the app into its "
+                     f"package's library (tests/test_layering.py's docstring draws the layers)")
+
+
+def test_the_top_level_of_the_package_stays_small():
+    entries = sorted(p.name for p in PKG.iterdir() if p.name not in ("__init__.py", "__pycache__"))
+    assert len(entries) <= TOP_LEVEL_MAX, (f"cicfw/ holds {len(entries)} entries besides __init__.py: {entries}; "
+                                           f"put a new module in its feature package (CONTRIBUTING.md's Layout)")

@@ -18,9 +18,9 @@ import pytest
 
 from cicfw.benchmark.journal import LOCK_NAME as EVALUATE_LOCK
 from cicfw.benchmark.journal import EpisodeLog, RunFolderError
-from cicfw.collection import LOCK_NAME as COLLECT_LOCK
-from cicfw.collection import FolderLock as CollectLock
-from cicfw.collection import FolderLockedError
+from cicfw.collect import LOCK_NAME as COLLECT_LOCK
+from cicfw.collect import FolderLock as CollectLock
+from cicfw.collect import FolderLockedError
 from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.reproduction.lock import LOCK_FILE, FolderInUse, ResultsLock
 from cicfw.core.sweeps import ROWS_DIR, RowsLock, rebuild_summary
@@ -153,7 +153,7 @@ def test_the_collection_lock_names_its_holder_and_takes_over_a_killed_collector(
     assert not (tmp_path / COLLECT_LOCK).exists()
     pid = dead_pid()
     leave_record(tmp_path, COLLECT_LOCK, pid=pid, host=socket.gethostname(), started="2020-01-01 00:00:00")
-    with caplog.at_level(logging.WARNING, logger="cicfw.collection"), CollectLock(tmp_path, 0):
+    with caplog.at_level(logging.WARNING, logger="cicfw.collect"), CollectLock(tmp_path, 0):
         pass
     assert f"taking over the stale lock of pid {pid}" in caplog.text
 

@@ -19,7 +19,7 @@ import torch
 from cicfw.model.mixers import Mixer
 from cicfw.registry import MIXERS, listing, main
 from cicfw.testing import check_head, check_mixer
-from cicfw.train import train
+from cicfw.train.app import train
 from conftest import compose_train
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

@@ -10,8 +10,8 @@ import pytest
 import torch
 from torch import nn
 
-import cicfw.train as train_mod
-from cicfw.train import build_model, train
+import cicfw.train.app as train_mod
+from cicfw.train.app import build_model, train
 from conftest import compose_train, write_tiny_dataset
 
 # carla-simulator/imitation-learning, imitation_learning_network.py: dropout_vec holds KEEP probabilities,

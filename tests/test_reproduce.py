@@ -251,7 +251,7 @@ def test_shown_path_is_relative_to_the_clone_that_holds_the_folder(tmp_path):
 @pytest.mark.parametrize("what", ["manifest", "cell", "recipe"])
 def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cache, one_cell, tmp_path, capsys,
                                                                         monkeypatch):
-    import cicfw.train
+    import cicfw.train.app
 
     published = tmp_path / "published"
     publish(one_cell, published)
@@ -275,7 +275,7 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
                        f"trains row cil with encoder.dropout_conv=0.0")
     p.write_text(json.dumps(m))
     collected = []
-    monkeypatch.setattr(cicfw.train, "ensure_data", lambda *a, **k: collected.append(1))
+    monkeypatch.setattr(cicfw.train.app, "ensure_data", lambda *a, **k: collected.append(1))
     out = tmp_path / "clone"
     assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"continue_from={published}", f"results_dir={out}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -290,12 +290,12 @@ def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run, capsys, monke
     """A row whose training raises (a bad config value is refused up front, so the training itself raises
     here) fails its cells with a one-line error in cell.json; the finished cells are kept, the report lists
     the failures and the app exits 1 naming the cells that did not finish."""
-    import cicfw.train
+    import cicfw.train.app
 
     def oom(*args, **kwargs):
         raise RuntimeError("CUDA out of memory.\nTried to allocate 2.00 GiB")
 
-    monkeypatch.setattr(cicfw.train, "train", oom)  # cil and gtu finished before: only broken trains
+    monkeypatch.setattr(cicfw.train.app, "train", oom)  # cil and gtu finished before: only broken trains
     broken = "+catalogue.broken={experiment:paper_cil,label:Broken}"
     assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 1
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
@@ -340,7 +340,7 @@ def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
     from omegaconf import OmegaConf
 
     from cicfw.core.config_checks import SchemaError
-    from cicfw.reproduce_schema import seed_list
+    from cicfw.reproduction.schema import seed_list
 
     assert seed_list(3) == [0, 1, 2]
     assert seed_list(OmegaConf.create([4, 1])) == [1, 4]

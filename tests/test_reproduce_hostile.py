@@ -35,12 +35,12 @@ class Collected(Exception):
 
 @pytest.fixture
 def no_collect(monkeypatch):
-    import cicfw.train
+    import cicfw.train.app
 
     def collect(*args, **kwargs):
         raise Collected("the app went on to collect the dataset")
 
-    monkeypatch.setattr(cicfw.train, "ensure_data", collect)
+    monkeypatch.setattr(cicfw.train.app, "ensure_data", collect)
 
 
 def refused(args: list[str], capsys) -> str:

@@ -1,4 +1,4 @@
-"""The reproduce config is checked by its schema (cicfw/reproduce_schema), its nodes' keys taken from the code
+"""The reproduce config is checked by its schema (cicfw/reproduction/schema.py), its nodes' keys taken from the code
 that reads them: OmegaConf refuses a wrong type or an unknown key while composing, naming its full key; what
 composing lets through (keys added with ``+``, ``seeds``, ``weather_family``, catalogue rows and claims) is
 refused by the same schema before anything is written, collected or trained. Each test asserts the
@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
 from cicfw.core.config_checks import SchemaError, config_error
-from cicfw.reproduce_schema import BudgetConfig, check
+from cicfw.reproduction.schema import BudgetConfig, check
 from cicfw.reproduction import app as reproduce
 
 CONF = Path(str(files("cicfw.conf")))
@@ -106,7 +106,7 @@ def test_every_budget_and_the_docs_row_pass_the_check(budget):
 def test_the_nodes_take_their_keys_from_the_code():
     """A row's keys are ``Row``'s, a claim's and a part's the arguments of the functions that load them, a
     budget's every key conf/budget/*.yaml holds, the top level conf/reproduce.yaml's and its budget group."""
-    from cicfw.reproduce_schema import CLAIM, PART, ROW, ReproduceConfig
+    from cicfw.reproduction.schema import CLAIM, PART, ROW, ReproduceConfig
     from cicfw.reproduction.catalogue import Row
     from cicfw.reproduction.claims import claim_entry, claim_part
 
@@ -130,13 +130,13 @@ class Collected(Exception):
 @pytest.mark.parametrize("overrides, kind, key", AUDIT)
 def test_the_app_refuses_in_one_line_writing_collecting_and_training_nothing(overrides, kind, key, tmp_path, capsys,
                                                                             monkeypatch):
-    import cicfw.train
+    import cicfw.train.app
 
     def work(*args, **kwargs):
         raise Collected("the app went on to collect or train")
 
-    monkeypatch.setattr(cicfw.train, "ensure_data", work)
-    monkeypatch.setattr(cicfw.train, "train", work)
+    monkeypatch.setattr(cicfw.train.app, "ensure_data", work)
+    monkeypatch.setattr(cicfw.train.app, "train", work)
     out = tmp_path / "results"
     args = ["budget=smoke", "rows=[cil]", "seeds=1", *overrides]
     args += [] if any(o.startswith("results_dir=") for o in overrides) else [f"results_dir={out}"]

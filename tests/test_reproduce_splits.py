@@ -23,14 +23,14 @@ class Trained(Exception):
 @pytest.fixture
 def smoke_data(tmp_path, monkeypatch) -> Path:
     """The smoke budget's dataset, written here: six episodes (one file each), 'right' in one only."""
-    import cicfw.train
+    import cicfw.train.app
 
     monkeypatch.setenv("CICFW_CACHE", str(tmp_path / "cache"))
     data = tmp_path / "cache" / "datasets" / "smoke"
     write_tiny_dataset(data, n_files=5, n=16, commands=(2, 3, 5))
     (data / "data_00000.h5").rename(data / "data_00005.h5")
     write_tiny_dataset(data, n_files=1, n=16, seed=1, commands=(2, 3, 4, 5))  # data_00000.h5: the only 'right'
-    monkeypatch.setattr(cicfw.train, "ensure_data", lambda data_cfg: None)  # collected: the files above
+    monkeypatch.setattr(cicfw.train.app, "ensure_data", lambda data_cfg: None)  # collected: the files above
 
     def train(*args, **kwargs):
         raise Trained("a cell went on to train")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import csv
 
-from cicfw.train import LOGGERS
+from cicfw.train.app import LOGGERS
 
 
 def test_a_resumed_runs_earlier_metrics_are_kept(tmp_path):

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cicfw.train import build_model, check_resume_checkpoint, load_checkpoint_safely, train, train_in_folder
+from cicfw.train.app import build_model, check_resume_checkpoint, load_checkpoint_safely, train, train_in_folder
 from conftest import compose_train, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
@@ -120,7 +120,7 @@ def test_the_last_line_says_what_evaluate_after_will_save_after_a_fast_dev_run(t
     """With evaluate_after, "no checkpoint written" is followed by what the evaluation writes and drives."""
     from types import SimpleNamespace
 
-    from cicfw.train import outcome
+    from cicfw.train.app import outcome
 
     line = outcome("val/steer_mae", float("nan"), tmp_path, {}, SimpleNamespace(fast_dev_run=True), evaluate_after=True)
     assert "no checkpoint written" in line and line.endswith("checkpoints/final.ckpt and drives them"), line

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.collection import LOCK_NAME, collect_dataset
+from cicfw.collect import LOCK_NAME, collect_dataset
 from cicfw.core.errors import report_user_errors
 from conftest import process_alive
 

@@ -14,7 +14,7 @@ from cicfw.benchmark.policy import Observations
 from cicfw.model.checkpoint import load_model
 from cicfw.model.module import CICModule
 from cicfw.model.speed import AUTO_COMPILE_MIN_STEPS, SpeedConfig, apply_speed, dummy_batch, planned_steps, time_steps
-from cicfw.train import train
+from cicfw.train.app import train
 
 from conftest import compose_train
 

@@ -1,6 +1,6 @@
 """Folders pinned, and cells recorded, while the speed switches were keys of the trainer node
 (``trainer.compile=true``) are the plan of the budget that spells them ``speed.compile=true``
-(``speed_node_spelling`` in cicfw/reproduction/app.py); a real difference of a switch is still refused."""
+(``speed_node_spelling`` in cicfw/reproduction/catalogue.py); a real difference of a switch is still refused."""
 from __future__ import annotations
 
 import json

@@ -15,7 +15,7 @@ import torch
 from cicfw.benchmark import evaluation_report as report
 from cicfw.benchmark.finished_run import Run
 from cicfw.core.errors import Interrupted
-from cicfw.evaluate import EvalResult, evaluate_policy, percent
+from cicfw.benchmark.app import EvalResult, evaluate_policy, percent
 
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 SUITE = {"towns": [TOWN], "weathers": ["ClearNoon"], "training_towns": [], "limit": 1}
@@ -58,7 +58,7 @@ def test_an_evaluation_stopped_before_any_episode_writes_null(tmp_path, monkeypa
 
 
 def test_after_training_metrics_leave_out_a_missing_rate(tmp_path, monkeypatch):
-    import cicfw.evaluate as evaluate
+    import cicfw.benchmark.app as evaluate
 
     monkeypatch.setattr(evaluate, "evaluate_checkpoint",
                         lambda *a, **k: {"success": None, "cells": {}})

@@ -11,7 +11,7 @@ from hydra.errors import MissingConfigException
 
 from cicfw.model.module import CICModule
 from cicfw.registry import UnknownNameError
-from cicfw.train import build_model, train
+from cicfw.train.app import build_model, train
 from conftest import compose_train
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

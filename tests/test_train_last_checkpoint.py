@@ -8,8 +8,8 @@ import lightning as L
 import pytest
 import torch
 
-import cicfw.train as train_mod
-from cicfw.train import load_checkpoint_safely, train
+import cicfw.train.app as train_mod
+from cicfw.train.app import load_checkpoint_safely, train
 from conftest import compose_train, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)

@@ -141,7 +141,7 @@ def test_the_embedded_backend_renders_a_name_in_its_family(tmp_path):
 
 
 def test_a_dataset_hash_names_the_family_only_where_it_changes_the_data():
-    from cicfw.collection.config import _NOT_DATA, config_hash, resolve_config
+    from cicfw.collect.config import _NOT_DATA, config_hash, resolve_config
 
     def pre_family_hash(cfg):  # the hash as computed before the families (embedded simulator)
         keep = {k: v for k, v in cfg.items() if k not in _NOT_DATA}

@@ -155,7 +155,7 @@ def test_the_paper_grid_glob_selects_every_paper_experiment():
 @pytest.mark.parametrize("experiment", sorted(PAPER_GRID))
 def test_paper_experiment_composes_to_its_model(experiment):
     from conftest import compose_train
-    from cicfw.train import build_model
+    from cicfw.train.app import build_model
 
     cfg = compose_train(f"experiment={experiment}")
     mixer, head, values = PAPER_GRID[experiment]

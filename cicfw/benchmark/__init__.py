@@ -9,4 +9,9 @@ interface and its registry), ``builtin_policies`` (expert, constant, and ``check
 they finish), ``finished_run`` (a finished run folder as data: ``Run``, its trajectories, the table's
 cells), ``evaluation_report`` (episodes.json/.csv, the success table, joined runs), ``plots`` and ``video``.
 The benchmark knows nothing of a reproduction (``cicfw.reproduction`` builds on it).
+
+``app`` is the evaluate app (``python -m cicfw.evaluate`` runs it) and ``schema`` its config's schema:
+conf/evaluate.yaml puts this package on Hydra's search path (``pkg://cicfw.benchmark``), and importing it
+registers the schema in Hydra's ConfigStore before an evaluate config is composed.
 """
+from cicfw.benchmark import schema  # noqa: F401  (registers the schema)

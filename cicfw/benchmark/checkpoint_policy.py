@@ -1,7 +1,7 @@
 """The suite's policy that drives with a trained model: a checkpoint, or a model ``cicfw export`` wrote.
 
 Loading and checking the checkpoint is the model layer's (``cicfw.model.checkpoint``); running it is the
-agent's (``cicfw.agent``), so the suite, a CARLA client and a user's own stack share one inference path.
+agent's (``cicfw.export.agent``), so the suite, a CARLA client and a user's own stack share one inference path.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from cicfw.benchmark.policy import Observations, Policy
 class CheckpointPolicy(Policy):
     """A trained CICModule steering from the centre camera (as in the paper), in eval mode, no grad.
 
-    It drives through ``cicfw.agent.Agent`` (one inference path for the suite, CARLA and a user's own
+    It drives through ``cicfw.export.agent.Agent`` (one inference path for the suite, CARLA and a user's own
     stack): the CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
     inference (``prepare_for_inference``: BatchNorm folded into the convolutions, NHWC layout);
     ``device`` is where it runs (``auto``: a CUDA GPU when there is one, else the CPU). ``checkpoint``
@@ -22,7 +22,7 @@ class CheckpointPolicy(Policy):
 
     def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
                  label: str | None = None, fuse: bool = True, device: str = "auto") -> None:
-        from cicfw.agent import Agent  # torch: imported when a checkpoint policy is built, not with the suite
+        from cicfw.export.agent import Agent  # torch: imported when a checkpoint policy is built, not with the suite
 
         if not checkpoint:
             raise ValueError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")

@@ -2,7 +2,7 @@
 interface as the embedded simulator (``cicfw.sim.backends``).
 
 Needs the client (``pip install "cicfw[carla]"``: carla==0.9.16, Python 3.10-3.12) and a CARLA 0.9.16
-server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.carla_check`` tests a server in a
+server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.carla_client.check`` tests a server in a
 minute; docs/simulator.md says what was verified offline and what only that check verifies.
 
 Guarantees (tests/test_carla_*.py drive them offline with the real client library, the real Town01 /

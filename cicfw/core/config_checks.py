@@ -3,7 +3,7 @@
 ``kwargs_schema(fn)`` is a dataclass of the keyword arguments ``fn`` takes, its annotations broadened by
 hydra-zen to what OmegaConf checks (``int``, ``float | None``, ``tuple[float, float]`` ...; what OmegaConf
 cannot check, such as a union of a number and a string, becomes ``Any`` and is left to ``fn``). Stored in
-Hydra's ConfigStore (``cicfw.train_schema``), such a schema makes OmegaConf refuse an unknown key or a value
+Hydra's ConfigStore (``cicfw.train.schema``), such a schema makes OmegaConf refuse an unknown key or a value
 of the wrong type while the config is composed; ``checked`` applies one to plain values; ``config_error``
 turns OmegaConf's refusal (or Hydra's, holding it) into a ``SchemaError``: one line naming the full key, the
 value and what is accepted. Also the few checks of values read outside any constructor (``seed=abc``).

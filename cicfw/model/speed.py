@@ -73,7 +73,7 @@ AUTO_COMPILE_MIN_STEPS = 200
 
 @dataclass
 class SpeedConfig:
-    """The ``speed`` node: its schema (cicfw/train_schema) and its defaults, which conf/speed/default.yaml
+    """The ``speed`` node: its schema (cicfw/train/schema.py) and its defaults, which conf/speed/default.yaml
     states. The defaults are the fastest variant that computes what eager does (docs/training.md#speed)."""
 
     channels_last: bool = True   # NHWC memory layout for the encoder's convolutions

@@ -9,7 +9,7 @@ budget, with intervals and verdicts.
         publish_dir=docs/results/converged                                   # grow a published table
 
 Before anything is collected or trained, the app checks the plan: the config against its schema
-(cicfw/reproduce_schema: an unknown key or a wrong type anywhere is refused), the rows (each custom row's
+(cicfw/reproduction/schema.py: an unknown key or a wrong type anywhere is refused), the rows (each custom row's
 experiment, head, mixer and overrides compose), the seeds, the budget's curve, the claims, ``publish_dir`` and
 ``continue_from``; it takes the results folder's lock (one run per folder: ``reproduce.lock`` names the
 holder; a stale lock, whose process on this host is gone, is taken over with a warning) and checks a folder
@@ -43,7 +43,9 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.files import atomic_write
+from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.lock import ResultsLock
+from cicfw.reproduction.schema import check, seed_list
 
 log = logging.getLogger("cicfw.reproduce")
 
@@ -99,13 +101,12 @@ def _parse(overrides: Sequence[str]) -> None:
 
 def compose_plan(overrides: Sequence[str]) -> DictConfig:
     """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch), checked by
-    its schema (``cicfw.reproduce_schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
+    its schema (``cicfw.reproduction.schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
     wrong type is one error naming it."""
     from hydra import compose, initialize_config_module
     from hydra.errors import HydraException
 
     from cicfw.core.config_checks import config_error
-    from cicfw.reproduce_schema import check
 
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
     _parse(plain)
@@ -124,7 +125,6 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted: the values the
     schema cannot say (a row not in the catalogue, a curve epoch < 1, an unknown claim column, the margin)."""
-    from cicfw.reproduce_schema import seed_list
     from cicfw.reproduction.catalogue import PAPER_VALUES
     from cicfw.reproduction.claims import check_margin, load_claims
 
@@ -208,12 +208,12 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
 
 
 def check_training(tcfg: DictConfig) -> None:
-    """What ``cicfw.train.train`` checks before it reads any data (top-level keys, the model's names, keys
+    """What ``cicfw.train.app.train`` checks before it reads any data (top-level keys, the model's names, keys
     and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
     the dataset is collected rather than failing every cell of the row."""
     from cicfw.core.override_hints import check_top_level_keys
-    from cicfw.train import build_model, make_datamodule, trainer_kwargs
-    from cicfw.train_schema import checked_speed
+    from cicfw.train.app import build_model, make_datamodule, trainer_kwargs
+    from cicfw.train.schema import checked_speed
 
     check_top_level_keys(tcfg, "train")
     build_model(tcfg)
@@ -253,14 +253,6 @@ def check_continue_machine(cfg: DictConfig) -> None:
     if not text or not any(text in m for m in machines):
         raise ReproduceError(f"continue_machine={text!r} is in no finished cell's machine of "
                              f"{str(cfg.continue_from)!r}; its machines: {'; '.join(machines) or 'none'}")
-
-
-def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
-    """conf/train.yaml overrides of one cell: the row's experiment, the budget, the seed."""
-    entry = cfg.catalogue[row]
-    return [f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
-            *speed_node_spelling(cfg.budget.train), f"seed={seed}",
-            f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
 
 
 def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
@@ -314,15 +306,6 @@ def fingerprint(cfg: DictConfig, dataset: Mapping[str, Any] | None) -> dict[str,
               "suite": suite_overrides(cfg), "dataset": None if dataset is None else dataset.get("config_hash")}
     pinned["hash"] = hashlib.sha256(json.dumps(pinned, sort_keys=True).encode()).hexdigest()[:16]
     return pinned
-
-
-def speed_node_spelling(overrides: Sequence[Any]) -> list[str]:
-    """Training overrides with the speed switches spelled ``speed.<switch>=``: a folder pinned, or a cell
-    recorded, while they were keys of the trainer node says ``trainer.<switch>=`` for the same setting."""
-    from cicfw.model.speed import SPEED_SWITCHES
-
-    legacy = re.compile(rf"^trainer\.({'|'.join(SPEED_SWITCHES)})=")
-    return [legacy.sub(r"speed.\1=", str(o)) for o in overrides]
 
 
 def pinned_differences(theirs: Mapping[str, Any], ours: Mapping[str, Any], cfg: DictConfig,
@@ -415,10 +398,9 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     before collecting is."""
     from hydra import initialize_config_module
 
-    from cicfw.reproduce_schema import seed_list
     from cicfw.reproduction.cells import finished_cells
     from cicfw.reproduction.published import continue_published, published_manifest
-    from cicfw.train import ensure_data
+    from cicfw.train.app import ensure_data
 
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         tcfg = compose_train(cfg, rows[0], 0)
@@ -495,7 +477,7 @@ def check_splits(cfg: DictConfig, rows: Sequence[str], seeds: Sequence[int], fin
     from hydra import initialize_config_module
 
     from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
-    from cicfw.train import make_datamodule
+    from cicfw.train.app import make_datamodule
 
     frames: dict[tuple, Any] = {}
     failed: dict[tuple[str, int], str] = {}
@@ -673,8 +655,8 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
 def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> dict[str, Any]:
     import torch
 
-    from cicfw.evaluate import evaluate
-    from cicfw.train import train
+    from cicfw.benchmark.app import evaluate
+    from cicfw.train.app import train
 
     tcfg = compose_train(cfg, row, seed)
     train_dir, ckpts = cell_dir / "train", cell_dir / "train" / "checkpoints"

@@ -1,9 +1,13 @@
 """A row of the reproduction's catalogue (``catalogue.<row>`` in conf/reproduce.yaml): the one place its keys
 and types live. A cell trains the row's ``experiment`` with its ``overrides``; the report shows its ``label``
-beside ``paper``, the paper's Table-4 values. The reproduce config's schema (cicfw/reproduce_schema) takes
-a row's keys from ``Row``."""
+beside ``paper``, the paper's Table-4 values. The reproduce config's schema (cicfw/reproduction/schema.py) takes
+a row's keys from ``Row``; ``row_overrides`` makes a cell's training overrides of its row.
+"""
+import re
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Any, List, Optional, Sequence
+
+from omegaconf import DictConfig
 
 #: Table 4's columns, the values ``paper`` holds: training town (training / new weathers), new town (same)
 PAPER_VALUES = 4
@@ -17,3 +21,20 @@ class Row:
     label: str  # the row's name in the report
     overrides: List[str] = field(default_factory=list)  # train overrides after the experiment's
     paper: Optional[List[float]] = None  # the paper's PAPER_VALUES Table-4 values, or null
+
+
+def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
+    """conf/train.yaml overrides of one cell: the row's experiment, the budget, the seed."""
+    entry = cfg.catalogue[row]
+    return [f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
+            *speed_node_spelling(cfg.budget.train), f"seed={seed}",
+            f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
+
+
+def speed_node_spelling(overrides: Sequence[Any]) -> list[str]:
+    """Training overrides with the speed switches spelled ``speed.<switch>=``: a folder pinned, or a cell
+    recorded, while they were keys of the trainer node says ``trainer.<switch>=`` for the same setting."""
+    from cicfw.model.speed import SPEED_SWITCHES
+
+    legacy = re.compile(rf"^trainer\.({'|'.join(SPEED_SWITCHES)})=")
+    return [legacy.sub(r"speed.\1=", str(o)) for o in overrides]

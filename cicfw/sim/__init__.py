@@ -2,5 +2,5 @@
 
 Rendering (cameras, weathers) lives in ``cicfw.sim.render``; the backend interface and the embedded
 backend in ``cicfw.sim.backends``. This package imports no benchmark, dataset or CARLA code: the CARLA
-client (``cicfw.carla_client``) and the collection stage (``cicfw.collection``) build on it.
+client (``cicfw.carla_client``) and the collection stage (``cicfw.collect``) build on it.
 """

@@ -4,7 +4,7 @@ A backend is built from its config's kwargs (``conf/sim/<name>.yaml``: ``name:``
 ``towns()``, ``weathers()``, ``single_turn_routes(town)`` and ``make_env(town, route, weather, seed,
 cameras, renderer) -> env`` where env has ``reset() -> obs``, ``step(steer, target_speed_kmh=...) ->
 (obs, done, info)`` and ``expert_action()``, as ``cicfw.sim.env.DrivingEnv``. The data collector
-(``cicfw.collection``) needs a little more: ``random_route``, ``make_env(..., expert=, time_offset=,
+(``cicfw.collect``) needs a little more: ``random_route``, ``make_env(..., expert=, time_offset=,
 endless=)`` and optionally ``resolve_town``; its package docstring lists the whole interface.
 ``lockstep``: True when many episodes may run side by side (embedded); False for a backend whose server
 runs one episode at a time (CARLA, ``cicfw.carla_client.backend``, which registers "carla" itself): the

@@ -5,7 +5,7 @@ import time
 from pathlib import Path
 
 from cicfw import __version__
-from cicfw.collection.config import CAMERA_IDS
+from cicfw.collect.config import CAMERA_IDS
 
 SIM_VERSION = "embedded-1"  # bump when the embedded simulator's output changes for the same config
 META_NAME = "dataset_metadata.json"

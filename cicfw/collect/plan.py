@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cicfw.collection.config import town_key
+from cicfw.collect.config import town_key
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE
 
 SAMPLE_BYTES = int(np.prod(IMAGE_SHAPE)) + 4 * N_TARGETS  # one sample in a CIL file, before HDF5's overhead

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
-from cicfw.collection.config import CollectConfig
+from cicfw.collect.config import CollectConfig
 from cicfw.core.config_checks import checked, plain_values
 from cicfw.registry import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas

@@ -2,7 +2,7 @@
 
 conf/diagnose.yaml puts this package on its search path, so Hydra imports it (registering ``cicfw_diagnose``
 in its ConfigStore) before it composes a diagnose config, and lays it under the config first: ``data`` takes
-``cicfw.steer_diagnostic.DataSettings``'s fields (each may be null: the training run's value), ``phases``
+``cicfw.diagnose.steer_diagnostic.DataSettings``'s fields (each may be null: the training run's value), ``phases``
 ``measure``'s phase arguments, and the app's own keys their types here. OmegaConf then refuses an unknown
 key or a value of the wrong type while composing, naming its full key, before the run folder exists.
 ``check`` applies it to the composed config again for keys added with ``+`` (which composing lets through);
@@ -18,7 +18,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from cicfw.core.config_checks import checked, kwargs_schema, plain_values
-from cicfw.steer_diagnostic import DataSettings, measure
+from cicfw.diagnose.steer_diagnostic import DataSettings, measure
 
 #: camera lists, which DataSettings annotates as any sequence (a type OmegaConf cannot check)
 _CAMERAS = (Optional[List[int]], None)

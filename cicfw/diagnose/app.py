@@ -7,7 +7,7 @@
 
 Per command and per junction phase (approach / inside / exit), how the predicted steering follows the
 expert's (slope, offset, MAE), and how far swapping the command on the same image moves it
-(``cicfw.steer_diagnostic`` does the measuring; docs/evaluation.md reads the report). The frames
+(``cicfw.diagnose.steer_diagnostic`` does the measuring; docs/evaluation.md reads the report). The frames
 are the training run's validation episodes: the split's settings (data path, seed, fraction, filters)
 come from the training run's saved config beside the checkpoint (``<run>/.hydra/config.yaml`` of a
 ``cicfw train`` run, or a ``cicfw reproduce`` cell's), and any ``data.*`` given here overrides them.
@@ -33,7 +33,7 @@ SEARCH_LEVELS = 3
 
 
 #: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read; their
-#: types are the schema's (cicfw/diagnose_schema), refused while composing
+#: types are the schema's (cicfw/diagnose/schema.py), refused while composing
 OPTION_RULES = {
     "batch_size": (lambda v: v >= 1, "a positive integer (frames per network call)"),
     "max_frames": (lambda v: v is None or v >= 1, "null (every frame) or a positive integer (an evenly spaced subset)"),
@@ -58,7 +58,7 @@ def check_options(cfg: DictConfig) -> None:
 def run_device(name: Any) -> str:
     """The device to run on: the agent's own check (``auto``, a torch device this machine has), limited to
     the CPU and CUDA GPUs."""
-    from cicfw.agent import torch_device
+    from cicfw.export.agent import torch_device
 
     device = torch_device(str(name or "auto"))
     if device.type not in ("cpu", "cuda"):
@@ -102,7 +102,7 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
         if "data" in cfg and "path" in cfg.data:
             return _data_values(cfg.data, str(path)), f"{path} (the training run's config)"
         if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
-            from cicfw.reproduction.app import row_overrides
+            from cicfw.reproduction.catalogue import row_overrides
 
             row, seed = str(cfg.cell.row), int(cfg.cell.seed)
             tcfg = _compose_train(row_overrides(cfg, row, seed))
@@ -115,7 +115,7 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
     import inspect
 
     from cicfw.data.datamodule import CILDataModule
-    from cicfw.steer_diagnostic import DataSettings
+    from cicfw.diagnose.steer_diagnostic import DataSettings
 
     params = inspect.signature(CILDataModule.__init__).parameters
     values = {k: params[k].default for k in SPLIT_KEYS if k != "path"}
@@ -143,7 +143,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     """Load the checkpoint, pick its frames, measure, write the report into ``out_dir``; returns the paths."""
     import torch
 
-    from cicfw import steer_diagnostic as sd
+    from cicfw.diagnose import steer_diagnostic as sd
     from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
 
     if not cfg.get("checkpoint"):
@@ -197,8 +197,3 @@ def main(cfg: DictConfig) -> None:
 
     diagnose(cfg, Path(HydraConfig.get().runtime.output_dir))
 
-
-if __name__ == "__main__":
-    from cicfw.core.override_hints import run_app
-
-    run_app(main, "diagnose")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

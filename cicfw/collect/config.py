@@ -1,6 +1,6 @@
 """The collect config: ``CollectConfig``, the one place its keys, types and defaults live (conf/collect.yaml
-and ``data.collect`` take them from it through the apps' config schemas, cicfw/collect_schema and
-cicfw/train_schema); its validation (one clear error per bad key), its hash, and the simulator backend it
+and ``data.collect`` take them from it through the apps' config schemas, cicfw/collect/schema.py and
+cicfw/train/schema.py); its validation (one clear error per bad key), its hash, and the simulator backend it
 names."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-from cicfw.collection.errors import CollectConfigError, CollectError
+from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.core.config_checks import SchemaError, checked
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams

@@ -5,10 +5,10 @@ import json
 import os
 from pathlib import Path
 
-from cicfw.collection.errors import CollectError
-from cicfw.collection.integrity import marker_problems
-from cicfw.collection.lock import FolderLock
-from cicfw.collection.metadata import META_NAME
+from cicfw.collect.errors import CollectError
+from cicfw.collect.integrity import marker_problems
+from cicfw.collect.lock import FolderLock
+from cicfw.collect.metadata import META_NAME
 
 
 class VerifyReport:

@@ -3,14 +3,14 @@
     python -m cicfw.export checkpoint=outputs/<run>/checkpoints/<best>.ckpt format=onnx out=cil.onnx
     cicfw export checkpoint=<run folder> format=torchscript out=cil.pt
 
-The graph is ``cicfw.agent.DrivingFunction``: uint8 RGB frames (B, 88, 200, 3), speed km/h (B,), CIL
+The graph is ``cicfw.export.agent.DrivingFunction``: uint8 RGB frames (B, 88, 200, 3), speed km/h (B,), CIL
 command code (B,) 2-5 -> steering (B,) in [-1, 1], with the normalisation, the command's branch and the
 head's decoder inside, and a dynamic batch. Before anything is written the exported graph is run by
 its own runtime (onnxruntime, torch.jit) on real frames and random inputs, at batch 1 and batch 2n,
 and compared with the checkpoint's ``CICModule.predict_steer``; a model off by more than ``tolerance``
 is refused with one line naming the input. The model (its description inside: ONNX metadata, a
 TorchScript extra file) and a sidecar ``<out>.json`` are written under temporary names, then renamed.
-``cicfw.agent.Agent.load(out)`` drives it; docs/deploy.md shows how to drive it without cicfw.
+``cicfw.export.agent.Agent.load(out)`` drives it; docs/deploy.md shows how to drive it without cicfw.
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
+from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import report_user_errors
@@ -564,8 +564,3 @@ def main(cfg: DictConfig) -> None:
           f"sidecar {res['sidecar']}; parity max |diff| {res['parity']['max_abs_diff']:.2g} on "
           f"{res['parity']['inputs']} inputs (tolerance {res['parity']['tolerance']:g})")
 
-
-if __name__ == "__main__":
-    from cicfw.core.override_hints import run_app
-
-    run_app(main, "export")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

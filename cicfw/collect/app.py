@@ -3,7 +3,7 @@
 ``verify=true`` (or ``--verify``) checks a collected folder instead, changing nothing: every file against
 its recorded size and SHA-256, one line per missing or corrupt file, exit status 2 if any.
 
-A thin Hydra app over the collection engine ``cicfw.collection`` (episodes, workers, files,
+A thin Hydra app over the collection engine, its package ``cicfw.collect`` (episodes, workers, files,
 metadata, resume, the folder lock and the other guarantees are documented there and in
 docs/simulator.md). Every config error, a locked or unwritable folder and a full disk print one line
 (``cicfw: error: ...``, exit status 2); Ctrl-C and SIGTERM print one line too (rerun the same command to
@@ -15,21 +15,21 @@ import json
 import sys
 from pathlib import Path
 
-from cicfw.collection import (  # noqa: F401  (the engine's API, re-exported for callers of cicfw.collect)
-    CAMERA_IDS, DEFAULTS, SIM_VERSION, CollectConfigError, CollectError, DiskFullError, FolderLockedError,
-    collect_dataset, episode_plan, resolve_config, run_episode, verify_dataset)
+from cicfw.collect.config import check_lock_wait
+from cicfw.collect.dataset import collect_dataset
+from cicfw.collect.errors import CollectError
+from cicfw.collect.verify import verify_dataset
+from cicfw.core.errors import on_interrupt, report_user_errors
 
 
 def run(cfg) -> str:
     """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
-    from cicfw.core.errors import on_interrupt, report_user_errors
-
     @report_user_errors
     def go() -> str:
         from omegaconf import DictConfig, OmegaConf
 
         raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-        verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect_schema) checks it
+        verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect/schema.py) checks it
         out_dir = Path(str(raw["out_dir"])).expanduser()
         if verify:
             return _verify(raw, out_dir)
@@ -44,8 +44,6 @@ def run(cfg) -> str:
 
 def _verify(raw: dict, out_dir: Path) -> str:
     """``verify=true``: every file of ``out_dir`` against its record, one line per problem; the summary."""
-    from cicfw.collection.config import check_lock_wait
-
     lock_wait = raw.get("lock_wait")  # CollectConfig's default: wait while a collection is under way
     check_lock_wait(lock_wait)
     report = verify_dataset(out_dir, lock_wait)
@@ -68,8 +66,3 @@ def _main() -> None:
 
     main()
 
-
-if __name__ == "__main__":
-    from cicfw.core.override_hints import run_app
-
-    run_app(_main, "collect")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

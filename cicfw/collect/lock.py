@@ -5,8 +5,8 @@ import logging
 from typing import Any, Mapping
 
 from cicfw.core import locks
-from cicfw.collection.errors import CollectError, FolderLockedError
-from cicfw.collection.writing import disk_error
+from cicfw.collect.errors import CollectError, FolderLockedError
+from cicfw.collect.writing import disk_error
 
 LOCK_NAME = ".collect.lock"
 

@@ -7,7 +7,7 @@ import json
 import logging
 from pathlib import Path
 
-from cicfw.collection.writing import write_json
+from cicfw.collect.writing import write_json
 from cicfw.data.cil_hdf5 import CILFormatError, check_file
 
 log = logging.getLogger(__name__)

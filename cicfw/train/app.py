@@ -33,7 +33,7 @@ from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.override_hints import check_top_level_keys
 from cicfw.core.run_folder import hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train_schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
+from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 
 log = logging.getLogger("cicfw.train")
 
@@ -67,7 +67,7 @@ def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
 
 def build_model(cfg: DictConfig) -> CICModule:
     """The model from the encoder/mixer/head/model nodes, each checked against its schema
-    (cicfw/train_schema): an unknown name or key fails here with one line naming what is accepted (before
+    (cicfw/train/schema.py): an unknown name or key fails here with one line naming what is accepted (before
     any data is read)."""
     enc, enc_kw = checked_part(cfg, "encoder")
     mix, mix_kw = checked_part(cfg, "mixer")
@@ -130,7 +130,7 @@ def ensure_data(data_cfg: DictConfig) -> None:
         collect_dataset(data_cfg.collect, path)
 
 
-#: written by ``cicfw collect`` into every folder it collects (cicfw.collection.META_NAME)
+#: written by ``cicfw collect`` into every folder it collects (cicfw.collect.META_NAME)
 COLLECTED_META = "dataset_metadata.json"
 
 
@@ -172,7 +172,7 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
     or ``data.val_cameras`` choosing none of their ids is refused now, not after the collection."""
     if data_cfg.get("collect") is None:
         return
-    from cicfw.collection.config import CAMERA_IDS, DEFAULTS
+    from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 
     names = data_cfg.collect.get("cameras") or DEFAULTS["cameras"]
     recorded = {CAMERA_IDS[n][0]: n for n in names if n in CAMERA_IDS}  # unknown names: the collector says so
@@ -468,7 +468,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     if cfg.get("evaluate_after"):  # the evaluation's config, so that a typo there does not cost the training
-        from cicfw.evaluate import check_evaluation_overrides
+        from cicfw.benchmark.app import check_evaluation_overrides
 
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
     ensure_data(cfg.data)  # then the data: collected if needed,
@@ -488,7 +488,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     metric = float(value) if value is not None else float("nan")
     log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
-        from cicfw.evaluate import evaluate_after_training
+        from cicfw.benchmark.app import evaluate_after_training
 
         success = evaluate_after_training(cfg, trainer, run_dir)["success"]
         if cfg.get("return_closed_loop"):
@@ -562,8 +562,3 @@ def main(cfg: DictConfig) -> float:
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     return train_in_folder(cfg, Path(HydraConfig.get().runtime.output_dir), key)
 
-
-if __name__ == "__main__":
-    from cicfw.core.override_hints import run_app
-
-    run_app(main, "train")  # a mistyped key also prints the keys that exist (did you mean ...?)

@@ -13,10 +13,10 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any, Callable
 
-from cicfw.collection.config import close_backend, make_backend
-from cicfw.collection.episode import ParentGone, run_episode
-from cicfw.collection.errors import CollectError
-from cicfw.collection.lock import FolderLock
+from cicfw.collect.config import close_backend, make_backend
+from cicfw.collect.episode import ParentGone, run_episode
+from cicfw.collect.errors import CollectError
+from cicfw.collect.lock import FolderLock
 from cicfw.registry import SIM_BACKENDS
 
 

@@ -40,7 +40,7 @@ class EvaluateConfig:
     name: Optional[str] = MISSING
     seed: int = MISSING
     # the registered policy's arguments; open here: a plugin's policy takes its own, and the expert hands
-    # **kwargs on to ExpertParams. cicfw.evaluate.plan_evaluation checks them before the checkpoint is read.
+    # **kwargs on to ExpertParams. cicfw.benchmark.app.plan_evaluation checks them before the checkpoint is read.
     policy: Any = MISSING
     sim: Any = MISSING  # cicfw_schema/sim/<name>, then the chosen option
     suite: SUITE = field(default_factory=SUITE)  # type: ignore[valid-type]

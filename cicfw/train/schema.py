@@ -24,7 +24,7 @@ import lightning as L
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from cicfw.collection.config import CollectConfig
+from cicfw.collect.config import CollectConfig
 from cicfw.core.config_checks import SchemaError, checked, kwargs_schema
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
@@ -68,7 +68,7 @@ DATA = dataclasses.make_dataclass(  # data=sim_default collects its data: data.c
 
 @dataclass
 class LoggerConfig:
-    name: str = MISSING  # cicfw.train.LOGGERS: csv | tensorboard
+    name: str = MISSING  # cicfw.train.app.LOGGERS: csv | tensorboard
 
 
 @dataclass

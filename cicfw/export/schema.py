@@ -1,4 +1,4 @@
-"""The export app's config schema, taken from ``cicfw.export.export_model``'s arguments, and registered with
+"""The export app's config schema, taken from ``cicfw.export.app.export_model``'s arguments, and registered with
 Hydra.
 
 conf/export.yaml puts this package on its search path, so Hydra imports it (registering ``cicfw_export`` in
@@ -16,7 +16,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from cicfw.core.config_checks import checked, kwargs_schema, plain_values
-from cicfw.export import export_model
+from cicfw.export.app import export_model
 
 #: the paths are given as text on the command line; ``format`` is ``export_model``'s ``fmt``
 EXPORT = kwargs_schema(export_model, "the export (export_model)", exclude=("fmt",), fields={

@@ -9,7 +9,7 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-from cicfw.collection.errors import CollectError, DiskFullError
+from cicfw.collect.errors import CollectError, DiskFullError
 from cicfw.core.files import write_together
 
 

@@ -5,7 +5,9 @@ straight balanced) in the chosen towns and weathers with the expert and CIL's st
 writes one sample per camera. Files: ``<episode>_<part>.h5`` (200 samples each, the last part of an
 episode may be shorter), one JSON marker per finished episode under ``.episodes/``, and
 ``dataset_metadata.json`` (towns, weathers, seeds, sim version, counts, file -> episode). The app
-``python -m cicfw.collect`` (``cicfw/collect.py``) is a thin shell around this package.
+``python -m cicfw.collect`` (``app``) is a thin shell around this package; ``schema`` is its config's
+schema: conf/collect.yaml puts this package on Hydra's search path (``pkg://cicfw.collect``), and
+importing it registers the schema in Hydra's ConfigStore before a collect config is composed.
 
 The package sits above the simulator (``cicfw.sim``) and the data layer (``cicfw.data``, whose CIL format it
 writes) and only apps import it. Its modules, one job each: ``config`` (defaults, validation, hash, the
@@ -76,14 +78,15 @@ collects in-process when ``workers`` <= 1.
 """
 from __future__ import annotations
 
-from cicfw.collection.config import CAMERA_IDS, DEFAULTS, config_hash, make_backend, resolve_config, town_key
-from cicfw.collection.dataset import collect_dataset
-from cicfw.collection.episode import run_episode
-from cicfw.collection.errors import CollectConfigError, CollectError, DiskFullError, FolderLockedError
-from cicfw.collection.lock import LOCK_NAME, FolderLock
-from cicfw.collection.metadata import META_NAME, SIM_VERSION
-from cicfw.collection.plan import episode_bytes, episode_plan, steps_per_episode
-from cicfw.collection.verify import VerifyReport, verify_dataset
+from cicfw.collect.config import CAMERA_IDS, DEFAULTS, config_hash, make_backend, resolve_config, town_key
+from cicfw.collect.dataset import collect_dataset
+from cicfw.collect.episode import run_episode
+from cicfw.collect.errors import CollectConfigError, CollectError, DiskFullError, FolderLockedError
+from cicfw.collect.lock import LOCK_NAME, FolderLock
+from cicfw.collect.metadata import META_NAME, SIM_VERSION
+from cicfw.collect.plan import episode_bytes, episode_plan, steps_per_episode
+from cicfw.collect.verify import VerifyReport, verify_dataset
+from cicfw.collect import schema  # noqa: F401  (registers the schema)
 
 __all__ = [
     "CAMERA_IDS", "DEFAULTS", "LOCK_NAME", "META_NAME", "SIM_VERSION", "CollectConfigError", "CollectError",

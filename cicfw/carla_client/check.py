@@ -1,4 +1,4 @@
-"""Test a CARLA server with cicfw's CARLA backend in about a minute: ``python -m cicfw.carla_check``
+"""Test a CARLA server with cicfw's CARLA backend in about a minute: ``python -m cicfw.carla_client.check``
 (or ``cicfw carla-check``) ``[--host localhost] [--port 2000] [--town Town01] [--timeout 5]``.
 
 Prints ``PASS`` or ``FAIL`` (or ``SKIP``) and one line of evidence per guarantee of
@@ -309,7 +309,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
 
     def collection() -> tuple[bool, str]:
         try:
-            from cicfw.collection import episode_plan, resolve_config, run_episode
+            from cicfw.collect import episode_plan, resolve_config, run_episode
         except ImportError as err:
             return False, f"the collection engine is missing ({err})"
         from cicfw.data.cil_hdf5 import check_file
@@ -330,7 +330,7 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
 
 
 def main(argv: list[str] | None = None, client: Any = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cicfw.carla_check", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m cicfw.carla_client.check", description=__doc__.split("\n\n")[0])
     p.add_argument("--host", default="localhost")
     p.add_argument("--port", type=int, default=2000)
     p.add_argument("--town", default="Town01", help="the CARLA map to test on (Town01: known route counts)")

@@ -1,0 +1,513 @@
+"""``python -m cicfw.evaluate``: the paper's closed-loop single-turn suite for a checkpoint or a policy.
+
+    python -m cicfw.evaluate checkpoint=outputs/<run>/checkpoints/<best>.ckpt
+    python -m cicfw.evaluate policy=expert suite.towns=[town_b]
+    python -m cicfw.evaluate -m checkpoint=a.ckpt,b.ckpt        # one joined table in the sweep folder
+
+Writes the episode rows (JSON + CSV), the paper's table (Markdown + LaTeX), a map per town with the
+driven paths and a bar chart into the run folder, and returns the overall success rate (%) so sweepers
+can use it. ``evaluate_checkpoint`` runs the same from Python (``cicfw train evaluate_after=true``),
+``evaluate_policy`` from plain specs. Finished episodes are kept as they finish: the same command with
+the same output folder (``hydra.run.dir=<the killed run's folder>``) resumes a killed run.
+"""
+from __future__ import annotations
+
+import errno
+import logging
+import shlex
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from cicfw.benchmark import schema as evaluate_schema
+from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
+from cicfw.core.config_checks import SchemaError, checked
+from cicfw.core.errors import Interrupted, report_interrupts, report_user_errors
+
+log = logging.getLogger("cicfw.evaluate")
+
+
+def policy_spec(cfg: DictConfig) -> dict[str, Any]:
+    """The policy's plain config (``name:`` + kwargs), with the row label from ``name=`` if given."""
+    spec = OmegaConf.to_container(cfg.policy, resolve=True)
+    assert isinstance(spec, dict)
+    if cfg.get("checkpoint") and spec.get("name") != "checkpoint":
+        raise ValueError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
+                         f"drop checkpoint= or use policy=checkpoint")
+    if spec.get("name") == "checkpoint" and not spec.get("checkpoint"):
+        raise ValueError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
+                         "or policy=expert for the reference driver")
+    if cfg.get("name"):
+        spec["label"] = str(cfg.name)
+    return spec
+
+
+def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
+             resume_hint: str | None = None) -> dict[str, Any]:
+    """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
+    return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
+    (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
+    ``resume_hint`` its ``Interrupted`` message)."""
+    evaluate_schema.check(cfg)  # what composing lets through: +vide=[0] would silently film nothing
+    res = evaluate_policy(
+        policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
+        OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
+        sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=cfg.seed,
+        label=str(cfg.name) if cfg.name else None, progress_bar=cfg.progress_bar, maps=cfg.maps,
+        video=list(cfg.video or []), video_max=cfg.video_max, new_folder_hint=new_folder_hint,
+        resume_hint=resume_hint)
+    join_sweep()
+    return res.summary
+
+
+@dataclass
+class EvalResult:
+    """What ``evaluate_policy`` returns (the run folder holds the same, see docs/evaluation.md)."""
+
+    summary: dict[str, Any]  # summary.json: success % overall (null before any episode) and per table column ("cells"), reasons, complete
+    rows: list[dict[str, Any]]  # one per episode of the suite, in episode order (episodes.json's rows)
+    run_dir: Path
+    driven: int  # episodes driven by this call
+    reused: int  # episodes kept from earlier, interrupted calls into the same run_dir
+
+    @property
+    def success(self) -> float | None:
+        """Overall reach-destination success rate in percent; None when no episode has finished."""
+        value = self.summary["success"]
+        return None if value is None else float(value)
+
+
+def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any] | None,
+                    out_dir: str | Path, *, sim: Mapping[str, Any] | None = None, seed: int = 0,
+                    label: str | None = None, progress_bar: bool = False, maps: bool = True,
+                    video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
+                    resume_hint: str | None = None) -> EvalResult:
+    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
+
+    ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
+    ``{"name": "expert"}``; conf/policy/), ``suite`` the ``suite:`` node of conf/evaluate.yaml
+    (``{"towns": [...], "weathers": [...], "limit": 2, ...}``; build_suite's arguments), ``runner``
+    the ``runner:`` node (RunnerConfig's fields, None for the defaults), ``sim`` the simulator spec
+    (None: the embedded one). ``label`` names the table row (default: the policy's label).
+
+    Each finished episode is appended to ``out_dir/episodes.jsonl`` as it finishes (flushed to disk),
+    so when the process dies, calling again with the same arguments and ``out_dir`` drives only the
+    missing episodes, and the report it writes (episodes.json/.csv rows, summary.json cells,
+    table.md/.tex, trajectories.npz) is the one an uninterrupted call writes: bit for bit for a policy
+    that steers each episode from that episode's observations alone (expert, constant); for a network
+    on the CPU, its steering's last float bits depend on the batch's shape (which episodes are still
+    running), as they already do between uninterrupted runs (docs/evaluation.md, "Resuming").
+    A call on a finished folder drives nothing and rewrites the same report. While episodes are
+    missing, the folder's report says ``"complete": false`` (table.md: a PARTIAL line). Raises
+    ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
+    (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
+    another process is writing it; config errors (``video`` naming no episode of the suite included)
+    raise before anything is written. Ctrl-C raises ``Interrupted`` saying how many episodes are kept
+    and, with ``resume_hint``, how to drive the rest. ``runner.batch_size``, ``workers`` and
+    ``threads`` may change between calls.
+
+    Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
+    column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
+    """
+    from cicfw.benchmark.evaluation_report import markdown_table
+    from cicfw.benchmark.journal import EpisodeLog
+    from cicfw.benchmark.policy import Policy, make_policy
+    from cicfw.benchmark.runner import run
+    from cicfw.benchmark.video import select_episodes
+
+    out_dir = Path(out_dir)
+    spec = dict(policy)
+    sim = dict(sim) if sim is not None else {"name": "embedded"}
+    runner = dict(runner or {})
+    suite = dict(suite)
+    filmed = list(video)
+    runner_cfg, episodes = plan_evaluation(spec, suite, runner, sim, seed, progress_bar, filmed, video_max)
+    pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
+    label = label or spec.get("label") or pol.label
+    fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
+    with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
+                         f"give another output folder, or delete {str(out_dir)!r} to start over") as elog:
+        missing = [e for e in episodes if e.index not in elog.rows]
+        meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(seed), "suite": suite,
+                "runner": runner, "sim": sim, "fingerprint": fp}
+        log.info("evaluating %s on %d episodes (%s x %s)%s", label, len(episodes), ", ".join(map(str, suite["towns"])),
+                 ", ".join(suite["weathers"]), f"; {elog.reused} kept from an earlier run, {len(missing)} to drive"
+                 if elog.reused else "")
+        if missing and runner_cfg.resolve_workers(missing, bool(pol.cameras)) > 1:
+            del pol  # each worker process builds its own from the spec
+            pol = spec
+        wall = 0.0
+        if missing:
+            _write_report(out_dir, label, elog.rows, episodes, meta)  # marked partial until the last episode
+            try:
+                res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
+                wall = res.wall_s
+            except BaseException as stop:
+                try:
+                    _write_report(out_dir, label, elog.rows, episodes, meta)
+                except Exception as err:  # e.g. a full disk: the log still holds every finished episode
+                    log.error("could not write the partial report: %s", err)
+                kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
+                if isinstance(stop, KeyboardInterrupt):
+                    raise Interrupted(f"{kept}: {resume_hint or 'call again with the same output folder to drive the rest'}") from None
+                log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
+                raise
+        meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
+        with writing_outputs(out_dir):
+            summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
+            save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
+            pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
+                     int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
+    steps = int(summary.get("steps", 0))
+    rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
+    log.info("%d episodes (%d driven now, %.1f s), %d steps%s\n%s", len(report.rows), len(missing), wall,
+             steps, rate, markdown_table([report]))
+    log.info("success %s; report in %s", percent(summary["success"]), out_dir)
+    return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+def percent(value: float | None) -> str:
+    """A success rate as the log says it: ``72.50%``, or ``none (no episodes)`` for summary.json's null."""
+    return "none (no episodes)" if value is None else f"{float(value):.2f}%"
+
+
+class OutputWriteError(ValueError):
+    """The report or a picture could not be written (a full disk ...); the driven episodes are kept."""
+
+
+@contextmanager
+def writing_outputs(out_dir: Path) -> Iterator[None]:
+    """An ``OSError`` while the report, trajectories and pictures are written becomes one
+    ``OutputWriteError`` line: which file, why, and that the episodes are kept (each file is written
+    whole or not at all, ``cicfw.core.files``); the same command writes them again without driving."""
+    try:
+        yield
+    except OSError as err:
+        where = err.filename or out_dir
+        why = "no space left on the device" if err.errno in (errno.ENOSPC, errno.EDQUOT) else (err.strerror or str(err))
+        raise OutputWriteError(f"could not write {str(where)!r} ({why}); every episode is driven and kept in "
+                               f"{str(out_dir)!r}: free some space, then run the same command with the same output "
+                               f"folder, which drives nothing again and writes the report and pictures") from None
+
+
+def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: Mapping[str, Any],
+                    sim: Mapping[str, Any], seed: int = 0, progress_bar: bool = False, video: Sequence[Any] = (),
+                    video_max: int = 8) -> tuple[Any, list[Any]]:
+    """Everything about an evaluation that can be checked without its policy's weights, checked: the
+    runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
+    weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
+    raises one ``ValueError`` line before anything is driven or written."""
+    from cicfw.benchmark.policy import POLICIES
+    from cicfw.benchmark.runner import RunnerConfig, server_specs
+    from cicfw.benchmark.suite import build_suite, make_backend
+    from cicfw.benchmark.video import select_episodes
+    from cicfw.core.config_checks import check_kwargs
+
+    checked(evaluate_schema.RUNNER, runner, "runner")
+    runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
+    server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
+    kwargs = {k: v for k, v in spec.items() if k != "name"}
+    check_kwargs("policy", f"policy {spec.get('name')!r}", POLICIES.get(str(spec.get("name"))), kwargs,
+                 extra_keys=("name",))
+    check_policy_device(kwargs.get("device"))
+    episodes = build_suite(make_backend(sim), **suite)  # unknown towns and weathers, suite.limit=0 fail here
+    select_episodes([{"episode": e.index, "key": e.key, "success": False} for e in episodes], video, video_max)
+    return runner_cfg, episodes
+
+
+def check_policy_device(device: Any) -> None:
+    """``policy.device`` a torch device this machine has (``cuda`` on a CPU build failed when the policy
+    was built: after the training, for ``cicfw train evaluate_after=true``)."""
+    if device is None:
+        return
+    from cicfw.export.agent import torch_device
+
+    try:
+        torch_device(str(device))
+    except ValueError as err:
+        raise ValueError(str(err).replace("device=", "policy.device=", 1)) from None
+
+
+_DRIVES_THIS_RUN = ("it drives this run's best checkpoint and logs its success as this run's closed_loop/success; "
+                    "evaluate another checkpoint with python -m cicfw.evaluate checkpoint=...")
+#: what the evaluation after training does not take from ``evaluate_overrides``, and why
+NOT_AFTER_TRAINING = {
+    "checkpoint": _DRIVES_THIS_RUN,
+    "policy.checkpoint": _DRIVES_THIS_RUN,
+    "policy": "it drives this run's checkpoint (policy=checkpoint); evaluate another policy with "
+              "python -m cicfw.evaluate policy=...",
+    "hydra": "it writes into the run folder's evaluate/ and takes no hydra options",
+}
+
+
+def check_after_training_overrides(overrides: Any) -> None:
+    """One ``ValueError`` for an override the evaluation after training would ignore or that would make it
+    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``);
+    what is no override string is left to ``compose_overrides`` to name."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if OmegaConf.is_list(overrides):
+        overrides = OmegaConf.to_container(overrides, resolve=True)
+    parser = OverridesParser.create()
+    for o in overrides if isinstance(overrides, (list, tuple)) else []:
+        try:
+            key = parser.parse_override(o).key_or_group
+        except Exception:
+            continue
+        root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
+        if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
+            continue
+        if root in NOT_AFTER_TRAINING:
+            raise ValueError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
+
+
+def check_evaluation_overrides(overrides: Any) -> None:
+    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
+    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
+    training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
+    starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key kept, for what the schema refuses)."""
+    from cicfw.registry import UnknownNameError
+
+    try:
+        check_after_training_overrides(overrides)
+        cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
+        evaluate_schema.check(cfg)
+        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
+                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
+                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
+    except SchemaError as err:
+        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
+    except (ValueError, FileNotFoundError, UnknownNameError) as err:
+        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
+        raise ValueError(f"evaluate_overrides: {text}") from None
+
+
+def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
+    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); an override
+    Hydra cannot parse is one ``ValueError`` line naming it, a composition error ``compose_config``'s."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if OmegaConf.is_list(overrides):
+        overrides = OmegaConf.to_container(overrides, resolve=True)
+    if overrides is None:
+        overrides = []
+    if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
+    parser = OverridesParser.create()
+    for o in overrides:
+        try:
+            parser.parse_override(o)
+        except Exception as err:
+            raise ValueError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
+    return compose_config([*first, *overrides])
+
+
+#: policy keys that change how fast or where a policy runs, never which episodes it drives
+_POLICY_RUNTIME_KEYS = ("label", "device", "threads")
+#: simulator keys that say how to reach a server, not what it simulates
+_SIM_RUNTIME_KEYS = ("host", "port", "ports")
+
+
+def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapping[str, Any], runner: Any,
+                    episodes: Sequence[Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What decides a run's episodes (a folder resumes only with the same), and readable extras.
+
+    The checkpoint counts by its contents (sha256), not its path; the runner by its episode rules
+    (off-road limits, target speed) and seed, not its batch size or worker count."""
+    import hashlib
+    import json
+
+    pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
+    info: dict[str, Any] = {}
+    if pol.get("checkpoint"):
+        from cicfw.model.checkpoint import resolve_checkpoint
+
+        path = resolve_checkpoint(pol.pop("checkpoint"))
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        pol["checkpoint_sha256"] = h.hexdigest()
+        info["checkpoint"] = str(path)
+    episode_list = [[e.key, e.route, e.command, e.town_set, e.weather_set] for e in episodes]
+    fp = {
+        "policy": pol,
+        "suite": dict(suite),
+        "episodes": hashlib.sha256(json.dumps(episode_list).encode()).hexdigest()[:16],
+        "seed": int(runner.seed),
+        "sim": {k: v for k, v in sim.items() if k not in _SIM_RUNTIME_KEYS and not str(k).endswith("timeout_s")},
+        "runner": {"off_road_s": runner.off_road_s, "off_road_level": runner.off_road_level,
+                   "target_speed_kmh": runner.target_speed_kmh},
+    }
+    return fp, info
+
+
+def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
+                  meta: dict[str, Any]):
+    """The report of the episodes finished so far, marked complete only when every one is."""
+    from cicfw.benchmark.evaluation_report import write_run
+    from cicfw.benchmark.finished_run import Run
+
+    rows = [rows_by_index[e.index] for e in episodes if e.index in rows_by_index]
+    complete = len(rows) == len(episodes)
+    meta = {**meta, "complete": complete, "episodes_total": len(episodes),
+            "steps": sum(int(r["steps"]) for r in rows)}
+    report = Run(label=label, rows=rows, meta=meta, path=out_dir)
+    return write_run(out_dir, report), report
+
+
+def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
+             maps: bool, filmed: Sequence[dict]) -> None:
+    """The map per town, the bar chart, and the requested videos."""
+    from cicfw.benchmark.plots import bar_chart, town_maps
+
+    from cicfw.benchmark.suite import town_label
+
+    towns = {town_label(t): str(t) for t in towns}
+    if maps:
+        town_maps(report, trajectories, run_dir, towns)
+    bar_chart([report], run_dir / "success_bars.png")
+    if filmed:
+        from cicfw.benchmark.video import write_video
+        from cicfw.sim.town import load_town
+
+        if sim_name != "embedded":
+            log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", sim_name)
+            return
+        for r in filmed:
+            path = run_dir / "videos" / f"{r['key'].replace('/', '_')}.mp4"
+            write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed)
+            log.info("video: %s", path)
+
+def join_sweep() -> None:
+    """In a multirun, join every finished run of the sweep into one table in the sweep folder."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+            return
+        if HydraConfig.get().job.config_name != "evaluate":  # e.g. reproduce's cells: that app reports itself
+            return
+        sweep_dir = Path(HydraConfig.get().sweep.dir)
+    except Exception:
+        return
+    from cicfw.benchmark.evaluation_report import find_runs, write_joined
+
+    runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
+    write_joined(runs, sweep_dir)
+    log.info("joined %d run(s) of the sweep into %s", len(runs), sweep_dir / "table.md")
+
+
+def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app. What Hydra refuses
+    is one line: a ``SchemaError`` naming the key for what the schema refuses, else a ``ValueError``."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import ConfigCompositionException
+
+    from cicfw.core.config_checks import config_error
+    from cicfw.core.override_hints import composition_error_line
+
+    try:
+        if GlobalHydra.instance().is_initialized():
+            return compose("evaluate", overrides=list(overrides))
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            return compose("evaluate", overrides=list(overrides))
+    except ConfigCompositionException as err:
+        raise config_error(err) or ValueError(composition_error_line(err, list(overrides))) from None
+
+
+def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),
+                        resume_hint: str | None = None) -> dict[str, Any]:
+    """The suite for one checkpoint, configured by conf/evaluate.yaml plus ``overrides``."""
+    cfg = compose_config([f"checkpoint={_quote(str(checkpoint))}", *overrides])
+    return evaluate(cfg, Path(run_dir), resume_hint=resume_hint)
+
+
+#: what ``evaluate_after=true`` drives after a ``trainer.fast_dev_run`` (one batch: a check that the
+#: config runs, not a model worth the whole suite): the first pair of each town, under every weather
+FAST_DEV_RUN_SUITE = "suite.limit=1"
+#: evaluate_overrides keys that choose the suite's size: given one, a fast_dev_run drives what it says
+_SUITE_SIZE_KEYS = ("suite.limit", "suite.pairs")
+
+
+def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tuple[list[str], str]:
+    """``evaluate_overrides`` as the evaluation after training applies them, and what that drives in words:
+    after ``trainer.fast_dev_run`` a short suite (``FAST_DEV_RUN_SUITE``) unless the overrides size it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides = [str(o) for o in overrides]
+    if not fast_dev_run:
+        return overrides, "the suite of conf/evaluate.yaml with evaluate_overrides"
+    parser = OverridesParser.create()
+    keys = set()
+    for o in overrides:
+        try:
+            keys.add(parser.parse_override(o).key_or_group)
+        except Exception:
+            continue  # compose_overrides names it
+    if keys & set(_SUITE_SIZE_KEYS):
+        return overrides, "the suite as evaluate_overrides size it"
+    return [*overrides, FAST_DEV_RUN_SUITE], (f"a short suite after trainer.fast_dev_run ({FAST_DEV_RUN_SUITE}: the "
+                                              f"first pair of each town; evaluate_overrides=[suite.limit=null] drives "
+                                              f"the whole suite)")
+
+
+def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
+    """``cicfw train evaluate_after=true``: the suite on the run's best checkpoint (else its last one,
+    else the final weights saved now as ``checkpoints/final.ckpt``: a ``trainer.fast_dev_run`` saves
+    none), into ``<run_dir>/evaluate``; after a ``trainer.fast_dev_run``, a short suite
+    (``after_training_overrides``). Logs what it saved and drives, then ``closed_loop/success`` and one
+    ``closed_loop/success/<cell>`` per table column to the trainer's logger and to the job's
+    ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary, whose
+    ``success`` is a number: it returns only once every episode is driven (a stop raises ``Interrupted``)."""
+    run_dir = Path(run_dir)
+    cb = trainer.checkpoint_callback
+    path = (cb.best_model_path or cb.last_model_path) if cb is not None else ""
+    if not path or not Path(path).is_file():
+        path = str(run_dir / "checkpoints" / "final.ckpt")
+        trainer.save_checkpoint(path)
+        why = "trainer.fast_dev_run saves none" if trainer.fast_dev_run else "none was saved"
+        log.info("training wrote no checkpoint (%s): wrote its final weights to %s for the closed-loop evaluation",
+                 why, path)
+    overrides, what = after_training_overrides(cfg.get("evaluate_overrides") or [], trainer.fast_dev_run)
+    out = run_dir / "evaluate"
+    log.info("closed-loop evaluation of %s: %s, into %s", path, what, out)
+    command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])
+    summary = evaluate_checkpoint(path, out, overrides, resume_hint=f"training finished (checkpoints in "
+                                  f"{Path(path).parent}); drive the rest with {command}")
+    metrics = {**({"closed_loop/success": summary["success"]} if summary["success"] is not None else {}),
+               **{f"closed_loop/success/{k}": v["rate"] for k, v in summary["cells"].items()}}
+    if trainer.logger is not None and metrics:
+        trainer.logger.log_metrics(metrics, step=trainer.global_step)
+        trainer.logger.save()
+    from cicfw.core.sweeps import write_job_metrics
+
+    write_job_metrics(run_dir, metrics)
+    return summary
+
+
+def _quote(s: str) -> str:
+    return "'" + s.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+@hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="evaluate")
+@report_interrupts
+@report_user_errors
+def main(cfg: DictConfig) -> float:
+    from hydra.core.hydra_config import HydraConfig
+
+    from hydra.types import RunMode
+
+    out = Path(HydraConfig.get().runtime.output_dir)
+    key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
+    hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"
+    resume = f"run the same command with {key}={out if key == 'hydra.run.dir' else out.parent} to drive the rest"
+    success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume)["success"]
+    return float("nan") if success is None else float(success)  # null: no episode (a finished suite has some)
+
