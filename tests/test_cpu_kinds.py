@@ -50,8 +50,11 @@ def test_rows_on_different_kinds_are_pooled_and_marked_mixed():
     a = [at("a", s, 50, XEON) for s in range(3)]
     b = [at("b", s, 50, AMD) for s in range(5)] + [at("b", 5, 50, XEON)]
     p = pair_cells(a, b)
-    assert p.mixed and len(p.a) == 3 and len(p.b) == 6 and p.left_out == 0
-    assert p.note() == "mixed CPUs (A: Intel Xeon 3; B: AMD EPYC 5, Intel Xeon 1)"
+    assert p.mixed and len(p.a) == 3 and len(p.b) == 3 and p.left_out == 0  # paired on seeds 0-2
+    assert p.note() == "on the seeds both ran (0 of A's and 3 of B's cells left out), mixed CPUs (A: Intel Xeon 3; B: AMD EPYC 3)"
+    b3 = [at("b", s, 50, AMD) for s in range(5, 10)] + [at("b", 10, 50, XEON)]  # no seed shared: Welch on all
+    p = pair_cells(a, b3)
+    assert p.mixed and len(p.b) == 6 and p.note() == "mixed CPUs (A: Intel Xeon 3; B: AMD EPYC 5, Intel Xeon 1)"
 
 
 def test_a_claim_is_judged_within_the_kind_both_rows_share():
@@ -63,7 +66,7 @@ def test_a_claim_is_judged_within_the_kind_both_rows_share():
     rec = judge(analyse(cells, n_boot=200), [Claim("g", "GTU beats CIL", (Part("gtu", "cil"),))], {}, {},
                 margin=5.0)[0]["parts"][0]
     half = T_975_2 * 2 / math.sqrt(3)
-    assert rec["measured"] == {"mean": 10.0, "lo": round(10 - half, 2), "hi": round(10 + half, 2)}
+    assert rec["measured"] == pytest.approx({"mean": 10.0, "lo": 10 - half, "hi": 10 + half}, abs=5e-3)
     assert rec["method"] == "paired t, 3 seeds, within AMD EPYC (5 cell(s) of other CPUs left out)"
     assert rec["cpu"] == "AMD EPYC" and rec["cpus"] == {"AMD EPYC": [3, 3], "Intel Xeon": [2, 3]}
     assert rec["verdict"] == SUPPORTED and rec["seeds"] == [3, 3]

@@ -12,7 +12,7 @@ import re
 import shutil
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import pytest
 import yaml
@@ -67,11 +67,21 @@ def recompute(folder: Path) -> tuple[dict[str, Any], str]:
 def legacy_view(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """(results.json data, Markdown data) as cicfw 0.1 made them from the same cells: its table's interval
     was the two-level episode bootstrap (today's secondary ``bootstrap``, same draws), it had no
-    too-few-seeds mark, and its results.json had neither ``bootstrap`` nor ``enough_seeds`` nor the seeds'
-    ``spread`` (whose table its RESULTS.md lacks too: only the committed Markdown's tables are compared)."""
-    rows = [{**r, "columns": r["bootstrap"], "enough_seeds": True} for r in data["rows"]]
+    too-few-seeds mark, its results.json had neither ``bootstrap`` nor ``enough_seeds`` nor the seeds'
+    ``spread`` (whose table its RESULTS.md lacks too: only the committed Markdown's tables are compared), and
+    it kept every figure to 2 decimals (its Markdown printed those, rounded again)."""
+    rows = [_two_decimals({**r, "columns": r["bootstrap"], "enough_seeds": True}) for r in data["rows"]]
     as_json = [{k: v for k, v in r.items() if k not in ("bootstrap", "enough_seeds", "spread")} for r in rows]
     return {**data, "rows": as_json}, {**data, "rows": rows}
+
+
+def _two_decimals(v: Any) -> Any:
+    """``v`` with every float rounded to 2 decimals, as results.json kept them before it kept them whole."""
+    if isinstance(v, dict):
+        return {k: _two_decimals(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_two_decimals(x) for x in v]
+    return round(v, 2) if isinstance(v, float) else v
 
 
 def differences(got: Any, want: Any, where: str = "") -> list[str]:
@@ -116,12 +126,13 @@ def line_diff(got: list[str], want: list[str], what: str) -> list[str]:
 def folder_mismatches(folder: Path, legacy: bool = False) -> list[str]:
     """Every difference between ``folder``'s committed results.json and RESULTS.md and what its cells give:
     the table rows (per-column means and intervals, per-seed values, manoeuvres, curves, wall times), the
-    claims (every part's estimate, p-values and verdicts), the answer (the ranking, the leader's lead, the
-    forest plot's differences), fine tuning's R, the failed cells, and the Markdown's tables. ``legacy``: the
-    folder was made by cicfw 0.1 (``legacy_view``); its claims and answer are not compared."""
+    claims (every part's estimate, p-values, verdicts and words), the answer (the ranking, the rows listed
+    apart, MCB's intervals and pairs, the forest plot's differences and words), fine tuning's R, the failed
+    cells, and the Markdown's tables. ``legacy``: the folder was made by cicfw 0.1 (``legacy_view``); its
+    claims and answer are not compared."""
     committed = json.loads((folder / "results.json").read_text())
     data, md = recompute(folder)
-    keys = ["rows", "claims", "ranking", "leader", "forest", "relation", "failed"]
+    keys = ["rows", "claims", "ranking", "apart", "best", "forest", "relation", "failed"]
     if legacy:
         data, md_data = legacy_view(data)
         md, keys = markdown(md_data), ["rows", "failed"]
@@ -218,10 +229,10 @@ def test_one_episode_flipped_in_a_cell_is_reported(folder_copy: Path):
 
 
 def test_a_changed_digit_in_results_json_or_md_is_reported(folder_copy: Path):
-    edit(folder_copy / "results.json", '"mean": 58.98', '"mean": 58.99')
+    edit(folder_copy / "results.json", '"mean": 58.984375', '"mean": 58.994375')
     edit(folder_copy / "RESULTS.md", "| 1280.6 |", "| 1280.9 |")
     got = folder_mismatches(folder_copy)
-    assert any("columns.overall.mean: recomputed 58.98, committed 58.99" in m for m in got), got
+    assert any("columns.overall.mean: recomputed 58.984375, committed 58.994375" in m for m in got), got
     assert any("+| Regression (CIL) | 0 | 1280.6 |" in m for m in got), got
 
 
@@ -272,48 +283,238 @@ def test_the_docs_state_the_family_size_the_claims_have():
     assert len(stated) == 2 and {int(n) for n in stated} == {size}, (stated, size)
 
 
-def test_every_interval_the_prose_quotes_is_in_the_generated_report():
-    """docs/RESULTS.md's hand-written prose, the README's results and the studies' index quote intervals
-    (``+7.5 [+3.9, +11.2]``); each must be one a generated report prints (the head and the tail quote both
-    budgets, the head and the README also the one-CPU-kind folder and the carla weathers', converged4.md only
-    the 4-epoch one) or, for the index, one its study's pages give, so the prose cannot drift from the tables.
-    The carla folder's answer is checked too, against the reports and its forest plot's row − CIL labels.
-    An interval broken over two lines is still one quote."""
-    def text(*rels: str) -> str:
-        return "".join((DOCS / "results" / r).read_text() for r in rels).replace("−", "-")
+#: the words a comparison reads with (``seed_stats.word``), and "too few seeds" where a row has fewer than 3
+RULE_WORD = re.compile(r"ahead|behind|equivalent within ±\d+(?:\.\d+)?|not separated|too few seeds")
+#: a comparison as the prose quotes it: a signed difference and its interval (``+7.5 [+3.9, +11.2]``), or a row's
+#: MCB interval (``MCB [-34.5, +13.4]``); an unsigned one (``92.6 [81.7, 100.0]``) is a row's own value
+COMPARISON = re.compile(r"(?<![\d.])([+-]\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])")
+MCB_QUOTE = re.compile(r"MCB (\[[+-]\d+\.\d, [+-]\d+\.\d\])")
+VALUE = re.compile(r"(?<![\d.+-])(\d+\.\d)%? (\[\d+\.\d, \d+\.\d\])")
+#: equivalence said with no equivalence test behind it: banned from the answers and the studies' prose
+BANNED = ("tied", "as CIL does", "CIL's level", "CIL's equals", "barely feel", "cost it none", "the same as "
+          "classification", "drives as", "at the level of")
+#: per-seed values quoted for a named row: ``seeds 0-2: 87.1, 79.3 and 74.5%`` or ``seed 0: 90.5%`` (overall)
+PER_SEED = re.compile(r"\bseeds? (\d+(?:(?:, | and |-)\d+)*): (\d+\.\d(?:(?:, | and )\d+\.\d)*)%")
+#: how the prose names a row (lower case), nearest before a per-seed quote
+ROW_NAMES = {"cil": "cil", "regression": "cil", "gtu": "gtu", "co-learning": "gtu", "cce+mse": "hybrid",
+             "w = 10": "hybrid", "w = 5": "hybrid_w5", "w = 15": "hybrid_w15", "co-existence": "coexistence",
+             "w = 0.6": "coexistence", "w = 0.4": "coexistence_w04", "w = 0.8": "coexistence_w08",
+             "classification": "classification", "sine encoding": "sine", "sine wave encoding": "sine",
+             "moe": "moe", "mixture of experts": "moe", "soft sharing": "soft_sharing", "sluice": "sluice",
+             "cross-stitch": "cross_stitch", "fine tuning": "re_none", "r = 0": "re_none", "every pair": "re_all",
+             "turn with turn": "re_pairs"}
+#: the carla folder's carla − harsh table (``paired_switch``): its entries are one family for their words
+SWITCH_ROWS = {"CIL": "cil", "GTU": "gtu", "CCE+MSE": "hybrid", "Classification": "classification",
+               "Co-existence": "coexistence", "Sine encoding": "sine", "MoE": "moe", "Soft sharing": "soft_sharing",
+               "Sluice": "sluice"}
+SWITCH_FAMILY = 3 * len(SWITCH_ROWS)
 
-    both = text("converged6/RESULTS.md", "converged/RESULTS.md")
-    # the head also quotes the one-CPU-kind folder (converged6's Xeon cells), the carla weathers' folder, its
-    # comparison with the harsh weathers (its README's table, made by paired_switch and checked below) and its
-    # forest plot's differences to CIL (results.json, as the picture labels them)
-    carla_readme = text("converged6_carla/README.md").splitlines()
-    forest = json.loads((DOCS / "results" / "converged6_carla" / "results.json").read_text())["forest"]
-    carla = text("converged6_xeon/RESULTS.md", "converged6_carla/RESULTS.md") + "\n".join(
-        [line for line in carla_readme if line.startswith("|")]
-        + [f"{m['mean']:+.1f} [{m['lo']:+.1f}, {m['hi']:+.1f}]" for m in (f["measured"] for f in forest)
-           if m["lo"] is not None])
-    sources = {"head.md": both + carla, "converged4.md": text("converged/RESULTS.md"),
-               "tail.md": both}
-    assert set(sources) == {p[1] for p in COMPOSITION if p[0] == "prose"}
-    prose = {name: text(f"prose/{name}") for name in sources}
-    prose["converged6_carla/README.md"] = "\n".join(line for line in carla_readme if not line.startswith("|"))
-    sources["converged6_carla/README.md"] = carla + both
-    # the README's results section quotes the head's reports; the index of studies, each study's own pages
-    prose |= {"README.md": (DOCS.parent / "README.md").read_text().replace("−", "-"), "results/README.md":
-              text("README.md")}
-    studies = "".join(f.read_text() for f in sorted((DOCS / "results").glob("*/*.md"))
-                      if f.parent.name != "prose").replace("−", "-")
-    sources |= {"README.md": both + carla, "results/README.md": studies}
-    missing, counts = [], {}
-    for name, report in sources.items():
-        quoted = re.findall(r"([+-]?\d+\.\d)(?: points)? (\[[+-]?\d+\.\d, [+-]?\d+\.\d\])",
-                            " ".join(prose[name].split()))
-        counts[name] = len(quoted)
-        missing += [f"{name}: {m} {iv}" for m, iv in quoted if f"{m} {iv}" not in report]
-    assert counts["head.md"] >= 5 and counts["converged4.md"] >= 10 and counts["README.md"] >= 10 \
-        and counts["converged6_carla/README.md"] >= 10, \
-        f"the prose quotes the tables' intervals: {counts}"
-    assert missing == [], missing
+
+def _text(path: Path) -> str:
+    return " ".join(path.read_text().replace("−", "-").split())
+
+
+@functools.cache
+def report_words(folder: str) -> dict[str, frozenset[str]]:
+    """Each comparison a published report prints (as the report prints it) -> the word(s) it reads with: every
+    claim's part, every row against CIL, every pair of ranked rows and every row's MCB interval."""
+    from cicfw.reproduction.report import _bounds, _est
+
+    data = json.loads((DOCS / "results" / folder / "results.json").read_text())
+    out: dict[str, set[str]] = {}
+
+    def add(printed: str, w: Any) -> None:
+        out.setdefault(printed.replace("−", "-"), set()).add((w or {}).get("word") or "too few seeds")
+
+    for c in data["claims"]:
+        for p in c["parts"]:
+            if "measured" in p:
+                add(_est(p["measured"], "+"), p.get("word"))
+    for r in data.get("forest") or []:
+        add(_est(r["measured"], "+"), r.get("word"))
+    best = data.get("best") or {}
+    for p in best.get("pairs") or []:
+        add(_est(p["measured"], "+"), p.get("word"))
+    for r in best.get("rows") or []:
+        add("MCB " + _bounds(r["lo"], r["hi"]), r)
+    return {k: frozenset(v) for k, v in out.items()}
+
+
+@functools.cache
+def switch_words() -> dict[str, frozenset[str]]:
+    """The carla folder's carla − harsh entries (``paired_switch.compare``, the same seeds under both weather
+    families) -> their words, read on the Bonferroni interval over the table's entries."""
+    from cicfw.reproduction.paired_switch import compare, load_row
+
+    out: dict[str, set[str]] = {}
+    for row in SWITCH_ROWS.values():
+        a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in ("converged6_carla", "converged6_xeon"))
+        for e in compare(a, b, 5.0, SWITCH_FAMILY):
+            if e.on in ("training_town/new_weathers", "new_town/new_weathers", "overall"):
+                out.setdefault(f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]", set()).add(e.word or "too few seeds")
+    return {k: frozenset(v) for k, v in out.items()}
+
+
+@functools.cache
+def offline_words() -> dict[str, frozenset[str]]:
+    """The offline study's gains of picking by validation error -> their words (``gain_word``)."""
+    from cicfw.reproduction.offline_vs_closed_loop import gain_word
+
+    res = json.loads((DOCS / "results" / "offline_vs_closed_loop" / "results.json").read_text())
+    out: dict[str, set[str]] = {}
+    for r in [res, *res.get("families", {}).values()]:
+        for s in r["scopes"].values():
+            g = s["selection_gain"]
+            if g.get("interval"):
+                out.setdefault(f"{g['mean']:+.1f} [{g['interval'][0]:+.1f}, {g['interval'][1]:+.1f}]", set()).add(
+                    gain_word(g))
+    return {k: frozenset(v) for k, v in out.items()}
+
+
+#: each checked text -> the published reports (folders) its comparisons come from, and the studies beside them;
+#: a README of a study checks against its own folder's report and those it compares with
+PROSE_SOURCES: dict[str, tuple[tuple[str, ...], bool, bool]] = {
+    # name: (report folders, the carla − harsh table, the offline study)
+    "prose/head.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), True, True),
+    "prose/converged4.md": (("converged",), False, False),
+    "prose/tail.md": (("converged6", "converged"), False, False),
+    "README.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), True, True),
+    "converged6_carla/README.md": (("converged6_carla", "converged6", "converged6_xeon"), True, False),
+    "results/README.md": (("converged6", "converged6_carla", "converged6_xeon", "converged"), False, True),
+    "offline_vs_closed_loop/README.md": ((), False, True),
+}
+#: the studies whose README quotes what a paired-switch tool printed (the same seeds with and without a switch),
+#: not a report's comparisons: their intervals are checked by their own tests, their words for banned ones only
+PAIRED_STUDIES = ("converged6_bf16_xeon", "bf16_license_xeon", "converged6_rerun_xeon")
+
+
+def _prose(docs: Path, name: str) -> str:
+    if name == "README.md":  # the README's results section
+        text = _text(docs.parent / "README.md")
+        return text[text.index("## Results"):text.index("## Your own CIL HDF5 data")]
+    if name == "results/README.md":
+        return _text(docs / "results" / "README.md")
+    return _text(docs / "results" / name)
+
+
+def _clause(text: str, start: int, end: int) -> tuple[int, int]:
+    """The clause around ``text[start:end]``: from the last ';' or sentence end before it to the next one."""
+    bounds = [m.start() for m in re.finditer(r";|[.?!](?=\s|$)", text)]
+    lo = max([b + 1 for b in bounds if b < start], default=0)
+    hi = min([b for b in bounds if b >= end], default=len(text))
+    return lo, hi
+
+
+def _nearest_word(text: str, start: int, end: int) -> str | None:
+    lo, hi = _clause(text, start, end)
+    words = [(max(0, m.start() - end, start - m.end()), m.group()) for m in RULE_WORD.finditer(text, lo, hi)]
+    return min(words)[1] if words else None
+
+
+def prose_problems(docs: Path = DOCS) -> list[str]:
+    """Every comparison the answers and the studies' prose quote must be one a generated report (or the
+    carla − harsh table, or the offline study) prints, and the rule's word nearest to it in its clause must be
+    the word the report gives it; a row's own value must be in its reports too; per-seed values quoted for a
+    named row must be the cells'; no banned word of equivalence."""
+    problems = []
+    for name, (folders, switch, offline) in PROSE_SOURCES.items():
+        text = _prose(docs, name)
+        words: dict[str, set[str]] = {}
+        for d in [*(report_words(f) for f in folders), switch_words() if switch else {}, offline_words() if offline else {}]:
+            for k, v in d.items():
+                words.setdefault(k, set()).update(v)
+        reports = "".join(_text(DOCS / "results" / f / "RESULTS.md") for f in folders)
+        if name == "results/README.md":  # the index quotes its studies' pages
+            reports += "".join(_text(f) for f in sorted((DOCS / "results").glob("*/*.md")) if f.parent.name != "prose")
+        if name == "converged6_carla/README.md":
+            reports += " ".join(line for line in (DOCS / "results" / name).read_text().replace("−", "-").splitlines()
+                                if line.startswith("|"))
+        for m in [*COMPARISON.finditer(text), *MCB_QUOTE.finditer(text)]:
+            printed = m.group() if m.re is MCB_QUOTE else f"{m.group(1)} {m.group(2)}"
+            if printed not in words:
+                if name == "results/README.md" and printed in reports:
+                    continue  # a study's own figure (a paired-switch tool's), quoted from its page
+                problems.append(f"{name}: {printed} is in no generated report")
+                continue
+            said = _nearest_word(text, m.start(), m.end())
+            if said not in words[printed]:
+                problems.append(f"{name}: {printed} reads {said!r}, the report says {' or '.join(sorted(words[printed]))}")
+        for m in VALUE.finditer(text):
+            if m.group() not in reports and f"{m.group(1)} {m.group(2)}" not in reports:
+                problems.append(f"{name}: {m.group(1)} {m.group(2)} is in no generated report")
+        problems += _per_seed_problems(name, text, folders)
+    for path in [docs / "RESULTS.md", docs.parent / "README.md", *sorted((docs / "results").glob("*/README.md")),
+                 *sorted((docs / "results" / "prose").glob("*.md"))]:
+        text = _text(path)
+        if path.name == "README.md" and path.parent == docs.parent:
+            text = text[text.index("## Results"):text.index("## Your own CIL HDF5 data")]
+        problems += [f"{path.relative_to(docs.parent)}: says {b!r} with no equivalence test"
+                     for b in BANNED if re.search(rf"\b{re.escape(b)}\b", text, re.I)]
+    return problems
+
+
+def _per_seed_problems(name: str, text: str, folders: Sequence[str]) -> list[str]:
+    """``seeds 0-2: 87.1, 79.3 and 74.5%`` after a row's name: those seeds' overall success in one of the
+    text's folders, to the digit."""
+    out = []
+    per_seed = {}
+    for f in folders:
+        for r in json.loads((DOCS / "results" / f / "results.json").read_text())["rows"]:
+            per_seed.setdefault(r["row"], []).append({int(s): f"{v['overall']:.1f}" for s, v in r["per_seed"].items()})
+    names = re.compile("|".join(sorted(map(re.escape, ROW_NAMES), key=len, reverse=True)), re.I)
+    for m in PER_SEED.finditer(text):
+        seeds = []
+        for part in re.split(r", | and ", m.group(1)):
+            lo, _, hi = part.partition("-")
+            seeds += list(range(int(lo), int(hi or lo) + 1))
+        values = re.split(r", | and ", m.group(2))
+        sentence = text[max([b.end() for b in re.finditer(r"[.?!]\s", text[:m.start()])], default=0):m.start()]
+        named = [ROW_NAMES[n.group().lower()] for n in names.finditer(sentence)]
+        if not named:
+            out.append(f"{name}: per-seed values {m.group()!r} name no row")
+            continue
+        row = named[-1]
+        ok = len(seeds) == len(values) and any(all(t.get(s) == v for s, v in zip(seeds, values))
+                                                for t in per_seed.get(row, []))
+        if not ok:
+            got = [[t.get(s) for s in seeds] for t in per_seed.get(row, [])]
+            out.append(f"{name}: {row} {m.group()!r}, the cells give {got}")
+    return out
+
+
+def test_every_comparison_the_prose_quotes_is_a_reports_with_its_word():
+    """docs/RESULTS.md's hand-written prose, the README's results, the studies' index and the studies' READMEs
+    quote comparisons (``+7.5 [+3.9, +11.2]``, ``MCB [-34.5, +13.4]``): each must be one a generated report
+    prints, and the word nearest to it in its clause (ahead / behind / equivalent within ±5 / not separated /
+    too few seeds) must be the one the report reads it with, on the correction it names; rows' own values
+    (``92.6 [81.7, 100.0]``) must be in the reports, per-seed values quoted for a named row (``seeds 0-2: 87.1,
+    79.3 and 74.5%``) the cells', and no sentence may call rows equal without an equivalence test. An interval
+    broken over two lines is still one quote."""
+    problems = prose_problems()
+    counts = {name: len(COMPARISON.findall(_prose(DOCS, name))) for name in PROSE_SOURCES}
+    assert counts["prose/head.md"] >= 10 and counts["README.md"] >= 4 and counts["converged6_carla/README.md"] >= 10, \
+        f"the prose quotes the reports' comparisons: {counts}"
+    seeds = sum(len(PER_SEED.findall(_prose(DOCS, n))) for n in PROSE_SOURCES)
+    assert seeds >= 5, f"per-seed quotes: {seeds}"
+    assert problems == [], "\n".join(problems)
+
+
+@pytest.mark.parametrize("old, new", [("not separated", "ahead"), ("seed 0: ", "seed 1: ")])
+def test_a_word_or_a_seed_changed_by_hand_is_reported(tmp_path: Path, old: str, new: str):
+    """One rule word, or one per-seed quote, changed in a copy of the head's prose: the check names it."""
+    docs = tmp_path / "docs"
+    shutil.copytree(DOCS / "results" / "prose", docs / "results" / "prose")
+    for rel in ["RESULTS.md", "results/README.md", *(f"results/{n}" for n in PROSE_SOURCES if n.endswith("/README.md")
+                                                      and n != "results/README.md")]:
+        (docs / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(DOCS / rel, docs / rel)
+    shutil.copy(DOCS.parent / "README.md", tmp_path / "README.md")
+    for p in (DOCS / "results").glob("*/README.md"):
+        (docs / "results" / p.parent.name).mkdir(parents=True, exist_ok=True)
+        shutil.copy(p, docs / "results" / p.parent.name / "README.md")
+    assert prose_problems(docs) == []
+    edit(docs / "results" / "prose" / "head.md", old, new)
+    assert prose_problems(docs)
 
 
 def test_the_carla_folder_quotes_paired_switch_as_it_computes():
@@ -329,7 +530,7 @@ def test_the_carla_folder_quotes_paired_switch_as_it_computes():
     assert set(rows) == set(labels), rows
     for label, row in labels.items():
         a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in ("converged6_carla", "converged6_xeon"))
-        got = {e.on: e for e in compare(a, b, 5.0)}
+        got = {e.on: e for e in compare(a, b, 5.0, SWITCH_FAMILY)}
         want = " | ".join([table_cell(got["training_town/new_weathers"], seeds=True),
                            table_cell(got["new_town/new_weathers"], seeds=True), table_cell(got["overall"])])
         assert rows[label] == want, (label, rows[label], want)
@@ -357,8 +558,9 @@ def test_the_carla_folder_counts_its_matching_training_weather_episodes_right():
 
 
 def table_cell(e, seeds: bool = False) -> str:
-    """One cell of the carla − harsh table: ``+26.0 [+10.7, +41.4]``, then (harsh per seed → carla per seed)."""
-    text = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]"
+    """One cell of the carla − harsh table: ``+26.0 [+10.7, +41.4] not separated`` (its word over the table's
+    entries), then (harsh per seed → carla per seed)."""
+    text = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}] {e.word}"
     return text + (f" ({', '.join(f'{x:.1f}' for x in e.b)} → {', '.join(f'{x:.1f}' for x in e.a)})" if seeds else "")
 
 

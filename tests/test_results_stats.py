@@ -141,15 +141,28 @@ def test_seeds_whose_differences_agree_still_get_the_episodes_interval():
     assert 0.005 < part["p"] < 0.05 and part["verdict"] == CONTRADICTED
 
 
-def test_welch_when_the_seeds_differ():
-    """Rows with other seeds are not paired: Welch's interval, recomputed here from its formula
+def test_paired_over_the_seeds_both_ran():
+    """Rows that share seeds share their splits: A on seeds 0-2 and B on seeds 0-3 are paired over seeds 0-2
+    (B's seed 3 left out): A - B = 20, 20, 35, mean 25, sd 8.660, 25 +- 4.303 x 8.660 / sqrt 3 by hand, where
+    Welch over all seeds would treat the shared splits as independent."""
+    a = {0: 60.0, 1: 70.0, 2: 80.0}
+    b = {0: 40.0, 1: 50.0, 2: 45.0, 3: 55.0}
+    d = difference(a, b)
+    assert d.paired and d.n == (3, 3)
+    assert d.method == "paired t, 3 seeds (the seeds both ran; 0 of A's and 1 of B's left out)"
+    half = 4.303 * math.sqrt(75.0) / math.sqrt(3)
+    assert (d.estimate.mean, d.estimate.lo, d.estimate.hi) == pytest.approx((25.0, 25 - half, 25 + half), abs=0.01)
+
+
+def test_welch_when_no_seed_is_shared():
+    """Rows that share no seed are not paired: Welch's interval, recomputed here from its formula
     (se^2 = sa^2/na + sb^2/nb, Welch-Satterthwaite df)."""
     from scipy import stats
 
     a = {0: 60.0, 1: 70.0, 2: 80.0}  # var 100
-    b = {0: 40.0, 1: 50.0, 2: 45.0, 3: 55.0}  # mean 47.5, var 41.667
+    b = {10: 40.0, 11: 50.0, 12: 45.0, 13: 55.0}  # mean 47.5, var 41.667
     d = difference(a, b)
-    assert not d.paired and d.method == "Welch t, 3 vs 4 seeds"
+    assert not d.paired and d.method == "Welch t, 3 vs 4 seeds, none shared"
     va, vb = 100 / 3, (41.6667) / 4
     se = math.sqrt(va + vb)
     df = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 3)
@@ -263,7 +276,8 @@ def test_a_row_with_fewer_than_three_seeds_gets_no_verdict():
     got = {c["id"]: c for c in judge(an, claims, {}, {})}
     g = got["g"]["parts"][0]
     assert g["measured"]["mean"] == 60.0 and g["verdict"] == TOO_FEW and got["g"]["verdict"] == TOO_FEW
-    assert g["verdict_holm"] == TOO_FEW and "p_holm" not in g and g["method"] == "Welch t, 2 vs 3 seeds"
+    assert g["verdict_holm"] == TOO_FEW and "p_holm" not in g
+    assert g["method"] == "paired t, 2 seeds, on the seeds both ran (0 of A's and 1 of B's cells left out)"
     assert got["s"]["verdict"] == TOO_FEW and got["s"]["parts"][0]["measured"]["lo"] is None
     assert got["m"]["verdict"] == NOT_RUN
     assert an.estimates["sine"][4].lo is None and an.estimates["gtu"][4].lo is not None

@@ -113,42 +113,68 @@ class Analysis:
 class Pairing:
     """The cells a comparison of rows A and B uses, and the CPU kinds behind them: ``cpu`` names the one
     kind they all ran on, or None where they mix kinds ("mixed CPUs"); ``left_out`` counts the cells of
-    other kinds a comparison within one kind leaves out; ``kinds``: each kind's cells of A and of B."""
+    other kinds a comparison within one kind leaves out; ``kinds``: each kind's cells of A and of B;
+    ``unshared``: the cells of A and of B left out because the other row did not run their seed (rows that
+    share seeds are compared paired over the seeds both ran)."""
 
     a: tuple[CellResult, ...]
     b: tuple[CellResult, ...]
     cpu: str | None
     left_out: int
     kinds: dict[str, tuple[int, int]]
+    unshared: tuple[int, int] = (0, 0)
 
     @property
     def mixed(self) -> bool:
         """The comparison pools cells of more than one kind of CPU."""
         return self.cpu is None
 
+    @property
+    def paired(self) -> bool:
+        """The rows share seeds, so their cells are compared paired by seed."""
+        return {c.seed for c in self.a} == {c.seed for c in self.b}
+
     def note(self) -> str:
-        """What the report's method column adds: "" on one kind throughout, else within which kind or
-        "mixed CPUs" with each kind's cells of A and of B."""
-        if len(self.kinds) == 1:
-            return ""
-        if self.cpu is not None:
-            return f"within {self.cpu} ({self.left_out} cell(s) of other CPUs left out)"
-        side = lambda i: ", ".join(f"{k} {n[i]}" for k, n in self.kinds.items() if n[i])  # noqa: E731
-        return f"mixed CPUs (A: {side(0)}; B: {side(1)})"
+        """What the report's method column adds: which seeds were left out to pair (none when the rows ran the
+        same seeds), then "" on one kind throughout, else within which kind or "mixed CPUs" with each kind's
+        cells of A and of B."""
+        out = []
+        if any(self.unshared):
+            out.append(f"on the seeds both ran ({self.unshared[0]} of A's and {self.unshared[1]} of B's cells "
+                       "left out)")
+        if len(self.kinds) > 1:
+            if self.cpu is not None:
+                out.append(f"within {self.cpu} ({self.left_out} cell(s) of other CPUs left out)")
+            else:  # the kinds of the cells compared
+                used = {k: (sum(c.cpu == k for c in self.a), sum(c.cpu == k for c in self.b)) for k in self.kinds}
+                side = lambda i: ", ".join(f"{k} {n[i]}" for k, n in used.items() if n[i])  # noqa: E731
+                out.append(f"mixed CPUs (A: {side(0)}; B: {side(1)})")
+        return ", ".join(out)
+
+
+def _on_shared_seeds(a: Sequence[CellResult], b: Sequence[CellResult]) -> tuple[tuple, tuple, tuple[int, int]]:
+    """The cells of A and B whose seed both rows ran (all of them where no seed is shared: Welch), and how
+    many of each were left out."""
+    shared = {c.seed for c in a} & {c.seed for c in b}
+    if not shared:
+        return tuple(a), tuple(b), (0, 0)
+    sa, sb = tuple(c for c in a if c.seed in shared), tuple(c for c in b if c.seed in shared)
+    return sa, sb, (len(a) - len(sa), len(b) - len(sb))
 
 
 def pair_cells(a: Sequence[CellResult], b: Sequence[CellResult], min_seeds: int = MIN_SEEDS) -> Pairing:
     """Compare within one kind of CPU (the same seed trains another model on another kind): all cells when
     both rows ran on one kind; where they span kinds, the cells of the kind on which both rows have at
     least ``min_seeds`` (the most common seeds, then the most cells, then the name decide between kinds);
-    where no kind has that, all cells, marked mixed."""
+    where no kind has that, all cells, marked mixed. Then, where the rows share seeds (and so splits), only
+    the cells of the seeds both ran: they are compared paired; rows that share none, by Welch's t."""
     kinds = sorted({c.cpu for c in (*a, *b)})
     counts = {k: (sum(c.cpu == k for c in a), sum(c.cpu == k for c in b)) for k in kinds}
     if len(kinds) == 1:
-        return Pairing(tuple(a), tuple(b), kinds[0], 0, counts)
+        return Pairing(*_paired(a, b, kinds[0], 0, counts))
     shared = [k for k in kinds if min(counts[k]) >= min_seeds]
     if not shared:
-        return Pairing(tuple(a), tuple(b), None, 0, counts)
+        return Pairing(*_paired(a, b, None, 0, counts))
 
     def rank(k: str) -> tuple[int, int]:
         common = {c.seed for c in a if c.cpu == k} & {c.seed for c in b if c.cpu == k}
@@ -156,7 +182,16 @@ def pair_cells(a: Sequence[CellResult], b: Sequence[CellResult], min_seeds: int 
 
     best = max(shared, key=rank)  # the first of equals in name order
     sa, sb = tuple(c for c in a if c.cpu == best), tuple(c for c in b if c.cpu == best)
-    return Pairing(sa, sb, best, len(a) + len(b) - len(sa) - len(sb), counts)
+    return Pairing(*_paired(sa, sb, best, len(a) + len(b) - len(sa) - len(sb), counts))
+
+
+def _paired(a: Sequence[CellResult], b: Sequence[CellResult], cpu: str | None, left_out: int,
+            counts: dict[str, tuple[int, int]]) -> tuple:
+    sa, sb, unshared = _on_shared_seeds(a, b)
+    kinds = {c.cpu for c in (*sa, *sb)}
+    if cpu is None and len(kinds) == 1:  # pairing left the cells of one kind
+        cpu = kinds.pop()
+    return sa, sb, cpu, left_out, counts, unshared
 
 
 def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> Analysis:

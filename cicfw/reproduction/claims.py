@@ -13,7 +13,8 @@ import numpy as np
 
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
-from cicfw.reproduction.seed_stats import Estimate, difference, holm, ratio_interval, with_episode_floor
+from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
+                                          with_episode_floor, word)
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
 TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
@@ -236,17 +237,17 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
     (secondary) and the verdicts, uncorrected and Holm."""
     margin = default_margin() if margin is None else check_margin(margin)
     out, tested = [], {}
+    sizes = holm_families([{"family": c.family, "parts": c.parts} for c in claims])
     for claim in claims:
         parts = []
         for p in claim.parts:
-            rec = _measure(an, p, paper, labels, margin)
+            rec = _measure(an, p, paper, labels, margin, sizes[claim.family])
             if "excess" in rec:
                 tested.setdefault(claim.family, []).append(rec)
             parts.append(rec)
         out.append({"id": claim.id, "claim": claim.text, "quote": claim.quote, "source": claim.source,
                     "parts": parts, **({"family": claim.family} if claim.family != MAIN_FAMILY else {})})
     # each family is fixed in advance: every part of its claims, tested or not (``holm``'s family_size)
-    sizes = holm_families(out)
     for fam, recs in tested.items():
         adjusted, reject = holm([r["p"] for r in recs], family_size=sizes[fam])
         for rec, padj, rej in zip(recs, adjusted, reject):
@@ -258,10 +259,21 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
     return out
 
 
+def word_record(d_corrected: Any, margin: float, level: float, correction: str) -> dict[str, Any]:
+    """A comparison's word (``seed_stats.word``) read on its corrected interval ``d_corrected`` (a
+    ``Difference`` at ``level``), with that interval and the correction's name, as results.json keeps it."""
+    e = d_corrected.estimate
+    w = word(e.lo, e.hi, margin) if d_corrected.enough_seeds else None
+    return {"word": w, "lo": e.lo if w else None, "hi": e.hi if w else None, "level": level,
+            "correction": correction}
+
+
 def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels: Mapping[str, str],
-             margin: float) -> dict[str, Any]:
+             margin: float, family_size: int = 1) -> dict[str, Any]:
     """One part's record: its difference, p-value, method and uncorrected verdict (``excess``, A - B -
-    null unrounded, is kept for the Holm verdict while the part is in the family)."""
+    null unrounded, is kept for the Holm verdict while the part is in the family), and how A and B compare
+    in words: ``word`` on the interval corrected by Bonferroni over the ``family_size`` parts of its family,
+    ``word_uncorrected`` on the 95% one."""
     null = p.null(margin)
     rec: dict[str, Any] = {"comparison": p.text(labels, margin), "claim": p.test, "test": "two-sided",
                            "null": null, "on": p.on, "paper": p.paper(paper)}
@@ -277,12 +289,17 @@ def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels
     va, vb = p.values(per_seed, p.a), p.values(per_seed, p.b)
     d = difference(va, {s: p.b_scale * v for s, v in vb.items()}, null=null)
     terms = episode_terms(cells, p)
+    level = family_level(family_size)
+    dc = difference(va, {s: p.b_scale * v for s, v in vb.items()}, level=level)
     if terms:  # on single table columns: the episodes' floor, as ``analysis.row_estimate`` has for a row
         d = with_episode_floor(d, terms, null=null)
+        dc = with_episode_floor(dc, terms, level=level)
     note = pair.note()
     means = [float(np.mean(list(va.values()))), p.b_scale * float(np.mean(list(vb.values())))]
     rec.update(measured=d.estimate.as_dict(), p=d.p, method=d.method + (f", {note}" if note else ""),
-               seeds=list(d.n), cpu=_cpu(pair), means=[round(m, 2) for m in means])
+               seeds=list(d.n), cpu=_cpu(pair), means=means,
+               word=word_record(dc, margin, level, f"Bonferroni over the {family_size} parts of its family"),
+               word_uncorrected=word(d.estimate.lo, d.estimate.hi, margin) if d.enough_seeds else None)
     if len(pair.kinds) > 1:
         rec["cpus"] = {k: list(n) for k, n in pair.kinds.items()}
     rec["bootstrap"] = _boot_part(an, p, cells).as_dict()

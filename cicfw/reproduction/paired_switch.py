@@ -32,7 +32,8 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import cell_key
 from cicfw.reproduction.cells import COLUMNS, CellResult, load_cell, pooled_counts
-from cicfw.reproduction.seed_stats import MIN_SEEDS, contrast_level, difference, difference_terms, with_episode_floor
+from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, difference_terms, family_level,
+                                           with_episode_floor, word)
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
@@ -52,6 +53,11 @@ class Equivalence:
     hi: float | None
     p_tost: float | None
     verdict: str
+    #: how A and B compare, read on the interval corrected over ``family`` comparisons (``seed_stats.word``:
+    #: ahead / behind / equivalent within ±margin / not separated; None with too few seeds), and that interval
+    word: str | None = None
+    word_lo: float | None = None
+    word_hi: float | None = None
 
 
 def load_row(folder: Path) -> dict[int, CellResult]:
@@ -87,19 +93,24 @@ def episode_tost(a: tuple[int, int], b: tuple[int, int], margin: float) -> float
     return 1.0 if max(levels) == 1.0 else max(levels) / 2.0
 
 
-def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float) -> list[Equivalence]:
+def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
+            family: int = 1) -> list[Equivalence]:
     """Every column and overall, on the seeds both sides ran. In a table column both the interval and the
     TOST p-value also answer to the episodes pooled over those seeds (``with_episode_floor``,
-    ``episode_tost``), so seeds whose differences happen to agree are not *equivalent* by luck."""
+    ``episode_tost``), so seeds whose differences happen to agree are not *equivalent* by luck. Each entry's
+    ``word`` is read on its interval at the Bonferroni level of ``family`` comparisons (the caller's table:
+    1 for one comparison)."""
     seeds = sorted(set(a) & set(b))
     out = []
     for col in ON:
         va = {s: a[s].rate(col) for s in seeds}
         vb = {s: b[s].rate(col) for s in seeds}
-        d = difference(va, vb)
+        d, dc = difference(va, vb), difference(va, vb, level=family_level(family))
         pooled = None if col is None or not seeds else tuple(pooled_counts([x[s] for s in seeds], col) for x in (a, b))
         if pooled is not None:
             d = with_episode_floor(d, difference_terms(*pooled))
+            dc = with_episode_floor(dc, difference_terms(*pooled), level=family_level(family))
+        w = word(dc.estimate.lo, dc.estimate.hi, margin) if len(seeds) >= MIN_SEEDS else None
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
         else:
@@ -108,7 +119,8 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
                 p = max(p, episode_tost(*pooled, margin))
             verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
         out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
-                               d.estimate.lo, d.estimate.hi, p, verdict))
+                               d.estimate.lo, d.estimate.hi, p, verdict, w, dc.estimate.lo if w else None,
+                               dc.estimate.hi if w else None))
     return out
 
 
@@ -131,17 +143,20 @@ def check_distinct(a: Path, b: Path, what: str) -> None:
 
 
 def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
-          names: tuple[str, str] = ("A", "B")) -> list[str]:
-    """The printed report: seeds, one line per column, the cells' training times."""
+          names: tuple[str, str] = ("A", "B"), family: int = 1) -> list[str]:
+    """The printed report: seeds, one line per column (its word read at the Bonferroni level of ``family``
+    comparisons), the cells' training times."""
     seeds = sorted(set(a) & set(b))
     out = [f"A {names[0]} (row {row_names(a)}) vs B {names[1]} (row {row_names(b)}), paired seeds {seeds} "
-           f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points",
-           f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95% t]':>22s} {'TOST p':>7s}  verdict"]
-    for e in compare(a, b, margin):
+           f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points; words read "
+           + (f"on the Bonferroni interval over {family} comparisons" if family > 1 else "on the 95% interval"),
+           f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95% t]':>22s} {'TOST p':>7s}  verdict; word"]
+    for e in compare(a, b, margin, family):
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
         p = "–" if e.p_tost is None else f"{e.p_tost:.3f}"
+        said = "too few seeds" if e.word is None else f"{e.word} [{e.word_lo:+.1f}, {e.word_hi:+.1f}]"
         out.append(f"{e.on:36s} {' '.join(f'{x:5.1f}' for x in e.a):>22s} {' '.join(f'{x:5.1f}' for x in e.b):>22s} "
-                   f"{ci:>22s} {p:>7s}  {e.verdict}")
+                   f"{ci:>22s} {p:>7s}  {e.verdict}; {said}")
     ta = [a[s].meta.get("wall_s", {}).get("train") for s in seeds]
     tb = [b[s].meta.get("wall_s", {}).get("train") for s in seeds]
     if all(ta) and all(tb):
@@ -206,6 +221,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
     ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")
     ap.add_argument("--margin", type=float, default=5.0, help="equivalence margin in points (default 5)")
+    ap.add_argument("--family", type=int, default=1,
+                    help="read each word on the Bonferroni interval over this many comparisons (default 1: the 95%%)")
     ap.add_argument("--episodes", action="store_true",
                     help="a and b are two models of one seed (cell.json or evaluation folders): McNemar per column")
     args = ap.parse_args(argv)
@@ -226,7 +243,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))
-        print("\n".join(lines(a, b, args.margin, (args.a, args.b))))
+        if args.family < 1:
+            raise ValueError(f"--family must be a positive number of comparisons, got {args.family}")
+        print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family)))
     except (ValueError, OSError, json.JSONDecodeError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

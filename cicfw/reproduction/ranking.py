@@ -1,65 +1,203 @@
-"""Which row drives best: the rows by overall success, the leader against every other row, and every row
-against CIL (the forest plot's data); each difference within one CPU kind where it can be
-(``analysis.pair_cells``), two-sided 95% t-intervals over seeds, uncorrected (descriptive, not a claim)."""
+"""Which row drives best, by a procedure fixed before it is run: Hsu's multiple comparisons with the best
+(MCB) over every row with enough seeds, and every row against CIL (the forest plot's data).
+
+**The rows.** Only rows with at least ``MIN_SEEDS`` seeds are ranked; the others are listed apart, in the
+catalogue's order, and never ranked (a one-seed row's "lead" is one draw of the seed).
+
+**A pair of rows.** Row i minus row j in overall success over seeds: paired over the seeds both ran (the
+same seed trains on the same split), Welch's t where they share none, within one CPU kind where both have
+the seeds there (``analysis.pair_cells``). Each pair's one-sided bounds come from ``scipy.stats.ttest_rel``
+(paired) or ``ttest_ind(equal_var=False)`` (Welch) and their ``confidence_interval``.
+
+**MCB** (Hsu 1996, ch. 4, with Bonferroni's constant in place of Dunnett's, since pairs differ in seeds,
+pairing and variance). With k ranked rows and q = 1 - 0.05 / (k - 1), let ``up_ij`` and ``lo_ij`` be the
+one-sided q bounds of mu_i - mu_j (upper and lower). For each row the interval of mu_i - max_{j != i} mu_j is
+
+    U_i = max(0, min_{j != i} up_ij),  G = {i : U_i > 0},
+    L_i = 0 if G = {i}, else min(0, min_{j in G, j != i} lo_ij),
+
+and the k intervals hold jointly with probability >= 95%: they all hold whenever the true best row b's k - 1
+one-sided comparisons do (each at 0.05 / (k - 1)). G is the set of rows that may drive best. A row reads
+*ahead* (it drives best: G is that row alone), *behind* (U_i = 0: some row drives better), *equivalent
+within ±margin* of the best of the others (-margin < L_i and U_i < margin), or *not separated*.
+
+**The forest.** Every ranked row minus CIL, the paired or Welch 95% t-interval, its word read on the
+Bonferroni interval over the forest's comparisons (one per ranked row besides CIL); rows apart are drawn
+apart, with no word."""
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from cicfw.reproduction.analysis import Analysis
-from cicfw.reproduction.seed_stats import MIN_SEEDS, difference
+from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, MIN_SEEDS, NOT_SEPARATED, difference, equivalent,
+                                           family_level, word)
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"
-SEPARATED, TIED, TOO_FEW = "separated", "tied", "too few seeds"
+TOO_FEW = "too few seeds"
 
 
-def overall_difference(an: Analysis, a: str, b: str) -> dict[str, Any]:
-    """Row ``a`` minus row ``b`` in overall success (points): the paired t-interval where the cells pair by
-    seed, else Welch's, on the cells of one CPU kind where both rows have enough seeds there, else on
-    all of them, marked mixed (``method`` says which); ``verdict`` reads the interval against 0."""
+def overall_difference(an: Analysis, a: str, b: str, margin: float | None = None,
+                       family_size: int = 1) -> dict[str, Any]:
+    """Row ``a`` minus row ``b`` in overall success (points): paired over the seeds both ran, else Welch's,
+    on the cells of one CPU kind where both rows have enough seeds there, else on all of them, marked mixed
+    (``method`` says which), its 95% t-interval (``measured``); with a ``margin``, its ``word`` read on the
+    Bonferroni interval over ``family_size`` comparisons and ``word_uncorrected`` on the 95% one."""
     pair = an.pair(a, b)
-    d = difference({c.seed: c.value("overall") for c in pair.a}, {c.seed: c.value("overall") for c in pair.b})
+    va, vb = ({c.seed: c.value("overall") for c in cs} for cs in (pair.a, pair.b))
+    d = difference(va, vb)
     note = pair.note()
-    e = d.estimate
-    if not d.enough_seeds or e.lo is None or e.hi is None:
-        verdict = TOO_FEW
-    else:
-        verdict = SEPARATED if e.lo > 0 or e.hi < 0 else TIED
-    return {"a": a, "b": b, "measured": e.as_dict(), "p": d.p, "method": d.method + (f", {note}" if note else ""),
-            "cpu": "mixed" if pair.mixed else pair.cpu, "seeds": list(d.n), "verdict": verdict}
+    rec = {"a": a, "b": b, "measured": d.estimate.as_dict(), "p": d.p,
+           "method": d.method + (f", {note}" if note else ""), "paired": d.paired,
+           "cpu": "mixed" if pair.mixed else pair.cpu, "seeds": list(d.n)}
+    if margin is not None:
+        level = family_level(family_size)
+        dc = difference(va, vb, level=level)
+        w = word(dc.estimate.lo, dc.estimate.hi, margin) if d.enough_seeds else None
+        rec["word"] = {"word": w, "lo": dc.estimate.lo if w else None, "hi": dc.estimate.hi if w else None,
+                       "level": level, "correction": f"Bonferroni over the {family_size} comparisons with "
+                                                     f"{BASELINE}" if family_size > 1 else "none (one comparison)"}
+        rec["word_uncorrected"] = word(d.estimate.lo, d.estimate.hi, margin) if d.enough_seeds else None
+    return rec
 
 
 def ranking(an: Analysis, order: Sequence[str] = ()) -> list[str]:
-    """The rows by overall success (mean over seeds), best first; equal means keep ``order`` (the
-    catalogue's), then the name."""
+    """The rows with at least ``MIN_SEEDS`` seeds by overall success (mean over seeds), best first; equal
+    means keep ``order`` (the catalogue's), then the name."""
+    place = _places(an, order)
+    return sorted((r for r in an.rows if len(an.rows[r]) >= MIN_SEEDS),
+                  key=lambda r: (-an.estimates[r][4].mean, place[r]))
+
+
+def apart(an: Analysis, order: Sequence[str] = ()) -> list[str]:
+    """The rows with fewer than ``MIN_SEEDS`` seeds, in the catalogue's order (``order``), then by name:
+    listed apart, never ranked."""
+    place = _places(an, order)
+    return sorted((r for r in an.rows if len(an.rows[r]) < MIN_SEEDS), key=lambda r: place[r])
+
+
+def _places(an: Analysis, order: Sequence[str]) -> dict[str, tuple[int, str]]:
     order = list(order)
-    place = {r: (order.index(r) if r in order else len(order), r) for r in an.rows}
-    return sorted(an.rows, key=lambda r: (-an.estimates[r][4].mean, place[r]))
+    return {r: (order.index(r) if r in order else len(order), r) for r in an.rows}
 
 
-def leader(an: Analysis, ranked: Sequence[str]) -> dict[str, Any] | None:
-    """The best row with enough seeds for a verdict (of all rows when none has) and its lead over every
-    other row (``overall_difference``, leader minus row); None with fewer than two rows."""
+def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float) -> tuple[float, float, float]:
+    """(A - B, lower, upper): the one-sided ``confidence`` bounds of mu_A - mu_B (each a one-sided interval
+    of its own), paired over the seeds both have (``scipy.stats.ttest_rel``), Welch's where they share none
+    (``ttest_ind(equal_var=False)``); -inf / +inf where there is no spread to estimate (fewer than two paired
+    seeds, or one seed on a side)."""
+    shared = sorted(set(a) & set(b))
+    if shared:
+        x, y = np.array([a[s] for s in shared]), np.array([b[s] for s in shared])
+        est = float(np.mean(x - y))
+        if len(shared) < 2:
+            return est, -math.inf, math.inf
+        if np.ptp(x - y) == 0:
+            return est, est, est
+        test = lambda alt: stats.ttest_rel(x, y, alternative=alt)  # noqa: E731
+    else:
+        x, y = np.array(list(a.values()), float), np.array(list(b.values()), float)
+        est = float(x.mean() - y.mean())
+        if len(x) < 2 or len(y) < 2:
+            return est, -math.inf, math.inf
+        if np.ptp(x) == 0 and np.ptp(y) == 0:
+            return est, est, est
+        test = lambda alt: stats.ttest_ind(x, y, equal_var=False, alternative=alt)  # noqa: E731
+    lo = float(test("greater").confidence_interval(confidence).low)
+    hi = float(test("less").confidence_interval(confidence).high)
+    return est, lo, hi
+
+
+def mcb(values: Mapping[str, Mapping[int, float]], margin: float, alpha: float = ALPHA) -> dict[str, Any]:
+    """Hsu's multiple comparisons with the best over ``values`` (row -> seed -> overall success), the module's
+    procedure: each row's interval for mu_i - max_{j != i} mu_j (``lo``, ``hi``), its word, and ``best`` (G),
+    the rows that may drive best. Plain numbers in, every pair on the same values (``best`` gives each pair
+    its own cells)."""
+    rows = list(values)
+    return _mcb({(i, j): (values[i], values[j]) for x, i in enumerate(rows) for j in rows[x + 1:]}, rows, margin,
+                alpha)
+
+
+def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int, float]]], rows: Sequence[str],
+         margin: float, alpha: float = ALPHA) -> dict[str, Any]:
+    """MCB from each unordered pair's per-seed values (A's, B's): the one-sided bounds of every ordered pair,
+    then the intervals, the words and G."""
+    k = len(rows)
+    if k < 2:
+        return {"rows": [], "best": list(rows), "confidence": None, "comparisons": 0, "bounds": {}}
+    q = 1.0 - alpha / (k - 1)
+    bounds = {}
+    for (i, j), (va, vb) in pairs.items():
+        est, lo, hi = one_sided_bounds(va, vb, q)
+        bounds[i, j], bounds[j, i] = (est, lo, hi), (-est, -hi, -lo)
+    upper = {i: max(0.0, min(bounds[i, j][2] for j in rows if j != i)) for i in rows}
+    g = [i for i in rows if upper[i] > 0]
+    out = []
+    for i in rows:
+        lower = 0.0 if g == [i] else min([0.0] + [bounds[i, j][1] for j in g if j != i])
+        if g == [i]:
+            w = AHEAD
+        elif upper[i] <= 0:
+            w = BEHIND
+        elif -margin < lower and upper[i] < margin:
+            w = equivalent(margin)
+        else:
+            w = NOT_SEPARATED
+        out.append({"row": i, "estimate": min(bounds[i, j][0] for j in rows if j != i),
+                    "lo": _finite(lower), "hi": _finite(upper[i]), "word": w})
+    return {"rows": out, "best": g, "confidence": q, "comparisons": k - 1, "bounds": bounds}
+
+
+def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] | None:
+    """"Which row drives best" for the report: MCB (``mcb``) over the ``ranked`` rows, each pair on the cells
+    ``analysis.pair_cells`` gives it (one CPU kind where it can be, the seeds both ran), with each pair's
+    difference, test and MCB's bounds; None with fewer than two ranked rows."""
     if len(ranked) < 2:
         return None
-    eligible = [r for r in ranked if len(an.rows[r]) >= MIN_SEEDS] or list(ranked)
-    top = eligible[0]
-    return {"row": top, "versus": [overall_difference(an, top, r) for r in ranked if r != top]}
+    cells = {(i, j): an.pair(i, j) for x, i in enumerate(ranked) for j in ranked[x + 1:]}
+    values = {ij: tuple({c.seed: c.value("overall") for c in cs} for cs in (p.a, p.b)) for ij, p in cells.items()}
+    res = _mcb(values, ranked, margin)
+    bounds = res.pop("bounds")
+    pairs = []
+    level = family_level(len(values))  # a pair's own word: Bonferroni over every pair of ranked rows
+    for (i, j), (va, vb) in values.items():
+        d, dc = difference(va, vb), difference(va, vb, level=level)
+        note = cells[i, j].note()
+        w = word(dc.estimate.lo, dc.estimate.hi, margin) if d.enough_seeds else None
+        pairs.append({"a": i, "b": j, "measured": d.estimate.as_dict(), "method": d.method + (f", {note}" if note else ""),
+                      "lower": _finite(bounds[i, j][1]), "upper": _finite(bounds[i, j][2]),
+                      "word": {"word": w, "lo": dc.estimate.lo if w else None, "hi": dc.estimate.hi if w else None,
+                               "level": level, "correction": f"Bonferroni over the {len(values)} pairs of ranked rows"}})
+    k = len(ranked)
+    return {**res, "pairs": pairs, "procedure": f"Hsu's MCB over the {k} rows with >= {MIN_SEEDS} seeds, Bonferroni "
+                                                f"over each row's {k - 1} comparisons (one-sided "
+                                                f"{100 * res['confidence']:.2f}% bounds), 95% jointly"}
 
 
-def forest(an: Analysis, ranked: Sequence[str], paper: Mapping[str, Sequence[float]]) -> list[dict[str, Any]]:
-    """Every row's overall success minus CIL's (``overall_difference``), in ``ranked`` order, with the
-    paper's difference (its Table 4 means; None for a row it gives no values); empty without CIL."""
+def _finite(v: float) -> float | None:
+    return None if math.isinf(v) else v
+
+
+def forest(an: Analysis, ranked: Sequence[str], paper: Mapping[str, Sequence[float]], margin: float,
+           few: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """Every ranked row's overall success minus CIL's (``overall_difference``), in ``ranked`` order, its word
+    read on the Bonferroni interval over the ranked rows' comparisons with CIL, then the rows with too few
+    seeds (``few``), marked ``apart``, with no word; each with the paper's difference (its Table 4 means; None
+    for a row it gives no values). Empty without CIL."""
     if BASELINE not in an.rows:
         return []
     base = paper.get(BASELINE)
+    size = sum(r != BASELINE for r in ranked)
     out = []
-    for r in ranked:
+    for r in [*ranked, *few]:
         if r == BASELINE:
             continue
-        rec = overall_difference(an, r, BASELINE)
+        rec = overall_difference(an, r, BASELINE, margin, size) if r in ranked else \
+            {**overall_difference(an, r, BASELINE), "apart": True}
         rec["paper"] = (round(float(np.mean(paper[r])) - float(np.mean(base)), 2)
                         if paper.get(r) and base else None)
         out.append(rec)

@@ -10,8 +10,8 @@ Holm), ``analysis`` (a folder's estimates, the episode bootstrap, which cells a 
 CIL) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
 a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference``
 -> ``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a
-relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; the
-leader's lead and the forest plot, ``ranking.overall_difference``. The
+relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``;
+which row drives best, ``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
 ``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
 reading the paper's table), never the success pooled over all episodes; a seed's overall is the mean of
@@ -23,9 +23,10 @@ rates, ``mean ± t_{0.975, n-1} · sd / sqrt(n)`` (``scipy.stats.t``; ``sd`` wit
 table column, to contain the Clopper-Pearson interval of the episodes pooled over the seeds
 (``statsmodels ... proportion_confint(method="beta")``), so that seeds that all drove 100% (or 0%) do not
 get a zero-width interval. A row with one seed has no interval. A difference between two rows (A - B) is
-computed on per-seed values: when both rows ran the same seeds (the same seed trains on the same
+computed on per-seed values: where the rows share seeds (the same seed trains on the same
 train/validation split, so the cells are paired), the t-interval over the per-seed differences
-``A_s - B_s`` with ``n - 1`` degrees of freedom; when their seeds differ, Welch's t-interval
+``A_s - B_s`` of the seeds both ran, with ``n - 1`` degrees of freedom (a row's other seeds are left out,
+and the method says how many); only where they share no seed, Welch's t-interval
 (``scipy.stats.ttest_ind(equal_var=False)``, Welch-Satterthwaite degrees of freedom) over all seeds of
 each; on one table column (or a gap between two table columns) it too is widened, to contain the interval
 of the same contrast of the two rows' success on their pooled episodes (Zou & Donner's MOVER from each
@@ -77,11 +78,17 @@ interval and is shown beside the uncorrected one. A claim of several parts is *c
 is, *not run* when a part's rows were not run, *too few seeds* when a part lacks seeds, *supported* when
 every part is, *inconclusive* (or *not shown*) otherwise.
 
-**Which row drives best.** The rows sorted by overall success; the leader (the best row with 3 seeds)
-against every other row, leader - row with its 95% t-interval (paired where the seeds pair, within one CPU
-kind as above): *separated* when the interval excludes 0, *tied* when it holds 0; and every row minus CIL
-with the paper's difference beside it (the forest plot). These are descriptive intervals, not claims: no
-Holm correction.
+**Which row drives best.** Fixed before it is run (``cicfw.reproduction.ranking``): only rows with at least
+``MIN_SEEDS`` seeds are ranked, the others listed apart; Hsu's multiple comparisons with the best (MCB) over
+the ranked rows, each pair paired over the seeds both ran (Welch where none is shared), Bonferroni's
+one-sided bounds at 0.05 / (k - 1), gives each row an interval for its success minus the best of the others',
+95% jointly, and the set of rows that may drive best.
+
+**Words.** Every comparison of two rows reads as one of *ahead* / *behind* (its interval, after the
+correction the report names beside it, excludes 0), *equivalent within ±margin* (the interval lies inside
+±``equivalence_margin``: both one-sided tests of TOST pass), or *not separated* (neither). The corrections:
+a claim's part, Bonferroni over the parts of its Holm family; a row against CIL (the forest plot), Bonferroni
+over the ranked rows' comparisons with CIL; which row drives best, MCB.
 
 **Resumed cells.** A cell whose training was stopped and resumed from an epoch checkpoint records it in
 ``cell.json`` (``resumed``); the report marks its row and seed (‡) with a footnote: a resumed training does
@@ -103,7 +110,7 @@ from cicfw.core.files import atomic_write
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
 from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge
-from cicfw.reproduction.ranking import BASELINE, SEPARATED, TIED, forest, leader, ranking
+from cicfw.reproduction.ranking import BASELINE, apart, best, forest, ranking
 from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
@@ -210,9 +217,8 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "seeds": [c.seed for c in cs], "enough_seeds": len(cs) >= MIN_SEEDS,
             "columns": {col: est.as_dict() for col, est in zip([*COLUMNS, "overall"], an.estimates[r])},
             "bootstrap": {col: est.as_dict() for col, est in zip([*COLUMNS, "overall"], an.bootstrap[r])},
-            "per_seed": {str(c.seed): {**{col: round(c.rate(col), 2) for col in COLUMNS}, "overall": round(c.rate(), 2)}
-                         for c in cs},
-            "manoeuvres": {m: round(float(np.mean(v)), 2) for m, v in man.items()},
+            "per_seed": {str(c.seed): {**{col: c.rate(col) for col in COLUMNS}, "overall": c.rate()} for c in cs},
+            "manoeuvres": {m: float(np.mean(v)) for m, v in man.items()},
             "spread": spread_data(cs),
             "paper": paper.get(r),
             "wall_s": {str(c.seed): c.meta.get("wall_s") for c in cs},
@@ -224,11 +230,12 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
-    ranked = ranking(an, list(catalogue))
+    ranked, few = ranking(an, list(catalogue)), apart(an, list(catalogue))
     return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
             "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
             "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
-            "ranking": ranked, "leader": leader(an, ranked), "forest": forest(an, ranked, paper),
+            "ranking": ranked, "apart": few, "best": best(an, ranked, margin),
+            "forest": forest(an, ranked, paper, margin, few),
             "rows": rows, "claims": judge(an, claims, paper, labels, margin),
             "relation": relation_data(val_errors({f"{c.row}/seed{c.seed}": c.meta for c in cells}, candidates),
                                       candidates, labels),
@@ -303,8 +310,10 @@ def summary_lines(data: Mapping[str, Any]) -> list[str]:
             paper = "" if p.get("paper") is None else f"; the paper {p['paper']:+.1f}"
             if rel.get("paper") is not None:
                 paper += f" ({rel['paper']:+.0f}%)"
+            w = p.get("word") or {}
+            said = f"; {word_text(w)}, {w.get('correction')}" if w.get("word") else ""
             bits.append(f"{p['comparison']}{ab}: {_est(p['measured'], '+')} points{_relative(rel)} "
-                        f"({p['method']}{paper})")
+                        f"({p['method']}{paper}{said})")
         out.append(f"- *{c['claim']}*: **{c['verdict']}** (Holm: **{c['verdict_holm']}**). " + "; ".join(bits) + ".")
     return out
 
@@ -344,55 +353,114 @@ def _cpus(counts: Mapping[str, int]) -> str:
     return ", ".join(f"{k} {n}" for k, n in counts.items())
 
 
-def _lead_text(v: Mapping[str, Any], label: str) -> str:
-    """One comparison of the leader with ``label``'s row, as the answer's sentence quotes it."""
-    return f"{label} ({_est(v['measured'], '+')})"
+def _bounds(lo: float | None, hi: float | None) -> str:
+    """An interval without its point: ``[−12.3, +0.0]`` (``–`` for a missing bound)."""
+    f = lambda v: "–" if v is None else f"{v:+.1f}"  # noqa: E731
+    return f"[{f(lo)}, {f(hi)}]"
+
+
+def word_text(w: Mapping[str, Any] | None) -> str:
+    """A comparison's word with the corrected interval it is read on: ``not separated [−20.1, +15.3]``;
+    *too few seeds* where it has none."""
+    if not w or not w.get("word"):
+        return "too few seeds"
+    return f"{w['word']} {_bounds(w.get('lo'), w.get('hi'))}"
 
 
 def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
-    """The report's opening: which row drives best, its lead over every other row with the intervals that
-    separate or tie them, the rows by overall success, and the forest plot (``pictures``: its folder prefix)."""
+    """The report's opening: which row drives best by Hsu's MCB (``ranking``), the rows that may, those behind
+    the best, the ranked rows with their MCB intervals, the rows with too few seeds listed apart, and the forest
+    plot (``pictures``: its folder prefix)."""
     by = {r["row"]: r for r in data["rows"]}
-    lead = data.get("leader")
-    if not lead:
+    b = data.get("best")
+    if not b:
         return []
-    top = by[lead["row"]]
-    vs = {v["b"]: v for v in lead["versus"]}
+    min_seeds = data.get("min_seeds", MIN_SEEDS)
     label = lambda row: by[row]["label"]  # noqa: E731
-    separated = [v for v in lead["versus"] if v["verdict"] == SEPARATED]
-    ahead = [_lead_text(v, label(v["b"])) for v in separated if v["measured"]["mean"] > 0]
-    behind = [_lead_text(v, label(v["b"])) for v in separated if v["measured"]["mean"] <= 0]
-    tied = [_lead_text(v, label(v["b"])) for v in lead["versus"] if v["verdict"] == TIED]
-    few = [label(v["b"]) for v in lead["versus"] if v["verdict"] not in (SEPARATED, TIED)]
-    text = f"**Which row drives best?** **{top['label']}**, {_est(top['columns']['overall'])}% overall."
-    if tied:
-        text += " Not separated from it (its lead's interval holds 0): " + "; ".join(tied) + "."
-    if ahead:
-        text += " Ahead of (its lead's interval above 0): " + "; ".join(ahead) + "."
-    if behind:
-        text += " Behind, on the cells of one CPU kind (the interval below 0): " + "; ".join(behind) + "."
+    res = {r["row"]: r for r in b["rows"]}
+    k = len(b["rows"])
+    how = (f"Hsu's multiple comparisons with the best (MCB) over the {k} rows with at least {min_seeds} seeds, "
+           f"each row against every other by a one-sided {100 * b['confidence']:.2f}% bound (Bonferroni over its "
+           f"{b['comparisons']} comparisons; paired over the seeds both rows ran, Welch's t where they share none), "
+           "95% jointly")
+    if len(b["best"]) == 1:
+        text = (f"**Which row drives best?** **{label(b['best'][0])}**, "
+                f"{_est(by[b['best'][0]]['columns']['overall'])}% overall: ahead of every other ranked row ({how}).")
+    else:
+        text = (f"**Which row drives best?** Not one row: {len(b['best'])} of the {k} ranked rows may drive best "
+                f"({how}): " + ", ".join(label(r) for r in b["best"]) + ".")
+        behind = [label(r["row"]) for r in b["rows"] if r["word"] == "behind"]
+        if behind:
+            text += " Behind the best: " + ", ".join(behind) + "."
+    few = data.get("apart") or []
     if few:
-        text += " Too few seeds to tell against: " + ", ".join(few) + "."
-    mixed = sum(v["cpu"] == "mixed" for v in lead["versus"])
+        text += (f" Fewer than {min_seeds} seeds, listed apart and not ranked: "
+                 + ", ".join(f"{label(r)} ({len(by[r]['seeds'])} seed{'s' if len(by[r]['seeds']) != 1 else ''})"
+                             for r in few) + ".")
+    mixed = sum("mixed CPUs" in p["method"] for p in b.get("pairs") or [])
     if mixed:
-        of = f"All {mixed}" if mixed == len(lead["versus"]) else f"{mixed} of these {len(lead['versus'])}"
-        text += f" {of} comparisons pool cells of different CPU kinds (*mixed CPUs* below)."
-    lines = [text, "", "Rows by overall success, best first: mean over seeds [95% t-interval], then the leader's "
-             "lead over the row, leader − row in points [95% t] (paired t where the seeds pair, else Welch; "
-             "uncorrected, descriptive):", ""]
-    for k, row in enumerate(data.get("ranking") or [], 1):
-        r = by[row]
+        text += f" {mixed} of the {len(b['pairs'])} pairs pool cells of different CPU kinds (*mixed CPUs*)."
+    lines = [text, "", f"Rows with at least {min_seeds} seeds by overall success, best first: mean over seeds [95% "
+             "t-interval], then the MCB interval of the row's success minus the best of the others' (an upper "
+             "bound of +0.0: some row drives better; a lower bound of +0.0: it drives best) and its word:", ""]
+    for n, row in enumerate(data.get("ranking") or [], 1):
+        r, m = by[row], res[row]
         cpus = f"; {_cpus(r['cpus'])}" if r.get("cpus") else ""
-        head = (f"{k}. **{r['label']}** {_est(r['columns']['overall'])}%, {len(r['seeds'])} seed(s)"
-                + ("" if r["enough_seeds"] else " †") + cpus)
-        v = vs.get(row)
-        lines.append(head + (": the leader." if v is None else
-                             f": leader − it {_est(v['measured'], '+')} ({v['method']}): {v['verdict']}."))
+        lines.append(f"{n}. **{r['label']}** {_est(r['columns']['overall'])}%, {len(r['seeds'])} seeds{cpus}: "
+                     f"MCB {_bounds(m['lo'], m['hi'])}: {m['word']}.")
+    if few:
+        lines += ["", f"Listed apart (fewer than {min_seeds} seeds: no interval that could rank them), in the "
+                      "catalogue's order:", ""]
+        lines += [f"- {by[r]['label']}: {_est(by[r]['columns']['overall'])}%, {len(by[r]['seeds'])} seed(s) †"
+                  for r in few]
     if data.get("forest"):
         base = by[BASELINE]["label"]
         lines += ["", f"![each row's overall success minus {base}'s, 95% t-intervals, the paper's difference beside]"
                       f"({pictures}forest.png)"]
     return lines + [""]
+
+
+def forest_lines(data: Mapping[str, Any]) -> list[str]:
+    """RESULTS.md's table of the forest plot: each row minus CIL overall, its method, the paper's difference
+    and its word on the corrected interval; the rows with too few seeds below, with no word."""
+    rows = data.get("forest") or []
+    if not rows:
+        return []
+    by = {r["row"]: r for r in data["rows"]}
+    base = by[BASELINE]["label"]
+    size = sum(not r.get("apart") for r in rows)
+    lines = ["", f"## Each row against {base} (the forest plot)", "",
+             f"Each row's overall success minus {base}'s (points) with its 95% t-interval: paired over the seeds "
+             "both ran, Welch's t where they share none. Its word (*ahead*, *behind*, *equivalent within "
+             f"±{data.get('equivalence_margin', 5):g}*, *not separated*) is read on the interval corrected by "
+             f"Bonferroni over the {size} comparisons of the ranked rows with {base}, shown beside it; a row with "
+             "too few seeds gets none.", "",
+             f"| Row | Seeds | Row − {base} [95% t] | Method | Paper | Word [corrected interval] |",
+             "|---|---:|---:|---|---:|---|"]
+    for r in rows:
+        paper = "–" if r.get("paper") is None else f"{r['paper']:+.1f}"
+        seeds = len(by[r["a"]]["seeds"])
+        lines.append(f"| {by[r['a']]['label']} | {seeds}{'' if not r.get('apart') else ' †'} | "
+                     f"{_est(r['measured'], '+')} | {r['method']} | {paper} | {word_text(r.get('word'))} |")
+    return lines
+
+
+def pair_lines(data: Mapping[str, Any]) -> list[str]:
+    """RESULTS.md's table of every pair of ranked rows MCB compares: the difference with its 95% t-interval,
+    which test (paired over the seeds both ran, or Welch), and the one-sided bounds MCB uses."""
+    b = data.get("best")
+    if not b or not b.get("pairs"):
+        return []
+    by = {r["row"]: r for r in data["rows"]}
+    lines = ["", "## Each pair of ranked rows (MCB's comparisons)", "",
+             f"A − B overall (points) with its 95% t-interval and test; the one-sided {100 * b['confidence']:.2f}% "
+             f"bounds MCB reads (lower, upper); and the pair's own word, read on the interval corrected by Bonferroni "
+             f"over all {len(b['pairs'])} pairs.", "",
+             "| A | B | A − B [95% t] | Method | MCB's bounds | Word [corrected interval] |", "|---|---|---:|---|---:|---|"]
+    for p in b["pairs"]:
+        lines.append(f"| {by[p['a']]['label']} | {by[p['b']]['label']} | {_est(p['measured'], '+')} | {p['method']} | "
+                     f"{_bounds(p['lower'], p['upper'])} | {word_text(p.get('word'))} |")
+    return lines
 
 
 def _table4_lines(data: Mapping[str, Any]) -> list[str]:
@@ -431,7 +499,10 @@ def _claims_intro(data: Mapping[str, Any]) -> str:
             f"above +{margin:g}, *not shown* when it holds +{margin:g}; p is the test against the part's null. "
             f"*Holm*: the same with Holm-adjusted p-values over {_families(data['claims'])}, a part "
             f"without a verdict counting as p = 1 (family-wise error 5%). A part whose rows have fewer than {min_seeds} "
-            "seeds: *too few seeds*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
+            "seeds: *too few seeds*. *Word*: how A and B compare, whatever the claim, read on the interval "
+            "corrected by Bonferroni over the parts of the claim's family (shown beside it): *ahead* or *behind* "
+            f"when it excludes 0, *equivalent within ±{margin:g}* when it lies inside ±{margin:g} (TOST), else *not "
+            "separated*. *Bootstrap* is the two-level episode bootstrap's 95% interval, a secondary "
             "figure (too narrow with few seeds), not used for a verdict.")
 
 
@@ -469,8 +540,8 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
         lines += ["", resumed]
     lines += ["", "## The paper's claims", "", _claims_intro(data), "",
               "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
-              "Holm verdict | Bootstrap (secondary) |",
-              "|---|---|---|---:|---:|---:|---:|---|---|---:|"]
+              "Holm verdict | Word [corrected interval] | Bootstrap (secondary) |",
+              "|---|---|---|---:|---:|---:|---:|---|---|---|---:|"]
     for c in data["claims"]:
         for k, p in enumerate(c["parts"]):
             meas = p.get("measured")
@@ -482,11 +553,14 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
             boot = _est(p["bootstrap"], "+") if p.get("bootstrap") else "–"
             head = (f"{c['claim']} (**{c['verdict']}**; Holm **{c['verdict_holm']}**)" if k == 0 else "")
             lines.append(f"| {head} | {p['comparison']} | {p.get('method', '–')} | {ms} | {pp} | {_p(p.get('p'))} | "
-                         f"{_p(p.get('p_holm'))} | {p['verdict']} | {p.get('verdict_holm', '–')} | {boot} |")
+                         f"{_p(p.get('p_holm'))} | {p['verdict']} | {p.get('verdict_holm', '–')} | "
+                         f"{word_text(p.get('word')) if 'measured' in p else '–'} | {boot} |")
     quoted = [c for c in data["claims"] if c.get("quote")]
     if quoted:
         lines += ["", "### The claims in the paper's words", ""]
         lines += [f"- **{c['claim']}** — “{c['quote']}” ({c['source']})" for c in quoted]
+    lines += forest_lines(data)
+    lines += pair_lines(data)
     lines += relation_lines(data.get("relation"))
     lines += ["", "## Summary (generated from the numbers above)", "", *summary_lines(data)]
     lines += ["", "## Per seed (success %, overall = mean of the four columns)", "",
@@ -669,9 +743,11 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
 
 
 def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
-    """Each row's overall success minus CIL's (``data["forest"]``, best first) with its 95% t-interval, the
-    paper's difference as a cross beside it, the numbers at the right; a hollow point where the comparison
-    pools CPU kinds. None (nothing drawn) without CIL or another row."""
+    """Each row's overall success minus CIL's (``data["forest"]``): the ranked rows best first, with the 95%
+    t-interval (thick) and the Bonferroni interval its word is read on (thin), the paper's difference as a
+    cross beside it, the numbers and the word at the right; below a line, apart, the rows with too few seeds
+    (not ranked, no word). A hollow point where the comparison pools CPU kinds. None (nothing drawn) without
+    CIL or another row."""
     rows = data.get("forest") or []
     if not rows:
         return None
@@ -680,26 +756,41 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     plt = _plt()
     by = {r["row"]: r for r in data["rows"]}
     colour = row_colours(list(by), order)
-    fig, ax = plt.subplots(figsize=(8.0, 0.55 * len(rows) + 1.9), layout="constrained")
-    for i, rec in enumerate(rows):
-        y, m, c = len(rows) - 1 - i, rec["measured"], _colour(plt, colour[rec["a"]])
+    ranked = [r for r in rows if not r.get("apart")]
+    few = [r for r in rows if r.get("apart")]
+    gap = 1.0 if few and ranked else 0.0
+    ys = [len(rows) - 1 + gap - i for i in range(len(ranked))] + [len(few) - 1 - i for i in range(len(few))]
+    fig, ax = plt.subplots(figsize=(8.8, 0.55 * (len(rows) + gap) + 1.9), layout="constrained")
+    for y, rec in zip(ys, [*ranked, *few]):
+        m, c = rec["measured"], _colour(plt, colour[rec["a"]])
         face = "white" if rec["cpu"] == "mixed" else c
+        w = rec.get("word") or {}
+        if w.get("lo") is not None:
+            ax.plot([w["lo"], w["hi"]], [y, y], color=c, lw=1, alpha=0.6)
         if m["lo"] is not None:
             ax.errorbar(m["mean"], y, xerr=[[m["mean"] - m["lo"]], [m["hi"] - m["mean"]]], fmt="o", color=c,
-                        mfc=face, capsize=4, ms=7)
+                        mfc=face, capsize=4, ms=7, elinewidth=2.5)
         else:
             ax.plot(m["mean"], y, "o", color=c, mfc=face, ms=7)
         if rec["paper"] is not None:
             ax.plot(rec["paper"], y - 0.25, "x", color=c, ms=8, mew=2)
-        ax.text(1.02, y, f"{_est(m, '+')}" + ("" if rec["paper"] is None else f"  (paper {rec['paper']:+.1f})"),
-                transform=ax.get_yaxis_transform(), va="center", fontsize=8)
-    labels = [by[r["a"]]["label"] + ("" if by[r["a"]]["enough_seeds"] else " †") for r in rows]
-    ax.set_yticks(range(len(rows) - 1, -1, -1), labels)
-    ax.set_ylim(-0.8, len(rows) - 0.4)
+        said = f"{_est(m, '+')}" + ("" if rec["paper"] is None else f"  (paper {rec['paper']:+.1f})")
+        said += f": {w['word']}" if w.get("word") else (": apart" if rec.get("apart") else "")
+        ax.text(1.02, y, said, transform=ax.get_yaxis_transform(), va="center", fontsize=8)
+    labels = [by[r["a"]]["label"] + ("" if by[r["a"]]["enough_seeds"] else " †") for r in [*ranked, *few]]
+    ax.set_yticks(ys, labels)
+    ax.set_ylim(-0.8, len(rows) + gap - 0.4)
+    if few and ranked:
+        ax.axhline(len(few) - 0.5 + gap / 2, color="grey", lw=0.8, ls="--")
+        ax.text(0.01, len(few) - 0.5 + gap / 2, f"fewer than {data.get('min_seeds', MIN_SEEDS)} seeds: listed apart, "
+                "not ranked", transform=ax.get_yaxis_transform(), va="bottom", fontsize=8, color="grey")
     ax.axvline(0.0, color="grey", lw=1)
     ax.grid(axis="x", alpha=0.3)
     ax.set_xlabel(f"overall success minus {by[BASELINE]['label']}'s (points)")
-    handles = [ax.plot([], [], "o", color="black", label="this reproduction: mean over seeds, 95% t-interval")[0]]
+    handles = [ax.plot([], [], "o-", color="black", lw=2.5, label="mean over seeds, 95% t-interval")[0]]
+    if any((r.get("word") or {}).get("lo") is not None for r in rows):
+        handles.append(ax.plot([], [], "-", color="black", lw=1, alpha=0.6,
+                               label="Bonferroni interval (the word's)")[0])
     if any(r["cpu"] == "mixed" for r in rows):
         handles.append(ax.plot([], [], "o", color="black", mfc="white",
                                label="hollow: pools CPU kinds (mixed CPUs)")[0])

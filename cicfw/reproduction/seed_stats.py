@@ -14,6 +14,35 @@ LEVEL = 0.95
 ALPHA = 1.0 - LEVEL
 #: a row needs this many seeds for a verdict (fewer: reported, "too few seeds")
 MIN_SEEDS = 3
+#: the words a comparison A - B is read with (``word``); the fourth is ``equivalent(margin)``
+AHEAD, BEHIND, NOT_SEPARATED = "ahead", "behind", "not separated"
+
+
+def equivalent(margin: float) -> str:
+    """The word for an interval inside (-margin, +margin): ``equivalent within ±5``."""
+    return f"equivalent within ±{margin:g}"
+
+
+def word(lo: float | None, hi: float | None, margin: float) -> str | None:
+    """How an interval for A - B reads (None where there is none): *ahead* when it lies above 0, *behind*
+    below 0, *equivalent within ±margin* when it lies inside (-margin, +margin) (both one-sided tests of
+    TOST pass, each at half the interval's error), else *not separated*. A family of comparisons is read on
+    its corrected intervals (``family_level``), so every word of the family holds jointly."""
+    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+        return None
+    if lo > 0:
+        return AHEAD
+    if hi < 0:
+        return BEHIND
+    if -margin < lo and hi < margin:
+        return equivalent(margin)
+    return NOT_SEPARATED
+
+
+def family_level(size: int, level: float = LEVEL) -> float:
+    """Bonferroni: the level of each of ``size`` two-sided intervals that hold jointly with probability
+    ``level`` (1 - (1 - level) / size); ``level`` itself for a family of one."""
+    return 1.0 - (1.0 - level) / max(int(size), 1)
 
 
 def t_quantile(n: int | np.ndarray, level: float = LEVEL) -> np.ndarray:
@@ -98,8 +127,8 @@ class Estimate:
     hi: float | None
 
     def as_dict(self) -> dict[str, float | None]:
-        """The JSON form (results.json): 2 decimals, NaN as None."""
-        r = lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 2)  # noqa: E731
+        """The JSON form (results.json): unrounded (the report rounds once, when it prints), NaN as None."""
+        r = lambda v: None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)  # noqa: E731
         return {"mean": r(self.mean), "lo": r(self.lo), "hi": r(self.hi)}
 
 
@@ -121,25 +150,32 @@ class Difference:
 
 
 def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL, null: float = 0.0) -> Difference:
-    """A - B from per-seed values (seed -> value): paired t when both have the same seeds, else Welch's t.
-    The p-value is the two-sided t-test's of A - B = ``null`` (``scipy.stats.ttest_1samp`` on the
-    differences, or ``ttest_ind(equal_var=False)`` with A shifted by ``null``), dual to the interval: p <
-    1 - level exactly when the interval excludes ``null``. With no spread at all it is 1 (the difference is
-    ``null``) or 0."""
+    """A - B from per-seed values (seed -> value). Rows that share seeds share their splits (a seed sets the
+    train/validation split), so they are compared **paired over the seeds both have** (the t-interval over
+    the per-seed differences, n - 1 df; the other seeds are left out, and the method says how many); only
+    rows that share no seed get Welch's t. The p-value is the two-sided t-test's of A - B = ``null``
+    (``scipy.stats.ttest_1samp`` on the differences, or ``ttest_ind(equal_var=False)`` with A shifted by
+    ``null``), dual to the interval: p < 1 - level exactly when the interval excludes ``null``. With no
+    spread at all it is 1 (the difference is ``null``) or 0."""
     na, nb = len(a), len(b)
-    if sorted(a) == sorted(b):
-        d = np.array([a[s] - b[s] for s in sorted(a)])
+    shared = sorted(set(a) & set(b))
+    if shared:
+        n = len(shared)
+        d = np.array([a[s] - b[s] for s in shared])
         mean, lo, hi = (float(x) for x in t_interval(d, level))
-        if na < 2:
-            return Difference(Estimate(mean, None, None), None, "1 seed", True, (na, nb))
+        method = f"paired t, {n} seed{'s' if n != 1 else ''}"
+        if n < na or n < nb:
+            method += f" (the seeds both ran; {na - n} of A's and {nb - n} of B's left out)"
+        if n < 2:
+            return Difference(Estimate(mean, None, None), None, method, True, (n, n))
         if np.ptp(d) == 0:
             p = 1.0 if mean == null else 0.0
         else:
             p = float(stats.ttest_1samp(d, null).pvalue)
-        return Difference(Estimate(mean, lo, hi), p, f"paired t, {na} seeds", True, (na, nb))
+        return Difference(Estimate(mean, lo, hi), p, method, True, (n, n))
     va, vb = np.array(list(a.values()), dtype=float), np.array(list(b.values()), dtype=float)
     mean = float(va.mean() - vb.mean())
-    method = f"Welch t, {na} vs {nb} seeds"
+    method = f"Welch t, {na} vs {nb} seeds, none shared"
     if na < 2 or nb < 2:
         return Difference(Estimate(mean, None, None), None, method, False, (na, nb))
     if np.ptp(va) == 0 and np.ptp(vb) == 0:
