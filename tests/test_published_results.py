@@ -340,17 +340,23 @@ def report_words(folder: str) -> dict[str, frozenset[str]]:
     return {k: frozenset(v) for k, v in out.items()}
 
 
+#: the carla − harsh table's rows, compared as ``paired_switch`` compares them (one family for their words)
+CARLA_SWITCH = ("converged6_carla", "converged6_xeon", tuple(SWITCH_ROWS.values()), SWITCH_FAMILY)
+
+
 @functools.cache
-def switch_words() -> dict[str, frozenset[str]]:
-    """The carla folder's carla − harsh entries (``paired_switch.compare``, the same seeds under both weather
-    families) -> their words, read on the Bonferroni interval over the table's entries."""
+def switch_words(spec: tuple[str, str, tuple[str, ...], int] = CARLA_SWITCH) -> dict[str, frozenset[str]]:
+    """``paired_switch.compare`` of one folder's rows against another's (the same seeds, one thing changed:
+    the weather family, the CPU kind, the epochs) -> each entry's word, read on the Bonferroni interval over
+    ``spec``'s family of comparisons (1: the 95% interval)."""
     from cicfw.reproduction.paired_switch import compare, load_row
 
+    a_folder, b_folder, rows, family = spec
     out: dict[str, set[str]] = {}
-    for row in SWITCH_ROWS.values():
-        a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in ("converged6_carla", "converged6_xeon"))
-        for e in compare(a, b, 5.0, SWITCH_FAMILY):
-            if e.on in ("training_town/new_weathers", "new_town/new_weathers", "overall"):
+    for row in rows:
+        a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in (a_folder, b_folder))
+        for e in compare(a, b, 5.0, family):
+            if e.lo is not None:
                 out.setdefault(f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]", set()).add(e.word or "too few seeds")
     return {k: frozenset(v) for k, v in out.items()}
 
@@ -371,17 +377,23 @@ def offline_words() -> dict[str, frozenset[str]]:
     return {k: frozenset(v) for k, v in out.items()}
 
 
-#: each checked text -> the published reports (folders) its comparisons come from, and the studies beside them;
-#: a README of a study checks against its own folder's report and those it compares with
-PROSE_SOURCES: dict[str, tuple[tuple[str, ...], bool, bool]] = {
-    # name: (report folders, the carla − harsh table, the offline study)
-    "prose/head.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), True, True),
-    "prose/converged4.md": (("converged",), False, False),
-    "prose/tail.md": (("converged6", "converged"), False, False),
-    "README.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), True, True),
-    "converged6_carla/README.md": (("converged6_carla", "converged6", "converged6_xeon"), True, False),
-    "results/README.md": (("converged6", "converged6_carla", "converged6_xeon", "converged"), False, True),
-    "offline_vs_closed_loop/README.md": ((), False, True),
+#: each checked text -> the published reports (folders) its comparisons come from, the paired-switch tables it
+#: quotes (``switch_words``' specs) and whether it quotes the offline study; a study's README checks against its
+#: own folder's report and those it compares with
+PROSE_SOURCES: dict[str, tuple[tuple[str, ...], tuple[tuple[str, str, tuple[str, ...], int], ...], bool]] = {
+    "prose/head.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), (CARLA_SWITCH,), True),
+    "prose/converged4.md": (("converged",), (), False),
+    "prose/tail.md": (("converged6", "converged"), (), False),
+    "README.md": (("converged6", "converged", "converged6_xeon", "converged6_carla"), (CARLA_SWITCH,), True),
+    "converged6_carla/README.md": (("converged6_carla", "converged6", "converged6_xeon"), (CARLA_SWITCH,), False),
+    "converged6/README.md": (("converged6", "converged6_xeon", "converged", "converged6_rerun_xeon"),
+                             (("converged6", "converged", ("cil",), 1),
+                              ("converged6_xeon", "converged6", ("cil", "gtu"), 1)), False),
+    "converged6_xeon/README.md": (("converged6_xeon", "converged6"),
+                                  (("converged6_xeon", "converged6", ("cil", "gtu"), 1),), False),
+    "converged/README.md": (("converged", "converged_dropout_v01", "converged_constant_lr"), (), False),
+    "results/README.md": (("converged6", "converged6_carla", "converged6_xeon", "converged"), (), True),
+    "offline_vs_closed_loop/README.md": ((), (), True),
 }
 #: the studies whose README quotes what a paired-switch tool printed (the same seeds with and without a switch),
 #: not a report's comparisons: their intervals are checked by their own tests, their words for banned ones only
@@ -417,10 +429,11 @@ def prose_problems(docs: Path = DOCS) -> list[str]:
     the word the report gives it; a row's own value must be in its reports too; per-seed values quoted for a
     named row must be the cells'; no banned word of equivalence."""
     problems = []
-    for name, (folders, switch, offline) in PROSE_SOURCES.items():
+    for name, (folders, switches, offline) in PROSE_SOURCES.items():
         text = _prose(docs, name)
         words: dict[str, set[str]] = {}
-        for d in [*(report_words(f) for f in folders), switch_words() if switch else {}, offline_words() if offline else {}]:
+        for d in [*(report_words(f) for f in folders), *(switch_words(spec) for spec in switches),
+                  offline_words() if offline else {}]:
             for k, v in d.items():
                 words.setdefault(k, set()).update(v)
         reports = "".join(_text(DOCS / "results" / f / "RESULTS.md") for f in folders)
