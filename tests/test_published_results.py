@@ -319,6 +319,7 @@ def report_words(folder: str) -> dict[str, frozenset[str]]:
     """Each comparison a published report prints (as the report prints it) -> the word(s) it reads with: every
     claim's part, every row against CIL, every pair of ranked rows and every row's MCB interval."""
     from cicfw.reproduction.report import _bounds, _est
+    from cicfw.reproduction.seed_stats import word
 
     data = json.loads((DOCS / "results" / folder / "results.json").read_text())
     out: dict[str, set[str]] = {}
@@ -328,7 +329,10 @@ def report_words(folder: str) -> dict[str, frozenset[str]]:
 
     for c in data["claims"]:
         for p in c["parts"]:
-            if "measured" in p:
+            if "measured" in p and "word" not in p:  # cicfw 0.1's report (laptop): the rule on its printed interval
+                m = p["measured"]
+                add(_est(m, "+"), {"word": word(m["lo"], m["hi"], data.get("equivalence_margin", 5.0))})
+            elif "measured" in p:
                 add(_est(p["measured"], "+"), p.get("word"))
     for r in data.get("forest") or []:
         add(_est(r["measured"], "+"), r.get("word"))
@@ -353,8 +357,9 @@ def switch_words(spec: tuple[str, str, tuple[str, ...], int] = CARLA_SWITCH) -> 
 
     a_folder, b_folder, rows, family = spec
     out: dict[str, set[str]] = {}
-    for row in rows:
-        a, b = (load_row(DOCS / "results" / f / "cells" / row) for f in (a_folder, b_folder))
+    for row in rows:  # a row, or "row_a:row_b" where the switch is a row of its own (cil_bf16:cil)
+        row_a, _, row_b = row.partition(":")
+        a, b = (load_row(DOCS / "results" / f / "cells" / r) for f, r in ((a_folder, row_a), (b_folder, row_b or row_a)))
         for e in compare(a, b, 5.0, family):
             if e.lo is not None:
                 out.setdefault(f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]", set()).add(e.word or "too few seeds")
@@ -392,6 +397,10 @@ PROSE_SOURCES: dict[str, tuple[tuple[str, ...], tuple[tuple[str, str, tuple[str,
     "converged6_xeon/README.md": (("converged6_xeon", "converged6"),
                                   (("converged6_xeon", "converged6", ("cil", "gtu"), 1),), False),
     "converged/README.md": (("converged", "converged_dropout_v01", "converged_constant_lr"), (), False),
+    "converged6_bf16_xeon/README.md": ((), (("converged6_bf16_xeon", "converged6_xeon", ("cil_bf16:cil",), 1),), False),
+    "bf16_license_xeon/README.md": ((), (("bf16_license_xeon", "bf16_license_xeon", ("cil_bf16:cil",), 1),
+                                         ("converged6_bf16_xeon", "converged6_xeon", ("cil_bf16:cil",), 1)), False),
+    "laptop/README.md": (("laptop",), (), False),
     "results/README.md": (("converged6", "converged6_carla", "converged6_xeon", "converged"), (), True),
     "offline_vs_closed_loop/README.md": ((), (), True),
 }
