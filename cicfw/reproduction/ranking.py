@@ -39,6 +39,8 @@ from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, MIN_SEEDS, NOT_
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"
 TOO_FEW = "too few seeds"
+#: one ordered pair's (estimate, lower, upper) one-sided bounds of mu_i - mu_j
+Bounds = tuple[float, float, float]
 
 
 def overall_difference(an: Analysis, a: str, b: str, margin: float | None = None,
@@ -119,16 +121,16 @@ def mcb(values: Mapping[str, Mapping[int, float]], margin: float, alpha: float =
     its own cells)."""
     rows = list(values)
     return _mcb({(i, j): (values[i], values[j]) for x, i in enumerate(rows) for j in rows[x + 1:]}, rows, margin,
-                alpha)
+                alpha)[0]
 
 
 def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int, float]]], rows: Sequence[str],
-         margin: float, alpha: float = ALPHA) -> dict[str, Any]:
-    """MCB from each unordered pair's per-seed values (A's, B's): the one-sided bounds of every ordered pair,
-    then the intervals, the words and G."""
+         margin: float, alpha: float = ALPHA) -> tuple[dict[str, Any], dict[tuple[str, str], Bounds]]:
+    """MCB from each unordered pair's per-seed values (A's, B's): the intervals, the words and G, and the
+    one-sided (estimate, lower, upper) bounds of every ordered pair they were read from."""
     k = len(rows)
     if k < 2:
-        return {"rows": [], "best": list(rows), "confidence": None, "comparisons": 0, "bounds": {}}
+        return {"rows": [], "best": list(rows), "confidence": None, "comparisons": 0}, {}
     q = 1.0 - alpha / (k - 1)
     bounds = {}
     for (i, j), (va, vb) in pairs.items():
@@ -149,7 +151,7 @@ def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int,
             w = NOT_SEPARATED
         out.append({"row": i, "estimate": min(bounds[i, j][0] for j in rows if j != i),
                     "lo": _finite(lower), "hi": _finite(upper[i]), "word": w})
-    return {"rows": out, "best": g, "confidence": q, "comparisons": k - 1, "bounds": bounds}
+    return {"rows": out, "best": g, "confidence": q, "comparisons": k - 1}, bounds
 
 
 def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] | None:
@@ -160,18 +162,19 @@ def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] |
         return None
     cells = {(i, j): an.pair(i, j) for x, i in enumerate(ranked) for j in ranked[x + 1:]}
     values = {ij: tuple({c.seed: c.value("overall") for c in cs} for cs in (p.a, p.b)) for ij, p in cells.items()}
-    res = _mcb(values, ranked, margin)
-    bounds = res.pop("bounds")
+    res, bounds = _mcb(values, ranked, margin)
     pairs = []
     level = family_level(len(values))  # a pair's own word: Bonferroni over every pair of ranked rows
     for (i, j), (va, vb) in values.items():
         d, dc = difference(va, vb), difference(va, vb, level=level)
         note = cells[i, j].note()
         w = word(dc.estimate.lo, dc.estimate.hi, margin) if d.enough_seeds else None
-        pairs.append({"a": i, "b": j, "measured": d.estimate.as_dict(), "method": d.method + (f", {note}" if note else ""),
+        pairs.append({"a": i, "b": j, "measured": d.estimate.as_dict(),
+                      "method": d.method + (f", {note}" if note else ""),
                       "lower": _finite(bounds[i, j][1]), "upper": _finite(bounds[i, j][2]),
                       "word": {"word": w, "lo": dc.estimate.lo if w else None, "hi": dc.estimate.hi if w else None,
-                               "level": level, "correction": f"Bonferroni over the {len(values)} pairs of ranked rows"}})
+                               "level": level,
+                               "correction": f"Bonferroni over the {len(values)} pairs of ranked rows"}})
     k = len(ranked)
     return {**res, "pairs": pairs, "procedure": f"Hsu's MCB over the {k} rows with >= {MIN_SEEDS} seeds, Bonferroni "
                                                 f"over each row's {k - 1} comparisons (one-sided "
