@@ -18,11 +18,14 @@ from typing import Callable, Generic, TypeVar
 
 T = TypeVar("T")
 
+from cicfw.core.errors import CicfwError
+
 BUILTIN = "cicfw"
 
 
-class UnknownNameError(KeyError):
-    """An unknown registry name; the message lists the names that are registered."""
+class UnknownNameError(CicfwError, KeyError):
+    """An unknown registry name (``value``); the message lists the names that are registered. A ``KeyError``
+    too, as a lookup that missed."""
 
     def __str__(self) -> str:  # KeyError would repr() the message and add quotes
         return str(self.args[0])
@@ -46,7 +49,7 @@ class Registry(Generic[T]):
 
         def deco(obj: T) -> T:
             if name in self._entries and self._entries[name] is not obj:
-                raise ValueError(
+                raise CicfwError(
                     f"{self.kind} name {name!r} is already registered by {self._origin[name]!r}; "
                     f"pick another name (registered: {', '.join(sorted(self._entries))})"
                 )
@@ -60,7 +63,7 @@ class Registry(Generic[T]):
         self._load()
         if name not in self._entries:
             raise UnknownNameError(
-                f"unknown {self.kind} {name!r}; registered {self.kind}s: {', '.join(self.names())}"
+                f"unknown {self.kind} {name!r}; registered {self.kind}s: {', '.join(self.names())}", value=name
             )
         return self._entries[name]
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from cicfw.collect import LOCK_NAME, collect_dataset
-from cicfw.core.errors import report_user_errors
+from cicfw.core.errors import CicfwError, report_user_errors
 from conftest import process_alive
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"]}
@@ -67,7 +67,7 @@ def test_the_previous_sigterm_handler_is_back_afterwards():
         assert report_user_errors(lambda: 3)() == 3
         assert signal.getsignal(signal.SIGTERM) is mine
         with pytest.raises(SystemExit):
-            report_user_errors(lambda: int("x"))()
+            report_user_errors(lambda: (_ for _ in ()).throw(CicfwError("x")))()
         assert signal.getsignal(signal.SIGTERM) is mine
     finally:
         signal.signal(signal.SIGTERM, old)

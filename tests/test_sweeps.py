@@ -41,7 +41,8 @@ def test_basic_multirun_records_a_failed_job_and_runs_the_others(tmp_path, tiny_
     assert [r["status"] for r in rows] == ["failed", "ok", "ok"]
     assert [r["mixer.hidden"] for r in rows] == ["0", "16", "32"]  # the swept key is a column
     assert "mixer" not in rows[0]  # fixed on the command line: in `overrides`, not a column
-    assert rows[0]["error"].startswith("ValueError: mixer.hidden") and rows[0]["value"] == ""
+    kind, _, text = rows[0]["error"].partition(": ")
+    assert kind == "ConfigError" and text.startswith("mixer.hidden=0") and rows[0]["value"] == ""
     for r in rows[1:]:
         assert r["error"] == "" and 0.0 <= float(r["value"]) < 2.0 and r["metric"] == "val/steer_mae"
         assert f"mixer.hidden={r['mixer.hidden']}" in r["overrides"].split()
@@ -109,11 +110,11 @@ def test_multirun_jobs_fail_instead_of_returning_nan(monkeypatch):
     assert errors.report_user_errors(lambda: 0.5)() == 0.5
     with pytest.raises(errors.NonFiniteResult, match="nan"):
         errors.report_user_errors(lambda: float("nan"))()  # Optuna's sweeper would crash on a nan
-    with pytest.raises(ValueError, match="bad value"):  # re-raised: Hydra marks the job FAILED
-        errors.report_user_errors(lambda: (_ for _ in ()).throw(ValueError("bad value")))()
+    with pytest.raises(errors.CicfwError, match="bad value"):  # re-raised: Hydra marks the job FAILED
+        errors.report_user_errors(lambda: (_ for _ in ()).throw(errors.CicfwError("bad value")))()
     monkeypatch.setattr(errors, "_in_multirun", lambda: False)
     with pytest.raises(SystemExit) as exit_:
-        errors.report_user_errors(lambda: (_ for _ in ()).throw(ValueError("bad value")))()
+        errors.report_user_errors(lambda: (_ for _ in ()).throw(errors.CicfwError("bad value")))()
     assert exit_.value.code == 2
 
 

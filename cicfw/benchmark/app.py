@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.benchmark import schema as evaluate_schema
 from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
 from cicfw.core.config_checks import SchemaError, checked
-from cicfw.core.errors import Interrupted, report_interrupts, report_user_errors
+from cicfw.core.errors import CicfwError, Interrupted, report_interrupts, report_user_errors
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -36,10 +36,10 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     spec = OmegaConf.to_container(cfg.policy, resolve=True)
     assert isinstance(spec, dict)
     if cfg.get("checkpoint") and spec.get("name") != "checkpoint":
-        raise ValueError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
+        raise CicfwError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
                          f"drop checkpoint= or use policy=checkpoint")
     if spec.get("name") == "checkpoint" and not spec.get("checkpoint"):
-        raise ValueError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
+        raise CicfwError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
                          "or policy=expert for the reference driver")
     if cfg.get("name"):
         spec["label"] = str(cfg.name)
@@ -175,7 +175,7 @@ def percent(value: float | None) -> str:
     return "none (no episodes)" if value is None else f"{float(value):.2f}%"
 
 
-class OutputWriteError(ValueError):
+class OutputWriteError(CicfwError):
     """The report or a picture could not be written (a full disk ...); the driven episodes are kept."""
 
 
@@ -229,7 +229,7 @@ def check_policy_device(device: Any) -> None:
     try:
         torch_device(str(device))
     except ValueError as err:
-        raise ValueError(str(err).replace("device=", "policy.device=", 1)) from None
+        raise CicfwError(str(err).replace("device=", "policy.device=", 1)) from None
 
 
 _DRIVES_THIS_RUN = ("it drives this run's best checkpoint and logs its success as this run's closed_loop/success; "
@@ -262,7 +262,7 @@ def check_after_training_overrides(overrides: Any) -> None:
         if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
             continue
         if root in NOT_AFTER_TRAINING:
-            raise ValueError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
+            raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
 
 
 def check_evaluation_overrides(overrides: Any) -> None:
@@ -283,7 +283,7 @@ def check_evaluation_overrides(overrides: Any) -> None:
         raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
     except (ValueError, FileNotFoundError, UnknownNameError) as err:
         text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
-        raise ValueError(f"evaluate_overrides: {text}") from None
+        raise CicfwError(f"evaluate_overrides: {text}") from None
 
 
 def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
@@ -296,13 +296,13 @@ def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
     if overrides is None:
         overrides = []
     if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
-        raise ValueError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
+        raise CicfwError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
     parser = OverridesParser.create()
     for o in overrides:
         try:
             parser.parse_override(o)
         except Exception as err:
-            raise ValueError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
+            raise CicfwError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
     return compose_config([*first, *overrides])
 
 
@@ -419,7 +419,7 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             return compose("evaluate", overrides=list(overrides))
     except ConfigCompositionException as err:
-        raise config_error(err) or ValueError(composition_error_line(err, list(overrides))) from None
+        raise config_error(err) or CicfwError(composition_error_line(err, list(overrides))) from None
 
 
 def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),

@@ -8,6 +8,7 @@ import numpy as np
 
 from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
 from cicfw.benchmark.policy import POLICIES, Observations, Policy
+from cicfw.core.errors import CicfwError
 
 POLICIES.register("checkpoint")(CheckpointPolicy)
 
@@ -55,7 +56,7 @@ class ConstantPolicy(Policy):
 
     def __init__(self, steer: float = 0.0, label: str | None = None) -> None:
         if not -1.0 <= float(steer) <= 1.0:
-            raise ValueError(f"policy.steer must be in [-1, 1] (negative = left), got {steer}")
+            raise CicfwError(f"policy.steer must be in [-1, 1] (negative = left), got {steer}")
         self.steer = float(steer)
         self.label = label or f"constant steer {self.steer:+.2f}"
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy
+from cicfw.core.errors import CicfwError
 
 
 class CheckpointPolicy(Policy):
@@ -25,12 +26,12 @@ class CheckpointPolicy(Policy):
         from cicfw.export.agent import Agent  # torch: imported when a checkpoint policy is built, not with the suite
 
         if not checkpoint:
-            raise ValueError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
+            raise CicfwError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
         try:
             self.agent = Agent.load(checkpoint, threads=threads, device=device, fuse=fuse)
         except ValueError as err:
             if str(err).startswith("device="):
-                raise ValueError(f"policy.{err}") from None
+                raise CicfwError(f"policy.{err}") from None
             raise
         self.path = str(checkpoint)
         self.device = self.agent.device

@@ -22,6 +22,7 @@ from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, ce
     SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
 )
 from cicfw.benchmark.suite import CELLS
+from cicfw.core.errors import CicfwError
 
 ROW_FIELDS = (
     "model", "episode", "key", "town", "weather", "town_set", "weather_set", "pair", "route", "command",
@@ -208,7 +209,7 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
     runs = _find_runs(paths)
     for r in runs:
         if not is_complete(r) and partial == "refuse":
-            raise ValueError(f"report: {str(r.path)!r} is a partial evaluation run ({partial_note(r)} finished); "
+            raise CicfwError(f"report: {str(r.path)!r} is a partial evaluation run ({partial_note(r)} finished); "
                              f"finish it by running its evaluate command again with the same output folder "
                              f"(hydra.run.dir={r.path}), or pass --partial to include it marked PARTIAL")
     return _unique_labels([r for r in runs if is_complete(r) or partial == "include"])
@@ -267,7 +268,7 @@ def writable_folder(path: Path, what: str) -> Path:
     (e.g. ``--out``) and the folder when it is a file, cannot be created, or is not writable."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise ValueError(f"report: {what} {path} is a file, not a folder; give a folder (created if missing) for "
+        raise CicfwError(f"report: {what} {path} is a file, not a folder; give a folder (created if missing) for "
                          f"table.md/.tex/.csv and success_bars.png")
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -276,7 +277,7 @@ def writable_folder(path: Path, what: str) -> Path:
         os.unlink(probe)
     except OSError as err:
         hint = "" if what == "--out" else " with --out"
-        raise ValueError(f"report: cannot write to {what} {path} ({err.strerror or err}); give a writable "
+        raise CicfwError(f"report: cannot write to {what} {path} ({err.strerror or err}); give a writable "
                          f"folder{hint}") from None
     return path
 
@@ -294,7 +295,7 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
 
             bar_chart(_marked(runs), out_dir / "success_bars.png")
     except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
-        raise ValueError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
+        raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
                          f"with --out") from None
     return md
 

@@ -14,6 +14,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from cicfw.benchmark.suite import CELLS
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 
 SET_NAMES = {"training": "Training", "new": "New"}
@@ -89,7 +90,7 @@ def load_run(run_dir: Path) -> Run:
     except FileNotFoundError:
         raise FileNotFoundError(f"{str(run_dir)!r} is not an evaluation run folder (no episodes.json)") from None
     except (json.JSONDecodeError, KeyError, TypeError, IndexError) as err:
-        raise ValueError(f"{str(p)!r} is not an evaluation report written by cicfw ({err})") from None
+        raise CicfwError(f"{str(p)!r} is not an evaluation report written by cicfw ({err})") from None
     return Run(label=str(label), rows=rows, meta=meta, path=Path(run_dir))
 
 

@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderLock
 
 LOG_NAME = "episodes.jsonl"
@@ -28,7 +29,7 @@ LOCK_NAME = ".evaluate.lock"
 FORMAT = "cicfw-episode-log/1"
 
 
-class RunFolderError(ValueError):
+class RunFolderError(CicfwError):
     """A run folder that cannot be resumed into (another configuration, or another writer)."""
 
 

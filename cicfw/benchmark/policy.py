@@ -13,6 +13,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.registry import Registry
 
 
@@ -63,6 +64,6 @@ def make_policy(spec: Mapping[str, Any]) -> Policy:
     kwargs = dict(spec)
     name = kwargs.pop("name", None)
     if not name:
-        raise ValueError(f"policy config {dict(spec)} has no 'name:'; registered policies: "
+        raise CicfwError(f"policy config {dict(spec)} has no 'name:'; registered policies: "
                          f"{', '.join(POLICIES.names())}")
     return POLICIES.get(str(name))(**kwargs)

@@ -29,6 +29,7 @@ import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy, make_policy
 from cicfw.benchmark.suite import Episode, make_backend, suite_routes
+from cicfw.core.errors import USER_ERRORS, CicfwError
 from cicfw.core.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
 
@@ -52,19 +53,19 @@ class RunnerConfig:
 
     def __post_init__(self) -> None:
         if int(self.batch_size) < 1:
-            raise ValueError(f"runner.batch_size must be >= 1, got {self.batch_size}")
+            raise CicfwError(f"runner.batch_size must be >= 1, got {self.batch_size}")
         if isinstance(self.workers, (list, tuple)):  # one simulator server per worker (sim=carla)
             if not self.workers or not all(isinstance(p, int) and 0 < p < 65536 for p in self.workers) \
                     or len(set(self.workers)) < len(self.workers):
-                raise ValueError(f"runner.workers as a list must hold distinct server ports (one CARLA "
+                raise CicfwError(f"runner.workers as a list must hold distinct server ports (one CARLA "
                                  f"server each), e.g. [2000,2002]; got {self.workers!r}")
         elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
-            raise ValueError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
+            raise CicfwError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
                              f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])")
         if self.off_road_s <= 0:
-            raise ValueError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
+            raise CicfwError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
         if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
-            raise ValueError(f"runner.target_speed_kmh must be > 0 (or null), got {self.target_speed_kmh}")
+            raise CicfwError(f"runner.target_speed_kmh must be > 0 (or null), got {self.target_speed_kmh}")
 
 
     def resolve_workers(self, episodes: Sequence[Episode], renders: bool) -> int:
@@ -316,13 +317,13 @@ def server_specs(sim: Any, workers: Any) -> list | None:
     ports = isinstance(workers, (list, tuple))
     if getattr(cls, "lockstep", True):
         if ports:
-            raise ValueError(f"runner.workers={list(workers)}: a list of server ports is for a simulator that "
+            raise CicfwError(f"runner.workers={list(workers)}: a list of server ports is for a simulator that "
                              f"runs one episode per server (sim=carla); sim={name} takes a number of processes "
                              f"or 'auto'")
         return None
     if not ports:
         if workers not in ("auto", 1):
-            raise ValueError(f"runner.workers={workers}: sim={name} runs one episode at a time per server, so "
+            raise CicfwError(f"runner.workers={workers}: sim={name} runs one episode at a time per server, so "
                              f"its workers are servers: give their ports, e.g. runner.workers=[2000,2002] (one "
                              f"server each), or 1")
         return [sim]
@@ -377,8 +378,8 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
                 results[msg[1]] = msg[2]
             elif msg[0] == "error":
                 kind, text, tb = msg[2], msg[3], msg[4]
-                if kind in ("ValueError", "FileNotFoundError", "CheckpointError", "UnknownNameError"):
-                    raise ValueError(text)
+                if kind == "user error":
+                    raise CicfwError(text)
                 raise RuntimeError(f"evaluation worker {msg[1]} failed:\n{tb}")
     finally:
         for p in procs:
@@ -422,7 +423,8 @@ def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, 
                     on_done=lambda row, traj: q.put(("done", k, row, traj)))
         q.put(("result", k, res))
     except BaseException as err:  # report everything, the parent decides
-        q.put(("error", k, type(err).__name__, str(err), traceback.format_exc()))
+        kind = "user error" if isinstance(err, USER_ERRORS) else type(err).__name__
+        q.put(("error", k, kind, str(err), traceback.format_exc()))
 
 
 def _exit_with_parent(poll_s: float = 1.0) -> None:

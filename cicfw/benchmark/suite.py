@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from cicfw.core.config_checks import whole_number
+from cicfw.core.errors import CicfwError
 from cicfw.registry import SIM_BACKENDS
 
 #: the paper's four weathers: two seen in training, two new
@@ -82,22 +83,22 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
     """``given`` as a list, or one error naming the first unknown entry and listing the known ones."""
     out = [str(g) for g in given]
     if not out:
-        raise ValueError(f"the suite needs at least one {kind}; known {kind}s: {', '.join(known)}")
+        raise CicfwError(f"the suite needs at least one {kind}; known {kind}s: {', '.join(known)}")
     for g in out:
         if g in known or (path_ok and g.endswith((".yaml", ".yml")) and Path(g).expanduser().is_file()):
             continue
         if path_ok and (g.endswith((".yaml", ".yml")) or "/" in g or "\\" in g) and not Path(g).expanduser().exists():
-            raise ValueError(f"{kind} file {g!r}: no such file (a {kind} is a name, {', '.join(known)}, "
+            raise CicfwError(f"{kind} file {g!r}: no such file (a {kind} is a name, {', '.join(known)}, "
                              f"or the path of an existing {kind} .yaml file)")
         extra = " (or a path to a town .yaml file)" if path_ok else ""
-        raise ValueError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}")
+        raise CicfwError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}")
     return out
 
 
 def suite_manoeuvres(name: str) -> tuple[str, ...]:
     """The manoeuvres of the suite called ``name``, or one error listing the known suites."""
     if name not in SUITES:
-        raise ValueError(f"unknown suite {name!r}; known suites: "
+        raise CicfwError(f"unknown suite {name!r}; known suites: "
                          + ", ".join(f"{k} ({'/'.join(v)})" for k, v in SUITES.items()))
     return SUITES[name]
 
@@ -117,7 +118,7 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
     if limit is not None:
         limit = whole_number("suite.limit", limit, "an integer >= 1 (or null for every pair)")
         if limit < 1:
-            raise ValueError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
+            raise CicfwError(f"suite.limit must be >= 1 (or null for every pair), got {limit}")
     if pairs is not None:
         pairs = _pair_list(pairs)
     towns = check_names("town", towns, backend.towns(), path_ok=True)
@@ -128,11 +129,11 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         chosen = range(len(routes)) if pairs is None else pairs
         bad = [p for p in chosen if not 0 <= p < len(routes)]
         if bad:
-            raise ValueError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
+            raise CicfwError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
                              f"{len(routes)} pairs (0..{len(routes) - 1})")
         chosen = [p for p in chosen if _turn_name(routes[p]) in manoeuvres]
         if not chosen:
-            raise ValueError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "
+            raise CicfwError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "
                              f"town {town!r}; pick other suite.pairs or suite=junctions")
         if limit is not None:
             chosen = list(chosen)[:limit]
@@ -151,7 +152,7 @@ def _pair_list(pairs: Any) -> list[int]:
     """``suite.pairs`` as a list of pair indices, else one line naming it (not int()'s own message)."""
     accepted = "a list of pair indices such as [0, 2] (or null for every pair)"
     if isinstance(pairs, str) or not isinstance(pairs, Sequence):
-        raise ValueError(f"suite.pairs must be {accepted}, got {pairs!r}")
+        raise CicfwError(f"suite.pairs must be {accepted}, got {pairs!r}")
     return [whole_number("suite.pairs", p, accepted) for p in pairs]
 
 

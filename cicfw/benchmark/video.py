@@ -10,6 +10,8 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
+from cicfw.core.errors import CicfwError
+
 
 COMMAND_TEXT = {2: ("FOLLOW", (200, 200, 200)), 3: ("LEFT", (80, 170, 255)), 4: ("RIGHT", (255, 110, 90)),
                 5: ("STRAIGHT", (120, 230, 120))}
@@ -30,13 +32,13 @@ def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], li
             out += [r for r in rows if r["success"] or w == "all"]
         elif isinstance(w, int) or (isinstance(w, str) and w.isdigit()):
             if int(w) not in by_index:
-                raise ValueError(f"video: no episode {w} in this run (episodes 0..{len(rows) - 1})")
+                raise CicfwError(f"video: no episode {w} in this run (episodes 0..{len(rows) - 1})")
             out.append(by_index[int(w)])
         elif str(w) in by_key:
             out.append(by_key[str(w)])
         else:
             some = ", ".join(list(by_key)[:3])
-            raise ValueError(f"video: unknown episode {w!r}; give episode indices, keys such as {some}, "
+            raise CicfwError(f"video: unknown episode {w!r}; give episode indices, keys such as {some}, "
                              f"or 'failures'")
     seen, uniq = set(), []
     for r in out:

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.episode import step_info
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route
@@ -60,9 +61,8 @@ CAMERA_SIZE = (800, 600, 100.0)  # px, px, horizontal FOV deg; cropped to rows 1
 DEFAULT_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
 
 
-class CarlaError(RuntimeError, ValueError):
-    """A CARLA problem a user can fix (server, version, package, config); the apps print it as one
-    line (it is a ValueError for ``cicfw.core.errors``)."""
+class CarlaError(RuntimeError, CicfwError):
+    """A CARLA problem a user can fix (server, version, package, config); the apps print it as one line."""
 
 
 class CarlaNotInstalled(CarlaError, ImportError):

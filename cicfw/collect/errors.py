@@ -1,11 +1,11 @@
-"""The collection's user errors: each a ``ValueError``, so every app prints it as one line."""
+"""The collection's user errors: each a ``CicfwError``, so every app prints it as one line."""
 from __future__ import annotations
 
+from cicfw.core.errors import CicfwError
 
-class CollectError(ValueError):
-    """A collection that cannot go on for a reason the user can fix; the message says what and how.
 
-    A ``ValueError`` so that the apps' ``report_user_errors`` prints it as one line."""
+class CollectError(CicfwError):
+    """A collection that cannot go on for a reason the user can fix; the message says what and how."""
 
 
 class CollectConfigError(CollectError):

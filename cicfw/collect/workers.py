@@ -17,6 +17,7 @@ from cicfw.collect.config import close_backend, make_backend
 from cicfw.collect.episode import ParentGone, run_episode
 from cicfw.collect.errors import CollectError
 from cicfw.collect.lock import FolderLock
+from cicfw.core.errors import USER_ERRORS
 from cicfw.registry import SIM_BACKENDS
 
 
@@ -112,7 +113,7 @@ def _worker_specs(cfg: dict, n: int) -> list[dict]:
 def _raise_worker_error(msg: tuple) -> None:
     """A worker's failure: its user error as the same one line, anything else with its traceback."""
     _, i, ep_id, err, tb = msg
-    if isinstance(err, ValueError):  # a user error (CollectError, TownError ...): the same one line
+    if isinstance(err, USER_ERRORS):  # a user error (CollectError, TownError ...): the same one line
         raise err
     where = f" on episode {ep_id}" if ep_id else ""
     raise RuntimeError(f"collect worker {i} failed{where}:\n{tb}")

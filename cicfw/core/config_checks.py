@@ -22,6 +22,8 @@ import types
 import typing
 from typing import Any, Callable, Mapping
 
+from cicfw.core.errors import CicfwError, ConfigError
+
 #: the environment variable naming cicfw's cache folder (datasets, compiled code); the configs read it
 #: with ``${oc.env:CICFW_CACHE,<default>}``
 CACHE_VARIABLE = "CICFW_CACHE"
@@ -54,7 +56,7 @@ def is_integer(v: Any) -> bool:
 def checked_probability(key: str, value: Any) -> float:
     """``value`` as a probability: a number in [0, 1], else one ``ValueError`` naming ``key``."""
     if not (is_number(value) and 0.0 <= value <= 1.0):
-        raise ValueError(f"{key} is a probability in [0, 1], got {value!r}")
+        raise ConfigError(key, value, "a probability in [0, 1]", f"{key} is a probability in [0, 1], got {value!r}")
     return float(value)
 
 
@@ -63,11 +65,11 @@ def checked_range(key: str, value: Any, low: float, high: float, low_allowed: bo
     when ``low_allowed``); else one ``ValueError`` naming ``key`` and ``words``, what each end may be."""
     pair = list(value) if isinstance(value, (list, tuple)) else None
     if pair is None or len(pair) != 2 or not all(is_number(v) for v in pair):
-        raise ValueError(f"{key} must be a range [low, high] of two numbers, each {words}, got {value!r}")
+        raise ConfigError(key, value, f"a range [low, high] of two numbers, each {words}")
     a, b = float(pair[0]), float(pair[1])
     inside = all((low <= v if low_allowed else low < v) and v <= high for v in (a, b))
     if not inside or a > b:
-        raise ValueError(f"{key} must be a range [low, high] with low <= high, each {words}, got {pair!r}")
+        raise ConfigError(key, pair, f"a range [low, high] with low <= high, each {words}")
     return a, b
 
 
@@ -78,7 +80,7 @@ def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:
         return value
     if isinstance(value, str) and re.fullmatch(r"\s*[-+]?\d+\s*", value):
         return int(value)
-    raise ValueError(f"{key} must be {accepted}, got {value!r}")
+    raise ConfigError(key, value, accepted)
 
 
 # ---- schemas from signatures -----------------------------------------------------------------------
@@ -151,7 +153,7 @@ def kwargs_schema(fn: Callable, what: str, exclude: tuple[str, ...] = (),
 
 # ---- a refusal as one line -------------------------------------------------------------------------
 
-class SchemaError(ValueError):
+class SchemaError(CicfwError):
     """A config value or key the schema refuses, as one line. ``key``: the full key (``mixer.gate_bais``);
     ``kind``: ``unknown key``, ``wrong type``, ``missing`` or ``not settable``."""
 

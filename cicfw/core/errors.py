@@ -1,4 +1,11 @@
-"""User-facing errors: the entry points print these as one clear line instead of a traceback."""
+"""The error family a user can fix (``CicfwError``), and how an app ends: one line for a user error or a stop.
+
+A ``CicfwError`` (``ConfigError`` for one config key) is what a user's input caused and the user can fix:
+an app prints it as one ``cicfw: error: <message>`` line and exits with status 2. Anything else is a bug
+and keeps its traceback. ``CICFW_DEBUG=1`` prints the traceback of a user error too. The handlers for
+SIGTERM and uncaught exceptions are installed by an app's ``main`` (``install_app_handlers``), never by
+importing a module.
+"""
 from __future__ import annotations
 
 import functools
@@ -8,14 +15,50 @@ import os
 import signal
 import sys
 import threading
+import traceback
 from contextlib import contextmanager
-from typing import Callable, Iterator, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
-from cicfw.registry import UnknownNameError
+#: set to 1 to see the traceback of a user error too
+DEBUG_VARIABLE = "CICFW_DEBUG"
 
-# Errors a user causes with a bad file, path, name or value (a bad CIL file's CILFormatError is a
-# ValueError); everything else is a bug and keeps its traceback.
-USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, UnknownNameError)
+
+class CicfwError(ValueError):
+    """Something a user's input caused and the user can fix (a bad file, path, name or value); the message
+    says what and how. ``key`` and ``value``: the config key (``mixer.gate_bias``) and the value refused,
+    where there is one. A ``ValueError``, so code that catches ``ValueError`` still catches it."""
+
+    key: str | None = None
+    value: Any = None
+
+    def __init__(self, *args: Any, key: str | None = None, value: Any = None) -> None:
+        super().__init__(*args)
+        if key is not None:
+            self.key = key
+        if value is not None:
+            self.value = value
+
+
+class ConfigError(CicfwError):
+    """A config value the code refuses: ``ConfigError("model.lr", -1, "a number > 0")`` reads
+    ``model.lr must be a number > 0, got -1``; ``message`` replaces that sentence where it says more (it
+    should still name the key and the value)."""
+
+    def __init__(self, key: str, value: Any, accepted: str, message: str | None = None) -> None:
+        super().__init__(message or f"{key} must be {accepted}, got {value!r}", key=key, value=value)
+        self.key, self.value, self.accepted = key, value, accepted
+
+    def __reduce__(self) -> tuple:  # a multirun launcher may pickle a job's error
+        return type(self), (self.key, self.value, self.accepted, str(self))
+
+
+# Errors a user causes (a missing file the user named is one); everything else is a bug and keeps its traceback.
+USER_ERRORS: tuple[type[BaseException], ...] = (CicfwError, FileNotFoundError)
+
+
+def debugging() -> bool:
+    """Whether ``CICFW_DEBUG`` asks for the traceback of a user error too."""
+    return os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
 
 F = TypeVar("F", bound=Callable)
 log = logging.getLogger("cicfw")
@@ -115,6 +158,9 @@ def install_app_handlers() -> None:
     previous = sys.excepthook
 
     def uncaught(kind: type[BaseException], err: BaseException, tb: object) -> None:
+        if issubclass(kind, CicfwError) and not debugging():
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            _exit_now(2)
         if not issubclass(kind, KeyboardInterrupt):
             previous(kind, err, tb)
             return
@@ -169,6 +215,8 @@ def report_user_errors(fn: F) -> F:
             if multirun:
                 log.error("job failed: %s", _message(err))
                 raise
+            if debugging():
+                traceback.print_exc()
             print(f"cicfw: error: {_message(err)}", file=sys.stderr)
             sys.exit(2)
         except Exception:

@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
+from cicfw.core.errors import CicfwError
+
 try:
     import fcntl
 except ImportError:  # Windows: no flock
@@ -31,7 +33,7 @@ POLL_S = 0.2
 MAX_RETRIES = 20
 
 
-class FolderBusy(ValueError):
+class FolderBusy(CicfwError):
     """Another process holds the folder; the message names it."""
 
 

@@ -24,6 +24,8 @@ from hydra.errors import CompactHydraException
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from cicfw.core.errors import CicfwError
+
 CONFIG_MODULE = "cicfw.conf"
 
 # Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
@@ -71,7 +73,7 @@ def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
     accepted = [f.name for f in dataclasses.fields(typed)]
     unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]
     if unknown:
-        raise ValueError(f"{where}unknown top-level key {unknown[0]!r}; {did_you_mean(unknown[0], accepted)}"
+        raise CicfwError(f"{where}unknown top-level key {unknown[0]!r}; {did_you_mean(unknown[0], accepted)}"
                          f"accepted top-level keys: {', '.join(sorted(accepted))}")
 
 

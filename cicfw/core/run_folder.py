@@ -23,10 +23,11 @@ from typing import Any, Mapping, Sequence
 
 from hydra.experimental.callback import Callback
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 
 
-class RunFolderError(ValueError):
+class RunFolderError(CicfwError):
     """The run folder cannot be created or written; the message says why and which key to change."""
 
 

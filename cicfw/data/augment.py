@@ -11,6 +11,8 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
+from cicfw.core.errors import CicfwError
+
 
 @dataclass
 class AugmentConfig:
@@ -53,7 +55,7 @@ class AugmentConfig:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"unknown augmentation option(s) {sorted(unknown)}; accepted: {sorted(known)}")
+            raise CicfwError(f"unknown augmentation option(s) {sorted(unknown)}; accepted: {sorted(known)}")
         checked = {k: checked_probability(f"data.augment.{k}", v) if k.startswith("p_")
                    else checked_range(f"data.augment.{k}", v, *domains[k]) for k, v in d.items()}
         return cls(**checked)

@@ -16,6 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ class T:
     CAMERA_YAW = 27  # degrees, positive to the right (left camera -30, right camera +30)
 
 
-class CILFormatError(ValueError):
+class CILFormatError(CicfwError):
     """A file that is not in the CIL HDF5 layout; the message names the file and the problem."""
 
 

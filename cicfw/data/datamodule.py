@@ -14,6 +14,7 @@ import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
 
 from cicfw import COMMANDS
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.core.config_checks import whole_number
 from cicfw.data.batches import SeededBatches, batch_rng
@@ -76,7 +77,7 @@ def camera_ids(key: str, cameras: Any) -> tuple[int, ...] | None:
     except ValueError:
         ids = ()
     if not ids or min(ids) < 0:
-        raise ValueError(f"data.{key} must be {accepted}, got {cameras!r}")
+        raise ConfigError(f"data.{key}", cameras, accepted)
     return ids
 
 
@@ -101,15 +102,16 @@ class CILDataModule(L.LightningDataModule):
         super().__init__()
         for key, size in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
             if size < 1:
-                raise ValueError(f"data.{key} must be >= 1, got {size}")
+                raise ConfigError(f"data.{key}", size, ">= 1")
         if not 0.0 < max_abs_steer <= 1.0:
-            raise ValueError(f"data.max_abs_steer must be in (0, 1], got {max_abs_steer}")
+            raise ConfigError("data.max_abs_steer", max_abs_steer, "in (0, 1]")
         # checked here, before any file is read (the sampler and the split check them again)
         if balanced and batch_size % len(COMMANDS):
-            raise ValueError(f"data.batch_size must be a multiple of {len(COMMANDS)} for balanced batches "
-                             f"({len(COMMANDS)} commands), got {batch_size}; or set data.balanced=false")
+            raise ConfigError("data.batch_size", batch_size, f"a multiple of {len(COMMANDS)} for balanced batches",
+                              f"data.batch_size must be a multiple of {len(COMMANDS)} for balanced batches "
+                              f"({len(COMMANDS)} commands), got {batch_size}; or set data.balanced=false")
         if not 0.0 < val_fraction < 1.0:
-            raise ValueError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
+            raise ConfigError("data.val_fraction", val_fraction, "in (0, 1)")
         self.path = str(path)
         self.batch_size, self.val_batch_size = batch_size, val_batch_size
         self.val_fraction, self.seed = val_fraction, seed
@@ -118,7 +120,7 @@ class CILDataModule(L.LightningDataModule):
         both = self.cameras is not None and self.val_cameras is not None
         left_out = sorted(set(self.val_cameras) - set(self.cameras)) if both else []
         if left_out:  # the loader reads data.cameras only: these would validate on nothing
-            raise ValueError(f"data.val_cameras={list(self.val_cameras)} is not within data.cameras="
+            raise CicfwError(f"data.val_cameras={list(self.val_cameras)} is not within data.cameras="
                              f"{list(self.cameras)}: only data.cameras are read, so camera id(s) {left_out} would "
                              f"validate on nothing; camera ids: {camera_names(KNOWN_CAMERA_IDS)} (or your files' own)")
         self.balanced, self.batches_per_epoch = balanced, batches_per_epoch
@@ -129,8 +131,9 @@ class CILDataModule(L.LightningDataModule):
         elif isinstance(augment, Mapping):
             self.augment = AugmentConfig.from_dict(augment)
         else:  # 0, '' or [] would read as "the defaults", 1 or 'off' as nothing a user means
-            raise ValueError(f"data.augment must be true (CIL's augmentation), false (none) or a dict of "
-                             f"overrides such as {{p_blur: 0.2}}, got {augment!r}")
+            raise ConfigError("data.augment", augment, "true, false or a dict of overrides",
+                              f"data.augment must be true (CIL's augmentation), false (none) or a dict of "
+                              f"overrides such as {{p_blur: 0.2}}, got {augment!r}")
         self.in_memory, self.num_workers = in_memory_setting(in_memory), num_workers
         self.train_set: FrameDataset | None = None
         self.val_set: FrameDataset | None = None

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from cicfw import COMMANDS
+from cicfw.core.errors import CicfwError
 from cicfw.data.cil_hdf5 import (COMMAND_CODES, KNOWN_CAMERA_IDS, CILFormatError, T, check_file, find_files,
                                  read_targets)
 
@@ -62,17 +63,17 @@ def folder_metadata(folder: Path) -> dict:
     try:
         data = json.loads(meta.read_text())
     except OSError as err:
-        raise ValueError(f"{meta}: cannot be read ({err.strerror or err})") from None
+        raise CicfwError(f"{meta}: cannot be read ({err.strerror or err})") from None
     except ValueError as err:  # json's message says where, not which file
-        raise ValueError(f"{meta}: not valid JSON ({err}); it must be {META_LAYOUT}") from None
+        raise CicfwError(f"{meta}: not valid JSON ({err}); it must be {META_LAYOUT}") from None
     if not isinstance(data, dict):
-        raise ValueError(f"{meta}: holds a JSON {type(data).__name__}; it must be {META_LAYOUT}")
+        raise CicfwError(f"{meta}: holds a JSON {type(data).__name__}; it must be {META_LAYOUT}")
     files = data.get("files", {})
     if not isinstance(files, dict):
-        raise ValueError(f'{meta}: "files" is a JSON {type(files).__name__}; it must be {META_LAYOUT}')
+        raise CicfwError(f'{meta}: "files" is a JSON {type(files).__name__}; it must be {META_LAYOUT}')
     for name, entry in files.items():
         if not isinstance(entry, dict):
-            raise ValueError(f'{meta}: "files" entry {name!r} is {entry!r}, not an object; it must be {META_LAYOUT}')
+            raise CicfwError(f'{meta}: "files" entry {name!r} is {entry!r}, not an object; it must be {META_LAYOUT}')
     return data
 
 
@@ -231,7 +232,7 @@ def _say_dropped(tally: _Tally, n_files: int) -> None:
 
 
 def _nothing_left(path: str, n_files: int, tally: _Tally, read: int, by_steer: int, by_camera: int,
-                  max_abs_steer: float, cameras: tuple[int, ...] | None) -> ValueError:
+                  max_abs_steer: float, cameras: tuple[int, ...] | None) -> CicfwError:
     """The error for filters that leave no sample: which filter removed how many."""
     removed = [f"{tally.nan} for a NaN or inf steer or speed",
                f"{tally.nan_camera} for a NaN or inf camera id or yaw",
@@ -239,7 +240,7 @@ def _nothing_left(path: str, n_files: int, tally: _Tally, read: int, by_steer: i
                f"above it; the paper keeps 0.8)"]
     if cameras is not None:
         removed.append(f"{by_camera} by data.cameras={list(cameras)}")
-    return ValueError(f"the filters leave no sample of the {n_files} file(s) of data.path={path!r}: of "
+    return CicfwError(f"the filters leave no sample of the {n_files} file(s) of data.path={path!r}: of "
                       f"{read + tally.nan + tally.nan_camera} sample(s), {', '.join(removed)}; loosen the "
                       f"filter that removed them")
 
@@ -308,7 +309,7 @@ def chosen_cameras(camera: np.ndarray, cameras: tuple[int, ...], key: str = "cam
     chosen = np.isin(camera, list(cameras))
     if len(camera) and not chosen.any():
         held = sorted(set(np.unique(camera).tolist()))
-        raise ValueError(f"data.{key}={list(cameras)} keeps none of the {len(camera)} {what} hold camera id(s) "
+        raise CicfwError(f"data.{key}={list(cameras)} keeps none of the {len(camera)} {what} hold camera id(s) "
                          f"{held} ({camera_names(KNOWN_CAMERA_IDS)}); choose among those, or data.{key}=null for "
                          f"every camera")
     return chosen
@@ -329,10 +330,10 @@ def _warn_unknown_cameras(path: Path, camera: np.ndarray, cameras: tuple[int, ..
 def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Frames, Frames]:
     """Seeded split of whole episodes (never frames): ~``val_fraction`` of the episodes validate."""
     if not 0.0 < val_fraction < 1.0:
-        raise ValueError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
+        raise CicfwError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
     groups = np.unique(frames.group)
     if len(groups) < 2:
-        raise ValueError(
+        raise CicfwError(
             f"the data holds {len(groups)} episode(s); a train/validation split by episode needs at least 2 files"
         )
     order = np.random.default_rng(seed).permutation(groups)
@@ -344,13 +345,13 @@ def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Fr
     whole = np.bincount(frames.command, minlength=len(COMMANDS))
     absent = [name for name, c in zip(COMMANDS, whole) if c == 0]
     if absent:  # no other split can help: say so rather than suggest another seed
-        raise ValueError(
+        raise CicfwError(
             f"the dataset has no samples of command(s) {absent} (samples per command after the filters "
             f"|steer| <= data.max_abs_steer and data.cameras: {dict(zip(COMMANDS, whole.tolist()))}); each "
             f"command trains its own branch, so collect episodes that contain those commands"
         )
     if missing:
-        raise ValueError(
+        raise CicfwError(
             f"the train split has no sample of command(s) {missing} (train counts per command "
             f"{dict(zip(COMMANDS, counts.tolist()))}); collect more episodes with those commands, "
             f"change data.seed, or lower data.val_fraction"

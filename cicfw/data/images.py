@@ -20,6 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
 from cicfw.data.frames import Frames
 
@@ -27,7 +28,7 @@ MAX_OPEN_FILES = max(64, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2)
 FRAME_BYTES = int(np.prod(IMAGE_SHAPE))
 
 
-class DataChangedError(ValueError):
+class DataChangedError(CicfwError):
     """A data file changed or vanished after setup; the message names it."""
 
     def __init__(self, message: str) -> None:

@@ -11,6 +11,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE
 
 #: Share of the available memory the images may take: the rest is for the model, its optimizer and
@@ -24,7 +25,7 @@ def in_memory_setting(value: object) -> bool | str:
     """``data.in_memory`` as True, False or ``"auto"``; anything else is one line naming the key."""
     if isinstance(value, bool) or value == "auto":
         return value
-    raise ValueError(f"data.in_memory must be {ACCEPTED}, got {value!r}")
+    raise ConfigError("data.in_memory", value, ACCEPTED)
 
 
 def available_bytes() -> int:
@@ -89,6 +90,6 @@ def decide(frames: int, setting: bool | str, copies: int = 1, available: int | N
         return Residency(need <= RAM_SHARE * available, frames, copies, available, setting)
     if setting and need > available:
         plan = Residency(True, frames, copies, available, setting)
-        raise ValueError(f"data.in_memory=true cannot hold these images: {plan.arithmetic()}; use "
+        raise CicfwError(f"data.in_memory=true cannot hold these images: {plan.arithmetic()}; use "
                          f"data.in_memory=auto (streams what does not fit) or false")
     return Residency(bool(setting), frames, copies, available, setting)

@@ -7,6 +7,7 @@ import numpy as np
 from torch.utils.data import Sampler
 
 from cicfw import COMMANDS, N_COMMANDS
+from cicfw.core.errors import CicfwError, ConfigError
 
 
 class CommandBalancedBatchSampler(Sampler[list[int]]):
@@ -28,13 +29,13 @@ class CommandBalancedBatchSampler(Sampler[list[int]]):
         world_size: int = 1,
     ) -> None:
         if batch_size % N_COMMANDS:
-            raise ValueError(f"data.batch_size must be a multiple of {N_COMMANDS} for balanced batches, got {batch_size}")
+            raise ConfigError("data.batch_size", batch_size, f"a multiple of {N_COMMANDS} for balanced batches")
         self.per_command = batch_size // N_COMMANDS
         self.batch_size = batch_size
         self.pools = [np.flatnonzero(commands == c) for c in range(N_COMMANDS)]
         for name, pool in zip(COMMANDS, self.pools):
             if len(pool) < world_size:
-                raise ValueError(
+                raise CicfwError(
                     f"command {name!r} has {len(pool)} training samples, fewer than the {world_size} "
                     f"rank(s) that each need one; collect more data or use data.balanced=false"
                 )

@@ -22,7 +22,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import is_number
-from cicfw.core.errors import report_user_errors
+from cicfw.core.errors import CicfwError, report_user_errors
 
 log = logging.getLogger("cicfw.diagnose")
 
@@ -52,7 +52,7 @@ def check_options(cfg: DictConfig) -> None:
     for key, (ok, accepted) in OPTION_RULES.items():
         value = OmegaConf.select(cfg, key)
         if not ok(value):
-            raise ValueError(f"{key}={value!r} is not valid; use {accepted}")
+            raise CicfwError(f"{key}={value!r} is not valid; use {accepted}")
 
 
 def run_device(name: Any) -> str:
@@ -62,7 +62,7 @@ def run_device(name: Any) -> str:
 
     device = torch_device(str(name or "auto"))
     if device.type not in ("cpu", "cuda"):
-        raise ValueError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N")
+        raise CicfwError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N")
     return str(device)
 
 
@@ -84,7 +84,7 @@ def _data_values(node: DictConfig, where: str) -> dict[str, Any]:
             try:
                 value = OmegaConf.select(node, key, throw_on_resolution_failure=True)
             except Exception as err:
-                raise ValueError(f"{where}: data.{key} cannot be resolved here ({err}); give data.{key}=...") from None
+                raise CicfwError(f"{where}: data.{key} cannot be resolved here ({err}); give data.{key}=...") from None
             out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
     return out
 
@@ -131,9 +131,9 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
     searched = f"no training config found beside {str(checkpoint)!r} (searched .hydra/config.yaml up to " \
                f"{SEARCH_LEVELS} folders above it)"
     if not values.get("path"):
-        raise ValueError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>")
+        raise CicfwError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>")
     if found is None and "seed" not in given and cfg.split != "all":
-        raise ValueError(f"{searched}, so its train/validation split is unknown; give data.seed=<the training "
+        raise CicfwError(f"{searched}, so its train/validation split is unknown; give data.seed=<the training "
                          f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame")
     values["path"] = str(Path(str(values["path"])).expanduser())
     return DataSettings(**values), source
@@ -147,9 +147,9 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
 
     if not cfg.get("checkpoint"):
-        raise ValueError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")
+        raise CicfwError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")
     if cfg.split not in sd.SPLITS:
-        raise ValueError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
+        raise CicfwError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
     check_options(cfg)
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line

@@ -42,6 +42,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cicfw import COMMANDS, N_COMMANDS
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import T, read_targets
 from cicfw.data.frames import Frames, episode_groups
@@ -60,7 +61,7 @@ SteerFn = Callable[[Any, Any, Any], Any]
 SteerAllFn = Callable[[Any, Any], Any]
 
 
-class DiagnosticError(ValueError):
+class DiagnosticError(CicfwError):
     """Input the diagnostic cannot measure (no junction frames, a head without a decoder ...): one line."""
 
 
@@ -330,14 +331,14 @@ def load_split(data: DataSettings, split: str = "val"):
     from cicfw.data.frames import load_frames
 
     if split not in SPLITS:
-        raise ValueError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
+        raise CicfwError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
     cams = tuple(data.val_cameras) if data.val_cameras is not None else None
     if split == "all":
         frames = load_frames(data.path, data.max_abs_steer, data.side_camera_correction,
                              tuple(data.cameras) if data.cameras is not None else None)
     else:
         if data.seed is None:
-            raise ValueError("data.seed is needed for the training run's split; give data.seed=<its seed>, or split=all")
+            raise CicfwError("data.seed is needed for the training run's split; give data.seed=<its seed>, or split=all")
         dm = CILDataModule(data.path, val_fraction=data.val_fraction, seed=int(data.seed),
                            max_abs_steer=data.max_abs_steer, side_camera_correction=data.side_camera_correction,
                            cameras=data.cameras, val_cameras=data.val_cameras, augment=False, in_memory=False)

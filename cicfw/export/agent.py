@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from cicfw import COMMANDS
+from cicfw.core.errors import CicfwError
 from cicfw.model.checkpoint import describe, load_model, prepare_for_inference
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
@@ -33,7 +34,7 @@ OUTPUT_NAME = "steer"
 METADATA_KEY = "cicfw.json"
 
 
-class AgentInputError(ValueError):
+class AgentInputError(CicfwError):
     """Inputs the agent cannot take; the message says what it expects."""
 
 
@@ -121,14 +122,14 @@ def torch_device(device: str) -> torch.device:
     try:
         dev = torch.device(device)
     except RuntimeError:
-        raise ValueError(f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
+        raise CicfwError(f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
     if dev.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
             why = "this torch is built without CUDA" if torch.version.cuda is None else "it sees no CUDA GPU"
-            raise ValueError(f"device={device!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
+            raise CicfwError(f"device={device!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
         if dev.index is not None and dev.index >= count:
-            raise ValueError(f"device={device!r} is not on this machine: it has {count} CUDA GPU(s), "
+            raise CicfwError(f"device={device!r} is not on this machine: it has {count} CUDA GPU(s), "
                              f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto")
     return dev
 
@@ -188,7 +189,7 @@ class Agent:
         try:
             module = torch.jit.load(str(path), map_location=dev, _extra_files=extra)
         except Exception as err:
-            raise ValueError(f"{str(path)!r} is not a TorchScript model cicfw can run, or it is truncated "
+            raise CicfwError(f"{str(path)!r} is not a TorchScript model cicfw can run, or it is truncated "
                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
         info = _metadata(extra[METADATA_KEY], path)
         return cls(_torch_runner(module.eval(), dev), info, "torchscript", device=dev)
@@ -198,7 +199,7 @@ class Agent:
         session = onnx_session(path, threads)
         names = tuple(i.name for i in session.get_inputs())
         if names != INPUT_NAMES:
-            raise ValueError(f"{str(path)!r} is an ONNX model with inputs {list(names)}, not one written by cicfw "
+            raise CicfwError(f"{str(path)!r} is an ONNX model with inputs {list(names)}, not one written by cicfw "
                              f"export (inputs {list(INPUT_NAMES)})")
         meta = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY, "")
         info = _metadata(meta, path)
@@ -234,7 +235,7 @@ def onnx_session(model: str | Path | bytes, threads: int | None = None):
     try:
         import onnxruntime as ort
     except ImportError:
-        raise ValueError('running an .onnx model needs onnxruntime: pip install "cicfw[export]" '
+        raise CicfwError('running an .onnx model needs onnxruntime: pip install "cicfw[export]" '
                          '(or pip install onnxruntime)') from None
     opts = ort.SessionOptions()
     if threads:
@@ -246,7 +247,7 @@ def onnx_session(model: str | Path | bytes, threads: int | None = None):
         return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
     except Exception as err:
         where = "the exported bytes" if isinstance(model, bytes) else repr(str(model))
-        raise ValueError(f"{where} is not an ONNX model onnxruntime can run, or it is truncated "
+        raise CicfwError(f"{where} is not an ONNX model onnxruntime can run, or it is truncated "
                          f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
 
 

@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
 from cicfw.core.config_checks import is_integer
-from cicfw.core.errors import report_user_errors
+from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 
 log = logging.getLogger("cicfw.export")
@@ -53,7 +53,7 @@ RUN_CONFIG_LEVELS = 3
 DEFAULT_OPSET = 17
 
 
-class ExportError(ValueError):
+class ExportError(CicfwError):
     """An export that cannot be done or failed its parity check; the message says why, in one line."""
 
 

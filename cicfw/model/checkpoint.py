@@ -12,11 +12,13 @@ import re
 from pathlib import Path
 from typing import Any, Mapping
 
+from cicfw.core.errors import CicfwError
+
 #: the CICModule arguments that name registered parts, with the registry that must know each
 PART_KEYS = ("encoder", "mixer", "head")
 
 
-class CheckpointError(ValueError):
+class CheckpointError(CicfwError):
     """A checkpoint that cannot be used; the message says why and what is accepted."""
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from cicfw.core.errors import ConfigError
 from cicfw.registry import ENCODERS
 
 IMAGE_HW = (88, 200)
@@ -41,7 +42,8 @@ class CILEncoder(Encoder):
                  "dropout_speed_fc": dropout_speed_fc, "dropout_join": dropout_join}
         for name, p in rates.items():
             if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p < 1:
-                raise ValueError(f"encoder.{name}={p!r} is not valid; use a probability in [0, 1)")
+                raise ConfigError(f"encoder.{name}", p, "a probability in [0, 1)",
+                                 f"encoder.{name}={p!r} is not valid; use a probability in [0, 1)")
         layers: list[nn.Module] = []
         c_in = 3
         for c_out, k, s in CIL_CONVS:

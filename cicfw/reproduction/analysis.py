@@ -7,6 +7,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS, Estimate, pooled_clopper_pearson, t_interval
 
@@ -57,7 +58,7 @@ def episode_draws(columns: Sequence[str], rng: np.random.Generator, n_boot: int)
     for c in COLUMNS:
         pos = np.flatnonzero(cols == c)
         if len(pos) == 0:
-            raise ValueError(f"the suite has no episode in column {c!r}: the table needs all four columns")
+            raise CicfwError(f"the suite has no episode in column {c!r}: the table needs all four columns")
         out[c] = pos[rng.integers(0, len(pos), size=(n_boot, len(pos)))]
     return out
 
@@ -202,13 +203,13 @@ def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> A
     for c in sorted(cells, key=lambda c: (c.row, c.seed)):
         rows.setdefault(c.row, []).append(c)
     if not rows:
-        raise ValueError("no finished cell to analyse")
+        raise CicfwError("no finished cell to analyse")
     first = next(iter(rows.values()))[0]
     keys = sorted(first.episodes)
     for row, cs in rows.items():
         for c in cs:
             if sorted(c.episodes) != keys:
-                raise ValueError(f"cell {row}/seed{c.seed} drove other episodes than {first.row}/seed{first.seed}: "
+                raise CicfwError(f"cell {row}/seed{c.seed} drove other episodes than {first.row}/seed{first.seed}: "
                                  f"cells of one results folder must share the suite")
     columns = [first.episodes[k]["column"] for k in keys]
     rng = np.random.default_rng(seed)

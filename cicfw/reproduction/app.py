@@ -42,6 +42,7 @@ from typing import Any, Mapping, Sequence
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.lock import ResultsLock
@@ -53,7 +54,7 @@ MANIFEST = "reproduce.json"
 CELL_FILE = "cell.json"
 
 
-class ReproduceError(ValueError):
+class ReproduceError(CicfwError):
     """A bad row, seed count, budget or results folder: one clear line."""
 
 
@@ -785,7 +786,9 @@ def _error_line(err: BaseException) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
     write the report (and publish it)."""
-    from cicfw.core.errors import USER_ERRORS
+    import traceback
+
+    from cicfw.core.errors import USER_ERRORS, debugging
 
     args = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--resolve") or a.startswith("--cfg")
@@ -806,6 +809,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as err:
         if lock is not None:
             lock.release()
+        if debugging():
+            traceback.print_exc()
         print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
         return 2
     except BaseException:

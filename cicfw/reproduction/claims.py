@@ -11,6 +11,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
@@ -119,10 +120,10 @@ def claim_part(a: str, b: str, column: str = "overall", test: str = "greater", r
     config's schema takes them from here), its column(s) and test checked: a ValueError naming what is accepted."""
     for s in ([hard, easy] if column == "gap" else [column]):
         if s not in SELECTORS:
-            raise ValueError(f"unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
+            raise CicfwError(f"unknown column {s!r}; accepted: {', '.join(SELECTORS)}"
                              + (" (a gap needs hard and easy)" if column == "gap" else ", gap"))
     if test not in TESTS:
-        raise ValueError(f"unknown test {test!r}; accepted: {', '.join(TESTS)}")
+        raise CicfwError(f"unknown test {test!r}; accepted: {', '.join(TESTS)}")
     return Part(a=str(a), b=str(b), on=column, test=test, relative=bool(relative), hard=hard, easy=easy,
                 b_scale=float(b_scale))
 
@@ -135,12 +136,12 @@ def claim_entry(id: str, claim: str, parts: Sequence[Mapping[str, Any]], quote: 
     for j, p in enumerate(parts):
         unknown = sorted({str(k) for k in p} - set(PART_KEYS))
         if unknown or "a" not in p or "b" not in p:
-            raise ValueError(f"part {j}: needs a and b; accepted keys: {', '.join(PART_KEYS)}"
+            raise CicfwError(f"part {j}: needs a and b; accepted keys: {', '.join(PART_KEYS)}"
                              + (f" (unknown: {', '.join(unknown)})" if unknown else ""))
         try:
             out.append(claim_part(**p))
         except ValueError as err:
-            raise ValueError(f"part {j}: {err}") from None
+            raise CicfwError(f"part {j}: {err}") from None
     return Claim(id=str(id), text=str(claim), parts=tuple(out), quote=str(quote or ""), source=str(source or ""),
                  family=str(family or MAIN_FAMILY))
 
@@ -157,14 +158,14 @@ def load_claims(spec: Sequence[Mapping[str, Any]]) -> list[Claim]:
         where = f"claims[{k}] ({c.get('id', '?')})"
         for key in ("id", "claim", "parts"):
             if not c.get(key):
-                raise ValueError(f"{where} has no {key!r}; a claim needs id, claim, quote, source and parts")
+                raise CicfwError(f"{where} has no {key!r}; a claim needs id, claim, quote, source and parts")
         unknown = sorted({str(key) for key in c} - set(CLAIM_KEYS))
         if unknown:
-            raise ValueError(f"{where}: unknown key {unknown[0]!r}; accepted: {', '.join(CLAIM_KEYS)}")
+            raise CicfwError(f"{where}: unknown key {unknown[0]!r}; accepted: {', '.join(CLAIM_KEYS)}")
         try:
             out.append(claim_entry(**c))
         except ValueError as err:
-            raise ValueError(f"{where} {err}") from None
+            raise CicfwError(f"{where} {err}") from None
     return out
 
 
@@ -193,7 +194,7 @@ def check_margin(value: Any) -> float:
     """``equivalence_margin`` as a number of points, or one error line saying what it takes."""
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
     if not ok:
-        raise ValueError(f"equivalence_margin={value!r}: give a positive number of points of success (e.g. 5), the "
+        raise CicfwError(f"equivalence_margin={value!r}: give a positive number of points of success (e.g. 5), the "
                          f"margin a 'not better than' claim is tested against")
     return float(value)
 

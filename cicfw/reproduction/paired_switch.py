@@ -31,6 +31,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.benchmark.finished_run import cell_key
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction.cells import COLUMNS, CellResult, load_cell, pooled_counts
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, difference_terms, family_level,
                                            with_episode_floor, word)
@@ -64,11 +65,11 @@ def load_row(folder: Path) -> dict[int, CellResult]:
     """seed -> finished cell under a row's folder (``<row>/seed<k>/cell.json``), or one error line."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise ValueError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
+        raise CicfwError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
     cells = (load_cell(p) for p in sorted(folder.glob("seed*/cell.json")))
     out = {c.seed: c for c in cells if isinstance(c, CellResult)}
     if not out:
-        raise ValueError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
+        raise CicfwError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
     return out
 
 
@@ -132,14 +133,14 @@ def row_names(cells: Mapping[int, CellResult]) -> str:
 def check_paired(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
     """One error line when the two rows share no seed: a paired comparison needs the same seeds."""
     if not set(a) & set(b):
-        raise ValueError(f"{names[0]} (seeds {sorted(a)}) and {names[1]} (seeds {sorted(b)}) share no seed; "
+        raise CicfwError(f"{names[0]} (seeds {sorted(a)}) and {names[1]} (seeds {sorted(b)}) share no seed; "
                          f"give two rows' cells run on the same seeds")
 
 
 def check_distinct(a: Path, b: Path, what: str) -> None:
     """One error line when a and b are the same folder or file: it would compare a run with itself."""
     if Path(a).resolve() == Path(b).resolve():
-        raise ValueError(f"{a} and {b} are the same {what}; give two different runs to compare")
+        raise CicfwError(f"{a} and {b} are the same {what}; give two different runs to compare")
 
 
 def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
@@ -169,11 +170,11 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
     """key -> (success, table column) from a cell's ``cell.json`` or an evaluation's folder (``episodes.csv``)."""
     path = episodes_file(path)
     if not path.is_file():
-        raise ValueError(f"{path} does not exist; give a cell.json or an evaluation folder holding episodes.csv")
+        raise CicfwError(f"{path} does not exist; give a cell.json or an evaluation folder holding episodes.csv")
     if path.suffix == ".json":
         cell = load_cell(path)
         if not isinstance(cell, CellResult) or not cell.episodes:
-            raise ValueError(f"{path} holds no episodes; give a finished cell's cell.json")
+            raise CicfwError(f"{path} holds no episodes; give a finished cell's cell.json")
         return {k: (bool(e["success"]), e["column"]) for k, e in cell.episodes.items()}
     import csv
 
@@ -181,11 +182,11 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
         reader = csv.DictReader(f)
         missing = [c for c in EPISODE_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
-            raise ValueError(f"{path} lacks the column(s) {', '.join(missing)}; give a cell.json or an evaluation's "
+            raise CicfwError(f"{path} lacks the column(s) {', '.join(missing)}; give a cell.json or an evaluation's "
                              f"episodes.csv (columns {', '.join(EPISODE_COLUMNS)})")
         rows = list(reader)
     if not rows:
-        raise ValueError(f"{path} holds no episodes; give a cell.json or an evaluation's episodes.csv")
+        raise CicfwError(f"{path} holds no episodes; give a cell.json or an evaluation's episodes.csv")
     return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
 
 
@@ -231,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_distinct(episodes_file(args.a), episodes_file(args.b), "episodes file")
             ea, eb = load_episodes(Path(args.a)), load_episodes(Path(args.b))
             if not set(ea) & set(eb):
-                raise ValueError(f"{args.a} and {args.b} share no episode (no key in common); "
+                raise CicfwError(f"{args.a} and {args.b} share no episode (no key in common); "
                                  f"give two runs of the same evaluation suite")
             print(f"A {args.a} vs B {args.b}: the episodes both drove")
             for r in episode_changes(ea, eb):
@@ -239,12 +240,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
         if not args.margin > 0:
-            raise ValueError(f"--margin must be a positive number of points, got {args.margin}")
+            raise CicfwError(f"--margin must be a positive number of points, got {args.margin}")
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))
         if args.family < 1:
-            raise ValueError(f"--family must be a positive number of comparisons, got {args.family}")
+            raise CicfwError(f"--family must be a positive number of comparisons, got {args.family}")
         print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family)))
     except (ValueError, OSError, json.JSONDecodeError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.reproduction.cells import cell_files, finished_cells
 
@@ -20,7 +21,7 @@ def publish(results_dir: Path, dest: Path) -> list[Path]:
     files += cell_files(results_dir)
     out = []
     if dest.exists() and not dest.is_dir():
-        raise ValueError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
+        raise CicfwError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
     for f in files:
         target = dest / f.relative_to(results_dir)
         if target.resolve() != f.resolve():
@@ -34,15 +35,15 @@ def published_manifest(src: Path) -> dict[str, Any]:
     it is not."""
     src = Path(src)
     if not src.is_dir():
-        raise ValueError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
+        raise CicfwError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
                          f"(reproduce.json and cells/<row>/seed<k>/cell.json, e.g. docs/results/<budget>)")
     try:
         return json.loads((src / "reproduce.json").read_text())
     except FileNotFoundError:
-        raise ValueError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
+        raise CicfwError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
                          f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json") from None
     except json.JSONDecodeError as err:
-        raise ValueError(f"continue_from={str(src)!r}: reproduce.json is not JSON ({err})") from None
+        raise CicfwError(f"continue_from={str(src)!r}: reproduce.json is not JSON ({err})") from None
 
 
 def continue_published(src: Path, results_dir: Path, machine: str | None = None) -> dict[str, list[str]]:

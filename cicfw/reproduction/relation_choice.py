@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction.cells import finished_cells
 
 
@@ -43,7 +44,7 @@ def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> d
 def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str]) -> RelationChoice:
     """The lowest mean validation error over the seeds every candidate has (ties: the earlier candidate)."""
     if not candidates:
-        raise ValueError("relation_candidates is empty; give the rows to choose R from, e.g. [re_all, re_pairs, re_none]")
+        raise CicfwError("relation_candidates is empty; give the rows to choose R from, e.g. [re_all, re_pairs, re_none]")
     shared = set.intersection(*(set(errors_by_seed.get(r, {})) for r in candidates))
     seeds = tuple(sorted(shared))
     if not seeds:

@@ -106,6 +106,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
@@ -852,7 +853,7 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
     cells, failed = load_cells(results_dir)
     if not cells:
-        raise ValueError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
+        raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin,
                        relation_candidates=relation_candidates)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route, single_turn_routes
 from cicfw.sim.town import TownError, load_town, town_names
@@ -40,7 +41,7 @@ class EmbeddedBackend:
         try:
             presets_of(weather_family)
         except ValueError as err:
-            raise ValueError(f"sim.weather_family: {err}") from None
+            raise CicfwError(f"sim.weather_family: {err}") from None
         self.weather_family = weather_family
         self.command_distance = command_distance
         self.success_radius = success_radius

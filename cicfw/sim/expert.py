@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.sim.roadgraph import Route
 from cicfw.sim.vehicle import DT, VehicleParams, VehicleState
 
@@ -40,14 +41,14 @@ class ExpertParams:
         for key, (low, inclusive, unit) in _BOUNDS.items():
             v = getattr(self, key)
             if not isinstance(v, numbers.Real) or isinstance(v, bool) or not math.isfinite(v):
-                raise ValueError(f"expert.{key} must be a number ({unit}), got {v!r}")
+                raise CicfwError(f"expert.{key} must be a number ({unit}), got {v!r}")
             if v < low or (v == low and not inclusive):
-                raise ValueError(f"expert.{key} must be {'>=' if inclusive else '>'} {low:g} {unit}, got {v!r}")
+                raise CicfwError(f"expert.{key} must be {'>=' if inclusive else '>'} {low:g} {unit}, got {v!r}")
         if self.min_kmh > self.cruise_kmh:
-            raise ValueError(f"expert.min_kmh={self.min_kmh!r} is above expert.cruise_kmh={self.cruise_kmh!r}; the "
+            raise CicfwError(f"expert.min_kmh={self.min_kmh!r} is above expert.cruise_kmh={self.cruise_kmh!r}; the "
                              f"slowest planned speed must be at most the cruise speed")
         if self.lookahead_max < self.lookahead_min:
-            raise ValueError(f"expert.lookahead_max={self.lookahead_max!r} is below expert.lookahead_min="
+            raise CicfwError(f"expert.lookahead_max={self.lookahead_max!r} is below expert.lookahead_min="
                              f"{self.lookahead_min!r}; the look-ahead is clip(base + gain * speed, min, max)")
 
 

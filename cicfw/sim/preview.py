@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.core.files import write_together
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
@@ -48,14 +49,14 @@ def check_out_folder(out: Path) -> Path:
     """Create ``--out`` if missing and make sure a file can be written into it, before anything is rendered;
     one ValueError naming the folder otherwise."""
     if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} is a file, not a folder; give a folder (created if missing) for the PNGs")
+        raise CicfwError(f"--out {out} is a file, not a folder; give a folder (created if missing) for the PNGs")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".cicfw-preview.{os.getpid()}-{secrets.token_hex(4)}.probe"
         probe.touch(exist_ok=False)
         probe.unlink()
     except OSError as err:
-        raise ValueError(f"--out: cannot write to {out} ({err.strerror or err}); give a writable folder") from None
+        raise CicfwError(f"--out: cannot write to {out} ({err.strerror or err}); give a writable folder") from None
     return out
 
 
@@ -201,7 +202,7 @@ def load_towns(names: list[str]) -> list:
 def check_weathers(weathers: list[str]) -> list[str]:
     for wx in weathers:
         if wx not in WEATHERS:
-            raise ValueError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
+            raise CicfwError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
     return weathers
 
 
@@ -237,7 +238,7 @@ def _main(argv: list[str] | None = None) -> int:
     except BaseException as err:
         _remove_empty_folders(out, new_top)
         if isinstance(err, OSError):
-            raise ValueError(f"cannot write {err.filename} ({err.strerror or err}); give a writable --out "
+            raise CicfwError(f"cannot write {err.filename} ({err.strerror or err}); give a writable --out "
                              f"folder") from None
         raise
     for name in images:
@@ -283,16 +284,16 @@ def check_args(a: argparse.Namespace) -> None:
     """One ValueError for the first argument outside its domain, before anything is rendered or written."""
     check_weathers(a.weathers)
     if a.scale < 1:
-        raise ValueError(f"--scale must be >= 1, got {a.scale}")
+        raise CicfwError(f"--scale must be >= 1, got {a.scale}")
     if not (a.colours == 0 or 2 <= a.colours <= 256):
-        raise ValueError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}")
+        raise CicfwError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}")
     if a.routes < 0:
-        raise ValueError(f"--routes must be >= 0, got {a.routes}")
+        raise CicfwError(f"--routes must be >= 0, got {a.routes}")
     if a.seed < 0:
-        raise ValueError(f"--seed must be an integer >= 0 (the seed of the images and of the maps' routes), "
+        raise CicfwError(f"--seed must be an integer >= 0 (the seed of the images and of the maps' routes), "
                          f"got {a.seed}")
     if "/" in a.prefix or os.sep in a.prefix:
-        raise ValueError(f"--prefix is the start of the PNGs' file names and takes no '/' (e.g. sim_), got "
+        raise CicfwError(f"--prefix is the start of the PNGs' file names and takes no '/' (e.g. sim_), got "
                          f"{a.prefix!r}; choose their folder with --out")
 
 

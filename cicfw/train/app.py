@@ -26,7 +26,7 @@ from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, who
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
-from cicfw.core.errors import USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
+from cicfw.core.errors import CicfwError, USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
 from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
@@ -61,7 +61,7 @@ def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
     d = OmegaConf.to_container(node, resolve=True)
     assert isinstance(d, dict)
     if "name" not in d:
-        raise ValueError(f"config node {d} has no 'name:' key naming the registered class")
+        raise CicfwError(f"config node {d} has no 'name:' key naming the registered class")
     return d.pop("name"), d
 
 
@@ -103,13 +103,13 @@ def check_optimized_metric(metric: Any, model: CICModule) -> None:
         return
     names = ", ".join(accepted)
     if metric in logged:
-        raise ValueError(f"optimized_metric={metric} is higher-is-better, but the best checkpoint is the one with the "
+        raise CicfwError(f"optimized_metric={metric} is higher-is-better, but the best checkpoint is the one with the "
                          f"lowest optimized_metric; choose one of {names}")
     if str(metric).startswith("closed_loop/"):
-        raise ValueError(f"optimized_metric={metric} is measured after training, but optimized_metric picks the best "
+        raise CicfwError(f"optimized_metric={metric} is measured after training, but optimized_metric picks the best "
                          f"checkpoint while training; choose one of {names} (evaluate_after=true "
                          f"return_closed_loop=true returns the closed-loop success rate to sweepers)")
-    raise ValueError(f"optimized_metric={metric} is not a metric the model logs; "
+    raise CicfwError(f"optimized_metric={metric} is not a metric the model logs; "
                      f"{_did_you_mean(str(metric), accepted)}choose one of {names}")
 
 
@@ -142,7 +142,7 @@ def check_not_your_own_data(path: Path) -> None:
         return
     files = [f for f in path.rglob("*") if f.suffix in (".h5", ".hdf5") and f.is_file()]
     if files:
-        raise ValueError(f"data.path={path} holds {len(files)} CIL HDF5 file(s) that cicfw did not collect, and "
+        raise CicfwError(f"data.path={path} holds {len(files)} CIL HDF5 file(s) that cicfw did not collect, and "
                          f"the default data=sim_default collects its own dataset into data.path; add data=cil_hdf5 "
                          f"to train on them: python -m cicfw.train data=cil_hdf5 data.path={path}")
 
@@ -163,7 +163,7 @@ def check_batches_per_epoch(value: Any) -> None:
     """``data.batches_per_epoch`` (a whole number or null: the schema): null (the training samples / the
     batch size) or >= 1; 0 was taken for null and -1 failed inside Lightning's sampler."""
     if value is not None and value < 1:
-        raise ValueError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
+        raise CicfwError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
                          f">= 1, got {value!r}")
 
 
@@ -179,7 +179,7 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
     for key, chosen in (("cameras", datamodule.cameras), ("val_cameras", datamodule.val_cameras)):
         if chosen is not None and recorded and not set(chosen) & set(recorded):
             held = camera_names(dict(sorted(recorded.items())))
-            raise ValueError(f"data.{key}={list(chosen)} chooses none of the cameras the default data records "
+            raise CicfwError(f"data.{key}={list(chosen)} chooses none of the cameras the default data records "
                              f"({held}; collect.cameras); choose among those, or train on your own files with "
                              f"data=cil_hdf5 data.path=...")
 
@@ -203,7 +203,7 @@ def epoch_list(epochs: Any) -> list[int]:
     except ValueError:
         found = None
     if found is None or any(e < 1 for e in found):
-        raise ValueError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
+        raise CicfwError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
                          f"checkpoints/epochNNN.ckpt), got {epochs!r}")
     return found
 
@@ -230,7 +230,7 @@ def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
                            save_on_train_epoch_end=True)
 
 
-class CheckpointWriteError(ValueError):
+class CheckpointWriteError(CicfwError):
     """A checkpoint could not be written (a full disk ...); the ones written before are intact."""
 
 
@@ -306,7 +306,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:
-        raise ValueError(f"unknown logger {cfg.logger.name!r}; known loggers: {', '.join(sorted(LOGGERS))}")
+        raise CicfwError(f"unknown logger {cfg.logger.name!r}; known loggers: {', '.join(sorted(LOGGERS))}")
     else:
         logger = LOGGERS[cfg.logger.name](run_dir)
     if kwargs.get("enable_progress_bar") is None:  # Lightning's default: follow progress_bar
@@ -318,7 +318,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     try:
         return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
     except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=1:00
-        raise ValueError(f"trainer: {' '.join(str(err).split())}") from None
+        raise CicfwError(f"trainer: {' '.join(str(err).split())}") from None
 
 
 # ckpt_path values Lightning resolves itself (no file to check before training).
@@ -331,21 +331,21 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
     A missing, truncated or foreign file is one ``ValueError`` / ``FileNotFoundError`` naming it."""
     p = Path(path).expanduser()
     if p.is_dir():
-        raise ValueError(f"{what}={path} is a folder; give the checkpoint file, e.g. {p}/checkpoints/last.ckpt")
+        raise CicfwError(f"{what}={path} is a folder; give the checkpoint file, e.g. {p}/checkpoints/last.ckpt")
     if not p.is_file():
         raise FileNotFoundError(f"{what}={path}: no such file")
     try:
         ckpt = load_weights_only(p)
     except UnloadableCheckpoint as err:
         if err.code:
-            raise ValueError(
+            raise CicfwError(
                 f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
                 f"({err.reason}), which could run code when loaded; cicfw loads checkpoints with "
                 f"torch.load(weights_only=True) only") from None
-        raise ValueError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
+        raise CicfwError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
                          f"torch.save): {err.reason}") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
-        raise ValueError(f"{what}={path} is not a Lightning training checkpoint (no 'state_dict'); "
+        raise CicfwError(f"{what}={path} is not a Lightning training checkpoint (no 'state_dict'); "
                          f"give a .ckpt written by cicfw train (<run>/checkpoints/last.ckpt)")
     return ckpt
 
@@ -362,7 +362,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
         return str(path)
     ckpt = load_checkpoint_safely(path)
     if "optimizer_states" not in ckpt or "loops" not in ckpt:
-        raise ValueError(f"ckpt_path={path} holds the weights only (no optimizer or loop state), so training "
+        raise CicfwError(f"ckpt_path={path} holds the weights only (no optimizer or loop state), so training "
                          f"cannot resume from it; resume from <run>/checkpoints/last.ckpt, or evaluate it "
                          f"with cicfw evaluate checkpoint={path}")
     want = model.state_dict()
@@ -375,7 +375,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
         saved = "/".join(str(hp.get(k, "?")) for k in ("encoder", "mixer", "head"))
         here = "/".join(str(model.hparams.get(k, "?")) for k in ("encoder", "mixer", "head"))
         first = (missing or unexpected or reshaped)[0]
-        raise ValueError(
+        raise CicfwError(
             f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: {here}): "
             f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
             f"{first!r}; resume with the options the checkpoint was trained with")
@@ -411,7 +411,7 @@ def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CI
         if not _same_value(ours, theirs):
             differ.append(f"model.{key}={_plain(ours)} (the checkpoint's: {_plain(theirs)})")
     if differ:
-        raise ValueError(f"ckpt_path={path}: resuming restores the optimizer and its schedule from the checkpoint, so "
+        raise CicfwError(f"ckpt_path={path}: resuming restores the optimizer and its schedule from the checkpoint, so "
                          f"{', '.join(differ)} would not take effect; resume with the checkpoint's values, or start a "
                          f"fresh run (no ckpt_path) with the new ones")
 
@@ -435,10 +435,10 @@ def check_epochs_left(path: str | Path, ckpt: Mapping[str, Any], trainer_cfg: Ma
     done, step = epochs_finished(ckpt), int(ckpt.get("global_step", 0))
     max_epochs, max_steps = trainer_cfg.get("max_epochs"), trainer_cfg.get("max_steps")
     if is_integer(max_epochs) and max_epochs >= 0 and done >= max_epochs:
-        raise ValueError(f"ckpt_path={path} has finished {done} epoch(s) and trainer.max_epochs={max_epochs}: nothing "
+        raise CicfwError(f"ckpt_path={path} has finished {done} epoch(s) and trainer.max_epochs={max_epochs}: nothing "
                          f"is left to train; give trainer.max_epochs greater than {done} to train on from it")
     if is_integer(max_steps) and max_steps >= 0 and step >= max_steps:
-        raise ValueError(f"ckpt_path={path} has trained {step} step(s) and trainer.max_steps={max_steps}: nothing is "
+        raise CicfwError(f"ckpt_path={path} has trained {step} step(s) and trainer.max_steps={max_steps}: nothing is "
                          f"left to train; give trainer.max_steps greater than {step} to train on from it")
 
 

@@ -11,6 +11,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.heads.base import Head
 from cicfw.model.heads.bins import SteeringBins
 
@@ -24,16 +25,20 @@ def _number(x: object) -> bool:
 def make_bins(n_classes: object, low: object, high: object, bin_width: object | None) -> SteeringBins:
     """SteeringBins from the head's kwargs, or one ValueError naming the mismatch."""
     if isinstance(n_classes, bool) or not isinstance(n_classes, int) or n_classes < 2:
-        raise ValueError(f"head.n_classes={n_classes!r} is not valid; use an integer >= 2 (paper: 9)")
+        raise ConfigError("head.n_classes", n_classes, "an integer >= 2",
+                         f"head.n_classes={n_classes!r} is not valid; use an integer >= 2 (paper: 9)")
     if not (_number(low) and _number(high) and -1.0 <= low < high <= 1.0):
-        raise ValueError(
+        raise ConfigError(
+            "head.low", [low, high], "-1 <= low < high <= 1",
             f"head.low={low!r}, head.high={high!r} are not valid; need -1 <= low < high <= 1 "
             f"(paper: -0.9, 0.9)")
     if bin_width is not None:
         if not (_number(bin_width) and bin_width > 0):
-            raise ValueError(f"head.bin_width={bin_width!r} is not valid; use a number > 0 or null (paper: 0.2)")
+            raise ConfigError("head.bin_width", bin_width, "a number > 0 or null",
+                             f"head.bin_width={bin_width!r} is not valid; use a number > 0 or null (paper: 0.2)")
         if not math.isclose(n_classes * bin_width, high - low, rel_tol=1e-6, abs_tol=1e-9):
-            raise ValueError(
+            raise ConfigError(
+                "head.n_classes", n_classes, "(high - low) / bin_width",
                 f"head.n_classes={n_classes} does not match the bin edges: {n_classes} bins of width "
                 f"{bin_width} span {n_classes * bin_width:g}, but [low, high] = [{low}, {high}] spans "
                 f"{high - low:g}; accepted: n_classes = (high - low) / bin_width = {(high - low) / bin_width:g}, "
@@ -58,7 +63,8 @@ class BinnedHead(Head):
         self.bins = make_bins(n_classes, low, high, bin_width)
         decode = decode or self.default_decode
         if decode not in DECODERS:
-            raise ValueError(f"head.decode={decode!r} is not known; use one of {', '.join(DECODERS)}")
+            raise ConfigError("head.decode", decode, f"one of {', '.join(DECODERS)}",
+                             f"head.decode={decode!r} is not known; use one of {', '.join(DECODERS)}")
         self.decode_mode = decode
         self.out_dim = n_classes
         # Not persistent: derived from the kwargs, which the checkpoint's hyperparameters hold.

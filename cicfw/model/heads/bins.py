@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import torch
 
+from cicfw.core.errors import CicfwError
+
 
 class SteeringBins:
     """``n`` equal bins over [low, high]; the paper uses 9 bins of width 0.2, midpoints -0.8..0.8.
@@ -14,9 +16,9 @@ class SteeringBins:
 
     def __init__(self, n: int = 9, low: float = -0.9, high: float = 0.9) -> None:
         if n < 2:
-            raise ValueError(f"the number of steering classes must be >= 2, got {n}")
+            raise CicfwError(f"the number of steering classes must be >= 2, got {n}")
         if not low < high:
-            raise ValueError(f"bin range needs low < high, got low={low}, high={high}")
+            raise CicfwError(f"bin range needs low < high, got low={low}, high={high}")
         self.n = n
         self.low, self.high = float(low), float(high)
         width = (self.high - self.low) / n

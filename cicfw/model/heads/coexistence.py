@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.heads.binned import BinnedHead, _number
 from cicfw.registry import HEADS
 
@@ -24,10 +25,12 @@ class CoexistenceHead(BinnedHead):
 
     def __init__(self, W: float = 0.6, sigma2: float = 1.0, **bins_kwargs) -> None:
         if not (_number(W) and 0.0 < W < 1.0):
-            raise ValueError(f"head.W={W!r} is not valid; the co-existence weight must be in the open interval "
+            raise ConfigError("head.W", W, "a number in (0, 1)",
+                             f"head.W={W!r} is not valid; the co-existence weight must be in the open interval "
                              f"(0, 1) (paper: 0.4, 0.6, 0.8; best 0.6)")
         if not (_number(sigma2) and sigma2 > 0):
-            raise ValueError(f"head.sigma2={sigma2!r} is not valid; the Gaussian's variance must be > 0 (paper: 1)")
+            raise ConfigError("head.sigma2", sigma2, "a number > 0",
+                             f"head.sigma2={sigma2!r} is not valid; the Gaussian's variance must be > 0 (paper: 1)")
         super().__init__(**bins_kwargs)
         self.W, self.sigma2 = float(W), float(sigma2)
         self.register_buffer("mu", gaussian_coexistence(self.bins.n, self.sigma2), persistent=False)

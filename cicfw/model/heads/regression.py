@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.heads.base import Head
 from cicfw.registry import HEADS
 
@@ -17,7 +18,8 @@ class RegressionHead(Head):
     def __init__(self, loss: str = "mse") -> None:
         super().__init__()
         if loss not in _LOSSES:
-            raise ValueError(f"head.loss={loss!r} is not known; use one of {sorted(_LOSSES)}")
+            raise ConfigError("head.loss", loss, f"one of {sorted(_LOSSES)}",
+                             f"head.loss={loss!r} is not known; use one of {sorted(_LOSSES)}")
         self.out_dim = 1
         self.loss_name = loss
 

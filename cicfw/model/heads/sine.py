@@ -14,6 +14,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.heads.base import Head
 from cicfw.registry import HEADS
 
@@ -25,10 +26,12 @@ class SineHead(Head):
     def __init__(self, n_units: int = 61, phase_range: float = 0.9) -> None:
         super().__init__()
         if isinstance(n_units, bool) or not isinstance(n_units, int) or n_units < 3:
-            raise ValueError(f"head.n_units={n_units!r} is not valid; use an integer N >= 3 (a wave sampled on "
+            raise ConfigError("head.n_units", n_units, "an integer >= 3",
+                             f"head.n_units={n_units!r} is not valid; use an integer N >= 3 (a wave sampled on "
                              f"fewer points cannot be projected on sin and cos; paper tried 21, 61, 101, 141)")
         if isinstance(phase_range, bool) or not isinstance(phase_range, (int, float)) or not 0 < phase_range < 1:
-            raise ValueError(f"head.phase_range={phase_range!r} is not valid; use a number in (0, 1): the largest "
+            raise ConfigError("head.phase_range", phase_range, "a number in (0, 1)",
+                             f"head.phase_range={phase_range!r} is not valid; use a number in (0, 1): the largest "
                              f"phase as a fraction of π (1 would map steer -1 and +1 to the same wave)")
         self.out_dim = n_units
         self.max_phase = float(phase_range) * math.pi

@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from cicfw import COMMANDS
+from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.base import Mixer
 from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int
 from cicfw.model.mixers.gtu import colearn, offdiag_mask
@@ -33,7 +34,8 @@ def check_relationship(R: Sequence[Sequence[int]], n: int) -> torch.Tensor:
     except TypeError:
         ok = False
     if not ok:
-        raise ValueError(f"mixer.R={R!r} is not a binary {n}x{n} matrix; {accepted}")
+        raise ConfigError("mixer.R", R, f"a binary {n}x{n} matrix",
+                         f"mixer.R={R!r} is not a binary {n}x{n} matrix; {accepted}")
     return torch.tensor(rows, dtype=torch.float32)
 
 

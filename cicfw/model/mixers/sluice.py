@@ -16,6 +16,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.base import Mixer
 from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int, check_unit_interval
 from cicfw.model.mixers.cross_stitch import HIDDEN_BLOCKS, OUTPUT_LAYER, run_block, stitch_init
@@ -42,13 +43,15 @@ class SluiceMixer(Mixer):
         check_branch_kwargs(hidden, dropout)
         check_positive_int("subspaces", subspaces, "the number of subspaces per hidden layer (paper: 2)")
         if subspaces < 2 or hidden % subspaces:
-            raise ValueError(
+            raise ConfigError(
+                "mixer.subspaces", subspaces, "an integer >= 2 that divides mixer.hidden",
                 f"mixer.subspaces={subspaces!r} is not valid with mixer.hidden={hidden}; use an integer >= 2 "
                 f"that divides the hidden width (paper: 2)")
         check_unit_interval("alpha_diag", alpha_diag, "the initial self-weight of each (branch, subspace)")
         check_unit_interval("beta_last", beta_last, "the initial weight of the last hidden layer in β")
         if isinstance(ortho, bool) or not isinstance(ortho, (int, float)) or ortho < 0:
-            raise ValueError(f"mixer.ortho={ortho!r} is not valid; the orthogonality weight must be a number >= 0")
+            raise ConfigError("mixer.ortho", ortho, "a number >= 0",
+                             f"mixer.ortho={ortho!r} is not valid; the orthogonality weight must be a number >= 0")
         n, layers = self.n_branches, len(HIDDEN_BLOCKS)
         self.subspaces, self.ortho = subspaces, float(ortho)
         self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))

@@ -10,6 +10,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.base import Mixer
 from cicfw.model.mixers.common import check_branch_kwargs
 from cicfw.model.mixers.independent import branch_mlp
@@ -24,7 +25,8 @@ class SoftSharingMixer(Mixer):
                  dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
         super().__init__(in_dim, out_dim)
         if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam >= 0):
-            raise ValueError(f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a number >= 0")
+            raise ConfigError("mixer.lam", lam, "a number >= 0",
+                             f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a number >= 0")
         check_branch_kwargs(hidden, dropout)
         self.lam = float(lam)
         self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(self.n_branches))

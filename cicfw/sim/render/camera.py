@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
+
 IMAGE_H, IMAGE_W = 88, 200  # CIL's image after the crop and resize
 SRC_W, SRC_H, SRC_FOV_DEG = 800, 600, 100.0  # the CARLA camera CIL cropped from
 CROP_TOP, CROP_BOTTOM = 115, 510  # rows of the 800x600 image CIL keeps
@@ -67,7 +69,7 @@ CAMERAS: dict[str, Camera] = {
 def get_camera(name: str) -> Camera:
     """The camera called ``name``; an unknown name raises a ValueError listing the known ones."""
     if name not in CAMERAS:
-        raise ValueError(f"unknown camera {name!r}; known cameras: {', '.join(CAMERAS)}")
+        raise CicfwError(f"unknown camera {name!r}; known cameras: {', '.join(CAMERAS)}")
     return CAMERAS[name]
 
 

@@ -16,6 +16,7 @@ import math
 import cv2
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.sim.render import camera as cam_mod
 from cicfw.sim.render.atlas import PPM, TW, Atlas, build_atlas
 from cicfw.sim.render.camera import (CAMERAS, CX, CY, FIRST_GROUND_ROW, FX, FY, HORIZON_ROW, IMAGE_H, IMAGE_W,
@@ -125,7 +126,7 @@ class Renderer:
         self.weather = weather if isinstance(weather, Weather) else get_weather(weather)
         cams = (cameras,) if isinstance(cameras, str) else tuple(cameras)
         if not cams:
-            raise ValueError(f"Renderer needs at least one camera; known cameras: {', '.join(CAMERAS)}")
+            raise CicfwError(f"Renderer needs at least one camera; known cameras: {', '.join(CAMERAS)}")
         self.cameras = tuple(get_camera(c).name for c in cams)
         self.seed = int(seed)
         w = self.weather

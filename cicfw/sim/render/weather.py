@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 from cicfw.sim.render.carla_weather import derive_presets
 
 Colour = tuple[float, float, float]
@@ -102,7 +103,7 @@ def weather_family(family: str) -> dict[str, Weather]:
     """The presets of ``family``; an unknown family raises a ValueError listing the known ones."""
     if family not in WEATHER_FAMILIES:
         known = ", ".join(f"{k} ({v})" for k, v in FAMILY_NOTES.items())
-        raise ValueError(f"unknown weather family {family!r}; known weather families: {known}")
+        raise CicfwError(f"unknown weather family {family!r}; known weather families: {known}")
     return WEATHER_FAMILIES[family]
 
 
@@ -110,7 +111,7 @@ def get_weather(name: str, family: str = DEFAULT_FAMILY) -> Weather:
     """The preset called ``name`` in ``family``; an unknown name raises a ValueError listing the known ones."""
     presets = weather_family(family)
     if name not in presets:
-        raise ValueError(f"unknown weather {name!r}; known weathers: {', '.join(presets)}")
+        raise CicfwError(f"unknown weather {name!r}; known weathers: {', '.join(presets)}")
     return presets[name]
 
 

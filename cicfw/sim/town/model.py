@@ -7,8 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cicfw.core.errors import CicfwError
 
-class TownError(ValueError):
+
+class TownError(CicfwError):
     """A town file that cannot be built; the message names the file, the element and the fix."""
 
 
