@@ -95,6 +95,23 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
     return out
 
 
+def training_set(kind: str, given: Any, accepted: Sequence[str]) -> list[str]:
+    """``suite.training_<kind>`` as a list, each entry among ``accepted``: the suite's towns (those it drives
+    and the simulator's others) or weathers (those it drives and the paper's four, which a subset such as
+    ``suite.weathers=[MidRainyNoon]`` leaves undriven). Any other name is a ``ConfigError`` naming it: an
+    unknown town or an undriven weather would silently move the driven ones to the "new" columns."""
+    from cicfw.core.errors import ConfigError
+
+    out = [str(given)] if isinstance(given, str) else [str(g) for g in (given or ())]
+    names = list(dict.fromkeys(accepted))
+    for g in out:
+        if g not in names:
+            raise ConfigError(f"suite.training_{kind}", g, f"among the suite's {kind} ({', '.join(names)})",
+                              f"suite.training_{kind}: {g!r} is not among the suite's {kind} ({', '.join(names)}); "
+                              f"the table's training columns are the driven {kind} named there, the others new")
+    return out
+
+
 def suite_manoeuvres(name: str) -> tuple[str, ...]:
     """The manoeuvres of the suite called ``name``, or one error listing the known suites."""
     if name not in SUITES:
@@ -123,6 +140,9 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         pairs = _pair_list(pairs)
     towns = check_names("town", towns, backend.towns(), path_ok=True)
     weathers = check_names("weather", weathers, backend.weathers())
+    training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()])
+    training_weathers = training_set("weathers", training_weathers,
+                                     [*weathers, *(w for w in PAPER_WEATHERS if w in backend.weathers())])
     episodes: list[Episode] = []
     for town in towns:
         routes = suite_routes(backend, town)

@@ -46,6 +46,7 @@ import numpy as np
 
 from cicfw.core.errors import CicfwError
 from cicfw.registry import SIM_BACKENDS
+from cicfw.sim.backends import positive_distances
 from cicfw.sim.episode import step_info
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route
 from cicfw.sim.vehicle import DT, SpeedController, VehicleParams, VehicleState
@@ -215,9 +216,10 @@ class CarlaBackend:
                 raise CarlaError(f"sim.weathers: {w!r} is no CARLA weather preset; presets: {', '.join(presets)}")
         self.vehicle = str(vehicle)
         self.settle_ticks = int(settle_ticks)
-        self.route_before, self.route_after = float(route_before), float(route_after)
-        self.command_distance = float(command_distance)
-        self.success_radius, self.max_deviation = float(success_radius), float(max_deviation)
+        (self.route_before, self.route_after, self.command_distance, self.success_radius,
+         self.max_deviation) = positive_distances(route_before=route_before, route_after=route_after,
+                                                  command_distance=command_distance,
+                                                  success_radius=success_radius, max_deviation=max_deviation)
         self.ports = [int(p) for p in ports] if ports else None  # collection: one worker per server
         self._client = client
         self._maps: dict[str, Any] = {}

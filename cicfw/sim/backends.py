@@ -23,6 +23,18 @@ from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route, single_turn_routes
 from cicfw.sim.town import TownError, load_town, town_names
 
 
+def positive_distances(**distances: Any) -> tuple[float, ...]:
+    """A backend's distances in metres (``success_radius=2.0`` ...) as floats, in the order given; one that is
+    not a finite number > 0 is a ``ConfigError`` naming ``sim.<name>``: a radius of -1 failed every episode."""
+    from cicfw.core.config_checks import is_number
+    from cicfw.core.errors import ConfigError
+
+    for key, value in distances.items():
+        if not (is_number(value) and value > 0):
+            raise ConfigError(f"sim.{key}", value, "a distance in metres > 0")
+    return tuple(float(v) for v in distances.values())
+
+
 @SIM_BACKENDS.register("embedded")
 class EmbeddedBackend:
     """The simulator shipped with cicfw: towns from ``conf/town``, weathers from ``cicfw.sim.render``.
@@ -43,11 +55,9 @@ class EmbeddedBackend:
         except ValueError as err:
             raise CicfwError(f"sim.weather_family: {err}") from None
         self.weather_family = weather_family
-        self.command_distance = command_distance
-        self.success_radius = success_radius
-        self.max_deviation = max_deviation
-        self.route_before = route_before
-        self.route_after = route_after
+        self.command_distance, self.success_radius, self.max_deviation, self.route_before, self.route_after = \
+            positive_distances(command_distance=command_distance, success_radius=success_radius,
+                               max_deviation=max_deviation, route_before=route_before, route_after=route_after)
 
     def towns(self) -> list[str]:
         return town_names()
