@@ -60,3 +60,33 @@ def test_a_subset_of_the_suite_keeps_its_training_sets():
     eps = build_suite(make_backend(None), towns=["town_b"], weathers=["MidRainyNoon"], limit=1,
                       training_towns=["town_a"], training_weathers=["ClearNoon", "ClearSunset"])
     assert {(e.town_set, e.weather_set) for e in eps} == {("new", "new")}
+
+
+def _run(label: str, suite: dict, checkpoint: str = "/runs/x/checkpoints/last.ckpt"):
+    from cicfw.benchmark.evaluation_report import Run
+
+    row = {"episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+           "town_set": "training", "weather_set": "training", "pair": 0, "route": "town_a/j/a>b/left",
+           "command": "left", "success": True, "reason": "success", "time_s": 1.0, "timeout_s": 30.0,
+           "distance_m": 50.0, "route_length_m": 50.0, "goal_distance_m": 1.0, "progress": 1.0,
+           "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 10}
+    return Run(label, [row], {"checkpoint": checkpoint, "suite": suite})
+
+
+def test_report_refuses_runs_of_different_suites(tmp_path, capsys):
+    from cicfw.benchmark import evaluation_report as report
+
+    single = {**SUITE, "name": "single_turn", "limit": None}
+    report.write_run(tmp_path / "a", _run("independent+regression (last)", single))
+    report.write_run(tmp_path / "b", _run("independent+regression (last)", {**single, "name": "junctions"}))
+    assert report.main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "out"), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "single_turn" in err and "junctions" in err
+    assert str(tmp_path / "a") in err and str(tmp_path / "b") in err
+    with pytest.raises(CicfwError) as raised:
+        report.find_runs([tmp_path / "a", tmp_path / "b"])
+    assert raised.value.key == "suite.name"
+    # the same suite joins, each row named apart even where label and checkpoint name are the same
+    report.write_run(tmp_path / "c", _run("independent+regression (last)", single))
+    labels = [r.label for r in report.find_runs([tmp_path / "a", tmp_path / "c"])]
+    assert len(set(labels)) == 2

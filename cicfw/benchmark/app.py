@@ -398,7 +398,13 @@ def join_sweep() -> None:
         return
     from cicfw.benchmark.evaluation_report import find_runs, write_joined
 
-    runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
+    from cicfw.core.errors import CicfwError
+
+    try:
+        runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
+    except CicfwError as err:  # e.g. a sweep over suite=single_turn,junctions: one table cannot hold them
+        log.warning("the sweep's runs are not joined into one table: %s", err)
+        return
     write_joined(runs, sweep_dir)
     log.info("joined %d run(s) of the sweep into %s", len(runs), sweep_dir / "table.md")
 

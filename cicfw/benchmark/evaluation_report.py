@@ -212,7 +212,34 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
             raise CicfwError(f"report: {str(r.path)!r} is a partial evaluation run ({partial_note(r)} finished); "
                              f"finish it by running its evaluate command again with the same output folder "
                              f"(hydra.run.dir={r.path}), or pass --partial to include it marked PARTIAL")
-    return _unique_labels([r for r in runs if is_complete(r) or partial == "include"])
+    runs = [r for r in runs if is_complete(r) or partial == "include"]
+    check_one_suite(runs)
+    return _unique_labels(runs)
+
+
+#: the suite settings that say what a table's columns are: runs joined in one table agree on them
+SUITE_KEYS = ("name", "training_towns", "training_weathers")
+
+
+def check_one_suite(runs: Sequence[Run]) -> None:
+    """Runs joined into one table drove one suite: the same suite name and training towns and weathers (the
+    columns' meaning; towns, weathers or pairs subsets may differ, the table counts each row's episodes).
+    Otherwise one ``CicfwError`` naming the key, both runs and both values."""
+    def setting(run: Run, key: str) -> Any:
+        suite = run.meta.get("suite")
+        if key == "name":
+            return run.suite_name()
+        value = suite.get(key) if isinstance(suite, Mapping) else None
+        return sorted(map(str, value)) if isinstance(value, (list, tuple)) else value
+
+    for key in SUITE_KEYS:
+        first = runs[0] if runs else None
+        for r in runs[1:]:
+            a, b = setting(first, key), setting(r, key)
+            if a is not None and b is not None and a != b:
+                raise CicfwError(f"report: {first.path} and {r.path} drove different suites (suite.{key}: {a} and "
+                                 f"{b}), whose success rates one table cannot compare; report them separately",
+                                 key=f"suite.{key}", value=b)
 
 
 def load_current_run(run_dir: str | Path) -> Run:
@@ -260,6 +287,12 @@ def _unique_labels(runs: list[Run]) -> list[Run]:
         if seen[r.label] > 1 and r.path is not None:
             ck = r.meta.get("checkpoint")
             r.label = f"{r.label} ({Path(ck).stem if ck else r.path.name})"
+    counts: dict[str, int] = {}
+    for r in runs:
+        counts[r.label] = counts.get(r.label, 0) + 1
+    for r in runs:  # the same checkpoint name in different runs (last.ckpt): their folders tell them apart
+        if counts[r.label] > 1 and r.path is not None:
+            r.label = f"{r.label} {r.path}"
     return runs
 
 
