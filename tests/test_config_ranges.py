@@ -90,3 +90,26 @@ def test_report_refuses_runs_of_different_suites(tmp_path, capsys):
     report.write_run(tmp_path / "c", _run("independent+regression (last)", single))
     labels = [r.label for r in report.find_runs([tmp_path / "a", tmp_path / "c"])]
     assert len(set(labels)) == 2
+
+
+# ---- training: the epochs to train and to keep -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", [-1, 0, -5])
+def test_max_epochs_is_at_least_one(fast_cfg, tmp_path, value, no_data):
+    from cicfw.train.app import train
+
+    fast_cfg.trainer.max_epochs = value
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == ("trainer.max_epochs", value)
+
+
+def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):
+    from cicfw.train.app import train
+
+    fast_cfg.trainer.max_epochs = 1
+    fast_cfg.keep_epoch_checkpoints = [1, 5]
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == ("keep_epoch_checkpoints", 5)

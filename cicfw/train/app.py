@@ -211,7 +211,15 @@ def epoch_list(epochs: Any) -> list[int]:
 class EpochCheckpoints(Callback):
     """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points."""
 
-    def __init__(self, dirpath: Path, epochs) -> None:
+    def __init__(self, dirpath: Path, epochs, max_epochs: int | None = None) -> None:
+        """``max_epochs``: the run's ``trainer.max_epochs``; a listed epoch beyond it is a ``ConfigError``
+        (it would never be saved)."""
+        from cicfw.core.errors import ConfigError
+
+        beyond = [int(e) for e in epochs if max_epochs is not None and int(e) > max_epochs]
+        if beyond:
+            raise ConfigError("keep_epoch_checkpoints", beyond[0], f"a list of epochs within trainer.max_epochs="
+                              f"{max_epochs} (1 to {max_epochs})")
         self.dirpath, self.epochs = Path(dirpath), {int(e) for e in epochs}
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -286,7 +294,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     ]
     epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
     if epochs:
-        callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs))
+        callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs, cfg.trainer.get("max_epochs")))
     if cfg.get("progress_bar", True):
         callbacks.append(RichProgressBar())
     return callbacks

@@ -26,6 +26,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.collect.config import CollectConfig
 from cicfw.core.config_checks import SchemaError, checked, kwargs_schema
+from cicfw.core.errors import ConfigError
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
@@ -145,8 +146,13 @@ def _is_one_of(value: Any, accepted: tuple[Any, ...]) -> bool:
 
 def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
     """``cfg.trainer`` as ``checked_node`` gives it, and the Trainer arguments whose union type the schema
-    leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``."""
+    leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``; and ``max_epochs``
+    >= 1 (Lightning would take -1, training forever, and 0, training nothing)."""
     kwargs = checked_node(cfg, "trainer", TRAINER)
+    max_epochs = kwargs.get("max_epochs")
+    if max_epochs is not None and max_epochs < 1:  # Lightning's -1 trains forever, 0 trains nothing
+        raise ConfigError("trainer.max_epochs", max_epochs, "an integer >= 1, the epochs to train "
+                          "(trainer.max_steps or trainer.max_time may stop training sooner)")
     deterministic, max_time = kwargs.get("deterministic"), kwargs.get("max_time")
     if not _is_one_of(deterministic, (True, False, "warn", None)):
         raise SchemaError(f"trainer.deterministic must be true, false, warn or null, got {deterministic!r}",
