@@ -113,3 +113,20 @@ def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):
     with pytest.raises(ConfigError) as err:
         train(fast_cfg, tmp_path / "run")
     assert (err.value.key, err.value.value) == ("keep_epoch_checkpoints", 5)
+
+
+# ---- the agent's speed range is the data reader's ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("speed", [1e6, 300.5, -301.0])
+def test_the_agent_refuses_speeds_the_data_reader_refuses(speed):
+    from cicfw.data.frames import MAX_ABS_SPEED_KMH
+    from cicfw.export.agent import check_inputs
+
+    assert abs(speed) > MAX_ABS_SPEED_KMH
+    img = np.zeros((88, 200, 3), np.uint8)
+    with pytest.raises(CicfwError) as err:
+        check_inputs(img, speed, 3)
+    assert err.value.key == "speed_kmh" and err.value.value == pytest.approx(speed)
+    check_inputs(img, -12.0, 3)  # a car rolling backwards: the reader keeps such rows, so does the agent
+    check_inputs(img, 300.0, 3)

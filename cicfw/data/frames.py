@@ -13,18 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from cicfw import COMMANDS
+from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
 from cicfw.core.errors import CicfwError
 from cicfw.data.cil_hdf5 import (COMMAND_CODES, KNOWN_CAMERA_IDS, CILFormatError, T, check_file, find_files,
                                  read_targets)
 
 log = logging.getLogger(__name__)
 
-#: |targets[10]| above this (km/h) cannot be a car's speed: the file is an error (its targets are not in
-#: the CIL layout). Negative speeds within it are kept as recorded: CARLA's forward speed is signed (a
-#: car rolling backwards, e.g. after a collision), the public CoRL-2017 data has such rows, and CIL's own
-#: agent feeds the measured forward speed to the network unchanged, so training sees what driving sees.
-MAX_ABS_SPEED_KMH = 300.0
+# MAX_ABS_SPEED_KMH (cicfw): |targets[10]| above it cannot be a car's speed: the file is an error (its targets
+# are not in the CIL layout). Negative speeds within it are kept as recorded: CARLA's forward speed is signed
+# (a car rolling backwards, e.g. after a collision), the public CoRL-2017 data has such rows, and CIL's own
+# agent feeds the measured forward speed to the network unchanged, so training sees what driving sees.
 
 
 @dataclass

@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from cicfw import COMMANDS
 from cicfw.core.errors import CicfwError
+from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
 from cicfw.model.checkpoint import describe, load_model, prepare_for_inference
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
@@ -101,8 +101,12 @@ def check_inputs(images: Any, speed_kmh: Any, command: Any,
     if len(bad):
         raise AgentInputError(f"command code {int(bad[0])} is not a CIL command: the agent expects {codes} "
                               f"(the branch is code - 2)")
-    if not np.all(np.isfinite(speed)):
-        raise AgentInputError(f"speed_kmh {speed.tolist()!r}: the agent expects finite speeds in km/h")
+    beyond = np.flatnonzero(~(np.abs(speed) <= MAX_ABS_SPEED_KMH))  # NaN and inf too
+    if len(beyond):
+        value = float(speed[beyond[0]])
+        raise AgentInputError(f"speed_kmh {value:g}: the agent expects finite speeds in km/h within "
+                              f"±{MAX_ABS_SPEED_KMH:g}, as the data reader does (negative: rolling backwards)",
+                              key="speed_kmh", value=value)
     return np.ascontiguousarray(img), speed, cmd, single
 
 
