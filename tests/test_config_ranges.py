@@ -130,3 +130,19 @@ def test_the_agent_refuses_speeds_the_data_reader_refuses(speed):
     assert err.value.key == "speed_kmh" and err.value.value == pytest.approx(speed)
     check_inputs(img, -12.0, 3)  # a car rolling backwards: the reader keeps such rows, so does the agent
     check_inputs(img, 300.0, 3)
+
+
+# ---- a multirun: every job checked before the first trains -------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_multirun_checks_every_job_before_the_first_trains(tiny_data, tmp_path):
+    sweep = tmp_path / "sweep"
+    r = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tiny_data}",
+                        "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false",
+                        "head=hybrid", "head.W=5,-1,10", f"hydra.sweep.dir={sweep}"],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "HYDRA_FULL_ERROR": "0"})
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "head.W" in lines[0] and "-1" in lines[0], r.stderr[-2000:]
+    assert not sweep.exists()  # no job ran, no sweep folder left

@@ -36,17 +36,19 @@ def _multirun(tmp_path: Path, tiny_data: Path, *args: str) -> tuple[subprocess.C
 
 
 def test_basic_multirun_records_a_failed_job_and_runs_the_others(tmp_path, tiny_data):
-    run, rows = _multirun(tmp_path, tiny_data, "-m", "mixer=independent", "mixer.hidden=0,16,32")
+    """A job that fails on its data (a filter leaving no sample: found once the files are read, not by the
+    config check every job passes before the first trains) is recorded as failed, and the others run."""
+    run, rows = _multirun(tmp_path, tiny_data, "-m", "mixer=independent", "data.max_abs_steer=0.0001,0.8,0.9")
     assert [r["job"] for r in rows] == ["0", "1", "2"]
     assert [r["status"] for r in rows] == ["failed", "ok", "ok"]
-    assert [r["mixer.hidden"] for r in rows] == ["0", "16", "32"]  # the swept key is a column
+    assert [r["data.max_abs_steer"] for r in rows] == ["0.0001", "0.8", "0.9"]  # the swept key is a column
     assert "mixer" not in rows[0]  # fixed on the command line: in `overrides`, not a column
     kind, _, text = rows[0]["error"].partition(": ")
-    assert kind == "ConfigError" and text.startswith("mixer.hidden=0") and rows[0]["value"] == ""
+    assert kind == "CicfwError" and text.startswith("the filters leave no sample") and rows[0]["value"] == ""
     for r in rows[1:]:
         assert r["error"] == "" and 0.0 <= float(r["value"]) < 2.0 and r["metric"] == "val/steer_mae"
-        assert f"mixer.hidden={r['mixer.hidden']}" in r["overrides"].split()
-    assert "job failed: mixer.hidden" in (tmp_path / "sweep" / "0" / "train.log").read_text()
+        assert f"data.max_abs_steer={r['data.max_abs_steer']}" in r["overrides"].split()
+    assert "job failed: the filters leave no sample" in (tmp_path / "sweep" / "0" / "train.log").read_text()
     assert run.returncode == 1  # Hydra's basic sweeper exits non-zero when a job failed, after all ran
 
 

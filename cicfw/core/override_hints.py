@@ -187,6 +187,59 @@ class SchemaCheck(Callback):
             sys.exit(2)
 
 
+#: the sweeper whose jobs are known before the first runs (the default; Optuna's are drawn as trials end)
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def sweep_jobs(config: Any) -> list[list[str]] | None:
+    """The overrides of every job a multirun's ``config`` will launch, as Hydra's basic sweeper expands them
+    (``head.W=5,-1,10``: three jobs); None for another sweeper, which chooses its jobs as it goes."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if str(config.hydra.sweeper.get("_target_")) != BASIC_SWEEPER:
+        return None
+    params = config.hydra.sweeper.get("params") or {}
+    arguments = [f"{k}={v}" for k, v in params.items()]
+    arguments += list(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
+    parsed = OverridesParser.create().parse_overrides(arguments)
+    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+class SweepJobsCheck(Callback):
+    """Hydra callback: in a multirun, every job's config composed and given to ``check`` (the dotted path
+    of a function taking a composed config, e.g. ``cicfw.train.app.check_config``) before the first job
+    runs, so a bad value in the last job (``head.W=5,-1,10``) does not wait for the others to train. A
+    refusal is one ``cicfw: error:`` line naming the job and its overrides, exit status 2, before the sweep
+    folder is made. With a sweeper that picks its jobs as it goes (Optuna) nothing is checked up front."""
+
+    def __init__(self, check: str) -> None:
+        self.check = check
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        from hydra.core.global_hydra import GlobalHydra
+        from hydra.utils import get_method
+
+        from cicfw.core.sweeps import is_worker_process
+
+        jobs = sweep_jobs(config) if not is_worker_process() else None
+        if not jobs or len(jobs) < 2:
+            return  # one job: it checks itself before it trains
+        loader = GlobalHydra.instance().config_loader()
+        check = get_method(self.check)
+        for num, job in enumerate(jobs):
+            job_config = loader.load_sweep_config(master_config=config, sweep_overrides=job)
+            try:
+                check(job_config)
+            except CicfwError as err:
+                from cicfw.core.run_folder import undo_noted_folders
+
+                print(f"cicfw: error: job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran",
+                      file=sys.stderr)
+                undo_noted_folders()  # the sweep folder, when something made it already
+                sys.exit(2)
+
+
 class JobFailed(CompactHydraException):
     """A multirun job's failure as one line: Hydra prints a compact exception without a traceback."""
 

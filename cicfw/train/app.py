@@ -456,6 +456,56 @@ def fit_kwargs() -> dict[str, Any]:
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
+#: the seeds ``lightning.seed_everything`` (numpy) takes
+SEED_RANGE = (0, 2**32 - 1)
+
+
+def checked_seed(value: Any) -> int:
+    """``seed`` as an int within ``SEED_RANGE``, else a ``ConfigError`` naming it (Lightning's own message
+    for ``seed=-3`` named no key)."""
+    from cicfw.core.errors import ConfigError
+
+    accepted = f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}"
+    seed = whole_number("seed", value, accepted)
+    if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
+        raise ConfigError("seed", seed, accepted)
+    return seed
+
+
+def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
+    """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
+    config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
+    ``data`` node. What ``train`` checks before the Trainer; ``check_config`` checks the same."""
+    check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
+    model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
+    check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
+    # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
+    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None)
+    datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
+    return model, ckpt_path, datamodule
+
+
+def check_evaluation(cfg: DictConfig) -> None:
+    """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training."""
+    if cfg.get("evaluate_after"):
+        from cicfw.benchmark.app import check_evaluation_overrides
+
+        check_evaluation_overrides(cfg.get("evaluate_overrides"))
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Every value ``train`` checks before it collects or reads data, without building the Trainer or
+    touching a folder: a multirun checks each job's config with it before its first job trains
+    (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml)."""
+    checked_seed(cfg.seed)
+    checked_setup(cfg, refuse_finished=True)
+    trainer_kwargs(cfg)
+    checked_speed(cfg)
+    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
+    EpochCheckpoints(Path("checkpoints"), epochs, cfg.trainer.get("max_epochs"))
+    check_evaluation(cfg)
+
+
 def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
           on_start: Callable[[], Any] | None = None) -> float:
     """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
@@ -466,19 +516,11 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     ``on_start`` is called when everything is checked and training starts."""
     run_dir = Path(run_dir)
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
-    L.seed_everything(whole_number("seed", cfg.seed), workers=True)
+    L.seed_everything(checked_seed(cfg.seed), workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
-    check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
-    model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
-    check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
-    # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
-    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None)
-    datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
+    model, ckpt_path, datamodule = checked_setup(cfg, refuse_finished)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
-    if cfg.get("evaluate_after"):  # the evaluation's config, so that a typo there does not cost the training
-        from cicfw.benchmark.app import check_evaluation_overrides
-
-        check_evaluation_overrides(cfg.get("evaluate_overrides"))
+    check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
