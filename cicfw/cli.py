@@ -5,6 +5,8 @@ import runpy
 import sys
 from pathlib import Path
 
+from cicfw.core.errors import install_app_handlers
+
 # command -> (module run as __main__, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("cicfw.train", "train a model (Hydra app: cicfw train mixer=gtu head=hybrid)"),
@@ -29,6 +31,7 @@ def usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    install_app_handlers()  # first, so SIGTERM while the command imports and composes its config is one line
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())

@@ -5,8 +5,11 @@ says what a run does), beside the suite, the runner and the policies it drives.
 """
 from __future__ import annotations
 
-from cicfw.benchmark.app import main
-from cicfw.core.override_hints import run_app
+from cicfw.core.errors import install_app_handlers
 
 if __name__ == "__main__":
+    install_app_handlers()  # first, so SIGTERM while the app imports and composes its config is one line
+    from cicfw.benchmark.app import main
+    from cicfw.core.override_hints import run_app
+
     run_app(main, "evaluate")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?

@@ -316,6 +316,8 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     # Run as a script this file is ``__main__``, a second copy of the module: the built-ins register
     # into ``cicfw.registry``'s registries, so list those.
+    from cicfw.core.errors import install_app_handlers
     from cicfw.registry import main as _main
 
+    install_app_handlers()
     raise SystemExit(_main())

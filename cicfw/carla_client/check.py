@@ -354,4 +354,7 @@ def main(argv: list[str] | None = None, client: Any = None) -> int:
 
 
 if __name__ == "__main__":
+    from cicfw.core.errors import install_app_handlers
+
+    install_app_handlers()
     sys.exit(main())

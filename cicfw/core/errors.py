@@ -130,6 +130,9 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+_installed = False  # install_app_handlers ran in this process
+
+
 def _interrupted_line(err: BaseException) -> tuple[str, int]:
     """``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and its exit status: 130 (Ctrl-C) or 128 + the signal."""
     detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
@@ -145,15 +148,22 @@ def _exit_interrupted(err: KeyboardInterrupt) -> None:
 
 
 def install_app_handlers() -> None:
-    """From the moment ``cicfw`` is imported by an app started from the command line (``python -m
-    cicfw.<app>``, the ``cicfw`` script; ``cicfw/__init__.py`` calls this), before the app's own imports
-    and Hydra's config composition: SIGTERM raises KeyboardInterrupt as Ctrl-C does, and a
-    KeyboardInterrupt no app code caught (one during those imports or that composition, or re-raised by
-    a multirun job) ends with the one line every later stop prints (``cicfw: interrupted (SIGTERM)``)
-    and its status (130, 143), instead of a traceback (Ctrl-C) or a silent exit (SIGTERM). Other
-    uncaught exceptions keep their traceback. Off the main thread it does nothing."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is None:
+    """What an app started from the command line installs first thing (each app's ``__main__`` or entry
+    module, and the ``cicfw`` script's ``main``, before importing the app itself), never an import: from
+    then on, through the app's own imports and Hydra's config composition, SIGTERM raises
+    KeyboardInterrupt as Ctrl-C does, and a KeyboardInterrupt no app code caught (or one re-raised by a
+    multirun job) ends with the one line every later stop prints (``cicfw: interrupted (SIGTERM)``) and
+    its status (130, 143), instead of a traceback (Ctrl-C) or a silent exit (SIGTERM); an uncaught
+    ``CicfwError`` is one ``cicfw: error:`` line (status 2); other exceptions keep their traceback. An
+    empty ``CICFW_CACHE`` is dropped, so that the configs' ``${oc.env:CICFW_CACHE,<default>}`` means the
+    default cache, not the file-system root. Off the main thread, or a second time, it does nothing."""
+    global _installed
+    if os.environ.get("CICFW_CACHE") == "":
+        del os.environ["CICFW_CACHE"]
+    if _installed or threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is None:
         return
+    _installed = True
     signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
     previous = sys.excepthook
 

@@ -298,7 +298,10 @@ def check_args(a: argparse.Namespace) -> None:
 
 
 if __name__ == "__main__":
+    from cicfw.core.errors import install_app_handlers
     from cicfw.registry import guard_hydra_plugins
+
+    install_app_handlers()
 
     guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     sys.exit(main())

@@ -1,6 +1,9 @@
 """``python -m cicfw.train``: the train app (``cicfw.train.app``)."""
-from cicfw.core.override_hints import run_app
-from cicfw.train.app import main
+from cicfw.core.errors import install_app_handlers
 
 if __name__ == "__main__":
-    run_app(main, "train")  # a mistyped key also prints the keys that exist (did you mean ...?)
+    install_app_handlers()  # first, so SIGTERM while the app imports and composes its config is one line
+    from cicfw.core.override_hints import run_app
+    from cicfw.train.app import main
+
+    run_app(main, "train")  # a plugin that fails to import: one warning; a mistyped key: did you mean ...?
