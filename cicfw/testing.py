@@ -124,13 +124,14 @@ def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
     from hydra import compose, initialize_config_module
 
     from cicfw.train.app import train
+    from cicfw.train.schema import without_plus_on_trainer
 
     tmp_path = Path(tmp_path)
     data = write_tiny_dataset(tmp_path / "data")
     base = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
             "debug=fast", "progress_bar=false"]
     with initialize_config_module("cicfw.conf", version_base="1.3"):
-        cfg = compose("train", overrides=[*base, *overrides])
+        cfg = compose("train", overrides=without_plus_on_trainer([*base, *overrides]))
     value = train(cfg, tmp_path / "run")
     _require(bool(np.isfinite(value)), f"fast_dev_run with {list(overrides)} gave {cfg.optimized_metric} = {value}")
     return value

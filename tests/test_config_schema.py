@@ -196,6 +196,26 @@ def test_every_lightning_trainer_argument_is_in_the_schema_with_its_default():
     assert kwargs["overfit_batches"] == params["overfit_batches"]  # a default Lightning's signature gives
 
 
+@pytest.mark.parametrize("key, value, given", [
+    ("max_epochs", 3, 3),                      # typed (an int), with a value in conf/trainer/default.yaml
+    ("fast_dev_run", "true", True),            # untyped (int or bool), a value by default (false)
+    ("limit_train_batches", 3, 3),             # untyped (int or float), null by default
+])
+@pytest.mark.parametrize("plus", ["", "+"])
+def test_every_trainer_argument_takes_a_value_with_or_without_plus(key, value, given, plus):
+    from cicfw.train.schema import without_plus_on_trainer
+
+    kwargs = trainer_kwargs(compose_train(*without_plus_on_trainer([f"{plus}trainer.{key}={value}"])))
+    assert kwargs[key] == given
+
+
+def test_plus_stays_on_what_is_no_trainer_argument():
+    from cicfw.train.schema import without_plus_on_trainer
+
+    kept = ["+trainer.foo=1", "+trainer.callbacks=[]", "+mixer.hidden=3", "trainer.max_epochs=2"]
+    assert without_plus_on_trainer([*kept, "+trainer.max_time=00:00:01:00"]) == [*kept, "trainer.max_time=00:00:01:00"]
+
+
 def test_the_model_and_the_collection_take_their_defaults_from_the_code():
     import inspect
 

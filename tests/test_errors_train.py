@@ -61,6 +61,20 @@ def test_any_trainer_argument_passes_without_plus(tmp_path):
     assert build_trainer(cfg, tmp_path / "run2").limit_val_batches == 3
 
 
+def test_trainer_arguments_take_plus_alike_on_the_command_line(tmp_path):
+    """A typed argument with a value (max_epochs), an untyped one with a value (fast_dev_run) and one that is
+    null (limit_train_batches) all take ``+trainer.X=`` as ``trainer.X=``."""
+    import yaml
+
+    for plus in ("", "+"):
+        args = [f"{plus}trainer.max_epochs=3", f"{plus}trainer.fast_dev_run=true", f"{plus}trainer.limit_train_batches=3"]
+        run = subprocess.run([sys.executable, "-m", "cicfw.train", *args, "--cfg", "job"], capture_output=True,
+                             text=True, timeout=300, cwd=tmp_path)
+        assert run.returncode == 0, run.stderr[-2000:]
+        trainer = yaml.safe_load(run.stdout)["trainer"]
+        assert (trainer["max_epochs"], trainer["fast_dev_run"], trainer["limit_train_batches"]) == (3, True, 3)
+
+
 def test_trainer_argument_from_the_command_line(tmp_path):
     """The whole app: ``trainer.fast_dev_run=true`` (no ``+``) trains one step; a value Lightning refuses
     is one line, and the refused run leaves no run folder behind."""

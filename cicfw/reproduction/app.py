@@ -261,7 +261,9 @@ def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
     weights, the learning curve's points, and where a killed cell resumes."""
     from hydra import compose
 
-    tcfg = compose("train", overrides=row_overrides(cfg, row, seed))
+    from cicfw.train.schema import without_plus_on_trainer
+
+    tcfg = compose("train", overrides=without_plus_on_trainer(row_overrides(cfg, row, seed)))
     tcfg.keep_epoch_checkpoints = list(range(1, int(tcfg.trainer.max_epochs) + 1))
     return tcfg
 

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 from dataclasses import dataclass, field
+from typing import Sequence
 from typing import Any, Optional
 
 import lightning as L
@@ -168,6 +170,18 @@ def checked_speed(cfg: DictConfig) -> SpeedConfig:
     """``cfg.speed`` checked against its schema, then its values (``speed.compile=maybe``, ``speed.adam=fusd``)
     by ``SpeedConfig``: one ``SchemaError`` naming the full key."""
     return SpeedConfig(**checked_node(cfg, "speed", SPEED))
+
+
+def without_plus_on_trainer(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` with ``+trainer.X=...`` spelled ``trainer.X=...`` for every Lightning Trainer argument X.
+    The schema holds all of them, so ``+`` (add a key) names a key that is there: Hydra would refuse it
+    where the argument has a value (``+trainer.fast_dev_run=true``) and take it where it is null
+    (``+trainer.limit_train_batches=3``); spelled without ``+``, every argument behaves alike. A key that
+    is no Trainer argument (``+trainer.foo=1``), or one cicfw sets itself, keeps its ``+`` and the schema
+    refuses it."""
+    arguments = {f.name for f in dataclasses.fields(TRAINER)}
+    spelled = re.compile(r"^\+trainer\.(\w+)(=.*)$", re.S)
+    return [f"trainer.{m[1]}{m[2]}" if (m := spelled.match(o)) and m[1] in arguments else o for o in overrides]
 
 
 def top_level_keys() -> list[str]:
