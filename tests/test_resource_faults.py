@@ -44,3 +44,84 @@ def test_in_memory_auto_counts_the_address_space_limit(monkeypatch):
     with pytest.raises(CicfwError) as err:
         decide(2000, True)
     assert err.value.key == "data.in_memory"
+
+
+# ---- a corrupt file -----------------------------------------------------------------------------------------
+
+
+def _corrupt_gzip_file(path: Path, n: int = 24, seed: int = 0, which: str = "rgb") -> Path:
+    """A CIL file whose ``which`` dataset is gzip-compressed, with the bytes of one chunk overwritten."""
+    rng = np.random.default_rng(seed)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("rgb", data=rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8),
+                         chunks=(1, 88, 200, 3), compression="gzip")
+        f.create_dataset("targets", data=make_targets(n, rng), chunks=(n // 2, 28), compression="gzip")
+    with h5py.File(path, "r") as f:
+        info = f[which].id.get_chunk_info(1)
+    with open(path, "r+b") as fh:  # garbage in the middle of the second chunk: gzip's stream breaks
+        fh.seek(info.byte_offset + info.size // 3)
+        fh.write(b"\xff" * max(8, info.size // 3))
+    return path
+
+
+@pytest.fixture
+def corrupt_data(tmp_path: Path) -> tuple[Path, Path]:
+    data = write_tiny_dataset(tmp_path / "data")
+    return data, _corrupt_gzip_file(data / "data_00000.h5")
+
+
+def _setup(path: Path, in_memory: bool):
+    from cicfw.data.datamodule import CILDataModule
+
+    dm = CILDataModule(str(path), batch_size=8, val_batch_size=8, in_memory=in_memory, augment=False)
+    dm.setup("fit")
+    return dm
+
+
+def test_a_corrupt_file_is_named_when_its_images_are_loaded_into_ram(corrupt_data):
+    from cicfw.data.cil_hdf5 import CorruptFileError
+
+    data, bad = corrupt_data
+    with pytest.raises(CorruptFileError) as err:
+        _setup(data, in_memory=True)
+    assert err.value.path == bad and str(bad) in str(err.value)
+
+
+def test_a_corrupt_file_streamed_is_corrupt_not_changed(corrupt_data):
+    from cicfw.data.cil_hdf5 import CorruptFileError
+
+    data, bad = corrupt_data
+    dm = _setup(data, in_memory=False)
+    for store in (dm.train_set.store, dm.val_set.store):
+        rows = np.flatnonzero([store.frames.files[i] == bad for i in store.frames.file_idx])
+        if len(rows):
+            with pytest.raises(CorruptFileError) as err:
+                store.get(rows)
+            assert err.value.path == bad and "vanished" not in str(err.value)
+            return
+    pytest.fail("the corrupt file holds no sample")
+
+
+@pytest.mark.slow  # a DataLoader worker process
+def test_a_corrupt_file_read_by_a_worker_arrives_as_one_line(corrupt_data):
+    from cicfw.data.cil_hdf5 import CorruptFileError
+    from cicfw.data.datamodule import CILDataModule
+
+    data, bad = corrupt_data
+    dm = CILDataModule(str(data), batch_size=8, val_batch_size=8, in_memory=False, augment=False, num_workers=1)
+    dm.setup("fit")
+    with pytest.raises(CorruptFileError) as err:
+        for loader in (dm.train_dataloader(), dm.val_dataloader()):
+            for _ in loader:
+                pass
+    assert err.value.path == bad and "\n" not in str(err.value)
+
+
+def test_corrupt_labels_are_named_before_training(tmp_path):
+    from cicfw.data.cil_hdf5 import CorruptFileError
+
+    data = write_tiny_dataset(tmp_path / "data")
+    bad = _corrupt_gzip_file(data / "data_00000.h5", which="targets")
+    with pytest.raises(CorruptFileError) as err:
+        _setup(data, in_memory=False)
+    assert err.value.path == bad

@@ -51,6 +51,29 @@ class CILFormatError(CicfwError):
     """A file that is not in the CIL HDF5 layout; the message names the file and the problem."""
 
 
+
+class CorruptFileError(CILFormatError):
+    """A CIL file whose stored bytes cannot be decoded (a compressed chunk that fails to decompress, a failing
+    checksum, a chunk index pointing past the end): damaged when written or since. The message names the
+    file first; ``path`` is the file. Raised in a DataLoader worker, it comes back holding the worker's
+    traceback in its one argument: the line is taken back out of it."""
+
+    def __init__(self, message: str, path: Path | None = None) -> None:
+        marker = f"{type(self).__name__}: "
+        last = message.rstrip().splitlines()[-1] if message.strip() else message
+        message = last.split(marker, 1)[1] if marker in last else message
+        super().__init__(message)
+        self.path = Path(path) if path is not None else Path(message.split(": ", 1)[0])
+
+
+def corrupt_file(path: Path, what: str, err: BaseException) -> CorruptFileError:
+    """The one line for ``path`` whose ``what`` (its images, its 'targets') cannot be decoded (``err``)."""
+    why = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return CorruptFileError(f"{path}: corrupt: {what} cannot be read back ({type(err).__name__}: {why}); the file "
+                            f"was damaged when written or since: replace it, or move it out of the data folder",
+                            path)
+
+
 LAYOUT = ("a CIL file needs its images as 'rgb' (or 'images_center') uint8 (N, 88, 200, 3) and "
           "'targets' float32 (N, 28)")
 
@@ -157,8 +180,12 @@ def check_file(path: Path) -> FileInfo:
 
 
 def read_targets(path: Path) -> np.ndarray:
+    """The file's ``targets`` as float32; a ``CorruptFileError`` naming it when they cannot be decoded."""
     with h5py.File(path, "r") as f:
-        return np.asarray(f["targets"], dtype=np.float32)
+        try:
+            return np.asarray(f["targets"], dtype=np.float32)
+        except OSError as err:  # h5py's "filter returned failure" names no file
+            raise corrupt_file(path, "its 'targets'", err) from None
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -8,7 +8,8 @@ single rows; compressed images go through h5py. Files stay open between batches,
 of files, more than many systems let a process open. It checks, at each read (one ``stat``, microseconds against
 milliseconds of reading), that a file is still the one whose labels were read at setup: a file replaced,
 shrunk or removed mid-run stops the run with one line naming it, never images paired with other labels
-(HDF5 reads past the end of a shrunk file as zeros, without an error).
+(HDF5 reads past the end of a shrunk file as zeros, without an error). An unchanged file whose images
+cannot be read back (a compressed chunk that fails to decompress) is named as corrupt.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import h5py
 import numpy as np
 
 from cicfw.core.errors import CicfwError
-from cicfw.data.cil_hdf5 import IMAGE_SHAPE, image_key
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, CorruptFileError, corrupt_file, image_key
 from cicfw.data.frames import Frames
 
 MAX_OPEN_FILES = max(64, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2)
@@ -105,7 +106,10 @@ class ImageStore:
             for fi in used:
                 where = np.flatnonzero(frames.file_idx == fi)
                 with h5py.File(frames.files[fi], "r") as f:
-                    self.array[where] = f[image_key(f)][()][frames.row[where]]
+                    try:
+                        self.array[where] = f[image_key(f)][()][frames.row[where]]
+                    except OSError as err:  # h5py's "filter returned failure" names no file
+                        raise corrupt_file(frames.files[fi], "its images", err) from None
 
     def get(self, idx: np.ndarray) -> np.ndarray:
         if self.array is not None:
@@ -120,11 +124,11 @@ class ImageStore:
                 block = np.empty((len(sel), *IMAGE_SHAPE), np.uint8)
                 self._open(int(fi)).read(rows[sel][order], block)
                 out[sel[order]] = block
-            except DataChangedError:
+            except (DataChangedError, CorruptFileError):
                 raise
             except (OSError, KeyError, IndexError, ValueError) as err:
-                raise DataChangedError(f"{path}: its images can no longer be read ({type(err).__name__}: {err}); "
-                                       f"the file changed or vanished after the run started") from None
+                self._check(int(fi))  # the file changed or vanished since setup: that line, else it is damaged
+                raise corrupt_file(path, "its images", err) from None
         return out
 
     def _open(self, fi: int) -> FileImages:
