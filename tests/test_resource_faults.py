@@ -125,3 +125,33 @@ def test_corrupt_labels_are_named_before_training(tmp_path):
     with pytest.raises(CorruptFileError) as err:
         _setup(data, in_memory=False)
     assert err.value.path == bad
+
+
+# ---- a filter that drops most rows --------------------------------------------------------------------------
+
+
+def test_a_filter_dropping_most_rows_says_how_many_and_why(tmp_path, caplog):
+    from cicfw.data.frames import load_frames
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=40)
+    for f in sorted(data.glob("*.h5")):  # steering in degrees: |steer| up to 27 rather than 0.6
+        with h5py.File(f, "r+") as h:
+            h["targets"][:, 0] = h["targets"][:, 0] * 45.0
+    with caplog.at_level(logging.WARNING, logger="cicfw"):
+        frames = load_frames(str(data), max_abs_steer=0.8)
+    lines = [r.getMessage() for r in caplog.records if "data.max_abs_steer" in r.getMessage()]
+    assert len(lines) == 1, [r.getMessage() for r in caplog.records]
+    assert f"{160 - len(frames)} of 160" in lines[0] and "degrees" in lines[0]
+
+
+def test_too_few_episodes_after_the_filters_names_episodes_and_files(tmp_path):
+    from cicfw.data.frames import load_frames, split_by_episode
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=24)
+    for f in sorted(data.glob("*.h5"))[1:]:  # three files all beyond the filter
+        with h5py.File(f, "r+") as h:
+            h["targets"][:, 0] = 0.99  # beyond 0.8 after any side-camera correction
+    frames = load_frames(str(data))
+    with pytest.raises(CicfwError) as err:
+        split_by_episode(frames, 0.3, 0)
+    assert "1 episode" in str(err.value) and "4 file" in str(err.value) and "2 episodes" in str(err.value)

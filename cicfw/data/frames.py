@@ -293,7 +293,26 @@ def load_frames(
     if not keep.any():
         raise _nothing_left(path, len(files), tally, len(frames), int(by_steer.sum()),
                             int((~by_steer & ~keep).sum()), max_abs_steer, cameras)
+    _say_steer_filter(frames.steer, by_steer, max_abs_steer)
     return frames.subset(keep)
+
+
+#: a filter dropping more than this share of the samples says so (the paper's |steer| <= 0.8 drops a few %)
+DROP_WARN_SHARE = 0.10
+
+
+def _say_steer_filter(steer: np.ndarray, dropped: np.ndarray, max_abs_steer: float) -> None:
+    """One warning when ``data.max_abs_steer`` drops more than ``DROP_WARN_SHARE`` of the samples: how many,
+    why, and the likely cause (steering stored in degrees or radians rather than CIL's [-1, 1])."""
+    n, k = len(steer), int(dropped.sum())
+    if not n or k <= DROP_WARN_SHARE * n:
+        return
+    top = float(np.abs(steer).max())
+    cause = (f"|steer| reaches {top:.3g}, beyond CIL's [-1, 1]: targets[0] likely holds degrees or radians; "
+             f"convert it to [-1, 1] (steering angle / the car's largest angle)" if top > 1.0 else
+             f"if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)")
+    log.warning("data.max_abs_steer=%g drops %d of %d samples (%.0f%%): their |steer| (after the side-camera "
+                "correction) is above it; %s", max_abs_steer, k, n, 100.0 * k / n, cause)
 
 
 def camera_names(ids: dict[int, str]) -> str:
@@ -332,9 +351,12 @@ def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Fr
         raise CicfwError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
     groups = np.unique(frames.group)
     if len(groups) < 2:
-        raise CicfwError(
-            f"the data holds {len(groups)} episode(s); a train/validation split by episode needs at least 2 files"
-        )
+        held = len(np.unique(frames.file_idx))
+        where = (f"{held} of its {len(frames.files)} file(s) keep any sample after the filters "
+                 f"(data.max_abs_steer, data.cameras)" if held < len(frames.files) else
+                 f"in {len(frames.files)} file(s) (a collected folder's {META_NAME} groups files by episode)")
+        raise CicfwError(f"the data holds {len(groups)} episode(s): {where}; a train/validation split by episode needs "
+                         f"at least 2 episodes")
     order = np.random.default_rng(seed).permutation(groups)
     n_val = min(len(groups) - 1, max(1, round(val_fraction * len(groups))))
     is_val = np.isin(frames.group, order[:n_val])
