@@ -155,3 +155,30 @@ def test_too_few_episodes_after_the_filters_names_episodes_and_files(tmp_path):
     with pytest.raises(CicfwError) as err:
         split_by_episode(frames, 0.3, 0)
     assert "1 episode" in str(err.value) and "4 file" in str(err.value) and "2 episodes" in str(err.value)
+
+
+# ---- the quoting hint only when a space is the cause --------------------------------------------------------
+
+
+def _line(args: list[str]) -> str:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    from cicfw.core.override_hints import composition_error_line
+
+    with pytest.raises(OverrideParseException) as err:
+        OverridesParser.create().parse_overrides(args)
+    return composition_error_line(err.value, args)
+
+
+@pytest.mark.parametrize("args", [["data.cameras=[0,1"], ["evaluate_overrides=[suite.limit=0]"],
+                                  ["mixer=gtu", "data.cameras=[0,1"]])
+def test_no_quoting_hint_where_no_space_is_the_cause(args):
+    line = _line(args)
+    assert repr(args[-1]) in line and "space" not in line
+
+
+@pytest.mark.parametrize("args", [["model.lr=1", "e-3"], ["data.augment={p_blur:", "0.2}"]])
+def test_the_quoting_hint_where_the_shell_split_a_value(args):
+    line = _line(args)
+    assert "space" in line and f"'{' '.join(args)}'" in line

@@ -100,17 +100,60 @@ def composition_error_line(err: BaseException, args: list[str]) -> str | None:
 
 
 def _unparsable(override: str, message: str, args: list[str]) -> str:
-    """``model.lr=1 e-3`` typed without quotes reaches Hydra as ``model.lr=1`` and ``e-3``: say which
-    argument, and that such a value is one quoted argument."""
+    """One line for an argument Hydra cannot parse: which, Hydra's reason, and a hint only where the cause is
+    known: a value the shell split at a space (``model.lr=1 e-3`` typed without quotes reaches Hydra as
+    ``model.lr=1`` and ``e-3``: joined again they parse), a list element holding ``=`` (it must be quoted),
+    brackets left open."""
     said = [ln.strip() for ln in message.splitlines()[1:] if ln.strip() and not ln.startswith("See https://")]
     reason = said[0] if said else "not in Hydra's override grammar"
     line = f"cannot parse the argument {override!r} ({reason})"
+    joined = _rejoined(override, args)
+    if joined is not None:
+        return f"{line}: a value holding spaces must be quoted as one argument, e.g. '{joined}'"
+    key, eq, value = override.partition("=")
+    quoted = _quoted_elements(key, value) if eq else None
+    if quoted is not None:
+        return f"{line}: a list element holding '=' must be quoted, e.g. '{quoted}'"
+    if any(value.count(a) != value.count(b) for a, b in ("[]", "{}", "()")):
+        return f"{line}: its brackets do not close"
+    return line
+
+
+def _parses(text: str) -> bool:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        OverridesParser.create().parse_override(text)
+    except Exception:
+        return False
+    return True
+
+
+def _rejoined(override: str, args: list[str]) -> str | None:
+    """``override`` joined with its neighbours in ``args`` at a space, as one argument that parses (the
+    longest such run), or None when no space explains the failure."""
     i = args.index(override) if override in args else -1
-    if i > 0 and "=" not in override:
-        return f"{line}: a value holding spaces must be quoted as one argument, e.g. '{args[i - 1]} {override}'"
-    if 0 <= i < len(args) - 1 and "=" in override:
-        return f"{line}: a value holding spaces must be quoted as one argument, e.g. '{override} {args[i + 1]}'"
-    return f"{line}: a value holding spaces must be quoted as one argument, e.g. 'key=a b'"
+    if i < 0:
+        return None
+    for start in (i - 1, i):  # the value began in the argument before, or in this one
+        if start < 0 or (start == i and i == len(args) - 1):
+            continue
+        end = i + 1 if start < i else i + 2
+        if not _parses(" ".join(args[start:end])):
+            continue
+        while end < len(args) and "=" not in args[end] and _parses(" ".join(args[start:end + 1])):
+            end += 1
+        return " ".join(args[start:end])
+    return None
+
+
+def _quoted_elements(key: str, value: str) -> str | None:
+    """``key=[a=1,b]`` as ``key=["a=1","b"]``, when that parses and an element holds ``=``; else None."""
+    if not (value.startswith("[") and value.endswith("]") and "=" in value):
+        return None
+    elements = [e.strip().strip("'\"") for e in value[1:-1].split(",") if e.strip()]
+    fixed = f"{key}=[" + ",".join(f'"{e}"' for e in elements) + "]"
+    return fixed if _parses(fixed) else None
 
 
 @contextmanager
