@@ -182,3 +182,28 @@ def test_no_quoting_hint_where_no_space_is_the_cause(args):
 def test_the_quoting_hint_where_the_shell_split_a_value(args):
     line = _line(args)
     assert "space" in line and f"'{' '.join(args)}'" in line
+
+
+# ---- every JSON read names its file -------------------------------------------------------------------------
+
+
+def test_a_truncated_cell_json_is_named(tmp_path):
+    from cicfw.reproduction.cells import load_cells
+
+    cell = tmp_path / "cells" / "cil" / "seed0" / "cell.json"
+    cell.parent.mkdir(parents=True)
+    cell.write_text(json.dumps({"status": "ok", "row": "cil", "seed": 0, "episodes": {}}, indent=1)[:-3])
+    with pytest.raises(CicfwError) as err:
+        load_cells(tmp_path)
+    assert str(cell) in str(err.value)
+
+
+def test_read_json_names_the_file(tmp_path):
+    from cicfw.core.json_files import read_json
+
+    bad = tmp_path / "x.json"
+    bad.write_text('{"a": 1,\n')
+    with pytest.raises(CicfwError) as err:
+        read_json(bad)
+    assert str(bad) in str(err.value) and "\n" not in str(err.value)
+    assert read_json(tmp_path / "missing.json", default={}) == {}

@@ -11,7 +11,6 @@ resume; exit status 130, 143 for SIGTERM), after the workers are ended and half-
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from cicfw.collect.dataset import collect_dataset
 from cicfw.collect.errors import CollectError
 from cicfw.collect.verify import verify_dataset
 from cicfw.core.errors import on_interrupt, report_user_errors
+from cicfw.core.json_files import read_json
 
 
 def run(cfg) -> str:
@@ -35,7 +35,7 @@ def run(cfg) -> str:
             return _verify(raw, out_dir)
         with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
             meta = collect_dataset(raw, out_dir)
-        m = json.loads(meta.read_text())
+        m = read_json(meta)
         return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
                 f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
 

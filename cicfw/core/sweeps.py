@@ -26,6 +26,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from cicfw.core.json_files import read_json
 from cicfw.core.locks import FolderLock, flock_available
 
 log = logging.getLogger(__name__)
@@ -180,7 +181,7 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
     with _locked(rows_dir):
         rows, command_line = [], None
         if (rows_dir / SWEEP_FILE).is_file():
-            command_line = json.loads((rows_dir / SWEEP_FILE).read_text())["overrides"]
+            command_line = read_json(rows_dir / SWEEP_FILE)["overrides"]
         for path in sorted(rows_dir.glob("[0-9]*.json")):
             try:
                 rows.append(json.loads(path.read_text()))

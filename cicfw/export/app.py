@@ -37,6 +37,7 @@ from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADAT
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
+from cicfw.core.json_files import read_json
 
 log = logging.getLogger("cicfw.export")
 
@@ -351,7 +352,7 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
         return {"path": str(p), "hash": None, "why": "the dataset is not on this machine"}
     chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
     meta_file = (p if p.is_dir() else p.parent) / "dataset_metadata.json"
-    meta = json.loads(meta_file.read_text()) if meta_file.is_file() else {}
+    meta = read_json(meta_file, default={})
     return {"path": str(p), "hash": chash, "hash_of": "file names and sizes", "files": len(files),
             "collect_config_hash": meta.get("config_hash")}
 

@@ -44,6 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
+from cicfw.core.json_files import read_json
 from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.schema import check, seed_list
@@ -411,7 +412,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         n_episodes = count_episodes(evcfg)
     results_dir = Path(cfg.results_dir)
     path = results_dir / MANIFEST
-    old = json.loads(path.read_text()) if path.is_file() else None
+    old = read_json(path, default=None)
     src = Path(cfg.continue_from) if cfg.get("continue_from") else None
     published = published_manifest(src) if src is not None else None
     folders = []  # (where, what to do instead, its pinned fingerprint)
@@ -556,7 +557,7 @@ def dataset_info(path: Path) -> dict[str, Any]:
     meta = {}
     for name in ("dataset_metadata.json", "metadata.json"):
         if (path / name).is_file():
-            meta = json.loads((path / name).read_text())
+            meta = read_json(path / name)
             break
     files = sorted(path.rglob("*.h5")) + sorted(path.rglob("*.hdf5"))
     chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
@@ -629,7 +630,7 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
     """Train and drive one (row, seed) cell into ``cell_dir``; ``cell.json`` is written last."""
     row, seed = str(cfg.cell.row), int(cfg.cell.seed)
     done = cell_dir / CELL_FILE
-    if done.is_file() and json.loads(done.read_text()).get("status") == "ok":
+    if done.is_file() and read_json(done).get("status") == "ok":
         log.info("cell %s seed %d: finished before, skipped", row, seed)
         return "skipped"
     t0 = time.time()
@@ -678,7 +679,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
         val = train(tcfg, train_dir)
         atomic_write(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
                                           "resumed": resumed}))
-    info = json.loads(trained.read_text())
+    info = read_json(trained)
     resumed = info.get("resumed")
     if resumed is True:  # written by cicfw before the epoch was recorded
         resumed = {"training": {"from_epoch": None}}

@@ -2,7 +2,6 @@
 table's columns and selectors (a column, a town, a weather, overall) that results are read on."""
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,6 +11,7 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import cell_key, cell_name
 from cicfw.benchmark.suite import CELLS
+from cicfw.core.json_files import read_json
 
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
 COLUMN_NAMES = tuple(cell_name(*c) for c in CELLS)
@@ -88,7 +88,7 @@ def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
 
 def load_cell(path: Path) -> CellResult | dict[str, Any]:
     """One ``cell.json``: its CellResult when it finished (status ok), else the file's dict as it is."""
-    d = json.loads(Path(path).read_text())
+    d = read_json(path)
     if d.get("status") == "ok":
         return CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
     return d
@@ -118,7 +118,7 @@ def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
     """``row/seedK`` -> cell.json of every finished (status ok) cell under ``folder``."""
     out = {}
     for f in cell_files(folder):
-        d = json.loads(f.read_text())
+        d = read_json(f)
         if d.get("status") == "ok":
             out[f"{f.parent.parent.name}/{f.parent.name}"] = d
     return out

@@ -24,6 +24,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
 from cicfw.reproduction.report import pinned_weather_family
 from cicfw.reproduction.seed_stats import word
@@ -147,7 +148,7 @@ def collect_points(results: Path, skip: Sequence[str] = ()) -> list[Point]:
     points: dict[str, Point] = {}
     for folder in sorted(p for p in Path(results).iterdir() if p.is_dir() and p.name not in skip):
         path = folder / "reproduce.json"
-        manifest = json.loads(path.read_text()) if path.is_file() else {}
+        manifest = read_json(path, default={})
         budget, family = manifest.get("budget", "?"), pinned_weather_family(manifest) or "another simulator"
         for cell in load_cells(folder)[0]:
             if cell.meta.get("val_steer_mae") is None:

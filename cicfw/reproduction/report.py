@@ -108,6 +108,7 @@ import numpy as np
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
+from cicfw.core.json_files import read_json
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
 from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge
@@ -850,7 +851,7 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     learning curve) in ``results_dir``; returns the data. ``claims``, the equivalence ``margin`` and
     ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
-    manifest = json.loads((results_dir / "reproduce.json").read_text()) if (results_dir / "reproduce.json").is_file() else {}
+    manifest = read_json(results_dir / "reproduce.json", default={})
     cells, failed = load_cells(results_dir)
     if not cells:
         raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
