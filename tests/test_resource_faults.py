@@ -207,3 +207,22 @@ def test_read_json_names_the_file(tmp_path):
         read_json(bad)
     assert str(bad) in str(err.value) and "\n" not in str(err.value)
     assert read_json(tmp_path / "missing.json", default={}) == {}
+
+
+# ---- every refusal names its key ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("override, key, value", [("seed=-3", "seed", -3), ("seed=4294967296", "seed", 2**32),
+                                                  ("model.lr=nan", "model.lr", math.nan),
+                                                  ("model.lr=-1", "model.lr", -1.0),
+                                                  ("model.speed_norm_kmh=nan", "model.speed_norm_kmh", math.nan)])
+def test_a_refused_value_names_its_key(tmp_path, no_data, override, key, value):
+    from conftest import compose_train
+
+    from cicfw.train.app import train
+
+    cfg = compose_train("data=cil_hdf5", f"data.path={tmp_path}/data", "debug=fast", "progress_bar=false", override)
+    with pytest.raises(ConfigError) as err:
+        train(cfg, tmp_path / "run")
+    assert err.value.key == key
+    assert err.value.value == value or (math.isnan(value) and math.isnan(err.value.value))

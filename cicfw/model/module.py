@@ -18,6 +18,7 @@ from torchmetrics.classification import MulticlassAccuracy
 
 from cicfw import COMMANDS
 from cicfw.core.errors import ConfigError
+from cicfw.core.config_checks import is_number
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 
@@ -54,17 +55,17 @@ class CICModule(L.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        if lr <= 0:
-            raise ConfigError("model.lr", lr, "a number > 0", f"lr must be > 0, got {lr}")
+        if not (is_number(lr) and lr > 0):  # nan too: Adam would refuse it naming no key
+            raise ConfigError("model.lr", lr, "a number > 0", f"model.lr must be > 0, got {lr}")
         if lr_schedule not in LR_SCHEDULES:
             raise ConfigError("model.lr_schedule", lr_schedule, f"one of {', '.join(LR_SCHEDULES)}",
                              f"model.lr_schedule={lr_schedule!r} is not known; use one of {', '.join(LR_SCHEDULES)}")
         if not 0.0 <= lr_final_factor <= 1.0:
             raise ConfigError("model.lr_final_factor", lr_final_factor, "a number in [0, 1]",
                              f"model.lr_final_factor={lr_final_factor!r} is not valid; use a number in [0, 1]")
-        if speed_norm_kmh <= 0:
+        if not (is_number(speed_norm_kmh) and speed_norm_kmh > 0):
             raise ConfigError("model.speed_norm_kmh", speed_norm_kmh, "a number > 0",
-                             f"speed_norm_kmh must be > 0, got {speed_norm_kmh}")
+                             f"model.speed_norm_kmh must be > 0, got {speed_norm_kmh}")
         self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
         self.head = HEADS.get(head)(**dict(head_kwargs or {}))
         self.mixer = MIXERS.get(mixer)(
