@@ -187,13 +187,51 @@ def one_line_config_errors() -> Iterator[None]:
         hydra_utils.run_and_report = report
 
 
+#: the resolver conf/hydra/help/cicfw.yaml lists an app's config groups with
+HELP_RESOLVER = "cicfw_app_groups"
+
+
+def app_groups(config_name: str) -> str:
+    """``group: option, option`` per config group that the app config ``config_name`` reads: the groups of
+    its defaults list and, through its options' defaults lists, the groups they reach (an experiment's
+    ``override /mixer``), as Hydra's ``--help`` lists groups; Hydra's own groups and the schemas'
+    (``cicfw_schema/...``) left out, and so are the other apps'."""
+    from hydra.core.default_element import GroupDefault
+    from hydra.core.global_hydra import GlobalHydra
+
+    loader = GlobalHydra.instance().config_loader()
+    groups: set[str] = set()
+    todo = [(config_name, "")]  # (config path, the group it is an option of)
+    while todo:
+        path, parent = todo.pop()
+        found = loader.repository.load_config(path)
+        for d in (found.defaults_list if found is not None else None) or []:
+            if not isinstance(d, GroupDefault):
+                continue
+            group = d.group[1:] if d.group.startswith("/") else "/".join(filter(None, (parent, d.group)))
+            if group in groups or group.split("/")[0] in ("hydra", "cicfw_schema"):
+                continue
+            groups.add(group)
+            todo += [(f"{group}/{option}", group) for option in loader.get_group_options(group)]
+    lines = [f"{g}: {', '.join(sorted(loader.get_group_options(g)))}" for g in sorted(groups)]
+    return "\n".join(lines) or "(none: every key is set as key=value)"
+
+
+def register_help() -> None:
+    """The resolver of an app's ``--help`` (``app_groups``), registered by the app's ``main`` (``run_app``)."""
+    if not OmegaConf.has_resolver(HELP_RESOLVER):
+        OmegaConf.register_new_resolver(HELP_RESOLVER, app_groups)
+
+
 def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:
     """Run a ``@hydra.main`` app: what Hydra refuses is one line (``one_line_config_errors``); a failure
     that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
-    import is skipped with one warning first (it would stop the app)."""
+    import is skipped with one warning first (it would stop the app). ``--help`` lists the app's config
+    groups (``register_help``)."""
     from cicfw.registry import guard_hydra_plugins
 
     guard_hydra_plugins()
+    register_help()
     try:
         with one_line_config_errors():
             main()

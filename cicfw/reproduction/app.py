@@ -796,6 +796,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--resolve") or a.startswith("--cfg")
            for a in args):
+        from cicfw.core.override_hints import register_help
+
+        register_help()  # --help lists the reproduce config's groups
         sys.argv = [sys.argv[0], *args]
         _cell_job()
         return 0
