@@ -62,6 +62,26 @@ def test_a_subset_of_the_suite_keeps_its_training_sets():
     assert {(e.town_set, e.weather_set) for e in eps} == {("new", "new")}
 
 
+def test_the_default_training_weathers_stand_where_the_simulator_lacks_them():
+    """A CARLA server given other weathers (sim.weathers=[ClearNoon,HardRainNoon]) keeps the default training
+    weathers working: they are the paper's, named, not a typo."""
+    from cicfw.benchmark.suite import TRAINING_WEATHERS, build_suite, make_backend
+
+    class OtherWeathers:
+        def __init__(self):
+            self._b = make_backend(None)
+
+        def weathers(self):
+            return ["ClearNoon", "HardRainNoon"]
+
+        def __getattr__(self, name):
+            return getattr(self._b, name)
+
+    eps = build_suite(OtherWeathers(), towns=["town_a"], weathers=["ClearNoon", "HardRainNoon"], limit=1,
+                      training_towns=["town_a"], training_weathers=TRAINING_WEATHERS)
+    assert {e.weather: e.weather_set for e in eps} == {"ClearNoon": "training", "HardRainNoon": "new"}
+
+
 def _run(label: str, suite: dict, checkpoint: str = "/runs/x/checkpoints/last.ckpt"):
     from cicfw.benchmark.evaluation_report import Run
 

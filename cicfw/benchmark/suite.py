@@ -141,8 +141,7 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
     towns = check_names("town", towns, backend.towns(), path_ok=True)
     weathers = check_names("weather", weathers, backend.weathers())
     training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()])
-    training_weathers = training_set("weathers", training_weathers,
-                                     [*weathers, *(w for w in PAPER_WEATHERS if w in backend.weathers())])
+    training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS])
     episodes: list[Episode] = []
     for town in towns:
         routes = suite_routes(backend, town)
