@@ -2,24 +2,15 @@
 collected before checksums were kept, its CIL layout)."""
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from pathlib import Path
 
 from cicfw.collect.writing import write_json
 from cicfw.data.cil_hdf5 import CILFormatError, check_file
+from cicfw.data.provenance import file_sha256  # noqa: F401  (a training run's record hashes its files the same way)
 
 log = logging.getLogger(__name__)
-
-
-def file_sha256(path: Path) -> str:
-    """The SHA-256 of a file's bytes, read in 8 MB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(8 << 20):
-            h.update(block)
-    return h.hexdigest()
 
 
 def file_problem(out_dir: Path, f: dict) -> tuple[str, str] | None:

@@ -97,9 +97,17 @@ def is_hdf5_name(path: Path) -> bool:
     return path.suffix.lower() in HDF5_SUFFIXES
 
 
-def find_files(path: str | os.PathLike) -> list[Path]:
+def find_files(path: str | os.PathLike | list | tuple) -> list[Path]:
     """HDF5 files under a folder (recursively; suffixes in any case) or matching a glob, sorted (a
-    folder's ``.h5`` files, then its ``.hdf5`` ones); error if none."""
+    folder's ``.h5`` files, then its ``.hdf5`` ones); error if none. A list is the files themselves, in
+    its order (the files a run recorded, ``cicfw.data.provenance``): each must exist."""
+    if isinstance(path, (list, tuple)):
+        files = [Path(os.path.expanduser(str(f))) for f in path]
+        missing = [str(f) for f in files if not f.is_file()]
+        if missing or not files:
+            raise FileNotFoundError(f"{len(missing)} of the {len(files)} data file(s) given are not there: "
+                                    f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
+        return files
     p = str(path)
     p = os.path.expanduser(p)
     if os.path.isdir(p):

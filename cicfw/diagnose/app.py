@@ -15,8 +15,9 @@ come from the training run's saved config beside the checkpoint (``<run>/.hydra/
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -100,7 +101,9 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
             continue
         cfg = OmegaConf.load(path)
         if "data" in cfg and "path" in cfg.data:
-            return _data_values(cfg.data, str(path)), f"{path} (the training run's config)"
+            values = _data_values(cfg.data, str(path))
+            values["path"] = where_it_ran(values.get("path"), folder)
+            return values, f"{path} (the training run's config)"
         if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
             from cicfw.reproduction.catalogue import row_overrides
 
@@ -110,8 +113,22 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
     return None
 
 
-def data_settings(cfg: DictConfig, checkpoint: Path):
-    """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here."""
+def where_it_ran(path: Any, folder: Path) -> Any:
+    """A relative ``data.path`` of a run's saved config, made absolute against the directory the run was
+    started from (``hydra.runtime.cwd`` in its ``.hydra/hydra.yaml``), not the one diagnose runs in. (A run
+    that recorded its data, ``cicfw.data.provenance``, gives the absolute path itself.)"""
+    if not isinstance(path, str) or os.path.isabs(os.path.expanduser(path)):
+        return path
+    try:
+        cwd = OmegaConf.select(OmegaConf.load(folder / ".hydra" / "hydra.yaml"), "hydra.runtime.cwd")
+    except Exception:
+        return path
+    return os.path.join(str(cwd), path) if cwd else path
+
+
+def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] | None = None):
+    """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here.
+    ``record``: the checkpoint's record of its data, whose absolute path replaces the saved config's."""
     import inspect
 
     from cicfw.data.datamodule import CILDataModule
@@ -124,6 +141,9 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
     if found is not None:
         values.update(found[0])
         source = found[1]
+    if record is not None:
+        values["path"] = record["path"]
+        source += "; data.path as the run recorded it"
     given = {k: v for k, v in (OmegaConf.to_container(cfg.data, resolve=True) or {}).items() if v is not None}
     values.update(given)
     if given:
@@ -137,6 +157,24 @@ def data_settings(cfg: DictConfig, checkpoint: Path):
                          f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame")
     values["path"] = str(Path(str(values["path"])).expanduser())
     return DataSettings(**values), source
+
+
+def recorded_split_files(cfg: DictConfig, data: Any, record: Mapping[str, Any] | None,
+                         checkpoint: Path) -> tuple[list[Path] | None, list[str]]:
+    """The files the split is drawn from: those the checkpoint recorded (None without a record, and for
+    ``split=all`` over a ``data.path`` given here: every frame of the user's own folder), each checked; a
+    recorded file missing or changed, or a ``data.path`` given here that does not hold them, is one
+    ``OtherData`` line naming both folders. Also returns the HDF5 files added to the folder since."""
+    from cicfw.data.provenance import data_root, recorded_files
+
+    given = cfg.data.get("path") is not None
+    if record is None or (given and str(cfg.split) == "all"):
+        return None, []
+    instead = ("leave data.path out to read the folder the run recorded, or give split=all to measure every frame "
+               "of data.path" if given else
+               "put the recorded files back, or give data.path=<a folder holding them>")
+    return recorded_files(record, data_root(data.path) if given else None, "data.path",
+                          f"the checkpoint {str(checkpoint)!r}", instead)
 
 
 def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
@@ -154,7 +192,14 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
-    data, source = data_settings(cfg, ckpt_path)
+    from cicfw.data.provenance import checkpoint_record
+
+    record = checkpoint_record(ckpt_path)  # the absolute data path and the files the run trained on
+    data, source = data_settings(cfg, ckpt_path, record)
+    files, added = recorded_split_files(cfg, data, record, ckpt_path)
+    if added:
+        log.info("%d HDF5 file(s) added to %s since the run trained are left out of the split: %s", len(added),
+                 data.path, ", ".join(added[:5]) + (" ..." if len(added) > 5 else ""))
     if cfg.get("threads"):
         torch.set_num_threads(cfg.threads)
     model = prepare_for_inference(load_model(ckpt_path), bool(cfg.get("fuse", True))).to(device)
@@ -165,7 +210,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
         approach_from = "the dataset's command_distance (dataset_metadata.json)"
         if approach_m is None:
             approach_m, approach_from = 12.0, "the embedded simulator's default command_distance"
-    frames, store = sd.load_split(data, str(cfg.split))
+    frames, store = sd.load_split(data, str(cfg.split), files)
     if len(frames) == 0:
         raise sd.DiagnosticError(f"the {cfg.split} split of {data.path} holds no frame of camera(s) "
                                  f"{data.val_cameras}; check data.val_cameras / split")
@@ -180,7 +225,9 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
             "global_step": int(ckpt.get("global_step", 0)), "head": hp.get("head"), "mixer": hp.get("mixer"),
             "decoder": (hp.get("head_kwargs") or {}).get("decode"),
             "data": {**{k: getattr(data, k) for k in SPLIT_KEYS}, "split": str(cfg.split), "source": source,
-                     "frames": int(len(d.expert)), "episodes": int(len(set(arrays["episode"].tolist())))},
+                     "frames": int(len(d.expert)), "episodes": int(len(set(arrays["episode"].tolist()))),
+                     "files": None if files is None else len(files), "files_left_out": added,
+                     "data_hash": None if record is None else record.get("hash")},
             "phases": {"approach_m": float(approach_m), "approach_m_from": approach_from,
                        "exit_s": float(cfg.phases.exit_s), "dt_s": float(cfg.phases.dt_s),
                        "counts": {p: int((d.phase == p).sum()) for p in (*sd.PHASES, "unknown")}}}

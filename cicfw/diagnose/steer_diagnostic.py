@@ -323,18 +323,21 @@ class DataSettings:
     val_cameras: Sequence[int] | None = (0,)
 
 
-def load_split(data: DataSettings, split: str = "val"):
+def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Path] | None = None):
     """The frames of ``split`` and an image store for them. ``val``/``train``: the training run's split,
     made by the same ``CILDataModule`` (same seed, fraction and filters: the same episodes); ``all``: every
-    file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with)."""
+    file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with). ``files``:
+    the files to read instead of every file under ``data.path`` (the files the run recorded: a file added
+    to its folder since would move episodes between the splits)."""
     from cicfw.data.datamodule import CILDataModule, ImageStore
     from cicfw.data.frames import load_frames
 
     if split not in SPLITS:
         raise CicfwError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
     cams = tuple(data.val_cameras) if data.val_cameras is not None else None
+    source = [str(f) for f in files] if files is not None else data.path
     if split == "all":
-        frames = load_frames(data.path, data.max_abs_steer, data.side_camera_correction,
+        frames = load_frames(source, data.max_abs_steer, data.side_camera_correction,
                              tuple(data.cameras) if data.cameras is not None else None)
     else:
         if data.seed is None:
@@ -342,6 +345,7 @@ def load_split(data: DataSettings, split: str = "val"):
         dm = CILDataModule(data.path, val_fraction=data.val_fraction, seed=int(data.seed),
                            max_abs_steer=data.max_abs_steer, side_camera_correction=data.side_camera_correction,
                            cameras=data.cameras, val_cameras=data.val_cameras, augment=False, in_memory=False)
+        dm.path = source  # the recorded files, when given (load_frames takes a list)
         dm.setup("validate")
         frames = (dm.val_set if split == "val" else dm.train_set).frames
     if cams is not None:

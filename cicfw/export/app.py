@@ -334,9 +334,28 @@ def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
     return None, None
 
 
+def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
+    """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
+    absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
+    holds now); for a checkpoint written before runs recorded their data, ``dataset_hash`` of its run config."""
+    from cicfw.data.provenance import checkpoint_record
+
+    record = checkpoint_record(checkpoint)
+    if record is None:
+        return dataset_hash(cfg_path)
+    out = {"path": record["path"], "hash": record.get("hash"), "hash_of": record.get("hash_of"),
+           "files": record.get("n_files", len(record["files"])), "bytes": record.get("bytes"),
+           "collect_config_hash": record.get("collect_config_hash"), "from": "the checkpoint's record of its data"}
+    if record.get("before"):  # resumed on other data on purpose: what it trained on before
+        out["before"] = [{"path": b.get("path"), "hash": b.get("hash"), "files": b.get("n_files")}
+                         for b in record["before"]]
+    return out
+
+
 def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
-    """The training dataset of the run config at ``cfg_path``: its path and a hash of its files' names and
-    sizes (``cicfw reproduce``'s ``config_hash``), with the collector's own config hash when it wrote one."""
+    """The training dataset of the run config at ``cfg_path``: its path (a relative one read against the
+    directory the run started in, ``hydra.runtime.cwd``) and a hash of its files' names and sizes
+    (``cicfw reproduce``'s ``config_hash``), with the collector's own config hash when it wrote one."""
     if cfg_path is None:
         return {"path": None, "hash": None, "why": "no training run config (.hydra/config.yaml) beside the checkpoint"}
     try:
@@ -346,6 +365,15 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
     if not raw:
         return {"path": None, "hash": None, "why": f"{cfg_path} names no data.path"}
     p = Path(str(raw)).expanduser()
+    if not p.is_absolute():
+        try:
+            cwd = OmegaConf.select(OmegaConf.load(cfg_path.parent / "hydra.yaml"), "hydra.runtime.cwd")
+        except Exception:
+            cwd = None
+        if not cwd:
+            return {"path": str(p), "hash": None, "why": f"data.path in {cfg_path} is relative to a directory the run "
+                                                         f"did not record"}
+        p = Path(str(cwd)) / p
     files = (sorted(p.rglob("*.h5")) + sorted(p.rglob("*.hdf5")) if p.is_dir()
              else sorted(Path(q) for q in glob.glob(str(p), recursive=True)))
     if not files:
@@ -387,7 +415,7 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
         "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
         "decoder": decoder_info(model.head, hp["head"]),
         "checkpoint": {"path": str(checkpoint), "sha256": sha256(checkpoint)},
-        "training_dataset": dataset_hash(cfg_path),
+        "training_dataset": training_dataset(checkpoint, cfg_path),
     }
 
 

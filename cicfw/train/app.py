@@ -522,6 +522,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
+    record = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's: refused),
+    trainer.callbacks.append(RecordInCheckpoints(record))  # into every checkpoint too
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
@@ -544,6 +546,49 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
         if cfg.get("return_closed_loop"):
             return float(success)
     return metric
+
+
+class RecordInCheckpoints(Callback):
+    """The run's data record (``cicfw.data.provenance``) in every checkpoint it saves."""
+
+    def __init__(self, record: Mapping[str, Any]) -> None:
+        self.record = dict(record)
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        from cicfw.data.provenance import CHECKPOINT_KEY
+
+        checkpoint[CHECKPOINT_KEY] = self.record
+
+
+def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any]:
+    """The record of the data this run trains on (its absolute path, its files' names, sizes and SHA-256:
+    ``cicfw.data.provenance``), written to ``<run_dir>/data.json``. Resuming (``ckpt_path``) compares it with
+    the checkpoint's: another file set is refused, naming both, unless ``resume_on_other_data=true``; then,
+    or when the same files lie in another folder, the record keeps the checkpoint's under ``before``."""
+    from cicfw.core.sweeps import is_worker_process
+    from cicfw.data.provenance import (check_same_data, checkpoint_record, folder_record, record_data, same_place,
+                                       summary, with_earlier, write_record)
+
+    ckpt = cfg.get("ckpt_path")
+    earlier = None
+    if ckpt is not None and str(ckpt) != "":
+        earlier = (folder_record(run_dir) if str(ckpt) in LIGHTNING_CKPT_NAMES
+                   else checkpoint_record(Path(str(ckpt)).expanduser()))
+    record = record_data(data_path, known=earlier)
+    if earlier is not None:
+        if not cfg.get("resume_on_other_data"):
+            check_same_data(earlier, record, "data.path", f"ckpt_path={ckpt}",
+                            f"resume on the data it trained on (data.path={earlier['path']}), or add "
+                            f"resume_on_other_data=true to go on training on this data on purpose")
+        if earlier.get("hash") != record["hash"] or not same_place(earlier["path"], record["path"]):
+            log.info("resuming on %s; the checkpoint trained on %s (both are recorded in %s)", summary(record),
+                     summary(earlier), run_dir / "data.json")
+            record = with_earlier(record, earlier)
+        elif earlier.get("before"):
+            record["before"] = earlier["before"]
+    if not is_worker_process():
+        write_record(run_dir, record)
+    return record
 
 
 def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:

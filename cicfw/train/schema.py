@@ -83,6 +83,7 @@ class TrainConfig:
     seed: int = MISSING
     model: MODEL = field(default_factory=MODEL)  # type: ignore[valid-type]
     ckpt_path: Optional[str] = MISSING
+    resume_on_other_data: bool = MISSING
     optimized_metric: str = MISSING
     progress_bar: bool = MISSING
     keep_epoch_checkpoints: Optional[list[int]] = MISSING

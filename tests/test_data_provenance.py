@@ -1,0 +1,216 @@
+"""A run knows its data: it records the absolute data path and its files (names, sizes, SHA-256) in its folder
+and its checkpoints; a resume on other data is refused unless asked for, diagnose reads the recorded folder and
+file list (not a relative path read from another directory, nor files added since), and export's sidecar
+names the files the model trained on."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from cicfw.core.errors import USER_ERRORS
+from test_diagnose import write_episodes
+
+pytestmark = pytest.mark.slow  # trains, or runs an app
+
+#: one batch of one epoch: a checkpoint to resume from, in seconds
+SHORT = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
+         "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
+         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", "seed=3"]
+
+
+def compose_train(*overrides: str):
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+def train_run(cfg, run: Path) -> None:
+    """``train`` into ``run`` with the config Hydra would save there (unresolved, ``data.path`` as typed)."""
+    from cicfw.train.app import train
+
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+    train(cfg, run, refuse_finished=True)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A run trained from ``work/`` on ``data.path=data/good`` (relative): its folder, data and checkpoint."""
+    base = tmp_path_factory.mktemp("provenance")
+    data = write_episodes(base / "work" / "data" / "good", n_files=8)
+    run = base / "run"
+    here = os.getcwd()
+    os.chdir(base / "work")
+    try:
+        train_run(compose_train(*SHORT, "data.path=data/good"), run)
+    finally:
+        os.chdir(here)
+    return {"base": base, "data": data, "run": run, "last": run / "checkpoints" / "last.ckpt"}
+
+
+def _refusal(err: pytest.ExceptionInfo) -> str:
+    assert isinstance(err.value, USER_ERRORS), repr(err.value)
+    text = str(err.value)
+    assert "\n" not in text, text
+    return text
+
+
+def test_a_run_records_the_absolute_data_path_and_its_files(trained):
+    data = trained["data"]
+    record = json.loads((trained["run"] / "data.json").read_text())
+    assert record["path"] == str(data) and Path(record["path"]).is_absolute()
+    names = sorted(p.name for p in data.glob("*.h5"))
+    assert [f["name"] for f in record["files"]] == names
+    assert all(f["bytes"] == (data / f["name"]).stat().st_size for f in record["files"])
+    import hashlib
+
+    assert record["files"][0]["sha256"] == hashlib.sha256((data / names[0]).read_bytes()).hexdigest()
+    ckpt = torch.load(trained["last"], map_location="cpu", weights_only=True)
+    assert ckpt["cicfw_data"]["path"] == str(data) and ckpt["cicfw_data"]["hash"] == record["hash"]
+
+
+def test_resuming_on_another_folder_is_refused_naming_both(trained, tmp_path):
+    from cicfw.train.app import train
+
+    other = write_episodes(tmp_path / "other", n_files=8, seed=5)
+    cfg = compose_train(*SHORT, f"data.path={other}", f"ckpt_path={trained['last']}", "trainer.max_epochs=2")
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    text = _refusal(err)
+    assert getattr(err.value, "key", None) == "data.path" and str(other) in text and str(trained["data"]) in text
+    assert not (tmp_path / "run" / "checkpoints").exists()  # refused before training
+
+
+def test_resuming_on_a_changed_file_set_is_refused(trained, tmp_path):
+    from cicfw.train.app import train
+
+    data = tmp_path / "grown"
+    shutil.copytree(trained["data"], data)
+    write_episodes(tmp_path / "extra", n_files=2, seed=9)
+    shutil.copy(tmp_path / "extra" / "ep000.h5", data / "ep100.h5")  # one file more
+    cfg = compose_train(*SHORT, f"data.path={data}", f"ckpt_path={trained['last']}", "trainer.max_epochs=2")
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    text = _refusal(err)
+    assert getattr(err.value, "key", None) == "data.path" and "ep100.h5" in text
+
+
+def test_resuming_on_other_data_on_purpose_records_both(trained, tmp_path):
+    from cicfw.train.app import train
+
+    other = write_episodes(tmp_path / "other", n_files=8, seed=5)
+    run = tmp_path / "run"
+    cfg = compose_train(*SHORT, f"data.path={other}", f"ckpt_path={trained['last']}", "trainer.max_epochs=2",
+                        "resume_on_other_data=true")
+    train(cfg, run, refuse_finished=True)
+    record = json.loads((run / "data.json").read_text())
+    assert record["path"] == str(other) and [b["path"] for b in record["before"]] == [str(trained["data"])]
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ckpt["cicfw_data"]["path"] == str(other) and ckpt["cicfw_data"]["before"][0]["path"] == str(trained["data"])
+
+
+def _diagnose(checkpoint: Path, out: Path, *overrides: str) -> dict:
+    from cicfw.diagnose.app import diagnose
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("diagnose", overrides=[f"checkpoint={checkpoint}", "phases.approach_m=3", "threads=1",
+                                             "plot=false", *overrides])
+    diagnose(cfg, out)
+    return json.loads((out / "steer_diagnostic.json").read_text())
+
+
+def test_diagnose_from_another_directory_reads_the_recorded_data(trained, tmp_path, monkeypatch):
+    """The run's config says ``data.path: data/good``; from a directory holding its own ``data/good``,
+    diagnose still measures the run's own validation episodes."""
+    from cicfw.data.frames import load_frames, split_by_episode
+
+    elsewhere = tmp_path / "elsewhere"
+    write_episodes(elsewhere / "data" / "good", n_files=12, seed=7)
+    monkeypatch.chdir(elsewhere)
+    doc = _diagnose(trained["last"], tmp_path / "out")
+    assert doc["data"]["path"] == str(trained["data"])
+    _, val = split_by_episode(load_frames(str(trained["data"])), 0.3, 3)
+    assert doc["data"]["frames"] == int((val.camera == 0).sum())
+
+
+def test_diagnose_keeps_the_split_of_the_files_the_run_trained_on(trained, tmp_path):
+    """Files added to the run's data folder after training: diagnose draws its validation episodes from
+    the recorded files only (a split over the grown folder would put training episodes under val)."""
+    from cicfw.data.frames import load_frames, split_by_episode
+
+    data = trained["data"]
+    added = [data / f"ep{i:03d}.h5" for i in (100, 101, 102, 103)]
+    write_episodes(tmp_path / "extra", n_files=4, seed=11)
+    try:
+        for i, f in enumerate(added):
+            shutil.copy(tmp_path / "extra" / f"ep{i:03d}.h5", f)
+        doc = _diagnose(trained["last"], tmp_path / "out")
+    finally:
+        for f in added:
+            f.unlink(missing_ok=True)
+    recorded = sorted(data.glob("ep00*.h5"))
+    _, val = split_by_episode(load_frames([str(f) for f in recorded]), 0.3, 3)
+    frames = np.load(tmp_path / "out" / "steer_frames.npz")
+    assert doc["data"]["frames"] == int((val.camera == 0).sum()) == len(frames["row"])
+    assert doc["data"]["files"] == len(recorded)
+
+
+def test_diagnose_refuses_a_recorded_file_that_changed(trained, tmp_path):
+    data = tmp_path / "copy"
+    shutil.copytree(trained["data"], data)
+    run = tmp_path / "run"
+    shutil.copytree(trained["run"], run)
+    record = json.loads((run / "data.json").read_text())
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    for rec in (record, ckpt["cicfw_data"]):  # the same run, trained on the copy
+        rec["path"] = rec["root"] = str(data)
+    (run / "data.json").write_text(json.dumps(record))
+    torch.save(ckpt, run / "checkpoints" / "last.ckpt")
+    victim = data / "ep002.h5"
+    victim.write_bytes(victim.read_bytes()[:-100] + b"\0" * 100)  # same size, other bytes
+    os.utime(victim, ns=(1, 1))
+    with pytest.raises(Exception) as err:
+        _diagnose(run / "checkpoints" / "last.ckpt", tmp_path / "out")
+    text = _refusal(err)
+    assert getattr(err.value, "key", None) == "data.path" and "ep002.h5" in text and str(data) in text
+
+
+def test_export_sidecar_names_the_files_the_model_trained_on(trained, tmp_path, monkeypatch):
+    """From a directory whose ``data/good`` holds other files, the sidecar still gives the run's own data:
+    its absolute path, its number of files and the recorded hash."""
+    from cicfw.export.app import export_model
+
+    elsewhere = tmp_path / "elsewhere"
+    write_episodes(elsewhere / "data" / "good", n_files=12, seed=7)
+    monkeypatch.chdir(elsewhere)
+    info = export_model(trained["last"], "torchscript", tmp_path / "m.pt", n_frames=2)
+    record = json.loads((trained["run"] / "data.json").read_text())
+    side = info["training_dataset"]
+    assert side["path"] == str(trained["data"]) and side["files"] == 8 and side["hash"] == record["hash"]
+
+
+def test_export_of_an_older_run_resolves_a_relative_data_path_where_it_trained(trained, tmp_path, monkeypatch):
+    """A checkpoint without a record (trained before runs recorded their data): the relative data.path is
+    read against the run's working directory (Hydra's ``hydra.runtime.cwd``), not export's."""
+    from cicfw.export.app import export_model
+
+    run = tmp_path / "old"
+    shutil.copytree(trained["run"], run)
+    (run / "data.json").unlink(missing_ok=True)
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    ckpt.pop("cicfw_data", None)
+    torch.save(ckpt, run / "checkpoints" / "last.ckpt")
+    OmegaConf.save(OmegaConf.create({"hydra": {"runtime": {"cwd": str(trained["base"] / "work")}}}),
+                   run / ".hydra" / "hydra.yaml")
+    elsewhere = tmp_path / "elsewhere"
+    write_episodes(elsewhere / "data" / "good", n_files=12, seed=7)
+    monkeypatch.chdir(elsewhere)
+    info = export_model(run / "checkpoints" / "last.ckpt", "torchscript", tmp_path / "m.pt", n_frames=2)
+    assert info["training_dataset"]["path"] == str(trained["data"]) and info["training_dataset"]["files"] == 8
