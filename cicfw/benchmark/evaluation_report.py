@@ -333,6 +333,34 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
     return md
 
 
+#: what ``cicfw report`` writes into its folder, and its record of the runs it joined there
+REPORT_FILES = ("table.md", "table.tex", "table.csv", "success_bars.png")
+REPORT_RECORD = "report.json"
+
+
+def _joined(runs: Sequence[Run]) -> list[str]:
+    return sorted(os.path.realpath(r.path) for r in runs)
+
+
+def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], what: str, overwrite: bool) -> None:
+    """The report writes into ``out`` only where it holds none of ``REPORT_FILES``, where it is one of the
+    folders joined (a run's or a sweep's own tables, joined from what it holds), where it holds the report
+    of the same runs (``report.json``), or with ``--overwrite``: another run's table or another report is
+    refused in one line before anything is written."""
+    held = [n for n in REPORT_FILES if (Path(out) / n).exists()]
+    if overwrite or not held or any(os.path.realpath(out) == os.path.realpath(d) for d in dirs):
+        return
+    try:
+        earlier = json.loads((Path(out) / REPORT_RECORD).read_text()).get("runs")
+    except (OSError, ValueError, AttributeError):
+        earlier = None
+    if earlier == _joined(runs):
+        return
+    whose = "of a report of other runs" if earlier is not None else "that no report of these runs wrote"
+    raise CicfwError(f"report: {what} {str(out)!r} holds {', '.join(held)} {whose}, which this report would "
+                     f"replace; give another --out, or --overwrite to replace them", key="--out", value=str(out))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="cicfw report", description="Join evaluation runs (folders written by cicfw evaluate, or folders "
@@ -344,6 +372,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--partial", action="store_true",
                         help="include partial runs (evaluations stopped before their last episode), marked PARTIAL; "
                              "without it they are refused")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace tables in the folder that are not an earlier report of the same runs")
     args = parser.parse_args(argv)
     try:
         runs = find_runs(args.dirs, partial="include" if args.partial else "refuse")
@@ -351,10 +381,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
+    what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"
     try:
-        writable_folder(out, "--out" if args.out else "the report folder (default: the folder given; choose one "
-                                                      "with --out)")
+        check_report_folder(out, runs, args.dirs, what, args.overwrite)
+        writable_folder(out, what)
         md = write_joined(runs, out, plots=not args.no_plots)
+        record = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)}, indent=1)
+        try:
+            atomic_write(out / REPORT_RECORD, record)
+        except OSError as err:
+            raise CicfwError(f"report: cannot write into {out} ({err.strerror or err}); give a writable folder with "
+                             f"--out") from None
     except ValueError as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

@@ -470,6 +470,34 @@ def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
                               f"({str(checkpoint)!r}); give out=<another file>")
 
 
+def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = False) -> None:
+    """``out`` and its sidecar are written only where nothing is, over this checkpoint's own earlier export
+    (its sidecar names the checkpoint's SHA-256 and the format, and the model has the size the sidecar
+    records), or with ``overwrite=true``: anything else (another run's file, another checkpoint's export,
+    a file edited since) is refused in one line before the model is loaded."""
+    sidecar = path.with_name(path.name + ".json")
+    if overwrite or not (path.exists() or sidecar.exists()):
+        return
+    why = None
+    try:
+        side = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+    except (OSError, ValueError):
+        side = {}
+    if side is None:
+        why = f"it exists and has no sidecar {sidecar.name!r} saying cicfw export wrote it"
+    elif not (isinstance(side, dict) and isinstance(side.get("checkpoint"), dict) and "size_bytes" in side):
+        why = f"{sidecar.name!r} exists and is not the sidecar of a cicfw export"
+    elif side["checkpoint"].get("sha256") != sha256(checkpoint) or side.get("format") != fmt:
+        why = (f"it is the {side.get('format')} export of another checkpoint "
+               f"({side['checkpoint'].get('path')!r}, or another state of it)")
+    elif path.exists() and path.stat().st_size != side["size_bytes"]:
+        why = f"it has changed since cicfw export wrote it ({path.stat().st_size} bytes, {side['size_bytes']} then)"
+    if why:
+        raise ExportError(f"out={str(path)!r}: {why}; export writes only where nothing is or over its own export "
+                          f"of this checkpoint: give out=<another file>, or overwrite=true to replace it",
+                          key="out", value=str(path))
+
+
 def _check_format(fmt: str) -> None:
     if fmt not in FORMATS:
         raise ExportError(f"format={fmt!r} is not known; use one of {', '.join(FORMATS)}")
@@ -538,10 +566,11 @@ def _sources(names: list[str]) -> list[str]:
 # ---- the export --------------------------------------------------------------------------------
 def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
                  frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
-                 opset: int = DEFAULT_OPSET) -> dict[str, Any]:
+                 opset: int = DEFAULT_OPSET, overwrite: bool = False) -> dict[str, Any]:
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
-    simulator) plus as many random inputs. Returns the sidecar's content."""
+    simulator) plus as many random inputs. An existing ``out`` or sidecar is replaced only when it is this
+    checkpoint's earlier export, or with ``overwrite`` (``check_own_output``). Returns the sidecar's content."""
     from cicfw.model.checkpoint import load_model, resolve_checkpoint
 
     _check_format(fmt)
@@ -555,6 +584,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     path = output_path(str(out) if out else None, ckpt, fmt)
     check_not_the_checkpoint(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)
+    check_own_output(path, ckpt, fmt, bool(overwrite))
     real = dataset_frames(frames, n_frames) if frames else None  # bad frames=: refused before the model loads
     model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
     inputs = (real if real is not None else rendered_frames(n_frames)) + random_inputs(n_frames)
@@ -588,7 +618,7 @@ def main(cfg: DictConfig) -> None:
         raise ExportError("no checkpoint to export: give checkpoint=path/to.ckpt (written by cicfw train) "
                           "and format=onnx|torchscript out=<file>")
     res = export_model(cfg.checkpoint, str(cfg.format), cfg.get("out"), cfg.get("frames"), cfg.n_frames,
-                       cfg.tolerance, cfg.opset)
+                       cfg.tolerance, cfg.opset, overwrite=bool(cfg.get("overwrite", False)))
     print(f"cicfw export: {res['out']} ({res['size_bytes'] / 1e6:.1f} MB, {res['label']}, {res['format']}); "
           f"sidecar {res['sidecar']}; parity max |diff| {res['parity']['max_abs_diff']:.2g} on "
           f"{res['parity']['inputs']} inputs (tolerance {res['parity']['tolerance']:g})")

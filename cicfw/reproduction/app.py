@@ -236,10 +236,52 @@ def check_outputs(cfg: DictConfig) -> None:
             raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
                                  f"(created if missing)")
         check_folder(pub, "publish_dir")
+        check_publish_dir(cfg)
     if cfg.get("continue_from"):
         published_manifest(Path(cfg.continue_from))
     if cfg.get("continue_machine") is not None:
         check_continue_machine(cfg)
+
+
+#: what ``publish`` writes into ``publish_dir`` (besides cells/<row>/seed<k>/cell.json)
+PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
+                   MANIFEST)
+
+
+def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
+    """``publish_dir`` is this reproduction's to write: missing, empty of what ``publish`` writes, the
+    results folder itself, or an earlier publication of the same budget, training and suite (and dataset,
+    once known) whose every finished cell this run holds or continues (``continue_from``). Anything else,
+    another reproduction's results, or files of none, is refused in one line before anything is written."""
+    from cicfw.reproduction.cells import finished_cells
+    from cicfw.reproduction.published import published_manifest
+
+    pub, results_dir = Path(cfg.publish_dir), Path(cfg.results_dir)
+    if not pub.is_dir() or (results_dir.exists() and pub.resolve() == results_dir.resolve()):
+        return
+    held = [n for n in PUBLISHED_FILES if (pub / n).exists()] + (["cells/"] if (pub / "cells").is_dir() else [])
+    if not held:
+        return
+    where, fix = f"publish_dir={str(pub)!r}", "give another publish_dir (or grow that one with continue_from=<it>)"
+    if not (pub / MANIFEST).is_file():
+        raise ReproduceError(f"{where} holds {', '.join(held)} of no reproduction (no {MANIFEST}), which publishing "
+                             f"would replace; give another publish_dir")
+    try:
+        theirs = published_manifest(pub).get("pinned") or {}
+    except ValueError as err:
+        raise ReproduceError(str(err).replace("continue_from=", "publish_dir=", 1)) from None
+    ours = fingerprint(cfg, None if dataset is None else {"config_hash": dataset})
+    refuse_other_pin(where, fix, theirs, ours, cfg, ("budget", "train", "suite") + (("dataset",) if dataset else ()))
+    ours_cells = set(finished_cells(results_dir)) if results_dir.is_dir() else set()
+    if cfg.get("continue_from"):
+        ours_cells |= set(finished_cells(Path(cfg.continue_from)))
+    others = sorted(set(finished_cells(pub)) - ours_cells)
+    if others:
+        raise ReproduceError(f"{where} holds {len(others)} finished cell(s) of another reproduction "
+                             f"({', '.join(others[:4])}{' ...' if len(others) > 4 else ''}) that results_dir="
+                             f"{str(results_dir)!r} does not hold, so its published table would not be theirs; "
+                             f"add to that folder with continue_from={pub} publish_dir={pub}, or give another "
+                             f"publish_dir")
 
 
 def check_continue_machine(cfg: DictConfig) -> None:
@@ -440,6 +482,8 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     pinned = fingerprint(cfg, dataset)
     for where, fix, theirs in folders:
         refuse_other_pin(where, fix, theirs, pinned, cfg, ("budget", "train", "suite", "dataset"))
+    if cfg.get("publish_dir"):  # published from another dataset: refused before the first cell too
+        check_publish_dir(cfg, pinned["dataset"])
     recipes: dict[str, dict[str, Any]] = {}
     for where, fix, _ in folders:
         folder = src if where.startswith("continue_from") else results_dir
