@@ -206,3 +206,77 @@ def test_report_out_holding_files_it_did_not_write_is_refused(tmp_path, capsys):
     assert report([str(run), "--out", str(out)]) == 0 and (out / "table.md").is_file()
     assert report([str(run), "--out", str(out)]) == 0  # its own earlier report of the same runs
     assert report([str(run), "--out", str(other), "--overwrite"]) == 0  # on purpose
+
+
+# ---- evaluate: the run folder, .hydra included -----------------------------------------------------
+
+
+def test_an_evaluation_of_other_options_into_a_finished_folder_leaves_its_hydra_files(tmp_path):
+    run = tmp_path / "eval"
+    first = _evaluate(run)
+    assert first.returncode == 0, first.stderr[-3000:]
+    kept = _hydra_state(run)
+    assert ".hydra/config.yaml" in kept and ".hydra/overrides.yaml" in kept
+    second = _evaluate(run, "seed=5", "name=OTHER")
+    assert second.returncode == 2, second.stderr[-3000:]
+    errors = _errors(second.stderr)
+    assert len(errors) == 1 and str(run) in errors[0] and "seed" in errors[0], second.stderr[-3000:]
+    assert _hydra_state(run) == kept  # the folder still names seed 0, as its results are
+
+
+def test_an_evaluation_into_a_folder_another_is_writing_is_refused_before_hydra_writes(tmp_path):
+    from cicfw.benchmark.journal import RunFolderLock
+
+    run = tmp_path / "eval"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (run / ".hydra" / "overrides.yaml").write_text("[]\n")
+    kept = _hydra_state(run)
+    held = RunFolderLock(run).acquire()  # the other evaluation
+    try:
+        res = _evaluate(run, "seed=5")
+    finally:
+        held.release()
+    assert res.returncode == 2, res.stderr[-3000:]
+    errors = _errors(res.stderr)
+    assert len(errors) == 1 and f"pid {os.getpid()}" in errors[0] and str(run) in errors[0], res.stderr[-3000:]
+    assert _hydra_state(run) == kept and not (run / "evaluate.log").exists()
+
+
+def test_an_evaluation_of_a_bad_checkpoint_leaves_no_run_folder(tmp_path):
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    run = tmp_path / "outputs" / "eval"
+    res = subprocess.run([sys.executable, "-m", "cicfw.evaluate", f"checkpoint={bad}", "suite.limit=1",
+                          f"hydra.run.dir={run}"], capture_output=True, text=True, env=ENV, timeout=600)
+    assert res.returncode == 2, res.stderr[-3000:]
+    errors = _errors(res.stderr)
+    assert len(errors) == 1 and str(bad) in errors[0], res.stderr[-3000:]
+    assert not run.exists() and not (tmp_path / "outputs").exists()
+
+
+# ---- train: a failed run leaves a folder the advised rerun accepts ---------------------------------
+
+from test_hostile_train import full_disk  # noqa: E402,F401  (the fixture)
+
+
+def test_a_full_disk_at_the_first_checkpoint_leaves_a_folder_the_same_command_accepts(tmp_path, full_disk):
+    from hydra import compose, initialize_config_module
+
+    from cicfw.testing import write_tiny_dataset
+    from cicfw.train.app import train_in_folder
+
+    data = write_tiny_dataset(tmp_path / "data")
+    run = tmp_path / "run"
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=[
+            "data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false",
+            "speed.compile=false", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
+            "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0"])
+    full_disk(run / "checkpoints")
+    with pytest.raises(Exception) as err:
+        train_in_folder(cfg, run)
+    assert isinstance(err.value, USER_ERRORS) and "run the same command again" in str(err.value), str(err.value)
+    full_disk(tmp_path / "elsewhere")  # space freed
+    train_in_folder(cfg, run)  # the same command, as advised
+    assert (run / "checkpoints" / "last.ckpt").is_file()

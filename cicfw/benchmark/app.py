@@ -18,7 +18,7 @@ import shlex
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -47,11 +47,11 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
-             resume_hint: str | None = None) -> dict[str, Any]:
+             resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
-    ``resume_hint`` its ``Interrupted`` message)."""
+    ``resume_hint`` its ``Interrupted`` message, ``on_start`` is called once the folder is this run's)."""
     evaluate_schema.check(cfg)  # what composing lets through: +vide=[0] would silently film nothing
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
@@ -59,7 +59,7 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=cfg.seed,
         label=str(cfg.name) if cfg.name else None, progress_bar=cfg.progress_bar, maps=cfg.maps,
         video=list(cfg.video or []), video_max=cfg.video_max, new_folder_hint=new_folder_hint,
-        resume_hint=resume_hint)
+        resume_hint=resume_hint, on_start=on_start)
     join_sweep()
     return res.summary
 
@@ -85,7 +85,7 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                     out_dir: str | Path, *, sim: Mapping[str, Any] | None = None, seed: int = 0,
                     label: str | None = None, progress_bar: bool = False, maps: bool = True,
                     video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
-                    resume_hint: str | None = None) -> EvalResult:
+                    resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> EvalResult:
     """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
 
     ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
@@ -108,7 +108,8 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     another process is writing it; config errors (``video`` naming no episode of the suite included)
     raise before anything is written. Ctrl-C raises ``Interrupted`` saying how many episodes are kept
     and, with ``resume_hint``, how to drive the rest. ``runner.batch_size``, ``workers`` and
-    ``threads`` may change between calls.
+    ``threads`` may change between calls. ``on_start`` is called once ``out_dir`` holds this evaluation's
+    episode log (everything before is checked and refused without writing a result there).
 
     Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
@@ -131,6 +132,8 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
     with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
                          f"give another output folder, or delete {str(out_dir)!r} to start over") as elog:
+        if on_start is not None:
+            on_start()
         missing = [e for e in episodes if e.index not in elog.rows]
         meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(seed), "suite": suite,
                 "runner": runner, "sim": sim, "fingerprint": fp}
@@ -510,10 +513,20 @@ def main(cfg: DictConfig) -> float:
 
     from hydra.types import RunMode
 
+    from cicfw.core.errors import USER_ERRORS
+    from cicfw.core.run_folder import undo_run_folder
+
     out = Path(HydraConfig.get().runtime.output_dir)
     key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
     hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"
     resume = f"run the same command with {key}={out if key == 'hydra.run.dir' else out.parent} to drive the rest"
-    success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume)["success"]
+    started = []
+    try:
+        success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume,
+                           on_start=lambda: started.append(True))["success"]
+    except USER_ERRORS:  # refused before the folder was this run's (a bad checkpoint, another evaluation's
+        if not started and key == "hydra.run.dir":  # episodes): the folder as it was, .hydra and log included
+            undo_run_folder(out)
+        raise
     return float("nan") if success is None else float(success)  # null: no episode (a finished suite has some)
 

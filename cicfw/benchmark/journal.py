@@ -16,6 +16,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderLock
+from cicfw.core.run_folder import RunFolderCheck, note_run_folder, undo_run_folder
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"
@@ -188,6 +190,25 @@ def _check_no_foreign_report(run_dir: Path, fp: Mapping[str, Any], hint: str) ->
     if old != fp:
         raise RunFolderError(f"{str(run_dir)!r} already holds an evaluation report of another (or an unknown) "
                              f"configuration and no episode log to resume from; {hint or 'give a new output folder'}")
+
+
+class EvaluateRunFolderCheck(RunFolderCheck):
+    """Hydra callback (conf/evaluate.yaml): ``RunFolderCheck``'s checks, and before Hydra writes ``.hydra``
+    and the log into the run folder, a folder another evaluation is writing refused in one line naming it
+    (exit status 2); what the folder held is noted, so that the app puts it back as it was
+    (``undo_run_folder``) when it refuses the run later (another evaluation's episodes, a bad checkpoint)."""
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        folder = Path(str(config.hydra.run.dir))
+        note_run_folder(folder)
+        if (folder / LOCK_NAME).exists():  # held, or left by an evaluation that died: take it and give it back
+            try:
+                RunFolderLock(folder).acquire().release()
+            except RunFolderError as err:
+                undo_run_folder(folder)
+                print(f"cicfw: error: {err}", file=sys.stderr)
+                sys.exit(2)
+        super().on_run_start(config, **kwargs)
 
 
 class RunFolderLock(FolderLock):

@@ -180,6 +180,21 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
         raise
 
 
+def forget_failed_run(folder: str | Path) -> list[str]:
+    """A training run that stopped before writing any checkpoint leaves nothing to resume from, and its
+    error says to run the same command again: the outputs it wrote (``run_outputs``: the metrics it logged
+    ...) are removed, so that command is not refused as another run's folder (the log and ``.hydra`` stay).
+    Only for a folder this run held from an empty start (``hold_train_folder``). Returns what was removed."""
+    folder = Path(folder)
+    if any((folder / "checkpoints").glob("*.ckpt")):
+        return []
+    found = run_outputs(folder)
+    for name in found:
+        p = folder / name
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    return found
+
+
 def release_run_folder(folder: str | Path) -> None:
     """Give up the lock ``hold_train_folder`` took on ``folder`` (nothing when this process holds none)."""
     lock = _HELD.pop(os.path.abspath(folder), None)

@@ -32,7 +32,7 @@ from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.override_hints import check_top_level_keys
-from cicfw.core.run_folder import hold_train_folder, release_run_folder, undo_run_folder
+from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 
 log = logging.getLogger("cicfw.train")
@@ -628,11 +628,21 @@ def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_pa
                           "command again") from None
 
 
+def _forget(run_dir: Path) -> None:
+    """``forget_failed_run``, said in the log: a run stopped before its first checkpoint."""
+    removed = forget_failed_run(run_dir)
+    if removed:
+        log.info("no checkpoint was written: removed this run's %s from %s, so that the same command runs there "
+                 "again", ", ".join(removed), run_dir)
+
+
 def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") -> float:
     """The app's ``train``: ``run_dir`` held (``hold_train_folder``) until it ends, and a checkpoint with
     nothing left to train refused. A run refused before it trains leaves the folder as it found it
     (``undo_run_folder``: no ``.hydra`` or empty log of a run that never was); a multirun job's folder
-    keeps its log, which the sweep's failure line names."""
+    keeps its log, which the sweep's failure line names. A run that stops before its first checkpoint
+    (a full disk, Ctrl-C) takes back the metrics it logged (``forget_failed_run``), so the same command,
+    which its error advises, runs there again."""
     hold_train_folder(run_dir, cfg.get("ckpt_path"), key)
     started = []
     try:
@@ -641,6 +651,12 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
         if not started and key == "hydra.run.dir":
             release_run_folder(run_dir)
             undo_run_folder(run_dir)
+        elif started:
+            _forget(run_dir)
+        raise
+    except BaseException:
+        if started:  # a Ctrl-C in the first epoch says "run the same command again" too
+            _forget(run_dir)
         raise
     finally:
         release_run_folder(run_dir)
