@@ -2,10 +2,17 @@
 the statistics tests recompute with."""
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
 import os
+import runpy
 import signal
+import sys
+import traceback
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -103,3 +110,157 @@ def process_alive(pid: int) -> bool:
     except OSError:
         return False
     return state not in ("Z", "X")
+
+
+@dataclass
+class AppResult:
+    """What ``run_app_in_process`` returns: the fields of ``subprocess.CompletedProcess`` a test reads."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def _logging_state() -> tuple:
+    root = logging.getLogger()
+    loggers = {name: (lg.level, list(lg.handlers), lg.propagate, lg.disabled)
+               for name, lg in logging.Logger.manager.loggerDict.items() if isinstance(lg, logging.Logger)}
+    return root.level, list(root.handlers), loggers, logging.root.manager.disable
+
+
+def _restore_logging(state: tuple) -> None:
+    level, handlers, loggers, disable = state
+    root = logging.getLogger()
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+        handler.close()
+    for handler in handlers:
+        if handler not in root.handlers:
+            root.addHandler(handler)
+    root.setLevel(level)
+    logging.disable(disable)
+    for name, lg in list(logging.Logger.manager.loggerDict.items()):
+        if not isinstance(lg, logging.Logger):
+            continue
+        if name in loggers:
+            lg.level, kept, lg.propagate, lg.disabled = loggers[name]
+            for handler in [h for h in lg.handlers if h not in kept]:
+                lg.removeHandler(handler)
+                handler.close()
+        else:  # made by the app: keep the logger, drop what it hung on it
+            for handler in list(lg.handlers):
+                lg.removeHandler(handler)
+                handler.close()
+
+
+@contextlib.contextmanager
+def _torch_state():
+    torch = sys.modules.get("torch")
+    if torch is None:
+        yield
+        return
+    threads, rng = torch.get_num_threads(), torch.get_rng_state()
+    precision, deterministic = torch.get_float32_matmul_precision(), torch.are_deterministic_algorithms_enabled()
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_rng_state(rng)
+        torch.set_float32_matmul_precision(precision)
+        torch.use_deterministic_algorithms(deterministic)
+
+
+#: loggers Lightning gives a handler of their own (to stderr, not propagating) when imported where the root
+#: logger has none, as in an app's process; under pytest the root has one, so they propagate instead
+_OWN_HANDLER_LOGGERS = ("lightning.fabric", "lightning.pytorch")
+
+
+def run_app_in_process(module: str, *args: str, cwd: str | os.PathLike | None = None,
+                       env: dict[str, str | None] | None = None) -> AppResult:
+    """``python -m <module> <args>`` run in this interpreter: its exit status, stdout and stderr, as
+    ``subprocess.run(..., capture_output=True, text=True)`` gives them, without paying a fresh interpreter
+    and the app's imports (seconds) for a test that only checks what an app refuses.
+
+    ``env`` changes the environment for the run (a value of None removes the variable); ``cwd`` is the
+    working directory. Everything the app changes in this process is put back afterwards: the arguments,
+    working directory, environment, the signal handlers and ``sys.excepthook`` the app installs
+    (``install_app_handlers``), logging (Hydra's job logging), warnings filters, torch's threads and
+    random state, and Hydra's global state. An exception no app code caught goes to ``sys.excepthook``
+    as in a process (an uncaught ``CicfwError`` is one ``cicfw: error:`` line, status 2; another keeps its
+    traceback, status 1).
+
+    Not for a test about the process itself (signals, exit of the interpreter, import side effects,
+    umask, worker processes, the ``cicfw`` script): those start a subprocess."""
+    import random
+
+    import lightning.pytorch  # noqa: F401  (first, so that its loggers exist to be set as in a process)
+    from hydra.core.global_hydra import GlobalHydra
+
+    from cicfw.core import errors
+
+    out, err = io.StringIO(), io.StringIO()
+    saved_argv, saved_cwd, saved_env = list(sys.argv), os.getcwd(), dict(os.environ)
+    saved_hook, saved_installed, saved_stopped = sys.excepthook, errors._installed, errors._stopped_by
+    saved_signals = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    saved_exit_now, saved_random = errors._exit_now, random.getstate()
+    numpy = sys.modules.get("numpy")
+    saved_np = numpy.random.get_state() if numpy is not None else None
+    logging_state = _logging_state()
+
+    def exit_now(status: int) -> None:  # the app's excepthook ends the process: here, the run
+        raise SystemExit(status)
+
+    code: object = 0
+    try:
+        errors._installed, errors._stopped_by, errors._exit_now = False, None, exit_now
+        for key, value in (env or {}).items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = str(value)
+        if cwd is not None:
+            os.chdir(cwd)
+        sys.argv = ["-m", *map(str, args)]
+        if GlobalHydra.instance().is_initialized():
+            GlobalHydra.instance().clear()
+        for name in _OWN_HANDLER_LOGGERS:  # as a fresh import leaves them: their own handler, on stderr
+            lg = logging.getLogger(name)
+            lg.handlers, lg.propagate = [logging.StreamHandler(err)], False
+        with _torch_state(), warnings.catch_warnings(), \
+                contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                try:
+                    runpy.run_module(module, run_name="__main__", alter_sys=True)
+                except SystemExit:
+                    raise
+                except BaseException:
+                    sys.excepthook(*sys.exc_info())  # the app's own hook may exit (SystemExit) from here
+                    code = 1
+            except SystemExit as exit_:
+                code = exit_.code
+            except BaseException:  # the hook itself failed: as the interpreter would, print it
+                traceback.print_exc()
+                code = 1
+    finally:
+        sys.excepthook, errors._installed, errors._stopped_by = saved_hook, saved_installed, saved_stopped
+        errors._exit_now = saved_exit_now
+        for sig, handler in saved_signals.items():
+            signal.signal(sig, handler)
+        sys.argv = saved_argv
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        if GlobalHydra.instance().is_initialized():
+            GlobalHydra.instance().clear()
+        _restore_logging(logging_state)
+        random.setstate(saved_random)
+        if saved_np is not None:
+            numpy.random.set_state(saved_np)
+    if code is None:
+        status = 0
+    elif isinstance(code, int):
+        status = code
+    else:  # sys.exit("message"): the message on stderr, status 1
+        err.write(f"{code}\n")
+        status = 1
+    return AppResult(status, out.getvalue(), err.getvalue())

@@ -2,11 +2,10 @@
 needing an optional extra adds a hint."""
 from __future__ import annotations
 
-import os
-import subprocess
 import sys
 
 import pytest
+from conftest import AppResult, run_app_in_process
 
 from cicfw.core.override_hints import run_app
 
@@ -39,9 +38,8 @@ def test_an_option_whose_plugin_is_missing_names_the_extra(monkeypatch):
     assert "hparams_search=optuna needs the 'sweeps' extra" in hint and 'cicfw[sweeps]' in hint
 
 
-def _app(*args: str, cwd: str = "/") -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, timeout=300, cwd=cwd,
-                          env={**os.environ, "HYDRA_FULL_ERROR": "0"})
+def _app(module: str, *args: str, cwd: str = "/") -> AppResult:
+    return run_app_in_process(module, *args, cwd=cwd, env={"HYDRA_FULL_ERROR": "0"})
 
 
 @pytest.mark.parametrize("app", ["train", "evaluate", "diagnose", "export", "collect"])
