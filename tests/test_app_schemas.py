@@ -8,12 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import AppResult, run_app_in_process
 from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
@@ -129,9 +127,8 @@ def test_the_nodes_take_their_keys_from_the_code():
     assert set(diagnose.phases) == {"approach_m", "exit_s", "dt_s"} <= set(inspect.signature(measure).parameters)
 
 
-def _app(app: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", f"cicfw.{app}", *args], capture_output=True, text=True,
-                          timeout=300, cwd=cwd, env={**os.environ, "HYDRA_FULL_ERROR": "0"})
+def _app(app: str, args: list[str], cwd: Path) -> AppResult:
+    return run_app_in_process(f"cicfw.{app}", *args, cwd=cwd, env={"HYDRA_FULL_ERROR": "0"})
 
 
 @pytest.mark.slow
