@@ -255,6 +255,28 @@ def checked(schema: type, values: Mapping[str, Any], where: str) -> Any:
     return OmegaConf.select(merged, where) if parts else merged
 
 
+def composed_values(node: Any, schema: type, where: str) -> dict[str, Any]:
+    """A composed config node as plain data, each value checked once. A node composing typed with ``schema``
+    had its keys and types checked then: only what composing lets through is checked here, a key added with
+    ``+`` past the schema (``+mixer.foo=1``) and a mandatory value left ``???``. Any other node (one composed
+    without the schema, or typed with another: an option whose ``name`` builds another registered name) is
+    checked wholly against ``schema`` here (``checked``). One ``SchemaError`` naming the full key."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if not isinstance(node, DictConfig) or OmegaConf.get_type(node) is not schema:
+        plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        return OmegaConf.to_container(checked(schema, plain, where), resolve=True)
+    fields = {f.name for f in dataclasses.fields(schema)}
+    added = [str(k) for k in node if str(k) not in fields]
+    if added:  # refused as composing refuses an unknown key (or names what to do instead of a key cicfw sets)
+        checked(schema, {added[0]: None}, where)
+    missing = sorted(OmegaConf.missing_keys(node))
+    if missing:
+        key = f"{where}.{missing[0]}" if where else missing[0]
+        raise SchemaError(f"{_what(schema, where)} needs {key} (it has no default); add {key}=...", key, "missing")
+    return OmegaConf.to_container(node, resolve=True)
+
+
 def plain_values(cfg: Any) -> dict[str, Any]:
     """A composed app config as plain data (resolved), its ``hydra`` node left out: what ``checked`` takes."""
     from omegaconf import OmegaConf

@@ -7,9 +7,10 @@ ConfigStore) before it composes a train config, and the defaults list lays the s
 ``cicfw_schema/<group>/<name>`` under each chosen encoder, mixer and head option (the registered class's
 arguments, plugins' included).
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key,
-before any run folder exists. ``part`` and ``checked`` apply the same schemas to a composed config again:
-for keys added with ``+`` (which Hydra lets through), an option file whose name is not the registered
-name it selects, or a config composed elsewhere. ``checked_trainer`` and ``checked_speed`` also check the
+before any run folder exists: each value is checked there once. ``checked_part`` and ``checked_node`` look
+only at what composing lets through (keys added with ``+``, a value left ``???``), and check wholly only a
+node composing did not type with the schema of what it builds (an option whose ``name`` selects another
+registered name, a config composed elsewhere). ``checked_trainer`` and ``checked_speed`` also check the
 values a type cannot say (a union of a flag and a word, such as ``trainer.deterministic``), and
 ``checked_data`` the collection's ``data.collect.sim`` against the backend it names (``cicfw.sim.schema``).
 """
@@ -27,7 +28,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.collect.config import CollectConfig
-from cicfw.core.config_checks import SchemaError, checked, kwargs_schema
+from cicfw.core.config_checks import SchemaError, composed_values, kwargs_schema
 from cicfw.core.errors import ConfigError
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
@@ -113,19 +114,21 @@ def register() -> None:
 
 def checked_part(cfg: DictConfig, group: str) -> tuple[str, dict[str, Any]]:
     """The registered name and the keyword arguments of ``cfg[group]``, checked against its name's schema
-    (a key added with ``+``, a wrong type: one ``SchemaError`` naming the full key)."""
-    node = OmegaConf.to_container(cfg[group], resolve=True)
-    if not isinstance(node, dict) or "name" not in node:
+    once (``composed_values``: what composing let through, or the whole node where composing typed it as
+    another name's): one ``SchemaError`` naming the full key."""
+    node = cfg[group]
+    if not isinstance(node, DictConfig) or "name" not in node:
         raise SchemaError(f"{group} must be a config node with a 'name:' key naming the registered {group}, "
-                          f"got {node!r}", f"{group}.name", "missing")
-    kwargs = OmegaConf.to_container(checked(part(group, str(node["name"])), node, group), resolve=True)
+                          f"got {OmegaConf.to_container(node) if OmegaConf.is_config(node) else node!r}",
+                          f"{group}.name", "missing")
+    kwargs = composed_values(node, part(group, str(node["name"])), group)
     return str(kwargs.pop("name")), kwargs
 
 
 def checked_node(cfg: DictConfig, key: str, schema: type) -> dict[str, Any]:
-    """``cfg[key]`` as plain data, checked against ``schema`` (``model``, ``data``, ``trainer``)."""
-    return OmegaConf.to_container(checked(schema, OmegaConf.to_container(cfg[key], resolve=True), key),
-                                  resolve=True)
+    """``cfg[key]`` as plain data, checked against ``schema`` once (``composed_values``: ``model``, ``data``,
+    ``trainer``, ``speed``)."""
+    return composed_values(cfg[key], schema, key)
 
 
 def checked_data(cfg: DictConfig) -> dict[str, Any]:
