@@ -16,6 +16,7 @@ import torch
 from cicfw.benchmark.suite import check_names
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.core.config_checks import SchemaError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.train.app import build_model, build_trainer, check_resume_checkpoint, train
 from conftest import compose_train, write_tiny_dataset
 
@@ -28,27 +29,28 @@ def _cfg(tmp_path: Path, *overrides: str):
     return compose_train(*BASE, f"data.path={tmp_path}/data", *overrides)
 
 
-@pytest.mark.parametrize("overrides, error, key", [
-    (["trainer.max_epochs=-2"], ValueError, "trainer"),  # Lightning's own refusal, named by its node
-    (["trainer.precision=17"], ValueError, "trainer"),
-    (["+mixer.foo=1"], SchemaError, "mixer.foo"),  # keys added with +: the schema refuses them here
-    (["mixer=gtu", "+mixer.hiden=64"], SchemaError, "mixer.hiden"),
-    (["+mixer.in_dim=64"], SchemaError, "mixer.in_dim"),
-    (["head=hybrid", "+head.foo=1"], SchemaError, "head.foo"),
-    (["+encoder.foo=1"], SchemaError, "encoder.foo"),
-    (["+model.foo=1"], SchemaError, "model.foo"),
-    (["+data.foo=1"], SchemaError, "data.foo"),
-    (["data.batch_size=6"], ValueError, "data.batch_size"),  # values the constructors refuse
-    (["data.val_fraction=1.5"], ValueError, "data.val_fraction"),
-    (["ckpt_path=/nonexistent/last.ckpt"], FileNotFoundError, "ckpt_path"),
+@pytest.mark.parametrize("overrides, error, key, value", [
+    (["trainer.max_epochs=-2"], CicfwError, "trainer.max_epochs", -2),
+    (["trainer.precision=17"], CicfwError, "trainer", None),  # Lightning's own refusal, named by its node
+    (["+mixer.foo=1"], SchemaError, "mixer.foo", None),  # keys added with +: the schema refuses them here
+    (["mixer=gtu", "+mixer.hiden=64"], SchemaError, "mixer.hiden", None),
+    (["+mixer.in_dim=64"], SchemaError, "mixer.in_dim", None),
+    (["head=hybrid", "+head.foo=1"], SchemaError, "head.foo", None),
+    (["+encoder.foo=1"], SchemaError, "encoder.foo", None),
+    (["+model.foo=1"], SchemaError, "model.foo", None),
+    (["+data.foo=1"], SchemaError, "data.foo", None),
+    (["data.batch_size=6"], ConfigError, "data.batch_size", 6),  # values the constructors refuse
+    (["data.val_fraction=1.5"], ConfigError, "data.val_fraction", 1.5),
+    (["ckpt_path=/nonexistent/last.ckpt"], FileNotFoundError, "ckpt_path", None),
 ])
-def test_each_config_error_is_one_line_before_any_data(tmp_path, no_data, overrides, error, key):
+def test_each_config_error_is_one_line_before_any_data(tmp_path, no_data, overrides, error, key, value):
     with pytest.raises(error) as err:
         train(_cfg(tmp_path, *overrides), tmp_path / "run")
     text = str(err.value.args[0] if isinstance(err.value, FileNotFoundError) else err.value)
-    assert text.startswith(key), text
-    if isinstance(err.value, SchemaError):
-        assert err.value.key == key
+    if isinstance(err.value, CicfwError):
+        assert (err.value.key, err.value.value) == (key, value)
+    else:
+        assert text.startswith(key), text  # a path the user gave, named by its key
     assert "\n" not in text
 
 

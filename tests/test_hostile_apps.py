@@ -256,8 +256,10 @@ def test_a_preview_that_fails_after_rendering_started_writes_nothing(tmp_path: P
     monkeypatch.setattr(preview, "turn_sheet", picture)
     monkeypatch.setattr(preview, "town_map", picture)
 
-    def no_routes(town, *a, **k):
-        raise ValueError(f"town {town.name} has no route of 150 m")
+    from cicfw.sim.town import TownError
+
+    def no_routes(town, *a, **k):  # a town file whose roads hold no route that long: the user's to fix
+        raise TownError(f"town {town.name} has no route of 150 m")
 
     monkeypatch.setattr(preview, "sample_routes", no_routes)
     mine = tmp_path / "mine"

@@ -326,7 +326,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     try:
         return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
     except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=1:00
-        raise CicfwError(f"trainer: {' '.join(str(err).split())}") from None
+        raise CicfwError(f"trainer: {' '.join(str(err).split())}", key="trainer") from None
 
 
 # ckpt_path values Lightning resolves itself (no file to check before training).
