@@ -14,13 +14,18 @@ import torch
 import cicfw.train.app as train_mod
 from cicfw.core.config_checks import SchemaError
 from cicfw.train.app import train
-from conftest import compose_train, write_tiny_dataset
+from conftest import compose_train, run_app_in_process, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+
+
+def train_app(*args: str):
+    """``python -m cicfw.train args``, run in this process (``run_app_in_process``)."""
+    return run_app_in_process("cicfw.train", *args, env={"HYDRA_FULL_ERROR": "0"})
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -100,8 +105,7 @@ def test_good_evaluate_overrides_pass_the_check():
 ])
 def test_a_value_of_the_wrong_type_is_one_line_before_any_run_folder(tmp_path, override, key):
     """Refused while Hydra composes the config (the schema), so the app writes no run folder at all."""
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", override, f"hydra.run.dir={tmp_path}/run"],
-                          capture_output=True, text=True, env=ENV, timeout=300)
+    proc = train_app(override, f"hydra.run.dir={tmp_path}/run")
     assert proc.returncode == 2
     errors = _errors(proc)
     assert len(errors) == 1 and errors[0].startswith(f"cicfw: error: {key} must be "), proc.stderr[-2000:]
@@ -242,7 +246,7 @@ runpy.run_module("cicfw.train", run_name="__main__", alter_sys=True)
 """
 
 
-def _errors(proc: subprocess.CompletedProcess) -> list[str]:
+def _errors(proc) -> list[str]:
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     return [line for line in proc.stderr.splitlines() if line.startswith("cicfw:")]
 
@@ -300,15 +304,12 @@ def test_a_read_only_run_folder_is_one_line(tmp_path):
 
 def test_a_300_character_run_name_is_one_line(tmp_path):
     name = "n" * 300
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data",
-                           f"hydra.run.dir={tmp_path}/{name}"], capture_output=True, text=True, env=ENV, timeout=600)
+    proc = train_app(*BASE, f"data.path={tmp_path}/data", f"hydra.run.dir={tmp_path}/{name}")
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
                              f"this filesystem allows (255); give a shorter one"]
     assert not (tmp_path / name[:255]).exists()
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data",
-                           f"hydra.run.dir={tmp_path}/run", f"hydra.job.name={name}"], capture_output=True,
-                          text=True, env=ENV, timeout=600)
+    proc = train_app(*BASE, f"data.path={tmp_path}/data", f"hydra.run.dir={tmp_path}/run", f"hydra.job.name={name}")
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert _errors(proc) == [f"cicfw: error: hydra.job.name: the name {name[:20]}... is 304 bytes long, more than "
                              f"this filesystem allows (255); give a shorter one"]
@@ -346,8 +347,7 @@ def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, ov
     ("trainer.max_time=5", "trainer.max_time"),
 ])
 def test_the_app_refuses_a_speed_or_trainer_value_in_one_line_without_a_run_folder(tmp_path, override, key):
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", *BASE, f"data.path={tmp_path}/data", override,
-                           f"hydra.run.dir={tmp_path}/run"], capture_output=True, text=True, env=ENV, timeout=600)
+    proc = train_app(*BASE, f"data.path={tmp_path}/data", override, f"hydra.run.dir={tmp_path}/run")
     assert proc.returncode == 2, proc.stderr[-3000:]
     errors = _errors(proc)
     assert len(errors) == 1 and key in errors[0], errors
