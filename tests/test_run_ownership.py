@@ -4,8 +4,6 @@ default cache, not the file-system root."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,9 +12,9 @@ from omegaconf import OmegaConf
 from cicfw.core.locks import FolderBusy
 from cicfw.core.run_folder import (RunFolderError, TrainFolderLock, TrainRunFolderCheck, hold_train_folder,
                               release_run_folder)
-from conftest import write_tiny_dataset
+from conftest import run_app_in_process, write_tiny_dataset
 
-ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+ENV = {"HYDRA_FULL_ERROR": "0"}  # changes to the environment, for run_app_in_process
 
 
 def _errors(text: str) -> list[str]:
@@ -26,22 +24,22 @@ def _errors(text: str) -> list[str]:
 # ---- train: one run per folder -----------------------------------------------------------------
 
 
-def _train_cmd(data: Path, run: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={data}", "data.batch_size=8",
+def _train_args(data: Path, run: Path, *extra: str) -> list[str]:
+    return ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8",
             "data.val_batch_size=8", "progress_bar=false", "speed.compile=false", "trainer.max_epochs=1",
             "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
             "trainer.enable_model_summary=false", f"hydra.run.dir={run}", *extra]
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # trains (the app, run in this process)
 def test_a_second_run_into_the_same_folder_is_refused_and_leaves_the_first_whole(tmp_path):
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     run = tmp_path / "run"
-    first = subprocess.run(_train_cmd(data, run), capture_output=True, text=True, env=ENV, timeout=600)
+    first = run_app_in_process("cicfw.train", *_train_args(data, run), env=ENV)
     assert first.returncode == 0, first.stderr[-3000:]
     kept = {p: p.read_bytes() for p in (run / "csv" / "metrics.csv", run / "checkpoints" / "last.ckpt",
                                         run / ".hydra" / "config.yaml")}
-    second = subprocess.run(_train_cmd(data, run, "seed=1"), capture_output=True, text=True, env=ENV, timeout=600)
+    second = run_app_in_process("cicfw.train", *_train_args(data, run, "seed=1"), env=ENV)
     assert second.returncode == 2, second.stderr[-3000:]
     errors = _errors(second.stderr)
     assert len(errors) == 1 and errors[0].startswith(f"cicfw: error: the run folder {str(run)!r} already holds "
@@ -110,7 +108,7 @@ def test_the_apps_callback_refuses_a_held_folder_in_one_line_before_hydra_writes
 # ---- a refused run leaves nothing behind ----------------------------------------------------------
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # runs the app (in this process)
 def test_a_refused_run_puts_a_folder_that_existed_back_as_it_was(tmp_path):
     """A run refused after Hydra wrote ``.hydra`` and its log (a value a constructor refuses) restores
     them: the folder holds what it held, byte for byte, and nothing else."""
@@ -121,8 +119,7 @@ def test_a_refused_run_puts_a_folder_that_existed_back_as_it_was(tmp_path):
               run / "notes.txt": b"mine\n"}
     for path, data_ in before.items():
         path.write_bytes(data_)
-    proc = subprocess.run(_train_cmd(data, run, "data.batch_size=6"), capture_output=True, text=True, env=ENV,
-                          timeout=600)
+    proc = run_app_in_process("cicfw.train", *_train_args(data, run, "data.batch_size=6"), env=ENV)
     assert proc.returncode == 2, proc.stderr[-3000:]
     errors = _errors(proc.stderr)
     assert len(errors) == 1 and errors[0].startswith("cicfw: error: data.batch_size"), proc.stderr[-3000:]
@@ -145,16 +142,15 @@ def test_undo_removes_a_new_folder_and_the_parents_made_for_it_only(tmp_path):
     assert (tmp_path / "outputs" / "kept.txt").exists()
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # runs the app (in this process)
 def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_there(tmp_path):
     sweep = tmp_path / "sweep"
     (sweep / "0" / ".hydra").mkdir(parents=True)
     kept = {sweep / "multirun.yaml": b"hydra: {}\n", sweep / "0" / ".hydra" / "config.yaml": b"seed: 0\n"}
     for path, data in kept.items():
         path.write_bytes(data)
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
-                           f"hydra.sweep.dir={sweep}", "mixer=independent,gtu"], capture_output=True, text=True,
-                          env=ENV, timeout=600)
+    proc = run_app_in_process("cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
+                              f"hydra.sweep.dir={sweep}", "mixer=independent,gtu", env=ENV)
     assert proc.returncode == 2, proc.stderr[-3000:]
     errors = _errors(proc.stderr)
     assert len(errors) == 1 and str(sweep) in errors[0] and "hydra.sweep.dir=" in errors[0], proc.stderr[-3000:]
@@ -162,14 +158,13 @@ def test_a_sweep_folder_holding_another_multirun_is_refused_before_hydra_writes_
     assert {p: p.read_bytes() for p in kept} == kept
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # runs the app (in this process)
 def test_a_sweep_whose_job_config_is_refused_leaves_no_sweep_folder(tmp_path):
     """Hydra checks every job's config before the first runs, after the sweep folder and its
     multirun.yaml are written: a refused sweep removes them, so the same folder takes the fixed command."""
     sweep = tmp_path / "sweeps" / "one"
-    proc = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
-                           f"hydra.sweep.dir={sweep}", "model.lr=0.001,abc"], capture_output=True, text=True,
-                          env=ENV, timeout=600)
+    proc = run_app_in_process("cicfw.train", "-m", "data=cil_hdf5", f"data.path={tmp_path}/none",
+                              f"hydra.sweep.dir={sweep}", "model.lr=0.001,abc", env=ENV)
     assert proc.returncode == 2, proc.stderr[-3000:]
     errors = _errors(proc.stderr)
     assert len(errors) == 1 and errors[0].startswith("cicfw: error: model.lr"), proc.stderr[-3000:]
@@ -190,11 +185,10 @@ def test_a_ddp_worker_rank_rerunning_its_sweep_is_not_refused(tmp_path, monkeypa
 # ---- the cache folder ----------------------------------------------------------------------------
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # runs the app (in this process)
 def test_an_empty_cicfw_cache_means_the_default_cache(tmp_path):
     env = {**ENV, "CICFW_CACHE": "", "HOME": str(tmp_path)}
-    res = subprocess.run([sys.executable, "-m", "cicfw.train", "--cfg", "job", "--resolve"],
-                         capture_output=True, text=True, env=env, timeout=300)
+    res = run_app_in_process("cicfw.train", "--cfg", "job", "--resolve", env=env)
     assert res.returncode == 0, res.stderr[-2000:]
     path = OmegaConf.create(res.stdout).data.path
     assert path == f"{tmp_path}/.cache/cicfw/datasets/sim_default", res.stdout
