@@ -7,10 +7,9 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import os
-import subprocess
-import sys
 
 import pytest
+from conftest import run_app_in_process
 from omegaconf import OmegaConf
 
 from cicfw.benchmark.runner import RunnerConfig
@@ -130,9 +129,8 @@ def test_the_schema_is_a_dataclass_of_the_configs_top_level_keys():
     ("runner.workers=abc", "runner.workers"),
 ])
 def test_the_app_refuses_in_one_line_before_the_run_folder(tmp_path, override, key):
-    r = subprocess.run([sys.executable, "-m", "cicfw.evaluate", "policy=expert", override,
-                        f"hydra.run.dir={tmp_path}/run"], capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "HYDRA_FULL_ERROR": "0"})
+    r = run_app_in_process("cicfw.evaluate", "policy=expert", override, f"hydra.run.dir={tmp_path}/run",
+                           env={"HYDRA_FULL_ERROR": "0"})
     assert r.returncode == 2, r.stderr[-800:]
     (line,) = r.stderr.strip().splitlines()
     assert line.startswith("cicfw: error: ") and key in line, line

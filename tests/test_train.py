@@ -1,10 +1,6 @@
 """Training end to end: fast_dev_run, branch selection, checkpoints, seeding, resume, bad input."""
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
 import torch
 from hydra.errors import MissingConfigException
@@ -12,7 +8,7 @@ from hydra.errors import MissingConfigException
 from cicfw.model.module import CICModule
 from cicfw.registry import UnknownNameError
 from cicfw.train.app import build_model, train
-from conftest import compose_train
+from conftest import compose_train, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -107,12 +103,8 @@ def test_bad_hyperparameter_fails_at_construction(fast_cfg):
 
 
 def test_cli_reports_bad_path_in_one_line(tmp_path):
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    r = subprocess.run(
-        [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing/*.h5",
-         f"hydra.run.dir={tmp_path}/out"],
-        capture_output=True, text=True, env=env, timeout=120,
-    )
+    r = run_app_in_process("cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing/*.h5",
+                           f"hydra.run.dir={tmp_path}/out", env={"HYDRA_FULL_ERROR": "0"})
     assert r.returncode == 2
     assert "cicfw: error: data.path=" in r.stderr and "matches no HDF5 file" in r.stderr
     assert "Traceback" not in r.stderr
@@ -121,12 +113,8 @@ def test_cli_reports_bad_path_in_one_line(tmp_path):
 def test_cli_refuses_a_trainer_value_of_the_wrong_type_in_one_line_before_the_data(tmp_path):
     """``trainer.max_epochs=abc`` passed the trainer's checks, waited for the data (collecting the default
     dataset first) and then ended in a TypeError traceback from the speed settings."""
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    r = subprocess.run(
-        [sys.executable, "-m", "cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing", "progress_bar=false",
-         "trainer.max_epochs=abc", f"hydra.run.dir={tmp_path}/out"],
-        capture_output=True, text=True, env=env, timeout=120,
-    )
+    r = run_app_in_process("cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing", "progress_bar=false",
+                           "trainer.max_epochs=abc", f"hydra.run.dir={tmp_path}/out", env={"HYDRA_FULL_ERROR": "0"})
     assert r.returncode == 2, r.stderr[-2000:]
     errors = [line for line in r.stderr.splitlines() if line.startswith("cicfw:")]
     assert len(errors) == 1 and errors[0].startswith("cicfw: error: trainer.max_epochs must be "), r.stderr[-2000:]
