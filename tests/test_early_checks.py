@@ -6,8 +6,6 @@ from __future__ import annotations
 import csv
 import errno
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +13,7 @@ import pytest
 import cicfw.core.files
 from cicfw.benchmark.app import OutputWriteError, evaluate_policy
 from cicfw.train.app import make_datamodule, train
-from conftest import compose_train, write_tiny_dataset
+from conftest import compose_train, run_app_in_process, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
@@ -87,13 +85,12 @@ def test_batches_per_epoch_null_or_a_positive_integer_passes(tmp_path, value):
 # ---- a multirun with a failing job ---------------------------------------------------------------
 
 
-@pytest.mark.slow  # starts the app in a subprocess
+@pytest.mark.slow  # trains (the app, run in this process)
 def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it(tmp_path):
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
     sweep = tmp_path / "sweep"
-    res = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast",
-                          "speed.compile=false", "data.batch_size=8,6", f"hydra.sweep.dir={sweep}"],
-                         capture_output=True, text=True, env={**os.environ, "HYDRA_FULL_ERROR": "0"}, timeout=600)
+    res = run_app_in_process("cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast", "speed.compile=false",
+                             "data.batch_size=8,6", f"hydra.sweep.dir={sweep}", env={"HYDRA_FULL_ERROR": "0"})
     assert res.returncode != 0
     assert "Traceback" not in res.stderr, res.stderr[-3000:]
     errors = [line for line in res.stderr.splitlines() if line.startswith("cicfw:")]
