@@ -10,8 +10,8 @@ A module imports its own layer and those below, never one above, and no module i
 through others (no circle). ``cicfw.export.agent`` is the model's inference path (a checkpoint or an
 exported model in, steering out): it sits with the model, and the benchmark's checkpoint policy and the
 export app build on it. ``cicfw.reproduction`` (a reproduction's lock, statistics and report) builds on the
-benchmark, never the other way. A feature package's ``__init__`` imports its own ``schema`` and nothing else
-above it: Hydra's ``pkg://cicfw.<package>`` search path imports the package, which registers the schema. No
+benchmark, never the other way. A feature package's config schema is its ``schema`` subpackage, which Hydra's
+``pkg://cicfw.<package>.schema`` search path imports when it composes that app's config. No
 module imports an app (``cicfw.<package>.app``) but the entry points (cli, the entry modules, a package's
 ``__main__`` and schema) and the apps that run other apps (``APP_USERS``). A new module must be placed in
 ``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins).
@@ -124,13 +124,10 @@ def layer_of(name: str) -> str | None:
 
 
 def upward_imports(path: Path, root: Path = PKG.parent) -> list[str]:
-    """The cicfw modules ``path`` imports from a layer above its own (a package's ``__init__`` may import its
-    own ``schema``: Hydra's ``pkg://`` search path imports the package to register it)."""
+    """The cicfw modules ``path`` imports from a layer above its own."""
     name = _module_name(path, root)
     rank = LAYERS.index(layer_of(name))
-    own_schema = f"{name}.schema" if path.name == "__init__.py" else None
     return sorted(m for m in imports_of(path, root) if m.startswith("cicfw.") and m != name
-                  and not (own_schema and (m == own_schema or m.startswith(own_schema + ".")))
                   and layer_of(m) is not None and LAYERS.index(layer_of(m)) > rank)
 
 

@@ -11,7 +11,6 @@ cells), ``evaluation_report`` (episodes.json/.csv, the success table, joined run
 The benchmark knows nothing of a reproduction (``cicfw.reproduction`` builds on it).
 
 ``app`` is the evaluate app (``python -m cicfw.evaluate`` runs it) and ``schema`` its config's schema:
-conf/evaluate.yaml puts this package on Hydra's search path (``pkg://cicfw.benchmark``), and importing it
+conf/evaluate.yaml puts its ``schema`` package on Hydra's search path (``pkg://cicfw.benchmark.schema``), and importing it
 registers the schema in Hydra's ConfigStore before an evaluate config is composed.
 """
-from cicfw.benchmark import schema  # noqa: F401  (registers the schema)

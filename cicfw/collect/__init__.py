@@ -6,8 +6,8 @@ writes one sample per camera. Files: ``<episode>_<part>.h5`` (200 samples each, 
 episode may be shorter), one JSON marker per finished episode under ``.episodes/``, and
 ``dataset_metadata.json`` (towns, weathers, seeds, sim version, counts, file -> episode). The app
 ``python -m cicfw.collect`` (``app``) is a thin shell around this package; ``schema`` is its config's
-schema: conf/collect.yaml puts this package on Hydra's search path (``pkg://cicfw.collect``), and
-importing it registers the schema in Hydra's ConfigStore before a collect config is composed.
+schema: conf/collect.yaml puts its ``schema`` package on Hydra's search path (``pkg://cicfw.collect.schema``), and
+importing that registers the schema in Hydra's ConfigStore before a collect config is composed.
 
 The package sits above the simulator (``cicfw.sim``) and the data layer (``cicfw.data``, whose CIL format it
 writes) and only apps import it. Its modules, one job each: ``config`` (defaults, validation, hash, the
@@ -86,7 +86,6 @@ from cicfw.collect.lock import LOCK_NAME, FolderLock
 from cicfw.collect.metadata import META_NAME, SIM_VERSION
 from cicfw.collect.plan import episode_bytes, episode_plan, steps_per_episode
 from cicfw.collect.verify import VerifyReport, verify_dataset
-from cicfw.collect import schema  # noqa: F401  (registers the schema)
 
 __all__ = [
     "CAMERA_IDS", "DEFAULTS", "LOCK_NAME", "META_NAME", "SIM_VERSION", "CollectConfigError", "CollectError",

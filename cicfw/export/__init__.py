@@ -2,7 +2,6 @@
 parity-checked, with its sidecar) and ``agent`` (the driving function of a checkpoint or an exported model,
 which the suite drives through); ``schema`` is the export config's schema.
 
-conf/export.yaml puts this package on Hydra's search path (``pkg://cicfw.export``): importing it registers
+conf/export.yaml puts its ``schema`` package on Hydra's search path (``pkg://cicfw.export.schema``): importing that registers
 the schema in Hydra's ConfigStore before an export config is composed.
 """
-from cicfw.export import schema  # noqa: F401  (registers the schema)

@@ -10,8 +10,7 @@ episode bootstrap, which cells a comparison pairs), ``claims`` (the paper's clai
 continue). Two studies over published cells run on their own: ``paired_switch`` (does a switch change
 driving) and ``offline_vs_closed_loop`` (does a lower validation error mean a better driver).
 
-``schema`` is the reproduce config's schema: conf/reproduce.yaml puts this package on Hydra's search path
-(``pkg://cicfw.reproduction``), and importing it registers the schema in Hydra's ConfigStore before a
+``schema`` is the reproduce config's schema: conf/reproduce.yaml puts its ``schema`` package on Hydra's search path
+(``pkg://cicfw.reproduction.schema``), and importing that registers the schema in Hydra's ConfigStore before a
 reproduce config is composed.
 """
-from cicfw.reproduction import schema  # noqa: F401  (registers the schema)
