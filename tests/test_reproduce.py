@@ -51,10 +51,16 @@ def smoke_run(cache, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def one_cell(cache, tmp_path_factory) -> Path:
-    """A results folder with one finished cell (cil seed 0): what resuming and continuing start from."""
+def one_cell(cache, smoke_run, tmp_path_factory) -> Path:
+    """A results folder with one finished cell (cil seed 0): what resuming and continuing start from. The
+    smoke run's cil seed 0 (the same cell a run of rows=[cil] seeds=1 trains: the first cell, on the same
+    data and seed) is copied with the run's manifest, then that one-cell run reports it: the cell is
+    skipped, nothing trains."""
     out = tmp_path_factory.mktemp("one") / "results"
+    shutil.copytree(smoke_run / "cells" / "cil" / "seed0", out / "cells" / "cil" / "seed0")
+    shutil.copy(smoke_run / "reproduce.json", out / "reproduce.json")
     assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
+    assert sorted(cells(out)) == ["cil/seed0"] and (out / "RESULTS.md").is_file()
     return out
 
 
@@ -109,7 +115,8 @@ def test_rerun_skips_every_finished_cell(smoke_run, capsys):
 def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
     out = tmp_path / "results"
     env = {**os.environ, "CICFW_CACHE": str(cache)}
-    cmd = [sys.executable, "-m", "cicfw.reproduce", *SMOKE, "rows=[cil]", "seeds=2", f"results_dir={out}"]
+    plan = [*SMOKE, "rows=[cil]", "seeds=2", "budget.curve_seeds=[]", f"results_dir={out}"]  # no curve: one drive a cell
+    cmd = [sys.executable, "-m", "cicfw.reproduce", *plan]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     first = out / "cells" / "cil" / "seed0" / "cell.json"
     deadline = time.time() + 900  # generous: a loaded 2-core machine trains the first cell slowly
@@ -119,7 +126,7 @@ def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
     proc.wait()
     assert first.is_file()
     kept = first.read_text()
-    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=2", f"results_dir={out}"]) == 0
+    assert reproduce.main(plan) == 0
     assert first.read_text() == kept  # the finished cell was not recomputed
     got = cells(out)
     assert sorted(got) == ["cil/seed0", "cil/seed1"] and {c["status"] for c in got.values()} == {"ok"}
