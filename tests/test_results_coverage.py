@@ -149,7 +149,9 @@ def test_the_episodes_floor_keeps_coverage_and_only_widens(n_seeds, gap):
     """The floor on a difference in one column (Newcombe on the pooled episodes), or on a gap between two
     columns (its four-term MOVER), covers the truth at least as often as the paired t-interval it widens,
     and at least 93% of the time."""
-    got = floor_coverage(n_seeds, gap)
+    # 500 experiments (the figures printed by this file's __main__ use 1,000): coverage 0.95-0.97 measured,
+    # so 0.93 stays 2 standard errors below; a floor that narrows or never moves a bound still fails
+    got = floor_coverage(n_seeds, gap, n_exp=500)
     print(f"\n{n_seeds} seeds, {'gap' if gap else 'new town / new weathers'}: {got}")
     assert got["floor"] >= got["t"] and got["floor"] >= 0.93 and got["moved"] > 0
 
