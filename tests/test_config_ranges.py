@@ -166,3 +166,43 @@ def test_a_multirun_checks_every_job_before_the_first_trains(tiny_data, tmp_path
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "head.W" in lines[0] and "-1" in lines[0], r.stderr[-2000:]
     assert not sweep.exists()  # no job ran, no sweep folder left
+
+
+# ---- values that pass a "<= 0" test as NaN, and the off-road level's range ---------------------------------
+
+
+@pytest.mark.parametrize("key,value", [("off_road_s", math.nan), ("off_road_s", math.inf), ("off_road_s", 0.0),
+                                       ("off_road_level", -1.0), ("off_road_level", 0.0), ("off_road_level", 2.0),
+                                       ("off_road_level", math.nan), ("target_speed_kmh", math.nan),
+                                       ("target_speed_kmh", math.inf), ("target_speed_kmh", -5.0)])
+def test_the_runners_rules_refuse_values_that_would_switch_them_off(key, value):
+    from cicfw.benchmark.runner import RunnerConfig
+
+    with pytest.raises(ConfigError) as err:
+        RunnerConfig(**{key: value})
+    assert err.value.key == f"runner.{key}" and (err.value.value == value or math.isnan(value))
+
+
+def test_the_runners_defaults_and_ordinary_values_pass():
+    from cicfw.benchmark.runner import RunnerConfig
+
+    RunnerConfig(off_road_s=1.5, off_road_level=1.0, target_speed_kmh=30.0)
+    RunnerConfig()
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_a_side_camera_correction_that_is_not_finite_is_refused(tiny_data, value):
+    from cicfw.data.datamodule import CILDataModule
+
+    with pytest.raises(ConfigError) as err:
+        CILDataModule(path=str(tiny_data), side_camera_correction=value)
+    assert err.value.key == "data.side_camera_correction"
+
+
+@pytest.mark.parametrize("key, value", [("towns", ["town_a", "town_a"]), ("weathers", ["ClearNoon", "ClearNoon"])])
+def test_a_town_or_weather_named_twice_is_refused(key, value):
+    from cicfw.benchmark.suite import build_suite, make_backend
+
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), **{**SUITE, key: value})
+    assert (err.value.key, err.value.value) == (f"suite.{key}", value)

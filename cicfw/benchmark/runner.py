@@ -29,7 +29,7 @@ import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy, make_policy
 from cicfw.benchmark.suite import Episode, make_backend, suite_routes
-from cicfw.core.errors import USER_ERRORS, CicfwError
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError
 from cicfw.core.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
 
@@ -62,10 +62,13 @@ class RunnerConfig:
         elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
             raise CicfwError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
                              f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])")
-        if self.off_road_s <= 0:
-            raise CicfwError(f"runner.off_road_s must be > 0 seconds, got {self.off_road_s}")
-        if self.target_speed_kmh is not None and self.target_speed_kmh <= 0:
-            raise CicfwError(f"runner.target_speed_kmh must be > 0 (or null), got {self.target_speed_kmh}")
+        # written so that NaN fails too: it passes any "<= 0" test and then silently disables the rule
+        if not 0 < self.off_road_s < math.inf:
+            raise ConfigError("runner.off_road_s", self.off_road_s, "a finite number of seconds > 0")
+        if not 0 < self.off_road_level <= 1:
+            raise ConfigError("runner.off_road_level", self.off_road_level, "a fraction of the car's width in (0, 1]")
+        if self.target_speed_kmh is not None and not 0 < self.target_speed_kmh < math.inf:
+            raise ConfigError("runner.target_speed_kmh", self.target_speed_kmh, "a finite speed > 0 (or null)")
 
 
     def resolve_workers(self, episodes: Sequence[Episode], renders: bool) -> int:

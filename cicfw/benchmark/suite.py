@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from cicfw.core.config_checks import whole_number
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.registry import SIM_BACKENDS
 
 #: the paper's four weathers: two seen in training, two new
@@ -140,6 +140,9 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         pairs = _pair_list(pairs)
     towns = check_names("town", towns, backend.towns(), path_ok=True)
     weathers = check_names("weather", weathers, backend.weathers())
+    for key, names in (("suite.towns", towns), ("suite.weathers", weathers)):
+        if len(set(names)) < len(names):  # a repeat would drive its episodes twice and count them twice
+            raise ConfigError(key, list(names), "a list of distinct names (each is driven once)")
     training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()])
     training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS])
     episodes: list[Episode] = []

@@ -6,6 +6,7 @@ command), side cameras with a steering correction, CIL augmentation for training
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any, Mapping, Sequence
 
 import lightning as L
@@ -112,6 +113,8 @@ class CILDataModule(L.LightningDataModule):
                               f"({len(COMMANDS)} commands), got {batch_size}; or set data.balanced=false")
         if not 0.0 < val_fraction < 1.0:
             raise ConfigError("data.val_fraction", val_fraction, "in (0, 1)")
+        if not math.isfinite(side_camera_correction):  # NaN would train on NaN labels without a word
+            raise ConfigError("data.side_camera_correction", side_camera_correction, "a finite steering offset")
         self.path = str(path)
         self.batch_size, self.val_batch_size = batch_size, val_batch_size
         self.val_fraction, self.seed = val_fraction, seed
