@@ -3,6 +3,7 @@ the statistics tests recompute with."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import logging
 import math
@@ -264,3 +265,12 @@ def run_app_in_process(module: str, *args: str, cwd: str | os.PathLike | None = 
         err.write(f"{code}\n")
         status = 1
     return AppResult(status, out.getvalue(), err.getvalue())
+
+
+def load_bench_script(name: str):
+    """A script of bench/ (not a package) imported as a module, so tests can call its functions."""
+    path = Path(__file__).resolve().parents[1] / "bench" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -1,7 +1,6 @@
 """bench/gpu_check.py: its checks' rules, and the whole script on the CPU (--dry-run)."""
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -9,18 +8,13 @@ from pathlib import Path
 
 import pytest
 
+from conftest import load_bench_script
+
 SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "gpu_check.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("gpu_check", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_loss_falls_rule():
-    check = load_script().loss_falls
+    check = load_bench_script("gpu_check").loss_falls
     falling = [1.0 - 0.04 * i for i in range(20)]
     assert check(falling)[0]
     assert not check(falling[::-1])[0]                 # a rising loss fails
@@ -30,7 +24,7 @@ def test_loss_falls_rule():
 
 
 def test_steering_and_throughput_rules():
-    m = load_script()
+    m = load_bench_script("gpu_check")
     assert m.steering_ok([0.1, -0.9, 1.0], 3)[0]
     assert not m.steering_ok([0.1, 1.2, 0.0], 3)[0]
     assert not m.steering_ok([0.1, float("inf"), 0.0], 3)[0]
@@ -49,7 +43,7 @@ def test_the_steps_are_timed_by_the_trainings_own_data_wait():
 
     from cicfw.data.wait import WARMUP_BATCHES, DataWait
 
-    timer = load_script().step_timer()
+    timer = load_bench_script("gpu_check").step_timer()
     assert not hasattr(timer, "waits") and type(timer).on_train_batch_start is type(timer).__mro__[1].on_train_batch_start
     clock = iter(float(t) for t in range(100))
     wait = DataWait(clock=lambda: next(clock))
@@ -66,7 +60,7 @@ def test_the_steps_are_timed_by_the_trainings_own_data_wait():
         wait.on_train_epoch_end(trainer, module)
     run = wait.run
     assert (run.batches, run.samples) == (4, 32) and run.wait == run.step == 4.0  # clock ticks of 1 s each
-    assert load_script().throughput(run.samples, run.wait, run.step, run.batches) == (4.0, 0.5, 4)
+    assert load_bench_script("gpu_check").throughput(run.samples, run.wait, run.step, run.batches) == (4.0, 0.5, 4)
 
 
 def test_without_cuda_it_says_so_and_exits_2():

@@ -2,21 +2,11 @@
 a hand computation (the figures docs/training.md's "Cost" section quotes)."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "model_cost.py"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("model_cost", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_bench_script
 
 
 def test_the_first_two_convolutions_by_hand():
-    layers = load_script().cil_conv_layers()
+    layers = load_bench_script("model_cost").cil_conv_layers()
     # conv 1: 3 -> 32 channels, 5x5, stride 2, no padding, on 88 x 200:
     # (88 - 5) // 2 + 1 = 42 rows, (200 - 5) // 2 + 1 = 98 columns; each output sums 3 x 5 x 5 inputs
     assert (layers[0]["h"], layers[0]["w"]) == (42, 98)
@@ -29,7 +19,7 @@ def test_the_first_two_convolutions_by_hand():
 
 
 def test_the_counted_model_agrees_with_the_formula_and_the_stated_totals():
-    m = load_script()
+    m = load_bench_script("model_cost")
     model = m.build()
     rows = m.count(model)
     convs = [r for r in rows if r["kind"] == "Conv2d"]

@@ -4,7 +4,6 @@ and no documented command asks for a lower precision except the license study it
 `cil_bf16`); the GPU check trains in fp32 and prints the commands of that study on a GPU."""
 from __future__ import annotations
 
-import importlib.util
 import re
 import shlex
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import compose_train
+from conftest import compose_train, load_bench_script
 
 ROOT = Path(__file__).resolve().parents[1]
 #: a Lightning precision other than fp32/fp64, after `precision=` or `precision:` (bf16-mixed, 16-mixed, bf16, 16-true, ...)
@@ -70,13 +69,6 @@ def doc_offences(root: Path) -> list[str]:
     return out
 
 
-def load_gpu_check():
-    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "bench" / "gpu_check.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_trainer_ddp_composes_to_fp32():
     assert compose_train("trainer=ddp").trainer.precision == "32-true"
     assert compose_train().trainer.precision == "32-true"
@@ -106,7 +98,7 @@ def test_the_scan_finds_what_it_must(tmp_path):
 
 
 def test_gpu_check_trains_in_fp32_and_prints_the_license_study(capsys):
-    m = load_gpu_check()
+    m = load_bench_script("gpu_check")
     assert "trainer.precision=32-true" in m.GPU_RECIPE and not any(REDUCED.search(o) for o in m.GPU_RECIPE)
     assert m.main(["--license-study"]) == 0
     out = capsys.readouterr().out
@@ -134,7 +126,7 @@ def test_the_printed_study_commands_pass_the_reproduce_apps_own_checks(capsys):
     config with the GPU's overrides) as ``python -m cicfw.reproduce`` would run them, without training."""
     from cicfw.reproduction.app import check_plan, check_rows, compose_plan
 
-    m = load_gpu_check()
+    m = load_bench_script("gpu_check")
     m.main(["--license-study"])
     commands = [line.strip() for line in capsys.readouterr().out.splitlines()
                 if line.strip().startswith("python -m cicfw.reproduce ")]
