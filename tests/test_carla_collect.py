@@ -16,7 +16,7 @@ carla = pytest.importorskip("carla", reason="the CARLA client is not installed: 
 
 from cicfw.carla_client import backend as carla_backend  # noqa: E402
 from cicfw.carla_client.backend import CarlaBackend  # noqa: E402
-from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
+from carla_standin import StandIn, maps_dir  # noqa: E402
 from cicfw.collect import collect_dataset, episode_plan, resolve_config  # noqa: E402
 from cicfw.data.cil_hdf5 import T, check_file  # noqa: E402
 

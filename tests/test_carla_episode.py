@@ -1,4 +1,4 @@
-"""CARLA episodes driven offline through a recording stand-in server (``cicfw.carla_client.standin``:
+"""CARLA episodes driven offline through a recording stand-in server (``tests/carla_standin.py``:
 autospecs of the real ``carla`` classes, the real Town01/Town02 maps, calls bound to the wheel's stubs).
 
 What a whole evaluation run does to the server: one episode at a time, each with its own town, weather
@@ -19,7 +19,7 @@ from cicfw.benchmark.runner import RunnerConfig, run, server_specs  # noqa: E402
 from cicfw.benchmark.suite import build_suite  # noqa: E402
 from cicfw.carla_client.backend import (CarlaBackend, CarlaBusy, CarlaSensorTimeout,  # noqa: E402
                                         steer_for_car)
-from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
+from carla_standin import StandIn, maps_dir  # noqa: E402
 from cicfw.sim.vehicle import VehicleParams  # noqa: E402
 
 MAPS = maps_dir()

@@ -21,7 +21,7 @@ carla = pytest.importorskip("carla", reason="the CARLA client is not installed: 
 from cicfw.carla_client import check as carla_check  # noqa: E402
 from cicfw.carla_client.backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
                                         CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
-from cicfw.carla_client.standin import StandIn, maps_dir  # noqa: E402
+from carla_standin import StandIn, maps_dir  # noqa: E402
 
 MAPS = maps_dir()
 needs_maps = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "

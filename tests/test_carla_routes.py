@@ -14,7 +14,7 @@ import pytest
 carla = pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
 
 from cicfw.carla_client.routes import random_route, single_turn_routes  # noqa: E402
-from cicfw.carla_client.standin import maps_dir  # noqa: E402
+from carla_standin import maps_dir  # noqa: E402
 from cicfw.sim.expert import Expert  # noqa: E402
 
 MAPS = maps_dir()

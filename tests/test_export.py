@@ -264,7 +264,7 @@ def test_the_carla_loop_in_the_docs_drives_against_the_carla_wheels_api(episode,
     import types
 
     pytest.importorskip("carla", reason="the CARLA client is not installed: pip install -e '.[carla]'")
-    from cicfw.carla_client.standin import StandIn, maps_dir
+    from carla_standin import StandIn, maps_dir
 
     if maps_dir() is None:
         pytest.skip("CARLA's Town01/Town02 OpenDRIVE files are not in ../shared/carla-maps (or $CICFW_CARLA_MAPS)")

@@ -6,7 +6,7 @@ server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.carla_client.
 minute; docs/simulator.md says what was verified offline and what only that check verifies.
 
 Guarantees (tests/test_carla_*.py drive them offline with the real client library, the real Town01 /
-Town02 maps and a recording stand-in world, ``cicfw.carla_client.standin``):
+Town02 maps and a recording stand-in world, ``tests/carla_standin.py``):
 
 - **One episode at a time per server.** A CARLA server is one world: one car, one weather, one map. The
   backend refuses a second live episode (``CarlaBusy``); ``lockstep = False`` tells the runner to drive
@@ -574,11 +574,6 @@ class CarlaEnv:
         speed = v.x * math.cos(yaw_c) + v.y * math.sin(yaw_c)  # forward speed
         self._centre = tf
         self._state = VehicleState(rx, -ry, -yaw_c, speed=max(float(speed), 0.0))
-
-    @property
-    def vehicle_state(self) -> VehicleState:
-        """The car at the last tick: rear axle, cicfw's frame, forward speed (m/s)."""
-        return self._state
 
     def expert_action(self) -> tuple[float, float]:
         """The expert's (steer in cicfw's convention, target speed km/h) for the current state."""

@@ -180,9 +180,3 @@ def random_route(cmap: Any, rng: np.random.Generator, min_length: float, name: s
             wps.append(min(nxt, key=lambda w: (w.road_id != wps[-1].road_id, w.lane_id != wps[-1].lane_id)))
             length += step
     return build_route(wps, turns, name, command_distance, step, meta={"town": cmap.name})
-
-
-def carla_pose(route: Route, i: int = 0) -> tuple[float, float, float]:
-    """CARLA (x, y, yaw deg) of route point ``i``."""
-    x, y = route.points[i]
-    return float(x), float(-y), float(-math.degrees(route.heading[i]))

@@ -46,7 +46,7 @@ def maps_dir() -> Path | None:
     import os
 
     env = os.environ.get("CICFW_CARLA_MAPS")
-    p = Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "carla-maps"
+    p = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "carla-maps"
     return p if (p / "Town01.xodr").is_file() and (p / "Town02.xodr").is_file() else None
 
 
