@@ -74,11 +74,21 @@ def test_left_is_left():
     assert vis.all() and u[0] < CX < u[1]
 
 
+def ground_to_image(cam, x: float, y: float, yaw: float) -> np.ndarray:
+    """3x3 homography taking world ground points (x, y, 1) to image (u, v, 1)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    # world ground (X, Y, 1) -> local 3D point minus the camera position
+    m = np.array([[c, s, -(c * x + s * y) - cm.MOUNT_FORWARD],
+                  [-s, c, (s * x - c * y)],
+                  [0.0, 0.0, -cm.MOUNT_HEIGHT]])
+    return cm.K @ cam.rotation @ m
+
+
 def test_pixel_rays_and_ground_homography_agree():
     cam = get_camera("right")
     pose = (3.0, 7.0, 0.4)
     rays = cm.pixel_rays(cam)
-    hom = cm.ground_to_image(cam, *pose)
+    hom = ground_to_image(cam, *pose)
     for (v, u) in [(40, 20), (80, 150), (30, 100)]:
         d = rays[v, u].astype(float)
         t = -cm.MOUNT_HEIGHT / d[2]

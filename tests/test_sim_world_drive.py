@@ -32,7 +32,8 @@ def test_vehicle_straight_and_turning_geometry():
     d = np.hypot(np.array(xs) - centre[0], np.array(ys) - centre[1])
     assert np.allclose(d, radius, atol=1e-6)
     assert min(ys) < -radius  # went round to the right
-    assert v.steer_for_curvature(-1 / radius) == pytest.approx(0.5)
+    # the steering that drives a path of curvature -1/radius (1/m, positive = left)
+    assert -math.atan(-1 / radius * v.p.wheelbase) / math.radians(v.p.max_wheel_angle_deg) == pytest.approx(0.5)
 
 
 def test_throttle_brake_and_speed_controller():

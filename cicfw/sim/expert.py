@@ -79,10 +79,6 @@ class Expert:
         self._pts = route.points
         self._i = 0
 
-    @property
-    def progress_index(self) -> int:
-        return self._i
-
     def locate(self, x: float, y: float) -> int:
         """Index of the nearest route point, searched in a window around the last one (monotone-ish)."""
         lo = max(self._i - 10, 0)

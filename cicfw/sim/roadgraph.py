@@ -78,9 +78,6 @@ class Route:
         """The CoRL-2017 time budget: the route length at ``speed_kmh`` plus ``extra_s`` seconds."""
         return self.length / (speed_kmh / 3.6) + extra_s
 
-    def command_at(self, i: int) -> int:
-        return int(self.commands[i])
-
 
 def _cum(poly: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])

@@ -35,7 +35,6 @@ class VehicleState:
     yaw: float  # rad, CCW from +x
     speed: float = 0.0  # m/s, forward
     steer: float = 0.0  # actual steering in [-1, 1] (after the lag)
-    accel: float = 0.0  # m/s^2, last longitudinal acceleration
 
     @property
     def speed_kmh(self) -> float:
@@ -65,7 +64,6 @@ class Vehicle:
         if v0 > 0.0:
             a -= brake * p.max_brake + p.rolling
         v1 = max(v0 + a * dt, 0.0)
-        s.accel = (v1 - v0) / dt
         s.speed = v1
         dist = 0.5 * (v0 + v1) * dt
         # positive steer turns right: yaw decreases
@@ -80,10 +78,6 @@ class Vehicle:
             s.y -= r * (math.cos(s.yaw + dyaw) - math.cos(s.yaw))
         s.yaw = (s.yaw + dyaw + math.pi) % (2 * math.pi) - math.pi
         return s
-
-    def steer_for_curvature(self, curvature: float) -> float:
-        """The steering in [-1, 1] that drives a path of ``curvature`` (1/m, positive = left)."""
-        return -math.atan(curvature * self.p.wheelbase) / self._max_wheel
 
     def centre(self) -> tuple[float, float]:
         """The car's geometric centre (rear axle + half length - rear overhang, forward)."""

@@ -117,16 +117,6 @@ def pixel_rays(cam: Camera, rows: slice = slice(None)) -> np.ndarray:
     return d[rows].astype(np.float32)
 
 
-def ground_to_image(cam: Camera, x: float, y: float, yaw: float) -> np.ndarray:
-    """3x3 homography taking world ground points (x, y, 1) to image (u, v, 1)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    # world ground (X, Y, 1) -> local 3D point minus the camera position
-    m = np.array([[c, s, -(c * x + s * y) - MOUNT_FORWARD],
-                  [-s, c, (s * x - c * y)],
-                  [0.0, 0.0, -MOUNT_HEIGHT]])
-    return K @ cam.rotation @ m
-
-
 def ground_distance_rows() -> np.ndarray:
     """(H,) distance (m, along the ground) from the camera foot to where the centre column of each
     row meets the ground; inf for rows at or above the horizon."""
