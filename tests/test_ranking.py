@@ -13,14 +13,23 @@ from scipy import stats
 
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMNS, CellResult
-from cicfw.reproduction.ranking import apart, best, forest, mcb, one_sided_bounds, ranking
+from cicfw.reproduction.ranking import _mcb, apart, best, forest, one_sided_bounds, ranking
 from cicfw.reproduction.report import markdown, report_data, write_report
+from cicfw.reproduction.seed_stats import ALPHA
 
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
 CATALOGUE = {"cil": {"label": "CIL", "paper": [94.74, 86.84, 52.5, 46.25]},
              "gtu": {"label": "GTU", "paper": [100.0, 93.42, 81.25, 75.0]},
              "hybrid": {"label": "CCE + MSE", "paper": [97.37, 85.53, 64.25, 56.25]},
              "sine": {"label": "Sine"}}
+
+
+def mcb(values, margin: float, alpha: float = ALPHA) -> dict:
+    """Hsu's MCB over ``values`` (row -> seed -> overall success), every pair on the same values (``best``
+    gives each pair its own cells): each row's interval for mu_i - max_{j != i} mu_j, its word, and G."""
+    rows = list(values)
+    return _mcb({(i, j): (values[i], values[j]) for x, i in enumerate(rows) for j in rows[x + 1:]}, rows, margin,
+                alpha)[0]
 
 
 def at(row: str, seed: int, pct: int, n: int = 100) -> CellResult:

@@ -56,10 +56,10 @@ def t_coverage(n_seeds: int, split_share: float = 0.0, n_exp: int = N_EXP, seed:
     ra, rb = column_rates(rng, pa), column_rates(rng, pb)  # (n_exp, n_seeds, 4)
     oa, ob = ra.mean(axis=2), rb.mean(axis=2)  # per-seed overall: the mean of the four columns
     out = {"seed_sd_overall": float(np.mean(np.std(oa, axis=1, ddof=1)))}
-    _, lo, hi = seed_stats.paired_t_interval(oa, ob)
+    _, lo, hi = seed_stats.t_interval(oa - ob)  # paired by seed
     out["paired_overall"] = float(np.mean((lo <= TRUE_OVERALL) & (TRUE_OVERALL <= hi)))
     out["paired_overall_width"] = float(np.mean(hi - lo))
-    _, lo, hi = seed_stats.paired_t_interval(ra[:, :, 3], rb[:, :, 3])
+    _, lo, hi = seed_stats.t_interval(ra[:, :, 3] - rb[:, :, 3])
     out["paired_new_new"] = float(np.mean((lo <= TRUE_NEW_NEW) & (TRUE_NEW_NEW <= hi)))
     out["paired_new_new_width"] = float(np.mean(hi - lo))
     _, lo, hi = seed_stats.t_interval(oa)
@@ -97,7 +97,7 @@ def bootstrap_coverage(n_seeds: int, n_exp: int = 300, n_boot: int = 400, seed: 
         hit_boot += lo <= TRUE_OVERALL <= hi
         widths.append(hi - lo)
         per_col = lambda m: np.stack([m[:, columns == c].mean(axis=1) for c in cells.COLUMNS], 1).mean(1)  # noqa: E731
-        _, tlo, thi = seed_stats.paired_t_interval(100 * per_col(ma), 100 * per_col(mb))
+        _, tlo, thi = seed_stats.t_interval(100 * per_col(ma) - 100 * per_col(mb))
         hit_t += tlo <= TRUE_OVERALL <= thi
     return {"bootstrap": hit_boot / n_exp, "bootstrap_width": float(np.mean(widths)), "paired_t": hit_t / n_exp}
 

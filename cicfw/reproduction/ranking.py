@@ -114,16 +114,6 @@ def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence:
     return est, lo, hi
 
 
-def mcb(values: Mapping[str, Mapping[int, float]], margin: float, alpha: float = ALPHA) -> dict[str, Any]:
-    """Hsu's multiple comparisons with the best over ``values`` (row -> seed -> overall success), the module's
-    procedure: each row's interval for mu_i - max_{j != i} mu_j (``lo``, ``hi``), its word, and ``best`` (G),
-    the rows that may drive best. Plain numbers in, every pair on the same values (``best`` gives each pair
-    its own cells)."""
-    rows = list(values)
-    return _mcb({(i, j): (values[i], values[j]) for x, i in enumerate(rows) for j in rows[x + 1:]}, rows, margin,
-                alpha)[0]
-
-
 def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int, float]]], rows: Sequence[str],
          margin: float, alpha: float = ALPHA) -> tuple[dict[str, Any], dict[tuple[str, str], Bounds]]:
     """MCB from each unordered pair's per-seed values (A's, B's): the intervals, the words and G, and the

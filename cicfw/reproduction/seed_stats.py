@@ -64,12 +64,6 @@ def t_interval(values: np.ndarray, level: float = LEVEL, axis: int = -1) -> tupl
     return mean, mean - half, mean + half
 
 
-def paired_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
-                      axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A - B paired by seed: the t-interval over the per-seed differences ``a_s - b_s`` (n - 1 df)."""
-    return t_interval(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), level, axis)
-
-
 def welch_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
                      axis: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A - B over unpaired seeds: Welch's t-interval (``scipy.stats.ttest_ind(equal_var=False)``,
