@@ -2,35 +2,10 @@
 interface as the embedded simulator (``cicfw.sim.backends``).
 
 Needs the client (``pip install "cicfw[carla]"``: carla==0.9.16, Python 3.10-3.12) and a CARLA 0.9.16
-server (``./CarlaUE4.sh -carla-rpc-port=2000``). ``python -m cicfw.carla_client.check`` tests a server in a
-minute; docs/simulator.md says what was verified offline and what only that check verifies.
-
-Guarantees (tests/test_carla_*.py drive them offline with the real client library, the real Town01 /
-Town02 maps and a recording stand-in world, ``tests/carla_standin.py``):
-
-- **One episode at a time per server.** A CARLA server is one world: one car, one weather, one map. The
-  backend refuses a second live episode (``CarlaBusy``); ``lockstep = False`` tells the runner to drive
-  episodes one after another, and ``runner.workers`` is then a list of ports, one server per worker.
-  Town (``load_world`` when it differs), weather and spawn are set per episode.
-- **Synchronous stepping, frames matched.** An episode runs in synchronous mode at 10 Hz; every
-  ``step`` ticks the world exactly once, and every camera image, the car's pose and speed (from the
-  world snapshot) are those of the frame id ``tick()`` returned. Older frames are dropped; a camera
-  that sends nothing for the frame within ``sensor_timeout_s`` is a ``CarlaSensorTimeout``.
-- **Nothing left behind.** ``CarlaEnv`` is a context manager: on any exit (the episode's end, an
-  exception, Ctrl-C) its sensors are stopped, every actor it spawned is destroyed and the world's
-  settings (synchronous mode, time step) are put back as they were. ``CarlaBackend.close()`` (and
-  ``with backend:``) closes a live episode too; the runner calls it.
-- **Infractions in the embedded simulator's columns.** ``off_road`` and ``opposite_lane`` (fractions of
-  the car's width, 0 inside junctions) from the map's lanes at five points across the car (off a driving
-  lane; on a lane whose direction opposes the car's), plus CARLA's own sensors: ``collision_other`` /
-  ``collision_pedestrian`` / ``collision_car`` (impulse, N s, this step; CIL's targets 11-13) and
-  ``lane_invasion`` (markings crossed this step).
-- **Steering for the spawned car.** Policies, the expert and the data speak cicfw's steering: [-1, 1]
-  of the reference car's 40 deg wheel at a 2.7 m wheelbase (``cicfw.sim.vehicle``). The env converts
-  every command to the same path curvature for the spawned car, using its maximum steer angle and
-  wheelbase from ``get_physics_control()``.
-- **Clear errors** (one line each): no server within ``connect_timeout_s``, the ``carla`` package
-  missing (with the install command), server and client versions differing (naming both).
+server (``./CarlaUE4.sh -carla-rpc-port=2000``). docs/carla.md states its episode model and guarantees
+(one episode at a time per server, synchronous frames matched, nothing left behind, infractions in the
+embedded simulator's columns, the reference car's steering, one-line errors); tests/test_carla_*.py drive
+them offline against a recording stand-in server (``tests/carla_standin.py``).
 """
 from __future__ import annotations
 

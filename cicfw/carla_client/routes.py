@@ -6,18 +6,6 @@ the suite's routes are computed and tested without a server (tests/test_carla_ro
 Coordinates: CARLA's frame is left-handed (x forward, y right, yaw clockwise seen from above); cicfw's
 is right-handed (yaw counter-clockwise). A CARLA point (x, y) is cicfw's (x, -y), a CARLA yaw (deg) is
 cicfw's ``-radians(yaw)``.
-
-- ``single_turn_routes(cmap, town)``: the suite's routes, one per lane through a junction (every
-  manoeuvre at every junction): from ``before`` metres before the junction (never from inside the
-  previous junction: the walk back stops at its exit) to ``after`` metres past it (never into the next
-  junction), so each route passes exactly one junction. Labelled left / right / straight by the heading
-  change through the junction.
-- ``random_route(cmap, rng, min_length)``: a multi-junction route for data collection, turns drawn so
-  left / right / straight stay balanced.
-
-Joining walks repeats the point where one lane ends and the next begins; points closer than a quarter
-step to the previous one are dropped, so every step has a length and the curvature (heading change per
-metre) is finite everywhere.
 """
 from __future__ import annotations
 
