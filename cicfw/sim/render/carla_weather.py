@@ -2,48 +2,10 @@
 
 ``CARLA_PRESETS`` copies every field of ``carla.WeatherParameters.<name>`` (carla 0.9.16) for the six
 presets we render; a test compares it with the installed library. ``derive_presets`` turns them into
-our ``Weather`` presets. Our two training presets, ClearNoon and ClearSunset, are the *anchors*: our
-rendering of CARLA's clear noon and clear sunset. Every other preset starts from the anchor with the
-same CARLA sun altitude and moves each parameter by what CARLA changes, through one rule per parameter
-fixed by its physical meaning (never by driving results). With n = cloudiness / 100 and n0 the
-anchor's, p = precipitation / 100, q = precipitation_deposits / 100, w = wetness / 100, rho =
-fog_density, and s = (n - n0) / (1 - n0) the share of the anchor's clear sky that CARLA clouds over:
-
-=================  =========================  ===============================================================
-ours               CARLA                      rule
-=================  =========================  ===============================================================
-sun_elevation      sun_altitude_angle         anchor + (altitude - anchor's altitude)
-sun_azimuth        sun_azimuth_angle          anchor + (azimuth - anchor's azimuth) (CARLA's -1: unset)
-clouds             cloudiness                 anchor + (n - n0) (1 - anchor) / (1 - n0)
-sun                cloudiness                 anchor x b(n) / b(n0): the direct beam (Kasten & Czeplak)
-ambient            cloudiness                 grey_s(anchor) x r_amb: the horizontal light follows g(n) / g(n0)
-sky, fog colour    cloudiness                 clip(grey_s(anchor) x r_amb): the sky is the diffuse source
-cloud colours      cloudiness                 dark = clip(grey_s(anchor) x r_amb); lit = dark + (lit - dark) x r_sun
-sun_glow           cloudiness                 anchor x r_sun: the halo is scattered direct sun
-fog_distance       fog_density                1/D = 1/D_anchor + (ln 2)^2 (rho - rho_anchor) / 1000 per metre
-rain               precipitation              p
-wetness            deposits, wetness          max(q, w): our puddles only show on a wet road
-puddles            precipitation_deposits     q
-saturation,        (none)                     the anchor's
-shadow_softness
-(not rendered)     wind_intensity             our clouds and rain do not move with wind
-(must equal)       fog_distance, fog_falloff, the anchor's value, else the rule refuses: equal in every preset
-                   scattering, dust_storm
-=================  =========================  ===============================================================
-
-Kasten & Czeplak (1980, Solar Energy 24:177) measured, for cloud cover n, global horizontal
-irradiance g(n) = 1 - 0.75 n^3.4 (relative to a clear sky) and its diffuse fraction f(n) = 0.3 + 0.7 n^2;
-the direct beam is b(n) = g(n) (1 - f(n)). So r_sun = b(n) / b(n0), and the ambient takes the rest of
-the horizontal light: r_amb = (G_a g(n) / g(n0) - S_a r_sun) / A_a, where A_a and S_a = L(sun) sin(el)
-are the anchor's ambient and direct horizontal light (L: Rec. 709 luminance) and G_a = A_a + S_a.
-grey_s(c) moves a colour toward its luminance by s (the clouded sky is grey).
-
-Fog: CARLA's fog is Unreal Engine 4's exponential height fog. Reading fog_density as UE's FogDensity x
-100 (CARLA's clear presets carry 2: UE's own default, 0.02), UE divides it by 1000 per cm and its
-horizontal line integral carries ln 2 inside a base-2 exponential, so the transmittance over L metres is
-exp(-(ln 2)^2 rho L / 1000). fog_falloff 0.1 thins it by 2^(-0.01 h) at camera height h m (1 % at
-1.4 m) and the start distance 0.75 m shifts it by < 0.2 %; both are equal in every preset, so they
-cancel in the difference from the anchor.
+our ``Weather`` presets: each moves from its *anchor* (our ClearNoon or ClearSunset, same CARLA sun
+altitude) by what CARLA changes, through one rule per parameter fixed by its physical meaning (never by
+driving results). docs/simulator.md#weathers gives the rule, parameter by parameter, and its sources
+(Kasten & Czeplak 1980 for the light under cloud cover; UE4's exponential height fog for the fog).
 """
 from __future__ import annotations
 
