@@ -1,29 +1,7 @@
 """Which row drives best, by a procedure fixed before it is run: Hsu's multiple comparisons with the best
-(MCB) over every row with enough seeds, and every row against CIL (the forest plot's data).
-
-**The rows.** Only rows with at least ``MIN_SEEDS`` seeds are ranked; the others are listed apart, in the
-catalogue's order, and never ranked (a one-seed row's "lead" is one draw of the seed).
-
-**A pair of rows.** Row i minus row j in overall success over seeds: paired over the seeds both ran (the
-same seed trains on the same split), Welch's t where they share none, within one CPU kind where both have
-the seeds there (``analysis.pair_cells``). Each pair's one-sided bounds come from ``scipy.stats.ttest_rel``
-(paired) or ``ttest_ind(equal_var=False)`` (Welch) and their ``confidence_interval``.
-
-**MCB** (Hsu 1996, ch. 4, with Bonferroni's constant in place of Dunnett's, since pairs differ in seeds,
-pairing and variance). With k ranked rows and q = 1 - 0.05 / (k - 1), let ``up_ij`` and ``lo_ij`` be the
-one-sided q bounds of mu_i - mu_j (upper and lower). For each row the interval of mu_i - max_{j != i} mu_j is
-
-    U_i = max(0, min_{j != i} up_ij),  G = {i : U_i > 0},
-    L_i = 0 if G = {i}, else min(0, min_{j in G, j != i} lo_ij),
-
-and the k intervals hold jointly with probability >= 95%: they all hold whenever the true best row b's k - 1
-one-sided comparisons do (each at 0.05 / (k - 1)). G is the set of rows that may drive best. A row reads
-*ahead* (it drives best: G is that row alone), *behind* (U_i = 0: some row drives better), *equivalent
-within ±margin* of the best of the others (-margin < L_i and U_i < margin), or *not separated*.
-
-**The forest.** Every ranked row minus CIL, the paired or Welch 95% t-interval, its word read on the
-Bonferroni interval over the forest's comparisons (one per ranked row besides CIL); rows apart are drawn
-apart, with no word."""
+(MCB) over every row with at least ``MIN_SEEDS`` seeds (the others listed apart, never ranked), and every
+row against CIL (the forest plot's data). docs/reproduce.md#which-row-drives-best states the procedure,
+its bounds and its words; tests/test_ranking.py recomputes it by hand."""
 from __future__ import annotations
 
 import math
@@ -126,6 +104,7 @@ def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int,
     for (i, j), (va, vb) in pairs.items():
         est, lo, hi = one_sided_bounds(va, vb, q)
         bounds[i, j], bounds[j, i] = (est, lo, hi), (-est, -hi, -lo)
+    # Hsu's U_i = max(0, min_j up_ij), G = {i : U_i > 0}, L_i = 0 if G = {i} else min(0, min_{j in G} lo_ij)
     upper = {i: max(0.0, min(bounds[i, j][2] for j in rows if j != i)) for i in rows}
     g = [i for i in rows if upper[i] > 0]
     out = []
@@ -145,7 +124,7 @@ def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int,
 
 
 def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] | None:
-    """"Which row drives best" for the report: MCB (``mcb``) over the ``ranked`` rows, each pair on the cells
+    """"Which row drives best" for the report: MCB over the ``ranked`` rows, each pair on the cells
     ``analysis.pair_cells`` gives it (one CPU kind where it can be, the seeds both ran), with each pair's
     difference, test and MCB's bounds; None with fewer than two ranked rows."""
     if len(ranked) < 2:
