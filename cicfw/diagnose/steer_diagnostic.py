@@ -1,27 +1,14 @@
 """Why a model misses turns: how its steering follows the expert's around junctions, and how much
 the command moves it (``python -m cicfw.diagnose`` is the app around this module).
 
-On a set of recorded frames (the training run's validation episodes) it measures two things:
+On a set of recorded frames (the training run's validation episodes) it measures how the predicted
+steering follows the expert's (per command and per phase of a junction) and the command-swap effect (each
+frame under all four commands); docs/evaluation.md says how to read both.
 
-- **Following.** The least-squares line of the predicted steering against the expert's,
-  ``pred = slope * expert + offset``, with the MAE, Pearson's r and n, per command and per phase of a
-  junction. A slope well below 1 on turn frames is a model that turns, but too little (it shrinks the
-  rare large steering values); an offset is a bias to one side.
-- **The command-swap effect.** Each frame is run under all four commands on the same image and speed:
-  the mean ``|steer(a) - steer(b)|`` per pair of commands, and on junction frames how far the left,
-  right and straight branches move the output from the follow branch, beside how far the expert's
-  steering is from the follow branch's (what the turn branch *needed* to add). A model that ignores the
-  command has a swap effect of exactly 0.
-
-**Phases** are derived from each episode's frame sequence alone (commands, speed, game time), so they
-work on CARLA/CoRL-2017 files as well as on the embedded simulator's, with no town model
-(``assign_phases``): a run of one turn command (left / right / straight) is a junction; its frames
-within ``approach_m`` metres (integrated speed) of the command's onset are ``approach``, the rest
-``inside``; the follow-lane frames within ``exit_s`` seconds after the command ends are ``exit``; other
-follow frames are ``lane``. The embedded simulator's planner turns the command on ``command_distance``
-(12 m) before the junction's entry and off at its exit, so with ``approach_m`` = that distance the
-phases are the junction's geometry. A turn command already on at an episode's first frame has no
-observed onset: its frames are ``unknown`` (counted per command, not per phase).
+**Phases** (``assign_phases``) come from each episode's frame sequence alone (commands, speed, game
+time), so they work on CARLA/CoRL-2017 files as well as on the embedded simulator's, with no town model.
+The embedded planner turns the command on ``command_distance`` (12 m) before the junction's entry and off
+at its exit, so with ``approach_m`` = that distance the phases are the junction's geometry.
 
 The model is any plain callable ``steer_fn(images, speed_kmh, command) -> steer`` (images uint8
 (B, 3, 88, 200), speed km/h (B,), command the branch index 0-3 = CIL code - 2, as
