@@ -29,7 +29,6 @@ SUITES = {
     "single_turn": ("left", "right"),  # the paper's test: exactly one turn per episode
     "junctions": ("left", "right", "straight"),  # every way through every junction
 }
-MANOEUVRES = ("left", "right", "straight")
 #: the evaluate override that picks how the embedded simulator renders a weather name (conf/sim/embedded.yaml)
 WEATHER_FAMILY_KEY = "sim.weather_family"
 
@@ -70,13 +69,9 @@ def make_backend(spec: Mapping[str, Any] | None):
 
 
 @functools.lru_cache(maxsize=32)
-def _routes_cached(backend: Any, town: str) -> tuple:
-    return tuple(backend.single_turn_routes(town))
-
-
 def suite_routes(backend: Any, town: str) -> tuple:
     """The backend's single-turn routes of ``town`` (cached per backend object)."""
-    return _routes_cached(backend, town)
+    return tuple(backend.single_turn_routes(town))
 
 
 def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: bool = False) -> list[str]:
