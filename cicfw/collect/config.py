@@ -199,7 +199,7 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     dup = sorted({k for k in keys if keys.count(k) > 1})
     if dup:
         raise CollectConfigError(f"collect.towns: two towns named {dup[0]!r} (file names use a town file's stem); "
-                                 f"rename one of the files")
+                                 f"rename one of the files", key="collect.towns", value=dup[0])
     known_w = list(backend.weathers())
     if not out["weathers"]:
         raise CollectConfigError(f"collect.weathers is empty; known weathers (sim={sim}): {', '.join(known_w)}")
