@@ -218,4 +218,4 @@ class RunFolderLock(FolderLock):
 
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
         return RunFolderError(f"another evaluation (pid {holder.get('pid', '?')}) is writing {str(self.folder)!r}; "
-                              f"wait for it to finish or give another output folder")
+                              f"wait for it to finish or give another output folder", value=self.folder)
