@@ -470,6 +470,6 @@ def test_a_folder_of_the_users_own_hdf5_files_is_left_exactly_as_it_was(tmp_path
         collect_mod.run({**TINY, "out_dir": str(mine)})
     assert exc.value.code == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and lines[0] == (f"cicfw: error: {mine} holds 3 HDF5 file(s) this collection does not "
-                                            f"write (e.g. data_00000.h5); collect into an empty folder"), lines
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: ") and str(mine) in lines[0], lines
+    assert "data_00000.h5" in lines[0], lines  # names a file it would not mix in
     assert _listing(mine) == before
