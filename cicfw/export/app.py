@@ -457,7 +457,8 @@ def check_out_suffix(out: str | None, fmt: str) -> None:
     if suffix != FORMATS[fmt]:
         each = ", ".join(f"format={f} writes {s}" for f, s in FORMATS.items())
         raise ExportError(f"out={str(out)!r} ends in {suffix or 'no suffix'!r}, but format={fmt} writes a "
-                          f"{FORMATS[fmt]} file ({each}); give out=<name>{FORMATS[fmt]} or the format that fits")
+                          f"{FORMATS[fmt]} file ({each}); give out=<name>{FORMATS[fmt]} or the format that fits",
+                          key="out", value=out)
 
 
 def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
@@ -469,7 +470,7 @@ def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
             same = os.path.samefile(what, checkpoint)
         if same:
             raise ExportError(f"out={str(path)!r} would write over the checkpoint being exported "
-                              f"({str(checkpoint)!r}); give out=<another file>")
+                              f"({str(checkpoint)!r}); give out=<another file>", key="out", value=path)
 
 
 def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = False) -> None:
