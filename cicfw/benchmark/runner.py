@@ -63,8 +63,8 @@ class RunnerConfig:
                                  value=self.workers)
         elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
             raise CicfwError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
-                             f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])", key="runner.workers",
-                             value=self.workers)
+                             f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])",
+                             key="runner.workers", value=self.workers)
         # written so that NaN fails too: it passes any "<= 0" test and then silently disables the rule
         if not 0 < self.off_road_s < math.inf:
             raise ConfigError("runner.off_road_s", self.off_road_s, "a finite number of seconds > 0")
