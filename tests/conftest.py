@@ -274,3 +274,18 @@ def load_bench_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def assert_refused(result: object, key: object, value: object = None, status: int = 2) -> str:
+    """An app (``run_app_in_process``'s result, or a ``subprocess.CompletedProcess`` with text) refused its
+    input as a user error: exit ``status`` (2), no traceback, and stderr ends with its one ``cicfw: error:``
+    line, which names ``key`` and ``value`` (each as ``str``; None: not checked). Returns the line for a
+    test that checks more. It asserts no sentence, so a reworded message keeps the test."""
+    stderr = result.stderr
+    lines = [line for line in stderr.splitlines() if line.startswith("cicfw: error:")]
+    assert result.returncode == status, stderr[-3000:]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr[-3000:]
+    assert stderr.rstrip("\n").splitlines()[-1] == lines[0], stderr[-3000:]  # one line: nothing after it
+    for part in (key, value):
+        assert part is None or str(part) in lines[0], (part, lines[0])
+    return lines[0]

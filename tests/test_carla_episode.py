@@ -118,8 +118,9 @@ def test_a_missing_frame_is_one_clear_error_after_the_timeout_and_nothing_is_lef
     eps = build_suite(be, ["town_a"], ["ClearNoon"], pairs=[0])
     si.drop = {si.frame + SETTLE + 1 + 6}  # the 6th step's images never come
     t0 = time.monotonic()
-    with pytest.raises(CarlaSensorTimeout, match=r"camera 'centre' sent no image for frame \d+ within 0.3 s"):
+    with pytest.raises(CarlaSensorTimeout) as err:
         run(eps, CameraExpert(), be, RunnerConfig(workers=1, progress_bar=False))
+    assert "'centre'" in str(err.value) and "0.3 s" in str(err.value)  # the camera and the timeout
     assert time.monotonic() - t0 < 10.0
     assert_clean(si)
 
@@ -177,7 +178,7 @@ def test_one_episode_per_server():
     second = be.make_env("town_a", routes[1], "ClearSunset", renderer=False)
     with first:
         first.reset()
-        with pytest.raises(CarlaBusy, match="one episode at a time per server"):
+        with pytest.raises(CarlaBusy):
             second.reset()
         assert len([r for r in si.alive.values() if r["kind"] == "vehicle"]) == 1
     with second:
@@ -195,8 +196,9 @@ def test_a_non_finite_control_is_refused_and_never_sent():
         sent = len(si.controls())
         for kwargs in ({"steer": float("nan"), "target_speed_kmh": 10.0}, {"steer": 0.0, "target_speed_kmh": float("nan")},
                        {"steer": 0.0, "throttle": float("inf"), "brake": 0.0}):
-            with pytest.raises(ValueError, match="non-finite control"):
+            with pytest.raises(ValueError) as err:
                 env.step(**kwargs)
+            assert "nan" in str(err.value) or "inf" in str(err.value), err.value  # the value refused
         assert len(si.controls()) == sent
     assert_clean(si)
 
@@ -267,10 +269,13 @@ def test_runner_workers_are_servers_for_carla():
         {"name": "carla", "port": 2000}, {"name": "carla", "port": 2002}]
     assert server_specs({"name": "carla"}, "auto") == [{"name": "carla"}]
     assert server_specs({"name": "embedded"}, 4) is None
-    with pytest.raises(ValueError, match=r"runner.workers=\[2000,2002\]"):
+    with pytest.raises(ValueError) as err:
         server_specs({"name": "carla"}, 3)
-    with pytest.raises(ValueError, match="sim=carla"):
+    assert (err.value.key, err.value.value) == ("runner.workers", 3) and "[2000,2002]" in str(err.value)  # ports
+    with pytest.raises(ValueError) as err:
         server_specs({"name": "embedded"}, [2000, 2002])
-    with pytest.raises(ValueError, match="distinct server ports"):
+    assert (err.value.key, err.value.value) == ("runner.workers", [2000, 2002])
+    with pytest.raises(ValueError) as err:
         RunnerConfig(workers=[2000, 2000])
+    assert (err.value.key, err.value.value) == ("runner.workers", [2000, 2000])
     assert RunnerConfig(workers=[2000, 2002]).resolve_workers(list(range(5)), True) == 2

@@ -20,8 +20,10 @@ carla = pytest.importorskip("carla", reason="the CARLA client is not installed: 
 
 from cicfw.carla_client import check as carla_check  # noqa: E402
 from cicfw.carla_client.backend import (CarlaBackend, CarlaError, CarlaNotInstalled,  # noqa: E402
-                                        CarlaServerUnavailable, CarlaVersionMismatch, connect, import_carla)
+                                        INSTALL_COMMAND, CarlaServerUnavailable, CarlaVersionMismatch, connect,
+                                        import_carla)
 from carla_standin import StandIn, maps_dir  # noqa: E402
+from conftest import assert_refused  # noqa: E402
 
 MAPS = maps_dir()
 needs_maps = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
@@ -42,13 +44,14 @@ def test_a_real_client_at_an_unused_port_fails_fast_with_one_line():
         connect("127.0.0.1", port, connect_timeout_s=1.0)
     assert time.monotonic() - t0 < 4.0
     msg = str(err.value)
-    assert "\n" not in msg and f"no CARLA server answered at 127.0.0.1:{port} within 1 s" in msg
-    assert "sim.connect_timeout_s" in msg and "sim=embedded" in msg
+    assert "\n" not in msg and f"127.0.0.1:{port}" in msg  # where it looked
+    assert "sim.connect_timeout_s" in msg and "sim=embedded" in msg  # the keys that fix it
     assert isinstance(err.value, ValueError)  # the apps print user errors as one line
     # the backend connects lazily, on the first call that needs the server, with the same error
     be = CarlaBackend(host="127.0.0.1", port=port, connect_timeout_s=1.0)
-    with pytest.raises(CarlaServerUnavailable, match="no CARLA server answered"):
+    with pytest.raises(CarlaServerUnavailable) as err:
         be.single_turn_routes("town_a")
+    assert f"127.0.0.1:{port}" in str(err.value)
 
 
 @needs_maps
@@ -58,7 +61,7 @@ def test_server_and_client_versions_must_match():
     with pytest.raises(CarlaVersionMismatch) as err:
         connect("localhost", 2000, carla=fake)
     msg = str(err.value)
-    assert "runs 0.9.15" in msg and "client is 0.9.16" in msg and "\n" not in msg
+    assert "0.9.15" in msg and "0.9.16" in msg and "\n" not in msg  # both versions
     si.version = "0.9.16"
     assert connect("localhost", 2000, carla=fake) is si.client
 
@@ -68,19 +71,22 @@ def test_a_missing_client_is_one_line_with_the_install_command(monkeypatch):
     with pytest.raises(CarlaNotInstalled) as err:
         import_carla()
     msg = str(err.value)
-    assert 'pip install "cicfw[carla]"' in msg and "carla==0.9.16" in msg and "\n" not in msg
+    assert INSTALL_COMMAND in msg and "\n" not in msg
     assert isinstance(err.value, ImportError) and isinstance(err.value, ValueError)
     with pytest.raises(CarlaNotInstalled):
         CarlaBackend()
 
 
 def test_config_errors_name_the_key():
-    with pytest.raises(CarlaError, match="sim.weathers: 'Sunny' is no CARLA weather preset"):
+    with pytest.raises(CarlaError) as err:
         CarlaBackend(weathers=["Sunny"], client=object())
-    with pytest.raises(CarlaError, match="sim.sensor_timeout_s must be > 0"):
+    assert "sim.weathers" in str(err.value) and "'Sunny'" in str(err.value)
+    with pytest.raises(CarlaError) as err:
         CarlaBackend(sensor_timeout_s=0, client=object())
-    with pytest.raises(CarlaError, match="unknown CARLA town 'town_z'"):
+    assert "sim.sensor_timeout_s" in str(err.value) and "0.0" in str(err.value)
+    with pytest.raises(CarlaError) as err:
         CarlaBackend(client=object()).resolve_town("town_z")
+    assert "'town_z'" in str(err.value)
 
 
 @pytest.mark.parametrize("case", ["evaluate", "collect", "evaluate-no-client"])
@@ -96,11 +102,11 @@ def test_the_apps_print_one_line(case, tmp_path):
             f"runpy.run_module({args[0]!r}, run_name='__main__')")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
-    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
-    assert p.returncode == 2, p.stderr[-2000:]
-    assert "Traceback" not in p.stderr and len(lines) == 1, p.stderr[-2000:]
-    want = 'pip install "cicfw[carla]"' if case == "evaluate-no-client" else f"no CARLA server answered at 127.0.0.1:{port}"
-    assert lines[0].startswith("cicfw: error: ") and want in lines[0]
+    assert len([ln for ln in p.stderr.splitlines() if ln.strip()]) == 1, p.stderr[-2000:]
+    if case == "evaluate-no-client":
+        assert INSTALL_COMMAND in assert_refused(p, "sim=carla")
+    else:
+        assert_refused(p, "sim.port", f"127.0.0.1:{port}")
     assert not (tmp_path / "data").exists()
 
 
@@ -141,7 +147,7 @@ def test_carla_check_fails_what_breaks_and_still_cleans_up():
 def test_carla_check_without_a_server_says_so(capsys):
     rc = carla_check.main(["--host", "127.0.0.1", "--port", str(unused_port()), "--timeout", "1"])
     out = capsys.readouterr().out
-    assert rc == 1 and "FAIL  server: no CARLA server answered" in out and "PASS  client" in out
+    assert rc == 1 and "FAIL  server" in out and "PASS  client" in out
 
 
 def test_cli_has_carla_check():

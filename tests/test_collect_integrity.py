@@ -92,8 +92,8 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
         with pytest.raises(FolderLockedError) as err:
             collect_dataset({**TINY, "episodes": 3, "seed": 1, "lock_wait": 0}, out, progress=False)
         msg = str(err.value)
-        assert f"is being collected into by another process (pid {a.pid} on {socket.gethostname()}, started " in msg
-        assert "seed 0" in msg and "\n" not in msg
+        assert err.value.key == "out_dir" and err.value.value == out.resolve()
+        assert f"pid {a.pid}" in msg and socket.gethostname() in msg and "\n" not in msg
         # a third with the first one's config waits for it, then finds nothing left to do
         with caplog.at_level(logging.WARNING, logger="cicfw.collect"):
             meta = json.loads(collect_dataset({**a_cfg, "lock_wait": 300}, out, progress=False).read_text())
@@ -105,8 +105,9 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
             a.wait()
     assert meta["complete"] and meta["seed"] == 0
     # the second one again, now that the folder is free: refused, it holds another config's dataset
-    with pytest.raises(CollectConfigError, match=r"another config .*seed 0\)"):
+    with pytest.raises(CollectConfigError) as err:
         collect_dataset({**TINY, "episodes": 3, "seed": 1, "lock_wait": 0}, out, progress=False)
+    assert err.value.key == "out_dir" and err.value.value == out.resolve()
     # the folder holds exactly the first collector's plan: its episodes, seeds and files, nothing else
     plan = episode_plan(resolve_config(a_cfg))
     meta = _meta(out)
@@ -143,10 +144,14 @@ def test_the_lock_is_released_on_errors_and_names_its_holder(tmp_path: Path, mon
     with FolderLock(tmp_path, 0, {"what": "a test"}):  # free again
         held = _holder(tmp_path)
         assert held["pid"] == os.getpid() and held["host"] == socket.gethostname() and held["what"] == "a test"
-        with pytest.raises(FolderLockedError, match=rf"pid {os.getpid()} on .*, started .* \(a test\)"):
+        with pytest.raises(FolderLockedError) as err:
             collect_dataset({**TINY, "lock_wait": 0}, tmp_path, progress=False)
-        with pytest.raises(FolderLockedError, match=r"after waiting 1 s"):
+        assert err.value.key == "out_dir" and err.value.value == tmp_path.resolve()
+        assert f"pid {os.getpid()}" in str(err.value) and "a test" in str(err.value)  # the holder
+        t0 = time.monotonic()
+        with pytest.raises(FolderLockedError):
             collect_dataset({**TINY, "lock_wait": 0.6}, tmp_path, progress=False)
+        assert time.monotonic() - t0 >= 0.6  # waited for it first
     # temporary names are unique to the process and to each call
     a, b = files_mod._temp_name(tmp_path / "x.h5", ".part"), files_mod._temp_name(tmp_path / "x.h5", ".part")
     assert a != b and a.name.startswith(f".x.h5.{os.getpid()}-") and a.suffix == ".part"
@@ -299,16 +304,17 @@ def test_a_full_tmpfs_is_one_clear_error_and_leaves_no_temp_file(small_disk: Pat
     real_run = dataset_mod.run_episode
     monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: runs.append(1) or real_run(*a, **k))
     # the free-space check: refused before anything is simulated
-    with pytest.raises(DiskFullError, match=rf"not enough free space in {out}: the 2 episode\(s\) left needs ~"):
+    with pytest.raises(DiskFullError) as err:
         collect_dataset(TINY, out, progress=False)
+    assert err.value.key == "out_dir" and err.value.value == out
     assert runs == [] and _temp_files(out) == []
     # with the check fooled, the second episode's write really hits ENOSPC: one clear error, no temp file,
     # no crash inside HDF5 (the file is built in memory and written with os.write)
     monkeypatch.setattr(writing, "_free_bytes", lambda path: 10**12)
-    with pytest.raises(DiskFullError, match=rf"no space left on the device of {out} while writing "
-                                            rf"ep0001_town_a_ClearNoon_000.h5 \(0.\d MB free\)") as err:
+    with pytest.raises(DiskFullError) as err:
         collect_dataset(TINY, out, progress=False)
-    assert "\n" not in str(err.value)
+    assert err.value.key == "out_dir" and err.value.value == out
+    assert "ep0001_town_a_ClearNoon_000.h5" in str(err.value) and "\n" not in str(err.value)  # the file it wrote
     assert _temp_files(out) == [] and [f.name for f in find_files(out)] == ["ep0000_town_a_ClearNoon_000.h5"]
     assert not _meta(out)["complete"] and _meta(out)["counts"]["episodes"] == 1
     # space freed: the rerun finishes the dataset
@@ -327,13 +333,14 @@ def test_enospc_in_the_middle_of_a_write_is_one_clear_error(tmp_path: Path, monk
         real(fd, data)
 
     monkeypatch.setattr(files_mod, "write_all", half_then_full)
-    with pytest.raises(DiskFullError, match=r"no space left on the device of .* while writing x.h5 \("):
+    with pytest.raises(DiskFullError) as err:
         writing.write_files({tmp_path / "x.h5": b"\0" * 200_000})  # the write itself removes its temp file
+    assert err.value.key == "out_dir" and err.value.value == tmp_path and "x.h5" in str(err.value)
     assert os.listdir(tmp_path) == []
-    with pytest.raises(DiskFullError, match="no space left on the device of .* while writing "
-                                            "ep0000_town_a_ClearNoon_000.h5") as err:
+    with pytest.raises(DiskFullError) as err:
         collect_dataset(TINY, tmp_path, progress=False)
-    assert "\n" not in str(err.value)
+    assert err.value.key == "out_dir" and err.value.value == tmp_path.resolve()
+    assert "ep0000_town_a_ClearNoon_000.h5" in str(err.value) and "\n" not in str(err.value)
     assert _temp_files(tmp_path) == [] and not list(tmp_path.glob("*.h5")) and not _meta(tmp_path)["complete"]
     monkeypatch.setattr(files_mod, "write_all", real)
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
@@ -347,10 +354,10 @@ def test_a_file_in_place_of_the_folder_is_reported_before_simulating(tmp_path: P
     monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     f = tmp_path / "a_file"
     f.write_text("x")
-    with pytest.raises(CollectError, match=rf"out_dir {f} is a file, not a folder"):
-        collect_dataset(TINY, f, progress=False)
-    with pytest.raises(CollectError, match=rf"cannot create the output folder {f / 'sub'} \(Not a directory\)"):
-        collect_dataset(TINY, f / "sub", progress=False)
+    for out in (f, f / "sub"):
+        with pytest.raises(CollectError) as err:
+            collect_dataset(TINY, out, progress=False)
+        assert err.value.key == "out_dir" and err.value.value == out
 
 
 def test_a_read_only_folder_is_reported_before_simulating(tmp_path: Path, monkeypatch):
@@ -362,10 +369,10 @@ def test_a_read_only_folder_is_reported_before_simulating(tmp_path: Path, monkey
     else:
         ro.chmod(0o500)
     try:
-        with pytest.raises(CollectError, match=rf"cannot write to the output folder {ro} \("):
-            collect_dataset(TINY, ro, progress=False)
-        with pytest.raises(CollectError, match=rf"cannot create the output folder {ro / 'sub'} \("):
-            collect_dataset(TINY, ro / "sub", progress=False)
+        for out in (ro, ro / "sub"):
+            with pytest.raises(CollectError) as err:
+                collect_dataset(TINY, out, progress=False)
+            assert err.value.key == "out_dir" and err.value.value == out
     finally:
         if os.geteuid() == 0:
             subprocess.run(["umount", "-l", str(ro)], capture_output=True)
@@ -391,14 +398,16 @@ def test_a_town_given_by_path(tmp_path: Path):
     assert meta["episodes"]["ep0000_my_town_ClearNoon"]["town"] == str(town.resolve())
     # the town file is part of the config: edited, it makes another dataset
     town.write_text(town.read_text() + "\n# edited\n")
-    with pytest.raises(CollectConfigError, match="another config"):
+    with pytest.raises(CollectConfigError) as err:
         collect_dataset(cfg, out, progress=False)
+    assert err.value.key == "out_dir" and err.value.value == out.resolve()
     # two town files with one stem would share file names
     other = tmp_path / "b" / "my_town.yaml"
     other.parent.mkdir()
     shutil.copy(town, other)
-    with pytest.raises(CollectConfigError, match="two towns named 'my_town'"):
+    with pytest.raises(CollectConfigError) as err:
         resolve_config({**cfg, "towns": [str(town), str(other)]})
+    assert err.value.key == "collect.towns" and err.value.value == "my_town"
 
 
 def test_complete_is_true_only_when_every_file_validates(tmp_path: Path, monkeypatch):
@@ -434,9 +443,10 @@ def test_a_folder_with_other_hdf5_files_is_refused(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "theirs.h5").write_bytes(b"not ours")
-    with pytest.raises(CollectError, match=r"holds 1 HDF5 file\(s\) this collection does not write "
-                                           r"\(e.g. sub/theirs.h5\); collect into an empty folder"):
+    with pytest.raises(CollectError) as err:
         collect_dataset(TINY, tmp_path, progress=False)
+    assert err.value.key == "out_dir" and err.value.value == tmp_path.resolve()
+    assert "sub/theirs.h5" in str(err.value)  # names a file it would not mix in
 
 
 def _listing(folder: Path) -> dict[str, bytes]:
@@ -460,6 +470,6 @@ def test_a_folder_of_the_users_own_hdf5_files_is_left_exactly_as_it_was(tmp_path
         collect_mod.run({**TINY, "out_dir": str(mine)})
     assert exc.value.code == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and lines[0] == (f"cicfw: error: {mine} holds 3 HDF5 file(s) this collection does not "
-                                            f"write (e.g. data_00000.h5); collect into an empty folder"), lines
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: ") and str(mine) in lines[0], lines
+    assert "data_00000.h5" in lines[0], lines  # names a file it would not mix in
     assert _listing(mine) == before

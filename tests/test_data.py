@@ -15,8 +15,9 @@ from conftest import make_targets, write_tiny_dataset
 
 
 def test_find_files_no_match_says_what_is_accepted(tmp_path):
-    with pytest.raises(FileNotFoundError, match="matches no HDF5 file.*folder"):
+    with pytest.raises(FileNotFoundError) as err:
         find_files(tmp_path / "nothing_here")
+    assert "data.path" in str(err.value) and str(tmp_path / "nothing_here") in str(err.value)
 
 
 def test_extra_datasets_are_ignored(tmp_path):
@@ -31,24 +32,24 @@ def test_extra_datasets_are_ignored(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "datasets, message",
+    "datasets, named",  # named: the datasets and the values the message must name
     [
-        ({"targets": np.zeros((4, 28), np.float32)}, "neither 'rgb' nor 'images_center'"),
-        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8)}, "no 'targets' dataset"),
-        ({"rgb": np.zeros((4, 88, 200, 3), np.float32), "targets": np.zeros((4, 28), np.float32)}, "'rgb' is float32"),
-        ({"rgb": np.zeros((4, 66, 200, 3), np.uint8), "targets": np.zeros((4, 28), np.float32)}, r"expected uint8 \(N, 88, 200, 3\)"),
-        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8), "targets": np.zeros((4, 27), np.float32)}, r"expected float32 \(N, 28\)"),
-        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8), "targets": np.zeros((3, 28), np.float32)}, "has 4 samples but 'targets' has 3"),
+        ({"targets": np.zeros((4, 28), np.float32)}, ["'rgb'", "'images_center'"]),
+        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8)}, ["'targets'"]),
+        ({"rgb": np.zeros((4, 88, 200, 3), np.float32), "targets": np.zeros((4, 28), np.float32)}, ["'rgb'", "float32"]),
+        ({"rgb": np.zeros((4, 66, 200, 3), np.uint8), "targets": np.zeros((4, 28), np.float32)}, ["'rgb'", "66"]),
+        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8), "targets": np.zeros((4, 27), np.float32)}, ["'targets'", "27"]),
+        ({"rgb": np.zeros((4, 88, 200, 3), np.uint8), "targets": np.zeros((3, 28), np.float32)}, ["'targets'", "4", "3"]),
     ],
 )
-def test_bad_file_names_file_and_problem(tmp_path, datasets, message):
+def test_bad_file_names_file_and_problem(tmp_path, datasets, named):
     p = tmp_path / "bad.h5"
     with h5py.File(p, "w") as f:
         for k, v in datasets.items():
             f[k] = v
-    with pytest.raises(CILFormatError, match=message) as err:
+    with pytest.raises(CILFormatError) as err:
         load_frames(str(tmp_path))
-    assert "bad.h5" in str(err.value)
+    assert all(s in str(err.value) for s in ["bad.h5", *named]), err.value
 
 
 def _rename_images(path, name="images_center"):
@@ -83,7 +84,7 @@ def test_a_file_with_neither_image_name_says_both(tmp_path):
     with pytest.raises(CILFormatError) as err:
         load_frames(str(tmp_path))
     msg = str(err.value)
-    assert files[1].name in msg and "'rgb'" in msg and "'images_center'" in msg and "found: images, targets" in msg
+    assert all(s in msg for s in (files[1].name, "'rgb'", "'images_center'", "images", "targets")), msg
 
 
 def test_a_bad_images_center_dataset_is_named_as_such(tmp_path):
@@ -91,20 +92,23 @@ def test_a_bad_images_center_dataset_is_named_as_such(tmp_path):
     with h5py.File(p, "w") as f:
         f["images_center"] = np.zeros((4, 88, 200, 3), np.float32)
         f["targets"] = np.zeros((4, 28), np.float32)
-    with pytest.raises(CILFormatError, match="bad.h5: 'images_center' is float32"):
+    with pytest.raises(CILFormatError) as err:
         check_file(p)
+    assert all(s in str(err.value) for s in ("bad.h5", "'images_center'", "float32")), err.value
 
 
 def test_not_hdf5_at_all(tmp_path):
     (tmp_path / "junk.h5").write_text("hello")
-    with pytest.raises(CILFormatError, match="junk.h5: not a readable HDF5 file"):
+    with pytest.raises(CILFormatError) as err:
         load_frames(str(tmp_path))
+    assert "junk.h5" in str(err.value)
 
 
 def test_unknown_command_code_is_an_error(tmp_path):
     write_tiny_dataset(tmp_path, n_files=2, commands=(2, 3, 7))
-    with pytest.raises(CILFormatError, match=r"unknown high-level command code\(s\) \[7.0\].*accepted codes are 2"):
+    with pytest.raises(CILFormatError) as err:
         load_frames(str(tmp_path))
+    assert err.value.value == [7.0]
 
 
 def test_nan_rows_dropped_and_reported_once(tmp_path, caplog):
@@ -156,9 +160,9 @@ def test_split_without_a_command_in_train_is_an_error(tmp_path):
         try:
             split_by_episode(frames, 0.3, seed)
         except ValueError as err:
-            errors.append(str(err))
+            errors.append(err)
     assert errors, "some seed must put the only 'right' file into validation"
-    assert "no sample of command(s) ['right']" in errors[0]
+    assert errors[0].value == ["right"]
 
 
 def test_balanced_sampler_shares_and_ranks():
@@ -170,8 +174,9 @@ def test_balanced_sampler_shares_and_ranks():
         assert np.bincount(commands[b], minlength=4).tolist() == [2, 2, 2, 2]
     ranks = [set(sum(CommandBalancedBatchSampler(commands, 8, 5, 0, r, 2), [])) for r in (0, 1)]
     assert not ranks[0] & ranks[1]
-    with pytest.raises(ValueError, match="multiple of 4"):
+    with pytest.raises(ValueError) as err:
         CommandBalancedBatchSampler(commands, batch_size=10)
+    assert (err.value.key, err.value.value) == ("data.batch_size", 10)
 
 
 def test_augment_changes_pixels_not_shape():
@@ -183,10 +188,12 @@ def test_augment_changes_pixels_not_shape():
     assert (y != x).mean() > 0.5
     never = AugmentConfig(p_blur=0, p_noise=0, p_dropout=0, p_coarse_dropout=0, p_add=0, p_multiply=0, p_contrast=0)
     assert np.array_equal(augment_batch(x.copy(), never, rng), x)
-    with pytest.raises(ValueError, match="p_blur is a probability"):
+    with pytest.raises(ValueError) as err:
         AugmentConfig.from_dict({"p_blur": 2})
-    with pytest.raises(ValueError, match="unknown augmentation option"):
+    assert (err.value.key, err.value.value) == ("data.augment.p_blur", 2)
+    with pytest.raises(ValueError) as err:
         AugmentConfig.from_dict({"p_blurr": 0.1})
+    assert (err.value.key, err.value.value) == ("data.augment", ["p_blurr"])
 
 
 @pytest.mark.parametrize("in_memory", [True, False])

@@ -64,10 +64,9 @@ def test_a_speed_that_cannot_be_a_speed_is_refused_naming_file_row_and_bound(tmp
     bad = write_public_like(tmp_path / "data_00002.h5", rng, {17: -(MAX_ABS_SPEED_KMH + 1.0)})
     with pytest.raises(ValueError) as err:
         load_frames(str(tmp_path), cameras=None)
-    assert str(err.value) == (
-        f"{bad}: speed {-(MAX_ABS_SPEED_KMH + 1.0):g} km/h in targets[10] at row 17 (1 row(s) beyond "
-        f"±{MAX_ABS_SPEED_KMH:g} km/h); a CIL speed is km/h within ±{MAX_ABS_SPEED_KMH:g} "
-        f"(negative: the car rolling backwards, kept), so this file's targets are not in the CIL layout")
+    msg = str(err.value)  # the file, the value, where it is, and the bound
+    assert all(s in msg for s in (str(bad), f"{-(MAX_ABS_SPEED_KMH + 1.0):g}", "targets[10]", "17",
+                                  f"{MAX_ABS_SPEED_KMH:g}")) and "\n" not in msg, msg
 
 
 def test_nan_and_inf_speeds_are_dropped_not_kept(tmp_path, caplog):

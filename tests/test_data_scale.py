@@ -53,15 +53,18 @@ def test_the_public_set_streams_and_the_main_jobs_data_stays_in_ram_on_24_gb():
 
 
 def test_in_memory_true_on_images_that_cannot_fit_is_refused_with_the_arithmetic():
-    with pytest.raises(ValueError, match=r"data.in_memory=true.*528,330 frames x 52,800 bytes = 27.9 GB.*19.4 GB"):
+    with pytest.raises(ValueError) as err:
         decide(528_330, True, available=19_400_000_000)
+    assert (err.value.key, err.value.value) == ("data.in_memory", True)
+    assert all(n in str(err.value) for n in ("528,330", "52,800", "27.9 GB", "19.4 GB")), err.value  # the arithmetic
     assert decide(528_330, False, available=19_400_000_000).in_memory is False
 
 
 @pytest.mark.parametrize("bad", ["yes", 1, None, "Auto"])
 def test_in_memory_accepts_true_false_auto_only(bad):
-    with pytest.raises(ValueError, match="data.in_memory must be"):
+    with pytest.raises(ValueError) as err:
         in_memory_setting(bad)
+    assert (err.value.key, err.value.value) == ("data.in_memory", bad)
 
 
 def test_in_memory_true_is_refused_before_any_image_is_read(tmp_path, monkeypatch):
@@ -70,8 +73,9 @@ def test_in_memory_true_is_refused_before_any_image_is_read(tmp_path, monkeypatc
     opened = []
     monkeypatch.setattr(ImageStore, "__init__", lambda *a, **k: opened.append(a))
     dm = CILDataModule(str(tmp_path), batch_size=8, in_memory=True, augment=False)
-    with pytest.raises(ValueError, match="cannot hold these images"):
+    with pytest.raises(ValueError) as err:
         dm.setup()
+    assert err.value.key == "data.in_memory"
     assert not opened
 
 
@@ -162,16 +166,18 @@ def test_a_file_replaced_after_setup_is_named_not_paired_with_old_labels(tmp_pat
     victim = store.frames.files[int(store.frames.file_idx[0])]
     rng = np.random.default_rng(9)
     write_file(victim, rng.integers(0, 255, (8, 88, 200, 3), dtype=np.uint8), make_targets(8, rng))
-    with pytest.raises(DataChangedError, match=f"{victim.name}.*replaced or rewritten"):
+    with pytest.raises(DataChangedError) as err:
         store.get(np.arange(len(store.frames)))
+    assert str(victim) in str(err.value)
 
 
 def test_a_file_removed_after_setup_is_named(tmp_path):
     store, _ = streamed(tmp_path)
     victim = store.frames.files[int(store.frames.file_idx[0])]
     victim.unlink()
-    with pytest.raises(DataChangedError, match=f"{victim.name}.*removed"):
+    with pytest.raises(DataChangedError) as err:
         store.get(np.arange(len(store.frames)))
+    assert str(victim) in str(err.value)
 
 
 def test_a_file_truncated_while_open_is_named(tmp_path):
@@ -181,8 +187,9 @@ def test_a_file_truncated_while_open_is_named(tmp_path):
     victim = store.frames.files[int(store.frames.file_idx[0])]
     with open(victim, "r+b") as f:
         f.truncate(4096)
-    with pytest.raises(DataChangedError, match=victim.name):
+    with pytest.raises(DataChangedError) as err:
         store.get(idx)
+    assert str(victim) in str(err.value)
 
 
 @pytest.mark.slow  # DataLoader worker processes
@@ -190,11 +197,12 @@ def test_a_workers_error_arrives_as_one_line(tmp_path):
     folder = constant_dataset(tmp_path / "d")
     dm = CILDataModule(str(folder), batch_size=8, in_memory=False, num_workers=1)
     dm.setup()
-    for f in folder.glob("*.h5"):
+    files = sorted(folder.glob("*.h5"))
+    for f in files:
         f.unlink()
     with pytest.raises(DataChangedError) as err:
         next(iter(dm.train_dataloader()))
-    assert "\n" not in str(err.value) and "removed after the run started" in str(err.value)
+    assert "\n" not in str(err.value) and any(str(f) in str(err.value) for f in files)  # names the file
 
 
 def test_streaming_keeps_a_bounded_number_of_files_open(tmp_path, monkeypatch):
@@ -290,8 +298,9 @@ def test_batches_are_pinned_for_a_cuda_gpu_only(tmp_path):
 @pytest.mark.parametrize("augment", [0, 1, "", "off", [], [1]])
 def test_data_augment_takes_true_false_or_a_dict_only(augment):
     """0, '' and [] used to switch CIL's full augmentation on; 1 was a TypeError deep in from_dict."""
-    with pytest.raises(ValueError, match="data.augment must be true"):
+    with pytest.raises(ValueError) as err:
         CILDataModule("unused", augment=augment)
+    assert (err.value.key, err.value.value) == ("data.augment", augment)
     assert CILDataModule("unused", augment=False).augment is None
     assert CILDataModule("unused", augment={"p_blur": 0.2}).augment.p_blur == 0.2
 

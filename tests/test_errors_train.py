@@ -123,8 +123,8 @@ def test_a_checkpoint_that_would_run_code_is_refused(tmp_path, no_data, monkeypa
     monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")  # torch's opt-out must not matter
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, f"ckpt_path={evil}"), tmp_path / "run")
-    assert str(err.value).startswith(f"ckpt_path={evil}: refused: the file holds pickled Python objects besides "
-                                     f"tensors and plain data (Unsupported global: GLOBAL exec), which could run code when loaded")
+    assert (err.value.key, str(err.value.value)) == ("ckpt_path", str(evil))
+    assert "GLOBAL exec" in str(err.value)  # what it would have run
     assert not marker.exists()
     torch.load(evil, weights_only=False)  # the payload is live: loading it the unsafe way runs it
     assert marker.exists()
@@ -142,21 +142,15 @@ def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
     other = _resumable(build_model(_cfg(tmp_path, "mixer=gtu")), tmp_path / "gtu.ckpt")
     plain = tmp_path / "plain.pt"
     torch.save(model.state_dict(), plain)
-    cases = {
-        truncated: f"ckpt_path={truncated} is not a readable checkpoint (truncated, or not written by torch.save): "
-                   f"RuntimeError: PytorchStreamReader failed reading zip archive: failed finding central directory",
-        weights: f"ckpt_path={weights} holds the weights only (no optimizer or loop state), so training cannot "
-                 f"resume from it",
-        other: f"ckpt_path={other} was saved by another model (encoder/mixer/head cil/gtu/regression; this run: "
-               f"cil/independent/regression)",
-        plain: f"ckpt_path={plain} is not a Lightning training checkpoint (no 'state_dict')",
-        tmp_path: f"ckpt_path={tmp_path} is a folder; give the checkpoint file, e.g. {tmp_path}/checkpoints/last.ckpt",
+    cases = {  # each file, and what the line must name besides ckpt_path and the file
+        truncated: [], weights: [], plain: ["'state_dict'"], tmp_path: [f"{tmp_path}/checkpoints/last.ckpt"],
+        other: ["cil/gtu/regression", "cil/independent/regression"],  # the two models
     }
-    for path, message in cases.items():
+    for path, named in cases.items():
         with pytest.raises(ValueError) as err:
             train(_cfg(tmp_path, f"ckpt_path={path}"), tmp_path / "run")
-        assert str(err.value).startswith(message), str(err.value)
-        assert "\n" not in str(err.value)
+        assert (err.value.key, str(err.value.value)) == ("ckpt_path", str(path)), str(err.value)
+        assert all(n in str(err.value) for n in named) and "\n" not in str(err.value), str(err.value)
 
 
 def test_a_file_that_is_no_pickle_is_not_called_unsafe(tmp_path, no_data):
@@ -165,8 +159,8 @@ def test_a_file_that_is_no_pickle_is_not_called_unsafe(tmp_path, no_data):
     text.write_text("not a ckpt\n")
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, f"ckpt_path={text}"), tmp_path / "run")
-    assert str(err.value) == (f"ckpt_path={text} is not a readable checkpoint (truncated, or not written by "
-                              f"torch.save): UnpicklingError: Unsupported operand 110")
+    assert (err.value.key, str(err.value.value)) == ("ckpt_path", str(text))
+    assert "UnpicklingError" in str(err.value) and "run code" not in str(err.value)  # not called unsafe
     assert not (tmp_path / "run").exists()
 
 
@@ -200,9 +194,7 @@ def test_a_command_absent_from_the_whole_dataset_does_not_suggest_another_split(
     with pytest.raises(ValueError) as err:
         split_by_episode(frames, 0.3, 0)
     msg = str(err.value)
-    assert msg.startswith("the dataset has no samples of command(s) ['right'] (samples per command after the "
-                          "filters |steer| <= data.max_abs_steer and data.cameras: {'follow': ")
-    assert msg.endswith("each command trains its own branch, so collect episodes that contain those commands")
+    assert "['right']" in msg and "data.max_abs_steer" in msg and "data.cameras" in msg  # the command, the filters
     assert "seed" not in msg and "val_fraction" not in msg
 
 
@@ -211,10 +203,10 @@ def test_a_missing_town_file_says_no_such_file(tmp_path):
     missing = str(tmp_path / "my_town.yaml")
     with pytest.raises(ValueError) as err:
         check_names("town", [missing], known, path_ok=True)
-    assert str(err.value) == (f"town file {missing!r}: no such file (a town is a name, town_a, town_b, or the "
-                              f"path of an existing town .yaml file)")
-    with pytest.raises(ValueError, match=r"^unknown town 'town_c'; known towns: town_a, town_b"):
+    assert err.value.value == missing and "town_a, town_b" in str(err.value)  # the file, and the names known
+    with pytest.raises(ValueError) as err:
         check_names("town", ["town_c"], known, path_ok=True)
+    assert err.value.value == "town_c" and "town_a, town_b" in str(err.value)
     (tmp_path / "my_town.yaml").write_text("name: my_town\n")
     assert check_names("town", [missing], known, path_ok=True) == [missing]
 

@@ -64,8 +64,9 @@ def test_subsets_by_town_weather_and_pair(backend):
     assert [(e.town, e.pair) for e in eps] == [("town_a", 0), ("town_a", 3), ("town_b", 0), ("town_b", 3)]
     assert [e.town_set for e in eps] == ["training", "training", "new", "new"]
     assert len(build_suite(backend, ["town_b"], ["ClearNoon"], limit=5)) == 5
-    with pytest.raises(ValueError, match=r"pair 999 does not exist in town 'town_b', which has \d+ pairs"):
+    with pytest.raises(ValueError) as err:
         build_suite(backend, ["town_b"], ["ClearNoon"], pairs=[999])
+    assert (err.value.key, err.value.value) == ("suite.pairs", 999) and "'town_b'" in str(err.value)
 
 
 @pytest.mark.parametrize("kind, kwargs, known", [
@@ -75,8 +76,7 @@ def test_subsets_by_town_weather_and_pair(backend):
 def test_unknown_town_or_weather_lists_the_known_ones(backend, kind, kwargs, known):
     with pytest.raises(ValueError) as err:
         build_suite(backend, **kwargs)
-    msg = str(err.value)
-    assert msg.startswith(f"unknown {kind} ") and f"known {kind}s: {known}" in msg
+    assert err.value.value == kwargs[f"{kind}s"][-1] and known in str(err.value)  # the name, and those known
 
 
 def test_always_hard_left_fails_off_road_before_the_timeout(backend):
@@ -172,11 +172,12 @@ def test_workers_get_whole_cells_balanced_and_videos_are_chosen_by_id(backend):
     rows = [{"episode": e.index, "key": e.key, "success": e.index % 3 == 0} for e in eps]
     assert [r["episode"] for r in select_episodes(rows, [5, "town_b/ClearNoon/001", 5], 8)] == [5, 13]
     assert [r["episode"] for r in select_episodes(rows, ["failures"], 3)] == [1, 2, 4]
-    with pytest.raises(ValueError, match="video: unknown episode 'town_c/x/1'; give episode indices, keys such "
-                                         "as town_a/ClearNoon/000"):
+    with pytest.raises(ValueError) as err:
         select_episodes(rows, ["town_c/x/1"], 8)
-    with pytest.raises(ValueError, match=r"video: no episode 99 in this run \(episodes 0..23\)"):
+    assert err.value.value == "town_c/x/1" and "town_a/ClearNoon/000" in str(err.value)  # a key it takes
+    with pytest.raises(ValueError) as err:
         select_episodes(rows, [99], 8)
+    assert err.value.value == 99 and "0..23" in str(err.value)  # the episodes there are
 
 
 def test_auto_workers(backend):
@@ -188,5 +189,6 @@ def test_auto_workers(backend):
     assert auto.resolve_workers(full, renders=False) == 1  # nothing to render: one process is fastest
     assert auto.resolve_workers(full[:40], renders=True) == 1  # too small to pay for a second process
     assert RunnerConfig(workers=3).resolve_workers(full[:2], renders=True) == 2
-    with pytest.raises(ValueError, match="runner.workers must be an integer >= 1 or 'auto', got 'many'"):
+    with pytest.raises(ValueError) as err:
         RunnerConfig(workers="many")
+    assert (err.value.key, err.value.value) == ("runner.workers", "many")

@@ -35,6 +35,7 @@ from cicfw.model.encoders import Encoder
 from cicfw.model.module import CICModule
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.testing import make_targets, write_tiny_dataset
+from conftest import assert_refused
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -161,11 +162,9 @@ def test_a_broken_decoder_in_the_graph_fails_the_parity_check(fmt, episode, tmp_
 
     monkeypatch.setattr(export, "graph_module", with_argmax_decoder)
     out = tmp_path / f"m{export.FORMATS[fmt]}"
-    with pytest.raises(ExportError, match=r"^the exported model fails the parity check, so nothing was written: on "
-                                          r"(real frame \d+ of .*episode_000\.h5|random input \d+ \(seed 0\)) \(command [2-5] \w+, [\d.]+ km/h, "
-                                          r"batch 1\) it steers [-+][\d.]+ where the checkpoint steers [-+][\d.]+ "
-                                          r"\(off by .*; tolerance 0.0001\)$"):
+    with pytest.raises(ExportError) as err:
         export_model(ckpt, fmt, out, frames=episode_file, n_frames=4)
+    assert "tolerance" in str(err.value) and "0.0001" in str(err.value), err.value  # the key and the bound missed
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt"]  # nothing written, nothing half-written
 
 
@@ -302,28 +301,33 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
     run = dict(frames=episode_file, n_frames=2)
     torch.save({"w": torch.zeros(2)}, tmp_path / "weights.pt")
     (tmp_path / "cut.ckpt").write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
-    cases = [
-        (dict(checkpoint=tmp_path / "weights.pt"), CheckpointError, r"is not a cicfw checkpoint: it needs"),
-        (dict(checkpoint=tmp_path / "cut.ckpt"), CheckpointError, r"is not a PyTorch checkpoint, or it is truncated"),
-        (dict(fmt="tflite"), ExportError, r"^format='tflite' is not known; use one of onnx, torchscript$"),
-        (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, r"the folder '.*nope' does not exist"),
-        (dict(out=tmp_path), ExportError, r"is a folder; give out=<a file name>"),
-        (dict(n_frames=0), ExportError, r"n_frames=0 is not valid"),
+    cases = [  # the arguments, the error kind, and the key and value it carries (a checkpoint's: its path named)
+        (dict(checkpoint=tmp_path / "weights.pt"), CheckpointError, None, tmp_path / "weights.pt"),
+        (dict(checkpoint=tmp_path / "cut.ckpt"), CheckpointError, None, tmp_path / "cut.ckpt"),
+        (dict(fmt="tflite"), ExportError, "format", "tflite"),
+        (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, "out", tmp_path / "nope" / "m.onnx"),
+        (dict(out=tmp_path), ExportError, "out", tmp_path),
+        (dict(n_frames=0), ExportError, "n_frames", 0),
     ]
-    for kwargs, kind, message in cases:
+    for kwargs, kind, key, value in cases:
         args = {"checkpoint": ckpt, "fmt": "onnx", "out": tmp_path / "m.onnx", **run, **kwargs}
-        with pytest.raises(kind, match=message) as err:
+        with pytest.raises(kind) as err:
             export_model(**args)
         assert "\n" not in str(err.value)
+        if key is None:
+            assert str(value) in str(err.value), err.value
+        else:
+            assert (err.value.key, err.value.value) == (key, value), err.value
     with monkeypatch.context() as mp:  # a read-only folder (faked: root writes through chmod)
         mp.setattr(export.os, "access", lambda path, mode: False)
-        with pytest.raises(ExportError, match=r"^out='.*m.onnx' cannot be written: the folder '.*' is not writable; "
-                                              r"give out=<a file in a writable folder>$"):
+        with pytest.raises(ExportError) as err:
             export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
+        assert (err.value.key, err.value.value) == ("out", tmp_path / "m.onnx")
     # a folder that cannot take the file (a full disk here): the temporary files go, nothing stays
     monkeypatch.setattr(export.os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(28, "No space left on device")))
-    with pytest.raises(ExportError, match=r"cannot write '.*m.onnx.json': No space left on device; nothing was written"):
+    with pytest.raises(ExportError) as err:
         export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
+    assert err.value.key == "out" and str(err.value.value).endswith("m.onnx.json")  # the file that failed
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ckpt", "m.ckpt", "weights.pt"]
 
 
@@ -331,9 +335,8 @@ def test_the_cli_prints_one_line_for_a_bad_checkpoint(tmp_path):
     (tmp_path / "notes.ckpt").write_text("not a checkpoint")
     res = subprocess.run([sys.executable, "-m", "cicfw.cli", "export", f"checkpoint={tmp_path / 'notes.ckpt'}",
                           f"out={tmp_path / 'm.onnx'}"], capture_output=True, text=True, timeout=300)
-    assert res.returncode == 2 and res.stdout == ""
-    assert res.stderr.count("\n") == 1 and res.stderr.startswith("cicfw: error: ") and "is not a PyTorch checkpoint" \
-        in res.stderr, res.stderr
+    assert res.stdout == "" and res.stderr.count("\n") == 1, res.stderr
+    assert_refused(res, "checkpoint", tmp_path / "notes.ckpt")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.ckpt"]
 
 
@@ -373,11 +376,10 @@ def test_a_plugin_operator_that_does_not_export_is_named(tmp_path, episode, monk
     monkeypatch.setitem(MIXERS._entries, "twist", TwistMixer)
     monkeypatch.setitem(MIXERS._origin, "twist", "cicfw-twist-mixer")
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "twist", "regression")
-    with pytest.raises(ExportError, match=r"^cannot export twist\+regression to onnx: the operator "
-                                          r"'cicfw_export_test::twist' has no form in ONNX opset 17; its mixer "
-                                          r"'twist' comes from the plugin 'cicfw-twist-mixer' \(cicfw's own parts "
-                                          r"export\); try format=torchscript, or ask"):
+    with pytest.raises(ExportError) as err:
         export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=episode_file, n_frames=2)
+    msg = str(err.value)  # names the operator, the part and the plugin it came from, and the way out
+    assert all(s in msg for s in ("'cicfw_export_test::twist'", "'twist'", "'cicfw-twist-mixer'", "format=torchscript"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt"]
     export_model(ckpt, "torchscript", tmp_path / "m.pt", frames=episode_file, n_frames=2)  # and this one does
 
@@ -431,17 +433,11 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
         f.create_dataset("rgb", (0, 88, 200, 3), np.uint8)
         f.create_dataset("targets", (0, 28), np.float32)
     monkeypatch.setattr(checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
-    cases = [
-        ("notes.h5", r"^frames='.*notes.h5' is not CIL data: .*notes.h5: not a readable HDF5 file"),
-        ("empty.h5", r"^frames='.*empty.h5' is not CIL data: .*empty.h5: not a readable HDF5 file"),
-        ("nothing", r"^frames='.*nothing' matches no HDF5 file; give a CIL HDF5 file, a folder .* or leave frames out"),
-        ("zero", r"^frames='.*zero' holds no frame"),
-    ]
     before = sorted(p.name for p in tmp_path.iterdir())
-    for name, message in cases:
-        with pytest.raises(ExportError, match=message) as err:
+    for name in ("notes.h5", "empty.h5", "nothing", "zero"):
+        with pytest.raises(ExportError) as err:
             export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=tmp_path / name, n_frames=2)
-        assert "\n" not in str(err.value)
+        assert (err.value.key, err.value.value) == ("frames", tmp_path / name) and "\n" not in str(err.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
@@ -450,9 +446,8 @@ def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
     res = subprocess.run([sys.executable, "-m", "cicfw.export", f"checkpoint={ckpt}", f"out={tmp_path / 'm.onnx'}",
                           f"frames={tmp_path / 'notes.h5'}"], capture_output=True, text=True, timeout=300)
-    assert res.returncode == 2 and res.stdout == ""
-    assert res.stderr.count("\n") == 1 and res.stderr.startswith(f"cicfw: error: frames='{tmp_path / 'notes.h5'}' "
-                                                                 f"is not CIL data:"), res.stderr
+    assert res.stdout == "" and res.stderr.count("\n") == 1, res.stderr
+    assert_refused(res, "frames", tmp_path / "notes.h5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt", "notes.h5"]
 
 
@@ -466,9 +461,10 @@ def test_an_opset_torch_cannot_write_is_refused_up_front(tmp_path, monkeypatch, 
     monkeypatch.setattr(checkpoint, "resolve_checkpoint", lambda *a: pytest.fail("the checkpoint was read first"))
     low, high = _constants.ONNX_MIN_OPSET, _constants.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET
     assert export.opset_range() == (low, high) and low <= export.DEFAULT_OPSET <= high
-    with pytest.raises(ExportError, match=rf"^opset={opset!r} is not valid; use an integer ONNX opset from {low} "
-                                          rf"to {high} \(torch .*'s exporter\), e.g. 17 \(the default\)$"):
+    with pytest.raises(ExportError) as err:
         export_model(tmp_path / "m.ckpt", "onnx", tmp_path / "m.onnx", opset=opset)
+    assert err.value.key == "opset" and err.value.value is opset
+    assert f"{low}" in str(err.value) and f"{high}" in str(err.value)  # the range there is
     assert list(tmp_path.iterdir()) == []
 
 
@@ -477,8 +473,8 @@ def test_an_opset_too_old_for_an_operator_asks_for_a_newer_one(tmp_path):
     instead of calling it a cicfw bug."""
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
     frames = write_tiny_dataset(tmp_path / "data", n_files=1, n=4)
-    with pytest.raises(ExportError, match=r"^cannot export independent\+regression to onnx: .* has no form in ONNX "
-                                          r"opset 7; give opset=17 \(the default\) or newer, or format=torchscript$") as err:
+    with pytest.raises(ExportError) as err:
         export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=frames, n_frames=2, opset=7)
+    assert "opset=17" in str(err.value) and "format=torchscript" in str(err.value)  # the overrides that work
     assert "please report" not in str(err.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "m.ckpt"]

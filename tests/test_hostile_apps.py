@@ -16,6 +16,7 @@ import yaml
 from cicfw.benchmark import evaluation_report as report
 from cicfw.benchmark.evaluation_report import Run, write_run
 from cicfw.sim.town import MAX_TOWN_SIDE_M, TownError, build_town, load_town, town_path
+from conftest import assert_refused
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -70,7 +71,7 @@ def test_report_out_at_a_file_is_one_line(tmp_path: Path, capsys, where: str):
     out = f if where == "a file" else f / "sub"
     assert report.main([str(run), "--out", str(out), "--no-plots"]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert str(out) in line and "--out" in line and "folder" in line, line
+    assert str(out) in line and "--out" in line, line
     assert f.read_text() == "mine"
 
 
@@ -79,7 +80,7 @@ def test_report_out_at_a_read_only_folder_is_one_line(tmp_path: Path, capsys, re
     for out in (read_only_folder, read_only_folder / "sub"):
         assert report.main([str(run), "--out", str(out), "--no-plots"]) == 2
         line = _one_error_line(capsys.readouterr().err)
-        assert str(out) in line and "writable" in line, line
+        assert str(out) in line, line
 
 
 def test_report_into_a_read_only_run_folder_by_default_says_use_out(tmp_path: Path, capsys):
@@ -141,33 +142,28 @@ def test_preview_out_at_a_read_only_folder_is_one_line(capsys, monkeypatch, read
         preview.main(["--out", str(read_only_folder), "--towns", "town_b"])
     assert exc.value.code == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert str(read_only_folder) in line and "writable" in line, line
+    assert str(read_only_folder) in line, line
 
 
 # ------------------------------------------------------------------------------------------------
 # cicfw carla-check --port
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--port", "99999"], "--port must be a TCP port 1..65535, got 99999"),
-    (["--port", "0"], "--port must be a TCP port 1..65535, got 0"),
-    (["--port", "-5"], "--port must be a TCP port 1..65535, got -5"),
-    (["--timeout", "0"], "--timeout must be seconds > 0, got 0"),
-    (["--timeout", "nan"], "--timeout must be seconds > 0, got nan"),
+@pytest.mark.parametrize("option, value", [
+    ("--port", "99999"), ("--port", "0"), ("--port", "-5"), ("--timeout", "0"), ("--timeout", "nan"),
 ])
-def test_carla_check_bad_values_are_one_line(capsys, args: list, message: str):
+def test_carla_check_bad_values_are_one_line(capsys, option: str, value: str):
     from cicfw.carla_client import check as carla_check
 
-    assert carla_check.main(args) == 2
+    assert carla_check.main([option, value]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert line == f"cicfw: error: {message}", line
+    assert option in line and value in line, line
 
 
 def test_carla_check_cli_port_99999_no_traceback():
     r = subprocess.run([sys.executable, "-m", "cicfw.cli", "carla-check", "--port", "99999"],
                        capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2, (r.stdout, r.stderr)
-    assert _one_error_line(r.stderr) == "cicfw: error: --port must be a TCP port 1..65535, got 99999"
+    assert_refused(r, "--port", "99999")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -188,15 +184,16 @@ def test_a_huge_margin_is_refused_in_one_line_before_allocating(tmp_path: Path):
         load_town(path)
     assert time.monotonic() - t0 < 5.0
     msg = str(err.value)
-    assert "\n" not in msg and msg.startswith(f"{path}: town: ")
-    assert "margin 100000 m" in msg and f"at most {MAX_TOWN_SIDE_M:g} m" in msg, msg
+    assert "\n" not in msg and str(path) in msg
+    assert "margin" in msg and "100000" in msg and f"{MAX_TOWN_SIDE_M:g}" in msg, msg  # the key, value, bound
 
 
 def test_nodes_too_far_apart_are_refused_in_one_line():
     spec = _town_spec()
     spec["nodes"] = {**spec["nodes"], "far": [5_000_000, 0]}
-    with pytest.raises(TownError, match=rf"at most {MAX_TOWN_SIDE_M:g} m a side"):
+    with pytest.raises(TownError) as err:
         build_town(spec, source="far.yaml")
+    assert "far.yaml" in str(err.value) and f"{MAX_TOWN_SIDE_M:g}" in str(err.value)
 
 
 def test_the_shipped_towns_are_within_the_bound():
@@ -213,7 +210,8 @@ def test_the_preview_app_says_one_line_for_a_huge_town(tmp_path: Path, capsys):
     with pytest.raises(SystemExit) as exc:
         preview.main(["--out", str(tmp_path / "out"), "--towns", str(path)])
     assert exc.value.code == 2
-    assert "margin 100000 m" in _one_error_line(capsys.readouterr().err)
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(path) in line and "margin" in line and "100000" in line, line
 
 
 # ------------------------------------------------------------------------------------------------
@@ -226,9 +224,7 @@ def test_preview_cli_seed_below_zero_is_one_line_naming_seed(tmp_path: Path):
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "cicfw.cli", "preview", "--out", str(out), "--seed", "-1"],
                        capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2, r.stderr
-    line = _one_error_line(r.stderr)
-    assert "--seed must be an integer >= 0" in line and "got -1" in line, line
+    assert_refused(r, "--seed", "-1")
     assert not out.exists()
 
 

@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_module
 
 import cicfw.collect.app as collect_mod
 import cicfw.collect.dataset as dataset_mod
-from cicfw.collect import collect_dataset
+from cicfw.collect import CollectError, collect_dataset, verify_dataset
 from cicfw.data.cil_hdf5 import T
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
@@ -163,7 +163,7 @@ def test_verify_names_each_corrupt_file_in_one_line_and_exits_2(collected, capsy
     assert len(lines) == 3, lines
     assert lines[0].startswith(f"cicfw: corrupt: {out / FIRST}: ") and "sha256" in lines[0]
     assert lines[1].startswith(f"cicfw: missing: {out / 'ep0001_town_a_ClearNoon_000.h5'}")
-    assert lines[2].startswith("cicfw: error: 2 of 2 file(s) of ") and "rerun the same collect command" in lines[2]
+    assert lines[2].startswith("cicfw: error: ") and str(out) in lines[2] and "2 of 2" in lines[2], lines
     assert (out / FIRST).read_bytes() == flipped  # verify changes nothing
 
 
@@ -183,7 +183,10 @@ def test_verify_of_a_folder_without_a_dataset_is_one_line(tmp_path, capsys):
         collect_mod.run(_collect_cfg(tmp_path / "none", "verify=true"))
     assert exc.value.code == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and "no dataset to verify" in lines[0], lines
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: ") and str(tmp_path / "none") in lines[0], lines
+    with pytest.raises(CollectError) as err:
+        verify_dataset(tmp_path / "none")
+    assert (err.value.key, err.value.value) == ("out_dir", tmp_path / "none")
     assert not (tmp_path / "none").exists()
 
 

@@ -15,6 +15,7 @@ from cicfw.benchmark.journal import LOG_NAME, read_log
 from cicfw.core.config_checks import SchemaError
 from cicfw.benchmark.app import compose_config, evaluate
 from test_hostile_train import _errors, read_only_app
+from conftest import assert_refused
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -33,15 +34,14 @@ def test_an_unknown_top_level_key_is_refused_before_driving(tmp_path, override, 
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("video, message", [
-    ("[nosuch]", "video: unknown episode 'nosuch'; give episode indices, keys such as bench_town/ClearNoon/000, "
-                 "bench_town/ClearNoon/001, or 'failures'"),
-    ("[5]", "video: no episode 5 in this run (episodes 0..1)"),
+@pytest.mark.parametrize("video, value, named", [  # named: what the line offers instead
+    ("[nosuch]", "nosuch", "bench_town/ClearNoon/000"),
+    ("[5]", 5, "0..1"),
 ])
-def test_an_unknown_video_episode_is_refused_before_driving(tmp_path, video, message):
+def test_an_unknown_video_episode_is_refused_before_driving(tmp_path, video, value, named):
     with pytest.raises(ValueError) as err:
         evaluate(compose_config([*QUICK, f"video={video}"]), tmp_path / "run")
-    assert str(err.value) == message
+    assert err.value.value == value and "video" in str(err.value) and named in str(err.value), str(err.value)
     assert not (tmp_path / "run" / LOG_NAME).exists()  # not one episode driven
 
 
@@ -105,18 +105,14 @@ def test_ctrl_c_during_the_evaluation_keeps_the_finished_episodes_and_says_how_t
 
 def test_a_read_only_run_folder_is_one_line(tmp_path):
     proc = read_only_app(tmp_path, "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/ro")
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert _errors(proc) == [f"cicfw: error: cannot write the run folder {tmp_path}/ro (Permission denied); "
-                             f"give a folder you can write: hydra.run.dir=<folder>"]
+    assert_refused(proc, "hydra.run.dir", f"{tmp_path}/ro")
 
 
 def test_a_300_character_run_name_is_one_line(tmp_path):
     name = "e" * 300
     proc = subprocess.run([sys.executable, "-m", "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/x/{name}"],
                           capture_output=True, text=True, env=ENV, timeout=600)
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
-                             f"this filesystem allows (255); give a shorter one"]
+    assert "255" in assert_refused(proc, "hydra.run.dir", name[:20])  # the filesystem's limit
 
 
 @pytest.mark.parametrize("override, key", [
@@ -147,6 +143,7 @@ def test_a_folder_without_checkpoints_is_named_as_given(tmp_path):
     cfg = compose_config([*QUICK[1:], "policy=checkpoint", f"checkpoint={tmp_path}/empty"])
     with pytest.raises(ValueError) as err:
         evaluate(cfg, tmp_path / "run")
-    assert str(err.value) == (f"checkpoint='{tmp_path}/empty' is a folder with 0 .ckpt files besides last.ckpt "
-                              f"(none); give one .ckpt file")
+    assert (err.value.key, str(err.value.value)) == ("checkpoint", f"{tmp_path}/empty")
+    assert "PosixPath" not in str(err.value)
+    assert f"'{tmp_path}/empty'" in str(err.value)  # named as given
     assert not (tmp_path / "run").exists()

@@ -14,7 +14,7 @@ import torch
 import cicfw.train.app as train_mod
 from cicfw.core.config_checks import SchemaError
 from cicfw.train.app import train
-from conftest import compose_train, run_app_in_process, write_tiny_dataset
+from conftest import assert_refused, compose_train, run_app_in_process, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -41,34 +41,34 @@ def _one_line(err: pytest.ExceptionInfo) -> str:
 # ---- unknown top-level keys -----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("override, message", [
-    ("+foo=1", "unknown top-level key 'foo'; accepted top-level keys: ckpt_path, data, encoder, evaluate_after,"),
-    ("+evaluate_aftr=true", "unknown top-level key 'evaluate_aftr'; did you mean 'evaluate_after'? accepted "
-                            "top-level keys: ckpt_path, data,"),
+@pytest.mark.parametrize("override, key, hint", [  # hint: the key it suggests, if any
+    ("+foo=1", "foo", None),
+    ("+evaluate_aftr=true", "evaluate_aftr", "'evaluate_after'"),
 ])
-def test_an_unknown_top_level_key_is_refused_before_any_data(tmp_path, no_data, override, message):
+def test_an_unknown_top_level_key_is_refused_before_any_data(tmp_path, no_data, override, key, hint):
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, override), tmp_path / "run")
-    assert _one_line(err).startswith(message), str(err.value)
-    assert "trainer" in str(err.value) and "seed" in str(err.value)
+    assert err.value.key == key and f"'{key}'" in _one_line(err), str(err.value)
+    assert hint is None or hint in str(err.value)
+    assert "trainer" in str(err.value) and "seed" in str(err.value)  # the keys accepted
 
 
 # ---- the evaluation's config, checked before the first batch --------------------------------------
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (["suite.towns=[town_z]"], "evaluate_overrides: unknown town 'town_z'; known towns: town_a, town_b"),
-    (["suite.limit=0"], "evaluate_overrides: suite.limit must be >= 1 (or null for every pair), got 0"),
-    (["suite.towns=[town_a"], "evaluate_overrides: cannot parse 'suite.towns=[town_a': "),
-    (["suite=nosuch"], "evaluate_overrides: suite=nosuch: no option 'nosuch' in config group 'suite'; "
-                       "options: junctions, single_turn"),
-    (["video=[nosuch]"], "evaluate_overrides: video: unknown episode 'nosuch'; give episode indices, keys such as"),
+@pytest.mark.parametrize("overrides, named", [  # named: what the line must name (the key and value inside)
+    (["suite.towns=[town_z]"], ["town_z"]),
+    (["suite.limit=0"], ["suite.limit", "0"]),
+    (["suite.towns=[town_a"], ["suite.towns=[town_a"]),
+    (["suite=nosuch"], ["suite", "nosuch", "junctions, single_turn"]),
+    (["video=[nosuch]"], ["video", "nosuch"]),
 ])
-def test_bad_evaluate_overrides_are_refused_before_the_first_batch(tmp_path, no_data, overrides, message):
+def test_bad_evaluate_overrides_are_refused_before_the_first_batch(tmp_path, no_data, overrides, named):
     cfg = _cfg(tmp_path, "evaluate_after=true", f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
     with pytest.raises(ValueError) as err:
         train(cfg, tmp_path / "run")
-    assert _one_line(err).startswith(message), str(err.value)
+    assert err.value.key == "evaluate_overrides" and _one_line(err).startswith("evaluate_overrides: ")
+    assert all(n in str(err.value) for n in named), str(err.value)
 
 
 @pytest.mark.parametrize("overrides, kind, key", [
@@ -106,10 +106,8 @@ def test_good_evaluate_overrides_pass_the_check():
 def test_a_value_of_the_wrong_type_is_one_line_before_any_run_folder(tmp_path, override, key):
     """Refused while Hydra composes the config (the schema), so the app writes no run folder at all."""
     proc = train_app(override, f"hydra.run.dir={tmp_path}/run")
-    assert proc.returncode == 2
-    errors = _errors(proc)
-    assert len(errors) == 1 and errors[0].startswith(f"cicfw: error: {key} must be "), proc.stderr[-2000:]
-    assert "Traceback" not in proc.stderr and "HYDRA_FULL_ERROR" not in proc.stderr
+    assert_refused(proc, key, override.split("=", 1)[1])
+    assert "HYDRA_FULL_ERROR" not in proc.stderr
     assert not (tmp_path / "run").exists()
 
 
@@ -119,8 +117,8 @@ def test_a_folder_of_your_own_cil_files_without_data_cil_hdf5_names_it(tmp_path)
     with pytest.raises(ValueError) as err:
         train(cfg, tmp_path / "run")
     text = _one_line(err)
-    assert text.startswith(f"data.path={data} holds 6 CIL HDF5 file(s) that cicfw did not collect"), text
-    assert f"add data=cil_hdf5 to train on them: python -m cicfw.train data=cil_hdf5 data.path={data}" in text
+    assert f"data.path={data}" in text and "6" in text, text  # the key, the value, how many files
+    assert f"python -m cicfw.train data=cil_hdf5 data.path={data}" in text  # the command that trains on them
     assert not (data / "dataset_metadata.json").exists()  # nothing collected into the user's folder
 
 
@@ -178,8 +176,7 @@ def test_a_full_disk_while_saving_a_checkpoint_is_one_line_and_leaves_no_truncat
     with pytest.raises(ValueError) as err:
         train(cfg, run)
     text = _one_line(err)
-    assert text.startswith(f"no space left on the device of {ckpts} while writing the checkpoint "), text
-    assert "free some space, then resume with ckpt_path=" in text
+    assert str(ckpts) in text and "ckpt_path=" in text, text  # the folder, and the override that resumes
     assert (ckpts / "last.ckpt").read_bytes() == b"the previous last.ckpt"  # intact, not half overwritten
     assert sorted(p.name for p in ckpts.iterdir()) == ["last.ckpt"]  # no truncated file, no temporary left
 
@@ -297,22 +294,16 @@ def read_only_app(tmp_path: Path, module: str, *args: str) -> subprocess.Complet
 def test_a_read_only_run_folder_is_one_line(tmp_path):
     proc = read_only_app(tmp_path, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
                          f"hydra.run.dir={tmp_path}/ro/run")
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert _errors(proc) == [f"cicfw: error: cannot create the run folder {tmp_path}/ro/run (Permission denied); "
-                             f"give a folder you can write: hydra.run.dir=<folder>"]
+    assert_refused(proc, "hydra.run.dir", f"{tmp_path}/ro/run")
 
 
 def test_a_300_character_run_name_is_one_line(tmp_path):
     name = "n" * 300
     proc = train_app(*BASE, f"data.path={tmp_path}/data", f"hydra.run.dir={tmp_path}/{name}")
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert _errors(proc) == [f"cicfw: error: hydra.run.dir: the name {name[:20]}... is 300 bytes long, more than "
-                             f"this filesystem allows (255); give a shorter one"]
+    assert "255" in assert_refused(proc, "hydra.run.dir", name[:20])  # the filesystem's limit
     assert not (tmp_path / name[:255]).exists()
     proc = train_app(*BASE, f"data.path={tmp_path}/data", f"hydra.run.dir={tmp_path}/run", f"hydra.job.name={name}")
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert _errors(proc) == [f"cicfw: error: hydra.job.name: the name {name[:20]}... is 304 bytes long, more than "
-                             f"this filesystem allows (255); give a shorter one"]
+    assert "255" in assert_refused(proc, "hydra.job.name", name[:20])
 
 
 # ---- values of the wrong type or range, refused by name before any data (bad-input sweep) -------------
@@ -370,18 +361,13 @@ def test_cameras_the_default_data_does_not_record_are_refused_before_collecting(
                         "data.cameras=[1,2]", "data.val_cameras=[1]", "progress_bar=false")
     with pytest.raises(ValueError) as err:
         train(cfg, tmp_path / "run")
-    assert _one_line(err) == ("data.cameras=[1, 2] chooses none of the cameras the default data records (0 centre; "
-                              "collect.cameras); choose among those, or train on your own files with data=cil_hdf5 "
-                              "data.path=...")
+    assert "data.cameras=[1, 2]" in _one_line(err) and "collect.cameras" in str(err.value)  # value, and the key
     assert not (tmp_path / "sim").exists()
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (["data.cameras=[5]", "data.val_cameras=null"],
-     "data.cameras=[5] keeps none of the 144 samples: the files hold camera id(s) [0, 1, 2] (0 centre, 1 left, "
-     "2 right); choose among those, or data.cameras=null for every camera"),
-    (["data.cameras=null", "data.val_cameras=[5]"],
-     "data.val_cameras=[5] keeps none of the "),
+@pytest.mark.parametrize("overrides, message", [  # message: the key=value the line starts with
+    (["data.cameras=[5]", "data.val_cameras=null"], "data.cameras=[5]"),
+    (["data.cameras=null", "data.val_cameras=[5]"], "data.val_cameras=[5]"),
 ])
 def test_cameras_the_files_do_not_hold_are_named_not_zero_episodes(tmp_path, overrides, message):
     """``data.cameras=[5]`` on a folder of 6 files said "the data holds 0 episode(s) ... at least 2 files"."""

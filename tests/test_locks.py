@@ -63,8 +63,8 @@ def test_another_process_is_refused_in_one_line_naming_the_holder(holder, tmp_pa
     with pytest.raises(FolderBusy) as err:
         FolderLock(tmp_path / "run").acquire()
     msg = str(err.value)
-    assert f"is in use by another process (pid {holder.pid} on {socket.gethostname()}, started " in msg
-    assert "(the holder)" in msg and "\n" not in msg
+    assert err.value.value == tmp_path / "run" and str(tmp_path / "run") in msg and "\n" not in msg
+    assert f"pid {holder.pid}" in msg and socket.gethostname() in msg and "the holder" in msg  # who holds it
     record = json.loads((tmp_path / "run" / ".lock").read_text())
     assert record["pid"] == holder.pid and "command" in record and record["what"] == "the holder"
 
@@ -81,8 +81,10 @@ def test_the_lock_file_and_a_folder_the_lock_made_go_when_it_ends(tmp_path: Path
 
 def test_a_waiter_waits_as_long_as_it_is_told(tmp_path: Path, caplog):
     first = FolderLock(tmp_path).acquire()
-    with pytest.raises(FolderBusy, match=r"after waiting 1 s"):
+    t0 = time.monotonic()
+    with pytest.raises(FolderBusy):
         FolderLock(tmp_path, wait=0.6).acquire()
+    assert time.monotonic() - t0 >= 0.6
     threading.Timer(0.8, first.release).start()
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"), FolderLock(tmp_path, wait=30):
@@ -124,11 +126,13 @@ def test_with_check_pid_only_a_gone_pid_on_this_host_is_taken_over(tmp_path: Pat
 
     host = socket.gethostname()
     path = leave_record(tmp_path, ".lock", pid=1, host="elsewhere", started="2020-01-01 00:00:00")
-    with pytest.raises(FolderBusy, match=rf"pid 1 on elsewhere.*; if it is no longer running, delete '{path}'"):
+    with pytest.raises(FolderBusy) as err:
         Careful(tmp_path).acquire()
+    assert "pid 1" in str(err.value) and "elsewhere" in str(err.value) and str(path) in str(err.value)  # to delete
     leave_record(tmp_path, ".lock", pid=os.getppid(), host=host, started="x", started_epoch=time.time())
-    with pytest.raises(FolderBusy, match=rf"pid {os.getppid()} on {host}"):
+    with pytest.raises(FolderBusy) as err:
         Careful(tmp_path).acquire()  # alive here, though its flock is free: not taken
+    assert f"pid {os.getppid()}" in str(err.value) and host in str(err.value)
     assert path.is_file()
     leave_record(tmp_path, ".lock", pid=dead_pid(), host=host, started="2020-01-01 00:00:00")
     with caplog.at_level(logging.WARNING, logger="cicfw.core.locks"), Careful(tmp_path):
@@ -147,9 +151,10 @@ def test_update_keeps_the_start_and_adds_keys(tmp_path: Path):
 # ---- the users: each its own words, the same lock ------------------------------------------------
 def test_the_collection_lock_names_its_holder_and_takes_over_a_killed_collector(tmp_path: Path, caplog):
     with CollectLock(tmp_path, 0, {"what": "a test"}):
-        with pytest.raises(FolderLockedError, match=rf"being collected into by another process \(pid {os.getpid()} "
-                                                    rf"on .*, started .* \(a test\)\); wait for it to finish"):
+        with pytest.raises(FolderLockedError) as err:
             CollectLock(tmp_path, 0).acquire()
+        assert (err.value.key, err.value.value) == ("out_dir", tmp_path)
+        assert f"pid {os.getpid()}" in str(err.value) and "a test" in str(err.value)
     assert not (tmp_path / COLLECT_LOCK).exists()
     pid = dead_pid()
     leave_record(tmp_path, COLLECT_LOCK, pid=pid, host=socket.gethostname(), started="2020-01-01 00:00:00")
@@ -162,8 +167,9 @@ def test_an_evaluation_folder_is_refused_to_a_second_writer_and_left_without_a_l
     fp = {"policy": {"name": "expert"}}
     with EpisodeLog.open(tmp_path / "run", fp):
         assert (tmp_path / "run" / EVALUATE_LOCK).is_file()
-        with pytest.raises(RunFolderError, match=rf"another evaluation \(pid {os.getpid()}\) is writing"):
+        with pytest.raises(RunFolderError) as err:
             EpisodeLog.open(tmp_path / "run", fp)
+        assert err.value.value == tmp_path / "run" and f"pid {os.getpid()}" in str(err.value)
     assert not (tmp_path / "run" / EVALUATE_LOCK).exists()
     pid = dead_pid()
     leave_record(tmp_path / "run", EVALUATE_LOCK, pid=pid, host=socket.gethostname(), started="2020-01-01 00:00:00")
@@ -176,12 +182,14 @@ def test_an_evaluation_folder_is_refused_to_a_second_writer_and_left_without_a_l
 def test_the_results_lock_refuses_a_live_holder_and_leaves_no_file(tmp_path: Path):
     out = tmp_path / "results"
     with ResultsLock(out):
-        with pytest.raises(FolderInUse, match=rf"in use by another reproduce run \(pid {os.getpid()} on host "):
+        with pytest.raises(FolderInUse) as err:
             ResultsLock(out).acquire()
+        assert (err.value.key, err.value.value) == ("results_dir", out) and f"pid {os.getpid()}" in str(err.value)
     assert not out.exists()  # made by the lock, nothing written into it
     path = leave_record(out, LOCK_FILE, pid=1, host="elsewhere", started="2020-01-01 00:00:00")
-    with pytest.raises(FolderInUse, match="if it is no longer running, delete"):
+    with pytest.raises(FolderInUse) as err:
         ResultsLock(out).acquire()
+    assert str(path) in str(err.value)  # the stale record to delete
     assert path.is_file()
 
 

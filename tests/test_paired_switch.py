@@ -102,14 +102,14 @@ def test_episode_tost_is_dual_to_newcombes_interval_by_hand():
 
 def test_bad_input_is_one_line(tmp_path, capsys):
     assert ps.main([str(tmp_path / "nowhere"), str(tmp_path)]) == 2
-    assert "is not a folder" in capsys.readouterr().err
+    assert str(tmp_path / "nowhere") in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     write_cell(tmp_path / "b", "cil", 0, [1, 1, 1, 1])
     assert ps.main([str(tmp_path / "empty"), str(tmp_path / "b")]) == 2
-    assert "holds no finished cell" in capsys.readouterr().err
+    assert str(tmp_path / "empty") in capsys.readouterr().err
     assert ps.main([str(tmp_path / "b"), str(tmp_path / "b"), "--margin", "0"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--margin must be a positive number" in err
+    assert err.count("\n") == 1 and "--margin" in err, err
 
 
 def exact_mcnemar_by_hand(lost: int, gained: int) -> float:
@@ -143,11 +143,11 @@ def test_the_same_folder_or_file_twice_is_refused(tmp_path, capsys):
     write_cell(tmp_path / "a", "cil", 0, [1, 1, 1, 1])
     assert ps.main([str(tmp_path / "a"), str(tmp_path / "x" / ".." / "a")]) == 2
     out, err = capsys.readouterr()
-    assert out == "" and err.count("\n") == 1 and "are the same folder" in err
+    assert out == "" and err.count("\n") == 1 and str(tmp_path / "a") in err, err
     cell = tmp_path / "a" / "seed0" / "cell.json"
     assert ps.main(["--episodes", str(cell), str(tmp_path / "a" / "seed0" / "." / "cell.json")]) == 2
     out, err = capsys.readouterr()
-    assert out == "" and err.count("\n") == 1 and "are the same episodes file" in err
+    assert out == "" and err.count("\n") == 1 and str(cell) in err, err
 
 
 def test_rows_with_no_common_seed_are_refused_and_row_names_are_printed(tmp_path, capsys):
@@ -159,7 +159,7 @@ def test_rows_with_no_common_seed_are_refused_and_row_names_are_printed(tmp_path
         warnings.simplefilter("error")
         assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 2
     out, err = capsys.readouterr()
-    assert out == "" and err.count("\n") == 1 and "share no seed" in err and "[5]" in err and "[0]" in err
+    assert out == "" and err.count("\n") == 1 and "[5]" in err and "[0]" in err, err  # each side's seeds
     write_cell(tmp_path / "b", "cil", 5, [1, 1, 1, 1])
     assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
     assert "(row cil_bf16) vs B" in capsys.readouterr().out
@@ -174,8 +174,7 @@ def test_episodes_files_without_episodes_are_refused(tmp_path, capsys):
     (tmp_path / "empty.csv").write_text("")
     (tmp_path / "header.csv").write_text("key,town_set,weather_set,success\n")
     (tmp_path / "other.csv").write_text("key,town_set,weather_set,success\nzz/00,training,training,True\n")
-    for name, words in [("text.h5", "lacks the column(s) key"), ("empty.csv", "lacks the column(s) key"),
-                        ("header.csv", "holds no episodes"), ("other.csv", "share no episode")]:
+    for name in ("text.h5", "empty.csv", "header.csv", "other.csv"):
         assert ps.main(["--episodes", str(tmp_path / name), cell]) == 2, name
         out, err = capsys.readouterr()
-        assert out == "" and err.count("\n") == 1 and words in err, (name, err)
+        assert out == "" and err.count("\n") == 1 and str(tmp_path / name) in err, (name, err)

@@ -27,15 +27,15 @@ def test_register_get_names():
 def test_unknown_name_lists_known():
     with pytest.raises(UnknownNameError) as err:
         MIXERS.get("gtuu")
-    msg = str(err.value)
-    assert "unknown mixer 'gtuu'" in msg and "independent" in msg
+    assert err.value.value == "gtuu" and "independent" in str(err.value)  # the name, and one registered
 
 
 def test_duplicate_name_is_refused():
     reg = Registry("widget")
     reg.register("x")(type("X1", (), {}))
-    with pytest.raises(ValueError, match="already registered"):
+    with pytest.raises(ValueError) as err:
         reg.register("x")(type("X2", (), {}))
+    assert "'x'" in str(err.value), err.value  # the name taken
 
 
 def test_builtins_are_registered():

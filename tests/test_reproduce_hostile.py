@@ -76,7 +76,7 @@ def test_unknown_keys_are_refused_in_one_line(arg, kind, key, no_collect, tmp_pa
 def test_an_unparsable_override_is_one_line(no_collect, tmp_path, capsys):
     out = tmp_path / "results"
     msg = refused(["rows=[cil", f"results_dir={out}"], capsys)
-    assert msg.startswith("cannot parse the override 'rows=[cil': "), msg
+    assert "'rows=[cil'" in msg, msg  # the override refused
     assert not out.exists()
 
 
@@ -133,19 +133,16 @@ def test_a_custom_row_against_the_schema_is_refused_up_front(row, kind, key, no_
     assert not out.exists()
 
 
-@pytest.mark.parametrize("override, message", [
-    ("model.lr=abc", "model.lr must be a number, got 'abc'"),
-    ("+mixer.foo=1", "mixer.foo is not an argument of mixer 'independent'; accepted keys: "),
-    ("+trainer.foo=1", "trainer.foo is not a Lightning Trainer argument; "),
-    ("+foo=1", "unknown top-level key 'foo'; accepted top-level keys: "),
+@pytest.mark.parametrize("override, key", [
+    ("model.lr=abc", "model.lr"), ("+mixer.foo=1", "mixer.foo"), ("+trainer.foo=1", "trainer.foo"), ("+foo=1", "'foo'"),
 ])
-def test_a_custom_row_with_a_bad_value_is_refused_up_front(override, message, no_collect, tmp_path, capsys):
+def test_a_custom_row_with_a_bad_value_is_refused_up_front(override, key, no_collect, tmp_path, capsys):
     """A value only the training would refuse (``model.lr=abc``) is refused before collecting, in one line
     naming the row, not by every cell of the row after the dataset is collected."""
     out = tmp_path / "results"
     row = f"{{experiment: paper_cil, overrides: ['{override}'], label: mine}}"
     msg = refused([f"+catalogue.mine={row}", "rows=[cil,mine]", "budget=smoke", f"results_dir={out}"], capsys)
-    assert msg.startswith(f"row 'mine' (experiment paper_cil, overrides ['{override}']): {message}"), msg
+    assert "'mine'" in msg and override in msg and key in msg, msg  # the row, its override and the key refused
     assert not out.exists()
 
 
@@ -168,7 +165,7 @@ def test_bad_curve_lists_and_margins_are_refused_by_the_schema(arg, kind, key, n
 def test_a_curve_epoch_below_1_is_refused_up_front(no_collect, tmp_path, capsys):
     out = tmp_path / "results"
     msg = refused(["budget=smoke", "rows=[cil]", "budget.curve_epochs=[0]", f"results_dir={out}"], capsys)
-    assert msg.startswith("budget.curve_epochs must be a list of whole numbers >= 1 ") and msg.endswith("got [0]"), msg
+    assert "budget.curve_epochs" in msg and "[0]" in msg, msg
     assert not out.exists()
 
 
@@ -193,8 +190,7 @@ def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
     out = tmp_path / "results"
     assert reproduce.main(["budget=smoke", "rows=[cil,gtu]", "seeds=1", f"results_dir={out}"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1] == ("cicfw: error: 2 of 2 cells did not finish (cil/seed0, gtu/seed0): their cell.json or the "
-                       "log above says why; a rerun of the same command retries them"), err
+    assert err[-1].startswith("cicfw: error: ") and all(s in err[-1] for s in ("2 of 2", "cil/seed0", "gtu/seed0")), err
     cell = json.loads((out / "cells" / "cil" / "seed0" / "cell.json").read_text())
     assert cell["status"] == "failed" and cell["error"] == "RuntimeError: out of memory"
     assert not (out / "reproduce.lock").exists()
@@ -209,7 +205,7 @@ def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys)
     f.write_text("x")
     out = tmp_path / "results"
     msg = refused(["budget=smoke", f"publish_dir={f}", f"results_dir={out}"], capsys)
-    assert msg.startswith(f"publish_dir {str(f)!r} is a file, not a folder; give publish_dir=<a folder>"), msg
+    assert "publish_dir" in msg and str(f) in msg, msg
     assert not out.exists()
 
 
@@ -227,8 +223,7 @@ def smoke_manifest(tmp_path: Path, budget: str = "smoke", **pinned) -> Path:
 def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsys):
     out = smoke_manifest(tmp_path, "smoke")
     msg = refused(["budget=laptop", "rows=[cil]", f"results_dir={out}"], capsys)
-    assert msg.startswith(f"results folder {str(out)!r} was made with budget=smoke, this run asks for budget=laptop "
-                          f"(another train/suite); start a new folder (results_dir=<new path>)"), msg
+    assert all(s in msg for s in (str(out), "budget=smoke", "budget=laptop", "results_dir=")), msg
     assert not (out / "reproduce.lock").exists()
 
 
@@ -253,10 +248,7 @@ def test_a_folder_in_use_is_refused_naming_its_holder(no_collect, tmp_path, caps
     try:
         assert holder.stdout.readline().strip() == "held"
         msg = refused(["budget=smoke", "rows=[cil]", f"results_dir={out}"], capsys)
-        assert re.match(rf"results folder {re.escape(repr(str(out)))} is in use by another reproduce run \(pid "
-                        rf"{holder.pid} on host {re.escape(socket.gethostname())}, started \d{{4}}-\d\d-\d\d "
-                        rf"\d\d:\d\d:\d\d\): one run per folder; wait for it to finish, or give another "
-                        rf"results_dir=<path>", msg), msg
+        assert all(s in msg for s in (str(out), f"pid {holder.pid}", socket.gethostname(), "results_dir=")), msg
     finally:
         holder.kill()
         holder.wait()
@@ -291,9 +283,7 @@ def test_a_lock_held_on_another_host_is_refused(no_collect, tmp_path, capsys):
     out.mkdir()
     (out / "reproduce.lock").write_text(json.dumps({"pid": 1, "host": "elsewhere", "started": "2020-01-01 00:00:00"}))
     msg = refused(["budget=smoke", "rows=[cil]", f"results_dir={out}"], capsys)
-    assert msg.startswith(f"results folder {str(out)!r} is in use by another reproduce run (pid 1 on host elsewhere, "
-                          "started 2020-01-01 00:00:00)"), msg
-    assert f"if it is no longer running, delete {str(out / 'reproduce.lock')!r}" in msg
+    assert all(s in msg for s in (str(out), "pid 1", "elsewhere", str(out / "reproduce.lock"))), msg  # lock to delete
     assert (out / "reproduce.lock").is_file()  # someone else's lock is left alone
 
 

@@ -50,7 +50,7 @@ def _seeds(data: Path) -> tuple[list[int], list[int]]:
             split_by_episode(frames, 0.3, seed)
             ok.append(seed)
         except ValueError as err:
-            assert "no sample of command(s) ['right']" in str(err)
+            assert err.value == ["right"], err
             bad.append(seed)
     assert ok and bad, (ok, bad)
     return ok, bad
@@ -64,14 +64,9 @@ def test_a_seed_whose_split_cannot_train_is_refused_before_any_cell(smoke_data, 
                            f"results_dir={out}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
-    named = ", ".join(map(str, bad[:2]))
-    assert err[0].startswith(f"cicfw: error: seeds {named} cannot train on budget smoke's dataset (6 episodes in "
-                             f"{smoke_data}): seed {bad[0]}: the train split has no sample of command(s) ['right'] "
-                             f"(train counts per command "), err[0]
-    assert f"; seed {bad[1]}: the train split has no sample of command(s) ['right']" in err[0]
-    assert err[0].endswith(f"; nothing was trained: give the budget more data (more episodes), run only the seeds "
-                           f"that split (seeds=[{ok[0]}]), or choose another budget (" + ", ".join(
-                               b for b in reproduce.known_budgets() if b != "smoke") + ")"), err[0]
+    assert err[0].startswith("cicfw: error: ") and str(smoke_data) in err[0] and "['right']" in err[0], err[0]
+    assert f"seed {bad[0]}" in err[0] and f"seed {bad[1]}" in err[0], err[0]  # each seed refused
+    assert f"seeds=[{ok[0]}]" in err[0], err[0]  # the override that runs the seeds that split
     assert not (out / "cells").exists() and not (out / "reproduce.json").exists()
     assert not (out / "reproduce.lock").exists()
 
@@ -93,5 +88,6 @@ def test_finished_cells_are_not_checked(smoke_data, tmp_path):
     done.write_text('{"row": "cil", "seed": %d, "status": "ok", "episodes": {}}' % bad[0])
     reproduce.check_splits(reproduce.compose_plan(["budget=smoke", "rows=[cil]"]), ["cil"], [bad[0]],
                            {f"cil/seed{bad[0]}"})
-    with pytest.raises(reproduce.ReproduceError, match=rf"^seed {bad[0]} cannot train"):
+    with pytest.raises(reproduce.ReproduceError) as err:
         reproduce.check_splits(reproduce.compose_plan(["budget=smoke", "rows=[cil]"]), ["cil"], [bad[0]])
+    assert (err.value.key, err.value.value) == ("seeds", [bad[0]])

@@ -415,15 +415,16 @@ def test_the_paper_claims_come_from_the_config_with_their_sentences():
             assert re.sub(r"\s+", " ", c.quote) in text, c.id
 
 
-@pytest.mark.parametrize("spec, message", [
-    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "column": "nowhere"}]}], "unknown column 'nowhere'"),
-    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "test": "beats"}]}], "unknown test 'beats'"),
-    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "on": "overall"}]}], "unknown: on"),
-    ([{"id": "x", "parts": [{"a": "gtu", "b": "cil"}]}], "has no 'claim'"),
+@pytest.mark.parametrize("spec, named", [  # named: the key or value the error names
+    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "column": "nowhere"}]}], "'nowhere'"),
+    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "test": "beats"}]}], "'beats'"),
+    ([{"id": "x", "claim": "x", "parts": [{"a": "gtu", "b": "cil", "on": "overall"}]}], "on"),
+    ([{"id": "x", "parts": [{"a": "gtu", "b": "cil"}]}], "'claim'"),
 ])
-def test_bad_claims_are_one_clear_error(spec, message):
-    with pytest.raises(ValueError, match=re.escape(message)):
+def test_bad_claims_are_one_clear_error(spec, named):
+    with pytest.raises(ValueError) as err:
         load_claims(spec)
+    assert named in str(err.value) and "\n" not in str(err.value), err.value
 
 
 # ------------------------------------------------------------------------------------------------

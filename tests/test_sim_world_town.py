@@ -115,15 +115,17 @@ def test_each_mistake_gives_one_clear_error(spec, words):
 
 
 def test_unknown_town_name_lists_the_shipped_ones():
-    with pytest.raises(TownError, match="unknown town 'town_z'.*town_a, town_b"):
+    with pytest.raises(TownError) as err:
         load_town("town_z")
+    assert all(s in str(err.value) for s in ("'town_z'", "town_a", "town_b")), err.value  # the name, those shipped
 
 
 def test_bad_yaml_is_a_town_error(tmp_path: Path):
     p = tmp_path / "broken.yaml"
     p.write_text("name: [unclosed\n")
-    with pytest.raises(TownError, match="not valid YAML"):
+    with pytest.raises(TownError) as err:
         load_town(str(p))
+    assert str(p) in str(err.value) and "YAML" in str(err.value)  # the file, and what it is not
 
 
 def test_single_turn_routes_cover_every_manoeuvre_once_sorted_and_stable():

@@ -8,7 +8,7 @@ from hydra.errors import MissingConfigException
 from cicfw.model.module import CICModule
 from cicfw.registry import UnknownNameError
 from cicfw.train.app import build_model, train
-from conftest import compose_train, run_app_in_process
+from conftest import assert_refused, compose_train, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -86,8 +86,9 @@ def test_resume_from_last_checkpoint(tiny_data, tmp_path):
 
 def test_unknown_registry_name_lists_known(fast_cfg):
     fast_cfg.mixer.name = "gtuu"
-    with pytest.raises(UnknownNameError, match="registered mixers: .*independent"):
+    with pytest.raises(UnknownNameError) as err:
         build_model(fast_cfg)
+    assert err.value.value == "gtuu" and "independent" in str(err.value)  # the name, and one registered
 
 
 def test_unknown_group_option_lists_options():
@@ -98,16 +99,15 @@ def test_unknown_group_option_lists_options():
 
 def test_bad_hyperparameter_fails_at_construction(fast_cfg):
     fast_cfg.model.lr = -1.0
-    with pytest.raises(ValueError, match="lr must be > 0"):
+    with pytest.raises(ValueError) as err:
         build_model(fast_cfg)
+    assert (err.value.key, err.value.value) == ("model.lr", -1.0)
 
 
 def test_cli_reports_bad_path_in_one_line(tmp_path):
     r = run_app_in_process("cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing/*.h5",
                            f"hydra.run.dir={tmp_path}/out", env={"HYDRA_FULL_ERROR": "0"})
-    assert r.returncode == 2
-    assert "cicfw: error: data.path=" in r.stderr and "matches no HDF5 file" in r.stderr
-    assert "Traceback" not in r.stderr
+    assert_refused(r, "data.path", f"{tmp_path}/missing/*.h5")
 
 
 def test_cli_refuses_a_trainer_value_of_the_wrong_type_in_one_line_before_the_data(tmp_path):
@@ -115,8 +115,5 @@ def test_cli_refuses_a_trainer_value_of_the_wrong_type_in_one_line_before_the_da
     dataset first) and then ended in a TypeError traceback from the speed settings."""
     r = run_app_in_process("cicfw.train", "data=cil_hdf5", f"data.path={tmp_path}/missing", "progress_bar=false",
                            "trainer.max_epochs=abc", f"hydra.run.dir={tmp_path}/out", env={"HYDRA_FULL_ERROR": "0"})
-    assert r.returncode == 2, r.stderr[-2000:]
-    errors = [line for line in r.stderr.splitlines() if line.startswith("cicfw:")]
-    assert len(errors) == 1 and errors[0].startswith("cicfw: error: trainer.max_epochs must be "), r.stderr[-2000:]
-    assert "Traceback" not in r.stderr
+    assert_refused(r, "trainer.max_epochs", "abc")
     assert not (tmp_path / "out").exists()  # refused while composing: no run folder

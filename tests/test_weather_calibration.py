@@ -100,8 +100,9 @@ def test_the_anchors_are_the_rules_fixed_points(name):
 
 def test_a_field_the_renderer_cannot_show_must_not_differ():
     other = {**CARLA_PRESETS["MidRainyNoon"], "dust_storm": 50.0}
-    with pytest.raises(ValueError, match="dust_storm is 50.0, the anchor's 0.0"):
+    with pytest.raises(ValueError) as err:
         derive("MidRainyNoon", HARSH_WEATHERS["ClearNoon"], other, CARLA_PRESETS["ClearNoon"])
+    assert all(s in str(err.value) for s in ("dust_storm", "50.0", "0.0")), err.value  # the field, both values
 
 
 # ------------------------------------------------------------------------------------------------
@@ -120,8 +121,10 @@ def test_the_harsh_family_is_the_hand_set_presets_unchanged():
 def test_a_family_is_picked_by_name_and_an_unknown_one_lists_the_known():
     assert get_weather("MidRainyNoon", "harsh") is HARSH_WEATHERS["MidRainyNoon"]
     assert get_weather("MidRainyNoon") is CARLA_WEATHERS["MidRainyNoon"]
-    with pytest.raises(ValueError, match=r"unknown weather family 'soft'; known weather families: carla .*, harsh"):
+    with pytest.raises(ValueError) as err:
         weather_family("soft")
+    assert (err.value.key, err.value.value) == ("weather_family", "soft")
+    assert "carla" in str(err.value) and "harsh" in str(err.value)  # the known ones
 
 
 def test_the_embedded_backend_renders_a_name_in_its_family(tmp_path):
@@ -136,8 +139,9 @@ def test_the_embedded_backend_renders_a_name_in_its_family(tmp_path):
         route = backend.single_turn_routes("town_a")[0]
         env = backend.make_env("town_a", route, "MidRainyNoon", renderer=False)
         assert env.weather is presets["MidRainyNoon"]
-    with pytest.raises(ValueError, match="sim.weather_family: unknown weather family 'wet'"):
+    with pytest.raises(ValueError) as err:
         EmbeddedBackend(weather_family="wet")
+    assert (err.value.key, err.value.value) == ("sim.weather_family", "wet")
 
 
 def test_a_dataset_hash_names_the_family_only_where_it_changes_the_data():
@@ -179,10 +183,10 @@ def test_continuing_a_folder_pinned_before_the_families_keeps_its_harsh_weathers
     published = json.loads((REPO / "docs" / "results" / "converged6" / "reproduce.json").read_text())["pinned"]
     assert "sim.weather_family" not in " ".join(published["suite"])  # pinned before the families
     cfg = reproduce.compose_plan(["budget=converged6"])
-    with pytest.raises(reproduce.ReproduceError, match=r"another suite \(weather_family=harsh there, carla here: "
-                                                       r"name it with weather_family=harsh\)"):
+    with pytest.raises(reproduce.ReproduceError) as err:
         reproduce.refuse_other_pin("continue_from", "fix", published, reproduce.fingerprint(cfg, None), cfg,
                                    ("budget", "train", "suite"))
+    assert "weather_family=harsh" in str(err.value)  # the override that continues it
     cfg = reproduce.compose_plan(["budget=converged6", "weather_family=harsh"])
     ours = reproduce.fingerprint(cfg, None)
     assert ours["suite"][-1] == "sim.weather_family=harsh"

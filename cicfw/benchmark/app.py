@@ -37,10 +37,10 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     assert isinstance(spec, dict)
     if cfg.get("checkpoint") and spec.get("name") != "checkpoint":
         raise CicfwError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
-                         f"drop checkpoint= or use policy=checkpoint")
+                         f"drop checkpoint= or use policy=checkpoint", key="checkpoint", value=cfg.get("checkpoint"))
     if spec.get("name") == "checkpoint" and not spec.get("checkpoint"):
         raise CicfwError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
-                         "or policy=expert for the reference driver")
+                         "or policy=expert for the reference driver", key="checkpoint")
     if cfg.get("name"):
         spec["label"] = str(cfg.name)
     return spec
@@ -232,7 +232,7 @@ def check_policy_device(device: Any) -> None:
     try:
         torch_device(str(device))
     except ValueError as err:
-        raise CicfwError(str(err).replace("device=", "policy.device=", 1)) from None
+        raise CicfwError(str(err).replace("device=", "policy.device=", 1), key="policy.device", value=device) from None
 
 
 _DRIVES_THIS_RUN = ("it drives this run's best checkpoint and logs its success as this run's closed_loop/success; "
@@ -286,7 +286,7 @@ def check_evaluation_overrides(overrides: Any) -> None:
         raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
     except (ValueError, FileNotFoundError, UnknownNameError) as err:
         text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
-        raise CicfwError(f"evaluate_overrides: {text}") from None
+        raise CicfwError(f"evaluate_overrides: {text}", key="evaluate_overrides", value=overrides) from None
 
 
 def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:

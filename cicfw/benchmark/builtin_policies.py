@@ -56,7 +56,8 @@ class ConstantPolicy(Policy):
 
     def __init__(self, steer: float = 0.0, label: str | None = None) -> None:
         if not -1.0 <= float(steer) <= 1.0:
-            raise CicfwError(f"policy.steer must be in [-1, 1] (negative = left), got {steer}")
+            raise CicfwError(f"policy.steer must be in [-1, 1] (negative = left), got {steer}", key="policy.steer",
+                             value=steer)
         self.steer = float(steer)
         self.label = label or f"constant steer {self.steer:+.2f}"
 

@@ -129,7 +129,8 @@ class EpisodeLog:
                 what, old, new = _first_difference(header.get("fingerprint") or {}, fp) or ("fingerprint", "?", "?")
                 raise RunFolderError(
                     f"{str(run_dir)!r} holds {len(rows)} episode(s) of another evaluation ({what}: "
-                    f"{_short(old)} there, {_short(new)} now), so it cannot resume there; {hint or 'give a new output folder'}")
+                    f"{_short(old)} there, {_short(new)} now), so it cannot resume there; {hint or 'give a new output folder'}",
+                    key=what, value=new)
             if header is None:
                 _check_no_foreign_report(run_dir, fp, hint)
                 rows, trajs = {}, {}
@@ -189,7 +190,8 @@ def _check_no_foreign_report(run_dir: Path, fp: Mapping[str, Any], hint: str) ->
         old = None
     if old != fp:
         raise RunFolderError(f"{str(run_dir)!r} already holds an evaluation report of another (or an unknown) "
-                             f"configuration and no episode log to resume from; {hint or 'give a new output folder'}")
+                             f"configuration and no episode log to resume from; {hint or 'give a new output folder'}",
+                             value=run_dir)
 
 
 class EvaluateRunFolderCheck(RunFolderCheck):
@@ -218,4 +220,4 @@ class RunFolderLock(FolderLock):
 
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
         return RunFolderError(f"another evaluation (pid {holder.get('pid', '?')}) is writing {str(self.folder)!r}; "
-                              f"wait for it to finish or give another output folder")
+                              f"wait for it to finish or give another output folder", value=self.folder)

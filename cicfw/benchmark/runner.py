@@ -53,15 +53,18 @@ class RunnerConfig:
 
     def __post_init__(self) -> None:
         if int(self.batch_size) < 1:
-            raise CicfwError(f"runner.batch_size must be >= 1, got {self.batch_size}")
+            raise CicfwError(f"runner.batch_size must be >= 1, got {self.batch_size}", key="runner.batch_size",
+                             value=self.batch_size)
         if isinstance(self.workers, (list, tuple)):  # one simulator server per worker (sim=carla)
             if not self.workers or not all(isinstance(p, int) and 0 < p < 65536 for p in self.workers) \
                     or len(set(self.workers)) < len(self.workers):
                 raise CicfwError(f"runner.workers as a list must hold distinct server ports (one CARLA "
-                                 f"server each), e.g. [2000,2002]; got {self.workers!r}")
+                                 f"server each), e.g. [2000,2002]; got {self.workers!r}", key="runner.workers",
+                                 value=self.workers)
         elif self.workers != "auto" and not (isinstance(self.workers, int) and self.workers >= 1):
             raise CicfwError(f"runner.workers must be an integer >= 1 or 'auto', got {self.workers!r} "
-                             f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])")
+                             f"(with sim=carla: a list of server ports, one server each, e.g. [2000,2002])",
+                             key="runner.workers", value=self.workers)
         # written so that NaN fails too: it passes any "<= 0" test and then silently disables the rule
         if not 0 < self.off_road_s < math.inf:
             raise ConfigError("runner.off_road_s", self.off_road_s, "a finite number of seconds > 0")
@@ -322,13 +325,13 @@ def server_specs(sim: Any, workers: Any) -> list | None:
         if ports:
             raise CicfwError(f"runner.workers={list(workers)}: a list of server ports is for a simulator that "
                              f"runs one episode per server (sim=carla); sim={name} takes a number of processes "
-                             f"or 'auto'")
+                             f"or 'auto'", key="runner.workers", value=workers)
         return None
     if not ports:
         if workers not in ("auto", 1):
             raise CicfwError(f"runner.workers={workers}: sim={name} runs one episode at a time per server, so "
                              f"its workers are servers: give their ports, e.g. runner.workers=[2000,2002] (one "
-                             f"server each), or 1")
+                             f"server each), or 1", key="runner.workers", value=workers)
         return [sim]
     if not isinstance(sim, Mapping):
         if len(workers) == 1:

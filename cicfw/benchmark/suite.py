@@ -84,9 +84,9 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
             continue
         if path_ok and (g.endswith((".yaml", ".yml")) or "/" in g or "\\" in g) and not Path(g).expanduser().exists():
             raise CicfwError(f"{kind} file {g!r}: no such file (a {kind} is a name, {', '.join(known)}, "
-                             f"or the path of an existing {kind} .yaml file)")
+                             f"or the path of an existing {kind} .yaml file)", value=g)
         extra = " (or a path to a town .yaml file)" if path_ok else ""
-        raise CicfwError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}")
+        raise CicfwError(f"unknown {kind} {g!r}; known {kind}s: {', '.join(known)}{extra}", value=g)
     return out
 
 
@@ -147,7 +147,7 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         bad = [p for p in chosen if not 0 <= p < len(routes)]
         if bad:
             raise CicfwError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
-                             f"{len(routes)} pairs (0..{len(routes) - 1})")
+                             f"{len(routes)} pairs (0..{len(routes) - 1})", key="suite.pairs", value=bad[0])
         chosen = [p for p in chosen if _turn_name(routes[p]) in manoeuvres]
         if not chosen:
             raise CicfwError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "

@@ -32,14 +32,14 @@ def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], li
             out += [r for r in rows if r["success"] or w == "all"]
         elif isinstance(w, int) or (isinstance(w, str) and w.isdigit()):
             if int(w) not in by_index:
-                raise CicfwError(f"video: no episode {w} in this run (episodes 0..{len(rows) - 1})")
+                raise CicfwError(f"video: no episode {w} in this run (episodes 0..{len(rows) - 1})", value=w)
             out.append(by_index[int(w)])
         elif str(w) in by_key:
             out.append(by_key[str(w)])
         else:
             some = ", ".join(list(by_key)[:3])
             raise CicfwError(f"video: unknown episode {w!r}; give episode indices, keys such as {some}, "
-                             f"or 'failures'")
+                             f"or 'failures'", value=w)
     seen, uniq = set(), []
     for r in out:
         if r["key"] not in seen:

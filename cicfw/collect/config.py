@@ -152,7 +152,8 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
         raise CollectConfigError(f"collect.cameras is empty; known: {', '.join(CAMERA_IDS)}")
     for c in out["cameras"]:
         if c not in CAMERA_IDS:
-            raise CollectConfigError(f"collect.cameras: unknown camera {c!r}; known: {', '.join(CAMERA_IDS)}")
+            raise CollectConfigError(f"collect.cameras: unknown camera {c!r}; known: {', '.join(CAMERA_IDS)}",
+                                     key="collect.cameras", value=c)
     if len(set(out["cameras"])) != len(out["cameras"]):
         raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
     nz = out["noise"]
@@ -189,17 +190,18 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
             except ValueError as err:
                 if t not in str(err) and Path(t).name not in str(err):
                     raise  # not about this town (e.g. a simulator server that does not answer)
-                raise CollectConfigError(f"collect.towns: {err}") from None
+                raise CollectConfigError(f"collect.towns: {err}", key="collect.towns", value=t) from None
         elif t in known:
             towns.append(t)
         else:
-            raise CollectConfigError(f"collect.towns: unknown town {t!r}; known towns (sim={sim}): {', '.join(known)}")
+            raise CollectConfigError(f"collect.towns: unknown town {t!r}; known towns (sim={sim}): {', '.join(known)}",
+                                     key="collect.towns", value=t)
     out["towns"] = towns
     keys = [town_key(t) for t in towns]
     dup = sorted({k for k in keys if keys.count(k) > 1})
     if dup:
         raise CollectConfigError(f"collect.towns: two towns named {dup[0]!r} (file names use a town file's stem); "
-                                 f"rename one of the files")
+                                 f"rename one of the files", key="collect.towns", value=dup[0])
     known_w = list(backend.weathers())
     if not out["weathers"]:
         raise CollectConfigError(f"collect.weathers is empty; known weathers (sim={sim}): {', '.join(known_w)}")

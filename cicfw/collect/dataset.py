@@ -57,21 +57,24 @@ def _refuse_foreign_files(out_dir: Path, plan: list[dict]) -> None:
     foreign = _foreign_files(out_dir, plan)
     if foreign:
         raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection does not write "
-                           f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder")
+                           f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder",
+                           key="out_dir", value=out_dir)
 
 
 def _prepare_folder(out_dir: Path) -> None:
     try:
         if out_dir.exists() and not out_dir.is_dir():
-            raise CollectError(f"out_dir {out_dir} is a file, not a folder; give a folder")
+            raise CollectError(f"out_dir {out_dir} is a file, not a folder; give a folder", key="out_dir",
+                               value=out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
     except CollectError:
         raise
     except OSError as err:
         raise CollectError(f"cannot create the output folder {out_dir} ({err.strerror}); give a writable "
-                           f"out_dir") from None
+                           f"out_dir", key="out_dir", value=out_dir) from None
     if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise CollectError(f"cannot write to the output folder {out_dir} (permission denied); give a writable out_dir")
+        raise CollectError(f"cannot write to the output folder {out_dir} (permission denied); give a writable out_dir",
+                           key="out_dir", value=out_dir)
 
 
 def collect_dataset(cfg_collect: Any, out_dir: str | Path, progress: bool = True) -> Path:
@@ -111,7 +114,8 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
             if old.get("config_hash") != chash:
                 raise CollectConfigError(
                     f"{out_dir} holds a dataset collected with another config (hash {old.get('config_hash')} "
-                    f"!= {chash}, seed {old.get('seed')}); collect into another folder or delete this one")
+                    f"!= {chash}, seed {old.get('seed')}); collect into another folder or delete this one",
+                    key="out_dir", value=out_dir)
         plan = episode_plan(cfg)
         _refuse_foreign_files(out_dir, plan)  # again under the lock: a collection's folder, or one changed since
         markers = read_markers(out_dir, plan, chash, say=True)

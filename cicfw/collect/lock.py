@@ -23,7 +23,7 @@ class FolderLock(locks.FolderLock):
         after = f" after waiting {waited:.0f} s" if self.wait else ""
         return FolderLockedError(f"{self.folder} is being collected into by another process "
                                  f"({locks.describe_holder(holder)}){after}; wait for it to finish (lock_wait=null "
-                                 f"waits), or collect into another folder")
+                                 f"waits), or collect into another folder", key="out_dir", value=self.folder)
 
     def unusable(self, err: OSError, step: str) -> Exception:
         if step == "record":

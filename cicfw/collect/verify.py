@@ -53,7 +53,7 @@ def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> Verify
     if not meta_path.is_file():
         what = "does not exist" if not out_dir.exists() else f"has no {META_NAME} (cicfw collect writes one)"
         raise CollectError(f"no dataset to verify in {out_dir}: it {what}; give the out_dir of a collection "
-                           f"(out_dir=...)")
+                           f"(out_dir=...)", key="out_dir", value=out_dir)
     lock = None
     if os.access(out_dir, os.W_OK | os.X_OK):
         lock = FolderLock(out_dir, lock_wait, {"what": "cicfw collect verify=true"}).acquire()

@@ -20,7 +20,7 @@ def disk_error(err: OSError, path: Path, what: str) -> CollectError:
         free = shutil.disk_usage(path.parent).free  # (not _free_bytes: the truth, whatever the check said)
         return DiskFullError(f"no space left on the device of {path.parent} while writing {what} "
                              f"({free / 1e6:.1f} MB free); free some space or collect into another folder "
-                             f"(out_dir=...), then rerun to resume")
+                             f"(out_dir=...), then rerun to resume", key="out_dir", value=path.parent)
     return CollectError(f"could not write {path} ({err.strerror or err}); check the folder and rerun to resume")
 
 
@@ -51,4 +51,5 @@ def check_free_space(out_dir: Path, need: int, what: str) -> None:
     free = _free_bytes(out_dir)
     if free < need:
         raise DiskFullError(f"not enough free space in {out_dir}: {what} needs ~{need / 1e6:.1f} MB, "
-                            f"{free / 1e6:.1f} MB free; free some space or collect into another folder (out_dir=...)")
+                            f"{free / 1e6:.1f} MB free; free some space or collect into another folder (out_dir=...)",
+                            key="out_dir", value=out_dir)

@@ -82,7 +82,7 @@ class FolderLock:
         after = f" after waiting {waited:.0f} s" if self.wait else ""
         tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
         return FolderBusy(f"{self.folder} is in use by another process ({describe_holder(holder)}){after}; wait "
-                          f"for it to finish, or use another folder{tail}")
+                          f"for it to finish, or use another folder{tail}", value=self.folder)
 
     def unusable(self, err: OSError, step: str) -> Exception:
         """The error when the lock cannot be used at all (``step``: ``open``, ``lock`` or ``record``)."""

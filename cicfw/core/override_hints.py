@@ -74,7 +74,7 @@ def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
     unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]
     if unknown:
         raise CicfwError(f"{where}unknown top-level key {unknown[0]!r}; {did_you_mean(unknown[0], accepted)}"
-                         f"accepted top-level keys: {', '.join(sorted(accepted))}")
+                         f"accepted top-level keys: {', '.join(sorted(accepted))}", key=unknown[0])
 
 
 def composition_error_line(err: BaseException, args: list[str]) -> str | None:

@@ -134,7 +134,8 @@ def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hy
     last = Path(folder) / "checkpoints" / "last.ckpt"
     resume = f" or resume that run with ckpt_path={last}" if last.is_file() else ""
     raise RunFolderError(f"the run folder {str(folder)!r} already holds another run's outputs ({', '.join(found)}), "
-                         f"which this run would replace; give a fresh folder ({key}=<new folder>){resume}")
+                         f"which this run would replace; give a fresh folder ({key}=<new folder>){resume}",
+                         key=key, value=folder)
 
 
 class TrainFolderLock(FolderLock):
@@ -151,7 +152,7 @@ class TrainFolderLock(FolderLock):
         tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
         return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another training run "
                           f"({describe_holder(holder)}); give a fresh folder ({self.key}=<new folder>) or wait for "
-                          f"it to finish{tail}")
+                          f"it to finish{tail}", key=self.key, value=self.folder)
 
     def unusable(self, err: OSError, step: str) -> Exception:
         return RunFolderError(f"cannot lock the run folder {str(self.folder)!r} ({err.strerror or err}); give a "

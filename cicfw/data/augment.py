@@ -55,7 +55,8 @@ class AugmentConfig:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise CicfwError(f"unknown augmentation option(s) {sorted(unknown)}; accepted: {sorted(known)}")
+            raise CicfwError(f"unknown augmentation option(s) {sorted(unknown)}; accepted: {sorted(known)}",
+                             key="data.augment", value=sorted(unknown))
         checked = {k: checked_probability(f"data.augment.{k}", v) if k.startswith("p_")
                    else checked_range(f"data.augment.{k}", v, *domains[k]) for k, v in d.items()}
         return cls(**checked)

@@ -192,7 +192,7 @@ def _columns(f: Path, i: int, t: np.ndarray, cameras: tuple[int, ...] | None, si
         found = sorted(set(np.unique(codes[finite][bad]).tolist()))
         raise CILFormatError(
             f"{f}: unknown high-level command code(s) {found} in targets[24]; accepted codes are "
-            f"2 (follow), 3 (left), 4 (right), 5 (straight)"
+            f"2 (follow), 3 (left), 4 (right), 5 (straight)", value=found
         )
     speed = t[:, T.SPEED]
     beyond = np.flatnonzero(finite & (np.abs(speed) > MAX_ABS_SPEED_KMH))
@@ -375,6 +375,6 @@ def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Fr
         raise CicfwError(
             f"the train split has no sample of command(s) {missing} (train counts per command "
             f"{dict(zip(COMMANDS, counts.tolist()))}); collect more episodes with those commands, "
-            f"change data.seed, or lower data.val_fraction"
+            f"change data.seed, or lower data.val_fraction", value=missing
         )
     return train, val

@@ -53,7 +53,7 @@ def check_options(cfg: DictConfig) -> None:
     for key, (ok, accepted) in OPTION_RULES.items():
         value = OmegaConf.select(cfg, key)
         if not ok(value):
-            raise CicfwError(f"{key}={value!r} is not valid; use {accepted}")
+            raise CicfwError(f"{key}={value!r} is not valid; use {accepted}", key=key, value=value)
 
 
 def run_device(name: Any) -> str:
@@ -63,7 +63,8 @@ def run_device(name: Any) -> str:
 
     device = torch_device(str(name or "auto"))
     if device.type not in ("cpu", "cuda"):
-        raise CicfwError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N")
+        raise CicfwError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N", key="device",
+                         value=str(name))
     return str(device)
 
 
@@ -151,10 +152,12 @@ def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] |
     searched = f"no training config found beside {str(checkpoint)!r} (searched .hydra/config.yaml up to " \
                f"{SEARCH_LEVELS} folders above it)"
     if not values.get("path"):
-        raise CicfwError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>")
+        raise CicfwError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>",
+                         key="data.path")
     if found is None and "seed" not in given and cfg.split != "all":
         raise CicfwError(f"{searched}, so its train/validation split is unknown; give data.seed=<the training "
-                         f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame")
+                         f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame",
+                         key="data.seed")
     values["path"] = str(Path(str(values["path"])).expanduser())
     return DataSettings(**values), source
 
@@ -185,9 +188,11 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
 
     if not cfg.get("checkpoint"):
-        raise CicfwError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)")
+        raise CicfwError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)",
+                         key="checkpoint")
     if cfg.split not in sd.SPLITS:
-        raise CicfwError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}")
+        raise CicfwError(f"split={cfg.split!r} is not known; use one of {', '.join(sd.SPLITS)}", key="split",
+                         value=cfg.split)
     check_options(cfg)
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line

@@ -126,15 +126,17 @@ def torch_device(device: str) -> torch.device:
     try:
         dev = torch.device(device)
     except RuntimeError:
-        raise CicfwError(f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
+        raise CicfwError(f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N", key="device",
+                         value=device) from None
     if dev.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
             why = "this torch is built without CUDA" if torch.version.cuda is None else "it sees no CUDA GPU"
-            raise CicfwError(f"device={device!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)")
+            raise CicfwError(f"device={device!r} needs a CUDA GPU, but {why}; use device=cpu (or auto)",
+                             key="device", value=device)
         if dev.index is not None and dev.index >= count:
             raise CicfwError(f"device={device!r} is not on this machine: it has {count} CUDA GPU(s), "
-                             f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto")
+                             f"cuda:0 to cuda:{count - 1}; use one of them, or device=auto", key="device", value=device)
     return dev
 
 

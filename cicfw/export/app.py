@@ -114,14 +114,14 @@ def frame_files(path: str | Path) -> list[Path]:
     except FileNotFoundError:
         raise ExportError(f"frames={str(path)!r} matches no HDF5 file; give a CIL HDF5 file, a folder that holds "
                           f"*.h5 / *.hdf5 files (searched recursively) or a glob, or leave frames out (frames "
-                          f"rendered by the embedded simulator)") from None
+                          f"rendered by the embedded simulator)", key="frames", value=path) from None
     try:
         n = sum(check_file(f).n for f in files)
     except CILFormatError as err:
-        raise ExportError(f"frames={str(path)!r} is not CIL data: {err}") from None
+        raise ExportError(f"frames={str(path)!r} is not CIL data: {err}", key="frames", value=path) from None
     if n == 0:
         raise ExportError(f"frames={str(path)!r} holds no frame (its {len(files)} HDF5 file(s) are empty); "
-                          f"give CIL data with frames, or leave frames out")
+                          f"give CIL data with frames, or leave frames out", key="frames", value=path)
     return files
 
 
@@ -427,7 +427,8 @@ def write_files(files: Mapping[Path, bytes]) -> None:
         write_together(files, fsync=True)
     except OSError as err:
         raise ExportError(f"cannot write {err.filename!r}: {err.strerror or err}; "
-                          f"nothing was written; give out=<a file in a writable folder with room>") from None
+                          f"nothing was written; give out=<a file in a writable folder with room>", key="out",
+                          value=err.filename) from None
 
 
 def output_path(out: str | None, checkpoint: Path, fmt: str) -> Path:
@@ -435,14 +436,15 @@ def output_path(out: str | None, checkpoint: Path, fmt: str) -> Path:
     checking its folder can be written."""
     p = Path(str(out)).expanduser() if out else checkpoint.with_suffix(FORMATS[fmt])
     if p.is_dir():
-        raise ExportError(f"out={str(p)!r} is a folder; give out=<a file name>, e.g. out={str(p / ('model' + FORMATS[fmt]))}")
+        raise ExportError(f"out={str(p)!r} is a folder; give out=<a file name>, e.g. out={str(p / ('model' + FORMATS[fmt]))}",
+                          key="out", value=p)
     folder = p.parent if str(p.parent) else Path(".")
     if not folder.is_dir():
         raise ExportError(f"out={str(p)!r} cannot be written: the folder {str(folder)!r} does not exist; create it "
-                          f"or give out=<a file in a writable folder>")
+                          f"or give out=<a file in a writable folder>", key="out", value=p)
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ExportError(f"out={str(p)!r} cannot be written: the folder {str(folder)!r} is not writable; give "
-                          f"out=<a file in a writable folder>")
+                          f"out=<a file in a writable folder>", key="out", value=p)
     return p
 
 
@@ -455,7 +457,8 @@ def check_out_suffix(out: str | None, fmt: str) -> None:
     if suffix != FORMATS[fmt]:
         each = ", ".join(f"format={f} writes {s}" for f, s in FORMATS.items())
         raise ExportError(f"out={str(out)!r} ends in {suffix or 'no suffix'!r}, but format={fmt} writes a "
-                          f"{FORMATS[fmt]} file ({each}); give out=<name>{FORMATS[fmt]} or the format that fits")
+                          f"{FORMATS[fmt]} file ({each}); give out=<name>{FORMATS[fmt]} or the format that fits",
+                          key="out", value=out)
 
 
 def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
@@ -467,7 +470,7 @@ def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
             same = os.path.samefile(what, checkpoint)
         if same:
             raise ExportError(f"out={str(path)!r} would write over the checkpoint being exported "
-                              f"({str(checkpoint)!r}); give out=<another file>")
+                              f"({str(checkpoint)!r}); give out=<another file>", key="out", value=path)
 
 
 def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = False) -> None:
@@ -500,7 +503,7 @@ def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = F
 
 def _check_format(fmt: str) -> None:
     if fmt not in FORMATS:
-        raise ExportError(f"format={fmt!r} is not known; use one of {', '.join(FORMATS)}")
+        raise ExportError(f"format={fmt!r} is not known; use one of {', '.join(FORMATS)}", key="format", value=fmt)
     if fmt == "onnx":
         try:
             import onnx  # noqa: F401
@@ -525,7 +528,8 @@ def _check_opset(opset: Any) -> None:
     low, high = opset_range()
     if not (is_integer(opset) and low <= opset <= high):
         raise ExportError(f"opset={opset!r} is not valid; use an integer ONNX opset from {low} to {high} "
-                          f"(torch {torch.__version__}'s exporter), e.g. {DEFAULT_OPSET} (the default)")
+                          f"(torch {torch.__version__}'s exporter), e.g. {DEFAULT_OPSET} (the default)", key="opset",
+                          value=opset)
 
 
 def _plugin_parts(hp: Mapping[str, Any]) -> list[str]:
@@ -575,9 +579,11 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
 
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):
-        raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)")
+        raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",
+                          key="n_frames", value=n_frames)
     if not (isinstance(tolerance, (int, float)) and tolerance > 0):
-        raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)")
+        raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)",
+                          key="tolerance", value=tolerance)
     if fmt == "onnx":
         _check_opset(opset)
     ckpt = resolve_checkpoint(checkpoint)

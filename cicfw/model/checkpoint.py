@@ -35,7 +35,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
             f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
-            f"give one .ckpt file")
+            f"give one .ckpt file", key="checkpoint", value=path)
     if not p.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
                                 f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
@@ -87,8 +87,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             raise CheckpointError(
                 f"checkpoint {str(p)!r} holds Python objects other than tensors and plain containers "
                 f"({err.code}), so cicfw refuses to unpickle it (weights_only=True); cicfw checkpoints hold "
-                f"only those") from None
-        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated ({err.reason})") from None
+                f"only those", key="checkpoint", value=p) from None
+        raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated ({err.reason})",
+                              key="checkpoint", value=p) from None
     return check_cicfw_checkpoint(ckpt, str(p))
 
 
@@ -103,12 +104,13 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
         raise CheckpointError(
             f"{where!r} is not a cicfw checkpoint: it needs Lightning's 'state_dict' and the CICModule "
             f"'hyper_parameters' naming an encoder, mixer and head (found {what}); checkpoints come from "
-            f"cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+            f"cicfw train (outputs/<run>/checkpoints/*.ckpt)", key="checkpoint", value=where)
     for key, reg in zip(PART_KEYS, (ENCODERS, MIXERS, HEADS)):
         if hp[key] not in reg:
             raise CheckpointError(
                 f"checkpoint {where!r} was trained with {key} {hp[key]!r}, which is not installed here; "
-                f"installed {key}s: {', '.join(reg.names())} (install the plugin that provides {hp[key]!r})")
+                f"installed {key}s: {', '.join(reg.names())} (install the plugin that provides {hp[key]!r})",
+                key=key, value=hp[key])
     return dict(ckpt)
 
 

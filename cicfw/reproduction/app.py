@@ -558,7 +558,7 @@ def check_splits(cfg: DictConfig, rows: Sequence[str], seeds: Sequence[int], fin
     raise ReproduceError(
         f"{what} cannot train on budget {cfg.budget.get('name')}'s dataset ({'/'.join(map(str, sorted(groups)))} "
         f"episodes in {next(iter(frames))[0]}): {reasons}; nothing was trained: give the budget more data (more "
-        f"episodes), {fewer}, or choose another budget ({', '.join(others)})")
+        f"episodes), {fewer}, or choose another budget ({', '.join(others)})", key="seeds", value=bad)
 
 
 def shown_path(folder: Path) -> str:

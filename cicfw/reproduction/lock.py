@@ -37,4 +37,5 @@ class ResultsLock(locks.FolderLock):
                f"{holder.get('started', '?')}")
         tail = ("" if certain else f"; if it is no longer running, delete {str(self.path)!r}")
         return FolderInUse(f"results folder {str(self.dir)!r} is in use by another reproduce run ({who}): one run "
-                           f"per folder; wait for it to finish, or give another results_dir=<path>{tail}")
+                           f"per folder; wait for it to finish, or give another results_dir=<path>{tail}",
+                           key="results_dir", value=self.dir)

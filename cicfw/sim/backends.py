@@ -53,7 +53,7 @@ class EmbeddedBackend:
         try:
             presets_of(weather_family)
         except ValueError as err:
-            raise CicfwError(f"sim.weather_family: {err}") from None
+            raise CicfwError(f"sim.weather_family: {err}", key="sim.weather_family", value=weather_family) from None
         self.weather_family = weather_family
         self.command_distance, self.success_radius, self.max_deviation, self.route_before, self.route_after = \
             positive_distances(command_distance=command_distance, success_radius=success_radius,

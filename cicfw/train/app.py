@@ -339,7 +339,8 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
     A missing, truncated or foreign file is one ``ValueError`` / ``FileNotFoundError`` naming it."""
     p = Path(path).expanduser()
     if p.is_dir():
-        raise CicfwError(f"{what}={path} is a folder; give the checkpoint file, e.g. {p}/checkpoints/last.ckpt")
+        raise CicfwError(f"{what}={path} is a folder; give the checkpoint file, e.g. {p}/checkpoints/last.ckpt",
+                         key=what, value=path)
     if not p.is_file():
         raise FileNotFoundError(f"{what}={path}: no such file")
     try:
@@ -349,12 +350,12 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
             raise CicfwError(
                 f"{what}={path}: refused: the file holds pickled Python objects besides tensors and plain data "
                 f"({err.reason}), which could run code when loaded; cicfw loads checkpoints with "
-                f"torch.load(weights_only=True) only") from None
+                f"torch.load(weights_only=True) only", key=what, value=path) from None
         raise CicfwError(f"{what}={path} is not a readable checkpoint (truncated, or not written by "
-                         f"torch.save): {err.reason}") from None
+                         f"torch.save): {err.reason}", key=what, value=path) from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise CicfwError(f"{what}={path} is not a Lightning training checkpoint (no 'state_dict'); "
-                         f"give a .ckpt written by cicfw train (<run>/checkpoints/last.ckpt)")
+                         f"give a .ckpt written by cicfw train (<run>/checkpoints/last.ckpt)", key=what, value=path)
     return ckpt
 
 
@@ -372,7 +373,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
     if "optimizer_states" not in ckpt or "loops" not in ckpt:
         raise CicfwError(f"ckpt_path={path} holds the weights only (no optimizer or loop state), so training "
                          f"cannot resume from it; resume from <run>/checkpoints/last.ckpt, or evaluate it "
-                         f"with cicfw evaluate checkpoint={path}")
+                         f"with cicfw evaluate checkpoint={path}", key="ckpt_path", value=path)
     want = model.state_dict()
     got = ckpt["state_dict"]
     missing = [k for k in want if k not in got]
@@ -386,7 +387,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
         raise CicfwError(
             f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: {here}): "
             f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
-            f"{first!r}; resume with the options the checkpoint was trained with")
+            f"{first!r}; resume with the options the checkpoint was trained with", key="ckpt_path", value=path)
     check_resumed_optimizer(path, ckpt, model)
     if trainer_cfg is not None:
         check_epochs_left(path, ckpt, trainer_cfg)
@@ -421,7 +422,7 @@ def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CI
     if differ:
         raise CicfwError(f"ckpt_path={path}: resuming restores the optimizer and its schedule from the checkpoint, so "
                          f"{', '.join(differ)} would not take effect; resume with the checkpoint's values, or start a "
-                         f"fresh run (no ckpt_path) with the new ones")
+                         f"fresh run (no ckpt_path) with the new ones", key="ckpt_path", value=path)
 
 
 def _plain(value: Any) -> str:
@@ -444,10 +445,12 @@ def check_epochs_left(path: str | Path, ckpt: Mapping[str, Any], trainer_cfg: Ma
     max_epochs, max_steps = trainer_cfg.get("max_epochs"), trainer_cfg.get("max_steps")
     if is_integer(max_epochs) and max_epochs >= 0 and done >= max_epochs:
         raise CicfwError(f"ckpt_path={path} has finished {done} epoch(s) and trainer.max_epochs={max_epochs}: nothing "
-                         f"is left to train; give trainer.max_epochs greater than {done} to train on from it")
+                         f"is left to train; give trainer.max_epochs greater than {done} to train on from it",
+                         key="trainer.max_epochs", value=max_epochs)
     if is_integer(max_steps) and max_steps >= 0 and step >= max_steps:
         raise CicfwError(f"ckpt_path={path} has trained {step} step(s) and trainer.max_steps={max_steps}: nothing is "
-                         f"left to train; give trainer.max_steps greater than {step} to train on from it")
+                         f"left to train; give trainer.max_steps greater than {step} to train on from it",
+                         key="trainer.max_steps", value=max_steps)
 
 
 def fit_kwargs() -> dict[str, Any]:

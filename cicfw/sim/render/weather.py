@@ -103,7 +103,8 @@ def weather_family(family: str) -> dict[str, Weather]:
     """The presets of ``family``; an unknown family raises a ValueError listing the known ones."""
     if family not in WEATHER_FAMILIES:
         known = ", ".join(f"{k} ({v})" for k, v in FAMILY_NOTES.items())
-        raise CicfwError(f"unknown weather family {family!r}; known weather families: {known}")
+        raise CicfwError(f"unknown weather family {family!r}; known weather families: {known}", key="weather_family",
+                         value=family)
     return WEATHER_FAMILIES[family]
 
 
