@@ -1,7 +1,9 @@
 """Every app writes only into a path it owns: empty, or holding its own earlier output of the same settings.
 export's ``out=``, reproduce's ``publish_dir``, evaluate's run folder (``.hydra/`` included) and report's
 ``--out`` refuse anything else before writing a byte; a run that fails leaves its folder as the rerun it
-advises needs it."""
+advises needs it. Under these, one rule (``claim_folder``): another app's run, a dataset, a report's own
+inputs or files of no app are refused by every app; a report joins each run once. Beside them: the values
+the Agent API and evaluate refuse, and what the suite's training-weathers error lists."""
 from __future__ import annotations
 
 import json
@@ -280,3 +282,250 @@ def test_a_full_disk_at_the_first_checkpoint_leaves_a_folder_the_same_command_ac
     full_disk(tmp_path / "elsewhere")  # space freed
     train_in_folder(cfg, run)  # the same command, as advised
     assert (run / "checkpoints" / "last.ckpt").is_file()
+
+
+# ---- one rule for every app: a folder that is not the app's own is refused -------------------------
+
+from conftest import run_app_in_process, write_tiny_dataset  # noqa: E402
+
+IN_PROCESS = {"HYDRA_FULL_ERROR": "0"}  # changes to the environment, for run_app_in_process
+
+
+def _files(folder: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def _one_error(text: str) -> str:
+    errors = _errors(text)
+    assert len(errors) == 1 and "Traceback" not in text, text[-3000:]
+    return errors[0]
+
+
+def _rows(n: int = 2) -> list[dict]:
+    return [{"episode": k, "key": f"town_a/ClearNoon/{k:03d}", "town": "town_a", "weather": "ClearNoon",
+             "town_set": "training", "weather_set": "training", "pair": k, "route": "town_a/j/a>b/left",
+             "command": "left", "success": k % 2 == 0, "reason": "success" if k % 2 == 0 else "off_route",
+             "time_s": 10.0, "timeout_s": 30.0, "distance_m": 50.0, "route_length_m": 60.0, "goal_distance_m": 1.0,
+             "progress": 1.0, "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 100}
+            for k in range(n)]
+
+
+def published_results(folder: Path, label: str = "CIL") -> Path:
+    """Evaluation results as a user publishes them: episodes, summary and tables, no ``.hydra``."""
+    from cicfw.benchmark.evaluation_report import Run, write_run
+
+    write_run(folder, Run(label, _rows()))
+    return folder
+
+
+def hydra_run(folder: Path, job: str, *outputs: str) -> dict[Path, bytes]:
+    """A run folder as Hydra leaves it for the app ``job`` (its ``.hydra`` records and log), with ``outputs``."""
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (folder / ".hydra" / "config.yaml").write_text(f"# the {job} run's config\nseed: 3\n")
+    (folder / f"{job}.log").write_text("a line\n")
+    for name in outputs:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(b"the run's own " + name.encode())
+    return _files(folder)
+
+
+def test_evaluate_into_a_published_results_folder_is_refused(tmp_path):
+    run = published_results(tmp_path / "published")
+    kept = _files(run)
+    res = run_app_in_process("cicfw.evaluate", *ONE_EPISODE, f"hydra.run.dir={run}", env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert f"hydra.run.dir={str(run)!r}" in line and "episodes.json" in line, line
+    assert _files(run) == kept and not (run / ".hydra").exists()
+
+
+def test_evaluate_into_a_training_runs_folder_keeps_its_hydra_config(tmp_path):
+    run = tmp_path / "train_run"
+    kept = hydra_run(run, "train", "checkpoints/last.ckpt", "csv/metrics.csv")
+    res = run_app_in_process("cicfw.evaluate", *ONE_EPISODE, f"hydra.run.dir={run}", env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert f"hydra.run.dir={str(run)!r}" in line and "outputs of cicfw train" in line, line
+    assert _files(run) == kept  # diagnose still finds the training config
+
+
+def test_diagnose_into_the_training_run_it_diagnoses_is_refused(tmp_path):
+    run = tmp_path / "train_run"
+    kept = hydra_run(run, "train", "checkpoints/last.ckpt")
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={run / 'checkpoints' / 'last.ckpt'}",
+                             f"hydra.run.dir={run}", env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert f"hydra.run.dir={str(run)!r}" in line and "outputs of cicfw train" in line, line
+    assert _files(run) == kept
+
+
+def _train_args(data: Path, run: Path, *extra: str) -> list[str]:
+    return ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+            "progress_bar=false", "speed.compile=false", "trainer.max_epochs=1", "trainer.limit_train_batches=1",
+            "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false",
+            f"hydra.run.dir={run}", *extra]
+
+
+def test_train_into_an_evaluations_folder_keeps_its_hydra_config(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "eval_run"
+    kept = hydra_run(run, "evaluate", "episodes.json", "summary.json", "table.md")
+    res = run_app_in_process("cicfw.train", *_train_args(data, run), env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert f"hydra.run.dir={str(run)!r}" in line and "outputs of cicfw evaluate" in line, line
+    assert _files(run) == kept
+
+
+def test_train_into_its_data_folder_is_refused(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    kept = _files(data)
+    res = run_app_in_process("cicfw.train", *_train_args(data, data), env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert f"hydra.run.dir={str(data)!r}" in line and "data" in line, line
+    assert _files(data) == kept and not (data / ".hydra").exists()
+
+
+def test_a_data_folder_not_yet_collected_is_no_run_folder(tmp_path):
+    """``data.path`` names a folder the default data collects into: a run folder there is refused before
+    it exists."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+
+    data = tmp_path / "datasets" / "smoke"
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(tmp_path / "datasets" / ".." / "datasets" / "smoke", "train", "hydra.run.dir", data=[data])
+    assert err.value.key == "hydra.run.dir" and "smoke" in err.value.value
+    assert not data.exists()
+
+
+def test_reproduce_results_dir_holding_a_users_results_is_refused(no_collect, tmp_path, capsys):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "RESULTS.md").write_text("my results\n")
+    (mine / "results.csv").write_text("row,rate\nmine,1\n")
+    kept = _files(mine)
+    line = _refused(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={mine}"], capsys)
+    assert f"results_dir={str(mine)!r}" in line and "RESULTS.md" in line and "results.csv" in line, line
+    assert _files(mine) == kept
+
+
+def test_reproduce_into_the_budgets_data_folder_is_refused(no_collect, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("CICFW_CACHE", str(tmp_path / "cache"))  # smoke's data: <cache>/datasets/smoke
+    data = tmp_path / "cache" / "datasets" / "smoke"
+    line = _refused(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={data}"], capsys)
+    assert f"results_dir={str(data)!r}" in line and "data.path" in line, line
+    assert not data.exists()
+
+
+def _report(args: list[str], capsys) -> tuple[int, str]:
+    from cicfw.benchmark.evaluation_report import main as report
+
+    code = report([*map(str, args), "--no-plots"])
+    return code, capsys.readouterr().err
+
+
+def test_report_out_equal_to_one_of_its_inputs_is_refused(tmp_path, capsys):
+    a = published_results(tmp_path / "a", "A")
+    b = published_results(tmp_path / "b", "B")
+    kept = _files(a)
+    (tmp_path / "link").symlink_to(a)
+    for out in (a, tmp_path / "link", tmp_path / "b" / ".." / "a"):
+        code, err = _report([a, b, "--out", out], capsys)
+        assert code == 2, err
+        line = _one_error(err)
+        assert f"--out={str(out)!r}" in line, line
+        code, err = _report([a, b, "--out", out, "--overwrite"], capsys)  # not another's table to replace
+        assert code == 2, err
+    assert _files(a) == kept
+
+
+def test_report_into_a_data_folder_is_refused_even_with_overwrite(tmp_path, capsys):
+    a = published_results(tmp_path / "a")
+    data = write_tiny_dataset(tmp_path / "data", n_files=2, n=8)
+    kept = _files(data)
+    for extra in ([], ["--overwrite"]):
+        code, err = _report([a, "--out", data, *extra], capsys)
+        assert code == 2, err
+        line = _one_error(err)
+        assert f"--out={str(data)!r}" in line and "dataset" in line, line
+    assert _files(data) == kept
+
+
+def test_report_joining_a_run_with_itself_is_refused(tmp_path, capsys):
+    a = published_results(tmp_path / "a")
+    (tmp_path / "link").symlink_to(a)
+    sweep = tmp_path / "sweep"
+    published_results(sweep / "0")
+    for twice in ([a, a], [a, tmp_path / "link"], [a, tmp_path / "a" / ".." / "a"], [sweep, sweep / "0"]):
+        code, err = _report([*twice, "--out", tmp_path / "joined"], capsys)
+        assert code == 2, err
+        line = _one_error(err)
+        assert str(twice[1]) in line and "same run" in line, line
+        assert not (tmp_path / "joined").exists()
+
+
+def test_the_folders_an_app_may_write(tmp_path):
+    """Missing, empty (locks aside), or the app's own kind of run (Hydra's job name, or its log beside a
+    ``.hydra`` without one; a report's report.json): accepted, the app's own checks then apply."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+
+    claim_folder(tmp_path / "missing", "train", "hydra.run.dir")
+    (tmp_path / "locked").mkdir()
+    (tmp_path / "locked" / ".evaluate.lock").write_text("")
+    claim_folder(tmp_path / "locked", "evaluate", "hydra.run.dir")
+    hydra_run(tmp_path / "ev", "evaluate", "episodes.jsonl")
+    claim_folder(tmp_path / "ev", "evaluate", "hydra.run.dir")
+    api = published_results(tmp_path / "api")
+    (api / "episodes.jsonl").write_text("")  # driven through the Python API: its episode log, no .hydra
+    claim_folder(api, "evaluate", "hydra.run.dir")
+    old = tmp_path / "old"
+    hydra_run(old, "train", "notes.txt")
+    (old / ".hydra" / "hydra.yaml").unlink()  # its train.log still names it
+    claim_folder(old, "train", "hydra.run.dir")
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(old, "evaluate", "hydra.run.dir")
+    assert err.value.key == "hydra.run.dir" and err.value.value == str(old)
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "report.json").write_text('{"written_by": "cicfw report", "runs": []}')
+    claim_folder(tmp_path / "rep", "report", "--out")
+
+
+# ---- the Agent API, evaluate's video_max, the suite's training weathers ----------------------------
+
+
+def test_the_agent_takes_only_real_numbers_as_a_speed(tmp_path):
+    import numpy as np
+
+    from cicfw.export.agent import Agent, AgentInputError
+
+    agent = Agent.load(save_checkpoint(tmp_path / "m.ckpt"))
+    frame = np.zeros((88, 200, 3), np.uint8)
+    for speed in (True, "10", [10, "x"], None):
+        with pytest.raises(AgentInputError) as err:
+            agent.act(frame, speed, 2)
+        assert err.value.key == "speed_kmh", speed
+    assert np.isfinite(agent.act(frame, 10, 2)) and np.isfinite(agent.act(frame, np.float64(12.5), 2))
+
+
+def test_evaluate_refuses_a_negative_video_max(tmp_path):
+    run = tmp_path / "eval"
+    res = run_app_in_process("cicfw.evaluate", *ONE_EPISODE, "video_max=-1", f"hydra.run.dir={run}", env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = _one_error(res.stderr)
+    assert "video_max" in line and "-1" in line, line
+    assert not (run / "episodes.json").exists()
+
+
+def test_the_training_weathers_error_lists_the_suites_own_weathers():
+    from cicfw.benchmark.suite import build_suite, make_backend
+    from cicfw.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), towns=["town_a"], weathers=["CloudyNoon", "HardRainNoon"], limit=1,
+                    training_weathers=["Foggy"])
+    assert (err.value.key, err.value.value) == ("suite.training_weathers", "Foggy")
+    listed = str(err.value).split("(", 1)[1].split(")", 1)[0]
+    assert listed == "CloudyNoon, HardRainNoon", str(err.value)

@@ -218,6 +218,10 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
                  extra_keys=("name",))
     check_policy_device(kwargs.get("device"))
     episodes = build_suite(make_backend(sim), **suite)  # unknown towns and weathers, suite.limit=0 fail here
+    if isinstance(video_max, bool) or not isinstance(video_max, int) or video_max < 0:
+        from cicfw.core.errors import ConfigError  # -1 would film nothing, silently
+
+        raise ConfigError("video_max", video_max, "a whole number >= 0 (0: no videos)")
     select_episodes([{"episode": e.index, "key": e.key, "success": False} for e in episodes], video, video_max)
     return runner_cfg, episodes
 

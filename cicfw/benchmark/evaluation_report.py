@@ -207,6 +207,7 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
     if partial not in ("refuse", "include", "skip"):
         raise ValueError(f"find_runs: partial must be refuse, include or skip, got {partial!r}")
     runs = _find_runs(paths)
+    check_each_run_once(runs)
     for r in runs:
         if not is_complete(r) and partial == "refuse":
             raise CicfwError(f"report: {str(r.path)!r} is a partial evaluation run ({partial_note(r)} finished); "
@@ -215,6 +216,18 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
     runs = [r for r in runs if is_complete(r) or partial == "include"]
     check_one_suite(runs)
     return _unique_labels(runs)
+
+
+def check_each_run_once(runs: Sequence[Run]) -> None:
+    """A run found twice (the same folder given twice, through a symlink or another spelling, or inside a
+    sweep also given) would be two rows of one run: one ``CicfwError`` naming both paths."""
+    seen: dict[str, Path] = {}
+    for r in runs:
+        real = os.path.realpath(r.path)
+        if real in seen:
+            raise CicfwError(f"report: {str(seen[real])!r} and {str(r.path)!r} are the same run folder, which one "
+                             f"table would show twice; give each run once", key="dirs", value=str(r.path))
+        seen[real] = r.path
 
 
 #: the suite settings that say what a table's columns are: runs joined in one table agree on them
@@ -383,6 +396,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
     what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"
     try:
+        from cicfw.core.run_folder import claim_folder
+
+        if args.out or len(args.dirs) > 1:  # not the one folder given: its own tables, joined from what it holds
+            claim_folder(out, "report", "--out", inputs=[*args.dirs, *(r.path for r in runs)],
+                         foreign_ok=args.overwrite)
         check_report_folder(out, runs, args.dirs, what, args.overwrite)
         writable_folder(out, what)
         md = write_joined(runs, out, plots=not args.no_plots)

@@ -90,19 +90,21 @@ def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: 
     return out
 
 
-def training_set(kind: str, given: Any, accepted: Sequence[str]) -> list[str]:
+def training_set(kind: str, given: Any, accepted: Sequence[str], driven: Sequence[str] = ()) -> list[str]:
     """``suite.training_<kind>`` as a list, each entry among ``accepted``: the suite's towns (those it drives
     and the simulator's others) or weathers (those it drives and the paper's four, which a subset such as
     ``suite.weathers=[MidRainyNoon]`` leaves undriven). Any other name is a ``ConfigError`` naming it: an
-    unknown town or an undriven weather would silently move the driven ones to the "new" columns."""
+    unknown town or an undriven weather would silently move the driven ones to the "new" columns. The error
+    lists ``driven`` (the suite's own, as configured), not every name accepted."""
     from cicfw.core.errors import ConfigError
 
     out = [str(given)] if isinstance(given, str) else [str(g) for g in (given or ())]
     names = list(dict.fromkeys(accepted))
+    shown = ", ".join(dict.fromkeys(driven or names))
     for g in out:
         if g not in names:
-            raise ConfigError(f"suite.training_{kind}", g, f"among the suite's {kind} ({', '.join(names)})",
-                              f"suite.training_{kind}: {g!r} is not among the suite's {kind} ({', '.join(names)}); "
+            raise ConfigError(f"suite.training_{kind}", g, f"among the suite's {kind} ({shown})",
+                              f"suite.training_{kind}: {g!r} is not among the suite's {kind} ({shown}); "
                               f"the table's training columns are the driven {kind} named there, the others new")
     return out
 
@@ -138,8 +140,9 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
     for key, names in (("suite.towns", towns), ("suite.weathers", weathers)):
         if len(set(names)) < len(names):  # a repeat would drive its episodes twice and count them twice
             raise ConfigError(key, list(names), "a list of distinct names (each is driven once)")
-    training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()])
-    training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS])
+    training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()],
+                                  [town_label(t) for t in towns])
+    training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS], weathers)
     episodes: list[Episode] = []
     for town in towns:
         routes = suite_routes(backend, town)

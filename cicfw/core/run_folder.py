@@ -11,6 +11,10 @@ A training run refused before it trains leaves nothing behind: ``TrainRunFolderC
 folder held before Hydra wrote into it (``note_run_folder``) and the app puts it back
 (``undo_run_folder``); a sweep folder holding another multirun is refused before Hydra writes over it
 (``check_no_other_sweep``), and one made for a sweep whose job configs Hydra refused is removed.
+
+``claim_folder`` is the one rule under all of these, applied by every app to the folder it writes before
+it writes there (``RunFolderCheck.claim`` for the Hydra apps, before Hydra writes ``.hydra``): missing,
+empty or the app's own kind of run, never another app's run, a dataset, an input, or files of no app.
 """
 from __future__ import annotations
 
@@ -81,7 +85,26 @@ class RunFolderCheck(Callback):
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
+        self.claim(config)
         self._check(config.hydra.run.dir, "hydra.run.dir", [("hydra.job.name", f"{job}.log")])
+
+    @staticmethod
+    def claim(config: Any) -> None:
+        """``claim_folder`` for the run folder, the app named by Hydra's job name (what Hydra records there),
+        the data folder being ``data.path`` where the app has one; one line (exit status 2) when refused."""
+        from omegaconf import OmegaConf
+
+        folder = str(config.hydra.run.dir)
+        try:
+            data = OmegaConf.select(config, "data.path", default=None)
+        except Exception:  # an interpolation that does not resolve: the app's own checks name it
+            data = None
+        try:
+            claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=[data] if data else [])
+        except RunFolderError as err:
+            _BEFORE.pop(os.path.abspath(folder), None)  # nothing was written: nothing to put back
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
@@ -326,3 +349,109 @@ class TrainRunFolderCheck(RunFolderCheck):
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_run_folder(str(config.hydra.run.dir))
+
+
+# ---- every app writes only into a folder of its own -----------------------------------------------
+#: files cicfw itself leaves beside a run's outputs (locks, write probes): they make no folder anyone's
+HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", "reproduce.lock")
+#: the record each non-Hydra output names itself by: (file, app)
+RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduce.json", "reproduce"),
+           ("cells", "reproduce"), ("dataset_metadata.json", "collect"))
+#: what a dataset's files end with: a folder holding them is someone's data, whoever collected it
+DATA_SUFFIXES = (".h5", ".hdf5")
+
+
+def _entries(folder: Path) -> list[str]:
+    """The names in ``folder`` that are not cicfw housekeeping (``[]`` for a missing folder or a file)."""
+    try:
+        names = sorted(p.name for p in folder.iterdir())
+    except OSError:  # missing, a file, or unreadable: check_run_folder (or the app's own check) says so
+        return []
+    return [n for n in names if n not in HOUSEKEEPING and not n.startswith((".cicfw-probe-", ".cicfw-report-"))]
+
+
+def _hydra_job(folder: Path) -> str | None:
+    """The job name Hydra recorded for the run (``.hydra/hydra.yaml``) or the sweep (``multirun.yaml``) in
+    ``folder``; for a ``.hydra`` without ``hydra.yaml``, the name of the job log beside it (``<job>.log``)."""
+    from omegaconf import OmegaConf
+
+    for record in (folder / ".hydra" / "hydra.yaml", folder / "multirun.yaml"):
+        if record.is_file():
+            try:
+                name = OmegaConf.select(OmegaConf.load(record), "hydra.job.name")
+            except Exception:  # an unreadable record: its folder is still a Hydra run, of no app we know
+                name = None
+            return str(name) if name else "an unnamed Hydra job"
+    if (folder / ".hydra").is_dir():
+        logs = sorted(p.stem for p in folder.glob("*.log") if p.is_file())
+        return logs[0] if len(logs) == 1 else None
+    return None
+
+
+def folder_owner(folder: str | Path) -> str | None:
+    """The app whose run (or output) ``folder`` is, from the record that app already leaves there: Hydra's
+    job name for a Hydra app (train, evaluate, ...), the episode log of an evaluation driven through the
+    Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
+    stopped before it wrote the manifest) for a reproduction,
+    ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
+    their run folder are no run: their episode log stays behind).
+    Records the apps write anyway, rather than a new marker file, so that folders written before this
+    check are recognised and no app writes a file more than it did."""
+    folder = Path(folder)
+    job = _hydra_job(folder)
+    if job is not None:
+        return job
+    for name, app in RECORDS:
+        if (folder / name).exists():
+            return app
+    if any(name.endswith(DATA_SUFFIXES) for name in _entries(folder)):
+        return "collect"
+    return None
+
+
+def _same(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths name one folder (through symlinks, ``..`` and ``~``)."""
+    return os.path.realpath(Path(a).expanduser()) == os.path.realpath(Path(b).expanduser())
+
+
+def _listed(names: Sequence[str]) -> str:
+    return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+
+def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str | Path] = (),
+                 inputs: Sequence[str | Path] = (), foreign_ok: bool = False) -> None:
+    """The one rule every app applies to the folder it writes, before it writes anything there: ``app``
+    may write into a folder that is missing, empty (of all but cicfw's locks), or its own kind of run
+    (``folder_owner``), where the app's own checks then apply (resume, continue, overwrite). Refused in one
+    ``RunFolderError`` naming ``key`` and the folder: the user's data folder (one of ``data``), a folder
+    the app reads (one of ``inputs``), another app's run, or files no cicfw app wrote (unless
+    ``foreign_ok``: an explicit overwrite option)."""
+    folder = Path(folder).expanduser()
+    where = f"{key}={str(folder)!r}"
+    fix = f"give a fresh folder ({key}=<new folder>)"
+    for d in data:
+        if d is not None and str(d) != "" and _same(folder, d):
+            raise RunFolderError(f"{where} is the data folder (data.path) whose episodes cicfw {app} reads; {fix}",
+                                 key=key, value=str(folder))
+    for src in inputs:
+        if _same(folder, src):
+            raise RunFolderError(f"{where} is one of the folders cicfw {app} reads ({src}), whose files it would "
+                                 f"replace; {fix}", key=key, value=str(folder))
+    if not _exists(folder) or not folder.is_dir():
+        return  # missing, or a file: the app's own check says what is wrong with it
+    entries = _entries(folder)
+    if not entries:
+        return
+    owner = folder_owner(folder)
+    if owner == app:
+        return
+    if owner == "collect":
+        raise RunFolderError(f"{where} holds a dataset (HDF5 episodes), which cicfw {app} would write beside and "
+                             f"over; {fix}", key=key, value=str(folder))
+    if owner is not None:
+        raise RunFolderError(f"{where} holds the outputs of cicfw {owner} ({_listed(entries)}), which cicfw {app} "
+                             f"would write over; {fix}", key=key, value=str(folder))
+    if foreign_ok:
+        return
+    raise RunFolderError(f"{where} holds files that no cicfw app wrote ({_listed(entries)}), which cicfw {app} "
+                         f"would write over; {fix}", key=key, value=str(folder))

@@ -86,7 +86,12 @@ def check_inputs(images: Any, speed_kmh: Any, command: Any,
     batch = 1 if single else img.shape[0]
     if single:
         img = img[None]
-    speed = np.asarray(speed_kmh, dtype=np.float32).reshape(-1)
+    speed_in = np.asarray(speed_kmh)
+    if speed_in.dtype.kind not in "iuf":  # True would drive at 1 km/h, "10" at 10: neither is a speed
+        shown = speed_in.tolist() if speed_in.dtype.kind != "O" else speed_kmh
+        raise AgentInputError(f"speed_kmh {shown!r}: the agent expects real numbers (km/h), one per image",
+                              key="speed_kmh", value=shown)
+    speed = speed_in.astype(np.float32).reshape(-1)
     cmd_in = np.asarray(command)
     if cmd_in.dtype.kind == "f" and np.all(np.isfinite(cmd_in)) and np.all(cmd_in == np.round(cmd_in)):
         cmd_in = cmd_in.astype(np.int64)  # CIL's targets store the code as a float (24: 2.0 ...)

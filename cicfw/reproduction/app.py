@@ -164,14 +164,16 @@ def check_curve(budget: DictConfig) -> None:
                                  f"null, got {got!r}")
 
 
-def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
+def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     """Every row's training config composes and names a registered encoder, mixer and head: a custom row
-    with an unknown experiment, head or mixer is refused before anything is collected or trained."""
+    with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
+    the rows' data folders (``data.path``), which no output folder may be."""
     from hydra import initialize_config_module
     from hydra.errors import HydraException, MissingConfigException
 
     from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
 
+    data: list[str] = []
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         for r in rows:
             entry = cfg.catalogue[r]
@@ -207,6 +209,8 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> None:
                 check_training(tcfg)
             except (ValueError, TypeError, UnknownNameError) as err:
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
+            data.append(str(Path(str(tcfg.data.path)).expanduser()))
+    return data
 
 
 def check_training(tcfg: DictConfig) -> None:
@@ -224,17 +228,21 @@ def check_training(tcfg: DictConfig) -> None:
     checked_speed(tcfg)
 
 
-def check_outputs(cfg: DictConfig) -> None:
-    """results_dir and publish_dir writable folders (or creatable), continue_from a published folder:
-    checked before any cell, so nothing fails after the work is done."""
+def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
+    """results_dir and publish_dir writable folders (or creatable) that are a reproduction's own
+    (``claim_folder``: not the rows' ``data`` folders, another app's run or files of none), continue_from a
+    published folder: checked before any cell, so nothing fails after the work is done."""
+    from cicfw.core.run_folder import claim_folder
     from cicfw.reproduction.published import published_manifest
 
+    claim_folder(Path(cfg.results_dir), "reproduce", "results_dir", data=data)
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
         pub = Path(cfg.publish_dir)
         if pub.exists() and not pub.is_dir():
             raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
                                  f"(created if missing)")
+        claim_folder(pub, "reproduce", "publish_dir", data=data)
         check_folder(pub, "publish_dir")
         check_publish_dir(cfg)
     if cfg.get("continue_from"):
@@ -852,8 +860,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         cfg = compose_plan(args)
         rows, seeds = check_plan(cfg)
-        check_rows(cfg, rows)
-        check_outputs(cfg)
+        check_outputs(cfg, data=check_rows(cfg, rows))
         lock = ResultsLock(Path(cfg.results_dir)).acquire()
         manifest = prepare(cfg, rows)
     except USER_ERRORS as err:

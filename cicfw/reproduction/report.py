@@ -892,6 +892,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from hydra import compose, initialize_config_module
         from omegaconf import OmegaConf
 
+        from cicfw.core.run_folder import claim_folder
+
+        claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
+        if a.publish:
+            claim_folder(Path(a.publish), "reproduce", "--publish")
+
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             cfg = compose("reproduce")
             catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
