@@ -310,7 +310,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
-    checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:
@@ -519,6 +518,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     L.seed_everything(checked_seed(cfg.seed), workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     model, ckpt_path, datamodule = checked_setup(cfg, refuse_finished)
+    speed = checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
@@ -528,7 +528,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
                       "was compiled is cached), run the same command again"):
-        apply_speed_from_config(model, checked_speed(cfg), cfg.trainer,  # compile (or its one-line fallback),
+        apply_speed_from_config(model, speed, cfg.trainer,  # compile (or its one-line fallback),
                                 cfg.data.batch_size, len(datamodule.train_dataloader()))  # channels_last, Adam
     before = checkpoint_files(run_dir)
     if on_start is not None:
