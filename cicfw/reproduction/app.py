@@ -658,9 +658,10 @@ def code() -> dict[str, Any]:
 
 
 def compose_eval(cfg: DictConfig, extra: Sequence[str]) -> DictConfig:
-    from hydra import compose
+    """A cell's evaluate config: the budget's suite overrides, then ``extra``, checked (``compose_config``)."""
+    from cicfw.benchmark.app import compose_config
 
-    return compose("evaluate", overrides=[*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
+    return compose_config([*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
 
 
 def count_episodes(evcfg: DictConfig) -> int:

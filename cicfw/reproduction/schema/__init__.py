@@ -9,7 +9,7 @@ through, once: keys added with ``+``, ``seeds`` (a number or a list, a union Ome
 ``cicfw.reproduction.catalogue.Row``'s keys, a claim and its parts ``claim_entry``'s and ``claim_part``'s
 arguments (cicfw/reproduction/claims.py). Those two nodes stay open while composing: OmegaConf cannot add a
 row to a typed mapping (``+catalogue.mine={...}``), and names no list item's full key. The app runs ``check``
-on its plan before anything is written; conf/reproduce.yaml's first callback runs it before the cells.
+on its plan (``compose_plan``) before anything is written; the cells run that plan.
 """
 from __future__ import annotations
 
