@@ -22,7 +22,7 @@ from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, whole_number
+from cicfw.core.config_checks import forget_empty_cache_setting, is_integer
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -192,19 +192,12 @@ def build_datamodule(cfg: DictConfig) -> CILDataModule:
 
 
 def epoch_list(epochs: Any) -> list[int]:
-    """``keep_epoch_checkpoints`` as a list of epochs >= 1, else one line naming it (a lone ``abc`` was
-    read one character at a time, inside the Trainer's construction)."""
-    if OmegaConf.is_config(epochs):
-        epochs = OmegaConf.to_container(epochs, resolve=True)
-    if epochs is None:
-        return []
-    try:
-        found = [whole_number("keep_epoch_checkpoints", e) for e in epochs] if isinstance(epochs, list) else None
-    except ValueError:
-        found = None
-    if found is None or any(e < 1 for e in found):
+    """``keep_epoch_checkpoints`` as a list of epochs >= 1 (a list of whole numbers: the schema), else one
+    line naming it."""
+    found = list(epochs or [])
+    if any(e < 1 for e in found):
         raise CicfwError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
-                         f"checkpoints/epochNNN.ckpt), got {epochs!r}")
+                         f"checkpoints/epochNNN.ckpt), got {found!r}")
     return found
 
 
@@ -459,16 +452,14 @@ def fit_kwargs() -> dict[str, Any]:
 SEED_RANGE = (0, 2**32 - 1)
 
 
-def checked_seed(value: Any) -> int:
-    """``seed`` as an int within ``SEED_RANGE``, else a ``ConfigError`` naming it (Lightning's own message
-    for ``seed=-3`` named no key)."""
+def checked_seed(value: int) -> int:
+    """``seed`` (a whole number: the schema) within ``SEED_RANGE``, else a ``ConfigError`` naming it
+    (Lightning's own message for ``seed=-3`` named no key)."""
     from cicfw.core.errors import ConfigError
 
-    accepted = f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}"
-    seed = whole_number("seed", value, accepted)
-    if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
-        raise ConfigError("seed", seed, accepted)
-    return seed
+    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
+        raise ConfigError("seed", value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
+    return value
 
 
 def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
