@@ -292,8 +292,6 @@ def _missing_keys(node: Any) -> list[str]:
     resolve only in a running job)."""
     from omegaconf import OmegaConf
 
-    if "hydra" not in node:
-        return sorted(OmegaConf.missing_keys(node))
     children = [node._get_node(k) for k in node if k != "hydra"]
     return sorted([c._get_full_key(None) for c in children if c._is_missing()]
                   + [k for c in children if OmegaConf.is_config(c) and not c._is_missing()
