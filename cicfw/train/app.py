@@ -31,9 +31,9 @@ from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
-from cicfw.core.override_hints import check_top_level_keys
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
+from cicfw.train.schema import (MODEL, check_top_level, checked_data, checked_node, checked_part, checked_speed,
+                                checked_trainer)
 
 log = logging.getLogger("cicfw.train")
 
@@ -466,7 +466,7 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
     config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
     ``data`` node. What ``train`` checks before the Trainer; ``check_config`` checks the same."""
-    check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
+    check_top_level(cfg)  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
