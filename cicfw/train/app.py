@@ -32,8 +32,8 @@ from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
-from cicfw.train.schema import (MODEL, check_top_level, checked_data, checked_node, checked_part, checked_speed,
-                                checked_trainer)
+from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
+from cicfw.train.schema import check_top_level
 
 log = logging.getLogger("cicfw.train")
 
