@@ -98,6 +98,9 @@ def test_the_schema_refuses_while_composing(app, overrides, kind, key):
     ("diagnose", ["+foo=1"], "unknown key", "foo"),
     ("diagnose", ["+data.foo=1"], "unknown key", "data.foo"),
     ("diagnose", ["+phases.foo=1"], "unknown key", "phases.foo"),
+    ("collect", ["expert.cruise_kmh=???"], "missing", "expert.cruise_kmh"),  # a value left ??? on the command line
+    ("collect", ["sim.success_radius=???"], "missing", "sim.success_radius"),
+    ("diagnose", ["phases.dt_s=???"], "missing", "phases.dt_s"),
 ])
 def test_what_composing_lets_through_is_refused_by_the_same_schema(app, overrides, kind, key):
     refused = refused_by_check(app, *overrides)

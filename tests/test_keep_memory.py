@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 import pytest
-from omegaconf import OmegaConf
 
 from cicfw.core.config_checks import SchemaError
 from cicfw.model.speed import SpeedConfig
@@ -69,10 +68,13 @@ def test_kept_memory_stops_the_page_faults_and_computes_the_same():
 
 
 def test_keep_memory_takes_true_or_false_only():
-    with pytest.raises(SchemaError) as err:
-        SpeedConfig.from_cfg(OmegaConf.create({"keep_memory": "yes"}))
+    from cicfw.core.config_checks import checked
+    from cicfw.train.schema import SPEED
+
+    with pytest.raises(SchemaError) as err:  # the speed node's schema, as composing applies it
+        checked(SPEED, {"keep_memory": "maybe"}, "speed")
     assert (err.value.kind, err.value.key) == ("wrong type", "speed.keep_memory"), err.value
-    assert SpeedConfig.from_cfg(OmegaConf.create({})).keep_memory is True  # the default (conf/speed/default.yaml)
+    assert SpeedConfig().keep_memory is True  # the default (conf/speed/default.yaml)
 
 
 def test_train_takes_the_switch_as_its_own_not_as_a_trainer_argument():

@@ -51,8 +51,8 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
-    ``resume_hint`` its ``Interrupted`` message, ``on_start`` is called once the folder is this run's)."""
-    evaluate_schema.check(cfg)  # what composing lets through: +vide=[0] would silently film nothing
+    ``resume_hint`` its ``Interrupted`` message, ``on_start`` is called once the folder is this run's).
+    ``cfg`` is checked where it was composed: ``compose_config``, or the app's ``SchemaCheck`` callback."""
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
@@ -282,7 +282,6 @@ def check_evaluation_overrides(overrides: Any) -> None:
     try:
         check_after_training_overrides(overrides)
         cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
-        evaluate_schema.check(cfg)
         plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
                         OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
                         cfg.seed, False, list(cfg.video or []), cfg.video_max)
@@ -417,8 +416,9 @@ def join_sweep() -> None:
 
 
 def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app. What Hydra refuses
-    is one line: a ``SchemaError`` naming the key for what the schema refuses, else a ``ValueError``."""
+    """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app, and what composing
+    lets through checked (``cicfw.benchmark.schema.check``: +vide=[0] would silently film nothing). What is
+    refused is one line: a ``SchemaError`` naming the key for what the schema refuses, else a ``ValueError``."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import ConfigCompositionException
@@ -428,11 +428,14 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
 
     try:
         if GlobalHydra.instance().is_initialized():
-            return compose("evaluate", overrides=list(overrides))
-        with initialize_config_module("cicfw.conf", version_base="1.3"):
-            return compose("evaluate", overrides=list(overrides))
+            cfg = compose("evaluate", overrides=list(overrides))
+        else:
+            with initialize_config_module("cicfw.conf", version_base="1.3"):
+                cfg = compose("evaluate", overrides=list(overrides))
     except ConfigCompositionException as err:
         raise config_error(err) or CicfwError(composition_error_line(err, list(overrides))) from None
+    evaluate_schema.check(cfg)
+    return cfg
 
 
 def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),

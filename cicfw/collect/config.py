@@ -171,12 +171,18 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     # only the values that differ from the defaults are kept: the defaults hash as {}
     out["expert"] = {k: v for k, v in out["expert"].items() if v != accepted[k]}
     out["sim"] = sim_node(out)
-    if backend is None:
-        backend = make_backend(out["sim"])
-        try:
-            return resolve_config(out, backend)
-        finally:
-            close_backend(backend)
+    if backend is not None:
+        return _resolved_names(out, backend)
+    backend = make_backend(out["sim"])
+    try:
+        return _resolved_names(out, backend)
+    finally:
+        close_backend(backend)
+
+
+def _resolved_names(out: dict, backend: Any) -> dict:
+    """``out`` (checked by ``resolve_config``) with its towns resolved by ``backend`` (paths made absolute)
+    and its towns and weathers checked against what the backend knows."""
     sim = out["sim"]["name"]
     known = list(backend.towns())
     if not out["towns"]:

@@ -256,25 +256,64 @@ def checked(schema: type, values: Mapping[str, Any], where: str) -> Any:
 
 
 def composed_values(node: Any, schema: type, where: str) -> dict[str, Any]:
-    """A composed config node as plain data, each value checked once. A node composing typed with ``schema``
-    had its keys and types checked then: only what composing lets through is checked here, a key added with
-    ``+`` past the schema (``+mixer.foo=1``) and a mandatory value left ``???``. Any other node (one composed
-    without the schema, or typed with another: an option whose ``name`` builds another registered name) is
-    checked wholly against ``schema`` here (``checked``). One ``SchemaError`` naming the full key."""
+    """A composed config node as plain data, each value checked once (``check_composed``); a node composing
+    did not type with ``schema`` comes merged over its defaults."""
     from omegaconf import DictConfig, OmegaConf
 
     if not isinstance(node, DictConfig) or OmegaConf.get_type(node) is not schema:
         plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
         return OmegaConf.to_container(checked(schema, plain, where), resolve=True)
-    fields = {f.name for f in dataclasses.fields(schema)}
-    added = [str(k) for k in node if str(k) not in fields]
-    if added:  # refused as composing refuses an unknown key (or names what to do instead of a key cicfw sets)
-        checked(schema, {added[0]: None}, where)
-    missing = sorted(OmegaConf.missing_keys(node))
-    if missing:
-        key = f"{where}.{missing[0]}" if where else missing[0]
-        raise SchemaError(f"{_what(schema, where)} needs {key} (it has no default); add {key}=...", key, "missing")
+    check_composed(node, schema, where)
     return OmegaConf.to_container(node, resolve=True)
+
+
+def check_composed(node: Any, schema: type, where: str = "", skip: tuple[str, ...] = ()) -> None:
+    """A composed config node checked once. A node composing typed with ``schema`` had its keys and types
+    checked then: only what composing lets through is checked here, a key added with ``+`` past the schema
+    of its node, at any depth (``+mixer.foo=1``, ``+runner.foo=1``), and a mandatory value left ``???``.
+    Any other node (one composed without the schema, or typed with another: an option whose ``name`` builds
+    another registered name) is checked wholly against ``schema`` here (``checked``). ``skip``: the full
+    keys of nodes the caller checks itself (``sim``, against the backend its ``name`` builds); the ``hydra``
+    node is Hydra's. One ``SchemaError`` naming the full key."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if not isinstance(node, DictConfig) or OmegaConf.get_type(node) is not schema:
+        checked(schema, plain_values(node) if OmegaConf.is_config(node) else node, where)
+        return
+    _refuse_added_keys(node, where, ("hydra", *skip))
+    missing = _missing_keys(node)
+    if missing:
+        key = missing[0]
+        raise SchemaError(f"{_what(schema, where)} needs {key} (it has no default); add {key}=...", key, "missing")
+
+
+def _missing_keys(node: Any) -> list[str]:
+    """The full keys of the values under ``node`` left ``???``, Hydra's node left out (its interpolations
+    resolve only in a running job)."""
+    from omegaconf import OmegaConf
+
+    children = [node._get_node(k) for k in node if k != "hydra"]
+    return sorted([c._get_full_key(None) for c in children if c._is_missing()]
+                  + [k for c in children if OmegaConf.is_config(c) and not c._is_missing()
+                     for k in OmegaConf.missing_keys(c)])
+
+
+def _refuse_added_keys(node: Any, where: str, skip: tuple[str, ...]) -> None:
+    """A key added with ``+`` to ``node`` or a node under it typed with a dataclass, refused as composing
+    refuses an unknown key (or naming what to do instead of a key cicfw sets)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    schema = OmegaConf.get_type(node)
+    fields = {f.name for f in dataclasses.fields(schema)}
+    for k in map(str, node):
+        key = f"{where}.{k}" if where else k
+        if key in skip:
+            continue
+        if k not in fields:
+            checked(schema, {k: None}, where)
+        child = node._get_node(k)
+        if isinstance(child, DictConfig) and dataclasses.is_dataclass(OmegaConf.get_type(child)):
+            _refuse_added_keys(child, key, skip)
 
 
 def plain_values(cfg: Any) -> dict[str, Any]:

@@ -5,14 +5,12 @@ space the shell split: ``model.lr=1 e-3``), an unknown key or a value of the wro
 with the schema's accepted keys or type: ``config_checks.config_error``) and an unknown option of a config
 group each end the app as one ``cicfw: error:`` line, exit status 2, before Hydra creates any run folder;
 an option that needs an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``) adds a hint.
-``check_top_level_keys`` refuses a top-level key added with ``+`` (which Hydra lets through) by the app's
-schema. ``SchemaCheck`` (a Hydra callback) runs an app's schema check on the composed config before the run
+``SchemaCheck`` (a Hydra callback) runs an app's schema check on the composed config before the run
 folder is created; ``OneLineJobFailure`` (another) ends a multirun whose job failed with one line instead
 of the job's traceback.
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 import re
 import sys
@@ -53,28 +51,6 @@ def missing_extras(args: list[str]) -> list[str]:
             hints.append(f"cicfw: hint: {arg} needs the '{extra}' extra: pip install \"cicfw[{extra}]\" "
                          f"(or pip install -e \".[{extra}]\" in a clone)")
     return hints
-
-
-def check_top_level_keys(cfg: Any, config_name: str, where: str = "") -> None:
-    """One ``ValueError`` for a top-level key the schema of ``config_name`` (``cfg``'s type, else the
-    ``cicfw_<config_name>`` schema in Hydra's ConfigStore) does not have: ``+evaluate_aftr=true``, added with
-    ``+``, which Hydra lets through, would silently change nothing. ``where`` prefixes the message
-    (``evaluate_overrides: ``); an app without a schema is not checked."""
-    from hydra.core.config_store import ConfigStore
-
-    from cicfw.core.config_checks import did_you_mean
-
-    typed = OmegaConf.get_type(cfg)
-    if not dataclasses.is_dataclass(typed):
-        stored = ConfigStore.instance().repo.get(f"cicfw_{config_name}.yaml")
-        typed = OmegaConf.get_type(stored.node) if stored is not None else None
-    if not dataclasses.is_dataclass(typed):
-        return
-    accepted = [f.name for f in dataclasses.fields(typed)]
-    unknown = [str(k) for k in cfg if str(k) not in accepted and str(k) != "hydra"]
-    if unknown:
-        raise CicfwError(f"{where}unknown top-level key {unknown[0]!r}; {did_you_mean(unknown[0], accepted)}"
-                         f"accepted top-level keys: {', '.join(sorted(accepted))}", key=unknown[0])
 
 
 def composition_error_line(err: BaseException, args: list[str]) -> str | None:

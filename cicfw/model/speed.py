@@ -90,15 +90,6 @@ class SpeedConfig:
         if not any(type(self.compile) is type(c) and self.compile == c for c in (True, False, "auto")):
             raise SchemaError(f"speed.compile must be true, false or auto, got {self.compile!r}",
                               "speed.compile", "wrong type")
-        for key in ("channels_last", "keep_memory"):
-            if not isinstance(getattr(self, key), bool):
-                raise SchemaError(f"speed.{key} must be true or false, got {getattr(self, key)!r}",
-                                  f"speed.{key}", "wrong type")
-
-    @classmethod
-    def from_cfg(cls, node) -> "SpeedConfig":
-        """The switches of a ``speed`` node (a mapping); a switch it leaves out keeps its default."""
-        return cls(**{name: node[name] for name in SPEED_SWITCHES if name in node})
 
 
 #: the speed switches' names: the keys of the ``speed`` node

@@ -217,11 +217,10 @@ def check_training(tcfg: DictConfig) -> None:
     """What ``cicfw.train.app.train`` checks before it reads any data (top-level keys, the model's names, keys
     and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
     the dataset is collected rather than failing every cell of the row."""
-    from cicfw.core.override_hints import check_top_level_keys
     from cicfw.train.app import build_model, make_datamodule, trainer_kwargs
-    from cicfw.train.schema import checked_speed
+    from cicfw.train.schema import check_top_level, checked_speed
 
-    check_top_level_keys(tcfg, "train")
+    check_top_level(tcfg)
     build_model(tcfg)
     make_datamodule(tcfg)
     trainer_kwargs(tcfg)
@@ -666,9 +665,10 @@ def code() -> dict[str, Any]:
 
 
 def compose_eval(cfg: DictConfig, extra: Sequence[str]) -> DictConfig:
-    from hydra import compose
+    """A cell's evaluate config: the budget's suite overrides, then ``extra``, checked (``compose_config``)."""
+    from cicfw.benchmark.app import compose_config
 
-    return compose("evaluate", overrides=[*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
+    return compose_config([*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
 
 
 def count_episodes(evcfg: DictConfig) -> int:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import functools
 from typing import Any, Mapping
 
-from cicfw.core.config_checks import checked, kwargs_schema
+from cicfw.core.config_checks import check_composed, kwargs_schema
 from cicfw.registry import SIM_BACKENDS
 
 #: the config group the schemas are stored under: an app's defaults list lays ``cicfw_schema/sim/<name>``
@@ -34,8 +34,9 @@ def store_backend_schemas() -> None:
 
 
 def check_sim_node(node: Any, where: str = "sim") -> None:
-    """A composed ``sim`` node (plain data) against the backend its ``name`` builds: a key added with ``+``,
-    a ``name`` other than its option file's. One ``SchemaError`` naming the full key; a name no backend is
+    """A composed ``sim`` node against the backend its ``name`` builds, once (``check_composed``): a key added
+    with ``+``; the whole node where composing typed it as another backend's (a ``name`` other than its
+    option file's) or it is plain data. One ``SchemaError`` naming the full key; a name no backend is
     registered under is left to the registry's own error, when the backend is made."""
     if isinstance(node, Mapping) and str(node.get("name")) in SIM_BACKENDS:
-        checked(backend_schema(str(node["name"])), node, where)
+        check_composed(node, backend_schema(str(node["name"])), where)

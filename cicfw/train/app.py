@@ -22,7 +22,7 @@ from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, whole_number
+from cicfw.core.config_checks import forget_empty_cache_setting, is_integer
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -31,9 +31,9 @@ from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
-from cicfw.core.override_hints import check_top_level_keys
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
+from cicfw.train.schema import check_top_level
 
 log = logging.getLogger("cicfw.train")
 
@@ -192,19 +192,12 @@ def build_datamodule(cfg: DictConfig) -> CILDataModule:
 
 
 def epoch_list(epochs: Any) -> list[int]:
-    """``keep_epoch_checkpoints`` as a list of epochs >= 1, else one line naming it (a lone ``abc`` was
-    read one character at a time, inside the Trainer's construction)."""
-    if OmegaConf.is_config(epochs):
-        epochs = OmegaConf.to_container(epochs, resolve=True)
-    if epochs is None:
-        return []
-    try:
-        found = [whole_number("keep_epoch_checkpoints", e) for e in epochs] if isinstance(epochs, list) else None
-    except ValueError:
-        found = None
-    if found is None or any(e < 1 for e in found):
+    """``keep_epoch_checkpoints`` as a list of epochs >= 1 (a list of whole numbers: the schema), else one
+    line naming it."""
+    found = list(epochs or [])
+    if any(e < 1 for e in found):
         raise CicfwError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
-                         f"checkpoints/epochNNN.ckpt), got {epochs!r}")
+                         f"checkpoints/epochNNN.ckpt), got {found!r}")
     return found
 
 
@@ -310,7 +303,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     """The Lightning Trainer; an unknown argument or a value Lightning refuses (``max_epochs=-2``,
     ``accelerator=gpu`` without a GPU) is one ``ValueError`` naming it."""
     kwargs = trainer_kwargs(cfg)
-    checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd), before any data
     if cfg.logger is None:
         logger: Logger | bool = False
     elif cfg.logger.name not in LOGGERS:
@@ -463,23 +455,21 @@ def fit_kwargs() -> dict[str, Any]:
 SEED_RANGE = (0, 2**32 - 1)
 
 
-def checked_seed(value: Any) -> int:
-    """``seed`` as an int within ``SEED_RANGE``, else a ``ConfigError`` naming it (Lightning's own message
-    for ``seed=-3`` named no key)."""
+def checked_seed(value: int) -> int:
+    """``seed`` (a whole number: the schema) within ``SEED_RANGE``, else a ``ConfigError`` naming it
+    (Lightning's own message for ``seed=-3`` named no key)."""
     from cicfw.core.errors import ConfigError
 
-    accepted = f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}"
-    seed = whole_number("seed", value, accepted)
-    if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
-        raise ConfigError("seed", seed, accepted)
-    return seed
+    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
+        raise ConfigError("seed", value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
+    return value
 
 
 def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
     """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
     config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
     ``data`` node. What ``train`` checks before the Trainer; ``check_config`` checks the same."""
-    check_top_level_keys(cfg, "train")  # +evaluate_aftr=true would silently skip the evaluation
+    check_top_level(cfg)  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
@@ -522,6 +512,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     L.seed_everything(checked_seed(cfg.seed), workers=True)
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     model, ckpt_path, datamodule = checked_setup(cfg, refuse_finished)
+    speed = checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd)
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
@@ -531,7 +522,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
                       "was compiled is cached), run the same command again"):
-        apply_speed_from_config(model, checked_speed(cfg), cfg.trainer,  # compile (or its one-line fallback),
+        apply_speed_from_config(model, speed, cfg.trainer,  # compile (or its one-line fallback),
                                 cfg.data.batch_size, len(datamodule.train_dataloader()))  # channels_last, Adam
     before = checkpoint_files(run_dir)
     if on_start is not None:

@@ -6,10 +6,10 @@ lays the schema under the config: ``cicfw_evaluate`` under the whole of it (``ru
 fields, ``suite``: ``build_suite``'s arguments) and ``cicfw_schema/sim/<name>`` under the chosen simulator
 (the registered backend's arguments, plugins' included: ``cicfw.sim.schema``, shared with the collect app).
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key.
-``check`` applies the same schemas to a composed config again, for what composing lets through: keys added
-with ``+``, a ``sim.name`` other than the option file's, and ``runner.workers``, whose union OmegaConf cannot
-type; conf/evaluate.yaml's first callback (``cicfw.core.override_hints.SchemaCheck``) runs it before Hydra
-creates the run folder.
+``check`` looks at a composed config only for what composing lets through, once: keys added with ``+``, a
+``sim.name`` other than the option file's, and ``runner.workers``, whose union OmegaConf cannot type;
+conf/evaluate.yaml's first callback (``cicfw.core.override_hints.SchemaCheck``) runs it before Hydra creates
+the run folder.
 """
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
-from cicfw.core.config_checks import SchemaError, checked, kwargs_schema, plain_values
+from cicfw.core.config_checks import SchemaError, check_composed, kwargs_schema
 from cicfw.registry import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 
@@ -70,13 +70,13 @@ def check_workers(workers: Any) -> None:
 
 
 def check(cfg: DictConfig) -> None:
-    """A composed evaluate config checked again: a key added with ``+`` anywhere in its nodes (policy
-    excepted), the ``sim`` node against the backend its ``name`` builds, and ``runner.workers``. One
-    ``SchemaError`` naming the full key."""
-    values = plain_values(cfg)
-    checked(EvaluateConfig, values, "")
-    check_sim_node(values.get("sim"))
-    check_workers((values.get("runner") or {}).get("workers", 1))
+    """What composing let through in an evaluate config (``check_composed``): a key added with ``+`` (policy
+    excepted: its node is open), the ``sim`` node against the backend its ``name`` builds, and
+    ``runner.workers``. One ``SchemaError`` naming the full key."""
+    check_composed(cfg, EvaluateConfig, skip=("sim",))
+    check_sim_node(cfg.get("sim"))
+    workers = (cfg.get("runner") or {}).get("workers", 1)
+    check_workers(OmegaConf.to_container(workers) if OmegaConf.is_config(workers) else workers)
 
 
 register()

@@ -5,10 +5,9 @@ ConfigStore) before it composes a collect config, and the defaults list lays the
 ``cicfw_collect`` under the whole of it (``CollectConfig``, the one source of a collection's keys, types and
 defaults, plus the app's ``out_dir`` and ``verify``), and ``cicfw_schema/sim/<name>`` under the chosen
 simulator (the registered backend's arguments: ``cicfw.sim.schema``, as in the evaluate app). OmegaConf then
-refuses an unknown key or a value of the wrong type while composing, naming its full key. ``check`` applies
-the same schemas to the composed config again, for what composing lets through (keys added with ``+``, a
-``sim.name`` other than the option file's); conf/collect.yaml's first callback runs it before Hydra creates
-the run folder.
+refuses an unknown key or a value of the wrong type while composing, naming its full key. ``check`` looks at
+the composed config only for what composing lets through, once (keys added with ``+``, a ``sim.name`` other
+than the option file's); conf/collect.yaml's first callback runs it before Hydra creates the run folder.
 """
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
 from cicfw.collect.config import CollectConfig
-from cicfw.core.config_checks import checked, plain_values
+from cicfw.core.config_checks import check_composed
 from cicfw.registry import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 
@@ -41,11 +40,10 @@ def register() -> None:
 
 
 def check(cfg: DictConfig) -> None:
-    """A composed collect config checked again: a key added with ``+`` anywhere, and the ``sim`` node against
-    the backend its ``name`` builds. One ``SchemaError`` naming the full key."""
-    values = plain_values(cfg)
-    checked(CollectAppConfig, values, "")
-    check_sim_node(values.get("sim"))
+    """What composing let through in a collect config (``check_composed``): a key added with ``+`` anywhere,
+    and the ``sim`` node against the backend its ``name`` builds. One ``SchemaError`` naming the full key."""
+    check_composed(cfg, CollectAppConfig, skip=("sim",))
+    check_sim_node(cfg.get("sim"))
 
 
 register()

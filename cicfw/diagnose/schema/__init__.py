@@ -5,7 +5,7 @@ in its ConfigStore) before it composes a diagnose config, and lays it under the 
 ``cicfw.diagnose.steer_diagnostic.DataSettings``'s fields (each may be null: the training run's value), ``phases``
 ``measure``'s phase arguments, and the app's own keys their types here. OmegaConf then refuses an unknown
 key or a value of the wrong type while composing, naming its full key, before the run folder exists.
-``check`` applies it to the composed config again for keys added with ``+`` (which composing lets through);
+``check`` looks at the composed config only for keys added with ``+`` (which composing lets through);
 conf/diagnose.yaml's first callback runs it before Hydra creates the run folder.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig
 
-from cicfw.core.config_checks import checked, kwargs_schema, plain_values
+from cicfw.core.config_checks import check_composed, kwargs_schema
 from cicfw.diagnose.steer_diagnostic import DataSettings, measure
 
 #: camera lists, which DataSettings annotates as any sequence (a type OmegaConf cannot check)
@@ -48,9 +48,9 @@ class DiagnoseConfig:
 
 
 def check(cfg: DictConfig) -> None:
-    """A composed diagnose config checked again (a key added with ``+`` anywhere): one ``SchemaError``
+    """What composing let through in a diagnose config (a key added with ``+`` anywhere): one ``SchemaError``
     naming the full key."""
-    checked(DiagnoseConfig, plain_values(cfg), "")
+    check_composed(cfg, DiagnoseConfig)
 
 
 ConfigStore.instance().store(name="cicfw_diagnose", node=DiagnoseConfig, provider="cicfw")

@@ -3,13 +3,13 @@
 conf/reproduce.yaml puts this package on its search path (cicfw.reproduction.app imports it too), so Hydra
 imports it (registering ``cicfw_reproduce`` in its ConfigStore) before it composes a reproduce config, and
 the defaults list lays it under the config first, so OmegaConf refuses an unknown key or a value of the wrong
-type while composing, naming its full key. ``check`` applies it to a composed config again, for what
-composing lets through: keys added with ``+``, ``seeds`` (a number or a list, a union OmegaConf cannot type),
+type while composing, naming its full key. ``check`` looks at a composed config only for what composing lets
+through, once: keys added with ``+``, ``seeds`` (a number or a list, a union OmegaConf cannot type),
 ``weather_family`` (one of the simulator's families), and each catalogue row and claim: a row takes
 ``cicfw.reproduction.catalogue.Row``'s keys, a claim and its parts ``claim_entry``'s and ``claim_part``'s
 arguments (cicfw/reproduction/claims.py). Those two nodes stay open while composing: OmegaConf cannot add a
 row to a typed mapping (``+catalogue.mine={...}``), and names no list item's full key. The app runs ``check``
-on its plan before anything is written; conf/reproduce.yaml's first callback runs it before the cells.
+on its plan (``compose_plan``) before anything is written; the cells run that plan.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from cicfw.core.config_checks import SchemaError, checked, is_integer, kwargs_schema, plain_values
+from cicfw.core.config_checks import SchemaError, check_composed, checked, is_integer, kwargs_schema, plain_values
 from cicfw.reproduction.catalogue import Row
 from cicfw.reproduction.claims import claim_entry, claim_part
 from cicfw.sim.render.weather import WEATHER_FAMILIES
@@ -97,10 +97,10 @@ def _checked_item(schema: type, value: Any, where: str) -> dict:
 
 
 def check(cfg: DictConfig) -> None:
-    """A composed reproduce config checked again: a key added with ``+`` anywhere, ``seeds``,
-    ``weather_family``, every catalogue row and claim. One ``SchemaError`` naming the full key."""
+    """What composing let through in a reproduce config (``check_composed``): a key added with ``+`` anywhere,
+    ``seeds``, ``weather_family``, every catalogue row and claim. One ``SchemaError`` naming the full key."""
+    check_composed(cfg, ReproduceConfig)
     values = plain_values(cfg)
-    checked(ReproduceConfig, values, "")
     for name, row in values["catalogue"].items():
         _checked_item(ROW, row, f"catalogue.{name}")
     for i, claim in enumerate(values["claims"]):

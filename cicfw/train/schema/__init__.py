@@ -28,7 +28,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.collect.config import CollectConfig
-from cicfw.core.config_checks import SchemaError, composed_values, kwargs_schema
+from cicfw.core.config_checks import SchemaError, check_composed, composed_values, kwargs_schema
 from cicfw.core.errors import ConfigError
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
@@ -110,6 +110,13 @@ def register() -> None:
     for group, registry in PARTS.items():
         for name in registry.names():
             store.store(group=f"cicfw_schema/{group}", name=name, node=part(group, name), provider="cicfw")
+
+
+def check_top_level(cfg: DictConfig) -> None:
+    """What composing let through at the top of a train config (``check_composed``): a key added with ``+``
+    (``+evaluate_aftr=true`` would silently skip the evaluation), a value left ``???``; the nodes under it
+    are checked as they are built (``checked_part``, ``checked_node``)."""
+    check_composed(cfg, TrainConfig, skip=tuple(top_level_keys()))
 
 
 def checked_part(cfg: DictConfig, group: str) -> tuple[str, dict[str, Any]]:
