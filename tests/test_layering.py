@@ -4,7 +4,8 @@
           evaluate.py and reproduce.py, carla_client.check)
       -> feature libraries (benchmark | reproduction | collect | carla_client | diagnose)
       -> sim | model | data | export.agent
-      -> core, registry
+      -> registry
+      -> core
 
 A module imports its own layer and those below, never one above, and no module imports itself back
 through others (no circle). ``cicfw.export.agent`` is the model's inference path (a checkpoint or an
@@ -14,7 +15,8 @@ benchmark, never the other way. A feature package's config schema is its ``schem
 ``pkg://cicfw.<package>.schema`` search path imports when it composes that app's config. No
 module imports an app (``cicfw.<package>.app``) but the entry points (cli, the entry modules, a package's
 ``__main__`` and schema) and the apps that run other apps (``APP_USERS``). A new module must be placed in
-``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins).
+``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins). The registry builds on
+core (its errors, the guard of the plugins' Hydra modules); core imports no registry.
 
 ``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
 code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
@@ -66,6 +68,8 @@ FORBIDDEN = {
     "export": (*BENCH, "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collect", "carla"),
     # the benchmark drives and reports runs; a reproduction builds on it, never the other way
     "benchmark": ("cicfw.reproduction", "cicfw.diagnose"),
+    # what every app shares sits under the registry, which raises its errors and lists its plugins
+    "core": ("cicfw.registry",),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
 APPS_ONLY = ("cicfw.collect", "cicfw.carla_client.check")
@@ -216,6 +220,13 @@ def test_the_checker_sees_the_simulator_reaching_into_the_data_layer(tmp_path):
     assert forbidden_imports(fine, tmp_path) == []
 
 
+def test_the_checker_sees_core_reaching_up_to_the_registry(tmp_path):
+    bad = tmp_path / "cicfw" / "core" / "bad.py"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("def f():\n    from cicfw.registry import MIXERS\n")
+    assert forbidden_imports(bad, tmp_path) == ["cicfw.registry"]
+
+
 def test_every_module_has_a_layer():
     unplaced = [_module_name(p) for p in sorted(PKG.rglob("*.py")) if layer_of(_module_name(p)) is None]
     assert not unplaced, (f"{unplaced}: place each new module in its layer (LAYER_OF in tests/test_layering.py; "
@@ -288,10 +299,12 @@ def test_plots_and_report_do_not_import_each_other():
     assert _reaches(imports_of(report), "cicfw.benchmark.plots")
 
 
-def test_registry_is_the_bottom_layer():
-    """The registry imports the error family (its unknown name is a user error) and nothing else of cicfw."""
+def test_registry_sits_just_above_core():
+    """The registry imports the error family (its unknown name is a user error) and the guard of the plugins'
+    Hydra modules (it lists what the guard skipped), and nothing else of cicfw."""
     found = imports_of(PKG / "registry.py")
-    assert not [m for m in found if m.startswith("cicfw.") and not m.startswith(("cicfw.registry", "cicfw.core.errors"))], \
+    allowed = ("cicfw.registry", "cicfw.core.errors", "cicfw.core.hydra_plugins")
+    assert not [m for m in found if m.startswith("cicfw.") and m != "cicfw.core" and not m.startswith(allowed)], \
         sorted(found)
 
 

@@ -25,6 +25,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
+from cicfw.core.hydra_plugins import guard_hydra_plugins
 
 CONFIG_MODULE = "cicfw.conf"
 
@@ -228,8 +229,6 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
     that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
     import is skipped with one warning first (it would stop the app). ``--help`` lists the app's config
     groups (``register_help``)."""
-    from cicfw.registry import guard_hydra_plugins
-
     guard_hydra_plugins()
     register_help()
     try:

@@ -299,7 +299,7 @@ def check_args(a: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     from cicfw.core.errors import install_app_handlers
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     install_app_handlers()
 
