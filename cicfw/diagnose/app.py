@@ -192,7 +192,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
-    from cicfw.data.provenance import checkpoint_record
+    from cicfw.model.checkpoint import checkpoint_record
 
     record = checkpoint_record(ckpt_path)  # the absolute data path and the files the run trained on
     data, source = data_settings(cfg, ckpt_path, record)

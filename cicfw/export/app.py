@@ -338,7 +338,7 @@ def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
     holds now); for a checkpoint written before runs recorded their data, ``dataset_hash`` of its run config."""
-    from cicfw.data.provenance import checkpoint_record
+    from cicfw.model.checkpoint import checkpoint_record
 
     record = checkpoint_record(checkpoint)
     if record is None:

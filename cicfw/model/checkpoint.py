@@ -7,6 +7,7 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 """
 from __future__ import annotations
 
+import os
 import pickle
 import re
 from pathlib import Path
@@ -17,6 +18,7 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from cicfw.core.errors import CicfwError
+from cicfw.data.provenance import CHECKPOINT_KEY, is_record
 from cicfw.model.module import CICModule
 from cicfw.model.speed import keep_fp32
 from cicfw.registry import ENCODERS, HEADS, MIXERS
@@ -95,6 +97,21 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
                 f"only those") from None
         raise CheckpointError(f"{str(p)!r} is not a PyTorch checkpoint, or it is truncated ({err.reason})") from None
     return check_cicfw_checkpoint(ckpt, str(p))
+
+
+def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The data record of a checkpoint (None when it has none: written before runs recorded their data, or
+    not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
+    for mmap in (True, False):
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+            break
+        except Exception:
+            continue
+    else:
+        return None
+    record = ckpt.get(CHECKPOINT_KEY) if isinstance(ckpt, dict) else None
+    return dict(record) if is_record(record) else None
 
 
 def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:

@@ -566,8 +566,9 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
     the checkpoint's: another file set is refused, naming both, unless ``resume_on_other_data=true``; then,
     or when the same files lie in another folder, the record keeps the checkpoint's under ``before``."""
     from cicfw.core.sweeps import is_worker_process
-    from cicfw.data.provenance import (check_same_data, checkpoint_record, folder_record, record_data, same_place,
-                                       summary, with_earlier, write_record)
+    from cicfw.data.provenance import (check_same_data, folder_record, record_data, same_place, summary, with_earlier,
+                                       write_record)
+    from cicfw.model.checkpoint import checkpoint_record
 
     ckpt = cfg.get("ckpt_path")
     earlier = None
