@@ -7,15 +7,22 @@ fails to load is reported with a warning naming it and skipped, so the built-ins
 """
 from __future__ import annotations
 
+import argparse
 import importlib
+import json
 import warnings
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, entry_points, version
 from typing import Callable, Generic, TypeVar
 
-T = TypeVar("T")
+from hydra import initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from rich.console import Console
+from rich.table import Table
 
 from cicfw.core import hydra_plugins
 from cicfw.core.errors import CicfwError
+
+T = TypeVar("T")
 
 BUILTIN = "cicfw"
 
@@ -129,8 +136,6 @@ CONFIG_GROUPS = {"encoders": "encoder", "mixers": "mixer", "heads": "head", "sim
 
 
 def _version(dist: str) -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:
@@ -139,9 +144,6 @@ def _version(dist: str) -> str:
 
 def _config_options() -> dict[str, set[str]]:
     """Options of each config group on cicfw's search path (SearchPathPlugins included)."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
     hydra_plugins.guard_hydra_plugins()
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -180,8 +182,6 @@ def listing() -> tuple[list[tuple[str, str, str, str, str]], list[tuple[str, str
 def as_json(rows: list[tuple[str, str, str, str, str]], failures: list[tuple[str, str, str]]) -> str:
     """The listing as JSON: ``{"registered": [{kind, name, distribution, version, class, config}],
     "failed": [{kind, plugin, error}]}`` (``config`` is null where no config file selects the entry)."""
-    import json
-
     registered = []
     for kind, name, dist, cls, config in rows:
         dist_name, _, version = dist.rpartition(" ")
@@ -195,11 +195,6 @@ def main(argv: list[str] | None = None) -> int:
     """Print the registered encoders, mixers, heads and sim backends with the distribution each came
     from, and the plugins that failed to load. ``--strict``: exit 1 if any failed. ``--json``: the
     same as JSON on stdout (no table wrapping when piped)."""
-    import argparse
-
-    from rich.console import Console
-    from rich.table import Table
-
     parser = argparse.ArgumentParser(prog="cicfw plugins", description=main.__doc__)
     parser.add_argument("--strict", action="store_true", help="exit with status 1 if a plugin failed to load")
     parser.add_argument("--json", action="store_true", help="print the listing as JSON instead of tables")
