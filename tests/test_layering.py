@@ -27,6 +27,11 @@ package's library modules to this; its app modules are apps.
 
 Every ``import`` and ``from ... import`` in the package is read with ``ast`` (function-level ones
 included: a lazy import is still a dependency), so a lower layer reaching up fails here.
+
+Imports sit at the top of their module. A function imports only what ``LAZY_ANYWHERE`` and ``LAZY_IN`` name:
+an optional extra (CARLA, ONNX, Optuna, submitit) or a heavy library that one rarely used path needs
+(matplotlib); a circle that importing at the top would make is the real problem: move the function to the
+module it belongs in.
 """
 from __future__ import annotations
 
@@ -79,6 +84,21 @@ APPS_ONLY = ("cicfw.collect", "cicfw.carla_client.check")
 APP_USERS = ("cicfw.reproduction.app", "cicfw.train.app", "cicfw.testing")
 #: the most entries the top level of the package holds besides ``__init__.py`` (DESIGN's "Layout")
 TOP_LEVEL_MAX = 16
+#: what a function may import rather than its module's top: an optional extra or a heavy library only one
+#: rarely used path needs (the first name of the imported module)
+LAZY_ANYWHERE = ("carla", "onnx", "onnxruntime", "optuna", "submitit", "matplotlib")
+#: module -> what it alone may import in a function, beside LAZY_ANYWHERE
+LAZY_IN = {
+    # the error family is what an entry point imports before it installs its signal handlers: it stays
+    # stdlib-only at its top, and asks Hydra whether this is a multirun only when an error is reported
+    "cicfw.core.errors": ("hydra",),
+    # the console script installs its signal handlers before it imports Hydra (through the guard)
+    "cicfw.cli": ("cicfw.core.hydra_plugins",),
+    # the compiler stack: seconds to import, needed only when a run compiles its model
+    "cicfw.model.speed": ("torch._inductor", "torch._dynamo"),
+    # torch's ONNX exporter's private constants, whose absence (a torch that moved them) is handled
+    "cicfw.export.app": ("torch.onnx",),
+}
 
 
 def _module_name(path: Path, root: Path = PKG.parent) -> str:
@@ -110,8 +130,34 @@ def imports_of(path: Path, root: Path = PKG.parent) -> set[str]:
     return out
 
 
-def _reaches(imported: set[str], target: str) -> bool:
-    return any(m == target or m.startswith(target + ".") for m in imported)
+def function_imports(path: Path, root: Path = PKG.parent) -> list[tuple[int, str]]:
+    """(line, module) of each import inside a function of ``path``, relative imports resolved."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    name = _module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Import):
+                found += [(node.lineno, a.name) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)] if node.level else []
+                found.append((node.lineno, ".".join(base + ([node.module] if node.module else []))))
+    return sorted(set(found))
+
+
+def lazy_imports_not_allowed(path: Path, root: Path = PKG.parent) -> list[str]:
+    """The imports inside functions of ``path`` that LAZY_ANYWHERE and LAZY_IN do not allow."""
+    allowed = LAZY_ANYWHERE + LAZY_IN.get(_module_name(path, root), ())
+    return [f"line {line}: {mod}" for line, mod in function_imports(path, root) if not _reaches({mod}, allowed)]
+
+
+def _reaches(imported: set[str], target: str | tuple[str, ...]) -> bool:
+    """Whether a module in ``imported`` is ``target`` (or one of them) or one of its submodules."""
+    targets = (target,) if isinstance(target, str) else target
+    return any(m == t or m.startswith(t + ".") for m in imported for t in targets)
 
 
 def _modules_of(names) -> list[Path]:
@@ -353,3 +399,19 @@ def test_the_top_level_of_the_package_stays_small():
     entries = sorted(p.name for p in PKG.iterdir() if p.name not in ("__init__.py", "__pycache__"))
     assert len(entries) <= TOP_LEVEL_MAX, (f"cicfw/ holds {len(entries)} entries besides __init__.py: {entries}; "
                                            f"put a new module in its feature package (CONTRIBUTING.md's Layout)")
+
+
+def test_the_checker_sees_a_function_importing_what_belongs_at_the_top(tmp_path):
+    plots = tmp_path / "cicfw" / "benchmark" / "plots.py"
+    plots.parent.mkdir(parents=True)
+    plots.write_text("import json\n\ndef f():\n    import matplotlib.pyplot as plt\n    from .suite import town_label\n"
+                     "    class A:\n        def g(self):\n            import torch\n")
+    assert lazy_imports_not_allowed(plots, tmp_path) == ["line 5: cicfw.benchmark.suite", "line 8: torch"]
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_functions_import_only_optional_or_rarely_needed_heavy_libraries(path):
+    bad = lazy_imports_not_allowed(path)
+    assert not bad, (f"{path.relative_to(PKG.parent)} imports {bad} inside a function: import it at the module's "
+                     f"top (a circle that makes is the real problem: move the function where it belongs); "
+                     f"only LAZY_ANYWHERE and LAZY_IN in tests/test_layering.py may be imported lazily")
