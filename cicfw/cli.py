@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     module, _ = COMMANDS[argv[0]]
     if argv[0] == "report" and len(argv) > 1 and (Path(argv[1]) / "reproduce.json").is_file():
         module = "cicfw.reproduction.report"  # a reproduction's folder: its Table 4 with intervals and verdicts
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app
     sys.argv = [f"cicfw {argv[0]}", *argv[1:]]

@@ -2,23 +2,27 @@
 
 Built-ins register with a decorator when their package is imported; third-party packages register
 through an entry-point group (``cicfw.mixers`` ...), loaded lazily on first lookup. A plugin that
-fails to load is reported with a warning naming it and skipped, so the built-ins keep working.
-``guard_hydra_plugins`` does the same for the plugins' Hydra modules (``hydra_plugins.*``), which
-Hydra imports when any app starts.
+fails to load is reported with a warning naming it and skipped, so the built-ins keep working
+(``cicfw.core.hydra_plugins`` does the same for the plugins' Hydra modules).
 """
 from __future__ import annotations
 
+import argparse
 import importlib
-import pkgutil
-import sys
-import types
+import json
 import warnings
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, entry_points, version
 from typing import Callable, Generic, TypeVar
 
-T = TypeVar("T")
+from hydra import initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from rich.console import Console
+from rich.table import Table
 
+from cicfw.core import hydra_plugins
 from cicfw.core.errors import CicfwError
+
+T = TypeVar("T")
 
 BUILTIN = "cicfw"
 
@@ -97,7 +101,7 @@ class Registry(Generic[T]):
             obj = ep.load()
         except (Exception, SystemExit) as err:  # a broken plugin must not break cicfw
             self.failed[label] = f"{type(err).__name__}: {err}"
-            if not any(d == dist for d, _ in SKIPPED_HYDRA_MODULES.values()):  # else already warned about
+            if not any(d == dist for d, _ in hydra_plugins.SKIPPED_HYDRA_MODULES.values()):  # else warned
                 warnings.warn(
                     f"cicfw: skipped {self.kind} plugin {ep.name!r} from distribution {dist!r} "
                     f"({ep.value}): it failed to load: {type(err).__name__}: {err}",
@@ -116,89 +120,6 @@ class Registry(Generic[T]):
         self._origin[ep.name] = dist
 
 
-# ---- the plugins' Hydra modules -------------------------------------------------------------------
-
-#: ``hydra_plugins.*`` modules skipped by ``guard_hydra_plugins``: module -> (distribution, error).
-SKIPPED_HYDRA_MODULES: dict[str, tuple[str, str]] = {}
-
-
-def _distribution_of(module: str, origin: str | None) -> str:
-    """The installed distribution whose files hold ``module`` (``hydra_plugins.x`` -> ``x-mixer``);
-    else the module's file, so the warning still says where it is."""
-    from importlib.metadata import distributions
-
-    parts = tuple(module.split("."))
-    for dist in distributions():
-        for f in dist.files or ():
-            if tuple(f.parts[: len(parts)]) == parts:
-                return dist.metadata["Name"] or "?"
-    return f"unknown (not in any installed distribution's file list: {origin or module})"
-
-
-def guard_hydra_plugins() -> dict[str, tuple[str, str]]:
-    """Import every ``hydra_plugins`` module the way Hydra's start-up scan will, before it does.
-
-    Hydra imports all of them when any app starts, and a module whose import raises anything but an
-    ``ImportError`` (typically a plugin's SearchPathPlugin importing its own broken package) stops
-    every Hydra app. Each module that fails here is hidden from Hydra's scan and reported with one
-    warning naming its distribution; the rest of the scan, and cicfw, go on. Call it before the first
-    Hydra app or config composition of the process (``cicfw <command>`` and ``python -m cicfw.train``
-    do); later calls, once Hydra has scanned, do nothing. Returns the skipped modules."""
-    from hydra.core.plugins import Plugins
-    from hydra.core.singleton import Singleton
-
-    if Plugins in Singleton._instances:
-        return {}
-    try:
-        namespace = importlib.import_module("hydra_plugins")
-    except ImportError:
-        return {}  # no Hydra plugin installed at all
-    broken: dict[str, BaseException] = {}
-    where: dict[str, str] = {}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Hydra's own scan reports a plugin's import warnings
-        # onerror: a _private package the walk could not import to look inside; Hydra skips it silently too
-        for info in pkgutil.walk_packages(namespace.__path__, "hydra_plugins.", lambda name: None):
-            last = info.name.rsplit(".", 1)[-1]
-            if last.startswith("_") and not last.startswith("__"):
-                continue  # Hydra does not import _private modules
-            try:
-                importlib.import_module(info.name)
-            except (Exception, SystemExit) as err:
-                broken[info.name] = err
-                where[info.name] = f"{getattr(info.module_finder, 'path', '?')}/{last}"
-                stub = types.ModuleType(info.name)  # an empty package in its place: the walk does not
-                stub.__path__ = []  # type: ignore[attr-defined]  # execute it again to look inside
-                sys.modules[info.name] = stub
-    if not broken:
-        return {}
-    for name, err in broken.items():
-        dist = _distribution_of(name, where[name])
-        if not any(d == dist for d, _ in SKIPPED_HYDRA_MODULES.values()):  # one warning per distribution
-            warnings.warn(
-                f"cicfw: skipped plugin distribution {dist!r}: its Hydra module {name!r} failed to import "
-                f"({type(err).__name__}: {err}); its configs are not available, everything else works",
-                stacklevel=2,
-            )
-        SKIPPED_HYDRA_MODULES[name] = (dist, f"{type(err).__name__}: {err}")
-    real_walk = pkgutil.walk_packages
-
-    def walk_without_broken(*args, **kwargs):
-        for info in real_walk(*args, **kwargs):
-            if info.name not in broken:
-                yield info
-
-    pkgutil.walk_packages = walk_without_broken  # only while Hydra scans, below
-    try:
-        Plugins.instance()  # Hydra's scan, now without the broken modules; every app reuses it
-    finally:
-        pkgutil.walk_packages = real_walk
-        for name in broken:
-            if getattr(sys.modules.get(name), "__path__", None) == []:
-                del sys.modules[name]
-    return dict(SKIPPED_HYDRA_MODULES)
-
-
 ENCODERS: Registry = Registry("encoder", "cicfw.encoders", "cicfw.model.encoders")
 MIXERS: Registry = Registry("mixer", "cicfw.mixers", "cicfw.model.mixers")
 HEADS: Registry = Registry("head", "cicfw.heads", "cicfw.model.heads")
@@ -215,8 +136,6 @@ CONFIG_GROUPS = {"encoders": "encoder", "mixers": "mixer", "heads": "head", "sim
 
 
 def _version(dist: str) -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:
@@ -225,10 +144,7 @@ def _version(dist: str) -> str:
 
 def _config_options() -> dict[str, set[str]]:
     """Options of each config group on cicfw's search path (SearchPathPlugins included)."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    guard_hydra_plugins()
+    hydra_plugins.guard_hydra_plugins()
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             loader = GlobalHydra.instance().config_loader()
@@ -258,15 +174,14 @@ def listing() -> tuple[list[tuple[str, str, str, str, str]], list[tuple[str, str
             rows.append((kind, name, f"{dist} {_version(dist)}",
                          f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', obj)}", config))
         failures += [(kind, label, error) for label, error in reg.failed.items()]
-    failures += [("hydra modules", f"{dist}:{name}", error) for name, (dist, error) in SKIPPED_HYDRA_MODULES.items()]
+    failures += [("hydra modules", f"{dist}:{name}", error) for name, (dist, error)
+                 in hydra_plugins.SKIPPED_HYDRA_MODULES.items()]
     return rows, failures
 
 
 def as_json(rows: list[tuple[str, str, str, str, str]], failures: list[tuple[str, str, str]]) -> str:
     """The listing as JSON: ``{"registered": [{kind, name, distribution, version, class, config}],
     "failed": [{kind, plugin, error}]}`` (``config`` is null where no config file selects the entry)."""
-    import json
-
     registered = []
     for kind, name, dist, cls, config in rows:
         dist_name, _, version = dist.rpartition(" ")
@@ -280,11 +195,6 @@ def main(argv: list[str] | None = None) -> int:
     """Print the registered encoders, mixers, heads and sim backends with the distribution each came
     from, and the plugins that failed to load. ``--strict``: exit 1 if any failed. ``--json``: the
     same as JSON on stdout (no table wrapping when piped)."""
-    import argparse
-
-    from rich.console import Console
-    from rich.table import Table
-
     parser = argparse.ArgumentParser(prog="cicfw plugins", description=main.__doc__)
     parser.add_argument("--strict", action="store_true", help="exit with status 1 if a plugin failed to load")
     parser.add_argument("--json", action="store_true", help="print the listing as JSON instead of tables")

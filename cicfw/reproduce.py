@@ -11,7 +11,7 @@ from cicfw.core.errors import install_app_handlers
 
 if __name__ == "__main__":
     install_app_handlers()  # first, so SIGTERM while the app imports and composes its config is one line
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
     from cicfw.reproduction.app import main
 
     guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app

@@ -16,12 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from hydra import compose, initialize_config_module
 
 from cicfw import N_COMMANDS
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.model.heads import Head
 from cicfw.model.mixers import Mixer
 from cicfw.registry import HEADS, MIXERS
+from cicfw.train.app import train
+from cicfw.train.schema import without_plus_on_trainer
 
 
 def _require(ok: bool, message: str) -> None:
@@ -121,11 +124,6 @@ def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 
 def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
     """Compose the train config with ``overrides`` on a tiny dataset written under ``tmp_path`` and
     run one training and one validation batch; returns the validation metric (finite)."""
-    from hydra import compose, initialize_config_module
-
-    from cicfw.train.app import train
-    from cicfw.train.schema import without_plus_on_trainer
-
     tmp_path = Path(tmp_path)
     data = write_tiny_dataset(tmp_path / "data")
     base = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",

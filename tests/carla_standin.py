@@ -28,6 +28,7 @@ import ast
 import functools
 import inspect
 import math
+import os
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -43,8 +44,6 @@ DT_DEFAULT = 0.05  # what an asynchronous server would advance per tick (never u
 def maps_dir() -> Path | None:
     """Where CARLA's OpenDRIVE files for the tests are: ``$CICFW_CARLA_MAPS``, else ``../shared/carla-maps``
     beside the repository (they are test data, never copied into it); None when absent."""
-    import os
-
     env = os.environ.get("CICFW_CARLA_MAPS")
     p = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "carla-maps"
     return p if (p / "Town01.xodr").is_file() and (p / "Town02.xodr").is_file() else None

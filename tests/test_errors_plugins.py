@@ -72,13 +72,13 @@ def test_an_app_starts_with_one_warning_naming_the_distribution(tmp_path, app):
 @pytest.fixture
 def fresh_scan(tmp_path, monkeypatch):
     """This process as if Hydra had not scanned its plugins yet, with the broken plugin installed."""
-    import cicfw.registry as registry
+    from cicfw.core import hydra_plugins
     from hydra.core.plugins import Plugins
     from hydra.core.singleton import Singleton
 
     if Plugins in Singleton._instances:
         monkeypatch.delitem(Singleton._instances, Plugins)  # restored (Hydra's real scan) afterwards
-    monkeypatch.setattr(registry, "SKIPPED_HYDRA_MODULES", {})
+    monkeypatch.setattr(hydra_plugins, "SKIPPED_HYDRA_MODULES", {})
     for attr, value in (("_loaded", False), ("_entries", dict(MIXERS._entries)),
                         ("_origin", dict(MIXERS._origin)), ("failed", {})):
         monkeypatch.setattr(MIXERS, attr, value)
@@ -107,7 +107,7 @@ def test_without_the_guard_the_broken_plugin_stops_hydra(fresh_scan):
 
 
 def test_the_guard_skips_it_with_one_warning_and_hydra_works(fresh_scan):
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     fresh_scan()
     with warnings.catch_warnings(record=True) as caught:
@@ -124,7 +124,7 @@ def test_the_guard_skips_it_with_one_warning_and_hydra_works(fresh_scan):
 
 
 def test_an_import_error_also_gets_the_one_warning_instead_of_hydras(fresh_scan):
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     fresh_scan("ImportError('needs libfoo')")
     with warnings.catch_warnings(record=True) as caught:

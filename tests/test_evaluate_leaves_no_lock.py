@@ -24,12 +24,12 @@ def test_a_finished_evaluation_leaves_no_lock(tmp_path):
 
 
 def test_a_stopped_evaluation_leaves_no_lock(tmp_path, monkeypatch):
-    import cicfw.benchmark.runner as runner
+    import cicfw.benchmark.app as app
 
     def stopped(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(runner, "run", stopped)
+    monkeypatch.setattr(app, "run", stopped)  # the runner's run, as the app imported it
     with pytest.raises(Interrupted):
         evaluate_policy({"name": "expert"}, SUITE, {"workers": 1}, tmp_path / "run")
     assert not (tmp_path / "run" / LOCK_NAME).exists()

@@ -422,8 +422,6 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
     (the h5py traceback and data.path= before), refused before the model loads; nothing written."""
     import h5py
 
-    import cicfw.model.checkpoint as checkpoint
-
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
     (tmp_path / "notes.h5").write_text("hello\n")
     (tmp_path / "empty.h5").write_bytes(b"")
@@ -432,7 +430,7 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
     with h5py.File(tmp_path / "zero" / "data_00000.h5", "w") as f:  # the CIL layout, no sample
         f.create_dataset("rgb", (0, 88, 200, 3), np.uint8)
         f.create_dataset("targets", (0, 28), np.float32)
-    monkeypatch.setattr(checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
+    monkeypatch.setattr(export, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
     before = sorted(p.name for p in tmp_path.iterdir())
     for name in ("notes.h5", "empty.h5", "nothing", "zero"):
         with pytest.raises(ExportError) as err:
@@ -455,10 +453,9 @@ def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
 def test_an_opset_torch_cannot_write_is_refused_up_front(tmp_path, monkeypatch, opset):
     """opset= outside the range torch.onnx states (its TorchScript-based exporter's) is one line with that
     range, before the checkpoint is read, not an export failure that asks to report a cicfw bug."""
-    import cicfw.model.checkpoint as checkpoint
     from torch.onnx import _constants
 
-    monkeypatch.setattr(checkpoint, "resolve_checkpoint", lambda *a: pytest.fail("the checkpoint was read first"))
+    monkeypatch.setattr(export, "resolve_checkpoint", lambda *a: pytest.fail("the checkpoint was read first"))
     low, high = _constants.ONNX_MIN_OPSET, _constants.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET
     assert export.opset_range() == (low, high) and low <= export.DEFAULT_OPSET <= high
     with pytest.raises(ExportError) as err:

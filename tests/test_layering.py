@@ -4,7 +4,8 @@
           evaluate.py and reproduce.py, carla_client.check)
       -> feature libraries (benchmark | reproduction | collect | carla_client | diagnose)
       -> sim | model | data | export.agent
-      -> core, registry
+      -> registry
+      -> core
 
 A module imports its own layer and those below, never one above, and no module imports itself back
 through others (no circle). ``cicfw.export.agent`` is the model's inference path (a checkpoint or an
@@ -14,7 +15,8 @@ benchmark, never the other way. A feature package's config schema is its ``schem
 ``pkg://cicfw.<package>.schema`` search path imports when it composes that app's config. No
 module imports an app (``cicfw.<package>.app``) but the entry points (cli, the entry modules, a package's
 ``__main__`` and schema) and the apps that run other apps (``APP_USERS``). A new module must be placed in
-``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins).
+``LAYER_OF`` (a package entry places all of its modules; a more precise entry wins). The registry builds on
+core (its errors, the guard of the plugins' Hydra modules); core imports no registry.
 
 ``cicfw.sim`` is the backend interface and the embedded simulator: it imports no benchmark, no dataset
 code, no model, and neither the CARLA client nor the collection stage that build on it. ``cicfw.model``
@@ -25,6 +27,11 @@ package's library modules to this; its app modules are apps.
 
 Every ``import`` and ``from ... import`` in the package is read with ``ast`` (function-level ones
 included: a lazy import is still a dependency), so a lower layer reaching up fails here.
+
+Imports sit at the top of their module. A function imports only what ``LAZY_ANYWHERE`` and ``LAZY_IN`` name:
+an optional extra (CARLA, ONNX, Optuna, submitit) or a heavy library that one rarely used path needs
+(matplotlib); a circle that importing at the top would make is the real problem: move the function to the
+module it belongs in.
 """
 from __future__ import annotations
 
@@ -66,6 +73,8 @@ FORBIDDEN = {
     "export": (*BENCH, "cicfw.sim", "cicfw.data", "cicfw.carla_client", "cicfw.collect", "carla"),
     # the benchmark drives and reports runs; a reproduction builds on it, never the other way
     "benchmark": ("cicfw.reproduction", "cicfw.diagnose"),
+    # what every app shares sits under the registry, which raises its errors and lists its plugins
+    "core": ("cicfw.registry",),
 }
 #: what only apps may import: the collection stage (an app's engine) and the CARLA check (an app)
 APPS_ONLY = ("cicfw.collect", "cicfw.carla_client.check")
@@ -75,6 +84,21 @@ APPS_ONLY = ("cicfw.collect", "cicfw.carla_client.check")
 APP_USERS = ("cicfw.reproduction.app", "cicfw.train.app", "cicfw.testing")
 #: the most entries the top level of the package holds besides ``__init__.py`` (DESIGN's "Layout")
 TOP_LEVEL_MAX = 16
+#: what a function may import rather than its module's top: an optional extra or a heavy library only one
+#: rarely used path needs (the first name of the imported module)
+LAZY_ANYWHERE = ("carla", "onnx", "onnxruntime", "optuna", "submitit", "matplotlib")
+#: module -> what it alone may import in a function, beside LAZY_ANYWHERE
+LAZY_IN = {
+    # the error family is what an entry point imports before it installs its signal handlers: it stays
+    # stdlib-only at its top, and asks Hydra whether this is a multirun only when an error is reported
+    "cicfw.core.errors": ("hydra",),
+    # the console script installs its signal handlers before it imports Hydra (through the guard)
+    "cicfw.cli": ("cicfw.core.hydra_plugins",),
+    # the compiler stack: seconds to import, needed only when a run compiles its model
+    "cicfw.model.speed": ("torch._inductor", "torch._dynamo"),
+    # torch's ONNX exporter's private constants, whose absence (a torch that moved them) is handled
+    "cicfw.export.app": ("torch.onnx",),
+}
 
 
 def _module_name(path: Path, root: Path = PKG.parent) -> str:
@@ -106,8 +130,34 @@ def imports_of(path: Path, root: Path = PKG.parent) -> set[str]:
     return out
 
 
-def _reaches(imported: set[str], target: str) -> bool:
-    return any(m == target or m.startswith(target + ".") for m in imported)
+def function_imports(path: Path, root: Path = PKG.parent) -> list[tuple[int, str]]:
+    """(line, module) of each import inside a function of ``path``, relative imports resolved."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    name = _module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Import):
+                found += [(node.lineno, a.name) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)] if node.level else []
+                found.append((node.lineno, ".".join(base + ([node.module] if node.module else []))))
+    return sorted(set(found))
+
+
+def lazy_imports_not_allowed(path: Path, root: Path = PKG.parent) -> list[str]:
+    """The imports inside functions of ``path`` that LAZY_ANYWHERE and LAZY_IN do not allow."""
+    allowed = LAZY_ANYWHERE + LAZY_IN.get(_module_name(path, root), ())
+    return [f"line {line}: {mod}" for line, mod in function_imports(path, root) if not _reaches({mod}, allowed)]
+
+
+def _reaches(imported: set[str], target: str | tuple[str, ...]) -> bool:
+    """Whether a module in ``imported`` is ``target`` (or one of them) or one of its submodules."""
+    targets = (target,) if isinstance(target, str) else target
+    return any(m == t or m.startswith(t + ".") for m in imported for t in targets)
 
 
 def _modules_of(names) -> list[Path]:
@@ -216,6 +266,13 @@ def test_the_checker_sees_the_simulator_reaching_into_the_data_layer(tmp_path):
     assert forbidden_imports(fine, tmp_path) == []
 
 
+def test_the_checker_sees_core_reaching_up_to_the_registry(tmp_path):
+    bad = tmp_path / "cicfw" / "core" / "bad.py"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("def f():\n    from cicfw.registry import MIXERS\n")
+    assert forbidden_imports(bad, tmp_path) == ["cicfw.registry"]
+
+
 def test_every_module_has_a_layer():
     unplaced = [_module_name(p) for p in sorted(PKG.rglob("*.py")) if layer_of(_module_name(p)) is None]
     assert not unplaced, (f"{unplaced}: place each new module in its layer (LAYER_OF in tests/test_layering.py; "
@@ -288,10 +345,12 @@ def test_plots_and_report_do_not_import_each_other():
     assert _reaches(imports_of(report), "cicfw.benchmark.plots")
 
 
-def test_registry_is_the_bottom_layer():
-    """The registry imports the error family (its unknown name is a user error) and nothing else of cicfw."""
+def test_registry_sits_just_above_core():
+    """The registry imports the error family (its unknown name is a user error) and the guard of the plugins'
+    Hydra modules (it lists what the guard skipped), and nothing else of cicfw."""
     found = imports_of(PKG / "registry.py")
-    assert not [m for m in found if m.startswith("cicfw.") and not m.startswith(("cicfw.registry", "cicfw.core.errors"))], \
+    allowed = ("cicfw.registry", "cicfw.core.errors", "cicfw.core.hydra_plugins")
+    assert not [m for m in found if m.startswith("cicfw.") and m != "cicfw.core" and not m.startswith(allowed)], \
         sorted(found)
 
 
@@ -340,3 +399,19 @@ def test_the_top_level_of_the_package_stays_small():
     entries = sorted(p.name for p in PKG.iterdir() if p.name not in ("__init__.py", "__pycache__"))
     assert len(entries) <= TOP_LEVEL_MAX, (f"cicfw/ holds {len(entries)} entries besides __init__.py: {entries}; "
                                            f"put a new module in its feature package (CONTRIBUTING.md's Layout)")
+
+
+def test_the_checker_sees_a_function_importing_what_belongs_at_the_top(tmp_path):
+    plots = tmp_path / "cicfw" / "benchmark" / "plots.py"
+    plots.parent.mkdir(parents=True)
+    plots.write_text("import json\n\ndef f():\n    import matplotlib.pyplot as plt\n    from .suite import town_label\n"
+                     "    class A:\n        def g(self):\n            import torch\n")
+    assert lazy_imports_not_allowed(plots, tmp_path) == ["line 5: cicfw.benchmark.suite", "line 8: torch"]
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_functions_import_only_optional_or_rarely_needed_heavy_libraries(path):
+    bad = lazy_imports_not_allowed(path)
+    assert not bad, (f"{path.relative_to(PKG.parent)} imports {bad} inside a function: import it at the module's "
+                     f"top (a circle that makes is the real problem: move the function where it belongs); "
+                     f"only LAZY_ANYWHERE and LAZY_IN in tests/test_layering.py may be imported lazily")

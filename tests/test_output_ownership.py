@@ -104,12 +104,14 @@ def test_export_writes_over_its_own_export_of_the_same_checkpoint_or_with_overwr
 
 @pytest.fixture
 def no_collect(monkeypatch):
+    import cicfw.reproduction.app
     import cicfw.train.app
 
     def collect(*args, **kwargs):
         raise AssertionError("the app went on to collect the dataset")
 
     monkeypatch.setattr(cicfw.train.app, "ensure_data", collect)
+    monkeypatch.setattr(cicfw.reproduction.app, "ensure_data", collect)  # the app imported it by name
 
 
 def published(folder: Path, budget: str, cells: tuple[str, ...] = ("cil/seed0",)) -> dict[Path, bytes]:

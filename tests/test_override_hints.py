@@ -27,12 +27,10 @@ def test_run_app_adds_a_hint_only_on_failure(monkeypatch, capsys):
 
 
 def test_an_option_whose_plugin_is_missing_names_the_extra(monkeypatch):
-    import importlib.util
-
     from cicfw.core import override_hints as hints_module
 
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec",
+    real = hints_module.find_spec
+    monkeypatch.setattr(hints_module, "find_spec",
                         lambda name, *a: None if name.startswith("hydra_plugins.hydra_optuna") else real(name, *a))
     (hint,) = hints_module.missing_extras(["hparams_search=optuna", "launcher=joblib", "mixer=gtu"])
     assert "hparams_search=optuna needs the 'sweeps' extra" in hint and 'cicfw[sweeps]' in hint

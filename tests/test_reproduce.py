@@ -283,6 +283,7 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
     p.write_text(json.dumps(m))
     collected = []
     monkeypatch.setattr(cicfw.train.app, "ensure_data", lambda *a, **k: collected.append(1))
+    monkeypatch.setattr(reproduce, "ensure_data", lambda *a, **k: collected.append(1))  # the app imported it by name
     out = tmp_path / "clone"
     assert reproduce.main([*SMOKE, "rows=[cil,gtu]", f"continue_from={published}", f"results_dir={out}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -303,6 +304,7 @@ def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run, capsys, monke
         raise RuntimeError("CUDA out of memory.\nTried to allocate 2.00 GiB")
 
     monkeypatch.setattr(cicfw.train.app, "train", oom)  # cil and gtu finished before: only broken trains
+    monkeypatch.setattr(reproduce, "train", oom)  # the app imported it by name
     broken = "+catalogue.broken={experiment:paper_cil,label:Broken}"
     assert reproduce.main([*SMOKE, "rows=[cil,gtu,broken]", broken, f"results_dir={smoke_run}"]) == 1
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(

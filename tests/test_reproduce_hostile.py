@@ -41,6 +41,7 @@ def no_collect(monkeypatch):
         raise Collected("the app went on to collect the dataset")
 
     monkeypatch.setattr(cicfw.train.app, "ensure_data", collect)
+    monkeypatch.setattr(reproduce, "ensure_data", collect)  # the app imported it by name
 
 
 def refused(args: list[str], capsys) -> str:

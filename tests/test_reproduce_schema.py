@@ -136,7 +136,9 @@ def test_the_app_refuses_in_one_line_writing_collecting_and_training_nothing(ove
         raise Collected("the app went on to collect or train")
 
     monkeypatch.setattr(cicfw.train.app, "ensure_data", work)
+    monkeypatch.setattr(reproduce, "ensure_data", work)  # the app imported it by name
     monkeypatch.setattr(cicfw.train.app, "train", work)
+    monkeypatch.setattr(reproduce, "train", work)  # the app imported it by name
     out = tmp_path / "results"
     args = ["budget=smoke", "rows=[cil]", "seeds=1", *overrides]
     args += [] if any(o.startswith("results_dir=") for o in overrides) else [f"results_dir={out}"]

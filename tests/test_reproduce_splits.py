@@ -31,6 +31,7 @@ def smoke_data(tmp_path, monkeypatch) -> Path:
     (data / "data_00000.h5").rename(data / "data_00005.h5")
     write_tiny_dataset(data, n_files=1, n=16, seed=1, commands=(2, 3, 4, 5))  # data_00000.h5: the only 'right'
     monkeypatch.setattr(cicfw.train.app, "ensure_data", lambda data_cfg: None)  # collected: the files above
+    monkeypatch.setattr(reproduce, "ensure_data", lambda data_cfg: None)  # the app imported it by name
 
     def train(*args, **kwargs):
         raise Trained("a cell went on to train")

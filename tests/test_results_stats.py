@@ -547,10 +547,8 @@ def test_wall_time_table_names_each_cells_machine_where_they_differ():
 def test_a_row_keeps_its_colour_whichever_rows_the_folder_holds(tmp_path, monkeypatch):
     """Two folders' pictures are compared by colour: CIL's points are drawn in the same colour with GTU
     present or absent (its place in the catalogue fixes it), and two rows never share one."""
-    from cicfw.benchmark import plots
-
     drawn = []
-    monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.append(fig) or path)
+    monkeypatch.setattr(results, "_save", lambda fig, path: drawn.append(fig) or path)  # plots', as the report imported it
     catalogue = {"cil": {"label": "CIL"}, "gtu": {"label": "GTU"}, "moe": {"label": "MoE"}}
 
     def colour_of(rows: list[str]) -> dict[str, tuple]:

@@ -41,12 +41,12 @@ def test_eval_result_and_log_take_the_null(tmp_path):
 
 
 def test_an_evaluation_stopped_before_any_episode_writes_null(tmp_path, monkeypatch):
-    import cicfw.benchmark.runner as runner
+    import cicfw.benchmark.app as app
 
     def stopped(*args, **kwargs):
         raise KeyboardInterrupt  # Ctrl-C (or SIGTERM, which the apps turn into one) before an episode finished
 
-    monkeypatch.setattr(runner, "run", stopped)
+    monkeypatch.setattr(app, "run", stopped)  # the runner's run, as the app imported it
     with pytest.raises(Interrupted) as err:
         evaluate_policy({"name": "expert"}, SUITE, {"workers": 1}, tmp_path / "run")
     assert str(err.value).startswith("0 of ")

@@ -13,6 +13,8 @@ the same output folder (``hydra.run.dir=<the killed run's folder>``) resumes a k
 from __future__ import annotations
 
 import errno
+import hashlib
+import json
 import logging
 import shlex
 from contextlib import contextmanager
@@ -21,12 +23,32 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import hydra
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import ConfigCompositionException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.benchmark import schema as evaluate_schema
-from cicfw.benchmark.finished_run import load_trajectories, save_trajectories  # noqa: F401  (used here; importable from here)
-from cicfw.core.config_checks import SchemaError, checked
-from cicfw.core.errors import CicfwError, Interrupted, report_interrupts, report_user_errors
+from cicfw.benchmark.evaluation_report import find_runs, markdown_table, write_joined, write_run
+from cicfw.benchmark.finished_run import Run, load_trajectories, save_trajectories
+from cicfw.benchmark.journal import EpisodeLog
+from cicfw.benchmark.plots import bar_chart, town_maps
+from cicfw.benchmark.policy import POLICIES, Policy, make_policy
+from cicfw.benchmark.runner import RunnerConfig, run, server_specs
+from cicfw.benchmark.suite import build_suite, make_backend, town_label
+from cicfw.benchmark.video import select_episodes, write_video
+from cicfw.core.config_checks import SchemaError, check_kwargs, checked, config_error
+from cicfw.core.errors import USER_ERRORS, CicfwError, Interrupted, report_interrupts, report_user_errors
+from cicfw.core.override_hints import composition_error_line
+from cicfw.core.run_folder import undo_run_folder
+from cicfw.core.sweeps import write_job_metrics
+from cicfw.export.agent import torch_device
+from cicfw.model.checkpoint import resolve_checkpoint
+from cicfw.registry import UnknownNameError
+from cicfw.sim.town import load_town
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -114,12 +136,6 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
     """
-    from cicfw.benchmark.evaluation_report import markdown_table
-    from cicfw.benchmark.journal import EpisodeLog
-    from cicfw.benchmark.policy import Policy, make_policy
-    from cicfw.benchmark.runner import run
-    from cicfw.benchmark.video import select_episodes
-
     out_dir = Path(out_dir)
     spec = dict(policy)
     sim = dict(sim) if sim is not None else {"name": "embedded"}
@@ -204,12 +220,6 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
     weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
     raises one ``ValueError`` line before anything is driven or written."""
-    from cicfw.benchmark.policy import POLICIES
-    from cicfw.benchmark.runner import RunnerConfig, server_specs
-    from cicfw.benchmark.suite import build_suite, make_backend
-    from cicfw.benchmark.video import select_episodes
-    from cicfw.core.config_checks import check_kwargs
-
     checked(evaluate_schema.RUNNER, runner, "runner")
     runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
     server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
@@ -231,7 +241,6 @@ def check_policy_device(device: Any) -> None:
     was built: after the training, for ``cicfw train evaluate_after=true``)."""
     if device is None:
         return
-    from cicfw.export.agent import torch_device
 
     try:
         torch_device(str(device))
@@ -255,8 +264,6 @@ def check_after_training_overrides(overrides: Any) -> None:
     """One ``ValueError`` for an override the evaluation after training would ignore or that would make it
     drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``);
     what is no override string is left to ``compose_overrides`` to name."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
     parser = OverridesParser.create()
@@ -277,8 +284,6 @@ def check_evaluation_overrides(overrides: Any) -> None:
     ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
     training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
     starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key kept, for what the schema refuses)."""
-    from cicfw.registry import UnknownNameError
-
     try:
         check_after_training_overrides(overrides)
         cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
@@ -295,8 +300,6 @@ def check_evaluation_overrides(overrides: Any) -> None:
 def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
     """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); an override
     Hydra cannot parse is one ``ValueError`` line naming it, a composition error ``compose_config``'s."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
     if overrides is None:
@@ -324,14 +327,9 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
 
     The checkpoint counts by its contents (sha256), not its path; the runner by its episode rules
     (off-road limits, target speed) and seed, not its batch size or worker count."""
-    import hashlib
-    import json
-
     pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
     info: dict[str, Any] = {}
     if pol.get("checkpoint"):
-        from cicfw.model.checkpoint import resolve_checkpoint
-
         path = resolve_checkpoint(pol.pop("checkpoint"))
         h = hashlib.sha256()
         with open(path, "rb") as f:
@@ -355,9 +353,6 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
 def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
                   meta: dict[str, Any]):
     """The report of the episodes finished so far, marked complete only when every one is."""
-    from cicfw.benchmark.evaluation_report import write_run
-    from cicfw.benchmark.finished_run import Run
-
     rows = [rows_by_index[e.index] for e in episodes if e.index in rows_by_index]
     complete = len(rows) == len(episodes)
     meta = {**meta, "complete": complete, "episodes_total": len(episodes),
@@ -369,18 +364,11 @@ def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], 
 def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
              maps: bool, filmed: Sequence[dict]) -> None:
     """The map per town, the bar chart, and the requested videos."""
-    from cicfw.benchmark.plots import bar_chart, town_maps
-
-    from cicfw.benchmark.suite import town_label
-
     towns = {town_label(t): str(t) for t in towns}
     if maps:
         town_maps(report, trajectories, run_dir, towns)
     bar_chart([report], run_dir / "success_bars.png")
     if filmed:
-        from cicfw.benchmark.video import write_video
-        from cicfw.sim.town import load_town
-
         if sim_name != "embedded":
             log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", sim_name)
             return
@@ -392,9 +380,6 @@ def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], si
 def join_sweep() -> None:
     """In a multirun, join every finished run of the sweep into one table in the sweep folder."""
     try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
         if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
             return
         if HydraConfig.get().job.config_name != "evaluate":  # e.g. reproduce's cells: that app reports itself
@@ -402,9 +387,6 @@ def join_sweep() -> None:
         sweep_dir = Path(HydraConfig.get().sweep.dir)
     except Exception:
         return
-    from cicfw.benchmark.evaluation_report import find_runs, write_joined
-
-    from cicfw.core.errors import CicfwError
 
     try:
         runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
@@ -419,13 +401,6 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
     """conf/evaluate.yaml with ``overrides``, from inside or outside a running Hydra app, and what composing
     lets through checked (``cicfw.benchmark.schema.check``: +vide=[0] would silently film nothing). What is
     refused is one line: a ``SchemaError`` naming the key for what the schema refuses, else a ``ValueError``."""
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import ConfigCompositionException
-
-    from cicfw.core.config_checks import config_error
-    from cicfw.core.override_hints import composition_error_line
-
     try:
         if GlobalHydra.instance().is_initialized():
             cfg = compose("evaluate", overrides=list(overrides))
@@ -455,8 +430,6 @@ _SUITE_SIZE_KEYS = ("suite.limit", "suite.pairs")
 def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tuple[list[str], str]:
     """``evaluate_overrides`` as the evaluation after training applies them, and what that drives in words:
     after ``trainer.fast_dev_run`` a short suite (``FAST_DEV_RUN_SUITE``) unless the overrides size it."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     overrides = [str(o) for o in overrides]
     if not fast_dev_run:
         return overrides, "the suite of conf/evaluate.yaml with evaluate_overrides"
@@ -502,7 +475,6 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     if trainer.logger is not None and metrics:
         trainer.logger.log_metrics(metrics, step=trainer.global_step)
         trainer.logger.save()
-    from cicfw.core.sweeps import write_job_metrics
 
     write_job_metrics(run_dir, metrics)
     return summary
@@ -516,13 +488,6 @@ def _quote(s: str) -> str:
 @report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
-    from hydra.core.hydra_config import HydraConfig
-
-    from hydra.types import RunMode
-
-    from cicfw.core.errors import USER_ERRORS
-    from cicfw.core.run_folder import undo_run_folder
-
     out = Path(HydraConfig.get().runtime.output_dir)
     key = "hydra.sweep.dir" if HydraConfig.get().mode == RunMode.MULTIRUN else "hydra.run.dir"
     hint = f"give a new output folder ({key}=<new folder>) or delete {str(out)!r} to start over"

@@ -9,6 +9,8 @@ import numpy as np
 from cicfw.benchmark.checkpoint_policy import CheckpointPolicy
 from cicfw.benchmark.policy import POLICIES, Observations, Policy
 from cicfw.core.errors import CicfwError
+from cicfw.sim.expert import Expert, ExpertParams
+from cicfw.sim.vehicle import VehicleState
 
 POLICIES.register("checkpoint")(CheckpointPolicy)
 
@@ -24,8 +26,6 @@ class ExpertPolicy(Policy):
     cameras = ()
 
     def __init__(self, label: str = "Expert", **expert_params) -> None:
-        from cicfw.sim.expert import ExpertParams
-
         self.label = label
         self.params = ExpertParams(**expert_params)
         self._experts: dict[int, object] = {}
@@ -35,9 +35,6 @@ class ExpertPolicy(Policy):
             self._experts.pop(int(e), None)
 
     def act(self, obs: Observations) -> np.ndarray:
-        from cicfw.sim.expert import Expert
-        from cicfw.sim.vehicle import VehicleState
-
         out = np.empty(len(obs))
         for b, e in enumerate(obs.episode):
             ex = self._experts.get(int(e))

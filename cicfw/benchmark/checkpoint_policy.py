@@ -9,6 +9,7 @@ import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy
 from cicfw.core.errors import CicfwError
+from cicfw.export.agent import Agent
 
 
 class CheckpointPolicy(Policy):
@@ -23,8 +24,6 @@ class CheckpointPolicy(Policy):
 
     def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
                  label: str | None = None, fuse: bool = True, device: str = "auto") -> None:
-        from cicfw.export.agent import Agent  # torch: imported when a checkpoint policy is built, not with the suite
-
         if not checkpoint:
             raise CicfwError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
         try:

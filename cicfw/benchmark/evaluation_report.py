@@ -13,6 +13,7 @@ import csv
 import io
 import json
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -21,6 +22,8 @@ from typing import Any, Iterable, Mapping, Sequence
 from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
     SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
 )
+from cicfw.benchmark.journal import read_log
+from cicfw.benchmark.plots import bar_chart
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
 
@@ -258,8 +261,6 @@ def check_one_suite(runs: Sequence[Run]) -> None:
 def load_current_run(run_dir: str | Path) -> Run:
     """``load_run``, with a partial run's rows read from its episode log (what has finished so far,
     even when its evaluation was killed after writing the report)."""
-    from cicfw.benchmark.journal import read_log
-
     run = load_run(Path(run_dir))
     if not is_complete(run):
         _, rows, _, _ = read_log(run_dir, trajectories=False)
@@ -286,8 +287,6 @@ def _find_runs(paths: Sequence[str | Path]) -> list[Run]:
 
 
 def _natural(p: Path) -> list:
-    import re
-
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(p))]
 
 
@@ -337,8 +336,6 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
         atomic_write(out_dir / "table.tex", latex_table(runs))
         atomic_write(out_dir / "table.csv", table_csv(runs))
         if plots:
-            from cicfw.benchmark.plots import bar_chart
-
             bar_chart(_marked(runs), out_dir / "success_bars.png")
     except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
         raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "

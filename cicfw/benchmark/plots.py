@@ -2,6 +2,7 @@
 per weather), and a bar chart of the paper's table (success per column, one bar per model)."""
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -10,6 +11,8 @@ import numpy as np
 from cicfw.benchmark.finished_run import Run, cell_name, table_rows
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.files import atomic_write
+from cicfw.sim.mapplot import draw_town
+from cicfw.sim.town import load_town
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"
 REASON_MARKERS = {"off_road": "X", "off_route": "P", "timeout": "s"}
@@ -25,7 +28,7 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    buf = __import__("io").BytesIO()
+    buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     _plt().close(fig)
     atomic_write(path, buf.getvalue())
@@ -38,10 +41,8 @@ def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], ou
     (green = reached the goal, red = failed, with a marker where it ended: X off road, + off route,
     square timeout), one panel per weather. ``towns`` maps a row's town name to what the loader takes
     (a path for towns outside conf/town/). Towns the loader cannot draw (e.g. CARLA's) are skipped."""
-    from cicfw.sim.mapplot import draw_town
-
     if town_loader is None:
-        from cicfw.sim.town import load_town as town_loader
+        town_loader = load_town
     plt = _plt()
     out = []
     by_town: dict[str, list[dict]] = {}

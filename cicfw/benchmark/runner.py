@@ -16,16 +16,20 @@ seed, batch size and worker count.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import threading
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
+import cv2
 import numpy as np
+import torch
 
 from cicfw.benchmark.policy import Observations, Policy, make_policy
 from cicfw.benchmark.suite import Episode, make_backend, suite_routes
@@ -199,8 +203,6 @@ def _lockstep(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Ru
 def renders_on_demand(env: Any) -> bool:
     """Whether ``env.step`` takes ``render=False`` and ``env.render()`` draws the frame afterwards (the
     embedded simulator's env); a backend whose frames come with every tick (CARLA's sensors) has not."""
-    import inspect
-
     step, render = getattr(env, "step", None), getattr(env, "render", None)
     if not callable(step) or not callable(render):
         return False
@@ -346,7 +348,6 @@ def _torch_threads(n: int | None):
     if not n:
         yield
         return
-    import torch
 
     before = torch.get_num_threads()
     torch.set_num_threads(int(n))
@@ -418,9 +419,6 @@ def shard(episodes: Sequence[Episode], workers: int) -> list[list[Episode]]:
 def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, cfg: dict, threads: int,
             q: Any) -> None:
     try:
-        import cv2
-        import torch
-
         torch.set_num_threads(threads)
         cv2.setNumThreads(1)
         _exit_with_parent()
@@ -437,10 +435,7 @@ def _exit_with_parent(poll_s: float = 1.0) -> None:
     """End this worker process as soon as its parent is gone (a killed evaluation leaves no workers
     driving on; the rerun resumes from the episodes the parent kept). The parent is the process that
     started this one, so a parent killed while the worker was still importing torch counts too."""
-    import multiprocessing
-    import threading
-
-    started_by = multiprocessing.parent_process()
+    started_by = mp.parent_process()
     parent = started_by.pid if started_by is not None else os.getppid()
 
     def watch() -> None:

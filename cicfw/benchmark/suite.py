@@ -18,6 +18,8 @@ from typing import Any, Iterable, Mapping, Sequence
 from cicfw.core.config_checks import whole_number
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.registry import SIM_BACKENDS
+from cicfw.sim.render.weather import DEFAULT_FAMILY
+from cicfw.sim.roadgraph import COMMAND_NAMES
 
 #: the paper's four weathers: two seen in training, two new
 PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
@@ -96,8 +98,6 @@ def training_set(kind: str, given: Any, accepted: Sequence[str], driven: Sequenc
     ``suite.weathers=[MidRainyNoon]`` leaves undriven). Any other name is a ``ConfigError`` naming it: an
     unknown town or an undriven weather would silently move the driven ones to the "new" columns. The error
     lists ``driven`` (the suite's own, as configured), not every name accepted."""
-    from cicfw.core.errors import ConfigError
-
     out = [str(given)] if isinstance(given, str) else [str(g) for g in (given or ())]
     names = list(dict.fromkeys(accepted))
     shown = ", ".join(dict.fromkeys(driven or names))
@@ -177,8 +177,6 @@ def _pair_list(pairs: Any) -> list[int]:
 
 
 def _turn_name(route: Any) -> str:
-    from cicfw.sim.roadgraph import COMMAND_NAMES
-
     code = (route.meta or {}).get("command")
     if code is None and route.turns:
         code = route.turns[0][1]
@@ -200,8 +198,6 @@ def with_weather_family(overrides: Sequence[str], family: str | None = None, def
     """``overrides`` naming the embedded simulator's weather family explicitly: ``family`` when given,
     else the one they name, else ``default`` (the simulator's own default when None). Overrides that
     pick another simulator come back as they are: its weathers are its own."""
-    from cicfw.sim.render.weather import DEFAULT_FAMILY
-
     out = [str(o) for o in overrides]
     if _override_value(out, "sim") not in (None, "embedded"):
         return out

@@ -3,14 +3,20 @@ the steering and the speed overlaid. Frames are re-rendered from the recorded po
 deterministic for a seed and time), so any episode of a finished run can be filmed afterwards."""
 from __future__ import annotations
 
+import argparse
 import os
+import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import cv2
 import numpy as np
 
+from cicfw.benchmark.finished_run import load_run, load_trajectories
+from cicfw.benchmark.suite import town_label
 from cicfw.core.errors import CicfwError
+from cicfw.sim.env import get_renderer
+from cicfw.sim.town import load_town
 
 
 COMMAND_TEXT = {2: ("FOLLOW", (200, 200, 200)), 3: ("LEFT", (80, 170, 255)), 4: ("RIGHT", (255, 110, 90)),
@@ -77,8 +83,6 @@ def _overlay(img: np.ndarray, step: int, tr: Mapping[str, np.ndarray], title: st
 def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray], town: Any, weather: str,
                 seed: int = 0, fps: float = 10.0) -> Path:
     """Film one episode to ``path`` (MP4, written to a temporary name first)."""
-    from cicfw.sim.env import get_renderer
-
     renderer = get_renderer(town, weather, seed, ("centre",))
     outcome = "reached the goal" if row["success"] else f"failed: {row['reason'].replace('_', ' ')}"
     title = f"{row['key']}  ({row['route']}):  {outcome}"
@@ -105,13 +109,6 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cicfw.benchmark.video RUN_DIR [EPISODE ...]``: film episodes of a finished run."""
-    import argparse
-    import sys
-
-    from cicfw.benchmark.finished_run import load_run, load_trajectories
-    from cicfw.benchmark.suite import town_label
-    from cicfw.sim.town import load_town
-
     ap = argparse.ArgumentParser(prog="python -m cicfw.benchmark.video",
                                  description="Film episodes of a finished evaluation run (MP4, centre camera).")
     ap.add_argument("run_dir", help="an evaluation run folder (episodes.json, trajectories.npz)")

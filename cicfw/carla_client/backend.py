@@ -17,12 +17,15 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
+from cicfw.carla_client.routes import random_route, single_turn_routes
 from cicfw.core.errors import CicfwError
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.backends import positive_distances
 from cicfw.sim.episode import step_info
+from cicfw.sim.expert import Expert, ExpertParams
 from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route
 from cicfw.sim.vehicle import DT, SpeedController, VehicleParams, VehicleState
 
@@ -241,8 +244,6 @@ class CarlaBackend:
 
     def single_turn_routes(self, town: str) -> list[Route]:
         """One route per lane through a junction of the CARLA map (``cicfw.carla_client.routes``)."""
-        from cicfw.carla_client.routes import single_turn_routes
-
         return single_turn_routes(self.map(town), town, self.route_before, self.route_after,
                                   self.command_distance)
 
@@ -273,8 +274,6 @@ class CarlaBackend:
                      command_distance: float | None = None, counts: dict | None = None) -> Route:
         """A multi-junction route for data collection, from a random point of a driving lane; turns
         drawn to stay balanced (within the route, or across routes through a shared ``counts``)."""
-        from cicfw.carla_client.routes import random_route
-
         cd = self.command_distance if command_distance is None else float(command_distance)
         return random_route(self.map(town), rng, min_length, name, {} if counts is None else counts, cd)
 
@@ -284,8 +283,6 @@ class CarlaBackend:
         """An episode (nothing is spawned until ``reset``). ``renderer`` false: no cameras at all;
         ``expert``: ExpertParams overrides; ``endless``: the episode never ends by itself (no success,
         timeout or lost), for collection; ``time_offset`` has no meaning in CARLA (ignored)."""
-        from cicfw.sim.expert import ExpertParams
-
         stop = dict(timeout=1e9, max_deviation=1e9, success_radius=-1.0) if endless else {}
         return CarlaEnv(self, town, route, weather, seed, tuple(cameras) if renderer else (),
                         expert=ExpertParams(**(expert or {})), **stop)
@@ -335,8 +332,6 @@ class CarlaEnv:
     def __init__(self, backend: CarlaBackend, town: str, route: Route, weather: str, seed: int = 0,
                  cameras: tuple = ("centre",), expert: Any = None, success_radius: float | None = None,
                  max_deviation: float | None = None, timeout: float | None = None) -> None:
-        from cicfw.sim.expert import ExpertParams
-
         self.backend, self.carla, self.town, self.route = backend, backend.carla, town, route
         if weather not in backend.weathers() and not hasattr(self.carla.WeatherParameters, weather):
             raise CarlaError(f"unknown CARLA weather {weather!r}; configured: {', '.join(backend.weathers())}")
@@ -379,8 +374,6 @@ class CarlaEnv:
     def reset(self, route: Route | None = None) -> dict:
         """Set up the episode (town, synchronous settings, weather, car, sensors) and return the first
         observation. Anything that fails or is interrupted on the way is undone."""
-        from cicfw.sim.expert import Expert
-
         if self.live:
             self.close()
         if route is not None:
@@ -496,8 +489,6 @@ class CarlaEnv:
         return frame
 
     def _image(self, name: str, frame: int, deadline: float) -> np.ndarray:
-        import cv2
-
         q = self.queues[name]
         while True:
             try:

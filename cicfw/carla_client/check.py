@@ -23,6 +23,16 @@ from typing import Any, Callable
 
 import numpy as np
 
+from cicfw.benchmark.builtin_policies import ExpertPolicy
+from cicfw.benchmark.runner import RunnerConfig, drive
+from cicfw.benchmark.suite import build_suite, suite_routes
+from cicfw.carla_client.backend import CARLA_VERSION, CarlaBackend, CarlaServerUnavailable, connect, import_carla
+from cicfw.carla_client.routes import STRAIGHT_MAX_DEG
+from cicfw.collect import episode_plan, resolve_config, run_episode
+from cicfw.data.cil_hdf5 import check_file
+from cicfw.sim.expert import Expert
+from cicfw.sim.vehicle import VehicleParams
+
 #: known facts of CARLA's maps (checked offline on the OpenDRIVE files)
 KNOWN_TOWNS = {"Town01": (12, 24, 24, 24), "Town02": (8, 16, 16, 16)}  # junctions, left, right, straight
 
@@ -100,8 +110,6 @@ class _Recorder:
 def _curvature_match(rec: list[dict]) -> tuple[float, int]:
     """Median relative error between the curvature the car drove and the one cicfw's steering asked
     for (reference car: tan(steer * 40 deg) / 2.7 m, negative = right), allowing a lag of 0-3 steps."""
-    from cicfw.sim.vehicle import VehicleParams
-
     ref = VehicleParams()
     pose = np.array([r["pose"] for r in rec], float)
     speed = np.array([r["speed"] for r in rec], float)
@@ -126,8 +134,6 @@ def run_checks(host: str = "localhost", port: int = 2000, town: str = "Town01", 
                client: Any = None, report: Report | None = None, collect_seconds: float = 8.0) -> Report:
     """Run every check against the server at ``host:port`` (or an already connected ``client``)."""
     rep = report or Report()
-    from cicfw.carla_client.backend import (CARLA_VERSION, CarlaBackend, CarlaServerUnavailable, connect,
-                                            import_carla)
 
     try:
         carla = import_carla()
@@ -185,12 +191,6 @@ def run_checks(host: str = "localhost", port: int = 2000, town: str = "Town01", 
 
 
 def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, collect_seconds: float) -> None:
-    from cicfw.benchmark.builtin_policies import ExpertPolicy
-    from cicfw.benchmark.runner import RunnerConfig, drive
-    from cicfw.benchmark.suite import build_suite, suite_routes
-    from cicfw.carla_client.routes import STRAIGHT_MAX_DEG
-    from cicfw.sim.expert import Expert
-
     routes: list = []
 
     def map_and_routes() -> tuple[bool, str]:
@@ -308,12 +308,6 @@ def _checks_on_server(rep: Report, backend: Any, rec: _Recorder, town: str, coll
     rep.check("infractions: collision sensor", collision)
 
     def collection() -> tuple[bool, str]:
-        try:
-            from cicfw.collect import episode_plan, resolve_config, run_episode
-        except ImportError as err:
-            return False, f"the collection engine is missing ({err})"
-        from cicfw.data.cil_hdf5 import check_file
-
         cfg = resolve_config({"towns": ["check"], "weathers": ["ClearNoon"], "episodes": 1,
                               "seconds": collect_seconds, "workers": 0,
                               "sim": {"name": "carla", "host": backend.host, "port": backend.port}}, backend=backend)

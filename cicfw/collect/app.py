@@ -14,6 +14,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
 from cicfw.collect.config import check_lock_wait
 from cicfw.collect.dataset import collect_dataset
 from cicfw.collect.errors import CollectError
@@ -26,8 +29,6 @@ def run(cfg) -> str:
     """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
     @report_user_errors
     def go() -> str:
-        from omegaconf import DictConfig, OmegaConf
-
         raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
         verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect/schema.py) checks it
         out_dir = Path(str(raw["out_dir"])).expanduser()
@@ -55,10 +56,7 @@ def _verify(raw: dict, out_dir: Path) -> str:
 
 
 def _main() -> None:
-    import hydra
-
     sys.argv = ["verify=true" if a == "--verify" else a for a in sys.argv]  # `cicfw collect --verify`
-    from omegaconf import DictConfig
 
     @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="collect")
     def main(cfg: DictConfig) -> None:

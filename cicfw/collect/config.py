@@ -11,10 +11,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+from omegaconf import OmegaConf
+
 from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.core.config_checks import SchemaError, checked
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
+from cicfw.sim.render.weather import DEFAULT_FAMILY, family_data_tag
 
 CAMERA_IDS = {"centre": (0, 0.0), "left": (1, -30.0), "right": (2, 30.0)}  # name -> (targets[26], [27])
 
@@ -66,8 +69,6 @@ def plain_config(cfg: Any) -> dict:
     if cfg is None:
         return {}
     if not isinstance(cfg, dict):
-        from omegaconf import OmegaConf
-
         cfg = OmegaConf.to_container(cfg, resolve=True)
     if cfg.get("verify"):  # the app's switch (cicfw collect --verify): it never reaches a collection
         raise CollectConfigError("collect: verify=true checks a collected folder and is the collect app's switch "
@@ -125,7 +126,6 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
         refused = CollectConfigError(str(err))
         refused.key, refused.kind = err.key, err.kind
         raise refused from None
-    from omegaconf import OmegaConf
 
     out = OmegaConf.to_container(typed, resolve=True)
     for k in ("towns", "weathers", "cameras"):
@@ -233,8 +233,6 @@ def config_hash(cfg: dict) -> str:
     if cfg.get("sim", {}).get("name", "embedded") != "embedded":
         keep["sim"] = cfg["sim"]["name"]
     else:
-        from cicfw.sim.render.weather import DEFAULT_FAMILY, family_data_tag
-
         tag = family_data_tag(cfg["weathers"], cfg.get("sim", {}).get("weather_family", DEFAULT_FAMILY))
         if tag:
             keep["weather_family"] = tag

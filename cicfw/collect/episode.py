@@ -15,6 +15,7 @@ from cicfw.collect.plan import episode_bytes, steps_per_episode
 from cicfw.collect.writing import check_free_space, write_files, write_json
 from cicfw.data import cil_hdf5
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE, T
+from cicfw.sim.expert import ExpertParams, Noiser
 
 
 class ParentGone(Exception):
@@ -37,8 +38,6 @@ def run_episode(cfg: dict, ep: dict, out_dir: Path, backend: Any, parent_pid: in
     """Drive one episode and write its files; returns its marker (files, counts, route).
 
     ``parent_pid``: in a worker, the collector's pid; the episode is dropped if the collector is gone."""
-    from cicfw.sim.expert import ExpertParams, Noiser
-
     out_dir = Path(out_dir)
     check_free_space(out_dir, episode_bytes(cfg), f"episode {ep['id']}")
     rng = np.random.default_rng(ep["seed"])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import pickle
 import signal
 import sys
 import threading
@@ -85,8 +86,6 @@ def _worker_main(index: int, sim: dict, cfg: dict, out_dir: str, parent_pid: int
 
 def _portable(err: BaseException) -> BaseException | None:
     """``err`` if it survives pickling (so the parent can raise the same user error), else None."""
-    import pickle
-
     try:
         pickle.loads(pickle.dumps(err))
         return err

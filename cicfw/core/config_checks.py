@@ -22,6 +22,11 @@ import types
 import typing
 from typing import Any, Callable, Mapping
 
+from hydra_zen import BuildsFn
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
+                              ValidationError)
+
 from cicfw.core.errors import CicfwError, ConfigError
 
 #: the environment variable naming cicfw's cache folder (datasets, compiled code); the configs read it
@@ -92,8 +97,6 @@ WHAT, NOT_SETTABLE, IS_NOT = "__cicfw_what__", "__cicfw_not_settable__", "__cicf
 
 def _builds():
     """hydra-zen's ``BuildsFn``, reading ``int | None`` as ``Optional[int]`` (it would make it ``Any``)."""
-    from hydra_zen import BuildsFn
-
     class Builds(BuildsFn):
         @classmethod
         def _sanitized_type(cls, type_: Any, **kwargs: Any) -> Any:
@@ -130,8 +133,6 @@ def kwargs_schema(fn: Callable, what: str, exclude: tuple[str, ...] = (),
     For messages: ``what`` names what it configures (``mixer 'gtu'``), ``not_settable`` maps the arguments
     cicfw passes itself (left out too) to what to do instead, ``is_not`` says what an unknown key is not
     (``a Lightning Trainer argument``; default: ``an argument of <what>``)."""
-    from omegaconf import MISSING
-
     builds = _builds()
     out: dict[str, tuple[Any, dataclasses.Field]] = {}
     for name, (type_, default) in (fields or {}).items():
@@ -198,9 +199,6 @@ def _accepted_words(err: Any, msg: str) -> str | None:
 def config_error(err: BaseException, prefix: str = "") -> SchemaError | None:
     """OmegaConf's refusal (``err``, or the OmegaConf error a Hydra exception holds) as a ``SchemaError``;
     None when ``err`` is neither. ``prefix`` goes before the key (``row 'mine': ``...)."""
-    from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue,
-                                  OmegaConfBaseException, ValidationError)
-
     cause = err if isinstance(err, OmegaConfBaseException) else err.__cause__ or err.__context__
     if not isinstance(cause, OmegaConfBaseException):
         return None
@@ -238,9 +236,6 @@ def checked(schema: type, values: Mapping[str, Any], where: str) -> Any:
     """``values`` (plain data) merged over ``schema``'s defaults at ``where`` (``mixer``), as a DictConfig;
     an unknown key, a value of the wrong type or a mandatory value left out is one ``SchemaError`` naming
     the full key."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     parts = where.split(".") if where else []
     try:
         typed = OmegaConf.structured(schema)
@@ -258,8 +253,6 @@ def checked(schema: type, values: Mapping[str, Any], where: str) -> Any:
 def composed_values(node: Any, schema: type, where: str) -> dict[str, Any]:
     """A composed config node as plain data, each value checked once (``check_composed``); a node composing
     did not type with ``schema`` comes merged over its defaults."""
-    from omegaconf import DictConfig, OmegaConf
-
     if not isinstance(node, DictConfig) or OmegaConf.get_type(node) is not schema:
         plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
         return OmegaConf.to_container(checked(schema, plain, where), resolve=True)
@@ -318,8 +311,6 @@ def _refuse_added_keys(node: Any, where: str, skip: tuple[str, ...]) -> None:
 
 def plain_values(cfg: Any) -> dict[str, Any]:
     """A composed app config as plain data (resolved), its ``hydra`` node left out: what ``checked`` takes."""
-    from omegaconf import OmegaConf
-
     return {str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
             for k in cfg if k != "hydra"}
 

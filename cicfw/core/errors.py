@@ -8,6 +8,7 @@ importing a module.
 """
 from __future__ import annotations
 
+import atexit
 import functools
 import logging
 import math
@@ -184,8 +185,6 @@ def install_app_handlers() -> None:
 def _exit_now(status: int) -> None:
     """Exit with ``status`` from ``sys.excepthook`` (where ``sys.exit`` would only be reported as an error
     in the hook): the exit handlers run (log files are flushed), then the process ends."""
-    import atexit
-
     try:
         atexit._run_exitfuncs()
     finally:

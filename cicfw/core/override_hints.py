@@ -15,14 +15,27 @@ import os
 import re
 import sys
 from contextlib import contextmanager
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from hydra.errors import CompactHydraException
+import hydra._internal.utils as hydra_utils
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.default_element import GroupDefault
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.utils import JobStatus
+from hydra.errors import (CompactHydraException, ConfigCompositionException, MissingConfigException,
+                          OverrideParseException)
 from hydra.experimental.callback import Callback
+from hydra.utils import get_method
 from omegaconf import OmegaConf
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.config_checks import SchemaError, config_error
+from cicfw.core.errors import USER_ERRORS, CicfwError
+from cicfw.core.hydra_plugins import guard_hydra_plugins
+from cicfw.core.run_folder import undo_noted_folders
+from cicfw.core.sweeps import is_worker_process
 
 CONFIG_MODULE = "cicfw.conf"
 
@@ -36,8 +49,6 @@ NEEDS_EXTRA = {
 
 def missing_extras(args: list[str]) -> list[str]:
     """A hint per chosen option whose Hydra plugin is not installed."""
-    from importlib.util import find_spec
-
     hints = []
     for arg in args:
         module, extra = NEEDS_EXTRA.get(arg.replace(" ", ""), (None, None))
@@ -57,10 +68,6 @@ def composition_error_line(err: BaseException, args: list[str]) -> str | None:
     """What Hydra refused before running the app, as one line: an argument it cannot parse (``args``: the
     command line, to show it quoted), a key or value the config refuses, an unknown option of a config
     group; None for anything else."""
-    from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
-
-    from cicfw.core.config_checks import config_error
-
     if isinstance(err, OverrideParseException):
         return _unparsable(err.override, err.message, args)
     if not isinstance(err, ConfigCompositionException):
@@ -96,8 +103,6 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
 
 
 def _parses(text: str) -> bool:
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     try:
         OverridesParser.create().parse_override(text)
     except Exception:
@@ -139,10 +144,6 @@ def one_line_config_errors() -> Iterator[None]:
     HYDRA_FULL_ERROR; a sweep folder made before Hydra refused a job's config is removed again
     (``run_folder.undo_noted_folders``). Hydra calls its ``run_and_report``
     around composing and running: that is where this steps in (HYDRA_FULL_ERROR=1 still shows it all)."""
-    import hydra._internal.utils as hydra_utils
-
-    from cicfw.core.run_folder import undo_noted_folders
-
     report = hydra_utils.run_and_report
 
     def one_line(func: Callable[[], Any]) -> Any:
@@ -172,9 +173,6 @@ def app_groups(config_name: str) -> str:
     its defaults list and, through its options' defaults lists, the groups they reach (an experiment's
     ``override /mixer``), as Hydra's ``--help`` lists groups; Hydra's own groups and the schemas'
     (``cicfw_schema/...``) left out, and so are the other apps'."""
-    from hydra.core.default_element import GroupDefault
-    from hydra.core.global_hydra import GlobalHydra
-
     loader = GlobalHydra.instance().config_loader()
     groups: set[str] = set()
     todo = [(config_name, "")]  # (config path, the group it is an option of)
@@ -204,8 +202,6 @@ def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONF
     that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
     import is skipped with one warning first (it would stop the app). ``--help`` lists the app's config
     groups (``register_help``)."""
-    from cicfw.registry import guard_hydra_plugins
-
     guard_hydra_plugins()
     register_help()
     try:
@@ -233,10 +229,6 @@ class SchemaCheck(Callback):
         self._check(config)
 
     def _check(self, config: Any) -> None:
-        from hydra.utils import get_method
-
-        from cicfw.core.config_checks import SchemaError
-
         try:
             get_method(self.check)(config)
         except SchemaError as err:
@@ -251,9 +243,6 @@ BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 def sweep_jobs(config: Any) -> list[list[str]] | None:
     """The overrides of every job a multirun's ``config`` will launch, as Hydra's basic sweeper expands them
     (``head.W=5,-1,10``: three jobs); None for another sweeper, which chooses its jobs as it goes."""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     if str(config.hydra.sweeper.get("_target_")) != BASIC_SWEEPER:
         return None
     params = config.hydra.sweeper.get("params") or {}
@@ -274,11 +263,6 @@ class SweepJobsCheck(Callback):
         self.check = check
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        from hydra.core.global_hydra import GlobalHydra
-        from hydra.utils import get_method
-
-        from cicfw.core.sweeps import is_worker_process
-
         jobs = sweep_jobs(config) if not is_worker_process() else None
         if not jobs or len(jobs) < 2:
             return  # one job: it checks itself before it trains
@@ -289,8 +273,6 @@ class SweepJobsCheck(Callback):
             try:
                 check(job_config)
             except CicfwError as err:
-                from cicfw.core.run_folder import undo_noted_folders
-
                 print(f"cicfw: error: job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran",
                       file=sys.stderr)
                 undo_noted_folders()  # the sweep folder, when something made it already
@@ -303,8 +285,6 @@ class JobFailed(CompactHydraException):
 
 def failure_line(err: BaseException) -> str:
     """A job's exception in one line: a user error's message, else its type and message."""
-    from cicfw.core.errors import USER_ERRORS
-
     text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
     line = " ".join(str(text).split())
     return line if isinstance(err, USER_ERRORS) else f"{type(err).__name__}: {line}"
@@ -317,8 +297,6 @@ class OneLineJobFailure(Callback):
     its own error; Optuna marks the trial failed); its log keeps the whole story."""
 
     def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
-        from hydra.core.utils import JobStatus
-
         err = getattr(job_return, "_return_value", None)
         if job_return.status != JobStatus.FAILED or not isinstance(err, Exception) or isinstance(err, JobFailed):
             return

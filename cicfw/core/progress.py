@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
 
 class ProgressBar:
     """A rich bar of ``total`` units: ``label``, bar, done/total, ``unit``, elapsed and time left; nothing
@@ -12,9 +14,6 @@ class ProgressBar:
     def __init__(self, enabled: bool, total: int, label: str, unit: str, **fields: Any) -> None:
         self._bar = None
         if enabled:
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                                       TimeRemainingColumn)
-
             self._bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TextColumn(unit), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
             self._task = self._bar.add_task(label, total=total, **fields)

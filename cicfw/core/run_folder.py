@@ -26,9 +26,11 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
+from cicfw.core.sweeps import is_worker_process
 
 
 class RunFolderError(CicfwError):
@@ -190,8 +192,6 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     already), then ``check_no_other_run``, the lock given back when that fails. One line otherwise:
     ``FolderBusy`` (another run holds it) or ``RunFolderError``. A DDP worker rank (its ``RANK`` ...
     not 0) shares the folder rank 0 holds: nothing to take."""
-    from cicfw.core.sweeps import is_worker_process
-
     if is_worker_process():
         return
     name = os.path.abspath(folder)
@@ -330,8 +330,6 @@ class TrainRunFolderCheck(RunFolderCheck):
             sys.exit(2)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        from cicfw.core.sweeps import is_worker_process
-
         if not is_worker_process():  # a DDP rank re-running the sweep of its rank 0 shares its folder
             try:
                 check_no_other_sweep(str(config.hydra.sweep.dir))
@@ -342,8 +340,6 @@ class TrainRunFolderCheck(RunFolderCheck):
         super().on_multirun_start(config, **kwargs)
 
     def on_job_start(self, config: Any, **kwargs: Any) -> None:
-        from hydra.types import RunMode
-
         if config.hydra.mode == RunMode.MULTIRUN:  # a job runs: the sweep folder is the sweep's now
             _BEFORE.pop(os.path.abspath(str(config.hydra.sweep.dir)), None)
 

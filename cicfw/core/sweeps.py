@@ -21,11 +21,13 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, ContextManager, Mapping
 
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.locks import FolderLock, flock_available
 
@@ -42,8 +44,6 @@ LAST = ["overrides", "error", "output_dir"]
 def write_text_atomic(path: Path, text: str) -> None:
     """Write to a temporary file beside ``path``, then rename: readers never see half a file (the
     shared writer, ``cicfw.core.files.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
-    from cicfw.core.files import atomic_write
-
     atomic_write(path, text)
 
 
@@ -132,8 +132,6 @@ def _split(override: str) -> tuple[str, str]:
 def _values(overrides: list[str]) -> dict[str, Any]:
     """key -> value as Hydra parses it (so ``false`` and ``False`` compare equal; a sweep stays a
     sweep object); the raw text where parsing fails."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     parser = OverridesParser.create()
     out: dict[str, Any] = {}
     for text in overrides:

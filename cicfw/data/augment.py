@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
+from cicfw.core.config_checks import checked_probability, checked_range
 from cicfw.core.errors import CicfwError
 
 
@@ -38,8 +39,6 @@ class AugmentConfig:
     def from_dict(cls, d: dict | None) -> "AugmentConfig":
         """The config from ``data.augment``'s overrides, every value checked by its key (a probability in
         [0, 1], a range ``[low, high]`` of numbers inside its domain) before any batch is augmented."""
-        from cicfw.core.config_checks import checked_probability, checked_range
-
         inf = float("inf")
         domains = {  # each range's (lowest, highest, the lowest allowed, in words)
             "blur_sigma": (0.0, inf, True, "a sigma >= 0 (pixels)"),

@@ -12,6 +12,7 @@ from typing import Any, Mapping, Sequence
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.accelerators import CUDAAccelerator
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
 
 from cicfw import COMMANDS
@@ -173,8 +174,6 @@ class CILDataModule(L.LightningDataModule):
 
     def _pin_memory(self) -> bool:
         """Page-locked batches when training on a CUDA GPU: the copy to the device overlaps the step."""
-        from lightning.pytorch.accelerators import CUDAAccelerator
-
         trainer = getattr(self, "trainer", None)
         return trainer is not None and isinstance(getattr(trainer, "accelerator", None), CUDAAccelerator)
 

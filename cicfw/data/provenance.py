@@ -22,6 +22,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
+from cicfw.data.cil_hdf5 import find_files
 
 #: the run folder's record of its data
 RECORD_FILE = "data.json"
@@ -113,8 +114,6 @@ def record_data(path: str | os.PathLike, known: Mapping[str, Any] | None = None)
     """The record of the HDF5 files ``path`` (a folder, searched recursively, or a glob) holds now.
     ``known``: an earlier record whose SHA-256s are reused for files of the same name, size and
     modification time."""
-    from cicfw.data.cil_hdf5 import find_files
-
     root = data_root(path)
     entries = _entries(find_files(absolute(path)), root, known)
     meta = root / COLLECTED_META
@@ -175,8 +174,6 @@ def recorded_files(recorded: Mapping[str, Any], root: str | os.PathLike | None, 
     of a file whose size or modification time changed): a file missing or changed is one ``OtherData`` line
     naming both folders. Returns the files (absolute paths, in the recorded order) and the names of HDF5
     files under ``root`` that the record does not hold (added since)."""
-    from cicfw.data.cil_hdf5 import find_files
-
     root = Path(absolute(root if root is not None else recorded.get("root") or data_root(str(recorded["path"]))))
     names = [str(f["name"]) for f in recorded.get("files") or []]
     present = [root / n for n in names if (root / n).is_file()]
@@ -192,23 +189,6 @@ def recorded_files(recorded: Mapping[str, Any], root: str | os.PathLike | None, 
     except FileNotFoundError:
         every = set(names)
     return [root / n for n in names], sorted(every - set(names))
-
-
-def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
-    """The data record of a checkpoint (None when it has none: written before runs recorded their data, or
-    not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
-    import torch
-
-    for mmap in (True, False):
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-            break
-        except Exception:
-            continue
-    else:
-        return None
-    record = ckpt.get(CHECKPOINT_KEY) if isinstance(ckpt, dict) else None
-    return dict(record) if is_record(record) else None
 
 
 def folder_record(folder: str | os.PathLike) -> dict[str, Any] | None:

@@ -14,16 +14,29 @@ come from the training run's saved config beside the checkpoint (``<run>/.hydra/
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from pathlib import Path
 from typing import Any, Mapping
 
 import hydra
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import is_number
 from cicfw.core.errors import CicfwError, report_user_errors
+from cicfw.data.datamodule import CILDataModule
+from cicfw.data.provenance import data_root, recorded_files
+from cicfw.diagnose import steer_diagnostic as sd
+from cicfw.diagnose.steer_diagnostic import DataSettings
+from cicfw.export.agent import torch_device
+from cicfw.model.checkpoint import (checkpoint_record, describe, load_model, prepare_for_inference, read_checkpoint,
+                                    resolve_checkpoint)
+from cicfw.reproduction.catalogue import row_overrides
 
 log = logging.getLogger("cicfw.diagnose")
 
@@ -59,8 +72,6 @@ def check_options(cfg: DictConfig) -> None:
 def run_device(name: Any) -> str:
     """The device to run on: the agent's own check (``auto``, a torch device this machine has), limited to
     the CPU and CUDA GPUs."""
-    from cicfw.export.agent import torch_device
-
     device = torch_device(str(name or "auto"))
     if device.type not in ("cpu", "cuda"):
         raise CicfwError(f"device={str(name)!r} is not supported here; use auto, cpu, cuda or cuda:N", key="device",
@@ -69,9 +80,6 @@ def run_device(name: Any) -> str:
 
 
 def _compose_train(overrides: list[str]) -> DictConfig:
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
     if GlobalHydra.instance().is_initialized():
         return compose("train", overrides=overrides)
     with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -106,8 +114,6 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
             values["path"] = where_it_ran(values.get("path"), folder)
             return values, f"{path} (the training run's config)"
         if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
-            from cicfw.reproduction.catalogue import row_overrides
-
             row, seed = str(cfg.cell.row), int(cfg.cell.seed)
             tcfg = _compose_train(row_overrides(cfg, row, seed))
             return _data_values(tcfg.data, str(path)), f"{path} (reproduce cell {row} seed {seed}, its training config)"
@@ -130,11 +136,6 @@ def where_it_ran(path: Any, folder: Path) -> Any:
 def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] | None = None):
     """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here.
     ``record``: the checkpoint's record of its data, whose absolute path replaces the saved config's."""
-    import inspect
-
-    from cicfw.data.datamodule import CILDataModule
-    from cicfw.diagnose.steer_diagnostic import DataSettings
-
     params = inspect.signature(CILDataModule.__init__).parameters
     values = {k: params[k].default for k in SPLIT_KEYS if k != "path"}
     found = training_data(checkpoint)
@@ -168,8 +169,6 @@ def recorded_split_files(cfg: DictConfig, data: Any, record: Mapping[str, Any] |
     ``split=all`` over a ``data.path`` given here: every frame of the user's own folder), each checked; a
     recorded file missing or changed, or a ``data.path`` given here that does not hold them, is one
     ``OtherData`` line naming both folders. Also returns the HDF5 files added to the folder since."""
-    from cicfw.data.provenance import data_root, recorded_files
-
     given = cfg.data.get("path") is not None
     if record is None or (given and str(cfg.split) == "all"):
         return None, []
@@ -182,11 +181,6 @@ def recorded_split_files(cfg: DictConfig, data: Any, record: Mapping[str, Any] |
 
 def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     """Load the checkpoint, pick its frames, measure, write the report into ``out_dir``; returns the paths."""
-    import torch
-
-    from cicfw.diagnose import steer_diagnostic as sd
-    from cicfw.model.checkpoint import describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint
-
     if not cfg.get("checkpoint"):
         raise CicfwError("no checkpoint to diagnose: give checkpoint=path/to.ckpt (written by cicfw train)",
                          key="checkpoint")
@@ -197,7 +191,6 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
-    from cicfw.data.provenance import checkpoint_record
 
     record = checkpoint_record(ckpt_path)  # the absolute data path and the files the run trained on
     data, source = data_settings(cfg, ckpt_path, record)
@@ -245,7 +238,5 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="diagnose")
 @report_user_errors
 def main(cfg: DictConfig) -> None:
-    from hydra.core.hydra_config import HydraConfig
-
     diagnose(cfg, Path(HydraConfig.get().runtime.output_dir))
 

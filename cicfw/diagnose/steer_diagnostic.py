@@ -27,12 +27,15 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+import torch
+from scipy.stats import linregress
 
 from cicfw import COMMANDS, N_COMMANDS
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import T, read_targets
-from cicfw.data.frames import Frames, episode_groups
+from cicfw.data.datamodule import CILDataModule, ImageStore
+from cicfw.data.frames import Frames, episode_groups, load_frames
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +146,6 @@ def _to_numpy(x: Any) -> np.ndarray:
 
 def all_commands(steer_fn: SteerFn) -> SteerAllFn:
     """A ``steer_all_fn`` from a plain ``steer_fn``: the same images and speeds under each command."""
-    import torch
-
     def steer_all(images: Any, speed: Any) -> np.ndarray:
         b = len(speed)
         cols = []
@@ -164,8 +165,6 @@ def model_steer_all(model: Any, device: Any = None) -> SteerAllFn:
     branch decoded by the model's own head, so every head is measured on the steering it drives with
     (a classification head through its decoder: argmax midpoint or expectation). The same values as
     ``predict_steer`` under each command (a mixer's branches are computed together in both)."""
-    import torch
-
     head = model.head
     name = type(head).__name__
     device = device or next(model.parameters()).device
@@ -192,8 +191,6 @@ def predict(steer_all: SteerAllFn, images: Callable[[np.ndarray], np.ndarray], s
             batch_size: int = 128) -> np.ndarray:
     """Steering under each command (n, 4) for every frame; ``images(idx)`` gives frames idx as
     uint8 (len(idx), 88, 200, 3) (HWC, as files store them); batches of ``batch_size``."""
-    import torch
-
     n = len(speed_kmh)
     out = np.empty((n, N_COMMANDS), np.float64)
     for a in range(0, n, batch_size):
@@ -210,8 +207,6 @@ def predict(steer_all: SteerAllFn, images: Callable[[np.ndarray], np.ndarray], s
 def fit_line(expert: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
     """Least squares ``pred = slope * expert + offset`` (scipy.stats.linregress), MAE, r and n.
     slope, offset and r are None when the expert's steering does not vary (or n < 3)."""
-    from scipy.stats import linregress
-
     expert, pred = np.asarray(expert, np.float64), np.asarray(pred, np.float64)
     n = len(expert)
     res: dict[str, Any] = {"n": n, "slope": None, "offset": None, "r": None,
@@ -316,9 +311,6 @@ def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Pat
     file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with). ``files``:
     the files to read instead of every file under ``data.path`` (the files the run recorded: a file added
     to its folder since would move episodes between the splits)."""
-    from cicfw.data.datamodule import CILDataModule, ImageStore
-    from cicfw.data.frames import load_frames
-
     if split not in SPLITS:
         raise CicfwError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
     cams = tuple(data.val_cameras) if data.val_cameras is not None else None

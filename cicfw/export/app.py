@@ -21,6 +21,8 @@ import io
 import json
 import logging
 import os
+import re
+import sys
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,12 +34,17 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+import cicfw
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                          onnx_session)
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
+from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
+from cicfw.model.checkpoint import checkpoint_record, describe, load_model, prepare_for_inference, resolve_checkpoint
+from cicfw.registry import ENCODERS, HEADS, MIXERS
+from cicfw.sim.backends import EmbeddedBackend
 
 log = logging.getLogger("cicfw.export")
 
@@ -81,8 +88,6 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
     left-turn and first right-turn single-turn routes (follow lane, then the turn), evenly spaced over
     both episodes, with their speeds and commands: real frames under every turn command, without a
     dataset on disk. Deterministic."""
-    from cicfw.sim.backends import EmbeddedBackend
-
     backend = EmbeddedBackend()
     routes = backend.single_turn_routes(town)
     frames, names = [], []
@@ -107,8 +112,6 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
 def frame_files(path: str | Path) -> list[Path]:
     """The CIL HDF5 files ``frames=`` names (a file, a folder or a glob), each checked as training checks
     its data (``check_file``), with no sample among them: else one ``ExportError`` naming ``frames=``."""
-    from cicfw.data.cil_hdf5 import CILFormatError, check_file, find_files
-
     try:
         files = find_files(path)
     except FileNotFoundError:
@@ -128,8 +131,6 @@ def frame_files(path: str | Path) -> list[Path]:
 def dataset_frames(path: str | Path, n: int) -> CheckInputs:
     """``n`` frames of a CIL HDF5 file or folder (centre camera where the files say which), evenly spaced
     over its first file(s), with their speeds and commands."""
-    from cicfw.data.cil_hdf5 import T, read_rgb, read_targets
-
     files = frame_files(path)  # a folder, a file or a glob; an error naming frames= when it holds no data
     images, targets, names = [], [], []
     for f in files:
@@ -159,8 +160,6 @@ def random_inputs(n: int, seed: int = 0) -> CheckInputs:
 # ---- the graph ---------------------------------------------------------------------------------
 def graph_module(model: torch.nn.Module) -> torch.nn.Module:
     """The module that is exported: the driving function of an inference-prepared copy of ``model``."""
-    from cicfw.model.checkpoint import prepare_for_inference
-
     return DrivingFunction(prepare_for_inference(copy.deepcopy(model))).eval()
 
 
@@ -189,8 +188,6 @@ def _tracing(module: torch.nn.Module, onnx: bool) -> Iterator[None]:
 def _stdout_muted() -> Iterator[None]:
     """File descriptor 1 to /dev/null: the legacy ONNX exporter prints its whole graph from C++ on a failure,
     and a failure here is one line."""
-    import sys
-
     sys.stdout.flush()
     saved = os.dup(1)
     try:
@@ -338,8 +335,6 @@ def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
     holds now); for a checkpoint written before runs recorded their data, ``dataset_hash`` of its run config."""
-    from cicfw.data.provenance import checkpoint_record
-
     record = checkpoint_record(checkpoint)
     if record is None:
         return dataset_hash(cfg_path)
@@ -387,9 +382,6 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
 
 def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
-    import cicfw
-    from cicfw.model.checkpoint import describe
-
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
     row = None
@@ -533,8 +525,6 @@ def _check_opset(opset: Any) -> None:
 
 
 def _plugin_parts(hp: Mapping[str, Any]) -> list[str]:
-    from cicfw.registry import ENCODERS, HEADS, MIXERS
-
     out = []
     for key, reg in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
         origin = reg.origin(hp[key])
@@ -545,8 +535,6 @@ def _plugin_parts(hp: Mapping[str, Any]) -> list[str]:
 
 def _export_failure(err: Exception, fmt: str, hp: Mapping[str, Any], opset: int) -> ExportError:
     """One line for a model the exporter cannot express: which operator, which part, what to do."""
-    import re
-
     text = str(err)
     op = re.search(r"operator '([^']+)'", text) or re.search(r"(aten::\w+|\w+::\w+)", text)
     what = f"the operator {op.group(1)!r}" if op else f"an operator ({type(err).__name__}: {text.splitlines()[0] if text else ''})"
@@ -575,8 +563,6 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
     simulator) plus as many random inputs. An existing ``out`` or sidecar is replaced only when it is this
     checkpoint's earlier export, or with ``overwrite`` (``check_own_output``). Returns the sidecar's content."""
-    from cicfw.model.checkpoint import load_model, resolve_checkpoint
-
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",

@@ -7,12 +7,21 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 """
 from __future__ import annotations
 
+import os
 import pickle
 import re
 from pathlib import Path
 from typing import Any, Mapping
 
+import torch
+from torch import nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
+
 from cicfw.core.errors import CicfwError
+from cicfw.data.provenance import CHECKPOINT_KEY, is_record
+from cicfw.model.module import CICModule
+from cicfw.model.speed import keep_fp32
+from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 #: the CICModule arguments that name registered parts, with the registry that must know each
 PART_KEYS = ("encoder", "mixer", "head")
@@ -56,8 +65,6 @@ def load_weights_only(path: Path) -> Any:
     """``torch.load(path, weights_only=True)`` on the CPU: tensors and plain containers only, never an
     arbitrary class. Every failure (torch raises many types) is one ``UnloadableCheckpoint``; the callers
     word it for their own argument."""
-    import torch
-
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
@@ -93,10 +100,23 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return check_cicfw_checkpoint(ckpt, str(p))
 
 
+def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The data record of a checkpoint (None when it has none: written before runs recorded their data, or
+    not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
+    for mmap in (True, False):
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+            break
+        except Exception:
+            continue
+    else:
+        return None
+    record = ckpt.get(CHECKPOINT_KEY) if isinstance(ckpt, dict) else None
+    return dict(record) if is_record(record) else None
+
+
 def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
     """Check ``ckpt`` is a cicfw CICModule checkpoint whose encoder, mixer and head are installed."""
-    from cicfw.registry import ENCODERS, HEADS, MIXERS
-
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, Mapping) else None
     if not isinstance(hp, Mapping) or not isinstance(ckpt.get("state_dict"), Mapping) \
             or not all(isinstance(hp.get(k), str) for k in PART_KEYS):
@@ -117,9 +137,6 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
 def load_model(path: str | Path):
     """A ``CICModule`` in eval mode rebuilt from a checkpoint, on the CPU (what
     ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
-    from cicfw.model.module import CICModule
-    from cicfw.model.speed import keep_fp32
-
     keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
     hp = dict(ckpt["hyper_parameters"])
@@ -149,8 +166,6 @@ def prepare_for_inference(model, fuse: bool = True):
     returns the model."""
     if not fuse:
         return model
-    from torch import nn
-    from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     assert not model.training, "prepare_for_inference needs an eval-mode model"
     dropouts = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d)

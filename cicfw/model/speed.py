@@ -25,6 +25,10 @@ from pathlib import Path
 
 import torch
 
+from cicfw.core.config_checks import SchemaError
+from cicfw.model.encoders import IMAGE_HW
+from cicfw.model.memory import keep_freed_memory
+
 log = logging.getLogger("cicfw.speed")
 
 
@@ -82,8 +86,6 @@ class SpeedConfig:
     keep_memory: bool = True     # malloc keeps freed memory (cicfw/model/memory.py): no page faults per step
 
     def __post_init__(self) -> None:
-        from cicfw.core.config_checks import SchemaError
-
         if self.adam not in ADAM_IMPLS:
             raise SchemaError(f"speed.adam must be one of {', '.join(ADAM_IMPLS)}, got {self.adam!r}",
                               "speed.adam", "wrong type")
@@ -98,8 +100,6 @@ SPEED_SWITCHES = tuple(f.name for f in dataclasses.fields(SpeedConfig))
 
 def dummy_batch(model, batch_size: int) -> dict[str, torch.Tensor]:
     """A batch of the training shapes (the encoder's input is uint8 (B, 3, 88, 200))."""
-    from cicfw.model.encoders import IMAGE_HW
-
     g = torch.Generator().manual_seed(0)
     return {"image": torch.randint(0, 256, (batch_size, 3, *IMAGE_HW), dtype=torch.uint8, generator=g),
             "speed": torch.rand(batch_size, generator=g) * 30,
@@ -141,8 +141,6 @@ def apply_speed(model, speed: SpeedConfig, batch_size: int = 120, warm: bool = T
         model.use_channels_last()
     name = ("channels_last" if speed.channels_last else "eager") + f", Adam {speed.adam}"
     if speed.keep_memory:
-        from cicfw.model.memory import keep_freed_memory
-
         why = keep_freed_memory()
         if why is None:
             name += ", freed memory kept"

@@ -34,20 +34,44 @@ import logging
 import os
 import platform
 import re
+import subprocess
 import sys
 import time
+import traceback
+from importlib.resources import files
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import hydra
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.core.errors import CicfwError
+import cicfw
+from cicfw.benchmark.app import compose_config, evaluate
+from cicfw.benchmark.finished_run import cell_key, load_run
+from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
+from cicfw.core.config_checks import config_error
+from cicfw.core.errors import USER_ERRORS, CicfwError, debugging
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
+from cicfw.core.run_folder import claim_folder
+from cicfw.core.override_hints import register_help
+from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
+from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
+from cicfw.reproduction.catalogue import PAPER_VALUES, row_overrides, speed_node_spelling
+from cicfw.reproduction.cells import COLUMNS, finished_cells
+from cicfw.reproduction.claims import check_margin, load_claims
 from cicfw.reproduction.lock import ResultsLock
+from cicfw.reproduction.published import continue_published, publish, published_manifest
+from cicfw.reproduction.report import write_report as write
 from cicfw.reproduction.schema import check, seed_list
+from cicfw.sim.render.weather import LEGACY_FAMILY
+from cicfw.train.app import build_model, ensure_data, make_datamodule, train, trainer_kwargs
+from cicfw.train.schema import check_top_level, checked_speed, without_plus_on_trainer
 
 log = logging.getLogger("cicfw.reproduce")
 
@@ -64,8 +88,6 @@ class ReproduceError(CicfwError):
 
 
 def known_budgets() -> list[str]:
-    from importlib.resources import files
-
     return sorted(p.name[:-5] for p in files("cicfw.conf").joinpath("budget").iterdir() if p.name.endswith(".yaml"))
 
 
@@ -87,9 +109,6 @@ def _hydra_line(err: BaseException) -> str:
 
 def _parse(overrides: Sequence[str]) -> None:
     """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import OverrideParseException
-
     parser = OverridesParser.create()
     for o in overrides:
         try:
@@ -105,11 +124,6 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
     """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch), checked by
     its schema (``cicfw.reproduction.schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
     wrong type is one error naming it."""
-    from hydra import compose, initialize_config_module
-    from hydra.errors import HydraException
-
-    from cicfw.core.config_checks import config_error
-
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
     _parse(plain)
     for o in plain:
@@ -127,9 +141,6 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted: the values the
     schema cannot say (a row not in the catalogue, a curve epoch < 1, an unknown claim column, the margin)."""
-    from cicfw.reproduction.catalogue import PAPER_VALUES
-    from cicfw.reproduction.claims import check_margin, load_claims
-
     catalogue = cfg.catalogue
     rows = [str(r) for r in cfg.rows]
     if not rows:
@@ -168,11 +179,6 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     """Every row's training config composes and names a registered encoder, mixer and head: a custom row
     with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
     the rows' data folders (``data.path``), which no output folder may be."""
-    from hydra import initialize_config_module
-    from hydra.errors import HydraException, MissingConfigException
-
-    from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
-
     data: list[str] = []
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         for r in rows:
@@ -183,7 +189,6 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 tcfg = compose_train(cfg, r, 0)
             except MissingConfigException as err:
                 line = _hydra_line(err)
-                import re
 
                 m = re.search(r"Could not find '([\w-]+)/([^']+)'", line)
                 if m and m.group(1) == "experiment":
@@ -194,8 +199,6 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                                          f"{line.split('available: ', 1)[-1]}") from None
                 raise ReproduceError(f"{what}: {line}") from None
             except HydraException as err:
-                from cicfw.core.config_checks import config_error
-
                 schema = config_error(err)  # a wrong type or unknown key the train schema refused
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
@@ -217,9 +220,6 @@ def check_training(tcfg: DictConfig) -> None:
     """What ``cicfw.train.app.train`` checks before it reads any data (top-level keys, the model's names, keys
     and values, the data and trainer arguments), so a row's bad value (``model.lr=abc``) is refused before
     the dataset is collected rather than failing every cell of the row."""
-    from cicfw.train.app import build_model, make_datamodule, trainer_kwargs
-    from cicfw.train.schema import check_top_level, checked_speed
-
     check_top_level(tcfg)
     build_model(tcfg)
     make_datamodule(tcfg)
@@ -231,9 +231,6 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
     """results_dir and publish_dir writable folders (or creatable) that are a reproduction's own
     (``claim_folder``: not the rows' ``data`` folders, another app's run or files of none), continue_from a
     published folder: checked before any cell, so nothing fails after the work is done."""
-    from cicfw.core.run_folder import claim_folder
-    from cicfw.reproduction.published import published_manifest
-
     claim_folder(Path(cfg.results_dir), "reproduce", "results_dir", data=data)
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
@@ -260,9 +257,6 @@ def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
     results folder itself, or an earlier publication of the same budget, training and suite (and dataset,
     once known) whose every finished cell this run holds or continues (``continue_from``). Anything else,
     another reproduction's results, or files of none, is refused in one line before anything is written."""
-    from cicfw.reproduction.cells import finished_cells
-    from cicfw.reproduction.published import published_manifest
-
     pub, results_dir = Path(cfg.publish_dir), Path(cfg.results_dir)
     if not pub.is_dir() or (results_dir.exists() and pub.resolve() == results_dir.resolve()):
         return
@@ -294,8 +288,6 @@ def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
 def check_continue_machine(cfg: DictConfig) -> None:
     """``continue_machine`` filters the cells of ``continue_from``: without it, or matching none of its
     finished cells, it is a typo, refused in one line that lists the machines there."""
-    from cicfw.reproduction.cells import finished_cells
-
     text = str(cfg.continue_machine)
     if not cfg.get("continue_from"):
         raise ReproduceError(f"continue_machine={text!r} selects cells of a published folder; give "
@@ -309,10 +301,6 @@ def check_continue_machine(cfg: DictConfig) -> None:
 def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
     """The cell's training config; it keeps a checkpoint after every epoch (``epochNNN.ckpt``): the final
     weights, the learning curve's points, and where a killed cell resumes."""
-    from hydra import compose
-
-    from cicfw.train.schema import without_plus_on_trainer
-
     tcfg = compose("train", overrides=without_plus_on_trainer(row_overrides(cfg, row, seed)))
     tcfg.keep_epoch_checkpoints = list(range(1, int(tcfg.trainer.max_epochs) + 1))
     return tcfg
@@ -321,8 +309,6 @@ def compose_train(cfg: DictConfig, row: str, seed: int) -> DictConfig:
 def suite_overrides(cfg: DictConfig) -> list[str]:
     """The budget's evaluate overrides with the embedded simulator's weather family named (``weather_family``,
     else the simulator's default): what every cell drives, and what a folder is pinned to."""
-    from cicfw.benchmark.suite import with_weather_family
-
     family = cfg.get("weather_family")
     return with_weather_family(OmegaConf.to_container(cfg.budget.suite, resolve=True),
                                None if family is None else str(family))
@@ -331,9 +317,6 @@ def suite_overrides(cfg: DictConfig) -> list[str]:
 def with_legacy_family(pinned: Mapping[str, Any]) -> Mapping[str, Any]:
     """A folder's pinned fingerprint with its weather family named: a folder pinned before the families
     names none and was driven under the legacy (harsh) presets."""
-    from cicfw.benchmark.suite import with_weather_family
-    from cicfw.sim.render.weather import LEGACY_FAMILY
-
     if pinned.get("suite") is None:
         return pinned
     return {**pinned, "suite": with_weather_family(pinned["suite"], default=LEGACY_FAMILY)}
@@ -341,8 +324,6 @@ def with_legacy_family(pinned: Mapping[str, Any]) -> Mapping[str, Any]:
 
 def suite_difference(theirs: Sequence[str], ours: Sequence[str]) -> str:
     """How two pinned suites differ, for a refusal: their weather families when those differ, else both lists."""
-    from cicfw.benchmark.suite import named_weather_family
-
     a, b = named_weather_family(theirs), named_weather_family(ours)
     if a != b:
         return f" (weather_family={a} there, {b} here: name it with weather_family={a})"
@@ -423,10 +404,6 @@ def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: st
     (its ``recipe``: a value both give that differs, e.g. another dropout, is refused; a key only one has
     is not, since a new option's default keeps the old behaviour). Cells written before cells recorded
     them (no ``dataset``/``recipe``) are not checked."""
-    from hydra import initialize_config_module
-
-    from cicfw.reproduction.cells import finished_cells
-
     for name, d in finished_cells(folder).items():
         if d.get("dataset") and dataset and d["dataset"] != dataset:
             raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
@@ -449,12 +426,6 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     suite, collect the budget's dataset once, check its hash and the finished cells, copy a published
     folder's finished cells in, then pin the folder; returns the manifest. Everything that can be checked
     before collecting is."""
-    from hydra import initialize_config_module
-
-    from cicfw.reproduction.cells import finished_cells
-    from cicfw.reproduction.published import continue_published, published_manifest
-    from cicfw.train.app import ensure_data
-
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         tcfg = compose_train(cfg, rows[0], 0)
         evcfg = compose_eval(cfg, [])
@@ -529,11 +500,6 @@ def check_splits(cfg: DictConfig, rows: Sequence[str], seeds: Sequence[int], fin
     camera) is refused in one ``ReproduceError`` line naming the seed(s), what is missing and what to do,
     before any cell trains, rather than failing every row's cell of that seed after the others trained.
     ``finished``: ``row/seedK`` of finished cells, which train nothing."""
-    from hydra import initialize_config_module
-
-    from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
-    from cicfw.train.app import make_datamodule
-
     frames: dict[tuple, Any] = {}
     failed: dict[tuple[str, int], str] = {}
     todo = [(row, seed) for seed in seeds for row in rows if f"{row}/seed{seed}" not in finished]
@@ -628,7 +594,6 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    import torch
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
     return f"{os.cpu_count()} cores ({cpu}), {gpu}, Python {platform.python_version()}, torch {torch.__version__}"
@@ -638,10 +603,6 @@ def code() -> dict[str, Any]:
     """Which cicfw made a cell: its version and, in a git clone, the commit and whether files differed from it.
 
     Cells of one folder may come from several machines and commits (``continue_from``); this says which."""
-    import subprocess
-
-    import cicfw
-
     here = Path(cicfw.__file__).resolve().parent.parent
     out: dict[str, Any] = {"version": cicfw.__version__, "commit": None, "modified": None}
     try:
@@ -666,14 +627,10 @@ def code() -> dict[str, Any]:
 
 def compose_eval(cfg: DictConfig, extra: Sequence[str]) -> DictConfig:
     """A cell's evaluate config: the budget's suite overrides, then ``extra``, checked (``compose_config``)."""
-    from cicfw.benchmark.app import compose_config
-
     return compose_config([*suite_overrides(cfg), "progress_bar=false", "maps=false", *extra])
 
 
 def count_episodes(evcfg: DictConfig) -> int:
-    from cicfw.benchmark.suite import build_suite, make_backend
-
     return len(build_suite(make_backend(OmegaConf.to_container(evcfg.sim, resolve=True)),
                            **OmegaConf.to_container(evcfg.suite, resolve=True)))
 
@@ -694,7 +651,6 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
         result = _train_and_drive(cfg, row, seed, cell_dir)
         status = "ok"
     except Exception as err:  # recorded with its one-line error (and the whole text); the other cells go on
-        import traceback
 
         lines = [ln.strip() for ln in str(err).strip().splitlines() if ln.strip()]
         # a worker's error is "evaluation worker k failed:" + its traceback: its last line says what failed
@@ -709,11 +665,6 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
 
 
 def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> dict[str, Any]:
-    import torch
-
-    from cicfw.benchmark.app import evaluate
-    from cicfw.train.app import train
-
     tcfg = compose_train(cfg, row, seed)
     train_dir, ckpts = cell_dir / "train", cell_dir / "train" / "checkpoints"
     trained = cell_dir / "train" / "trained.json"
@@ -769,10 +720,6 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
 
 
 def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
-    import torch
-
-    from cicfw.reproduction.cells import COLUMNS
-
     ck = torch.load(ckpt, map_location="cpu", weights_only=True)
     rates = {k: v["rate"] for k, v in summary["cells"].items()}
     # the report's overall: the mean of the four columns; a column the suite lacks has no rate (not 0)
@@ -782,8 +729,6 @@ def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
 
 
 def _episodes(run_dir: Path) -> dict[str, dict[str, Any]]:
-    from cicfw.benchmark.finished_run import cell_key, load_run
-
     return {r["key"]: {"success": bool(r["success"]), "column": cell_key(r["town_set"], r["weather_set"]),
                        "command": r["command"], "reason": r["reason"]}
             for r in load_run(run_dir).rows}
@@ -795,8 +740,6 @@ def _episodes(run_dir: Path) -> dict[str, dict[str, Any]]:
 
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="reproduce")
 def _cell_job(cfg: DictConfig) -> str:
-    from hydra.core.hydra_config import HydraConfig
-
     if cfg.cell.row is None:
         raise ReproduceError("cell.row is set by `python -m cicfw.reproduce` itself; give rows=[...] instead")
     hydra_cfg = HydraConfig.get()
@@ -819,10 +762,6 @@ def report_so_far(cfg: DictConfig) -> None:
 
 
 def write_report(cfg: DictConfig) -> dict[str, Any] | None:
-    from cicfw.reproduction.claims import load_claims
-    from cicfw.reproduction.published import publish
-    from cicfw.reproduction.report import write_report as write
-
     results_dir = Path(cfg.results_dir)
     catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
     data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
@@ -841,15 +780,9 @@ def _error_line(err: BaseException) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
     write the report (and publish it)."""
-    import traceback
-
-    from cicfw.core.errors import USER_ERRORS, debugging
-
     args = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--resolve") or a.startswith("--cfg")
            for a in args):
-        from cicfw.core.override_hints import register_help
-
         register_help()  # --help lists the reproduce config's groups
         sys.argv = [sys.argv[0], *args]
         _cell_job()

@@ -9,6 +9,8 @@ from typing import Any, List, Optional, Sequence
 
 from omegaconf import DictConfig
 
+from cicfw.model.speed import SPEED_SWITCHES
+
 #: Table 4's columns, the values ``paper`` holds: training town (training / new weathers), new town (same)
 PAPER_VALUES = 4
 
@@ -34,7 +36,5 @@ def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
 def speed_node_spelling(overrides: Sequence[Any]) -> list[str]:
     """Training overrides with the speed switches spelled ``speed.<switch>=``: a folder pinned, or a cell
     recorded, while they were keys of the trainer node says ``trainer.<switch>=`` for the same setting."""
-    from cicfw.model.speed import SPEED_SWITCHES
-
     legacy = re.compile(rf"^trainer\.({'|'.join(SPEED_SWITCHES)})=")
     return [legacy.sub(r"speed.\1=", str(o)) for o in overrides]

@@ -7,9 +7,11 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass
+from importlib.resources import files
 from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
+import yaml
 
 from cicfw.core.errors import CicfwError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
@@ -183,10 +185,6 @@ def default_margin() -> float:
 def shipped_config() -> dict[str, Any]:
     """conf/reproduce.yaml as shipped, read as plain YAML (its claims, margin and fine tuning's candidates
     hold no interpolation, so these are the composed values) without touching Hydra's state."""
-    from importlib.resources import files
-
-    import yaml
-
     return yaml.safe_load(files("cicfw.conf").joinpath("reproduce.yaml").read_text())
 
 

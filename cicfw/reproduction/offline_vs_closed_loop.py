@@ -23,11 +23,15 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from scipy.stats import spearmanr, t as student_t
 
+from cicfw.benchmark.plots import _plt, _save
+from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
 from cicfw.reproduction.report import pinned_weather_family
 from cicfw.reproduction.seed_stats import word
+from cicfw.sim.render.weather import LEGACY_FAMILY
 
 Z95 = 1.959963984540054  # the standard normal's 97.5% point
 #: the paper's Table 4: the rows every published folder compares, for the figure on their cells alone (the
@@ -94,8 +98,6 @@ def fisher_interval(rho: float, se: float, z: float = Z95) -> tuple[float, float
 def spearman_ci(x: Sequence[float], y: Sequence[float]) -> Corr:
     """Spearman's rho of (x, y) with its 95% Fisher-z interval (Bonett-Wright standard error); the interval
     is None below 4 points or at |rho| = 1, where the transform has no finite spread."""
-    from scipy.stats import spearmanr
-
     n = len(x)
     if n < 3 or np.ptp(np.asarray(x, float)) == 0 or np.ptp(np.asarray(y, float)) == 0:
         return Corr(float("nan"), None, None, n)  # a constant has no ranks to correlate
@@ -126,10 +128,8 @@ def selection_gain(points: Sequence[Point], target: str = "overall") -> float:
 
 def t_interval(values: Sequence[float]) -> tuple[float, float]:
     """The 95% t-interval of the mean of ``values`` (each an independent row)."""
-    from scipy.stats import t
-
     v = np.asarray(values, float)
-    half = float(t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    half = float(student_t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
     return float(v.mean()) - half, float(v.mean()) + half
 
 
@@ -253,8 +253,6 @@ def _c(d: dict[str, Any]) -> str:
 def scatter(points: Sequence[Point], path: Path) -> Path:
     """Validation error against success, one panel per target and one within rows (both centred on
     their row's mean); colour by row, marker by CPU kind."""
-    from cicfw.benchmark.plots import _plt, _save
-
     plt = _plt()
     rows = sorted({p.row for p in points})
     colour = {r: plt.get_cmap("tab10" if len(rows) <= 10 else "tab20")(i) for i, r in enumerate(rows)}
@@ -436,10 +434,6 @@ def _selection_reading(s: dict[str, Any]) -> str:
 
 def write_report(results: Path, out: Path) -> dict[str, Any]:
     """Analyse the cells under ``results`` and write README.md, results.json and the picture into ``out``."""
-    from cicfw.core.files import atomic_write
-
-    from cicfw.sim.render.weather import LEGACY_FAMILY
-
     points = collect_points(results, skip=(out.name,))
     main = [p for p in points if p.family == LEGACY_FAMILY]
     res = analyse(main)

@@ -22,6 +22,7 @@ ran at different hours: a hint, not a speed figure (bench/train_throughput.py me
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import sys
 from dataclasses import dataclass
@@ -29,6 +30,8 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+from statsmodels.stats.contingency_tables import mcnemar
+from statsmodels.stats.weightstats import ttost_paired
 
 from cicfw.benchmark.finished_run import cell_key
 from cicfw.core.errors import CicfwError
@@ -79,7 +82,6 @@ def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
     d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
     if np.ptp(d) == 0:
         return 0.0 if abs(d[0]) < margin else 1.0
-    from statsmodels.stats.weightstats import ttost_paired
 
     return float(ttost_paired(np.asarray(a, float), np.asarray(b, float), -margin, margin)[0])
 
@@ -176,7 +178,6 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
         if not isinstance(cell, CellResult) or not cell.episodes:
             raise CicfwError(f"{path} holds no episodes; give a finished cell's cell.json")
         return {k: (bool(e["success"]), e["column"]) for k, e in cell.episodes.items()}
-    import csv
 
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
@@ -199,8 +200,6 @@ def episodes_file(path: Path) -> Path:
 def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]]) -> list[dict]:
     """Per column (and all), on the episodes both drove: successes of each, the episodes A lost (B drove
     them, A did not) and gained, and McNemar's exact two-sided p-value on those discordant episodes."""
-    from statsmodels.stats.contingency_tables import mcnemar
-
     keys = sorted(set(a) & set(b))
     out = []
     for col in [*COLUMNS, "all"]:

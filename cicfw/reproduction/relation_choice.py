@@ -19,6 +19,7 @@ from typing import Any, Mapping, Sequence
 
 from cicfw.core.errors import CicfwError
 from cicfw.reproduction.cells import finished_cells
+from cicfw.reproduction.claims import shipped_config
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,6 @@ def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequen
 
 def shipped_candidates() -> list[str]:
     """The candidate rows shipped in conf/reproduce.yaml (``relation_candidates``)."""
-    from cicfw.reproduction.claims import shipped_config
-
     return list(shipped_config()["relation_candidates"])
 
 

@@ -98,24 +98,34 @@ uninterrupted run's (``RESUME_EXAMPLE``). Every file the report and ``published`
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
 
+from cicfw.benchmark.plots import _plt, _save
+from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
+from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
-from cicfw.reproduction.claims import Claim, check_margin, default_claims, default_margin, holm_families, judge
+from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
+                                       load_claims)
+from cicfw.reproduction.published import publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, ranking
 from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
+from cicfw.sim.render.weather import LEGACY_FAMILY
 
 #: what resuming a killed training changed, measured once: the report's footnote on resumed cells
 RESUME_EXAMPLE = ("measured once: GTU's validation steering error after its last epoch was 0.12519 uninterrupted "
@@ -126,9 +136,6 @@ RESUMED_MARK = "‡"
 def pinned_weather_family(manifest: Mapping[str, Any]) -> str | None:
     """The weather family a results folder's suite was driven under: the one its pinned suite names, the
     harsh one for a folder pinned before the families were, None for another simulator."""
-    from cicfw.benchmark.suite import named_weather_family, with_weather_family
-    from cicfw.sim.render.weather import LEGACY_FAMILY
-
     suite = (manifest.get("pinned") or {}).get("suite") or []
     return named_weather_family(with_weather_family(suite, default=LEGACY_FAMILY))
 
@@ -713,8 +720,6 @@ def _colour(plt: Any, k: int) -> Any:
 def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
     """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses
     in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
-    from cicfw.benchmark.plots import _plt, _save
-
     plt = _plt()
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(max(7.5, 1.2 * len(rows) + 4), 4.4))
@@ -753,7 +758,6 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     rows = data.get("forest") or []
     if not rows:
         return None
-    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     by = {r["row"]: r for r in data["rows"]}
@@ -811,7 +815,6 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     pts = curve_points(data)
     if not pts:
         return None
-    from cicfw.benchmark.plots import _plt, _save
 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
@@ -877,23 +880,12 @@ def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cicfw.reproduction.report RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
-    import argparse
-    import sys
-
-    from cicfw.reproduction.claims import load_claims
-    from cicfw.reproduction.published import publish
-
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
     ap.add_argument("results_dir")
     ap.add_argument("--publish", default=None, help="also copy the small results into this folder")
     ap.add_argument("--markdown", default=None, help="also write the Markdown here (e.g. docs/RESULTS.md)")
     a = ap.parse_args(argv)
     try:
-        from hydra import compose, initialize_config_module
-        from omegaconf import OmegaConf
-
-        from cicfw.core.run_folder import claim_folder
-
         claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
         if a.publish:
             claim_folder(Path(a.publish), "reproduce", "--publish")

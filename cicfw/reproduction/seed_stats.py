@@ -9,6 +9,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import stats
+from scipy.optimize import brentq
+from statsmodels.stats.multitest import multipletests
+from statsmodels.stats.proportion import proportion_confint
 
 LEVEL = 0.95
 ALPHA = 1.0 - LEVEL
@@ -75,8 +78,6 @@ def welch_t_interval(a: np.ndarray, b: np.ndarray, level: float = LEVEL,
 
 def pooled_clopper_pearson(successes: int, episodes: int, level: float = LEVEL) -> tuple[float, float]:
     """The Clopper-Pearson interval (%) of ``successes`` of ``episodes`` (statsmodels, method "beta")."""
-    from statsmodels.stats.proportion import proportion_confint
-
     lo, hi = proportion_confint(successes, episodes, alpha=1.0 - level, method="beta")
     return 100.0 * float(lo), 100.0 * float(hi)
 
@@ -199,8 +200,6 @@ def contrast_level(terms: Sequence[tuple[float, int, int]], bound: str, target: 
     reaches ``target`` (points) as the interval narrows toward the contrast itself: the p-value dual to
     the interval (root-found). 0 when even the (1 - 1e-12) interval's bound lies beyond ``target``, 1 when
     the contrast itself does not."""
-    from scipy.optimize import brentq
-
     i, sign = (0, 1.0) if bound == "lo" else (1, -1.0)
 
     def past(alpha: float) -> float:  # > 0 once the bound has moved past target, toward the contrast
@@ -217,8 +216,6 @@ def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LE
     which recovers each side's variance from the proportions' Wilson score intervals (statsmodels), so it
     keeps a width at 0% and 100%; for one difference, ``[(1, A), (-1, B)]``, it is Newcombe's hybrid score
     interval, and for a gap, ``(A - B)`` in one column minus ``(A - B)`` in another, its four-term form."""
-    from statsmodels.stats.proportion import proportion_confint
-
     value, below, above = 0.0, 0.0, 0.0
     for c, k, n in terms:
         p = k / n
@@ -260,7 +257,6 @@ def holm(pvalues: Sequence[float], alpha: float = ALPHA,
     reached as they are filled in (Holm's procedure is monotone in every p-value)."""
     if not len(pvalues):
         return [], []
-    from statsmodels.stats.multitest import multipletests
 
     n = len(pvalues)
     if family_size is not None and family_size < n:

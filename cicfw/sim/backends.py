@@ -17,18 +17,19 @@ from typing import Any
 
 import numpy as np
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.config_checks import is_number
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.registry import SIM_BACKENDS
-from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route, single_turn_routes
+from cicfw.sim.env import DrivingEnv
+from cicfw.sim.expert import ExpertParams
+from cicfw.sim.render.weather import get_weather, weather_family as presets_of
+from cicfw.sim.roadgraph import COMMAND_DISTANCE, Route, road_graph, single_turn_routes
 from cicfw.sim.town import TownError, load_town, town_names
 
 
 def positive_distances(**distances: Any) -> tuple[float, ...]:
     """A backend's distances in metres (``success_radius=2.0`` ...) as floats, in the order given; one that is
     not a finite number > 0 is a ``ConfigError`` naming ``sim.<name>``: a radius of -1 failed every episode."""
-    from cicfw.core.config_checks import is_number
-    from cicfw.core.errors import ConfigError
-
     for key, value in distances.items():
         if not (is_number(value) and value > 0):
             raise ConfigError(f"sim.{key}", value, "a distance in metres > 0")
@@ -48,8 +49,6 @@ class EmbeddedBackend:
     def __init__(self, command_distance: float = COMMAND_DISTANCE, success_radius: float = 2.0,
                  max_deviation: float = 10.0, route_before: float = 30.0, route_after: float = 25.0,
                  weather_family: str = "carla") -> None:
-        from cicfw.sim.render.weather import weather_family as presets_of
-
         try:
             presets_of(weather_family)
         except ValueError as err:
@@ -63,9 +62,7 @@ class EmbeddedBackend:
         return town_names()
 
     def weathers(self) -> list[str]:
-        from cicfw.sim.render.weather import weather_family
-
-        return list(weather_family(self.weather_family))
+        return list(presets_of(self.weather_family))
 
     def single_turn_routes(self, town: str) -> list[Route]:
         return single_turn_routes(load_town(town), self.route_before, self.route_after, self.command_distance)
@@ -90,8 +87,6 @@ class EmbeddedBackend:
     def random_route(self, town: str, rng: np.random.Generator, min_length: float, name: str = "random",
                      command_distance: float | None = None) -> Route:
         """A random multi-junction route of at least ``min_length`` m (turns balanced within it)."""
-        from cicfw.sim.roadgraph import road_graph
-
         cd = self.command_distance if command_distance is None else float(command_distance)
         return road_graph(load_town(town), cd).random_route(rng, min_length=min_length, name=name, counts={})
 
@@ -100,10 +95,6 @@ class EmbeddedBackend:
                  endless: bool = False):
         """``expert``: ExpertParams overrides; ``time_offset``: shifts the renderer's clock (rain phase);
         ``endless``: the episode never ends by itself (no success, timeout or lost), for collection."""
-        from cicfw.sim.env import DrivingEnv
-        from cicfw.sim.expert import ExpertParams
-        from cicfw.sim.render.weather import get_weather
-
         stop = (dict(timeout=1e9, max_deviation=1e9, success_radius=-1.0) if endless else
                 dict(success_radius=self.success_radius, max_deviation=self.max_deviation))
         preset = get_weather(weather, self.weather_family)  # the name in this backend's family

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from cicfw.sim.episode import step_info
-from cicfw.sim.expert import Expert, ExpertParams
+from cicfw.sim.expert import Expert, ExpertParams, Noiser
+from cicfw.sim.render import Renderer
 from cicfw.sim.roadgraph import Route
 from cicfw.sim.town import Town, load_town
 from cicfw.sim.townmap import town_map
@@ -33,7 +34,7 @@ MAX_RENDERERS = 8  # a renderer bakes its textures once (seconds); keep the last
 
 
 def get_renderer(town: Town, weather: str, seed: int = 0, cameras: tuple = ("centre",)):
-    """A cached ``cicfw.sim.render.Renderer`` (imported lazily: the world runs without it).
+    """A cached ``cicfw.sim.render.Renderer`` (a world without images never builds one).
 
     Building one bakes textures (seconds), so share them: vary ``DrivingEnv(time_offset=...)`` rather
     than the renderer seed from episode to episode."""
@@ -43,13 +44,6 @@ def get_renderer(town: Town, weather: str, seed: int = 0, cameras: tuple = ("cen
     else:
         while len(_RENDERERS) >= MAX_RENDERERS:
             _RENDERERS.pop(next(iter(_RENDERERS)))
-        try:
-            from cicfw.sim.render import Renderer
-        except ImportError as err:
-            raise ImportError(
-                f"the camera renderer (cicfw.sim.render) could not be imported ({err}); "
-                f"use renderer=False for a world without images"
-            ) from err
         _RENDERERS[key] = (town, Renderer(town, weather, seed=seed, cameras=tuple(cameras)))
     return _RENDERERS[key][1]
 
@@ -163,8 +157,6 @@ def run_expert(env: DrivingEnv, noise_rng: np.random.Generator | None = None) ->
     """Drive ``env``'s route with the expert (and CIL noise when ``noise_rng`` is given) until done;
     the final info plus ``steps``, ``noisy_steps`` and the worst ``max_route_deviation``,
     ``max_opposite_lane``, ``max_off_road`` of the episode."""
-    from cicfw.sim.expert import Noiser
-
     env.reset()
     noiser = Noiser(noise_rng, enabled=True) if noise_rng is not None else None
     info: dict = {}

@@ -18,11 +18,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
+from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
+from cicfw.sim.roadgraph import road_graph, single_turn_routes
+from cicfw.sim.town import load_town, town_names
 
 CAMERA_ORDER = ("left", "centre", "right")
 # CIL command code -> (label, RGB)
@@ -33,8 +37,6 @@ COMMAND_STYLE = {2: ("follow", (255, 255, 255)), 3: ("left", (40, 120, 230)), 4:
 def _png(rgb: np.ndarray, colours: int = 0) -> bytes:
     """The PNG file of ``rgb``; ``colours`` > 0 quantises to a palette (small files for docs)."""
     if colours:
-        from PIL import Image
-
         buf = io.BytesIO()
         Image.fromarray(rgb).quantize(colours, method=Image.Quantize.FASTOCTREE,
                                       dither=Image.Dither.NONE).save(buf, format="PNG", optimize=True)
@@ -73,8 +75,6 @@ def pose_on_route(route, s: float) -> tuple[float, float, float]:
 def approach_pose(town, before: float = 12.0, command: int = 3):
     """A pose whose cameras are ``before`` metres ahead of a junction's entry, on a route that turns
     ``command`` there (an X junction if the town has one), and that route."""
-    from cicfw.sim.roadgraph import single_turn_routes
-
     routes = single_turn_routes(town)
     arms = {j.id: len(j.arms) for j in town.junctions}
     routes.sort(key=lambda r: (-arms[r.meta["junction"]], r.meta["command"] != command, r.name))
@@ -181,8 +181,6 @@ def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon")
 
 def sample_routes(town, n: int, seed: int = 0, min_length: float = 150.0) -> list:
     """``n`` random routes of the town (helper A's router), balanced over commands."""
-    from cicfw.sim.roadgraph import road_graph
-
     g = road_graph(town)
     rng = np.random.default_rng(seed)
     counts: dict = {}
@@ -192,9 +190,6 @@ def sample_routes(town, n: int, seed: int = 0, min_length: float = 150.0) -> lis
 def load_towns(names: list[str]) -> list:
     """Towns by shipped name or file path; a ValueError (one line) for an unknown name, a missing file
     ("no such town file") or a broken one (the file and its problem)."""
-    from cicfw.sim.backends import EmbeddedBackend
-    from cicfw.sim.town import load_town
-
     backend = EmbeddedBackend()
     return [load_town(backend.resolve_town(n)) for n in names]
 
@@ -208,14 +203,10 @@ def check_weathers(weathers: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """The command line; every bad value is one line (``cicfw: error: ...``, exit status 2)."""
-    from cicfw.core.errors import report_user_errors
-
     return report_user_errors(_main)(argv)
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from cicfw.sim.town import town_names
-
     ap = argparse.ArgumentParser(prog="python -m cicfw.sim.preview", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="sim_preview", help="output folder (created; default: %(default)s)")
     ap.add_argument("--towns", nargs="+", default=None, help=f"towns (default: all shipped: {town_names()})")
@@ -299,7 +290,7 @@ def check_args(a: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     from cicfw.core.errors import install_app_handlers
-    from cicfw.registry import guard_hydra_plugins
+    from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     install_app_handlers()
 

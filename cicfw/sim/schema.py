@@ -8,6 +8,8 @@ from __future__ import annotations
 import functools
 from typing import Any, Mapping
 
+from hydra.core.config_store import ConfigStore
+
 from cicfw.core.config_checks import check_composed, kwargs_schema
 from cicfw.registry import SIM_BACKENDS
 
@@ -26,8 +28,6 @@ def backend_schema(name: str) -> type:
 
 def store_backend_schemas() -> None:
     """``cicfw_schema/sim/<name>`` in Hydra's ConfigStore for every registered backend (plugins' too)."""
-    from hydra.core.config_store import ConfigStore
-
     store = ConfigStore.instance()
     for name in SIM_BACKENDS.names():
         store.store(group=GROUP, name=name, node=backend_schema(name), provider="cicfw")

@@ -16,6 +16,7 @@ from cicfw.core.files import write_together
 from cicfw.sim.preview import _png, approach_pose, check_out_folder
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
+from cicfw.sim.town import load_town, town_names
 
 FAMILIES = ("harsh", "carla")
 PAD, LABEL_W, HEAD = 4, 150, 34
@@ -58,8 +59,6 @@ def sheet(towns: list, weathers: list[str], scale: int = 2, seed: int = 0, t: fl
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cicfw.sim.town import load_town, town_names
-
     ap = argparse.ArgumentParser(prog="python -m cicfw.sim.weather_sheet", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="sim_preview", help="output folder (default: %(default)s)")
     ap.add_argument("--towns", nargs="+", default=town_names())

@@ -16,22 +16,34 @@ from typing import Any, Callable, Mapping
 import hydra
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
+from cicfw import COMMANDS
+from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
+from cicfw.collect import collect_dataset
+from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
 from cicfw.core.config_checks import forget_empty_cache_setting, is_integer
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
-from cicfw.core.errors import CicfwError, USER_ERRORS, Interrupted, on_interrupt, report_interrupts, report_user_errors
-from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
+from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
+                               report_user_errors)
+from cicfw.core.files import atomic_write
+from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
+from cicfw.core.sweeps import is_worker_process
+from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_record, record_data, same_place, summary,
+                                   with_earlier, write_record)
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 
@@ -86,8 +98,6 @@ HIGHER_IS_BETTER = ("val/bin_acc",)
 
 def logged_metrics(model: CICModule) -> list[str]:
     """The metrics ``CICModule`` logs while training (its training step and validation epochs)."""
-    from cicfw import COMMANDS
-
     val = ["val/loss", "val/steer_mae", *(f"val/steer_mae/{c}" for c in COMMANDS)]
     if model.head.bins is not None:
         val.append("val/bin_acc")
@@ -123,7 +133,6 @@ def ensure_data(data_cfg: DictConfig) -> None:
         return
     path = Path(data_cfg.path).expanduser()
     check_not_your_own_data(path)
-    from cicfw.collect import collect_dataset  # the simulator is only needed for the default data
 
     with on_interrupt(f"while collecting the dataset: finished episodes are kept in {path}; run the same "
                       f"command to go on"):
@@ -172,7 +181,6 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
     or ``data.val_cameras`` choosing none of their ids is refused now, not after the collection."""
     if data_cfg.get("collect") is None:
         return
-    from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 
     names = data_cfg.collect.get("cameras") or DEFAULTS["cameras"]
     recorded = {CAMERA_IDS[n][0]: n for n in names if n in CAMERA_IDS}  # unknown names: the collector says so
@@ -207,8 +215,6 @@ class EpochCheckpoints(Callback):
     def __init__(self, dirpath: Path, epochs, max_epochs: int | None = None) -> None:
         """``max_epochs``: the run's ``trainer.max_epochs``; a listed epoch beyond it is a ``ConfigError``
         (it would never be saved)."""
-        from cicfw.core.errors import ConfigError
-
         beyond = [int(e) for e in epochs if max_epochs is not None and int(e) > max_epochs]
         if beyond:
             raise ConfigError("keep_epoch_checkpoints", beyond[0], f"a list of epochs within trainer.max_epochs="
@@ -244,7 +250,6 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
         if storage_options is not None:
             return super().save_checkpoint(checkpoint, path, storage_options)  # refuses them, with its message
-        from cicfw.core.files import atomic_write
 
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)
@@ -313,7 +318,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
         kwargs["enable_progress_bar"] = bool(cfg.get("progress_bar", True))
     kwargs["plugins"] = with_checkpoint_io(kwargs.get("plugins"))
     callbacks = build_callbacks(cfg, run_dir)  # outside the try below: its errors name their own keys
-    from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     try:
         return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
@@ -458,8 +462,6 @@ SEED_RANGE = (0, 2**32 - 1)
 def checked_seed(value: int) -> int:
     """``seed`` (a whole number: the schema) within ``SEED_RANGE``, else a ``ConfigError`` naming it
     (Lightning's own message for ``seed=-3`` named no key)."""
-    from cicfw.core.errors import ConfigError
-
     if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
         raise ConfigError("seed", value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
     return value
@@ -481,8 +483,6 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
 def check_evaluation(cfg: DictConfig) -> None:
     """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training."""
     if cfg.get("evaluate_after"):
-        from cicfw.benchmark.app import check_evaluation_overrides
-
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
 
 
@@ -534,7 +534,6 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     metric = float(value) if value is not None else float("nan")
     log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
-        from cicfw.benchmark.app import evaluate_after_training
 
         success = evaluate_after_training(cfg, trainer, run_dir)["success"]
         if cfg.get("return_closed_loop"):
@@ -549,8 +548,6 @@ class RecordInCheckpoints(Callback):
         self.record = dict(record)
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
-        from cicfw.data.provenance import CHECKPOINT_KEY
-
         checkpoint[CHECKPOINT_KEY] = self.record
 
 
@@ -559,10 +556,6 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
     ``cicfw.data.provenance``), written to ``<run_dir>/data.json``. Resuming (``ckpt_path``) compares it with
     the checkpoint's: another file set is refused, naming both, unless ``resume_on_other_data=true``; then,
     or when the same files lie in another folder, the record keeps the checkpoint's under ``before``."""
-    from cicfw.core.sweeps import is_worker_process
-    from cicfw.data.provenance import (check_same_data, checkpoint_record, folder_record, record_data, same_place,
-                                       summary, with_earlier, write_record)
-
     ckpt = cfg.get("ckpt_path")
     earlier = None
     if ckpt is not None and str(ckpt) != "":
@@ -660,9 +653,6 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
 @report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     return train_in_folder(cfg, Path(HydraConfig.get().runtime.output_dir), key)

@@ -22,7 +22,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from cicfw.benchmark.runner import RunnerConfig
 from cicfw.benchmark.suite import build_suite
 from cicfw.core.config_checks import SchemaError, check_composed, kwargs_schema
-from cicfw.registry import guard_hydra_plugins
+from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 
 RUNNER = kwargs_schema(RunnerConfig, "the runner", not_settable={

@@ -18,7 +18,7 @@ from omegaconf import MISSING, DictConfig
 
 from cicfw.collect.config import CollectConfig
 from cicfw.core.config_checks import check_composed
-from cicfw.registry import guard_hydra_plugins
+from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.sim.schema import check_sim_node, store_backend_schemas
 
 

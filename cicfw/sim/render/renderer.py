@@ -18,6 +18,7 @@ import numpy as np
 
 from cicfw.core.errors import CicfwError
 from cicfw.sim.render import camera as cam_mod
+from cicfw.sim.render import ground
 from cicfw.sim.render.atlas import PPM, TW, Atlas, build_atlas
 from cicfw.sim.render.camera import (CAMERAS, CX, CY, FIRST_GROUND_ROW, FX, FY, HORIZON_ROW, IMAGE_H, IMAGE_W,
                                      MOUNT_FORWARD, MOUNT_HEIGHT, NEAR, Camera, get_camera)
@@ -49,8 +50,6 @@ def _ground_texture(town, weather: Weather) -> GroundTexture:
 
 def clear_caches() -> None:
     """Forget baked ground textures (frees memory; the next Renderer bakes again)."""
-    from cicfw.sim.render import ground
-
     _TEXTURES.clear()
     ground._BASE_CACHE.clear()
 

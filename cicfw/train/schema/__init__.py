@@ -30,10 +30,11 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from cicfw.collect.config import CollectConfig
 from cicfw.core.config_checks import SchemaError, check_composed, composed_values, kwargs_schema
 from cicfw.core.errors import ConfigError
+from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.data.datamodule import CILDataModule
 from cicfw.model.module import CICModule
 from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
-from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry, guard_hydra_plugins
+from cicfw.registry import ENCODERS, HEADS, MIXERS, Registry
 from cicfw.sim.schema import check_sim_node
 
 #: the model's parts: config group -> registry
