@@ -41,7 +41,7 @@ from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.video import select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, Interrupted, report_interrupts, report_user_errors
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, report_interrupts, report_user_errors
 from cicfw.core.override_hints import composition_error_line
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
@@ -228,9 +228,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
                  extra_keys=("name",))
     check_policy_device(kwargs.get("device"))
     episodes = build_suite(make_backend(sim), **suite)  # unknown towns and weathers, suite.limit=0 fail here
-    if isinstance(video_max, bool) or not isinstance(video_max, int) or video_max < 0:
-        from cicfw.core.errors import ConfigError  # -1 would film nothing, silently
-
+    if isinstance(video_max, bool) or not isinstance(video_max, int) or video_max < 0:  # -1 would film nothing
         raise ConfigError("video_max", video_max, "a whole number >= 0 (0: no videos)")
     select_episodes([{"episode": e.index, "key": e.key, "success": False} for e in episodes], video, video_max)
     return runner_cfg, episodes

@@ -24,6 +24,7 @@ from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, ce
 )
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart
+from cicfw.core.run_folder import claim_folder
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
 
@@ -393,8 +394,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
     what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"
     try:
-        from cicfw.core.run_folder import claim_folder
-
         if args.out or len(args.dirs) > 1:  # not the one folder given: its own tables, joined from what it holds
             claim_folder(out, "report", "--out", inputs=[*args.dirs, *(r.path for r in runs)],
                          foreign_ok=args.overwrite)

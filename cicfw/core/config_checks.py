@@ -268,8 +268,6 @@ def check_composed(node: Any, schema: type, where: str = "", skip: tuple[str, ..
     another registered name) is checked wholly against ``schema`` here (``checked``). ``skip``: the full
     keys of nodes the caller checks itself (``sim``, against the backend its ``name`` builds); the ``hydra``
     node is Hydra's. One ``SchemaError`` naming the full key."""
-    from omegaconf import DictConfig, OmegaConf
-
     if not isinstance(node, DictConfig) or OmegaConf.get_type(node) is not schema:
         checked(schema, plain_values(node) if OmegaConf.is_config(node) else node, where)
         return
@@ -283,8 +281,6 @@ def check_composed(node: Any, schema: type, where: str = "", skip: tuple[str, ..
 def _missing_keys(node: Any) -> list[str]:
     """The full keys of the values under ``node`` left ``???``, Hydra's node left out (its interpolations
     resolve only in a running job)."""
-    from omegaconf import OmegaConf
-
     children = [node._get_node(k) for k in node if k != "hydra"]
     return sorted([c._get_full_key(None) for c in children if c._is_missing()]
                   + [k for c in children if OmegaConf.is_config(c) and not c._is_missing()
@@ -294,8 +290,6 @@ def _missing_keys(node: Any) -> list[str]:
 def _refuse_added_keys(node: Any, where: str, skip: tuple[str, ...]) -> None:
     """A key added with ``+`` to ``node`` or a node under it typed with a dataclass, refused as composing
     refuses an unknown key (or naming what to do instead of a key cicfw sets)."""
-    from omegaconf import DictConfig, OmegaConf
-
     schema = OmegaConf.get_type(node)
     fields = {f.name for f in dataclasses.fields(schema)}
     for k in map(str, node):

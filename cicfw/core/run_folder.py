@@ -27,6 +27,7 @@ from typing import Any, Mapping, Sequence
 
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
+from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
@@ -94,8 +95,6 @@ class RunFolderCheck(Callback):
     def claim(config: Any) -> None:
         """``claim_folder`` for the run folder, the app named by Hydra's job name (what Hydra records there),
         the data folder being ``data.path`` where the app has one; one line (exit status 2) when refused."""
-        from omegaconf import OmegaConf
-
         folder = str(config.hydra.run.dir)
         try:
             data = OmegaConf.select(config, "data.path", default=None)
@@ -369,8 +368,6 @@ def _entries(folder: Path) -> list[str]:
 def _hydra_job(folder: Path) -> str | None:
     """The job name Hydra recorded for the run (``.hydra/hydra.yaml``) or the sweep (``multirun.yaml``) in
     ``folder``; for a ``.hydra`` without ``hydra.yaml``, the name of the job log beside it (``<job>.log``)."""
-    from omegaconf import OmegaConf
-
     for record in (folder / ".hydra" / "hydra.yaml", folder / "multirun.yaml"):
         if record.is_file():
             try:
