@@ -4,9 +4,7 @@ against the recording stand-in; against a real server it is the user's one-minut
 from __future__ import annotations
 
 import io
-import os
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -23,12 +21,11 @@ from cicfw.carla_client.backend import (CarlaBackend, CarlaError, CarlaNotInstal
                                         INSTALL_COMMAND, CarlaServerUnavailable, CarlaVersionMismatch, connect,
                                         import_carla)
 from carla_standin import StandIn, maps_dir  # noqa: E402
-from conftest import assert_refused  # noqa: E402
+from conftest import assert_refused, run_app_in_process  # noqa: E402
 
 MAPS = maps_dir()
 needs_maps = pytest.mark.skipif(MAPS is None, reason="CARLA's Town01/Town02 OpenDRIVE files are not in "
                                                      "../shared/carla-maps (or $CICFW_CARLA_MAPS)")
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def unused_port() -> int:
@@ -90,18 +87,16 @@ def test_config_errors_name_the_key():
 
 
 @pytest.mark.parametrize("case", ["evaluate", "collect", "evaluate-no-client"])
-def test_the_apps_print_one_line(case, tmp_path):
+def test_the_apps_print_one_line(case, tmp_path, monkeypatch):
     port = unused_port()
     sim = [f"sim.host=127.0.0.1", f"sim.port={port}", "sim.connect_timeout_s=1"]
     if case == "collect":
         args = ["cicfw.collect", "sim=carla", *sim, f"out_dir={tmp_path / 'data'}"]
     else:
         args = ["cicfw.evaluate", "policy=expert", "sim=carla", *sim, f"hydra.run.dir={tmp_path / 'run'}"]
-    hide = "sys.modules['carla'] = None; " if case == "evaluate-no-client" else ""
-    code = (f"import runpy, sys; {hide}sys.argv = ['cicfw'] + {args[1:]!r}; "
-            f"runpy.run_module({args[0]!r}, run_name='__main__')")
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    if case == "evaluate-no-client":
+        monkeypatch.setitem(sys.modules, "carla", None)  # `import carla` raises ImportError, as when not installed
+    p = run_app_in_process(*args, cwd=tmp_path)
     assert len([ln for ln in p.stderr.splitlines() if ln.strip()]) == 1, p.stderr[-2000:]
     if case == "evaluate-no-client":
         assert INSTALL_COMMAND in assert_refused(p, "sim=carla")

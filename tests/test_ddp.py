@@ -47,26 +47,6 @@ def test_ddp_config_is_lightning_ddp_with_selectable_precision(tiny_data, tmp_pa
     assert trainer.precision == "bf16-mixed"
 
 
-def test_two_cpu_processes_each_see_their_own_balanced_batches(tiny_data, tmp_path):
-    # ddp_spawn: the same DDP over gloo, but started from this process (plain `ddp` re-runs the
-    # command line, here pytest's); the sampler and the ddp config are what is under test.
-    cfg = _ddp_cfg(tiny_data, "trainer.strategy=ddp_spawn")
-    trainer = build_trainer(cfg, tmp_path / "run")
-    trainer.callbacks.append(BatchRecorder(tmp_path))
-    trainer.fit(build_model(cfg), datamodule=build_datamodule(cfg))
-
-    seen = {}
-    for rank in (0, 1):
-        batches = [json.loads(line) for line in (tmp_path / f"rank{rank}.jsonl").read_text().splitlines()]
-        assert len(batches) == 2 and all(b["world_size"] == 2 for b in batches)
-        for b in batches:
-            assert len(b["speed"]) == 8
-            assert sorted(b["command"]) == sorted(list(range(N_COMMANDS)) * 2)  # 2 per command, every command
-        seen[rank] = {s for b in batches for s in b["speed"]}
-        assert len(seen[rank]) == 16  # no sample twice within a rank's two batches
-    assert not seen[0] & seen[1], "the two ranks drew the same samples"
-
-
 class ImageRecorder(L.Callback):
     """Appends a digest of each training batch's images to ``images<r>.txt``."""
 
@@ -80,8 +60,9 @@ class ImageRecorder(L.Callback):
             f.write(hashlib.sha256(batch["image"].cpu().numpy().tobytes()).hexdigest() + "\n")
 
 
-def test_two_ranks_draw_different_augmentation(tmp_path):
-    """Every image one grey: the ranks' batches can differ only by their augmentation."""
+def test_two_cpu_processes_each_see_their_own_balanced_batches_and_augmentation(tmp_path):
+    """One two-rank training checked two ways. Every image is one grey, so the ranks' batches can differ
+    only by their augmentation; the speeds are random per sample, so they identify the samples."""
     import numpy as np
 
     from cicfw.data.cil_hdf5 import write_file
@@ -90,10 +71,24 @@ def test_two_ranks_draw_different_augmentation(tmp_path):
     rng = np.random.default_rng(0)
     for i in range(6):
         write_file(tmp_path / "grey" / f"data_{i:05d}.h5", np.full((24, 88, 200, 3), 128, np.uint8), make_targets(24, rng))
+    # ddp_spawn: the same DDP over gloo, but started from this process (plain `ddp` re-runs the
+    # command line, here pytest's); the sampler and the ddp config are what is under test.
     cfg = _ddp_cfg(tmp_path / "grey", "trainer.strategy=ddp_spawn")
     trainer = build_trainer(cfg, tmp_path / "run")
-    trainer.callbacks.append(ImageRecorder(tmp_path))
+    trainer.callbacks += [BatchRecorder(tmp_path), ImageRecorder(tmp_path)]
     trainer.fit(build_model(cfg), datamodule=build_datamodule(cfg))
+
+    seen = {}
+    for rank in (0, 1):
+        batches = [json.loads(line) for line in (tmp_path / f"rank{rank}.jsonl").read_text().splitlines()]
+        assert len(batches) == 2 and all(b["world_size"] == 2 for b in batches)
+        for b in batches:
+            assert len(b["speed"]) == 8
+            assert sorted(b["command"]) == sorted(list(range(N_COMMANDS)) * 2)  # 2 per command, every command
+        seen[rank] = {s for b in batches for s in b["speed"]}
+        assert len(seen[rank]) == 16  # no sample twice within a rank's two batches
+    assert not seen[0] & seen[1], "the two ranks drew the same samples"
+
     digests = [(tmp_path / f"images{rank}.txt").read_text().split() for rank in (0, 1)]
     assert len(digests[0]) == len(digests[1]) == 2
     assert not set(digests[0]) & set(digests[1]), "the two ranks drew the same augmentation"

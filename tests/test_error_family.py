@@ -7,7 +7,6 @@ import os
 import pickle
 import subprocess
 import sys
-import textwrap
 
 import pytest
 
@@ -84,35 +83,32 @@ def test_cicfw_debug_shows_the_traceback_of_a_user_error(capsys, monkeypatch):
 
 # ---- the apps, end to end -----------------------------------------------------------------------------
 
-#: a bug planted in a mixer: its forward raises a ValueError, as a numpy broadcast or a shape mismatch would
-PLANTED = textwrap.dedent("""
-    import sys
+def _argv(tmp_path, *args):
+    from cicfw.testing import write_tiny_dataset
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    return ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+            "progress_bar=false", "trainer.fast_dev_run=true", f"hydra.run.dir={tmp_path}/run", *args]
+
+
+def _train(tmp_path, *args, env=None):
+    """``python -m cicfw.train`` in this interpreter (``run_app_in_process``): what it prints and exits with."""
+    from conftest import run_app_in_process
+
+    env = {"CICFW_DEBUG": None, "HYDRA_FULL_ERROR": None} | (env or {})
+    return run_app_in_process("cicfw.train", *_argv(tmp_path, *args), env=env)
+
+
+@pytest.mark.slow
+def test_a_planted_bug_in_a_mixer_prints_its_traceback(tmp_path, monkeypatch):
+    """A bug planted in a mixer: its forward raises a ValueError, as a numpy broadcast or a shape mismatch would."""
     from cicfw.model.mixers.independent import IndependentMixer
 
     def forward(self, h):
         raise ValueError("operands could not be broadcast together with shapes (8,4) (3,)")
 
-    IndependentMixer.forward = forward
-    import runpy
-    sys.argv = ["cicfw.train", *sys.argv[1:]]
-    runpy.run_module("cicfw.train", run_name="__main__", alter_sys=True)
-""")
-
-
-def _train(tmp_path, *args, code=None, env=None):
-    from cicfw.testing import write_tiny_dataset
-
-    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
-    argv = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
-            "progress_bar=false", "trainer.fast_dev_run=true", f"hydra.run.dir={tmp_path}/run", *args]
-    cmd = [sys.executable, "-c", code, *argv] if code else [sys.executable, "-m", "cicfw.train", *argv]
-    env = {k: v for k, v in os.environ.items() if k not in ("CICFW_DEBUG", "HYDRA_FULL_ERROR")} | (env or {})
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
-
-
-@pytest.mark.slow
-def test_a_planted_bug_in_a_mixer_prints_its_traceback(tmp_path):
-    run = _train(tmp_path, code=PLANTED)
+    monkeypatch.setattr(IndependentMixer, "forward", forward)
+    run = _train(tmp_path)
     assert run.returncode not in (0, 2), run.stderr[-2000:]
     assert "Traceback" in run.stderr and "ValueError: operands could not be broadcast" in run.stderr
     assert "cicfw: error" not in run.stderr
@@ -120,7 +116,10 @@ def test_a_planted_bug_in_a_mixer_prints_its_traceback(tmp_path):
 
 @pytest.mark.slow
 def test_a_wrong_key_is_one_line(tmp_path):
-    run = _train(tmp_path, "mixer.hiden=64")
+    """Through the real ``python -m`` entry (its own handlers, its own stderr): refused while composing."""
+    env = {k: v for k, v in os.environ.items() if k not in ("CICFW_DEBUG", "HYDRA_FULL_ERROR")}
+    run = subprocess.run([sys.executable, "-m", "cicfw.train", *_argv(tmp_path, "mixer.hiden=64")],
+                         capture_output=True, text=True, timeout=300, env=env)
     assert run.returncode == 2
     lines = [ln for ln in run.stderr.splitlines() if ln.startswith("cicfw:")]
     assert len(lines) == 1 and "mixer.hiden" in lines[0], run.stderr[-2000:]

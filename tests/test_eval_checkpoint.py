@@ -5,8 +5,6 @@ from __future__ import annotations
 import collections
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import lightning as L
@@ -142,11 +140,12 @@ def test_evaluate_config_errors(tmp_path: Path):
 
 
 def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
+    from conftest import run_app_in_process
+
     sweep = tmp_path / "sweep"
-    proc = subprocess.run(
-        [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert,constant", f"suite.towns=[{TOWN}]",
-         "suite.weathers=[ClearNoon]", "suite.pairs=[0,1,2]", "progress_bar=false", "maps=false",
-         f"hydra.sweep.dir={sweep}"], capture_output=True, text=True)
+    proc = run_app_in_process(
+        "cicfw.evaluate", "-m", "policy=expert,constant", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]",
+        "suite.pairs=[0,1,2]", "progress_bar=false", "maps=false", f"hydra.sweep.dir={sweep}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     md = (sweep / "table.md").read_text()
     assert "| Expert | – | – | 100.00 | – |" in md and "| constant steer +0.00 | – | – |" in md

@@ -219,9 +219,10 @@ def test_a_folder_of_another_evaluation_is_refused_in_one_line(whole, tmp_path: 
 
 def test_the_app_refuses_with_its_own_hint(whole):
     ref, _ = whole
-    proc = subprocess.run([sys.executable, "-m", "cicfw.evaluate", "policy=constant", f"suite.towns=[{TOWN}]",
-                           "suite.limit=2", "progress_bar=false", f"hydra.run.dir={ref}"],
-                          capture_output=True, text=True)
+    from conftest import run_app_in_process
+
+    proc = run_app_in_process("cicfw.evaluate", "policy=constant", f"suite.towns=[{TOWN}]", "suite.limit=2",
+                              "progress_bar=false", f"hydra.run.dir={ref}")
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "hydra.run.dir=<new folder>" in assert_refused(proc, "policy.name", ref)  # the app's own hint
 

@@ -1,6 +1,7 @@
 """``speed.keep_memory`` (cicfw/model/memory.py): the training step stops page-faulting its activations
-in again, and computes exactly what it computed without the switch. Each variant runs in a fresh process
-(the switch is process-wide), through ``apply_speed_from_config`` as cicfw.train applies it."""
+in again, and computes exactly what it computed without the switch. Both variants run in one fresh process,
+through ``apply_speed_from_config`` as cicfw.train applies it: first without the switch, then with it (the
+switch is process-wide and not undone, so the plain steps must come first)."""
 from __future__ import annotations
 
 import json
@@ -25,40 +26,47 @@ from cicfw.train.app import build_model
 from cicfw.train.schema import checked_speed
 
 torch.set_num_threads(1)
-with initialize_config_module("cicfw.conf", version_base="1.3"):
-    cfg = compose("train", overrides=["experiment=paper_cil", "speed.compile=false", "speed.channels_last=true",
-                                      "speed.adam=for-loop", f"speed.keep_memory={sys.argv[1]}"])
-torch.manual_seed(0)
-model = build_model(cfg).train()
-variant = apply_speed_from_config(model, checked_speed(cfg), cfg.trainer, 16, 6)
-opt = model.configure_optimizers()
-opt = opt["optimizer"] if isinstance(opt, dict) else opt
-batch = dummy_batch(None, 16)
-faults, losses = [], []
-for i in range(6):
-    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    opt.zero_grad()
-    loss = model.training_step(batch, i)
-    loss.backward()
-    opt.step()
-    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
-    losses.append(float(loss))
-print(json.dumps({"variant": variant, "faults": faults, "losses": losses,
-                  "weights": [float(p.double().sum()) for p in model.parameters()]}))
+
+
+def steps(keep):
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=paper_cil", "speed.compile=false", "speed.channels_last=true",
+                                          "speed.adam=for-loop", f"speed.keep_memory={keep}"])
+    torch.manual_seed(0)
+    model = build_model(cfg).train()
+    variant = apply_speed_from_config(model, checked_speed(cfg), cfg.trainer, 16, 6)
+    opt = model.configure_optimizers()
+    opt = opt["optimizer"] if isinstance(opt, dict) else opt
+    batch = dummy_batch(None, 16)
+    faults, losses = [], []
+    for i in range(6):
+        f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        opt.zero_grad()
+        loss = model.training_step(batch, i)
+        loss.backward()
+        opt.step()
+        faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+        losses.append(float(loss))
+    return {"variant": variant, "faults": faults, "losses": losses,
+            "weights": [float(p.double().sum()) for p in model.parameters()]}
+
+
+print(json.dumps([steps(False), steps(True)]))
 """
 
 
-def run(keep: bool) -> dict:
-    out = subprocess.run([sys.executable, "-c", STEPS, "true" if keep else "false"], capture_output=True,
-                         text=True, timeout=300)
+def run() -> tuple[dict, dict]:
+    """The plain steps, then the same steps with the switch on, in one fresh process."""
+    out = subprocess.run([sys.executable, "-c", STEPS], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    plain, kept = json.loads(out.stdout.strip().splitlines()[-1])
+    return plain, kept
 
 
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
                     reason="the switch sets glibc's malloc thresholds")
 def test_kept_memory_stops_the_page_faults_and_computes_the_same():
-    plain, kept = run(False), run(True)
+    plain, kept = run()
     assert "freed memory kept" in kept["variant"] and "freed memory kept" not in plain["variant"]
     assert kept["losses"] == plain["losses"] and kept["weights"] == plain["weights"]  # bit for bit
     # after two steps of warm-up the heap holds what a step needs. Measured at batch 16: 8-32 k faults a

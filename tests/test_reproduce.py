@@ -113,19 +113,26 @@ def test_rerun_skips_every_finished_cell(smoke_run, capsys):
 
 
 def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
+    """A run killed mid-way through its second cell (once that cell's training has begun) resumes: the
+    finished cell is not recomputed, the killed one completes. The finished cell is the smoke run's cil
+    seed 0 (the same first cell, data and seed), copied in with the run's manifest, so the killed process
+    spends nothing on a cell it is not killed in."""
     out = tmp_path / "results"
+    shutil.copytree(smoke_run / "cells" / "cil" / "seed0", out / "cells" / "cil" / "seed0")
+    shutil.copy(smoke_run / "reproduce.json", out / "reproduce.json")
     env = {**os.environ, "CICFW_CACHE": str(cache)}
-    plan = [*SMOKE, "rows=[cil]", "seeds=2", "budget.curve_seeds=[]", f"results_dir={out}"]  # no curve: one drive a cell
+    plan = [*SMOKE, "rows=[cil]", "seeds=2", f"results_dir={out}"]
     cmd = [sys.executable, "-m", "cicfw.reproduce", *plan]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     first = out / "cells" / "cil" / "seed0" / "cell.json"
-    deadline = time.time() + 900  # generous: a loaded 2-core machine trains the first cell slowly
-    while not first.is_file() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGKILL)  # the whole run, mid-way through the second cell (or just after)
-    proc.wait()
-    assert first.is_file()
+    mid_way = out / "cells" / "cil" / "seed1" / "train"
     kept = first.read_text()
+    deadline = time.time() + 900  # generous: a loaded 2-core machine trains slowly
+    while not mid_way.is_dir() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole run, mid-way through the second cell
+    proc.wait()
+    assert mid_way.is_dir()
     assert reproduce.main(plan) == 0
     assert first.read_text() == kept  # the finished cell was not recomputed
     got = cells(out)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -19,16 +17,19 @@ from omegaconf import OmegaConf
 from cicfw.core import errors
 from cicfw.registry import MIXERS
 from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
+from conftest import AppResult, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 TINY = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false"]
 
 
-def _multirun(tmp_path: Path, tiny_data: Path, *args: str) -> tuple[subprocess.CompletedProcess, list[dict]]:
+def _multirun(tmp_path: Path, tiny_data: Path, *args: str) -> tuple[AppResult, list[dict]]:
+    """``python -m cicfw.train <args>`` in this interpreter (the sweep's jobs run in-process as they would
+    in the app's own process), and the sweep's summary rows."""
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "cicfw.train", *args, *TINY, f"data.path={tiny_data}", f"hydra.sweep.dir={sweep}"]
-    run = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    run = run_app_in_process("cicfw.train", *args, *TINY, f"data.path={tiny_data}", f"hydra.sweep.dir={sweep}",
+                             cwd=tmp_path)
     summary = sweep / "summary.csv"
     assert summary.is_file(), run.stdout[-3000:] + run.stderr[-3000:]
     with open(summary, newline="") as f:
