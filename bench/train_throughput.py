@@ -73,7 +73,7 @@ def cpu_has_native_bf16() -> bool:
 def default_variant() -> str:
     """The variant conf/speed/default.yaml selects (its precision: conf/trainer/default.yaml's)."""
     cfg = OmegaConf.load(ROOT / "conf" / "trainer" / "default.yaml")
-    s = SpeedConfig.from_cfg(OmegaConf.load(ROOT / "conf" / "speed" / "default.yaml"))
+    s = SpeedConfig(**OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "speed" / "default.yaml")))
     key = (s.channels_last, s.compile in (True, "auto"), s.adam, str(cfg.get("precision", "32-true")), False)
     for name, spec in VARIANTS.items():
         if spec == key:

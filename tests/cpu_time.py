@@ -1,4 +1,5 @@
-"""Opt-in pytest plugin: the CPU seconds each test costs, printed at the end (`pytest -p tests.cpu_time`).
+"""Opt-in pytest plugin: the CPU seconds each test costs, printed at the end
+(`PYTHONPATH=. pytest -p tests.cpu_time`, from the repository root).
 
 CPU time, not wall time, because the suite's machine is shared: a loaded machine stretches wall seconds but
 not the CPU a test spends. A test's figure is this process's CPU (``time.process_time()``) plus that of the

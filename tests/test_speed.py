@@ -15,6 +15,7 @@ from cicfw.model.checkpoint import load_model
 from cicfw.model.module import CICModule
 from cicfw.model.speed import AUTO_COMPILE_MIN_STEPS, SpeedConfig, apply_speed, dummy_batch, planned_steps, time_steps
 from cicfw.train.app import train
+from cicfw.train.schema import checked_speed
 
 from conftest import compose_train
 
@@ -29,7 +30,7 @@ NO_DROPOUT = {"encoder_kwargs": {"dropout_conv": 0.0, "dropout_fc": 0.0}, "mixer
 
 
 def default_speed() -> SpeedConfig:
-    speed = SpeedConfig.from_cfg(compose_train().speed)
+    speed = checked_speed(compose_train())
     speed.compile = speed.compile in (True, "auto")  # the main job's runs are long enough for auto
     return speed
 
@@ -163,7 +164,7 @@ def test_every_trainer_config_and_experiment_gets_the_default_speed():
     experiments = sorted(p.stem for p in (Path(conf_init).parent / "experiment").glob("*.yaml"))
     default = default_speed()
     for over in [[], ["trainer=ddp"], *[[f"experiment={e}"] for e in experiments]]:
-        speed = SpeedConfig.from_cfg(compose_train(*over).speed)
+        speed = checked_speed(compose_train(*over))
         speed.compile = speed.compile in (True, "auto")
         assert speed == default, over
 
