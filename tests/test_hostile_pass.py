@@ -1,0 +1,31 @@
+"""Inputs a new user gets wrong that once gave a silently wrong result: each is now refused or honoured."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from cicfw.benchmark.suite import build_suite, make_backend
+from cicfw.core.errors import ConfigError
+
+TOWN = Path(__file__).parent / "data" / "bench_town.yaml"
+
+
+@pytest.mark.parametrize("second", ["copy", "builtin"])
+def test_two_towns_of_one_name_are_refused(tmp_path: Path, second: str) -> None:
+    """Episodes are keyed <town>/<weather>/<pair> by the town's name (a file's stem): two towns of one name
+    would share keys, so one episode's trajectory and map would be the other's."""
+    first = tmp_path / "a" / "town_b.yaml"
+    first.parent.mkdir()
+    shutil.copy(TOWN, first)
+    other = str(shutil.copy(TOWN, tmp_path / "town_b.yaml")) if second == "copy" else "town_b"
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), [str(first), other], ["ClearNoon"], training_towns=["town_a"], limit=1)
+    assert err.value.key == "suite.towns" and err.value.value == other
+
+
+def test_towns_of_distinct_names_are_driven(tmp_path: Path) -> None:
+    first = Path(shutil.copy(TOWN, tmp_path / "mine.yaml"))
+    eps = build_suite(make_backend(None), [str(first), "town_b"], ["ClearNoon"], training_towns=["mine"], limit=1)
+    assert len({e.key for e in eps}) == len(eps) == 2
