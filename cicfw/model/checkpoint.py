@@ -24,14 +24,24 @@ class CheckpointError(CicfwError):
 
 def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
-    best checkpoint (``last.ckpt`` aside)."""
+    best checkpoint (``last.ckpt`` aside) in its ``checkpoints/``; a folder without one is searched
+    below, and must hold the checkpoints of one run only."""
     p = Path(str(path)).expanduser()
     if p.is_dir():
-        found = sorted(f for f in p.rglob("*.ckpt") if f.name != "last.ckpt")
+        own = p / "checkpoints"
+        # a run folder: its own checkpoints only, not those of a run trained in a folder inside it
+        every = sorted(own.glob("*.ckpt")) if own.is_dir() else sorted(p.rglob("*.ckpt"))
+        runs = sorted({f.parent for f in every})
+        if len(runs) > 1:  # a folder above several runs: which one is meant is not ours to guess
+            raise CheckpointError(
+                f"checkpoint={str(path)!r} holds the checkpoints of {len(runs)} runs "
+                f"({', '.join(str(r) for r in runs[:4])}{' ...' if len(runs) > 4 else ''}); give one run's "
+                f"folder or one .ckpt file", key="checkpoint", value=path)
+        found = [f for f in every if f.name != "last.ckpt"]
         if len(found) == 1:
             return found[0].resolve()
-        if not found and (p / "checkpoints" / "last.ckpt").is_file():
-            return (p / "checkpoints" / "last.ckpt").resolve()
+        if not found and runs and (runs[0] / "last.ckpt").is_file():
+            return (runs[0] / "last.ckpt").resolve()
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
             f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
