@@ -60,3 +60,27 @@ def test_a_folder_above_several_runs_is_refused(tmp_path: Path) -> None:
     assert err.value.key == "checkpoint" and err.value.value == tmp_path / "day"
     assert resolve_checkpoint(tmp_path / "day" / "b") == (tmp_path / "day" / "b" / "checkpoints" / "last.ckpt").resolve()
     assert resolve_checkpoint(tmp_path / "day" / "a" / "checkpoints").name == "epoch000-mae0.3000.ckpt"
+
+
+@pytest.mark.parametrize("threads", [-1, 0, 1.5, True, "2"])
+def test_agent_threads_must_be_a_count(tmp_path: Path, threads: object) -> None:
+    """threads=-1 reached torch.set_num_threads as a RuntimeError traceback (a checkpoint), or onnxruntime
+    as its default (an exported model): refused as one line before the model is read."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.export.agent import Agent
+
+    with pytest.raises(CicfwError) as err:
+        Agent.load(tmp_path / "not-read.ckpt", threads=threads)
+    assert err.value.key == "threads" and err.value.value == threads
+
+
+def test_an_onnx_model_is_known_by_any_case_or_through_a_link(tmp_path: Path, monkeypatch) -> None:
+    """'M.ONNX', or a link 'model' to 'm.onnx', was read as a PyTorch checkpoint and refused as one."""
+    from cicfw.export.agent import Agent
+
+    monkeypatch.setattr(Agent, "_load_onnx", classmethod(lambda cls, p, threads: ("onnx", p.name)))
+    (tmp_path / "M.ONNX").write_bytes(b"\x08\x07")
+    (tmp_path / "m.onnx").write_bytes(b"\x08\x07")
+    (tmp_path / "model").symlink_to(tmp_path / "m.onnx")
+    assert Agent.load(tmp_path / "M.ONNX") == ("onnx", "M.ONNX")
+    assert Agent.load(tmp_path / "model") == ("onnx", "model")
