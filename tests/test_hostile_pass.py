@@ -84,3 +84,25 @@ def test_an_onnx_model_is_known_by_any_case_or_through_a_link(tmp_path: Path, mo
     (tmp_path / "model").symlink_to(tmp_path / "m.onnx")
     assert Agent.load(tmp_path / "M.ONNX") == ("onnx", "M.ONNX")
     assert Agent.load(tmp_path / "model") == ("onnx", "model")
+
+
+def test_an_edited_town_file_is_another_evaluation(tmp_path: Path) -> None:
+    """A town file edited between two runs into one folder kept its route names, so the rerun resumed
+    (or, finished, reported) the episodes driven in the old town: the fingerprint holds its contents."""
+    from cicfw.benchmark.app import run_fingerprint
+    from cicfw.benchmark.runner import RunnerConfig
+
+    town = Path(shutil.copy(TOWN, tmp_path / "mine.yaml"))
+    suite = {"towns": [str(town)], "weathers": ["ClearNoon"], "limit": 1}
+
+    def fingerprint() -> dict:
+        eps = build_suite(make_backend(None), [str(town)], ["ClearNoon"], training_towns=["mine"], limit=1)
+        return run_fingerprint({"name": "expert"}, suite, {"name": "embedded"}, RunnerConfig(), eps)[0]
+
+    before = fingerprint()
+    assert fingerprint() == before
+    town.write_text(town.read_text().replace("lane_width:", "lane_width: 3.5 #", 1))
+    assert fingerprint() != before
+    builtin = build_suite(make_backend(None), ["town_b"], ["ClearNoon"], training_towns=["town_a"], limit=1)
+    assert "town_files" not in run_fingerprint({"name": "expert"}, {"towns": ["town_b"]}, {"name": "embedded"},
+                                               RunnerConfig(), builtin)[0]

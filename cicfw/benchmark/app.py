@@ -323,8 +323,8 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
                     episodes: Sequence[Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """What decides a run's episodes (a folder resumes only with the same), and readable extras.
 
-    The checkpoint counts by its contents (sha256), not its path; the runner by its episode rules
-    (off-road limits, target speed) and seed, not its batch size or worker count."""
+    The checkpoint counts by its contents (sha256), not its path, and so does a town given as a file; the
+    runner by its episode rules (off-road limits, target speed) and seed, not its batch size or worker count."""
     import hashlib
     import json
 
@@ -350,6 +350,10 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
         "runner": {"off_road_s": runner.off_road_s, "off_road_level": runner.off_road_level,
                    "target_speed_kmh": runner.target_speed_kmh},
     }
+    # a town given as a file counts by its contents too: its routes keep their names when the file is edited
+    town_files = sorted({str(e.town) for e in episodes if str(e.town).endswith((".yaml", ".yml"))})
+    if town_files:
+        fp["town_files"] = {t: hashlib.sha256(Path(t).expanduser().read_bytes()).hexdigest()[:16] for t in town_files}
     return fp, info
 
 
