@@ -106,3 +106,26 @@ def test_an_edited_town_file_is_another_evaluation(tmp_path: Path) -> None:
     builtin = build_suite(make_backend(None), ["town_b"], ["ClearNoon"], training_towns=["town_a"], limit=1)
     assert "town_files" not in run_fingerprint({"name": "expert"}, {"towns": ["town_b"]}, {"name": "embedded"},
                                                RunnerConfig(), builtin)[0]
+
+
+def test_checkpoint_and_policy_checkpoint_naming_two_models_are_refused() -> None:
+    """policy.checkpoint= replaces the ${checkpoint} it defaults to, so checkpoint=b was silently ignored
+    and a drove (the report named a as well)."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.app import policy_spec
+    from cicfw.core.errors import CicfwError
+
+    def cfg(top: str | None, own: str | None):
+        c = OmegaConf.create({"checkpoint": top, "name": None,
+                              "policy": {"name": "checkpoint", "checkpoint": "${checkpoint}"}})
+        if own is not None:
+            c.policy.checkpoint = own
+        return c
+
+    with pytest.raises(CicfwError) as err:
+        policy_spec(cfg("b.ckpt", "a.ckpt"))
+    assert err.value.key == "policy.checkpoint" and err.value.value == "a.ckpt"
+    assert policy_spec(cfg("b.ckpt", None))["checkpoint"] == "b.ckpt"
+    assert policy_spec(cfg(None, "a.ckpt"))["checkpoint"] == "a.ckpt"
+    assert policy_spec(cfg("a.ckpt", "a.ckpt"))["checkpoint"] == "a.ckpt"

@@ -38,6 +38,10 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("checkpoint") and spec.get("name") != "checkpoint":
         raise CicfwError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
                          f"drop checkpoint= or use policy=checkpoint", key="checkpoint", value=cfg.get("checkpoint"))
+    if spec.get("name") == "checkpoint" and cfg.get("checkpoint") and spec.get("checkpoint") \
+            and str(spec["checkpoint"]) != str(cfg.checkpoint):  # policy.checkpoint= replaced ${checkpoint}
+        raise CicfwError(f"checkpoint={cfg.checkpoint} and policy.checkpoint={spec['checkpoint']} name two models; "
+                         f"give checkpoint= alone", key="policy.checkpoint", value=spec["checkpoint"])
     if spec.get("name") == "checkpoint" and not spec.get("checkpoint"):
         raise CicfwError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
                          "or policy=expert for the reference driver", key="checkpoint")
