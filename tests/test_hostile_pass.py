@@ -129,3 +129,36 @@ def test_checkpoint_and_policy_checkpoint_naming_two_models_are_refused() -> Non
     assert policy_spec(cfg("b.ckpt", None))["checkpoint"] == "b.ckpt"
     assert policy_spec(cfg(None, "a.ckpt"))["checkpoint"] == "a.ckpt"
     assert policy_spec(cfg("a.ckpt", "a.ckpt"))["checkpoint"] == "a.ckpt"
+
+
+def _run_with_config(run: Path, mixer: str) -> None:
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(
+        f"seed: 7\nencoder: {{name: cil}}\nmixer: {{name: {mixer}}}\nhead: {{name: regression}}\n"
+        f"data: {{path: /data, seed: 7, val_fraction: 0.3}}\n")
+
+
+def _checkpoint(path: Path, mixer: str) -> Path:
+    import torch
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": {}, "hyper_parameters": {"encoder": "cil", "mixer": mixer, "head": "regression"}}, path)
+    return path
+
+
+def test_a_checkpoint_in_another_runs_folder_does_not_borrow_its_config(tmp_path: Path) -> None:
+    """A gtu checkpoint copied into an independent run's checkpoints/ took that run's config: the export
+    sidecar's row_config named the other model, and diagnose drew the other run's split."""
+    from cicfw.diagnose.app import training_data
+    from cicfw.model.checkpoint import config_parts_differ
+
+    run = tmp_path / "run"
+    _run_with_config(run, "independent")
+    own = _checkpoint(run / "checkpoints" / "last.ckpt", "independent")
+    foreign = _checkpoint(run / "checkpoints" / "copied.ckpt", "gtu")
+    assert training_data(own) is not None and training_data(own)[0]["seed"] == 7
+    assert training_data(foreign) is None
+    cfg = {"encoder": {"name": "cil"}, "mixer": {"name": "independent"}, "head": {"name": "regression"}}
+    assert config_parts_differ(cfg, {"encoder": "cil", "mixer": "independent", "head": "regression"}) is None
+    assert "gtu" in config_parts_differ(cfg, {"encoder": "cil", "mixer": "gtu", "head": "regression"})
+    assert config_parts_differ({"cell": {"row": "cil"}}, {"mixer": "gtu"}) is None

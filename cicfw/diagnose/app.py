@@ -95,12 +95,20 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
     """The split settings of the run that wrote ``checkpoint``, and where they came from: the nearest
     ``.hydra/config.yaml`` at most SEARCH_LEVELS folders above it, either a ``cicfw train`` run's (its
     ``data`` node) or a ``cicfw reproduce`` cell's (the cell's training config composed again from its
-    row, seed and budget). None when there is neither."""
+    row, seed and budget). None when there is neither, or when the config names other parts than the
+    checkpoint (a checkpoint copied into another run's folder: that run's split is not its own)."""
+    from cicfw.model.checkpoint import checkpoint_hyper_parameters, config_parts_differ
+
     for folder in [checkpoint.parent, *checkpoint.parent.parents][:SEARCH_LEVELS + 1]:
         path = folder / ".hydra" / "config.yaml"
         if not path.is_file():
             continue
         cfg = OmegaConf.load(path)
+        differ = config_parts_differ(OmegaConf.to_container(cfg, resolve=False), checkpoint_hyper_parameters(checkpoint))
+        if differ:
+            log.warning("%s is not the config of %s (%s), so its split settings are not used", path, checkpoint,
+                        differ)
+            return None
         if "data" in cfg and "path" in cfg.data:
             values = _data_values(cfg.data, str(path))
             values["path"] = where_it_ran(values.get("path"), folder)

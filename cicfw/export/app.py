@@ -388,10 +388,14 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
 def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
     import cicfw
-    from cicfw.model.checkpoint import describe
+    from cicfw.model.checkpoint import config_parts_differ, describe
 
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
+    if cfg is not None and (differ := config_parts_differ(cfg, hp)):  # another run's folder, not this model's
+        log.warning("%s is not the config of %s (%s); the sidecar's row_config is left null", cfg_path,
+                    checkpoint, differ)
+        cfg, cfg_path = None, None
     row = None
     if cfg is not None:
         row = {k: cfg.get(k) for k in ("experiment", "encoder", "mixer", "head", "model", "seed") if k in cfg}

@@ -182,3 +182,34 @@ def describe(hp: Mapping[str, Any]) -> str:
     (a classification head's decoder is part of the label: it changes how the model steers)."""
     decode = (hp.get("head_kwargs") or {}).get("decode")
     return f"{hp.get('mixer')}+{hp.get('head')}" + (f"/{decode}" if decode else "")
+
+
+def config_parts_differ(cfg: Mapping[str, Any], hp: Mapping[str, Any]) -> str | None:
+    """How a training run's saved config names other parts than a checkpoint's hyper-parameters (e.g.
+    ``mixer independent, checkpoint gtu``), or None when they agree or the config names no parts (a
+    reproduce cell's). A checkpoint copied into another run's folder would otherwise borrow that run's
+    config: its row, its data split."""
+    differ = []
+    for part in ("encoder", "mixer", "head"):
+        node = cfg.get(part)
+        name = node.get("name") if isinstance(node, Mapping) else None
+        if name is not None and hp.get(part) is not None and str(name) != str(hp[part]):
+            differ.append(f"{part} {name}, checkpoint {hp[part]}")
+    return "; ".join(differ) or None
+
+
+def checkpoint_hyper_parameters(path: str | Path) -> dict[str, Any]:
+    """A checkpoint's hyper-parameters ({} when it has none or is unreadable), memory-mapped: the weights are
+    not read."""
+    import torch
+
+    for mmap in (True, False):
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+            break
+        except Exception:
+            continue
+    else:
+        return {}
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    return dict(hp) if isinstance(hp, Mapping) else {}
