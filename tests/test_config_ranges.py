@@ -125,6 +125,19 @@ def test_max_epochs_is_at_least_one(fast_cfg, tmp_path, value, no_data):
     assert (err.value.key, err.value.value) == ("trainer.max_epochs", value)
 
 
+@pytest.mark.parametrize("key", ["accumulate_grad_batches", "check_val_every_n_epoch"])
+@pytest.mark.parametrize("value", [0, -2])
+def test_trainer_counts_lightning_divides_by_are_at_least_one(fast_cfg, tmp_path, key, value, no_data):
+    """Lightning takes 0 here and fails in the first step (integer modulo by zero), after the run folder
+    is written: refused before the data is read."""
+    from cicfw.train.app import train
+
+    fast_cfg.trainer[key] = value
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == (f"trainer.{key}", value)
+
+
 def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):
     from cicfw.train.app import train
 
