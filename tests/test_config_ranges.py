@@ -29,6 +29,18 @@ def test_the_embedded_simulators_distances_are_positive(key, value):
     assert err.value.value is value or (math.isnan(value) and math.isnan(err.value.value))
 
 
+@pytest.mark.parametrize("radius", [25.0, 100.0])
+def test_a_success_radius_reaching_back_before_the_turn_is_refused(radius):
+    """A radius of 100 m made a car that always steers hard left succeed in every episode at its first step:
+    the goal lies route_after (25 m) past the junction."""
+    from cicfw.benchmark.suite import make_backend
+
+    with pytest.raises(ConfigError) as err:
+        make_backend({"name": "embedded", "success_radius": radius})
+    assert (err.value.key, err.value.value) == ("sim.success_radius", radius)
+    assert make_backend({"name": "embedded", "success_radius": 24.0}).success_radius == 24.0
+
+
 @pytest.mark.parametrize("key", DISTANCES)
 def test_the_carla_backends_distances_are_positive(key):
     pytest.importorskip("carla", reason="the CARLA client is not installed")
