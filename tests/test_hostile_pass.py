@@ -162,3 +162,11 @@ def test_a_checkpoint_in_another_runs_folder_does_not_borrow_its_config(tmp_path
     assert config_parts_differ(cfg, {"encoder": "cil", "mixer": "independent", "head": "regression"}) is None
     assert "gtu" in config_parts_differ(cfg, {"encoder": "cil", "mixer": "gtu", "head": "regression"})
     assert config_parts_differ({"cell": {"row": "cil"}}, {"mixer": "gtu"}) is None
+
+
+def test_a_pair_listed_twice_is_refused() -> None:
+    """suite.pairs=[0,0] drove pair 0 twice under one key and counted it twice in the table."""
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3, 0])
+    assert (err.value.key, err.value.value) == ("suite.pairs", 0)
+    assert len(build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3])) == 2

@@ -180,7 +180,12 @@ def _pair_list(pairs: Any) -> list[int]:
     accepted = "a list of pair indices such as [0, 2] (or null for every pair)"
     if isinstance(pairs, str) or not isinstance(pairs, Sequence):
         raise CicfwError(f"suite.pairs must be {accepted}, got {pairs!r}")
-    return [whole_number("suite.pairs", p, accepted) for p in pairs]
+    out = [whole_number("suite.pairs", p, accepted) for p in pairs]
+    repeated = next((p for i, p in enumerate(out) if p in out[:i]), None)
+    if repeated is not None:  # as with towns and weathers: it would be driven twice and counted twice
+        raise ConfigError("suite.pairs", repeated, "a list of distinct pair indices (each is driven once)",
+                          f"suite.pairs lists pair {repeated} twice; each pair is driven once, so give it once")
+    return out
 
 
 def _turn_name(route: Any) -> str:
