@@ -170,3 +170,18 @@ def test_a_pair_listed_twice_is_refused() -> None:
         build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3, 0])
     assert (err.value.key, err.value.value) == ("suite.pairs", 0)
     assert len(build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3])) == 2
+
+
+def test_a_collection_inside_another_collected_dataset_is_refused(tmp_path: Path) -> None:
+    """Data folders are read recursively: episodes collected into a folder inside another collection's joined
+    that dataset for everyone training on it (10 files where its metadata listed 8)."""
+    from cicfw.collect.dataset import collect_dataset
+    from cicfw.collect.errors import CollectConfigError
+    from cicfw.collect.metadata import META_NAME
+
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / META_NAME).write_text("{}")
+    with pytest.raises(CollectConfigError) as err:
+        collect_dataset({"episodes": 1, "seconds": 0.1, "workers": 0}, tmp_path / "ds" / "more", progress=False)
+    assert err.value.key == "out_dir" and err.value.value == tmp_path / "ds" / "more"
+    assert not (tmp_path / "ds" / "more").exists()
