@@ -29,6 +29,18 @@ def test_the_embedded_simulators_distances_are_positive(key, value):
     assert err.value.value is value or (math.isnan(value) and math.isnan(err.value.value))
 
 
+@pytest.mark.parametrize("radius", [25.0, 100.0])
+def test_a_success_radius_reaching_back_before_the_turn_is_refused(radius):
+    """A radius of 100 m made a car that always steers hard left succeed in every episode at its first step:
+    the goal lies route_after (25 m) past the junction."""
+    from cicfw.benchmark.suite import make_backend
+
+    with pytest.raises(ConfigError) as err:
+        make_backend({"name": "embedded", "success_radius": radius})
+    assert (err.value.key, err.value.value) == ("sim.success_radius", radius)
+    assert make_backend({"name": "embedded", "success_radius": 24.0}).success_radius == 24.0
+
+
 @pytest.mark.parametrize("key", DISTANCES)
 def test_the_carla_backends_distances_are_positive(key):
     pytest.importorskip("carla", reason="the CARLA client is not installed")
@@ -123,6 +135,19 @@ def test_max_epochs_is_at_least_one(fast_cfg, tmp_path, value, no_data):
     with pytest.raises(ConfigError) as err:
         train(fast_cfg, tmp_path / "run")
     assert (err.value.key, err.value.value) == ("trainer.max_epochs", value)
+
+
+@pytest.mark.parametrize("key", ["accumulate_grad_batches", "check_val_every_n_epoch"])
+@pytest.mark.parametrize("value", [0, -2])
+def test_trainer_counts_lightning_divides_by_are_at_least_one(fast_cfg, tmp_path, key, value, no_data):
+    """Lightning takes 0 here and fails in the first step (integer modulo by zero), after the run folder
+    is written: refused before the data is read."""
+    from cicfw.train.app import train
+
+    fast_cfg.trainer[key] = value
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == (f"trainer.{key}", value)
 
 
 def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):

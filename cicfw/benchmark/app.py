@@ -60,6 +60,10 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("checkpoint") and spec.get("name") != "checkpoint":
         raise CicfwError(f"checkpoint= is only read by policy=checkpoint, but policy={spec.get('name')}; "
                          f"drop checkpoint= or use policy=checkpoint", key="checkpoint", value=cfg.get("checkpoint"))
+    if spec.get("name") == "checkpoint" and cfg.get("checkpoint") and spec.get("checkpoint") \
+            and str(spec["checkpoint"]) != str(cfg.checkpoint):  # policy.checkpoint= replaced ${checkpoint}
+        raise CicfwError(f"checkpoint={cfg.checkpoint} and policy.checkpoint={spec['checkpoint']} name two models; "
+                         f"give checkpoint= alone", key="policy.checkpoint", value=spec["checkpoint"])
     if spec.get("name") == "checkpoint" and not spec.get("checkpoint"):
         raise CicfwError("no checkpoint to evaluate: give checkpoint=path/to.ckpt (written by cicfw train), "
                          "or policy=expert for the reference driver", key="checkpoint")
@@ -323,8 +327,8 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
                     episodes: Sequence[Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """What decides a run's episodes (a folder resumes only with the same), and readable extras.
 
-    The checkpoint counts by its contents (sha256), not its path; the runner by its episode rules
-    (off-road limits, target speed) and seed, not its batch size or worker count."""
+    The checkpoint counts by its contents (sha256), not its path, and so does a town given as a file; the
+    runner by its episode rules (off-road limits, target speed) and seed, not its batch size or worker count."""
     pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
     info: dict[str, Any] = {}
     if pol.get("checkpoint"):
@@ -345,6 +349,10 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
         "runner": {"off_road_s": runner.off_road_s, "off_road_level": runner.off_road_level,
                    "target_speed_kmh": runner.target_speed_kmh},
     }
+    # a town given as a file counts by its contents too: its routes keep their names when the file is edited
+    town_files = sorted({str(e.town) for e in episodes if str(e.town).endswith((".yaml", ".yml"))})
+    if town_files:
+        fp["town_files"] = {t: hashlib.sha256(Path(t).expanduser().read_bytes()).hexdigest()[:16] for t in town_files}
     return fp, info
 
 

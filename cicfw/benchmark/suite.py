@@ -140,6 +140,13 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
     for key, names in (("suite.towns", towns), ("suite.weathers", weathers)):
         if len(set(names)) < len(names):  # a repeat would drive its episodes twice and count them twice
             raise ConfigError(key, list(names), "a list of distinct names (each is driven once)")
+    labels = [town_label(t) for t in towns]
+    clash = next((t for i, t in enumerate(towns) if labels[i] in labels[:i]), None)
+    if clash is not None:  # episodes are keyed <town label>/<weather>/<pair>: two towns would share keys
+        first = towns[labels.index(town_label(clash))]
+        raise ConfigError("suite.towns", clash, "towns with distinct names",
+                          f"suite.towns: {clash!r} and {first!r} are both named {town_label(clash)!r}, so their "
+                          f"episodes would share keys (and trajectories, map, report rows); rename one town file")
     training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()],
                                   [town_label(t) for t in towns])
     training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS], weathers)
@@ -173,7 +180,12 @@ def _pair_list(pairs: Any) -> list[int]:
     accepted = "a list of pair indices such as [0, 2] (or null for every pair)"
     if isinstance(pairs, str) or not isinstance(pairs, Sequence):
         raise CicfwError(f"suite.pairs must be {accepted}, got {pairs!r}")
-    return [whole_number("suite.pairs", p, accepted) for p in pairs]
+    out = [whole_number("suite.pairs", p, accepted) for p in pairs]
+    repeated = next((p for i, p in enumerate(out) if p in out[:i]), None)
+    if repeated is not None:  # as with towns and weathers: it would be driven twice and counted twice
+        raise ConfigError("suite.pairs", repeated, "a list of distinct pair indices (each is driven once)",
+                          f"suite.pairs lists pair {repeated} twice; each pair is driven once, so give it once")
+    return out
 
 
 def _turn_name(route: Any) -> str:

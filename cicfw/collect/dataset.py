@@ -61,6 +61,16 @@ def _refuse_foreign_files(out_dir: Path, plan: list[dict]) -> None:
                            key="out_dir", value=out_dir)
 
 
+def _refuse_inside_a_dataset(out_dir: Path) -> None:
+    """A folder inside another collection's: data folders are read recursively, so these episodes would join
+    that dataset for everyone who trains on it, unlisted in its metadata."""
+    for parent in out_dir.parents:
+        if (parent / META_NAME).is_file():
+            raise CollectConfigError(f"out_dir {out_dir} is inside the collected dataset {parent}, whose readers "
+                                     f"take every HDF5 file below it: these episodes would join that dataset; "
+                                     f"collect into a folder outside it", key="out_dir", value=out_dir)
+
+
 def _prepare_folder(out_dir: Path) -> None:
     try:
         if out_dir.exists() and not out_dir.is_dir():
@@ -97,6 +107,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
         getattr(backend, "data_version", cfg["sim"].get("name")))
     cfg["_hash"] = chash = config_hash(cfg)
     out_dir = out_dir.expanduser().resolve()
+    _refuse_inside_a_dataset(out_dir)
     _prepare_folder(out_dir)
     if not (out_dir / META_NAME).exists():  # not a collection's folder: refuse it before the lock file is made
         _refuse_foreign_files(out_dir, episode_plan(cfg))

@@ -34,8 +34,8 @@ from cicfw.data.provenance import data_root, recorded_files
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.export.agent import torch_device
-from cicfw.model.checkpoint import (checkpoint_record, describe, load_model, prepare_for_inference, read_checkpoint,
-                                    resolve_checkpoint)
+from cicfw.model.checkpoint import (checkpoint_hyper_parameters, checkpoint_record, config_parts_differ, describe,
+                                    load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint)
 from cicfw.reproduction.catalogue import row_overrides
 
 log = logging.getLogger("cicfw.diagnose")
@@ -103,12 +103,18 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
     """The split settings of the run that wrote ``checkpoint``, and where they came from: the nearest
     ``.hydra/config.yaml`` at most SEARCH_LEVELS folders above it, either a ``cicfw train`` run's (its
     ``data`` node) or a ``cicfw reproduce`` cell's (the cell's training config composed again from its
-    row, seed and budget). None when there is neither."""
+    row, seed and budget). None when there is neither, or when the config names other parts than the
+    checkpoint (a checkpoint copied into another run's folder: that run's split is not its own)."""
     for folder in [checkpoint.parent, *checkpoint.parent.parents][:SEARCH_LEVELS + 1]:
         path = folder / ".hydra" / "config.yaml"
         if not path.is_file():
             continue
         cfg = OmegaConf.load(path)
+        differ = config_parts_differ(OmegaConf.to_container(cfg, resolve=False), checkpoint_hyper_parameters(checkpoint))
+        if differ:
+            log.warning("%s is not the config of %s (%s), so its split settings are not used", path, checkpoint,
+                        differ)
+            return None
         if "data" in cfg and "path" in cfg.data:
             values = _data_values(cfg.data, str(path))
             values["path"] = where_it_ran(values.get("path"), folder)

@@ -173,8 +173,13 @@ class Agent:
         (``auto``, ``cpu``, ``cuda``; onnxruntime runs on the CPU); ``fuse``: for a checkpoint, fold
         BatchNorm into the convolutions and use the NHWC layout (the same function, computed faster).
         """
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
+                                    or threads < 1):
+            raise CicfwError(f"threads={threads!r}: give a whole number of CPU threads >= 1, or None for the "
+                             f"runtime's default", key="threads", value=threads)
         p = Path(str(path)).expanduser()
-        if p.is_file() and p.suffix == ".onnx":
+        # by the file's name in any case, or the name a link points at (a link named 'model' to 'm.onnx')
+        if p.is_file() and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
             return cls._load_onnx(p, threads)
         if p.is_file() and is_torchscript(p):
             return cls._load_torchscript(p, threads, device)

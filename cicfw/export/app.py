@@ -42,7 +42,8 @@ from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
-from cicfw.model.checkpoint import checkpoint_record, describe, load_model, prepare_for_inference, resolve_checkpoint
+from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
+                                    resolve_checkpoint)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 
@@ -384,6 +385,10 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
+    if cfg is not None and (differ := config_parts_differ(cfg, hp)):  # another run's folder, not this model's
+        log.warning("%s is not the config of %s (%s); the sidecar's row_config is left null", cfg_path,
+                    checkpoint, differ)
+        cfg, cfg_path = None, None
     row = None
     if cfg is not None:
         row = {k: cfg.get(k) for k in ("experiment", "encoder", "mixer", "head", "model", "seed") if k in cfg}

@@ -33,14 +33,24 @@ class CheckpointError(CicfwError):
 
 def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
-    best checkpoint (``last.ckpt`` aside)."""
+    best checkpoint (``last.ckpt`` aside) in its ``checkpoints/``; a folder without one is searched
+    below, and must hold the checkpoints of one run only."""
     p = Path(str(path)).expanduser()
     if p.is_dir():
-        found = sorted(f for f in p.rglob("*.ckpt") if f.name != "last.ckpt")
+        own = p / "checkpoints"
+        # a run folder: its own checkpoints only, not those of a run trained in a folder inside it
+        every = sorted(own.glob("*.ckpt")) if own.is_dir() else sorted(p.rglob("*.ckpt"))
+        runs = sorted({f.parent for f in every})
+        if len(runs) > 1:  # a folder above several runs: which one is meant is not ours to guess
+            raise CheckpointError(
+                f"checkpoint={str(path)!r} holds the checkpoints of {len(runs)} runs "
+                f"({', '.join(str(r) for r in runs[:4])}{' ...' if len(runs) > 4 else ''}); give one run's "
+                f"folder or one .ckpt file", key="checkpoint", value=path)
+        found = [f for f in every if f.name != "last.ckpt"]
         if len(found) == 1:
             return found[0].resolve()
-        if not found and (p / "checkpoints" / "last.ckpt").is_file():
-            return (p / "checkpoints" / "last.ckpt").resolve()
+        if not found and runs and (runs[0] / "last.ckpt").is_file():
+            return (runs[0] / "last.ckpt").resolve()
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
             f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
@@ -187,3 +197,32 @@ def describe(hp: Mapping[str, Any]) -> str:
     (a classification head's decoder is part of the label: it changes how the model steers)."""
     decode = (hp.get("head_kwargs") or {}).get("decode")
     return f"{hp.get('mixer')}+{hp.get('head')}" + (f"/{decode}" if decode else "")
+
+
+def config_parts_differ(cfg: Mapping[str, Any], hp: Mapping[str, Any]) -> str | None:
+    """How a training run's saved config names other parts than a checkpoint's hyper-parameters (e.g.
+    ``mixer independent, checkpoint gtu``), or None when they agree or the config names no parts (a
+    reproduce cell's). A checkpoint copied into another run's folder would otherwise borrow that run's
+    config: its row, its data split."""
+    differ = []
+    for part in ("encoder", "mixer", "head"):
+        node = cfg.get(part)
+        name = node.get("name") if isinstance(node, Mapping) else None
+        if name is not None and hp.get(part) is not None and str(name) != str(hp[part]):
+            differ.append(f"{part} {name}, checkpoint {hp[part]}")
+    return "; ".join(differ) or None
+
+
+def checkpoint_hyper_parameters(path: str | Path) -> dict[str, Any]:
+    """A checkpoint's hyper-parameters ({} when it has none or is unreadable), memory-mapped: the weights are
+    not read."""
+    for mmap in (True, False):
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+            break
+        except Exception:
+            continue
+    else:
+        return {}
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    return dict(hp) if isinstance(hp, Mapping) else {}

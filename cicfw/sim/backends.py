@@ -29,10 +29,16 @@ from cicfw.sim.town import TownError, load_town, town_names
 
 def positive_distances(**distances: Any) -> tuple[float, ...]:
     """A backend's distances in metres (``success_radius=2.0`` ...) as floats, in the order given; one that is
-    not a finite number > 0 is a ``ConfigError`` naming ``sim.<name>``: a radius of -1 failed every episode."""
+    not a finite number > 0 is a ``ConfigError`` naming ``sim.<name>``: a radius of -1 failed every episode;
+    so is a ``success_radius`` of ``route_after`` or more, which let every episode succeed at its start."""
     for key, value in distances.items():
         if not (is_number(value) and value > 0):
             raise ConfigError(f"sim.{key}", value, "a distance in metres > 0")
+    radius, after = distances.get("success_radius"), distances.get("route_after")
+    if radius is not None and after is not None and radius >= after:  # success before the turn is driven
+        raise ConfigError("sim.success_radius", radius, f"a distance in metres < sim.route_after ({after:g}): the "
+                          f"goal lies route_after past the junction, so a radius this large counts the car as arrived "
+                          f"before it has turned")
     return tuple(float(v) for v in distances.values())
 
 

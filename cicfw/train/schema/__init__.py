@@ -160,13 +160,19 @@ def _is_one_of(value: Any, accepted: tuple[Any, ...]) -> bool:
 
 def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
     """``cfg.trainer`` as ``checked_node`` gives it, and the Trainer arguments whose union type the schema
-    leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``; and ``max_epochs``
-    >= 1 (Lightning would take -1, training forever, and 0, training nothing)."""
+    leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``; ``max_epochs``
+    >= 1 (Lightning would take -1, training forever, and 0, training nothing); ``accumulate_grad_batches``
+    and ``check_val_every_n_epoch`` >= 1 (0 fails in the first step, after the run folder is written)."""
     kwargs = checked_node(cfg, "trainer", TRAINER)
     max_epochs = kwargs.get("max_epochs")
     if max_epochs is not None and max_epochs < 1:  # Lightning's -1 trains forever, 0 trains nothing
         raise ConfigError("trainer.max_epochs", max_epochs, "an integer >= 1, the epochs to train "
                           "(trainer.max_steps or trainer.max_time may stop training sooner)")
+    for key, what in (("accumulate_grad_batches", "batches a step accumulates"),
+                      ("check_val_every_n_epoch", "epochs between validations, or null")):
+        value = kwargs.get(key)  # Lightning takes 0 and fails on it in its first step (integer modulo by zero)
+        if isinstance(value, int) and not isinstance(value, bool) and value < 1:
+            raise ConfigError(f"trainer.{key}", value, f"an integer >= 1 ({what})")
     deterministic, max_time = kwargs.get("deterministic"), kwargs.get("max_time")
     if not _is_one_of(deterministic, (True, False, "warn", None)):
         raise SchemaError(f"trainer.deterministic must be true, false, warn or null, got {deterministic!r}",

@@ -1,0 +1,187 @@
+"""Inputs a new user gets wrong that once gave a silently wrong result: each is now refused or honoured."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from cicfw.benchmark.suite import build_suite, make_backend
+from cicfw.core.errors import ConfigError
+
+TOWN = Path(__file__).parent / "data" / "bench_town.yaml"
+
+
+@pytest.mark.parametrize("second", ["copy", "builtin"])
+def test_two_towns_of_one_name_are_refused(tmp_path: Path, second: str) -> None:
+    """Episodes are keyed <town>/<weather>/<pair> by the town's name (a file's stem): two towns of one name
+    would share keys, so one episode's trajectory and map would be the other's."""
+    first = tmp_path / "a" / "town_b.yaml"
+    first.parent.mkdir()
+    shutil.copy(TOWN, first)
+    other = str(shutil.copy(TOWN, tmp_path / "town_b.yaml")) if second == "copy" else "town_b"
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), [str(first), other], ["ClearNoon"], training_towns=["town_a"], limit=1)
+    assert err.value.key == "suite.towns" and err.value.value == other
+
+
+def test_towns_of_distinct_names_are_driven(tmp_path: Path) -> None:
+    first = Path(shutil.copy(TOWN, tmp_path / "mine.yaml"))
+    eps = build_suite(make_backend(None), [str(first), "town_b"], ["ClearNoon"], training_towns=["mine"], limit=1)
+    assert len({e.key for e in eps}) == len(eps) == 2
+
+
+def _ckpt(folder: Path, *names: str) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (folder / name).write_bytes(b"x")
+
+
+def test_a_run_folder_means_its_own_checkpoint_not_a_nested_run(tmp_path: Path) -> None:
+    """A run trained in a folder inside another run's: ``checkpoint=<outer run>`` is the outer run's
+    ``last.ckpt``, never the nested run's best checkpoint."""
+    from cicfw.model.checkpoint import resolve_checkpoint
+
+    run = tmp_path / "run"
+    _ckpt(run / "checkpoints", "last.ckpt")
+    _ckpt(run / "nested" / "checkpoints", "epoch000-mae0.2771.ckpt", "last.ckpt")
+    assert resolve_checkpoint(run) == (run / "checkpoints" / "last.ckpt").resolve()
+    _ckpt(run / "checkpoints", "epoch001-mae0.2000.ckpt")
+    assert resolve_checkpoint(run) == (run / "checkpoints" / "epoch001-mae0.2000.ckpt").resolve()
+
+
+def test_a_folder_above_several_runs_is_refused(tmp_path: Path) -> None:
+    from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
+
+    _ckpt(tmp_path / "day" / "a" / "checkpoints", "epoch000-mae0.3000.ckpt", "last.ckpt")
+    _ckpt(tmp_path / "day" / "b" / "checkpoints", "last.ckpt")
+    with pytest.raises(CheckpointError) as err:
+        resolve_checkpoint(tmp_path / "day")
+    assert err.value.key == "checkpoint" and err.value.value == tmp_path / "day"
+    assert resolve_checkpoint(tmp_path / "day" / "b") == (tmp_path / "day" / "b" / "checkpoints" / "last.ckpt").resolve()
+    assert resolve_checkpoint(tmp_path / "day" / "a" / "checkpoints").name == "epoch000-mae0.3000.ckpt"
+
+
+@pytest.mark.parametrize("threads", [-1, 0, 1.5, True, "2"])
+def test_agent_threads_must_be_a_count(tmp_path: Path, threads: object) -> None:
+    """threads=-1 reached torch.set_num_threads as a RuntimeError traceback (a checkpoint), or onnxruntime
+    as its default (an exported model): refused as one line before the model is read."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.export.agent import Agent
+
+    with pytest.raises(CicfwError) as err:
+        Agent.load(tmp_path / "not-read.ckpt", threads=threads)
+    assert err.value.key == "threads" and err.value.value == threads
+
+
+def test_an_onnx_model_is_known_by_any_case_or_through_a_link(tmp_path: Path, monkeypatch) -> None:
+    """'M.ONNX', or a link 'model' to 'm.onnx', was read as a PyTorch checkpoint and refused as one."""
+    from cicfw.export.agent import Agent
+
+    monkeypatch.setattr(Agent, "_load_onnx", classmethod(lambda cls, p, threads: ("onnx", p.name)))
+    (tmp_path / "M.ONNX").write_bytes(b"\x08\x07")
+    (tmp_path / "m.onnx").write_bytes(b"\x08\x07")
+    (tmp_path / "model").symlink_to(tmp_path / "m.onnx")
+    assert Agent.load(tmp_path / "M.ONNX") == ("onnx", "M.ONNX")
+    assert Agent.load(tmp_path / "model") == ("onnx", "model")
+
+
+def test_an_edited_town_file_is_another_evaluation(tmp_path: Path) -> None:
+    """A town file edited between two runs into one folder kept its route names, so the rerun resumed
+    (or, finished, reported) the episodes driven in the old town: the fingerprint holds its contents."""
+    from cicfw.benchmark.app import run_fingerprint
+    from cicfw.benchmark.runner import RunnerConfig
+
+    town = Path(shutil.copy(TOWN, tmp_path / "mine.yaml"))
+    suite = {"towns": [str(town)], "weathers": ["ClearNoon"], "limit": 1}
+
+    def fingerprint() -> dict:
+        eps = build_suite(make_backend(None), [str(town)], ["ClearNoon"], training_towns=["mine"], limit=1)
+        return run_fingerprint({"name": "expert"}, suite, {"name": "embedded"}, RunnerConfig(), eps)[0]
+
+    before = fingerprint()
+    assert fingerprint() == before
+    town.write_text(town.read_text().replace("lane_width:", "lane_width: 3.5 #", 1))
+    assert fingerprint() != before
+    builtin = build_suite(make_backend(None), ["town_b"], ["ClearNoon"], training_towns=["town_a"], limit=1)
+    assert "town_files" not in run_fingerprint({"name": "expert"}, {"towns": ["town_b"]}, {"name": "embedded"},
+                                               RunnerConfig(), builtin)[0]
+
+
+def test_checkpoint_and_policy_checkpoint_naming_two_models_are_refused() -> None:
+    """policy.checkpoint= replaces the ${checkpoint} it defaults to, so checkpoint=b was silently ignored
+    and a drove (the report named a as well)."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.app import policy_spec
+    from cicfw.core.errors import CicfwError
+
+    def cfg(top: str | None, own: str | None):
+        c = OmegaConf.create({"checkpoint": top, "name": None,
+                              "policy": {"name": "checkpoint", "checkpoint": "${checkpoint}"}})
+        if own is not None:
+            c.policy.checkpoint = own
+        return c
+
+    with pytest.raises(CicfwError) as err:
+        policy_spec(cfg("b.ckpt", "a.ckpt"))
+    assert err.value.key == "policy.checkpoint" and err.value.value == "a.ckpt"
+    assert policy_spec(cfg("b.ckpt", None))["checkpoint"] == "b.ckpt"
+    assert policy_spec(cfg(None, "a.ckpt"))["checkpoint"] == "a.ckpt"
+    assert policy_spec(cfg("a.ckpt", "a.ckpt"))["checkpoint"] == "a.ckpt"
+
+
+def _run_with_config(run: Path, mixer: str) -> None:
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text(
+        f"seed: 7\nencoder: {{name: cil}}\nmixer: {{name: {mixer}}}\nhead: {{name: regression}}\n"
+        f"data: {{path: /data, seed: 7, val_fraction: 0.3}}\n")
+
+
+def _checkpoint(path: Path, mixer: str) -> Path:
+    import torch
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": {}, "hyper_parameters": {"encoder": "cil", "mixer": mixer, "head": "regression"}}, path)
+    return path
+
+
+def test_a_checkpoint_in_another_runs_folder_does_not_borrow_its_config(tmp_path: Path) -> None:
+    """A gtu checkpoint copied into an independent run's checkpoints/ took that run's config: the export
+    sidecar's row_config named the other model, and diagnose drew the other run's split."""
+    from cicfw.diagnose.app import training_data
+    from cicfw.model.checkpoint import config_parts_differ
+
+    run = tmp_path / "run"
+    _run_with_config(run, "independent")
+    own = _checkpoint(run / "checkpoints" / "last.ckpt", "independent")
+    foreign = _checkpoint(run / "checkpoints" / "copied.ckpt", "gtu")
+    assert training_data(own) is not None and training_data(own)[0]["seed"] == 7
+    assert training_data(foreign) is None
+    cfg = {"encoder": {"name": "cil"}, "mixer": {"name": "independent"}, "head": {"name": "regression"}}
+    assert config_parts_differ(cfg, {"encoder": "cil", "mixer": "independent", "head": "regression"}) is None
+    assert "gtu" in config_parts_differ(cfg, {"encoder": "cil", "mixer": "gtu", "head": "regression"})
+    assert config_parts_differ({"cell": {"row": "cil"}}, {"mixer": "gtu"}) is None
+
+
+def test_a_pair_listed_twice_is_refused() -> None:
+    """suite.pairs=[0,0] drove pair 0 twice under one key and counted it twice in the table."""
+    with pytest.raises(ConfigError) as err:
+        build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3, 0])
+    assert (err.value.key, err.value.value) == ("suite.pairs", 0)
+    assert len(build_suite(make_backend(None), ["town_a"], ["ClearNoon"], training_towns=["town_a"], pairs=[0, 3])) == 2
+
+
+def test_a_collection_inside_another_collected_dataset_is_refused(tmp_path: Path) -> None:
+    """Data folders are read recursively: episodes collected into a folder inside another collection's joined
+    that dataset for everyone training on it (10 files where its metadata listed 8)."""
+    from cicfw.collect.dataset import collect_dataset
+    from cicfw.collect.errors import CollectConfigError
+    from cicfw.collect.metadata import META_NAME
+
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / META_NAME).write_text("{}")
+    with pytest.raises(CollectConfigError) as err:
+        collect_dataset({"episodes": 1, "seconds": 0.1, "workers": 0}, tmp_path / "ds" / "more", progress=False)
+    assert err.value.key == "out_dir" and err.value.value == tmp_path / "ds" / "more"
+    assert not (tmp_path / "ds" / "more").exists()
