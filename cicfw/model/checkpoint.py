@@ -113,15 +113,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
     """The data record of a checkpoint (None when it has none: written before runs recorded their data, or
     not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
-    for mmap in (True, False):
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-            break
-        except Exception:
-            continue
-    else:
-        return None
-    record = ckpt.get(CHECKPOINT_KEY) if isinstance(ckpt, dict) else None
+    record = _mapped(path).get(CHECKPOINT_KEY)
     return dict(record) if is_record(record) else None
 
 
@@ -216,13 +208,17 @@ def config_parts_differ(cfg: Mapping[str, Any], hp: Mapping[str, Any]) -> str | 
 def checkpoint_hyper_parameters(path: str | Path) -> dict[str, Any]:
     """A checkpoint's hyper-parameters ({} when it has none or is unreadable), memory-mapped: the weights are
     not read."""
+    hp = _mapped(path).get("hyper_parameters")
+    return dict(hp) if isinstance(hp, Mapping) else {}
+
+
+def _mapped(path: str | os.PathLike) -> dict[str, Any]:
+    """The checkpoint at ``path`` memory-mapped where it can be (its weights not read), loaded otherwise; {}
+    when it is unreadable or not a dict."""
     for mmap in (True, False):
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-            break
+            return ckpt if isinstance(ckpt, dict) else {}
         except Exception:
             continue
-    else:
-        return {}
-    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    return dict(hp) if isinstance(hp, Mapping) else {}
+    return {}
