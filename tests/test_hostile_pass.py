@@ -185,3 +185,40 @@ def test_a_collection_inside_another_collected_dataset_is_refused(tmp_path: Path
         collect_dataset({"episodes": 1, "seconds": 0.1, "workers": 0}, tmp_path / "ds" / "more", progress=False)
     assert err.value.key == "out_dir" and err.value.value == tmp_path / "ds" / "more"
     assert not (tmp_path / "ds" / "more").exists()
+
+
+def _report_run(folder: Path, sim: dict, runner: dict | None = None) -> Path:
+    from cicfw.benchmark.evaluation_report import Run, write_run
+
+    row = {"episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+           "town_set": "training", "weather_set": "training", "pair": 0, "route": "town_a/j/a>b/left",
+           "command": "left", "success": True, "reason": "success", "time_s": 1.0, "timeout_s": 30.0,
+           "distance_m": 50.0, "route_length_m": 50.0, "goal_distance_m": 1.0, "progress": 1.0,
+           "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 10}
+    suite = {"name": "junctions", "training_towns": ["town_a"], "training_weathers": ["ClearNoon"]}
+    runner = runner or {"off_road_s": 3.0, "off_road_level": 0.5, "target_speed_kmh": None}
+    write_run(folder, Run("Expert", [row], {"suite": suite, "fingerprint": {"sim": sim, "runner": runner}}))
+    return folder
+
+
+@pytest.mark.parametrize("key, other", [("sim.success_radius", 8.0), ("sim.weather_family", "harsh"),
+                                        ("runner.off_road_s", 1.0)])
+def test_report_refuses_runs_of_other_episode_rules(tmp_path: Path, key: str, other) -> None:
+    """A run with an 8 m success radius (or another weather family, other off-road rules) joined beside one
+    with 2 m made one table whose rows measured different things, exit 0 and no mark."""
+    from cicfw.benchmark.evaluation_report import find_runs
+    from cicfw.core.errors import CicfwError
+
+    sim = {"name": "embedded", "success_radius": 2.0, "weather_family": "carla"}
+    runner = {"off_road_s": 3.0, "off_road_level": 0.5, "target_speed_kmh": None}
+    part, name = key.split(".")
+    changed = {"sim": dict(sim), "runner": dict(runner)}
+    changed[part][name] = other
+    a = _report_run(tmp_path / "a", sim, runner)
+    b = _report_run(tmp_path / "b", changed["sim"], changed["runner"])
+    with pytest.raises(CicfwError) as err:
+        find_runs([a, b])
+    assert err.value.key == key and err.value.value == other
+    # the same rules join; a key only one run records (an older cicfw's) is not compared
+    c = _report_run(tmp_path / "c", {**sim, "route_after": 25.0}, runner)
+    assert len(find_runs([a, c])) == 2
