@@ -222,3 +222,28 @@ def test_report_refuses_runs_of_other_episode_rules(tmp_path: Path, key: str, ot
     # the same rules join; a key only one run records (an older cicfw's) is not compared
     c = _report_run(tmp_path / "c", {**sim, "route_after": 25.0}, runner)
     assert len(find_runs([a, c])) == 2
+
+
+@pytest.mark.parametrize("job", ["train", "evaluate"])
+def test_collect_into_another_apps_run_folder_is_refused(tmp_path: Path, job: str, monkeypatch, capsys) -> None:
+    """Collecting into a training or evaluation run's folder wrote the episodes beside the run's files, exit 0;
+    the folder then read as a dataset (a training resume there was refused as writing over a dataset)."""
+    from hydra import compose, initialize_config_module
+
+    import cicfw.collect.app as collect_app
+    import cicfw.collect.dataset as dataset_mod
+
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (run / f"{job}.log").write_text("a line\n")
+    before = sorted(p.name for p in run.rglob("*"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("collected into a run folder"))
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("collect", overrides=[f"out_dir={run}", "episodes=1", "seconds=1", "workers=0"])
+    with pytest.raises(SystemExit) as exc:
+        collect_app.run(cfg)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "out_dir" in err and str(run) in err
+    assert sorted(p.name for p in run.rglob("*")) == before
