@@ -247,3 +247,24 @@ def test_collect_into_another_apps_run_folder_is_refused(tmp_path: Path, job: st
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "out_dir" in err and str(run) in err
     assert sorted(p.name for p in run.rglob("*")) == before
+
+
+def test_evaluate_sweep_into_a_folder_of_another_sweep_leaves_its_records(tmp_path: Path) -> None:
+    """A second evaluate sweep (other values) into a sweep folder wrote over multirun.yaml and job 0's
+    .hydra before job 0 refused the other episodes: the folder's records then named settings its episodes
+    were not driven with. The same sweep's command still resumes there."""
+    import subprocess
+    import sys
+
+    sweep = tmp_path / "sweep"
+    base = [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
+            "suite.weathers=[ClearNoon]", "suite.limit=1", "progress_bar=false", "maps=false",
+            f"hydra.sweep.dir={sweep}"]
+    first = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr[-2000:]
+    before = {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()}
+    other = subprocess.run([*base, "sim.success_radius=3,4"], capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and "hydra.sweep.dir" in other.stderr and "success_radius=3,4" in other.stderr
+    assert {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()} == before
+    again = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-2000:]
