@@ -268,3 +268,17 @@ def test_evaluate_sweep_into_a_folder_of_another_sweep_leaves_its_records(tmp_pa
     assert {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()} == before
     again = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
+
+
+def test_fast_dev_run_keeps_a_users_data_folder(tmp_path: Path) -> None:
+    """fast_dev_run(<a project folder>) wrote its random tiny dataset over <folder>/data/data_00000.h5 ..."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.testing import fast_dev_run
+
+    mine = tmp_path / "data" / "data_00000.h5"
+    mine.parent.mkdir()
+    mine.write_bytes(b"the user's episode")
+    with pytest.raises(CicfwError) as err:
+        fast_dev_run(tmp_path)
+    assert err.value.key == "tmp_path" and err.value.value == str(tmp_path)
+    assert mine.read_bytes() == b"the user's episode"
