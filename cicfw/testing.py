@@ -19,6 +19,7 @@ import torch
 from hydra import compose, initialize_config_module
 
 from cicfw import N_COMMANDS
+from cicfw.core.errors import CicfwError
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.model.heads import Head
 from cicfw.model.mixers import Mixer
@@ -125,6 +126,11 @@ def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
     """Compose the train config with ``overrides`` on a tiny dataset written under ``tmp_path`` and
     run one training and one validation batch; returns the validation metric (finite)."""
     tmp_path = Path(tmp_path)
+    for sub in ("data", "run"):  # meant for a fresh folder (pytest's tmp_path): never write over a user's files
+        folder = tmp_path / sub
+        if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+            raise CicfwError(f"fast_dev_run: {str(folder)!r} already exists and is not empty; give a fresh folder "
+                             f"(pytest's tmp_path), whose data/ and run/ it writes", key="tmp_path", value=str(tmp_path))
     data = write_tiny_dataset(tmp_path / "data")
     base = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
             "debug=fast", "progress_bar=false"]

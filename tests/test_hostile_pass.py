@@ -185,3 +185,100 @@ def test_a_collection_inside_another_collected_dataset_is_refused(tmp_path: Path
         collect_dataset({"episodes": 1, "seconds": 0.1, "workers": 0}, tmp_path / "ds" / "more", progress=False)
     assert err.value.key == "out_dir" and err.value.value == tmp_path / "ds" / "more"
     assert not (tmp_path / "ds" / "more").exists()
+
+
+def _report_run(folder: Path, sim: dict, runner: dict | None = None) -> Path:
+    from cicfw.benchmark.evaluation_report import Run, write_run
+
+    row = {"episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+           "town_set": "training", "weather_set": "training", "pair": 0, "route": "town_a/j/a>b/left",
+           "command": "left", "success": True, "reason": "success", "time_s": 1.0, "timeout_s": 30.0,
+           "distance_m": 50.0, "route_length_m": 50.0, "goal_distance_m": 1.0, "progress": 1.0,
+           "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 10}
+    suite = {"name": "junctions", "training_towns": ["town_a"], "training_weathers": ["ClearNoon"]}
+    runner = runner or {"off_road_s": 3.0, "off_road_level": 0.5, "target_speed_kmh": None}
+    write_run(folder, Run("Expert", [row], {"suite": suite, "fingerprint": {"sim": sim, "runner": runner}}))
+    return folder
+
+
+@pytest.mark.parametrize("key, other", [("sim.success_radius", 8.0), ("sim.weather_family", "harsh"),
+                                        ("runner.off_road_s", 1.0)])
+def test_report_refuses_runs_of_other_episode_rules(tmp_path: Path, key: str, other) -> None:
+    """A run with an 8 m success radius (or another weather family, other off-road rules) joined beside one
+    with 2 m made one table whose rows measured different things, exit 0 and no mark."""
+    from cicfw.benchmark.evaluation_report import find_runs
+    from cicfw.core.errors import CicfwError
+
+    sim = {"name": "embedded", "success_radius": 2.0, "weather_family": "carla"}
+    runner = {"off_road_s": 3.0, "off_road_level": 0.5, "target_speed_kmh": None}
+    part, name = key.split(".")
+    changed = {"sim": dict(sim), "runner": dict(runner)}
+    changed[part][name] = other
+    a = _report_run(tmp_path / "a", sim, runner)
+    b = _report_run(tmp_path / "b", changed["sim"], changed["runner"])
+    with pytest.raises(CicfwError) as err:
+        find_runs([a, b])
+    assert err.value.key == key and err.value.value == other
+    # the same rules join; a key only one run records (an older cicfw's) is not compared
+    c = _report_run(tmp_path / "c", {**sim, "route_after": 25.0}, runner)
+    assert len(find_runs([a, c])) == 2
+
+
+@pytest.mark.parametrize("job", ["train", "evaluate"])
+def test_collect_into_another_apps_run_folder_is_refused(tmp_path: Path, job: str, monkeypatch, capsys) -> None:
+    """Collecting into a training or evaluation run's folder wrote the episodes beside the run's files, exit 0;
+    the folder then read as a dataset (a training resume there was refused as writing over a dataset)."""
+    from hydra import compose, initialize_config_module
+
+    import cicfw.collect.app as collect_app
+    import cicfw.collect.dataset as dataset_mod
+
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (run / f"{job}.log").write_text("a line\n")
+    before = sorted(p.name for p in run.rglob("*"))
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("collected into a run folder"))
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("collect", overrides=[f"out_dir={run}", "episodes=1", "seconds=1", "workers=0"])
+    with pytest.raises(SystemExit) as exc:
+        collect_app.run(cfg)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "out_dir" in err and str(run) in err
+    assert sorted(p.name for p in run.rglob("*")) == before
+
+
+def test_evaluate_sweep_into_a_folder_of_another_sweep_leaves_its_records(tmp_path: Path) -> None:
+    """A second evaluate sweep (other values) into a sweep folder wrote over multirun.yaml and job 0's
+    .hydra before job 0 refused the other episodes: the folder's records then named settings its episodes
+    were not driven with. The same sweep's command still resumes there."""
+    import subprocess
+    import sys
+
+    sweep = tmp_path / "sweep"
+    base = [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
+            "suite.weathers=[ClearNoon]", "suite.limit=1", "progress_bar=false", "maps=false",
+            f"hydra.sweep.dir={sweep}"]
+    first = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr[-2000:]
+    before = {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()}
+    other = subprocess.run([*base, "sim.success_radius=3,4"], capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and "hydra.sweep.dir" in other.stderr and "success_radius=3,4" in other.stderr
+    assert {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()} == before
+    again = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-2000:]
+
+
+def test_fast_dev_run_keeps_a_users_data_folder(tmp_path: Path) -> None:
+    """fast_dev_run(<a project folder>) wrote its random tiny dataset over <folder>/data/data_00000.h5 ..."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.testing import fast_dev_run
+
+    mine = tmp_path / "data" / "data_00000.h5"
+    mine.parent.mkdir()
+    mine.write_bytes(b"the user's episode")
+    with pytest.raises(CicfwError) as err:
+        fast_dev_run(tmp_path)
+    assert err.value.key == "tmp_path" and err.value.value == str(tmp_path)
+    assert mine.read_bytes() == b"the user's episode"

@@ -257,6 +257,33 @@ def check_one_suite(runs: Sequence[Run]) -> None:
                 raise CicfwError(f"report: {first.path} and {r.path} drove different suites (suite.{key}: {a} and "
                                  f"{b}), whose success rates one table cannot compare; report them separately",
                                  key=f"suite.{key}", value=b)
+    check_one_episode_rule(runs)
+
+
+#: the fingerprint's parts (cicfw/benchmark/app.py ``run_fingerprint``) that decide what an episode sees and
+#: what counts as a success: the simulator (weather family, success radius ...) and the runner's episode rules
+EPISODE_RULE_PARTS = ("sim", "runner")
+
+
+def check_one_episode_rule(runs: Sequence[Run]) -> None:
+    """Runs joined into one table drove under one simulator and one set of episode rules, else a rate of one
+    row means another thing than its neighbour's (a 2 m and an 8 m success radius, another weather family).
+    A key only one run records (a run of an older cicfw) is not compared. One ``CicfwError`` naming the key."""
+    def part(run: Run, name: str) -> Mapping[str, Any]:
+        fp = run.meta.get("fingerprint")
+        value = fp.get(name) if isinstance(fp, Mapping) else None
+        return value if isinstance(value, Mapping) else {}
+
+    for name in EPISODE_RULE_PARTS:
+        first = part(runs[0], name) if runs else {}
+        for r in runs[1:]:
+            other = part(r, name)
+            for key in sorted(set(first) & set(other), key=str):
+                if first[key] != other[key]:
+                    raise CicfwError(f"report: {runs[0].path} and {r.path} drove under different {name} settings "
+                                     f"({name}.{key}: {first[key]} and {other[key]}), whose success rates one "
+                                     f"table cannot compare; report them separately",
+                                     key=f"{name}.{key}", value=other[key])
 
 
 def load_current_run(run_dir: str | Path) -> Run:

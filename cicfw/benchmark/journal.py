@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderLock
@@ -211,6 +212,32 @@ class EvaluateRunFolderCheck(RunFolderCheck):
                 print(f"cicfw: error: {err}", file=sys.stderr)
                 sys.exit(2)
         super().on_run_start(config, **kwargs)
+
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        check_same_sweep(Path(str(config.hydra.sweep.dir)), list(config.hydra.overrides.task))
+        super().on_multirun_start(config, **kwargs)
+
+
+def check_same_sweep(folder: Path, task: list[str]) -> None:
+    """A sweep folder resumes only the same sweep: Hydra writes ``multirun.yaml`` and each job's ``.hydra``
+    before a job can refuse another evaluation's episodes, so another sweep there would leave the record of
+    the first sweep, and of its finished jobs, describing settings their episodes were not driven with.
+    One line (exit status 2) naming both override lists; a folder without ``multirun.yaml`` passes."""
+    record = folder / "multirun.yaml"
+    if not record.is_file():
+        return
+    try:
+        before = OmegaConf.select(OmegaConf.load(record), "hydra.overrides.task")
+    except Exception:  # an unreadable record: no sweep this app can resume
+        before = None
+    before = [str(o) for o in before] if before is not None else None
+    if before != [str(o) for o in task]:
+        print(f"cicfw: error: the sweep folder {str(folder)!r} holds another sweep ({' '.join(before or ['?'])}), "
+              f"not this one ({' '.join(map(str, task))}), which would write over its records; give a fresh "
+              f"folder (hydra.sweep.dir=<new folder>) or rerun that sweep's own command to resume it",
+              file=sys.stderr)
+        sys.exit(2)
 
 
 class RunFolderLock(FolderLock):

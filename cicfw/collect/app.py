@@ -23,6 +23,7 @@ from cicfw.collect.errors import CollectError
 from cicfw.collect.verify import verify_dataset
 from cicfw.core.errors import on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
+from cicfw.core.run_folder import claim_folder
 
 
 def run(cfg) -> str:
@@ -34,6 +35,9 @@ def run(cfg) -> str:
         out_dir = Path(str(raw["out_dir"])).expanduser()
         if verify:
             return _verify(raw, out_dir)
+        # another app's run (a training or evaluation folder) is not a dataset: its episodes would join that
+        # run's files, and the folder would then read as a dataset to every app; other files the engine checks
+        claim_folder(out_dir, "collect", "out_dir", foreign_ok=True)
         with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
             meta = collect_dataset(raw, out_dir)
         m = read_json(meta)
