@@ -291,9 +291,33 @@ def read_only_app(tmp_path: Path, module: str, *args: str) -> subprocess.Complet
                           env={**ENV, "READ_ONLY": str(tmp_path / "ro")}, timeout=600)
 
 
-def test_a_read_only_run_folder_is_one_line(tmp_path):
-    proc = read_only_app(tmp_path, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
-                         f"hydra.run.dir={tmp_path}/ro/run")
+def read_only_in_process(tmp_path: Path, monkeypatch, module: str, *args: str):
+    """``read_only_app`` run in this process: ``os.mkdir`` and ``os.open`` refuse ``tmp_path/ro`` while the
+    app runs (``monkeypatch`` puts them back)."""
+    ro = str(tmp_path / "ro")
+    (tmp_path / "ro").mkdir()
+    real_mkdir, real_open = os.mkdir, os.open
+
+    def refuse(path):
+        if os.path.abspath(os.fspath(path)).startswith(ro + os.sep):
+            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+
+    def mkdir(path, *a, **k):
+        refuse(path)
+        return real_mkdir(path, *a, **k)
+
+    def open_(path, *a, **k):
+        refuse(path)
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    monkeypatch.setattr(os, "open", open_)
+    return run_app_in_process(module, *args, env={"HYDRA_FULL_ERROR": "0"})
+
+
+def test_a_read_only_run_folder_is_one_line(tmp_path, monkeypatch):
+    proc = read_only_in_process(tmp_path, monkeypatch, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
+                                f"hydra.run.dir={tmp_path}/ro/run")
     assert_refused(proc, "hydra.run.dir", f"{tmp_path}/ro/run")
 
 
