@@ -22,7 +22,7 @@ from hydra import compose, initialize_config_module
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.frames import load_frames, split_by_episode
-from conftest import assert_refused
+from conftest import assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -287,8 +287,8 @@ def test_the_cli_lists_diagnose_and_a_missing_checkpoint_is_one_line(tmp_path: P
     from cicfw.cli import COMMANDS
 
     assert COMMANDS["diagnose"][0] == "cicfw.diagnose"
-    res = subprocess.run([sys.executable, "-m", "cicfw.cli", "diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}",
-                          f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    res = run_app_in_process("cicfw.cli", "diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}",
+                             f"hydra.run.dir={tmp_path / 'out'}", cwd=REPO)
     assert_refused(res, "checkpoint", tmp_path / "nope.ckpt")
 
 
@@ -383,8 +383,7 @@ def test_a_cuda_device_this_machine_lacks_is_one_line(tmp_path: Path, monkeypatc
 
 def test_the_cli_refuses_a_bad_thread_count_in_one_line(tmp_path: Path):
     """``threads=-2`` was a torch RuntimeError traceback: now status 2 and one line."""
-    res = subprocess.run([sys.executable, "-m", "cicfw.diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}",
-                          "threads=-2", f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True,
-                         text=True, timeout=300)
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}", "threads=-2",
+                             f"hydra.run.dir={tmp_path / 'out'}", cwd=REPO)
     assert len([x for x in res.stderr.splitlines() if x.strip()]) == 1, res.stderr
     assert_refused(res, "threads", -2)

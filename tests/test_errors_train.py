@@ -5,9 +5,6 @@ any image is collected or read, and resuming that loads checkpoints with ``weigh
 ``cicfw: error: <message>`` (tests/test_train.py checks that wrapper on the command line)."""
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -18,7 +15,7 @@ from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.core.config_checks import SchemaError
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.train.app import build_model, build_trainer, check_resume_checkpoint, train
-from conftest import compose_train, write_tiny_dataset
+from conftest import compose_train, run_app_in_process, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -70,8 +67,7 @@ def test_trainer_arguments_take_plus_alike_on_the_command_line(tmp_path):
 
     for plus in ("", "+"):
         args = [f"{plus}trainer.max_epochs=3", f"{plus}trainer.fast_dev_run=true", f"{plus}trainer.limit_train_batches=3"]
-        run = subprocess.run([sys.executable, "-m", "cicfw.train", *args, "--cfg", "job"], capture_output=True,
-                             text=True, timeout=300, cwd=tmp_path)
+        run = run_app_in_process("cicfw.train", *args, "--cfg", "job", cwd=tmp_path)
         assert run.returncode == 0, run.stderr[-2000:]
         trainer = yaml.safe_load(run.stdout)["trainer"]
         assert (trainer["max_epochs"], trainer["fast_dev_run"], trainer["limit_train_batches"]) == (3, True, 3)
@@ -81,13 +77,13 @@ def test_trainer_argument_from_the_command_line(tmp_path):
     """The whole app: ``trainer.fast_dev_run=true`` (no ``+``) trains one step; a value Lightning refuses
     is one line, and the refused run leaves no run folder behind."""
     data = write_tiny_dataset(tmp_path / "data")
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    common = [sys.executable, "-m", "cicfw.train", *BASE, f"data.path={data}", f"hydra.run.dir={tmp_path}/out"]
-    ok = subprocess.run([*common, "trainer.fast_dev_run=true"], capture_output=True, text=True, env=env, timeout=300)
+    env = {"HYDRA_FULL_ERROR": "0"}
+    common = [*BASE, f"data.path={data}", f"hydra.run.dir={tmp_path}/out"]
+    ok = run_app_in_process("cicfw.train", *common, "trainer.fast_dev_run=true", env=env)
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert "`Trainer.fit` stopped: `max_steps=1` reached." in ok.stderr + ok.stdout
     common[-1] = f"hydra.run.dir={tmp_path}/refused/run"
-    bad = subprocess.run([*common, "trainer.max_epochs=-2"], capture_output=True, text=True, env=env, timeout=300)
+    bad = run_app_in_process("cicfw.train", *common, "trainer.max_epochs=-2", env=env)
     assert bad.returncode == 2
     errors = [line for line in bad.stderr.splitlines() if line.startswith("cicfw:")]
     assert len(errors) == 1 and errors[0].startswith("cicfw: error: trainer") and "max_epochs" in errors[0], errors

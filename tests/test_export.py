@@ -35,7 +35,7 @@ from cicfw.model.encoders import Encoder
 from cicfw.model.module import CICModule
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.testing import make_targets, write_tiny_dataset
-from conftest import assert_refused
+from conftest import assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -222,8 +222,8 @@ def test_the_suites_policy_drives_through_the_agent_unchanged(cil_run, episode):
 def test_command_line_exports_a_cil_model_with_its_sidecar(cil_run, episode, tmp_path):
     frames, episode_file = episode
     out = tmp_path / "cil.onnx"
-    res = subprocess.run([sys.executable, "-m", "cicfw.export", f"checkpoint={cil_run.parent.parent}", f"out={out}",
-                          f"frames={episode_file}", "n_frames=4"], capture_output=True, text=True, timeout=300)
+    res = run_app_in_process("cicfw.export", f"checkpoint={cil_run.parent.parent}", f"out={out}",
+                             f"frames={episode_file}", "n_frames=4", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert f"cicfw export: {out} (" in res.stdout and "gtu+hybrid, onnx" in res.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cil.onnx", "cil.onnx.json"]  # no outputs/ folder
@@ -333,8 +333,7 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
 
 def test_the_cli_prints_one_line_for_a_bad_checkpoint(tmp_path):
     (tmp_path / "notes.ckpt").write_text("not a checkpoint")
-    res = subprocess.run([sys.executable, "-m", "cicfw.cli", "export", f"checkpoint={tmp_path / 'notes.ckpt'}",
-                          f"out={tmp_path / 'm.onnx'}"], capture_output=True, text=True, timeout=300)
+    res = run_app_in_process("cicfw.cli", "export", f"checkpoint={tmp_path / 'notes.ckpt'}", f"out={tmp_path / 'm.onnx'}")
     assert res.stdout == "" and res.stderr.count("\n") == 1, res.stderr
     assert_refused(res, "checkpoint", tmp_path / "notes.ckpt")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.ckpt"]
@@ -442,8 +441,8 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
 def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
     (tmp_path / "notes.h5").write_text("hello\n")
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
-    res = subprocess.run([sys.executable, "-m", "cicfw.export", f"checkpoint={ckpt}", f"out={tmp_path / 'm.onnx'}",
-                          f"frames={tmp_path / 'notes.h5'}"], capture_output=True, text=True, timeout=300)
+    res = run_app_in_process("cicfw.export", f"checkpoint={ckpt}", f"out={tmp_path / 'm.onnx'}",
+                             f"frames={tmp_path / 'notes.h5'}")
     assert res.stdout == "" and res.stderr.count("\n") == 1, res.stderr
     assert_refused(res, "frames", tmp_path / "notes.h5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt", "notes.h5"]

@@ -14,8 +14,8 @@ import pytest
 from cicfw.benchmark.journal import LOG_NAME, read_log
 from cicfw.core.config_checks import SchemaError
 from cicfw.benchmark.app import compose_config, evaluate
-from test_hostile_train import _errors, read_only_app
-from conftest import assert_refused
+from test_hostile_train import _errors, read_only_in_process
+from conftest import assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -103,15 +103,15 @@ def test_ctrl_c_during_the_evaluation_keeps_the_finished_episodes_and_says_how_t
     assert json.loads((out / "summary.json").read_text())["complete"] is False
 
 
-def test_a_read_only_run_folder_is_one_line(tmp_path):
-    proc = read_only_app(tmp_path, "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/ro")
+def test_a_read_only_run_folder_is_one_line(tmp_path, monkeypatch):
+    proc = read_only_in_process(tmp_path, monkeypatch, "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/ro")
     assert_refused(proc, "hydra.run.dir", f"{tmp_path}/ro")
 
 
 def test_a_300_character_run_name_is_one_line(tmp_path):
     name = "e" * 300
-    proc = subprocess.run([sys.executable, "-m", "cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/x/{name}"],
-                          capture_output=True, text=True, env=ENV, timeout=600)
+    proc = run_app_in_process("cicfw.evaluate", *QUICK, f"hydra.run.dir={tmp_path}/x/{name}",
+                              env={"HYDRA_FULL_ERROR": "0"})
     assert "255" in assert_refused(proc, "hydra.run.dir", name[:20])  # the filesystem's limit
 
 

@@ -260,40 +260,33 @@ def test_ctrl_c_during_the_compile_warm_up_is_one_line(tmp_path):
                              "nothing to keep yet (what was compiled is cached), run the same command again"]
 
 
-READ_ONLY = """
-import errno, os, runpy, sys
-ro = os.environ["READ_ONLY"]
-real_mkdir, real_open = os.mkdir, os.open
-
-def refuse(path):
-    if os.path.abspath(os.fspath(path)).startswith(ro + os.sep):
-        raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
-
-def mkdir(path, *a, **k):
-    refuse(path)
-    return real_mkdir(path, *a, **k)
-
-def open_(path, *a, **k):
-    refuse(path)
-    return real_open(path, *a, **k)
-
-os.mkdir, os.open = mkdir, open_  # a folder where nothing can be created (a read-only mount)
-runpy.run_module(sys.argv.pop(1), run_name="__main__", alter_sys=True)
-"""
-
-
-def read_only_app(tmp_path: Path, module: str, *args: str) -> subprocess.CompletedProcess:
-    """``python -m <module> args`` with ``tmp_path/ro`` read-only."""
-    script = tmp_path / "read_only.py"
-    script.write_text(READ_ONLY)
+def read_only_in_process(tmp_path: Path, monkeypatch, module: str, *args: str):
+    """``python -m <module> args`` in this process with ``tmp_path/ro`` read-only (a read-only mount): ``os.mkdir``
+    and ``os.open`` refuse it while the app runs (``monkeypatch`` puts them back)."""
+    ro = str(tmp_path / "ro")
     (tmp_path / "ro").mkdir()
-    return subprocess.run([sys.executable, str(script), module, *args], capture_output=True, text=True,
-                          env={**ENV, "READ_ONLY": str(tmp_path / "ro")}, timeout=600)
+    real_mkdir, real_open = os.mkdir, os.open
+
+    def refuse(path):
+        if os.path.abspath(os.fspath(path)).startswith(ro + os.sep):
+            raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+
+    def mkdir(path, *a, **k):
+        refuse(path)
+        return real_mkdir(path, *a, **k)
+
+    def open_(path, *a, **k):
+        refuse(path)
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    monkeypatch.setattr(os, "open", open_)
+    return run_app_in_process(module, *args, env={"HYDRA_FULL_ERROR": "0"})
 
 
-def test_a_read_only_run_folder_is_one_line(tmp_path):
-    proc = read_only_app(tmp_path, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
-                         f"hydra.run.dir={tmp_path}/ro/run")
+def test_a_read_only_run_folder_is_one_line(tmp_path, monkeypatch):
+    proc = read_only_in_process(tmp_path, monkeypatch, "cicfw.train", *BASE, f"data.path={tmp_path}/data",
+                                f"hydra.run.dir={tmp_path}/ro/run")
     assert_refused(proc, "hydra.run.dir", f"{tmp_path}/ro/run")
 
 

@@ -43,7 +43,11 @@ ONE_EPISODE = ["policy=expert", "suite.towns=[town_a]", "suite.weathers=[ClearNo
                "progress_bar=false"]
 
 
-def _evaluate(run: Path, *extra: str) -> subprocess.CompletedProcess:
+def _evaluate(run: Path, *extra: str, process: bool = False):
+    """``python -m cicfw.evaluate`` of one expert episode into ``run``: in this interpreter unless ``process``
+    (a test where another process must hold what this one holds)."""
+    if not process:
+        return run_app_in_process("cicfw.evaluate", *ONE_EPISODE, f"hydra.run.dir={run}", *extra, env=IN_PROCESS)
     return subprocess.run([sys.executable, "-m", "cicfw.evaluate", *ONE_EPISODE, f"hydra.run.dir={run}", *extra],
                           capture_output=True, text=True, env=ENV, timeout=600)
 
@@ -238,7 +242,7 @@ def test_an_evaluation_into_a_folder_another_is_writing_is_refused_before_hydra_
     kept = _hydra_state(run)
     held = RunFolderLock(run).acquire()  # the other evaluation
     try:
-        res = _evaluate(run, "seed=5")
+        res = _evaluate(run, "seed=5", process=True)  # this process holds the lock
     finally:
         held.release()
     assert res.returncode == 2, res.stderr[-3000:]
@@ -251,8 +255,8 @@ def test_an_evaluation_of_a_bad_checkpoint_leaves_no_run_folder(tmp_path):
     bad = tmp_path / "bad.ckpt"
     bad.write_bytes(b"not a checkpoint")
     run = tmp_path / "outputs" / "eval"
-    res = subprocess.run([sys.executable, "-m", "cicfw.evaluate", f"checkpoint={bad}", "suite.limit=1",
-                          f"hydra.run.dir={run}"], capture_output=True, text=True, env=ENV, timeout=600)
+    res = run_app_in_process("cicfw.evaluate", f"checkpoint={bad}", "suite.limit=1", f"hydra.run.dir={run}",
+                             env=IN_PROCESS)
     assert res.returncode == 2, res.stderr[-3000:]
     errors = _errors(res.stderr)
     assert len(errors) == 1 and str(bad) in errors[0], res.stderr[-3000:]

@@ -23,7 +23,24 @@ from cicfw.reproduction.published import publish
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
-SMOKE = ["budget=smoke", "seeds=2"]
+BATCH = 4  # the smoke budget's training batch, smaller here: what each test asserts holds at any size
+
+
+def _smaller(**values) -> list[str]:
+    """Overrides of the smoke budget's own train entries (by their index in conf/budget/smoke.yaml, which users
+    run unchanged): less data and smaller batches, the same pipeline, in a fraction of the CPU time."""
+    from omegaconf import OmegaConf
+
+    train = OmegaConf.load(Path(cicfw.__file__).parent / "conf" / "budget" / "smoke.yaml").train
+    out = [f"budget.train.{i}='{o.split('=', 1)[0]}={values[o.split('=', 1)[0].lstrip('+')]}'"
+           for i, o in enumerate(train) if o.split("=", 1)[0].lstrip("+") in values]
+    assert len(out) == len(values), (values, list(train))
+    return out
+
+
+# 6 episodes of 7 s (420 frames) still hold every command and fill the 2 training batches and the validation batch
+SMALL = _smaller(**{"data.collect.episodes": 6, "data.collect.seconds": 7, "data.batch_size": BATCH})
+SMOKE = ["budget=smoke", "seeds=2", *SMALL]
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +91,7 @@ def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
     assert sorted(got) == ["cil/seed0", "cil/seed1", "gtu/seed0", "gtu/seed1"]
     assert {c["status"] for c in got.values()} == {"ok"}, [c.get("error") for c in got.values()]
     one = got["gtu/seed0"]
-    assert one["mixer"] == "gtu" and one["samples_seen"] == 2 * 2 * 8  # 2 epochs x 2 batches x 8
+    assert one["mixer"] == "gtu" and one["samples_seen"] == 2 * 2 * BATCH  # 2 epochs x 2 batches
     assert len(one["episodes"]) == 4 and {e["command"] for e in one["episodes"].values()} <= {"left", "right"}
     assert [p["epoch"] for p in one["curve"]] == [1, 2]  # the learning curve: epoch 1, then the final weights
     assert one["wall_s"]["train"] > 0 and one["wall_s"]["evaluate"] > 0
@@ -216,8 +233,8 @@ def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_p
     assert "Some Other CPU" not in ours["machine"]
     text = ours["machine"].split(",")[0]  # e.g. "2 cores (…)": this machine's, not the other's
     out = tmp_path / "results"
-    args = ["budget=smoke", "rows=[cil]", "seeds=[0]", f"continue_from={published}", f"continue_machine='{text}'",
-            f"results_dir={out}"]
+    args = ["budget=smoke", *SMALL, "rows=[cil]", "seeds=[0]", f"continue_from={published}",
+            f"continue_machine='{text}'", f"results_dir={out}"]
     assert reproduce.main(args) == 0
     assert list(cells(out)) == ["cil/seed0"]
     entry = json.loads((out / "reproduce.json").read_text())["continued_from"][0]
@@ -225,7 +242,8 @@ def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_p
     assert f"1 finished cells copied, only those made on a machine with {text!r}" in (out / "RESULTS.md").read_text()
     # without the filter both cells are copied
     both = tmp_path / "both"
-    assert reproduce.main(["budget=smoke", "rows=[cil]", "seeds=[0]", f"continue_from={published}", f"results_dir={both}"]) == 0
+    assert reproduce.main(["budget=smoke", *SMALL, "rows=[cil]", "seeds=[0]", f"continue_from={published}",
+                            f"results_dir={both}"]) == 0
     assert sorted(cells(both)) == ["cil/seed0", "cil/seed1"]
 
 
