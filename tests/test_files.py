@@ -104,3 +104,30 @@ def test_the_writer_is_the_bottom_layer():
     found = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     found |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert not [m for m in found if m == "cicfw" or m.startswith("cicfw.")], sorted(found)
+
+
+def test_a_held_run_folder_loses_only_the_temporaries_of_writers_that_no_longer_run(tmp_path):
+    """A writer killed mid-write (SIGKILL) leaves its ``.<name>.<pid>-<hex>.tmp``; holding the folder for a
+    run (a resume) removes it, and keeps those of writers still running and every other file."""
+    import subprocess
+    import sys
+
+    from cicfw.core.run_folder import hold_train_folder, release_run_folder
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / "checkpoints").mkdir()
+        stale = tmp_path / "checkpoints" / f".epoch000.ckpt.{dead.pid}-0123abcd.tmp"
+        busy = tmp_path / "checkpoints" / f".last.ckpt.{alive.pid}-89abcdef.tmp"
+        mine = tmp_path / f".data.json.{os.getpid()}-00ff00ff.tmp"
+        kept = [busy, mine, tmp_path / "notes.tmp", tmp_path / f".x.{dead.pid}.tmp"]
+        for p in [stale, *kept]:
+            p.write_bytes(b"half")
+        hold_train_folder(tmp_path, "last")
+        release_run_folder(tmp_path)
+        assert not stale.exists() and all(p.exists() for p in kept)
+    finally:
+        alive.kill()
+        alive.wait()

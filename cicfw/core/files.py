@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping
@@ -17,6 +18,32 @@ from typing import Callable, Iterable, Iterator, Mapping
 def _temp_name(path: Path, suffix: str) -> Path:
     """``.<name>.<pid>-<random><suffix>`` beside ``path``: hidden, and telling which process left it."""
     return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+#: ``_temp_name``'s files: the writer's pid is the first group
+TEMP_NAME = re.compile(r"^\..+\.(\d+)-[0-9a-f]{8}\.[a-z]+$")
+
+
+def _running(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (one owned by another user counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
+    """The temporary files (``_temp_name``'s) under ``folder`` whose writer no longer runs, removed: a
+    process killed while writing (SIGKILL, a lost node) cannot clean up after itself. Only for a folder
+    the caller holds (its lock), so that no writer on another machine is still filling one. Returns them."""
+    stale = [p for p in Path(folder).rglob(".*") if p.is_file() and (m := TEMP_NAME.match(p.name))
+             and int(m.group(1)) != os.getpid() and not _running(int(m.group(1)))]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 def temp_beside(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:

@@ -30,6 +30,7 @@ from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
+from cicfw.core.files import remove_stale_temps
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.sweeps import is_worker_process
 
@@ -190,7 +191,8 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     """Make ``folder`` this process's training folder: its lock taken (unless this process holds it
     already), then ``check_no_other_run``, the lock given back when that fails. One line otherwise:
     ``FolderBusy`` (another run holds it) or ``RunFolderError``. A DDP worker rank (its ``RANK`` ...
-    not 0) shares the folder rank 0 holds: nothing to take."""
+    not 0) shares the folder rank 0 holds: nothing to take. Held, the folder loses the temporary files a
+    killed writer left (``remove_stale_temps``)."""
     if is_worker_process():
         return
     name = os.path.abspath(folder)
@@ -201,6 +203,7 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     except RunFolderError:
         release_run_folder(folder)
         raise
+    remove_stale_temps(folder)  # a killed run's half-written checkpoint or record, never renamed
 
 
 def forget_failed_run(folder: str | Path) -> list[str]:
