@@ -29,9 +29,11 @@ BATCH = 4  # the smoke budget's training batch, smaller here: what each test ass
 def _smaller(**values) -> list[str]:
     """Overrides of the smoke budget's own train entries (by their index in conf/budget/smoke.yaml, which users
     run unchanged): less data and smaller batches, the same pipeline, in a fraction of the CPU time."""
+    from importlib.resources import files
+
     from omegaconf import OmegaConf
 
-    train = OmegaConf.load(Path(cicfw.__file__).parent / "conf" / "budget" / "smoke.yaml").train
+    train = OmegaConf.load(str(files("cicfw.conf") / "budget" / "smoke.yaml")).train
     out = [f"budget.train.{i}='{o.split('=', 1)[0]}={values[o.split('=', 1)[0].lstrip('+')]}'"
            for i, o in enumerate(train) if o.split("=", 1)[0].lstrip("+") in values]
     assert len(out) == len(values), (values, list(train))
