@@ -17,7 +17,7 @@ import re
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
     SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
@@ -242,21 +242,15 @@ def check_one_suite(runs: Sequence[Run]) -> None:
     """Runs joined into one table drove one suite: the same suite name and training towns and weathers (the
     columns' meaning; towns, weathers or pairs subsets may differ, the table counts each row's episodes).
     Otherwise one ``CicfwError`` naming the key, both runs and both values."""
-    def setting(run: Run, key: str) -> Any:
+    def settings(run: Run) -> dict[str, Any]:
         suite = run.meta.get("suite")
-        if key == "name":
-            return run.suite_name()
-        value = suite.get(key) if isinstance(suite, Mapping) else None
-        return sorted(map(str, value)) if isinstance(value, (list, tuple)) else value
+        found = {"name": run.suite_name()}
+        for key in SUITE_KEYS[1:]:
+            value = suite.get(key) if isinstance(suite, Mapping) else None
+            found[key] = sorted(map(str, value)) if isinstance(value, (list, tuple)) else value
+        return {k: v for k, v in found.items() if v is not None}
 
-    for key in SUITE_KEYS:
-        first = runs[0] if runs else None
-        for r in runs[1:]:
-            a, b = setting(first, key), setting(r, key)
-            if a is not None and b is not None and a != b:
-                raise CicfwError(f"report: {first.path} and {r.path} drove different suites (suite.{key}: {a} and "
-                                 f"{b}), whose success rates one table cannot compare; report them separately",
-                                 key=f"suite.{key}", value=b)
+    _one_setting(runs, settings, "suite", "drove different suites")
     check_one_episode_rule(runs)
 
 
@@ -269,21 +263,27 @@ def check_one_episode_rule(runs: Sequence[Run]) -> None:
     """Runs joined into one table drove under one simulator and one set of episode rules, else a rate of one
     row means another thing than its neighbour's (a 2 m and an 8 m success radius, another weather family).
     A key only one run records (a run of an older cicfw) is not compared. One ``CicfwError`` naming the key."""
-    def part(run: Run, name: str) -> Mapping[str, Any]:
-        fp = run.meta.get("fingerprint")
-        value = fp.get(name) if isinstance(fp, Mapping) else None
-        return value if isinstance(value, Mapping) else {}
-
     for name in EPISODE_RULE_PARTS:
-        first = part(runs[0], name) if runs else {}
-        for r in runs[1:]:
-            other = part(r, name)
-            for key in sorted(set(first) & set(other), key=str):
-                if first[key] != other[key]:
-                    raise CicfwError(f"report: {runs[0].path} and {r.path} drove under different {name} settings "
-                                     f"({name}.{key}: {first[key]} and {other[key]}), whose success rates one "
-                                     f"table cannot compare; report them separately",
-                                     key=f"{name}.{key}", value=other[key])
+        def settings(run: Run, name: str = name) -> dict[str, Any]:
+            fp = run.meta.get("fingerprint")
+            value = fp.get(name) if isinstance(fp, Mapping) else None
+            return dict(sorted(value.items(), key=lambda kv: str(kv[0]))) if isinstance(value, Mapping) else {}
+
+        _one_setting(runs, settings, name, f"drove under different {name} settings")
+
+
+def _one_setting(runs: Sequence[Run], settings: Callable[[Run], Mapping[str, Any]], part: str, what: str) -> None:
+    """Each of ``settings(run)``'s keys (``part.<key>``) the same in every run that records it, else one
+    ``CicfwError``: the first run and the one that differs ``what``, with both values."""
+    if not runs:
+        return
+    first, others = settings(runs[0]), [(r, settings(r)) for r in runs[1:]]
+    for key in first:
+        for r, other in others:
+            if key in other and first[key] != other[key]:
+                raise CicfwError(f"report: {runs[0].path} and {r.path} {what} ({part}.{key}: {first[key]} and "
+                                 f"{other[key]}), whose success rates one table cannot compare; report them "
+                                 f"separately", key=f"{part}.{key}", value=other[key])
 
 
 def load_current_run(run_dir: str | Path) -> Run:
