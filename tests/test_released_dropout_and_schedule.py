@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 import cicfw.train.app as train_mod
+from cicfw.core.errors import ConfigError
 from cicfw.train.app import build_model, train
 from conftest import compose_train, write_tiny_dataset
 
@@ -92,3 +93,51 @@ def test_constant_schedule_keeps_the_papers_rate(tmp_path, monkeypatch):
 def test_unknown_schedule_is_one_line():
     with pytest.raises(ValueError, match=r"model.lr_schedule='step' is not known; use one of constant, cosine"):
         build_model(compose_train("model.lr_schedule=step"))
+
+
+@pytest.mark.slow  # trains
+@pytest.mark.parametrize("schedule, fraction, expected", [
+    # 6 steps, round(0.34 * 6) = 2 of warm-up (lr/2, lr), then half a cosine over the other 4 steps
+    ("cosine", 0.34, [0.5, 1.0, 1.0, (1 + math.cos(math.pi / 4)) / 2, 0.5, (1 + math.cos(3 * math.pi / 4)) / 2]),
+    ("constant", 0.5, [1 / 3, 2 / 3, 1.0, 1.0, 1.0, 1.0]),  # 3 steps of warm-up, then the constant lr
+])
+def test_warmup_rises_linearly_then_hands_over_to_the_schedule(tmp_path, monkeypatch, schedule, fraction, expected):
+    seen = _lrs_seen(tmp_path, monkeypatch, f"model.lr_schedule={schedule}", f"model.lr_warmup_fraction={fraction}")
+    assert seen == pytest.approx([2e-4 * f for f in expected], rel=1e-9, abs=1e-15)
+
+
+@pytest.mark.slow  # trains
+def test_ema_checkpoints_hold_the_moving_average_of_the_trained_weights(tmp_path, monkeypatch):
+    decay = 0.6
+    raw: list[dict[str, torch.Tensor]] = []
+
+    class Record(L.Callback):  # the trained (not averaged) weights after every optimizer step
+        def on_train_batch_end(self, trainer, pl_module, *args):
+            raw.append({k: v.detach().clone() for k, v in pl_module.named_parameters()})
+
+    build = train_mod.build_callbacks
+    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), Record()])
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
+    cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+                        "progress_bar=false", "speed.compile=false", "trainer.max_epochs=1",
+                        "trainer.limit_train_batches=4", "trainer.limit_val_batches=1",
+                        "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false",
+                        f"model.ema_decay={decay}")
+    train(cfg, tmp_path / "run")
+    # by hand: the first average is the first step's weights, then a <- decay * a + (1 - decay) * w
+    average = dict(raw[0])
+    for weights in raw[1:]:
+        average = {k: decay * average[k] + (1 - decay) * w for k, w in weights.items()}
+    saved = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert len(raw) == 4
+    for name, value in average.items():
+        torch.testing.assert_close(saved["state_dict"][name], value, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(saved["current_model_state"][name], raw[-1][name])  # resumes from these
+
+
+@pytest.mark.parametrize("key, value", [("lr_warmup_fraction", 1.0), ("lr_warmup_fraction", -0.1),
+                                        ("ema_decay", 1.0), ("ema_decay", -0.5)])
+def test_warmup_and_ema_ranges_are_one_line(key, value):
+    with pytest.raises(ConfigError) as err:
+        build_model(compose_train(f"model.{key}={value}"))
+    assert (err.value.key, err.value.value) == (f"model.{key}", value)

@@ -27,6 +27,12 @@ def cosine_factor(total_steps: int, final: float) -> Callable[[int], float]:
     return lambda step: final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
 
 
+def with_warmup(factor: Callable[[int], float], warmup: int) -> Callable[[int], float]:
+    """``factor`` after ``warmup`` steps whose lr rises linearly to the full lr (step ``warmup - 1``
+    takes it whole), so Adam's first, poorly scaled steps are small ones."""
+    return lambda step: (step + 1) / warmup if step < warmup else factor(step - warmup)
+
+
 #: the learning-rate schedules over a run (``model.lr_schedule``); the paper names none, so the
 #: default stays constant. ``cosine`` ends a short run with small steps instead of on a knife edge.
 LR_SCHEDULES: dict[str, Callable[[int, float], Callable[[int], float] | None]] = {
@@ -52,6 +58,8 @@ class CICModule(L.LightningModule):
         speed_norm_kmh: float = 40.0,
         lr_schedule: str = "constant",
         lr_final_factor: float = 0.0,
+        lr_warmup_fraction: float = 0.0,
+        ema_decay: float = 0.0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -63,6 +71,10 @@ class CICModule(L.LightningModule):
         if not 0.0 <= lr_final_factor <= 1.0:
             raise ConfigError("model.lr_final_factor", lr_final_factor, "a number in [0, 1]",
                              f"model.lr_final_factor={lr_final_factor!r} is not valid; use a number in [0, 1]")
+        if not (is_number(lr_warmup_fraction) and 0.0 <= lr_warmup_fraction < 1.0):
+            raise ConfigError("model.lr_warmup_fraction", lr_warmup_fraction, "a number in [0, 1)")
+        if not (is_number(ema_decay) and 0.0 <= ema_decay < 1.0):
+            raise ConfigError("model.ema_decay", ema_decay, "a number in [0, 1) (0: no averaging)")
         if not (is_number(speed_norm_kmh) and speed_norm_kmh > 0):
             raise ConfigError("model.speed_norm_kmh", speed_norm_kmh, "a number > 0",
                              f"model.speed_norm_kmh must be > 0, got {speed_norm_kmh}")
@@ -173,9 +185,12 @@ class CICModule(L.LightningModule):
         opt = torch.optim.Adam(self.parameters(), lr=hp.lr, betas=tuple(hp.betas), weight_decay=hp.weight_decay,
                                **impl)
         schedule = hp.get("lr_schedule", "constant")  # checkpoints written before schedules existed
-        if schedule == "constant":
+        warmup_fraction = float(hp.get("lr_warmup_fraction", 0.0))
+        if schedule == "constant" and warmup_fraction == 0.0:
             return opt
         total = max(int(self.trainer.estimated_stepping_batches), 1)
-        factor = LR_SCHEDULES[schedule](total, float(hp.get("lr_final_factor", 0.0)))
+        warmup = min(round(warmup_fraction * total), total - 1)
+        after = LR_SCHEDULES[schedule](total - warmup, float(hp.get("lr_final_factor", 0.0))) or (lambda step: 1.0)
+        factor = with_warmup(after, warmup)
         return {"optimizer": opt,
                 "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}

@@ -19,7 +19,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressBar
+from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
@@ -281,7 +281,7 @@ def with_checkpoint_io(plugins: Any) -> list[Any]:
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     """The best checkpoint by ``optimized_metric`` (first: ``trainer.checkpoint_callback``, and it saves
     before ``last.ckpt`` so that file records the updated best), ``last.ckpt``, the mixer's diagnostics,
-    the data-wait report, the kept epochs and the progress bar."""
+    the data-wait report, the kept epochs, the weights' moving average and the progress bar."""
     callbacks: list[Callback] = [
         ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
                         save_last=False, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
@@ -293,6 +293,9 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
     if epochs:
         callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs, cfg.trainer.get("max_epochs")))
+    ema_decay = float(cfg.model.get("ema_decay", 0.0))
+    if ema_decay > 0:  # validation and every checkpoint's state_dict see the average; training the raw weights
+        callbacks.append(EMAWeightAveraging(decay=ema_decay))
     if cfg.get("progress_bar", True):
         callbacks.append(RichProgressBar())
     return callbacks
@@ -391,7 +394,8 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
 
 
 #: ``model.*`` values a resumed run takes from the checkpoint (the optimizer's and its schedule's state)
-RESTORED_BY_RESUMING = ("lr", "betas", "weight_decay", "lr_schedule", "lr_final_factor")
+RESTORED_BY_RESUMING = ("lr", "betas", "weight_decay", "lr_schedule", "lr_final_factor", "lr_warmup_fraction",
+                        "ema_decay")
 
 
 def _same_value(a: Any, b: Any) -> bool:
