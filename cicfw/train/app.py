@@ -46,6 +46,7 @@ from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_recor
                                    with_earlier, write_record)
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
+from cicfw.train.resumed_encoding import check_resumed_encoding
 from cicfw.train.split_record import RecordSplit, check_resumed_split, split_settings
 
 log = logging.getLogger("cicfw.train")
@@ -388,6 +389,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
             f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
             f"{first!r}; resume with the options the checkpoint was trained with", key="ckpt_path", value=path)
     check_resumed_optimizer(path, ckpt, model)
+    check_resumed_encoding(path, ckpt.get("hyper_parameters") or {}, model.hparams)  # speed scale, bins
     if split is not None:
         check_resumed_split(path, ckpt, split)
     if trainer_cfg is not None:
