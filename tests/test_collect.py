@@ -290,7 +290,7 @@ def recording(monkeypatch):
 
 def test_the_engine_drives_any_backend_through_its_interface(tmp_path: Path, recording):
     cfg = {"episodes": 2, "seconds": 1.5, "weathers": ["ClearNoon"], "cameras": ["centre", "right"], "workers": 0,
-           "sim": {"name": "recording", "stop_after": 12, "command_distance": 9.0}}
+           "command_distance": 9.0, "sim": {"name": "recording", "stop_after": 12, "command_distance": 9.0}}
     meta = json.loads(collect_dataset(cfg, tmp_path, progress=False).read_text())
     assert meta["complete"] and meta["sim"] == "recording" and meta["sim_version"] == "recording-7"
     # an env that is done after 12 steps ends its episode there: 12 steps x 2 cameras

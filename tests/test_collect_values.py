@@ -22,6 +22,7 @@ from cicfw.sim.expert import ExpertParams
     ("expert.min_kmh=40", "collect.expert.min_kmh", "at most the cruise speed"),
     ("expert.lookahead_gain=-0.5", "collect.expert.lookahead_gain", ">= 0 s"),
     ("seed=-1", "collect.seed", "integer >= 0"),
+    ("sim.command_distance=30", "sim.command_distance", "command_distance=30.0"),  # the suite's, not read here
 ])
 def test_a_value_the_collection_cannot_use_is_one_line_naming_the_key(tmp_path: Path, capsys, monkeypatch,
                                                                       override: str, key: str, accepted: str):
@@ -41,3 +42,13 @@ def test_the_expert_refuses_such_values_wherever_it_is_built():
     with pytest.raises(ValueError, match=r"^expert\.lookahead_max"):
         ExpertParams(lookahead_max=0)
     ExpertParams(cruise_kmh=30, min_kmh=30)  # the bounds themselves are accepted
+
+
+def test_the_collection_s_own_command_distance_is_the_one_to_set():
+    """``command_distance`` places the collected commands; ``sim.command_distance`` may equal it or stay the
+    backend's default (the sim group always sets it), and is refused otherwise (it would be ignored)."""
+    from cicfw.collect.config import resolve_config
+
+    for sim_cd in (12.0, 30.0):
+        cfg = resolve_config({"command_distance": 30.0, "sim": {"name": "embedded", "command_distance": sim_cd}})
+        assert cfg["command_distance"] == 30.0

@@ -74,6 +74,17 @@ def test_a_subset_of_the_suite_keeps_its_training_sets():
     assert {(e.town_set, e.weather_set) for e in eps} == {("new", "new")}
 
 
+def test_a_python_caller_s_suite_labels_the_training_town_as_the_app_does():
+    """``evaluate_policy``'s suite without ``training_towns`` (as docs/evaluation.md's example) counted
+    town_a, where the default data is collected, as a new town; it is the training town, as conf/suite/ says."""
+    from cicfw.benchmark.suite import build_suite, make_backend
+
+    eps = build_suite(make_backend(None), towns=["town_a", "town_b"], weathers=["ClearNoon"], limit=1)
+    assert {(e.town, e.town_set) for e in eps} == {("town_a", "training"), ("town_b", "new")}
+    eps = build_suite(make_backend(None), towns=["town_a"], weathers=["ClearNoon"], limit=1, training_towns=[])
+    assert {e.town_set for e in eps} == {"new"}  # said on purpose: no training town
+
+
 def test_the_default_training_weathers_stand_where_the_simulator_lacks_them():
     """A CARLA server given other weathers (sim.weathers=[ClearNoon,HardRainNoon]) keeps the default training
     weathers working: they are the paper's, named, not a typo."""

@@ -116,6 +116,41 @@ def test_resuming_on_other_data_on_purpose_records_both(trained, tmp_path):
     assert ckpt["cicfw_data"]["path"] == str(other) and ckpt["cicfw_data"]["before"][0]["path"] == str(trained["data"])
 
 
+@pytest.mark.parametrize("override, key, value", [("seed=4", "data.seed", 4),
+                                                 ("data.val_fraction=0.5", "data.val_fraction", 0.5)])
+def test_resuming_with_another_split_is_refused(trained, tmp_path, override, key, value):
+    """Another seed or validation share would validate on episodes the checkpoint trained on."""
+    from cicfw.train.app import train
+
+    ckpt = torch.load(trained["last"], map_location="cpu", weights_only=True)
+    assert ckpt["cicfw_split"] == {"seed": 3, "val_fraction": 0.3}
+    cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={trained['last']}",
+                        "trainer.max_epochs=2", override)
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    _refusal(err)
+    assert (err.value.key, err.value.value) == (key, value)
+    assert not (tmp_path / "run").exists()  # refused before anything was written
+
+
+def test_an_older_checkpoint_s_split_is_read_from_its_run_config(trained, tmp_path):
+    """A checkpoint written before checkpoints recorded their split: its run's .hydra/config.yaml says it."""
+    from cicfw.train.app import train
+
+    run = tmp_path / "older"
+    shutil.copytree(trained["run"], run)
+    last = run / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(last, map_location="cpu", weights_only=True)
+    del ckpt["cicfw_split"]
+    torch.save(ckpt, last)
+    cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={last}", "trainer.max_epochs=2",
+                        "seed=4")
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    _refusal(err)
+    assert (err.value.key, err.value.value) == ("data.seed", 4)
+
+
 def _diagnose(checkpoint: Path, out: Path, *overrides: str) -> dict:
     from cicfw.diagnose.app import diagnose
 

@@ -149,6 +149,29 @@ def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
         assert all(n in str(err.value) for n in named) and "\n" not in str(err.value), str(err.value)
 
 
+@pytest.mark.parametrize("trained, resumed, key, value", [
+    (["head=softmax", "head.n_classes=5", "head.low=-1", "head.high=1", "head.bin_width=0.4"],
+     ["head=softmax", "head.n_classes=5", "head.low=-0.9", "head.high=0.9", "head.bin_width=0.36"], "head.low", -0.9),
+    (["head=sine", "head.phase_range=0.9"], ["head=sine", "head.phase_range=0.5"], "head.phase_range", 0.5),
+    ([], ["model.speed_norm_kmh=80"], "model.speed_norm_kmh", 80.0),
+])
+def test_resuming_with_another_input_scale_or_output_encoding_is_refused(tmp_path, no_data, trained, resumed, key,
+                                                                          value):
+    """Weights of the same shapes, read with another meaning, would train on as neither model."""
+    ckpt = _resumable(build_model(_cfg(tmp_path, *trained)), tmp_path / "last.ckpt")
+    with pytest.raises(CicfwError) as err:
+        train(_cfg(tmp_path, *resumed, f"ckpt_path={ckpt}"), tmp_path / "run")
+    assert (err.value.key, err.value.value) == (key, value) and "\n" not in str(err.value)
+
+
+def test_resuming_with_another_loss_weight_or_decoder_passes_the_check(tmp_path, no_data):
+    """The loss and how steering is read out may change on resume: the weights keep their meaning."""
+    model = build_model(_cfg(tmp_path, "head=hybrid", "head.W=10"))
+    ckpt = _resumable(model, tmp_path / "last.ckpt")
+    other = build_model(_cfg(tmp_path, "head=hybrid", "head.W=5", "head.decode=argmax"))
+    assert check_resume_checkpoint(ckpt, other) == str(ckpt)
+
+
 def test_a_file_that_is_no_pickle_is_not_called_unsafe(tmp_path, no_data):
     """An 11-byte text file was refused as "pickled Python objects ... which could run code"."""
     text = tmp_path / "text.ckpt"

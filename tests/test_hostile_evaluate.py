@@ -147,3 +147,14 @@ def test_a_folder_without_checkpoints_is_named_as_given(tmp_path):
     assert "PosixPath" not in str(err.value)
     assert f"'{tmp_path}/empty'" in str(err.value)  # named as given
     assert not (tmp_path / "run").exists()
+
+
+def test_a_python_caller_s_suite_typo_names_the_key_before_anything_is_written(tmp_path):
+    """``evaluate_policy``'s suite dict is checked by the app's schema: a typo was a bare TypeError."""
+    from cicfw.benchmark.app import evaluate_policy
+
+    with pytest.raises(SchemaError) as err:
+        evaluate_policy({"name": "expert"}, {"towns": ["town_a"], "weathers": ["ClearNoon"], "limt": 1}, None,
+                        tmp_path / "out")
+    assert err.value.key == "suite.limt" and "limit" in str(err.value)
+    assert not (tmp_path / "out").exists()

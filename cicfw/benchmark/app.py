@@ -225,6 +225,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
     raises one ``ValueError`` line before anything is driven or written."""
     checked(evaluate_schema.RUNNER, runner, "runner")
+    checked(evaluate_schema.SUITE, suite, "suite")  # a Python caller's typo (limt=1): named, not a TypeError
     runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
     server_specs(sim, runner_cfg.workers)  # runner.workers that do not fit the simulator fail here
     kwargs = {k: v for k, v in spec.items() if k != "name"}

@@ -24,6 +24,8 @@ from cicfw.sim.roadgraph import COMMAND_NAMES
 #: the paper's four weathers: two seen in training, two new
 PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
 TRAINING_WEATHERS = ("ClearNoon", "ClearSunset")
+#: the town the default data is collected in: the table's "Training town" columns unless told otherwise
+TRAINING_TOWNS = ("town_a",)
 #: the paper's table columns, in its order: (town set, weather set)
 CELLS = (("training", "training"), ("training", "new"), ("new", "training"), ("new", "new"))
 #: the named suites: the manoeuvres each one drives (conf/suite/<name>.yaml selects one)
@@ -118,14 +120,15 @@ def suite_manoeuvres(name: str) -> tuple[str, ...]:
 
 
 def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
-                training_towns: Sequence[str] = (), training_weathers: Sequence[str] = TRAINING_WEATHERS,
+                training_towns: Sequence[str] | None = None, training_weathers: Sequence[str] = TRAINING_WEATHERS,
                 pairs: Sequence[int] | None = None, limit: int | None = None,
                 name: str = "junctions") -> list[Episode]:
     """Every (town, weather, pair) of the suite ``name`` (``SUITES``), ordered by town, weather, pair.
 
     Only the pairs whose manoeuvre belongs to the suite are kept (``single_turn``: left and right);
     ``pairs`` keeps only those pair indices (per town, numbered over all the town's routes); ``limit``
-    keeps the first ``limit`` kept pairs of each town. Unknown town, weather or suite names raise one
+    keeps the first ``limit`` kept pairs of each town. ``training_towns`` None: ``TRAINING_TOWNS`` (as
+    conf/suite/ sets it), where the simulator has it. Unknown town, weather or suite names raise one
     error listing the known ones.
     """
     manoeuvres = suite_manoeuvres(str(name))
@@ -147,8 +150,10 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         raise ConfigError("suite.towns", clash, "towns with distinct names",
                           f"suite.towns: {clash!r} and {first!r} are both named {town_label(clash)!r}, so their "
                           f"episodes would share keys (and trajectories, map, report rows); rename one town file")
-    training_towns = training_set("towns", training_towns, [*towns, *map(town_label, towns), *backend.towns()],
-                                  [town_label(t) for t in towns])
+    accepted = [*towns, *map(town_label, towns), *backend.towns()]
+    if training_towns is None:  # as conf/suite/ says, so a Python caller's table labels town_a as the app's does
+        training_towns = [t for t in TRAINING_TOWNS if t in accepted]
+    training_towns = training_set("towns", training_towns, accepted, [town_label(t) for t in towns])
     training_weathers = training_set("weathers", training_weathers, [*weathers, *PAPER_WEATHERS], weathers)
     episodes: list[Episode] = []
     for town in towns:

@@ -17,6 +17,7 @@ from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.core.config_checks import SchemaError, checked
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
+from cicfw.sim.roadgraph import COMMAND_DISTANCE
 from cicfw.sim.render.weather import DEFAULT_FAMILY, family_data_tag
 
 CAMERA_IDS = {"centre": (0, 0.0), "left": (1, -30.0), "right": (2, 30.0)}  # name -> (targets[26], [27])
@@ -171,6 +172,7 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     # only the values that differ from the defaults are kept: the defaults hash as {}
     out["expert"] = {k: v for k, v in out["expert"].items() if v != accepted[k]}
     out["sim"] = sim_node(out)
+    check_one_command_distance(out)
     if backend is not None:
         return _resolved_names(out, backend)
     backend = make_backend(out["sim"])
@@ -216,6 +218,19 @@ def _resolved_names(out: dict, backend: Any) -> dict:
             raise CollectConfigError(f"collect.weathers: unknown weather {w!r}; known weathers (sim={sim}): "
                                      f"{', '.join(known_w)}")
     return out
+
+
+def check_one_command_distance(out: dict) -> None:
+    """A collection places its commands at its own ``command_distance``; the backend's ``sim.command_distance``
+    (what the suite's routes use) is not read by it, so a value of its own there would be ignored without a
+    word: refused, unless it is the backend's default or equals ``command_distance``."""
+    theirs = out["sim"].get("command_distance")
+    if theirs is None or (_number(theirs) and any(math.isclose(float(theirs), v)
+                                                  for v in (COMMAND_DISTANCE, float(out["command_distance"])))):
+        return
+    raise CollectConfigError(f"sim.command_distance={theirs} is not read by a collection: the collector places its "
+                             f"commands at command_distance={out['command_distance']} (the collection's own key); "
+                             f"give command_distance={theirs} instead", key="sim.command_distance", value=theirs)
 
 
 def check_lock_wait(value: Any) -> None:

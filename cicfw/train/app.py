@@ -46,6 +46,8 @@ from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_recor
                                    with_earlier, write_record)
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
+from cicfw.train.resumed_encoding import check_resumed_encoding
+from cicfw.train.split_record import RecordSplit, check_resumed_split, split_settings
 
 log = logging.getLogger("cicfw.train")
 
@@ -359,11 +361,13 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
 
 
 def check_resume_checkpoint(path: str | Path | None, model: CICModule,
-                            trainer_cfg: Mapping[str, Any] | None = None) -> str | None:
+                            trainer_cfg: Mapping[str, Any] | None = None,
+                            split: Mapping[str, Any] | None = None) -> str | None:
     """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
     holds the training state (not weights only), fits this run's model, was trained with this run's
-    optimizer settings and, given ``trainer_cfg``, leaves something to train. Returns the path for
-    ``Trainer.fit`` (None to start afresh)."""
+    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split, and,
+    given ``trainer_cfg``, leaves something to train. Returns the path for ``Trainer.fit`` (None to start
+    afresh)."""
     if path is None or str(path) == "":
         return None
     if str(path) in LIGHTNING_CKPT_NAMES:
@@ -388,6 +392,9 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
             f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
             f"{first!r}; resume with the options the checkpoint was trained with", key="ckpt_path", value=path)
     check_resumed_optimizer(path, ckpt, model)
+    check_resumed_encoding(path, ckpt.get("hyper_parameters") or {}, model.hparams)  # speed scale, bins
+    if split is not None:
+        check_resumed_split(path, ckpt, split)
     if trainer_cfg is not None:
         check_epochs_left(path, ckpt, trainer_cfg)
     return str(path)
@@ -479,7 +486,8 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
-    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None)
+    ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None,
+                                        split_settings(cfg.data))  # the same validation episodes
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     return model, ckpt_path, datamodule
 
@@ -521,7 +529,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
     record = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's: refused),
-    trainer.callbacks.append(RecordInCheckpoints(record))  # into every checkpoint too
+    trainer.callbacks.append(RecordInCheckpoints(record))  # into every checkpoint too, with the split settings
+    trainer.callbacks.append(RecordSplit(split_settings(cfg.data)))
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "

@@ -1,0 +1,42 @@
+"""What a checkpoint's inputs and outputs mean must not change when training resumes from it: another speed
+scale, or other steering bins or phases of the same shapes, would load the weights unchanged, train on with
+the new meaning and record only the new one, so the model would be neither."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+from cicfw.core.errors import CicfwError
+
+#: ``model.*`` values that say how the encoder reads its input
+INPUT_KEYS = ("speed_norm_kmh",)
+#: ``head.*`` values that say what the head's outputs mean (the built-in heads' bins and sine phases)
+OUTPUT_KEYS = ("n_classes", "low", "high", "bin_width", "n_units", "phase_range")
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+    return a == b
+
+
+def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    """(key, this run's value, the checkpoint's) for each key whose meaning differs between the checkpoint's
+    hyper-parameters ``saved`` and this run's ``ours`` (a key the checkpoint does not record is not compared)."""
+    differ = [(f"model.{k}", ours.get(k), saved[k]) for k in INPUT_KEYS if k in saved and not _same(ours.get(k), saved[k])]
+    if saved.get("head") == ours.get("head"):
+        theirs, mine = saved.get("head_kwargs") or {}, ours.get("head_kwargs") or {}
+        differ += [(f"head.{k}", mine[k], theirs[k]) for k in OUTPUT_KEYS
+                   if k in theirs and k in mine and not _same(mine[k], theirs[k])]
+    return differ
+
+
+def check_resumed_encoding(path: str | Path, saved: Mapping[str, Any], ours: Mapping[str, Any]) -> None:
+    """Refuse resuming a checkpoint whose input scale or output encoding this run would change."""
+    differ = changed_encoding(saved, ours)
+    if differ:
+        said = ", ".join(f"{key}={now} (the checkpoint's: {then})" for key, now, then in differ)
+        raise CicfwError(f"ckpt_path={path}: {said} would give the checkpoint's weights another meaning than they "
+                         f"were trained with; resume with the checkpoint's values, or start a fresh run (no "
+                         f"ckpt_path) with the new ones", key=differ[0][0], value=differ[0][1])
