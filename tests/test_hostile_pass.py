@@ -282,3 +282,56 @@ def test_fast_dev_run_keeps_a_users_data_folder(tmp_path: Path) -> None:
         fast_dev_run(tmp_path)
     assert err.value.key == "tmp_path" and err.value.value == str(tmp_path)
     assert mine.read_bytes() == b"the user's episode"
+
+
+def test_diagnose_on_another_dataset_counts_the_files_that_folder_holds(tmp_path: Path) -> None:
+    """data.path=<a collected dataset of 4 episodes> for a checkpoint trained on 6 other files was refused
+    as '(0 files, hash ...)': the count of the recorded files found there, read as what the folder holds."""
+    import re
+
+    import torch
+
+    from cicfw.data.provenance import CHECKPOINT_KEY, record_data
+    from cicfw.model.module import CICModule
+    from conftest import assert_refused, run_app_in_process, write_tiny_dataset
+    from test_diagnose import write_episodes
+
+    trained_on = write_tiny_dataset(tmp_path / "trained_on")  # 6 files
+    other = write_episodes(tmp_path / "collected", n_files=4)
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    model = CICModule()
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                CHECKPOINT_KEY: record_data(trained_on)}, ckpt)
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpt}", f"data.path={other}", "data.seed=0",
+                             f"hydra.run.dir={tmp_path / 'out'}", "threads=1")
+    line = assert_refused(res, "data.path", other)
+    assert not re.search(r"\b0 files?\b", line) and re.search(r"\b4 HDF5 file", line), line
+    assert re.search(r"\b6 files\b", line), line  # the recorded data, counted as files too
+
+
+@pytest.mark.parametrize("suffix", [".pt", ".onnx"])
+def test_an_exported_model_given_as_checkpoint_says_what_it_is(tmp_path: Path, suffix: str) -> None:
+    """checkpoint=<a model export wrote> to export or diagnose was 'not a PyTorch checkpoint, or it is
+    truncated': it is an exported model, and the checkpoint it came from (its sidecar names it) is wanted."""
+    import json
+
+    import torch
+
+    from cicfw.model.checkpoint import CheckpointError, read_checkpoint
+    from conftest import assert_refused, run_app_in_process
+
+    model = tmp_path / f"cil{suffix}"
+    if suffix == ".pt":  # a TorchScript archive, as torch.jit.save writes it (export's is one too)
+        torch.jit.save(torch.jit.script(torch.nn.Linear(2, 1)), str(model))
+    else:
+        model.write_bytes(b"\x08\x07")
+    source = tmp_path / "run" / "checkpoints" / "epoch003.ckpt"
+    model.with_name(model.name + ".json").write_text(json.dumps({"checkpoint": {"path": str(source)}}))
+    res = run_app_in_process("cicfw.export", f"checkpoint={model}", "format=torchscript",
+                             f"out={tmp_path / 'again.pt'}")
+    line = assert_refused(res, f"checkpoint={str(model)!r}")
+    assert str(source) in line and not (tmp_path / "again.pt").exists(), line
+    with pytest.raises(CheckpointError) as err:  # diagnose reads it so
+        read_checkpoint(model)
+    assert err.value.key == "checkpoint" and err.value.value == str(model) and str(source) in str(err.value)

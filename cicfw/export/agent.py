@@ -11,7 +11,6 @@ so the suite, a CARLA client and a user's own stack share one inference path (do
 from __future__ import annotations
 
 import json
-import zipfile
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -21,7 +20,7 @@ from torch import nn
 
 from cicfw.core.errors import CicfwError
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
-from cicfw.model.checkpoint import describe, load_model, prepare_for_inference
+from cicfw.model.checkpoint import describe, is_torchscript, load_model, prepare_for_inference
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
@@ -113,14 +112,6 @@ def check_inputs(images: Any, speed_kmh: Any, command: Any,
                               f"±{MAX_ABS_SPEED_KMH:g}, as the data reader does (negative: rolling backwards)",
                               key="speed_kmh", value=value)
     return np.ascontiguousarray(img), speed, cmd, single
-
-
-def is_torchscript(path: Path) -> bool:
-    """A TorchScript archive (``torch.jit.save``) rather than a checkpoint (``torch.save``): it holds code."""
-    if not zipfile.is_zipfile(path):
-        return False
-    with zipfile.ZipFile(path) as z:
-        return any(n.split("/", 1)[-1].startswith("code/") for n in z.namelist())
 
 
 def torch_device(device: str) -> torch.device:

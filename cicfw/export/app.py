@@ -43,7 +43,7 @@ from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
-                                    resolve_checkpoint)
+                                    refuse_exported_model, resolve_checkpoint)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 
@@ -578,6 +578,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     if fmt == "onnx":
         _check_opset(opset)
     ckpt = resolve_checkpoint(checkpoint)
+    refuse_exported_model(ckpt)
     path = output_path(str(out) if out else None, ckpt, fmt)
     check_not_the_checkpoint(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)
