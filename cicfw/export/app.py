@@ -563,10 +563,11 @@ def _sources(names: list[str]) -> list[str]:
 # ---- the export --------------------------------------------------------------------------------
 def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
                  frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
-                 opset: int = DEFAULT_OPSET, overwrite: bool = False) -> dict[str, Any]:
+                 opset: int | None = None, overwrite: bool = False) -> dict[str, Any]:
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
-    simulator) plus as many random inputs. An existing ``out`` or sidecar is replaced only when it is this
+    simulator) plus as many random inputs. ``opset``: the ONNX opset (None: ``DEFAULT_OPSET``); TorchScript has
+    none, so one given with ``fmt="torchscript"`` is refused rather than ignored. An existing ``out`` or sidecar is replaced only when it is this
     checkpoint's earlier export, or with ``overwrite`` (``check_own_output``). Returns the sidecar's content."""
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):
@@ -576,7 +577,12 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)",
                           key="tolerance", value=tolerance)
     if fmt == "onnx":
+        opset = DEFAULT_OPSET if opset is None else opset
         _check_opset(opset)
+    elif opset is not None:
+        raise ExportError(f"opset={opset!r} applies to format=onnx only (a TorchScript model has no opset), so "
+                          f"format={fmt} would ignore it; leave opset out, or give format=onnx", key="opset",
+                          value=opset)
     ckpt = resolve_checkpoint(checkpoint)
     refuse_exported_model(ckpt)
     path = output_path(str(out) if out else None, ckpt, fmt)
