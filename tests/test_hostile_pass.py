@@ -4,6 +4,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cicfw.benchmark.suite import build_suite, make_backend
@@ -335,3 +336,25 @@ def test_an_exported_model_given_as_checkpoint_says_what_it_is(tmp_path: Path, s
     with pytest.raises(CheckpointError) as err:  # diagnose reads it so
         read_checkpoint(model)
     assert err.value.key == "checkpoint" and err.value.value == str(model) and str(source) in str(err.value)
+
+
+@pytest.mark.parametrize("speed, command", [(np.full((2, 2), 10.0), [2, 3, 4, 5]),
+                                            ([10.0] * 4, np.full((2, 2), 2)), (np.full((4, 1), 10.0), [2] * 4)])
+def test_the_agent_refuses_a_speed_or_command_not_shaped_as_the_batch(tmp_path: Path, speed, command) -> None:
+    """Agent.act(4 images, speed of shape (2, 2), ...) flattened the speeds and drove: refused, naming the
+    argument and the shape seen, before the model runs. One value per image, (B,), still drives."""
+    from cicfw.export.agent import Agent, AgentInputError
+
+    agent = Agent(lambda img, s, c: pytest.fail("the model ran"), {}, "test")
+    images = np.zeros((4, 88, 200, 3), np.uint8)
+    with pytest.raises(AgentInputError) as err:
+        agent.act(images, speed, command)
+    bad = np.asarray(speed if np.ndim(speed) > 1 else command)
+    assert err.value.key == ("speed_kmh" if np.ndim(speed) > 1 else "command")
+    assert err.value.value == str(bad.shape).replace(",)", ")") and "\n" not in str(err.value)
+    with pytest.raises(AgentInputError) as err:
+        agent.act(images[0], np.full((1, 1), 10.0), 2)
+    assert err.value.key == "speed_kmh" and err.value.value == "(1, 1)"
+    driven = Agent(lambda img, s, c: s / 10.0, {}, "test")
+    assert driven.act(images, [10.0, 20.0, 30.0, 40.0], [2, 3, 4, 5]).tolist() == [1.0, 2.0, 3.0, 4.0]
+    assert driven.act(images[0], 10.0, 2) == 1.0
