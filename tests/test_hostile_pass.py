@@ -358,3 +358,21 @@ def test_the_agent_refuses_a_speed_or_command_not_shaped_as_the_batch(tmp_path: 
     driven = Agent(lambda img, s, c: s / 10.0, {}, "test")
     assert driven.act(images, [10.0, 20.0, 30.0, 40.0], [2, 3, 4, 5]).tolist() == [1.0, 2.0, 3.0, 4.0]
     assert driven.act(images[0], 10.0, 2) == 1.0
+
+
+@pytest.mark.parametrize("override, key, value", [("mixer=nosuch", "mixer", "nosuch"),
+                                                  ("model.lr=abc", "model.lr", None)])
+def test_fast_dev_run_refuses_a_bad_override_as_the_cli_does(tmp_path: Path, override: str, key: str, value) -> None:
+    """fast_dev_run(folder, "mixer=nosuch") raised Hydra's MissingConfigException with its traceback (after
+    writing the tiny dataset): now the one-line cicfw error the CLI prints, before anything is written."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.testing import fast_dev_run
+    from conftest import assert_refused, run_app_in_process
+
+    with pytest.raises(CicfwError) as err:
+        fast_dev_run(tmp_path / "fresh", override)
+    assert err.value.key == key and (value is None or err.value.value == value)
+    assert err.value.__suppress_context__ and "\n" not in str(err.value)
+    assert not (tmp_path / "fresh").exists()
+    cli = run_app_in_process("cicfw.train", override, f"hydra.run.dir={tmp_path / 'run'}")
+    assert assert_refused(cli, key, value) == f"cicfw: error: {err.value}"
