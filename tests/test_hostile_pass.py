@@ -376,3 +376,47 @@ def test_fast_dev_run_refuses_a_bad_override_as_the_cli_does(tmp_path: Path, ove
     assert not (tmp_path / "fresh").exists()
     cli = run_app_in_process("cicfw.train", override, f"hydra.run.dir={tmp_path / 'run'}")
     assert assert_refused(cli, key, value) == f"cicfw: error: {err.value}"
+
+
+def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path) -> None:
+    """hydra.output_subdir=null leaves no .hydra: a training run's folder was then 'files that no cicfw app
+    wrote', so resuming it was refused. Its job log beside the app's own outputs names the app; either one
+    alone does not."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder, folder_owner
+
+    run = tmp_path / "train_run"
+    _ckpt(run / "checkpoints", "last.ckpt")
+    (run / "train.log").write_text("a line\n")
+    (run / "data.json").write_text("{}")
+    assert folder_owner(run) == "train"
+    claim_folder(run, "train", "hydra.run.dir")
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(run, "evaluate", "hydra.run.dir")
+    assert err.value.key == "hydra.run.dir" and err.value.value == str(run) and "train" in str(err.value)
+    diag = tmp_path / "diagnosis"
+    diag.mkdir()
+    (diag / "diagnose.log").write_text("")
+    (diag / "steer_diagnostic.json").write_text("{}")
+    assert folder_owner(diag) == "diagnose"
+    for name in ("train.log", "data.json"):  # the log alone, or an output alone: no app's run
+        alone = tmp_path / f"only_{name}"
+        alone.mkdir()
+        (alone / name).write_text("")
+        assert folder_owner(alone) is None
+        with pytest.raises(RunFolderError):
+            claim_folder(alone, "train", "hydra.run.dir")
+
+
+def test_a_training_run_without_hydra_records_resumes(tmp_path: Path) -> None:
+    from conftest import run_app_in_process, write_tiny_dataset
+
+    data = write_tiny_dataset(tmp_path / "data")
+    args = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false",
+            "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
+            "trainer.enable_model_summary=false", "speed.compile=false", f"hydra.run.dir={tmp_path / 'run'}",
+            "hydra.output_subdir=null"]
+    first = run_app_in_process("cicfw.train", *args, "trainer.max_epochs=1")
+    assert first.returncode == 0 and not (tmp_path / "run" / ".hydra").exists(), first.stderr[-2000:]
+    again = run_app_in_process("cicfw.train", *args, "trainer.max_epochs=2", "ckpt_path=last")
+    assert again.returncode == 0, again.stderr[-2000:]
+
