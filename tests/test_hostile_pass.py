@@ -420,3 +420,19 @@ def test_a_training_run_without_hydra_records_resumes(tmp_path: Path) -> None:
     again = run_app_in_process("cicfw.train", *args, "trainer.max_epochs=2", "ckpt_path=last")
     assert again.returncode == 0, again.stderr[-2000:]
 
+
+def test_an_evaluate_sweep_that_is_not_joined_keeps_no_sweep_table(tmp_path: Path) -> None:
+    """An evaluate multirun over settings one table cannot compare left job 0's one-row table.md (.tex, .csv,
+    bars) in the sweep folder, naming one job of several: no sweep table now, and the log says where each
+    job's table is."""
+    from cicfw.benchmark.evaluation_report import REPORT_FILES
+    from conftest import run_app_in_process
+
+    sweep = tmp_path / "sweep"
+    res = run_app_in_process("cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
+                             "suite.weathers=[ClearNoon]", "suite.limit=1", "progress_bar=false", "maps=false",
+                             f"hydra.sweep.dir={sweep}", "sim.success_radius=2,6")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [n for n in REPORT_FILES if (sweep / n).exists()] == []
+    for job in ("0", "1"):
+        assert (sweep / job / "table.md").is_file() and str(sweep / job / "table.md") in res.stdout + res.stderr
