@@ -384,6 +384,7 @@ def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], si
             write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed)
             log.info("video: %s", path)
 
+
 def unjoined_sweep(sweep_dir: Path) -> list[str]:
     """A sweep whose runs one table cannot hold keeps no sweep table: the one an earlier job joined (job 0's
     alone, say) would name one job of several. Removes those files unless a ``cicfw report`` wrote them there

@@ -566,9 +566,10 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
                  opset: int | None = None, overwrite: bool = False) -> dict[str, Any]:
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
-    simulator) plus as many random inputs. ``opset``: the ONNX opset (None: ``DEFAULT_OPSET``); TorchScript has
-    none, so one given with ``fmt="torchscript"`` is refused rather than ignored. An existing ``out`` or sidecar is replaced only when it is this
-    checkpoint's earlier export, or with ``overwrite`` (``check_own_output``). Returns the sidecar's content."""
+    simulator) plus as many random inputs. ``opset``: the ONNX opset (None: ``DEFAULT_OPSET``); TorchScript
+    has none, so one given with ``fmt="torchscript"`` is refused rather than ignored. An existing ``out`` or
+    sidecar is replaced only when it is this checkpoint's earlier export, or with ``overwrite``
+    (``check_own_output``). Returns the sidecar's content."""
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",

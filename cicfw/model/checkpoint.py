@@ -7,8 +7,8 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 """
 from __future__ import annotations
 
-import os
 import json
+import os
 import pickle
 import re
 import zipfile
