@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from hydra import compose, initialize_config_module
+from hydra.errors import HydraException
 
 from cicfw import N_COMMANDS
 from cicfw.core.errors import CicfwError
+from cicfw.core.override_hints import composition_error
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.model.heads import Head
 from cicfw.model.mixers import Mixer
@@ -131,11 +133,18 @@ def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
         if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
             raise CicfwError(f"fast_dev_run: {str(folder)!r} already exists and is not empty; give a fresh folder "
                              f"(pytest's tmp_path), whose data/ and run/ it writes", key="tmp_path", value=str(tmp_path))
-    data = write_tiny_dataset(tmp_path / "data")
-    base = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+    base = ["data=cil_hdf5", f"data.path={tmp_path / 'data'}", "data.batch_size=8", "data.val_batch_size=8",
             "debug=fast", "progress_bar=false"]
-    with initialize_config_module("cicfw.conf", version_base="1.3"):
-        cfg = compose("train", overrides=without_plus_on_trainer([*base, *overrides]))
+    args = without_plus_on_trainer([*base, *overrides])
+    try:  # composed first: a bad override is refused as the CLI refuses it, before anything is written
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            cfg = compose("train", overrides=args)
+    except HydraException as err:
+        refused = composition_error(err, list(overrides))
+        if refused is None:
+            raise
+        raise refused from None
+    write_tiny_dataset(tmp_path / "data")
     value = train(cfg, tmp_path / "run")
     _require(bool(np.isfinite(value)), f"fast_dev_run with {list(overrides)} gave {cfg.optimized_metric} = {value}")
     return value

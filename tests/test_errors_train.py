@@ -28,6 +28,10 @@ def _cfg(tmp_path: Path, *overrides: str):
 
 @pytest.mark.parametrize("overrides, error, key, value", [
     (["trainer.max_epochs=-2"], CicfwError, "trainer.max_epochs", -2),
+    (["trainer.limit_train_batches=0"], ConfigError, "trainer.limit_train_batches", 0),  # trains nothing, exit 0
+    (["trainer.limit_train_batches=0.0"], ConfigError, "trainer.limit_train_batches", 0.0),
+    (["trainer.limit_train_batches=-1"], ConfigError, "trainer.limit_train_batches", -1),
+    (["trainer.limit_train_batches=2.5"], ConfigError, "trainer.limit_train_batches", 2.5),
     (["trainer.precision=17"], CicfwError, "trainer", None),  # Lightning's own refusal, named by its node
     (["+mixer.foo=1"], SchemaError, "mixer.foo", None),  # keys added with +: the schema refuses them here
     (["mixer=gtu", "+mixer.hiden=64"], SchemaError, "mixer.hiden", None),

@@ -464,6 +464,17 @@ def test_an_opset_torch_cannot_write_is_refused_up_front(tmp_path, monkeypatch, 
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("opset", ["5", "17"])
+def test_an_opset_given_for_torchscript_is_refused_up_front(tmp_path, opset):
+    """format=torchscript opset=5 exported and exit 0: the opset, ONNX's only, was silently ignored. Given
+    explicitly it is refused, before the checkpoint is read; left out, torchscript exports as before."""
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    res = run_app_in_process("cicfw.export", f"checkpoint={ckpt}", "format=torchscript", f"opset={opset}",
+                             f"out={tmp_path / 'm.pt'}")
+    assert_refused(res, "opset", opset)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ckpt"]
+
+
 def test_an_opset_too_old_for_an_operator_asks_for_a_newer_one(tmp_path):
     """opset 7 is torch's, but lacks an operator cicfw's own parts use: the line asks for a newer opset
     instead of calling it a cicfw bug."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cicfw.benchmark.suite import build_suite, make_backend
@@ -282,3 +283,156 @@ def test_fast_dev_run_keeps_a_users_data_folder(tmp_path: Path) -> None:
         fast_dev_run(tmp_path)
     assert err.value.key == "tmp_path" and err.value.value == str(tmp_path)
     assert mine.read_bytes() == b"the user's episode"
+
+
+def test_diagnose_on_another_dataset_counts_the_files_that_folder_holds(tmp_path: Path) -> None:
+    """data.path=<a collected dataset of 4 episodes> for a checkpoint trained on 6 other files was refused
+    as '(0 files, hash ...)': the count of the recorded files found there, read as what the folder holds."""
+    import re
+
+    import torch
+
+    from cicfw.data.provenance import CHECKPOINT_KEY, record_data
+    from cicfw.model.module import CICModule
+    from conftest import assert_refused, run_app_in_process, write_tiny_dataset
+    from test_diagnose import write_episodes
+
+    trained_on = write_tiny_dataset(tmp_path / "trained_on")  # 6 files
+    other = write_episodes(tmp_path / "collected", n_files=4)
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    model = CICModule()
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                CHECKPOINT_KEY: record_data(trained_on)}, ckpt)
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpt}", f"data.path={other}", "data.seed=0",
+                             f"hydra.run.dir={tmp_path / 'out'}", "threads=1")
+    line = assert_refused(res, "data.path", other)
+    assert not re.search(r"\b0 files?\b", line) and re.search(r"\b4 HDF5 file", line), line
+    assert re.search(r"\b6 files\b", line), line  # the recorded data, counted as files too
+
+
+@pytest.mark.parametrize("suffix", [".pt", ".onnx"])
+def test_an_exported_model_given_as_checkpoint_says_what_it_is(tmp_path: Path, suffix: str) -> None:
+    """checkpoint=<a model export wrote> to export or diagnose was 'not a PyTorch checkpoint, or it is
+    truncated': it is an exported model, and the checkpoint it came from (its sidecar names it) is wanted."""
+    import json
+
+    import torch
+
+    from cicfw.model.checkpoint import CheckpointError, read_checkpoint
+    from conftest import assert_refused, run_app_in_process
+
+    model = tmp_path / f"cil{suffix}"
+    if suffix == ".pt":  # a TorchScript archive, as torch.jit.save writes it (export's is one too)
+        torch.jit.save(torch.jit.script(torch.nn.Linear(2, 1)), str(model))
+    else:
+        model.write_bytes(b"\x08\x07")
+    source = tmp_path / "run" / "checkpoints" / "epoch003.ckpt"
+    model.with_name(model.name + ".json").write_text(json.dumps({"checkpoint": {"path": str(source)}}))
+    res = run_app_in_process("cicfw.export", f"checkpoint={model}", "format=torchscript",
+                             f"out={tmp_path / 'again.pt'}")
+    line = assert_refused(res, f"checkpoint={str(model)!r}")
+    assert str(source) in line and not (tmp_path / "again.pt").exists(), line
+    with pytest.raises(CheckpointError) as err:  # diagnose reads it so
+        read_checkpoint(model)
+    assert err.value.key == "checkpoint" and err.value.value == str(model) and str(source) in str(err.value)
+
+
+@pytest.mark.parametrize("speed, command", [(np.full((2, 2), 10.0), [2, 3, 4, 5]),
+                                            ([10.0] * 4, np.full((2, 2), 2)), (np.full((4, 1), 10.0), [2] * 4)])
+def test_the_agent_refuses_a_speed_or_command_not_shaped_as_the_batch(tmp_path: Path, speed, command) -> None:
+    """Agent.act(4 images, speed of shape (2, 2), ...) flattened the speeds and drove: refused, naming the
+    argument and the shape seen, before the model runs. One value per image, (B,), still drives."""
+    from cicfw.export.agent import Agent, AgentInputError
+
+    agent = Agent(lambda img, s, c: pytest.fail("the model ran"), {}, "test")
+    images = np.zeros((4, 88, 200, 3), np.uint8)
+    with pytest.raises(AgentInputError) as err:
+        agent.act(images, speed, command)
+    bad = np.asarray(speed if np.ndim(speed) > 1 else command)
+    assert err.value.key == ("speed_kmh" if np.ndim(speed) > 1 else "command")
+    assert err.value.value == str(bad.shape).replace(",)", ")") and "\n" not in str(err.value)
+    with pytest.raises(AgentInputError) as err:
+        agent.act(images[0], np.full((1, 1), 10.0), 2)
+    assert err.value.key == "speed_kmh" and err.value.value == "(1, 1)"
+    driven = Agent(lambda img, s, c: s / 10.0, {}, "test")
+    assert driven.act(images, [10.0, 20.0, 30.0, 40.0], [2, 3, 4, 5]).tolist() == [1.0, 2.0, 3.0, 4.0]
+    assert driven.act(images[0], 10.0, 2) == 1.0
+
+
+@pytest.mark.parametrize("override, key, value", [("mixer=nosuch", "mixer", "nosuch"),
+                                                  ("model.lr=abc", "model.lr", None)])
+def test_fast_dev_run_refuses_a_bad_override_as_the_cli_does(tmp_path: Path, override: str, key: str, value) -> None:
+    """fast_dev_run(folder, "mixer=nosuch") raised Hydra's MissingConfigException with its traceback (after
+    writing the tiny dataset): now the one-line cicfw error the CLI prints, before anything is written."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.testing import fast_dev_run
+    from conftest import assert_refused, run_app_in_process
+
+    with pytest.raises(CicfwError) as err:
+        fast_dev_run(tmp_path / "fresh", override)
+    assert err.value.key == key and (value is None or err.value.value == value)
+    assert err.value.__suppress_context__ and "\n" not in str(err.value)
+    assert not (tmp_path / "fresh").exists()
+    cli = run_app_in_process("cicfw.train", override, f"hydra.run.dir={tmp_path / 'run'}")
+    assert assert_refused(cli, key, value) == f"cicfw: error: {err.value}"
+
+
+def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path) -> None:
+    """hydra.output_subdir=null leaves no .hydra: a training run's folder was then 'files that no cicfw app
+    wrote', so resuming it was refused. Its job log beside the app's own outputs names the app; either one
+    alone does not."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder, folder_owner
+
+    run = tmp_path / "train_run"
+    _ckpt(run / "checkpoints", "last.ckpt")
+    (run / "train.log").write_text("a line\n")
+    (run / "data.json").write_text("{}")
+    assert folder_owner(run) == "train"
+    claim_folder(run, "train", "hydra.run.dir")
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(run, "evaluate", "hydra.run.dir")
+    assert err.value.key == "hydra.run.dir" and err.value.value == str(run) and "train" in str(err.value)
+    diag = tmp_path / "diagnosis"
+    diag.mkdir()
+    (diag / "diagnose.log").write_text("")
+    (diag / "steer_diagnostic.json").write_text("{}")
+    assert folder_owner(diag) == "diagnose"
+    for name in ("train.log", "data.json"):  # the log alone, or an output alone: no app's run
+        alone = tmp_path / f"only_{name}"
+        alone.mkdir()
+        (alone / name).write_text("")
+        assert folder_owner(alone) is None
+        with pytest.raises(RunFolderError):
+            claim_folder(alone, "train", "hydra.run.dir")
+
+
+def test_a_training_run_without_hydra_records_resumes(tmp_path: Path) -> None:
+    from conftest import run_app_in_process, write_tiny_dataset
+
+    data = write_tiny_dataset(tmp_path / "data")
+    args = ["data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false",
+            "trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
+            "trainer.enable_model_summary=false", "speed.compile=false", f"hydra.run.dir={tmp_path / 'run'}",
+            "hydra.output_subdir=null"]
+    first = run_app_in_process("cicfw.train", *args, "trainer.max_epochs=1")
+    assert first.returncode == 0 and not (tmp_path / "run" / ".hydra").exists(), first.stderr[-2000:]
+    again = run_app_in_process("cicfw.train", *args, "trainer.max_epochs=2", "ckpt_path=last")
+    assert again.returncode == 0, again.stderr[-2000:]
+
+
+def test_an_evaluate_sweep_that_is_not_joined_keeps_no_sweep_table(tmp_path: Path) -> None:
+    """An evaluate multirun over settings one table cannot compare left job 0's one-row table.md (.tex, .csv,
+    bars) in the sweep folder, naming one job of several: no sweep table now, and the log says where each
+    job's table is."""
+    from cicfw.benchmark.evaluation_report import REPORT_FILES
+    from conftest import run_app_in_process
+
+    sweep = tmp_path / "sweep"
+    res = run_app_in_process("cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
+                             "suite.weathers=[ClearNoon]", "suite.limit=1", "progress_bar=false", "maps=false",
+                             f"hydra.sweep.dir={sweep}", "sim.success_radius=2,6")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [n for n in REPORT_FILES if (sweep / n).exists()] == []
+    for job in ("0", "1"):
+        assert (sweep / job / "table.md").is_file() and str(sweep / job / "table.md") in res.stdout + res.stderr

@@ -221,6 +221,20 @@ def smoke_manifest(tmp_path: Path, budget: str = "smoke", **pinned) -> Path:
     return out
 
 
+@pytest.mark.parametrize("key", ["publish_dir", "continue_from"])
+@pytest.mark.parametrize("spelling", ["same", "dotdot", "link"])
+def test_publish_dir_or_continue_from_at_the_results_folder_is_refused(no_collect, tmp_path, capsys, key, spelling):
+    """Copying the results folder onto itself loses nothing but means nothing: a mistyped path, refused
+    before the lock, the dataset or any cell, however the same folder is spelled."""
+    out = smoke_manifest(tmp_path)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "link").symlink_to(out)
+    given = {"same": out, "dotdot": tmp_path / "sub" / ".." / "results", "link": tmp_path / "link"}[spelling]
+    msg = refused(["budget=smoke", "rows=[cil]", f"results_dir={out}", f"{key}={given}"], capsys)
+    assert f"{key}=" in msg and str(given) in msg, msg
+    assert not (out / "reproduce.lock").exists() and sorted(p.name for p in out.iterdir()) == ["reproduce.json"]
+
+
 def test_another_budget_is_refused_before_collecting(no_collect, tmp_path, capsys):
     out = smoke_manifest(tmp_path, "smoke")
     msg = refused(["budget=laptop", "rows=[cil]", f"results_dir={out}"], capsys)

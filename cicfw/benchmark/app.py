@@ -32,7 +32,8 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.benchmark import schema as evaluate_schema
-from cicfw.benchmark.evaluation_report import find_runs, markdown_table, write_joined, write_run
+from cicfw.benchmark.evaluation_report import (REPORT_FILES, REPORT_RECORD, find_runs, markdown_table, write_joined,
+                                               write_run)
 from cicfw.benchmark.finished_run import Run, load_trajectories, save_trajectories
 from cicfw.benchmark.journal import EpisodeLog
 from cicfw.benchmark.plots import bar_chart, town_maps
@@ -384,6 +385,19 @@ def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], si
             write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed)
             log.info("video: %s", path)
 
+
+def unjoined_sweep(sweep_dir: Path) -> list[str]:
+    """A sweep whose runs one table cannot hold keeps no sweep table: the one an earlier job joined (job 0's
+    alone, say) would name one job of several. Removes those files unless a ``cicfw report`` wrote them there
+    (its ``report.json``); returns the names removed."""
+    if (sweep_dir / REPORT_RECORD).exists():
+        return []
+    removed = [name for name in REPORT_FILES if (sweep_dir / name).is_file()]
+    for name in removed:
+        (sweep_dir / name).unlink(missing_ok=True)
+    return removed
+
+
 def join_sweep() -> None:
     """In a multirun, join every finished run of the sweep into one table in the sweep folder."""
     try:
@@ -398,7 +412,11 @@ def join_sweep() -> None:
     try:
         runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
     except CicfwError as err:  # e.g. a sweep over suite=single_turn,junctions: one table cannot hold them
-        log.warning("the sweep's runs are not joined into one table: %s", err)
+        removed = unjoined_sweep(sweep_dir)
+        tables = sorted(str(p.relative_to(sweep_dir)) for p in sweep_dir.glob("*/table.md"))
+        log.warning("the sweep's runs are not joined into one table: %s; each job's table is in its own folder "
+                    "(%s)%s", err, ", ".join(f"{sweep_dir}/{t}" for t in tables),
+                    f"; removed the sweep folder's earlier join ({', '.join(removed)})" if removed else "")
         return
     write_joined(runs, sweep_dir)
     log.info("joined %d run(s) of the sweep into %s", len(runs), sweep_dir / "table.md")

@@ -82,6 +82,21 @@ def composition_error_line(err: BaseException, args: list[str]) -> str | None:
     return " ".join(str(err).split())
 
 
+def composition_error(err: BaseException, args: list[str]) -> CicfwError | None:
+    """What Hydra refused while composing, as the error the CLI prints (``composition_error_line``), for code
+    that composes a config itself (``cicfw.testing.fast_dev_run``): a ``SchemaError`` naming the key, or a
+    ``CicfwError`` whose key and value are the config group and the option it lacks; None for anything
+    else."""
+    refused = config_error(err) if isinstance(err, ConfigCompositionException) else None
+    line = None if refused is not None else composition_error_line(err, args)
+    if refused is not None or line is None:
+        return refused
+    if isinstance(err, MissingConfigException) and err.options is not None:
+        group, _, option = str(err.missing_cfg_file or "").rpartition("/")
+        return CicfwError(line, key=group, value=option)
+    return CicfwError(line)
+
+
 def _unparsable(override: str, message: str, args: list[str]) -> str:
     """One line for an argument Hydra cannot parse: which, Hydra's reason, and a hint only where the cause is
     known: a value the shell split at a space (``model.lr=1 e-3`` typed without quotes reaches Hydra as

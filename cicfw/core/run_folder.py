@@ -357,6 +357,11 @@ RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduc
            ("cells", "reproduce"), ("dataset_metadata.json", "collect"))
 #: what a dataset's files end with: a folder holding them is someone's data, whoever collected it
 DATA_SUFFIXES = (".h5", ".hdf5")
+#: a Hydra app's run without ``.hydra`` (``hydra.output_subdir=null``): its job log ``<job>.log`` together with
+#: one of the outputs only that app writes there (evaluate's episode log is in ``RECORDS`` already). The log
+#: alone is no proof (any tool may write a ``train.log``), nor are the outputs alone (a copy of a checkpoint)
+JOB_OUTPUTS = (("train", ("checkpoints", "csv/metrics.csv", "metrics.json", "data.json")),
+               ("diagnose", ("steer_diagnostic.json",)))
 
 
 def _entries(folder: Path) -> list[str]:
@@ -386,7 +391,8 @@ def _hydra_job(folder: Path) -> str | None:
 
 def folder_owner(folder: str | Path) -> str | None:
     """The app whose run (or output) ``folder`` is, from the record that app already leaves there: Hydra's
-    job name for a Hydra app (train, evaluate, ...), the episode log of an evaluation driven through the
+    job name for a Hydra app (train, evaluate, ...) or, without ``.hydra``, its job log beside its outputs
+    (``JOB_OUTPUTS``), the episode log of an evaluation driven through the
     Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
     stopped before it wrote the manifest) for a reproduction,
     ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
@@ -397,6 +403,9 @@ def folder_owner(folder: str | Path) -> str | None:
     job = _hydra_job(folder)
     if job is not None:
         return job
+    for app, outputs in JOB_OUTPUTS:
+        if (folder / f"{app}.log").is_file() and any(_exists(folder / name) for name in outputs):
+            return app
     for name, app in RECORDS:
         if (folder / name).exists():
             return app

@@ -181,14 +181,22 @@ def recorded_files(recorded: Mapping[str, Any], root: str | os.PathLike | None, 
     now.update(hash=files_hash(now["files"]), n_files=len(now["files"]))
     if len(present) != len(names) or now["hash"] != files_hash(recorded.get("files") or []):
         diff = differences(recorded, now) or "other contents"
-        raise OtherData(f"{key}={root} ({summary(now, path=False)}) no longer holds the data {whose} trained on "
-                        f"({summary(recorded)}): {diff}; {instead}", key=key, value=str(root))
+        # counted as files (a collected episode may span several), all the folder holds and the recorded ones
+        held = len(_hdf5_under(root, root))
+        raise OtherData(f"{key}={root} (holding {held} HDF5 file(s), {len(present)} of the {len(names)} recorded "
+                        f"ones) no longer holds the data {whose} trained on ({summary(recorded)}): {diff}; "
+                        f"{instead}", key=key, value=str(root))
     pattern = recorded["path"] if str(root) == str(recorded.get("root")) else str(root)  # a recorded glob: its files
-    try:
-        every = {Path(os.path.relpath(f, root)).as_posix() for f in find_files(str(pattern))}
-    except FileNotFoundError:
-        every = set(names)
+    every = _hdf5_under(pattern, root) or set(names)
     return [root / n for n in names], sorted(every - set(names))
+
+
+def _hdf5_under(pattern: str | os.PathLike, root: Path) -> set[str]:
+    """The names (relative to ``root``) of the HDF5 files a folder or glob holds; empty when it holds none."""
+    try:
+        return {Path(os.path.relpath(f, root)).as_posix() for f in find_files(str(pattern))}
+    except FileNotFoundError:
+        return set()
 
 
 def folder_record(folder: str | os.PathLike) -> dict[str, Any] | None:

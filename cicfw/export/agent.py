@@ -11,7 +11,6 @@ so the suite, a CARLA client and a user's own stack share one inference path (do
 from __future__ import annotations
 
 import json
-import zipfile
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -21,7 +20,7 @@ from torch import nn
 
 from cicfw.core.errors import CicfwError
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
-from cicfw.model.checkpoint import describe, load_model, prepare_for_inference
+from cicfw.model.checkpoint import describe, is_torchscript, load_model, prepare_for_inference
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
@@ -59,6 +58,16 @@ def _shape(a: np.ndarray) -> str:
     return "(" + ", ".join(str(d) for d in a.shape) + ")"
 
 
+def _one_per_image(name: str, values: np.ndarray, batch: int, single: bool, what: str) -> np.ndarray:
+    """``values`` as one per image (B,): a number or a list of ``batch``; any array of more dimensions is
+    refused (a (2, 2) speed for 4 images, flattened, would give each image some other image's value)."""
+    if values.ndim > 1:
+        want = "a number or shape (1,)" if single else f"shape ({batch},)"
+        raise AgentInputError(f"{name} of shape {_shape(values)} for {'one image' if single else f'{batch} images'}: "
+                              f"the agent expects one {what} per image, {want}", key=name, value=_shape(values))
+    return values.reshape(-1)
+
+
 def check_inputs(images: Any, speed_kmh: Any, command: Any,
                  image_shape: tuple[int, int, int] = IMAGE_SHAPE) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """The inputs as a batch (uint8 (B, H, W, 3), float32 (B,), int64 (B,)) and whether they were one
@@ -91,14 +100,14 @@ def check_inputs(images: Any, speed_kmh: Any, command: Any,
         shown = speed_in.tolist() if speed_in.dtype.kind != "O" else speed_kmh
         raise AgentInputError(f"speed_kmh {shown!r}: the agent expects real numbers (km/h), one per image",
                               key="speed_kmh", value=shown)
-    speed = speed_in.astype(np.float32).reshape(-1)
+    speed = _one_per_image("speed_kmh", speed_in, batch, single, "speed (km/h)").astype(np.float32)
     cmd_in = np.asarray(command)
     if cmd_in.dtype.kind == "f" and np.all(np.isfinite(cmd_in)) and np.all(cmd_in == np.round(cmd_in)):
         cmd_in = cmd_in.astype(np.int64)  # CIL's targets store the code as a float (24: 2.0 ...)
     codes = ", ".join(f"{k} {v}" for k, v in COMMAND_CODES.items())
     if cmd_in.dtype.kind not in "iu":
         raise AgentInputError(f"command {cmd_in.tolist()!r}: the agent expects CIL command codes ({codes})")
-    cmd = cmd_in.astype(np.int64).reshape(-1)
+    cmd = _one_per_image("command", cmd_in, batch, single, "command code").astype(np.int64)
     if len(speed) != batch or len(cmd) != batch:
         raise AgentInputError(f"{batch} image(s) but {len(speed)} speed(s) and {len(cmd)} command(s): the agent "
                               f"expects one speed (km/h) and one command code per image")
@@ -113,14 +122,6 @@ def check_inputs(images: Any, speed_kmh: Any, command: Any,
                               f"±{MAX_ABS_SPEED_KMH:g}, as the data reader does (negative: rolling backwards)",
                               key="speed_kmh", value=value)
     return np.ascontiguousarray(img), speed, cmd, single
-
-
-def is_torchscript(path: Path) -> bool:
-    """A TorchScript archive (``torch.jit.save``) rather than a checkpoint (``torch.save``): it holds code."""
-    if not zipfile.is_zipfile(path):
-        return False
-    with zipfile.ZipFile(path) as z:
-        return any(n.split("/", 1)[-1].startswith("code/") for n in z.namelist())
 
 
 def torch_device(device: str) -> torch.device:

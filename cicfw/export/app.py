@@ -43,7 +43,7 @@ from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
-                                    resolve_checkpoint)
+                                    refuse_exported_model, resolve_checkpoint)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 
@@ -563,11 +563,13 @@ def _sources(names: list[str]) -> list[str]:
 # ---- the export --------------------------------------------------------------------------------
 def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | None = None,
                  frames: str | Path | None = None, n_frames: int = 8, tolerance: float = TOLERANCE,
-                 opset: int = DEFAULT_OPSET, overwrite: bool = False) -> dict[str, Any]:
+                 opset: int | None = None, overwrite: bool = False) -> dict[str, Any]:
     """Export ``checkpoint`` to ``fmt`` at ``out`` (and ``<out>.json``) after the parity check on
     ``n_frames`` real frames (``frames``: a CIL HDF5 file or folder; None: rendered by the embedded
-    simulator) plus as many random inputs. An existing ``out`` or sidecar is replaced only when it is this
-    checkpoint's earlier export, or with ``overwrite`` (``check_own_output``). Returns the sidecar's content."""
+    simulator) plus as many random inputs. ``opset``: the ONNX opset (None: ``DEFAULT_OPSET``); TorchScript
+    has none, so one given with ``fmt="torchscript"`` is refused rather than ignored. An existing ``out`` or
+    sidecar is replaced only when it is this checkpoint's earlier export, or with ``overwrite``
+    (``check_own_output``). Returns the sidecar's content."""
     _check_format(fmt)
     if not (isinstance(n_frames, int) and n_frames >= 1):
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",
@@ -576,8 +578,14 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)",
                           key="tolerance", value=tolerance)
     if fmt == "onnx":
+        opset = DEFAULT_OPSET if opset is None else opset
         _check_opset(opset)
+    elif opset is not None:
+        raise ExportError(f"opset={opset!r} applies to format=onnx only (a TorchScript model has no opset), so "
+                          f"format={fmt} would ignore it; leave opset out, or give format=onnx", key="opset",
+                          value=opset)
     ckpt = resolve_checkpoint(checkpoint)
+    refuse_exported_model(ckpt)
     path = output_path(str(out) if out else None, ckpt, fmt)
     check_not_the_checkpoint(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)

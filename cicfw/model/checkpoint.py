@@ -7,9 +7,11 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 """
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import re
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -61,6 +63,34 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return p.resolve()
 
 
+def is_torchscript(path: Path) -> bool:
+    """A TorchScript archive (``torch.jit.save``) rather than a checkpoint (``torch.save``): it holds code."""
+    if not zipfile.is_zipfile(path):
+        return False
+    with zipfile.ZipFile(path) as z:
+        return any(n.split("/", 1)[-1].startswith("code/") for n in z.namelist())
+
+
+def refuse_exported_model(path: Path) -> None:
+    """One line for a model ``cicfw export`` wrote (TorchScript, ONNX) given where a training checkpoint is
+    needed (exporting, diagnosing: they rebuild the CICModule), naming the checkpoint its sidecar records."""
+    p = Path(path)
+    if p.is_file() and is_torchscript(p):
+        what = "an exported TorchScript model (cicfw export format=torchscript)"
+    elif p.is_file() and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
+        what = "an exported ONNX model (cicfw export format=onnx)"
+    else:
+        return
+    try:  # the sidecar export writes beside the model names the checkpoint it came from
+        source = json.loads(p.with_name(p.name + ".json").read_text())["checkpoint"]["path"]
+        origin = f" (its sidecar names {str(source)!r})"
+    except (OSError, ValueError, KeyError, TypeError):
+        origin = ""
+    raise CheckpointError(f"checkpoint={str(path)!r} is {what}, not a training checkpoint; give the .ckpt it was "
+                          f"exported from{origin}, or any .ckpt written by cicfw train "
+                          f"(outputs/<run>/checkpoints/*.ckpt) or its run folder", key="checkpoint", value=str(path))
+
+
 class UnloadableCheckpoint(Exception):
     """``torch.load(weights_only=True)`` failed. ``code`` names the class or function the file would
     have had built (``exec``): it holds pickled code; None when the file is no torch checkpoint or is
@@ -97,6 +127,7 @@ def _short_reason(err: BaseException) -> str:
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one."""
     p = resolve_checkpoint(path)
+    refuse_exported_model(p)
     try:
         ckpt = load_weights_only(p)
     except UnloadableCheckpoint as err:

@@ -231,6 +231,7 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
     """results_dir and publish_dir writable folders (or creatable) that are a reproduction's own
     (``claim_folder``: not the rows' ``data`` folders, another app's run or files of none), continue_from a
     published folder: checked before any cell, so nothing fails after the work is done."""
+    check_not_results_dir(cfg)
     claim_folder(Path(cfg.results_dir), "reproduce", "results_dir", data=data)
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
@@ -247,18 +248,33 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
         check_continue_machine(cfg)
 
 
+def check_not_results_dir(cfg: DictConfig) -> None:
+    """``publish_dir`` or ``continue_from`` at the results folder itself (links and ``..`` resolved) would copy
+    the folder onto itself: harmless but meaningless, so almost surely a mistyped path; refused in one line."""
+    results = Path(cfg.results_dir).expanduser().resolve()
+    why = {"publish_dir": "the report is written there already; give publish_dir=<another folder> "
+                          "(e.g. docs/results/<budget>) or leave it out",
+           "continue_from": "its finished cells are kept and skipped by a rerun already; give continue_from="
+                            "<a published folder> (e.g. docs/results/<budget>) or leave it out"}
+    for key, fix in why.items():
+        value = cfg.get(key)
+        if value and Path(str(value)).expanduser().resolve() == results:
+            raise ReproduceError(f"{key}={str(value)!r} is the results folder itself (results_dir="
+                                 f"{str(cfg.results_dir)!r}, {results}): {fix}", key=key, value=str(value))
+
+
 #: what ``publish`` writes into ``publish_dir`` (besides cells/<row>/seed<k>/cell.json)
 PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
                    MANIFEST)
 
 
 def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
-    """``publish_dir`` is this reproduction's to write: missing, empty of what ``publish`` writes, the
-    results folder itself, or an earlier publication of the same budget, training and suite (and dataset,
+    """``publish_dir`` is this reproduction's to write: missing, empty of what ``publish`` writes, or an
+    earlier publication of the same budget, training and suite (and dataset,
     once known) whose every finished cell this run holds or continues (``continue_from``). Anything else,
     another reproduction's results, or files of none, is refused in one line before anything is written."""
     pub, results_dir = Path(cfg.publish_dir), Path(cfg.results_dir)
-    if not pub.is_dir() or (results_dir.exists() and pub.resolve() == results_dir.resolve()):
+    if not pub.is_dir():  # (the results folder itself was refused by check_not_results_dir)
         return
     held = [n for n in PUBLISHED_FILES if (pub / n).exists()] + (["cells/"] if (pub / "cells").is_dir() else [])
     if not held:

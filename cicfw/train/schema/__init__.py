@@ -161,13 +161,19 @@ def _is_one_of(value: Any, accepted: tuple[Any, ...]) -> bool:
 def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
     """``cfg.trainer`` as ``checked_node`` gives it, and the Trainer arguments whose union type the schema
     leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``; ``max_epochs``
-    >= 1 (Lightning would take -1, training forever, and 0, training nothing); ``accumulate_grad_batches``
+    >= 1 (Lightning would take -1, training forever, and 0, training nothing); ``limit_train_batches`` > 0
+    (0 trains nothing, and the run ends without a checkpoint); ``accumulate_grad_batches``
     and ``check_val_every_n_epoch`` >= 1 (0 fails in the first step, after the run folder is written)."""
     kwargs = checked_node(cfg, "trainer", TRAINER)
     max_epochs = kwargs.get("max_epochs")
     if max_epochs is not None and max_epochs < 1:  # Lightning's -1 trains forever, 0 trains nothing
         raise ConfigError("trainer.max_epochs", max_epochs, "an integer >= 1, the epochs to train "
                           "(trainer.max_steps or trainer.max_time may stop training sooner)")
+    limit = kwargs.get("limit_train_batches")  # Lightning takes 0 and trains nothing: no checkpoint, exit 0
+    if isinstance(limit, (int, float)) and not isinstance(limit, bool) and \
+            (limit <= 0 or (limit > 1 and limit % 1 != 0)):
+        raise ConfigError("trainer.limit_train_batches", limit, "an integer >= 1 (batches per epoch), a fraction "
+                          "in (0, 1] of the epoch's batches, or null (all of them)")
     for key, what in (("accumulate_grad_batches", "batches a step accumulates"),
                       ("check_val_every_n_epoch", "epochs between validations, or null")):
         value = kwargs.get(key)  # Lightning takes 0 and fails on it in its first step (integer modulo by zero)
