@@ -18,7 +18,7 @@ from cicfw.benchmark.builtin_policies import ExpertPolicy
 from cicfw.benchmark.journal import LOG_NAME, EpisodeLog, RunFolderError, read_log
 from cicfw.benchmark.policy import POLICIES
 from cicfw.benchmark.app import evaluate_policy, run_fingerprint
-from conftest import assert_refused, process_alive
+from conftest import assert_refused, process_alive, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -294,8 +294,9 @@ def test_the_report_refuses_a_partial_run_unless_asked(whole, tmp_path: Path, ca
     assert f"\ncrashed (PARTIAL {finished}/4)," in csv and "\nhalf expert," in csv
 
 
-KILLER = """
-import os, signal, sys
+#: a policy that SIGKILLs its own process after KILL_AFTER_STEPS episode-steps (unset or empty: never)
+KILLING_EXPERT = """
+import os, signal
 from cicfw.benchmark.builtin_policies import ExpertPolicy
 from cicfw.benchmark.policy import POLICIES
 
@@ -309,34 +310,39 @@ class KillingExpert(ExpertPolicy):
             os.kill(os.getpid(), signal.SIGKILL)  # as `kill -9` from outside: no handler, no cleanup
         return super().act(obs)
 
-POLICIES.register("killing_expert")(KillingExpert)
+if "killing_expert" not in POLICIES:
+    POLICIES.register("killing_expert")(KillingExpert)
+"""
+#: ``python -m cicfw.evaluate`` with the killing expert known to it
+KILLER = KILLING_EXPERT + """
 from cicfw.benchmark.app import main
 main()
 """
 
 
 def test_a_sigkilled_evaluation_resumes_with_the_same_command(tmp_path: Path):
+    """Only the killed run needs a process of its own (killed from inside, as ``kill -9``): the uninterrupted
+    run and the rerun are the same command run in this interpreter, with the killing expert known here too."""
     script = tmp_path / "evaluate_killable.py"
     script.write_text(KILLER)
+    exec(KILLING_EXPERT, {})  # registers killing_expert here (once), never killing: KILL_AFTER_STEPS unset
+    args = ["policy=expert", "policy.name=killing_expert", f"suite.towns=[{TOWN}]",
+            "suite.weathers=[ClearNoon,MidRainyNoon]", "suite.limit=3", "progress_bar=false", "maps=false",
+            "runner.workers=1"]
 
-    def evaluate(out: Path, kill_after: int | None) -> subprocess.CompletedProcess:
-        env = {**os.environ, "KILL_AFTER_STEPS": str(kill_after or "")}
-        return subprocess.run([sys.executable, str(script), "policy=expert", "policy.name=killing_expert",
-                               f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon,MidRainyNoon]", "suite.limit=3",
-                               "progress_bar=false", "maps=false", "runner.workers=1", f"hydra.run.dir={out}"],
-                              capture_output=True, text=True, env=env)
-
-    proc = evaluate(tmp_path / "whole", None)
+    proc = run_app_in_process("cicfw.evaluate", *args, f"hydra.run.dir={tmp_path / 'whole'}",
+                              env={"KILL_AFTER_STEPS": None})
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = json.loads((tmp_path / "whole" / "episodes.json").read_text())["episodes"]
     budget, finished = crash_budget(rows)
     out = tmp_path / "killed"
-    proc = evaluate(out, budget)
+    proc = subprocess.run([sys.executable, str(script), *args, f"hydra.run.dir={out}"], capture_output=True,
+                          text=True, env={**os.environ, "KILL_AFTER_STEPS": str(budget)})
     assert proc.returncode == -signal.SIGKILL
     assert len(read_log(out)[1]) == finished
     assert json.loads((out / "summary.json").read_text())["complete"] is False  # written before driving
     assert report.main([str(out), "--no-plots"]) == 2
-    proc = evaluate(out, None)
+    proc = run_app_in_process("cicfw.evaluate", *args, f"hydra.run.dir={out}", env={"KILL_AFTER_STEPS": None})
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert f"{finished} kept from an earlier run, {len(rows) - finished} to drive" in proc.stdout + proc.stderr
     assert_same_report(tmp_path / "whole", out)
