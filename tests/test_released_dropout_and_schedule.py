@@ -63,15 +63,19 @@ def _lrs_seen(tmp_path, monkeypatch, *overrides: str) -> list[float]:
         def on_train_batch_start(self, trainer, *args):
             seen.append(trainer.optimizers[0].param_groups[0]["lr"])
 
+    _train_tiny(tmp_path, monkeypatch, Record(), "trainer.max_epochs=2", "trainer.limit_train_batches=3", *overrides)
+    return seen
+
+
+def _train_tiny(tmp_path, monkeypatch, record: L.Callback, *overrides: str) -> None:
+    """Train a tiny dataset in ``tmp_path / "run"`` with ``record`` among the callbacks."""
     build = train_mod.build_callbacks
-    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), Record()])
+    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), record])
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
     cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
-                        "progress_bar=false", "speed.compile=false", "trainer.max_epochs=2",
-                        "trainer.limit_train_batches=3", "trainer.limit_val_batches=1",
+                        "progress_bar=false", "speed.compile=false", "trainer.limit_val_batches=1",
                         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", *overrides)
     train(cfg, tmp_path / "run")
-    return seen
 
 
 @pytest.mark.slow  # trains
@@ -115,15 +119,8 @@ def test_ema_checkpoints_hold_the_moving_average_of_the_trained_weights(tmp_path
         def on_train_batch_end(self, trainer, pl_module, *args):
             raw.append({k: v.detach().clone() for k, v in pl_module.named_parameters()})
 
-    build = train_mod.build_callbacks
-    monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), Record()])
-    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
-    cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
-                        "progress_bar=false", "speed.compile=false", "trainer.max_epochs=1",
-                        "trainer.limit_train_batches=4", "trainer.limit_val_batches=1",
-                        "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false",
-                        f"model.ema_decay={decay}")
-    train(cfg, tmp_path / "run")
+    _train_tiny(tmp_path, monkeypatch, Record(), "trainer.max_epochs=1", "trainer.limit_train_batches=4",
+                f"model.ema_decay={decay}")
     # by hand: the first average is the first step's weights, then a <- decay * a + (1 - decay) * w
     average = dict(raw[0])
     for weights in raw[1:]:
