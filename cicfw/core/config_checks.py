@@ -53,6 +53,16 @@ def is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+def same_value(a: Any, b: Any) -> bool:
+    """Config values equal as numbers (to float noise), or element by element for lists and tuples: a value
+    a checkpoint recorded against the one a resumed run gives."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+    return a == b
+
+
 def is_integer(v: Any) -> bool:
     """An int, not a bool."""
     return isinstance(v, int) and not isinstance(v, bool)

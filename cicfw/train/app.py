@@ -29,7 +29,7 @@ from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_train
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import forget_empty_cache_setting, is_integer
+from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, same_value
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -47,7 +47,7 @@ from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_recor
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 from cicfw.train.resumed_encoding import check_resumed_encoding
-from cicfw.train.split_record import RecordSplit, check_resumed_split, split_settings
+from cicfw.train.split_record import SPLIT_KEY, check_resumed_split, split_settings
 
 log = logging.getLogger("cicfw.train")
 
@@ -405,15 +405,6 @@ RESTORED_BY_RESUMING = ("lr", "betas", "weight_decay", "lr_schedule", "lr_final_
                         "ema_decay")
 
 
-def _same_value(a: Any, b: Any) -> bool:
-    """Config values equal as numbers, or element by element for lists and tuples."""
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
-    return a == b
-
-
 def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CICModule) -> None:
     """Resuming restores the optimizer (its lr, betas, weight decay) and its schedule from the checkpoint, so
     a ``model.*`` value that differs from the checkpoint's would be recorded but not used: refused, naming
@@ -424,7 +415,7 @@ def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CI
     for key in RESTORED_BY_RESUMING:
         theirs = saved.get(key, defaults[key].default)
         ours = model.hparams.get(key)
-        if not _same_value(ours, theirs):
+        if not same_value(ours, theirs):
             differ.append(f"model.{key}={_plain(ours)} (the checkpoint's: {_plain(theirs)})")
     if differ:
         raise CicfwError(f"ckpt_path={path}: resuming restores the optimizer and its schedule from the checkpoint, so "
@@ -529,8 +520,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
     record = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's: refused),
-    trainer.callbacks.append(RecordInCheckpoints(record))  # into every checkpoint too, with the split settings
-    trainer.callbacks.append(RecordSplit(split_settings(cfg.data)))
+    trainer.callbacks.append(RecordInCheckpoints({CHECKPOINT_KEY: record,  # into every checkpoint too,
+                                                  SPLIT_KEY: split_settings(cfg.data)}))  # with the split
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
@@ -555,13 +546,14 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
 
 
 class RecordInCheckpoints(Callback):
-    """The run's data record (``cicfw.data.provenance``) in every checkpoint it saves."""
+    """The run's records in every checkpoint it saves, each under its key: the data record
+    (``cicfw.data.provenance``) and the split settings (``cicfw.train.split_record``)."""
 
-    def __init__(self, record: Mapping[str, Any]) -> None:
-        self.record = dict(record)
+    def __init__(self, records: Mapping[str, Mapping[str, Any]]) -> None:
+        self.records = {key: dict(record) for key, record in records.items()}
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
-        checkpoint[CHECKPOINT_KEY] = self.record
+        checkpoint.update(self.records)
 
 
 def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any]:

@@ -3,10 +3,10 @@ scale, or other steering bins or phases of the same shapes, would load the weigh
 the new meaning and record only the new one, so the model would be neither."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Mapping
 
+from cicfw.core.config_checks import same_value
 from cicfw.core.errors import CicfwError
 
 #: ``model.*`` values that say how the encoder reads its input
@@ -15,20 +15,15 @@ INPUT_KEYS = ("speed_norm_kmh",)
 OUTPUT_KEYS = ("n_classes", "low", "high", "bin_width", "n_units", "phase_range")
 
 
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
-    return a == b
-
-
 def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
     """(key, this run's value, the checkpoint's) for each key whose meaning differs between the checkpoint's
     hyper-parameters ``saved`` and this run's ``ours`` (a key the checkpoint does not record is not compared)."""
-    differ = [(f"model.{k}", ours.get(k), saved[k]) for k in INPUT_KEYS if k in saved and not _same(ours.get(k), saved[k])]
+    differ = [(f"model.{k}", ours.get(k), saved[k]) for k in INPUT_KEYS
+              if k in saved and not same_value(ours.get(k), saved[k])]
     if saved.get("head") == ours.get("head"):
         theirs, mine = saved.get("head_kwargs") or {}, ours.get("head_kwargs") or {}
         differ += [(f"head.{k}", mine[k], theirs[k]) for k in OUTPUT_KEYS
-                   if k in theirs and k in mine and not _same(mine[k], theirs[k])]
+                   if k in theirs and k in mine and not same_value(mine[k], theirs[k])]
     return differ
 
 

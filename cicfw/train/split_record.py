@@ -3,14 +3,12 @@ episodes it validated on before: another ``data.seed`` or ``data.val_fraction`` 
 model trained on into the validation set, and its validation error (and best checkpoint) would be wrong."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Mapping
 
-import lightning as L
-from lightning.pytorch.callbacks import Callback
 from omegaconf import OmegaConf
 
+from cicfw.core.config_checks import same_value
 from cicfw.core.errors import CicfwError
 
 #: the checkpoint key holding the split settings
@@ -47,32 +45,16 @@ def recorded_split(ckpt: Mapping[str, Any], checkpoint: Path) -> dict[str, Any] 
     return run_config_split(checkpoint)
 
 
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
-        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
-    return a == b
-
-
 def check_resumed_split(path: str | Path, ckpt: Mapping[str, Any], split: Mapping[str, Any]) -> None:
     """Refuse resuming ``ckpt`` with split settings other than the ones it trained with, naming each key
     and both values (a checkpoint that records none, and has no run config, is not checked)."""
     saved = recorded_split(ckpt, Path(path).expanduser())
     if saved is None:
         return
-    differ = [key for key in SPLIT_KEYS if key in saved and not _same(split.get(key), saved[key])]
+    differ = [key for key in SPLIT_KEYS if key in saved and not same_value(split.get(key), saved[key])]
     if differ:
         said = ", ".join(f"data.{key}={split.get(key)} (the checkpoint's: {saved[key]})" for key in differ)
         raise CicfwError(f"ckpt_path={path}: {said} would split the episodes into training and validation "
                          f"otherwise than the run that trained it, so episodes it trained on would validate; resume "
                          f"with the checkpoint's values, or start a fresh run (no ckpt_path) with the new ones",
                          key=f"data.{differ[0]}", value=split.get(differ[0]))
-
-
-class RecordSplit(Callback):
-    """The run's split settings in every checkpoint it saves."""
-
-    def __init__(self, split: Mapping[str, Any]) -> None:
-        self.split = dict(split)
-
-    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
-        checkpoint[SPLIT_KEY] = self.split
