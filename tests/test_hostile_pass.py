@@ -254,20 +254,18 @@ def test_evaluate_sweep_into_a_folder_of_another_sweep_leaves_its_records(tmp_pa
     """A second evaluate sweep (other values) into a sweep folder wrote over multirun.yaml and job 0's
     .hydra before job 0 refused the other episodes: the folder's records then named settings its episodes
     were not driven with. The same sweep's command still resumes there."""
-    import subprocess
-    import sys
+    from conftest import run_app_in_process
 
     sweep = tmp_path / "sweep"
-    base = [sys.executable, "-m", "cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
-            "suite.weathers=[ClearNoon]", "suite.limit=1", "progress_bar=false", "maps=false",
-            f"hydra.sweep.dir={sweep}"]
-    first = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    base = ["-m", "policy=expert", "suite.towns=[town_a]", "suite.weathers=[ClearNoon]", "suite.limit=1",
+            "progress_bar=false", "maps=false", f"hydra.sweep.dir={sweep}"]
+    first = run_app_in_process("cicfw.evaluate", *base, "sim.success_radius=2,6")
     assert first.returncode == 0, first.stderr[-2000:]
     before = {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()}
-    other = subprocess.run([*base, "sim.success_radius=3,4"], capture_output=True, text=True, timeout=120)
+    other = run_app_in_process("cicfw.evaluate", *base, "sim.success_radius=3,4")
     assert other.returncode == 2 and "hydra.sweep.dir" in other.stderr and "success_radius=3,4" in other.stderr
     assert {p: p.read_bytes() for p in sweep.rglob("*") if p.is_file()} == before
-    again = subprocess.run([*base, "sim.success_radius=2,6"], capture_output=True, text=True, timeout=120)
+    again = run_app_in_process("cicfw.evaluate", *base, "sim.success_radius=2,6")
     assert again.returncode == 0, again.stderr[-2000:]
 
 
