@@ -365,7 +365,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
                             split: Mapping[str, Any] | None = None) -> str | None:
     """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
     holds the training state (not weights only), fits this run's model, was trained with this run's
-    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split, and,
+    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split and samples, and,
     given ``trainer_cfg``, leaves something to train. Returns the path for ``Trainer.fit`` (None to start
     afresh)."""
     if path is None or str(path) == "":
@@ -478,7 +478,7 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
     ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None,
-                                        split_settings(cfg.data))  # the same validation episodes
+                                        split_settings(cfg.data))  # the same split and samples
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     return model, ckpt_path, datamodule
 
