@@ -436,3 +436,20 @@ def test_an_evaluate_sweep_that_is_not_joined_keeps_no_sweep_table(tmp_path: Pat
     assert [n for n in REPORT_FILES if (sweep / n).exists()] == []
     for job in ("0", "1"):
         assert (sweep / job / "table.md").is_file() and str(sweep / job / "table.md") in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("through", ["CICFW_CACHE", "data.path"])
+def test_a_collect_folder_train_cannot_make_names_what_train_s_user_changes(tmp_path: Path, through: str) -> None:
+    """data=sim_default under a CICFW_CACHE that is a file said "give a writable out_dir", collect's key, which
+    a user of train has no way to give: the refusal names CICFW_CACHE (or data.path when that was given)."""
+    from conftest import assert_refused, run_app_in_process
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    args = ["trainer.fast_dev_run=true", "progress_bar=false", "speed.compile=false", f"hydra.run.dir={tmp_path / 'run'}"]
+    if through == "data.path":
+        args.append(f"data.path={blocker / 'sim'}")
+    res = run_app_in_process("cicfw.train", *args, env={"CICFW_CACHE": str(blocker)})
+    line = assert_refused(res, through, blocker if through == "CICFW_CACHE" else blocker / "sim")
+    assert "out_dir" not in line
+    assert not (tmp_path / "run").exists()  # refused before training: the run folder as it was

@@ -9,6 +9,7 @@ import inspect
 import io
 import logging
 import math
+import os
 import shutil
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -29,7 +30,7 @@ from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_train
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, same_value
+from cicfw.core.config_checks import CACHE_VARIABLE, forget_empty_cache_setting, is_integer, same_value
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -135,10 +136,36 @@ def ensure_data(data_cfg: DictConfig) -> None:
         return
     path = Path(data_cfg.path).expanduser()
     check_not_your_own_data(path)
+    make_collect_folder(path)
 
     with on_interrupt(f"while collecting the dataset: finished episodes are kept in {path}; run the same "
                       f"command to go on"):
         collect_dataset(data_cfg.collect, path)
+
+
+def make_collect_folder(path: Path) -> None:
+    """``data=sim_default`` collects into ``data.path``, by default under the cicfw cache folder
+    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here, and a folder that cannot be made or written is one
+    line naming what the user of train changes (the collector's own error names collect's ``out_dir``)."""
+    try:
+        if path.exists() and not path.is_dir():
+            why = "a file, not a folder"
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+            why = "" if os.access(path, os.W_OK | os.X_OK) else "permission denied"
+    except OSError as err:
+        why = err.strerror or str(err)
+    if not why:
+        return
+    cache = os.environ.get(CACHE_VARIABLE)
+    root = Path(os.path.abspath(os.path.expanduser(cache))) if cache else None
+    if root is not None and (root == path.absolute() or root in path.absolute().parents):
+        raise CicfwError(f"cannot create or write {path} ({why}), where data=sim_default collects its dataset "
+                         f"under {CACHE_VARIABLE}={cache}; set the environment variable {CACHE_VARIABLE} to a "
+                         f"writable folder, or give data.path=<a writable folder>", key=CACHE_VARIABLE, value=cache)
+    raise CicfwError(f"data.path={path}: cannot create or write this folder ({why}), where data=sim_default collects "
+                     f"its dataset; give data.path=<a writable folder> (or set the environment variable "
+                     f"{CACHE_VARIABLE} to a writable folder for the default one)", key="data.path", value=str(path))
 
 
 #: written by ``cicfw collect`` into every folder it collects (cicfw.collect.META_NAME)
