@@ -453,3 +453,19 @@ def test_a_collect_folder_train_cannot_make_names_what_train_s_user_changes(tmp_
     line = assert_refused(res, through, blocker if through == "CICFW_CACHE" else blocker / "sim")
     assert "out_dir" not in line
     assert not (tmp_path / "run").exists()  # refused before training: the run folder as it was
+
+
+@pytest.mark.parametrize("under", [False, True])
+def test_evaluate_policy_into_a_file_is_one_line_naming_out_dir(tmp_path: Path, under: bool) -> None:
+    """evaluate_policy(out_dir=<an existing file>) raised a bare FileExistsError from the episode log."""
+    from cicfw.benchmark.app import evaluate_policy
+    from cicfw.core.errors import CicfwError
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("kept")
+    out = blocker / "run" if under else blocker
+    suite = {"towns": [str(TOWN)], "weathers": ["ClearNoon"], "training_towns": [], "limit": 1}
+    with pytest.raises(CicfwError) as err:
+        evaluate_policy({"name": "expert"}, suite, {"workers": 1}, out, maps=False)
+    assert (err.value.key, err.value.value) == ("out_dir", str(out)) and "\n" not in str(err.value)
+    assert blocker.read_text() == "kept"

@@ -144,6 +144,7 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
     """
     out_dir = Path(out_dir)
+    check_out_dir(out_dir)
     spec = dict(policy)
     sim = dict(sim) if sim is not None else {"name": "embedded"}
     runner = dict(runner or {})
@@ -200,6 +201,19 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
              steps, rate, markdown_table([report]))
     log.info("success %s; report in %s", percent(summary["success"]), out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+def check_out_dir(out_dir: Path) -> None:
+    """``out_dir`` is a folder or does not exist yet: a file there, or on the way to it, is one line naming
+    ``out_dir`` and that file, before anything is loaded or driven (the episode log's folder was a bare
+    ``FileExistsError``)."""
+    for p in (out_dir, *out_dir.parents):
+        if p.exists() or p.is_symlink():
+            if not p.is_dir():
+                where = "is a file" if p == out_dir else f"lies under the file {p}"
+                raise CicfwError(f"out_dir={out_dir} {where}, not a folder; give a folder that is missing, empty or "
+                                 f"this evaluation's", key="out_dir", value=str(out_dir))
+            return
 
 
 def percent(value: float | None) -> str:
