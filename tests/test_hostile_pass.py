@@ -469,3 +469,17 @@ def test_evaluate_policy_into_a_file_is_one_line_naming_out_dir(tmp_path: Path, 
         evaluate_policy({"name": "expert"}, suite, {"workers": 1}, out, maps=False)
     assert (err.value.key, err.value.value) == ("out_dir", str(out)) and "\n" not in str(err.value)
     assert blocker.read_text() == "kept"
+
+
+@pytest.mark.parametrize("override, key, value", [("seed=-1", "seed", -1), ("runner.threads=0", "runner.threads", 0),
+                                                  ("runner.threads=-2", "runner.threads", -2)])
+def test_evaluate_refuses_a_negative_seed_and_no_threads(tmp_path: Path, override: str, key: str, value) -> None:
+    """evaluate took seed=-1, which train refuses, and runner.threads=0 silently meant null (cores / workers):
+    both are one line naming the key, before anything is driven or left in the run folder."""
+    from conftest import assert_refused, run_app_in_process
+
+    run = tmp_path / "run"
+    res = run_app_in_process("cicfw.evaluate", "policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]",
+                             "suite.limit=1", "runner.workers=1", "maps=false", override, f"hydra.run.dir={run}")
+    assert_refused(res, key, value)
+    assert not run.exists()

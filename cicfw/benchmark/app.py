@@ -41,7 +41,7 @@ from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.video import select_episodes, write_video
-from cicfw.core.config_checks import SchemaError, check_kwargs, checked, config_error
+from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
 from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
                                report_user_errors)
 from cicfw.core.override_hints import composition_error_line
@@ -247,6 +247,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
     weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
     raises one ``ValueError`` line before anything is driven or written."""
+    checked_seed(seed)  # as train's: seed=-1 was taken
     checked(evaluate_schema.RUNNER, runner, "runner")
     checked(evaluate_schema.SUITE, suite, "suite")  # a Python caller's typo (limt=1): named, not a TypeError
     runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})

@@ -30,7 +30,8 @@ from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_train
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import CACHE_VARIABLE, forget_empty_cache_setting, is_integer, same_value
+from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty_cache_setting, is_integer,
+                                      same_value)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -482,18 +483,6 @@ def fit_kwargs() -> dict[str, Any]:
     """``weights_only=True`` for ``Trainer.fit`` where Lightning takes it (2.6+); older Lightning
     loads with torch's default, after ``check_resume_checkpoint`` loaded the same file safely."""
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
-
-
-#: the seeds ``lightning.seed_everything`` (numpy) takes
-SEED_RANGE = (0, 2**32 - 1)
-
-
-def checked_seed(value: int) -> int:
-    """``seed`` (a whole number: the schema) within ``SEED_RANGE``, else a ``ConfigError`` naming it
-    (Lightning's own message for ``seed=-3`` named no key)."""
-    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
-        raise ConfigError("seed", value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
-    return value
 
 
 def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
