@@ -361,10 +361,13 @@ def test_the_agent_refuses_a_speed_or_command_not_shaped_as_the_batch(tmp_path: 
 
 
 @pytest.mark.parametrize("override, key, value", [("mixer=nosuch", "mixer", "nosuch"),
-                                                  ("model.lr=abc", "model.lr", None)])
+                                                  ("model.lr=abc", "model.lr", None),
+                                                  ("+evaluate_aftr=true", "evaluate_aftr", None),
+                                                  ("+data.nosuch=1", "data.nosuch", None)])
 def test_fast_dev_run_refuses_a_bad_override_as_the_cli_does(tmp_path: Path, override: str, key: str, value) -> None:
     """fast_dev_run(folder, "mixer=nosuch") raised Hydra's MissingConfigException with its traceback (after
-    writing the tiny dataset): now the one-line cicfw error the CLI prints, before anything is written."""
+    writing the tiny dataset), and a +key that composes but train refuses came only after the dataset was
+    written: now the one-line cicfw error the CLI prints, before anything is written."""
     from cicfw.core.errors import CicfwError
     from cicfw.testing import fast_dev_run
     from conftest import assert_refused, run_app_in_process

@@ -505,12 +505,13 @@ def check_evaluation(cfg: DictConfig) -> None:
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
 
 
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
     """Every value ``train`` checks before it collects or reads data, without building the Trainer or
     touching a folder: a multirun checks each job's config with it before its first job trains
-    (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml)."""
+    (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml), ``cicfw.testing.fast_dev_run`` before it
+    writes its tiny dataset. ``refuse_finished``: as ``train``'s."""
     checked_seed(cfg.seed)
-    checked_setup(cfg, refuse_finished=True)
+    checked_setup(cfg, refuse_finished=refuse_finished)
     trainer_kwargs(cfg)
     checked_speed(cfg)
     epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
