@@ -26,7 +26,7 @@ from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.model.heads import Head
 from cicfw.model.mixers import Mixer
 from cicfw.registry import HEADS, MIXERS
-from cicfw.train.app import train
+from cicfw.train.app import check_config, train
 from cicfw.train.schema import without_plus_on_trainer
 
 
@@ -144,6 +144,7 @@ def fast_dev_run(tmp_path: Path, *overrides: str) -> float:
         if refused is None:
             raise
         raise refused from None
+    check_config(cfg, refuse_finished=False)  # what train refuses (+evaluate_aftr=true ...), before the data is written
     write_tiny_dataset(tmp_path / "data")
     value = train(cfg, tmp_path / "run")
     _require(bool(np.isfinite(value)), f"fast_dev_run with {list(overrides)} gave {cfg.optimized_metric} = {value}")

@@ -117,13 +117,20 @@ def test_resuming_on_other_data_on_purpose_records_both(trained, tmp_path):
 
 
 @pytest.mark.parametrize("override, key, value", [("seed=4", "data.seed", 4),
-                                                 ("data.val_fraction=0.5", "data.val_fraction", 0.5)])
+                                                 ("data.val_fraction=0.5", "data.val_fraction", 0.5),
+                                                 ("data.val_cameras=[0,1]", "data.val_cameras", [0, 1]),
+                                                 ("data.cameras=[0,1]", "data.cameras", [0, 1]),
+                                                 ("data.max_abs_steer=0.7", "data.max_abs_steer", 0.7),
+                                                 ("data.side_camera_correction=0.2", "data.side_camera_correction",
+                                                  0.2)])
 def test_resuming_with_another_split_is_refused(trained, tmp_path, override, key, value):
-    """Another seed or validation share would validate on episodes the checkpoint trained on."""
+    """Another seed or validation share would validate on episodes the checkpoint trained on; other cameras,
+    steering filter or side-camera correction would train and validate on other samples or labels."""
     from cicfw.train.app import train
 
     ckpt = torch.load(trained["last"], map_location="cpu", weights_only=True)
-    assert ckpt["cicfw_split"] == {"seed": 3, "val_fraction": 0.3}
+    assert ckpt["cicfw_split"] == {"seed": 3, "val_fraction": 0.3, "cameras": [0, 1, 2], "val_cameras": [0],
+                                   "max_abs_steer": 0.8, "side_camera_correction": 0.15}
     cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={trained['last']}",
                         "trainer.max_epochs=2", override)
     with pytest.raises(Exception) as err:
@@ -149,6 +156,25 @@ def test_an_older_checkpoint_s_split_is_read_from_its_run_config(trained, tmp_pa
         train(cfg, tmp_path / "run", refuse_finished=True)
     _refusal(err)
     assert (err.value.key, err.value.value) == ("data.seed", 4)
+
+
+def test_a_checkpoint_recording_the_split_only_is_compared_with_its_run_config(trained, tmp_path):
+    """A checkpoint that recorded data.seed and data.val_fraction only: the other settings its run trained
+    with are read from its run's .hydra/config.yaml."""
+    from cicfw.train.app import train
+
+    run = tmp_path / "older"
+    shutil.copytree(trained["run"], run)
+    last = run / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(last, map_location="cpu", weights_only=True)
+    ckpt["cicfw_split"] = {"seed": 3, "val_fraction": 0.3}
+    torch.save(ckpt, last)
+    cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={last}", "trainer.max_epochs=2",
+                        "data.max_abs_steer=0.7")
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    _refusal(err)
+    assert (err.value.key, err.value.value) == ("data.max_abs_steer", 0.7)
 
 
 def _diagnose(checkpoint: Path, out: Path, *overrides: str) -> dict:

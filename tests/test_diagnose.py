@@ -387,3 +387,27 @@ def test_the_cli_refuses_a_bad_thread_count_in_one_line(tmp_path: Path):
                              f"hydra.run.dir={tmp_path / 'out'}", cwd=REPO)
     assert len([x for x in res.stderr.splitlines() if x.strip()]) == 1, res.stderr
     assert_refused(res, "threads", -2)
+
+
+def test_a_run_refused_after_hydra_starts_leaves_no_folder_behind(tmp_path: Path):
+    """A checkpoint that is missing is found only once Hydra has written ``.hydra`` and diagnose.log: the
+    refused run takes them back, so no folder of a run that never was is left."""
+    out = tmp_path / "day" / "out"
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}", f"hydra.run.dir={out}",
+                             cwd=REPO)
+    assert_refused(res, "checkpoint", tmp_path / "nope.ckpt")
+    assert not (tmp_path / "day").exists()
+
+
+def test_a_refused_run_in_an_earlier_diagnose_folder_leaves_it_as_it_was(tmp_path: Path):
+    out = tmp_path / "out"
+    (out / ".hydra").mkdir(parents=True)
+    (out / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: diagnose\n")
+    (out / ".hydra" / "config.yaml").write_text("checkpoint: earlier.ckpt\n")
+    (out / "diagnose.log").write_text("the earlier run's log\n")
+    (out / "steer_diagnostic.json").write_text("{}")
+    before = {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={tmp_path / 'nope.ckpt'}", f"hydra.run.dir={out}",
+                             cwd=REPO)
+    assert_refused(res, "checkpoint", tmp_path / "nope.ckpt")
+    assert {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before

@@ -128,6 +128,37 @@ def test_a_crashed_suite_resumes_driving_only_the_missing_episodes(whole, tmp_pa
     assert_same_report(ref, out)
 
 
+@pytest.mark.parametrize("stopped_in", ["run", "bar_chart"])
+def test_a_stop_after_the_last_episode_leaves_the_run_partial(whole, tmp_path: Path, monkeypatch, stopped_in):
+    """Ctrl-C once the last episode is driven (as the runner returns, or while the pictures are written): the
+    run does not look finished while its trajectories or pictures are missing, and the same call writes them,
+    driving nothing."""
+    from cicfw.benchmark import app
+    from cicfw.core.errors import Interrupted
+
+    ref, _ = whole
+    out = tmp_path / "run"
+    real = getattr(app, stopped_in)
+
+    def stop(*args, **kwargs):
+        if stopped_in == "run":
+            real(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(app, stopped_in, stop)
+    with pytest.raises(KeyboardInterrupt) as err:
+        drive(out)
+    assert isinstance(err.value, Interrupted) and str(out) in str(err.value)
+    assert len(read_log(out)[1]) == 4  # every episode is kept
+    assert json.loads((out / "summary.json").read_text())["complete"] is False
+    assert not (out / "success_bars.png").exists()
+    monkeypatch.setattr(app, stopped_in, real)
+    res = drive(out)
+    assert (res.reused, res.driven) == (4, 0) and res.summary["complete"] is True
+    assert (out / "success_bars.png").is_file()
+    assert_same_report(ref, out)
+
+
 def test_a_torn_last_line_is_dropped_and_the_episode_driven_again(whole, tmp_path: Path):
     ref, rows = whole
     budget, finished = crash_budget(rows)

@@ -359,10 +359,13 @@ def test_the_agent_refuses_a_speed_or_command_not_shaped_as_the_batch(tmp_path: 
 
 
 @pytest.mark.parametrize("override, key, value", [("mixer=nosuch", "mixer", "nosuch"),
-                                                  ("model.lr=abc", "model.lr", None)])
+                                                  ("model.lr=abc", "model.lr", None),
+                                                  ("+evaluate_aftr=true", "evaluate_aftr", None),
+                                                  ("+data.nosuch=1", "data.nosuch", None)])
 def test_fast_dev_run_refuses_a_bad_override_as_the_cli_does(tmp_path: Path, override: str, key: str, value) -> None:
     """fast_dev_run(folder, "mixer=nosuch") raised Hydra's MissingConfigException with its traceback (after
-    writing the tiny dataset): now the one-line cicfw error the CLI prints, before anything is written."""
+    writing the tiny dataset), and a +key that composes but train refuses came only after the dataset was
+    written: now the one-line cicfw error the CLI prints, before anything is written."""
     from cicfw.core.errors import CicfwError
     from cicfw.testing import fast_dev_run
     from conftest import assert_refused, run_app_in_process
@@ -434,3 +437,50 @@ def test_an_evaluate_sweep_that_is_not_joined_keeps_no_sweep_table(tmp_path: Pat
     assert [n for n in REPORT_FILES if (sweep / n).exists()] == []
     for job in ("0", "1"):
         assert (sweep / job / "table.md").is_file() and str(sweep / job / "table.md") in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("through", ["CICFW_CACHE", "data.path"])
+def test_a_collect_folder_train_cannot_make_names_what_train_s_user_changes(tmp_path: Path, through: str) -> None:
+    """data=sim_default under a CICFW_CACHE that is a file said "give a writable out_dir", collect's key, which
+    a user of train has no way to give: the refusal names CICFW_CACHE (or data.path when that was given)."""
+    from conftest import assert_refused, run_app_in_process
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    args = ["trainer.fast_dev_run=true", "progress_bar=false", "speed.compile=false", f"hydra.run.dir={tmp_path / 'run'}"]
+    if through == "data.path":
+        args.append(f"data.path={blocker / 'sim'}")
+    res = run_app_in_process("cicfw.train", *args, env={"CICFW_CACHE": str(blocker)})
+    line = assert_refused(res, through, blocker if through == "CICFW_CACHE" else blocker / "sim")
+    assert "out_dir" not in line
+    assert not (tmp_path / "run").exists()  # refused before training: the run folder as it was
+
+
+@pytest.mark.parametrize("under", [False, True])
+def test_evaluate_policy_into_a_file_is_one_line_naming_out_dir(tmp_path: Path, under: bool) -> None:
+    """evaluate_policy(out_dir=<an existing file>) raised a bare FileExistsError from the episode log."""
+    from cicfw.benchmark.app import evaluate_policy
+    from cicfw.core.errors import CicfwError
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("kept")
+    out = blocker / "run" if under else blocker
+    suite = {"towns": [str(TOWN)], "weathers": ["ClearNoon"], "training_towns": [], "limit": 1}
+    with pytest.raises(CicfwError) as err:
+        evaluate_policy({"name": "expert"}, suite, {"workers": 1}, out, maps=False)
+    assert (err.value.key, err.value.value) == ("out_dir", str(out)) and "\n" not in str(err.value)
+    assert blocker.read_text() == "kept"
+
+
+@pytest.mark.parametrize("override, key, value", [("seed=-1", "seed", -1), ("runner.threads=0", "runner.threads", 0),
+                                                  ("runner.threads=-2", "runner.threads", -2)])
+def test_evaluate_refuses_a_negative_seed_and_no_threads(tmp_path: Path, override: str, key: str, value) -> None:
+    """evaluate took seed=-1, which train refuses, and runner.threads=0 silently meant null (cores / workers):
+    both are one line naming the key, before anything is driven or left in the run folder."""
+    from conftest import assert_refused, run_app_in_process
+
+    run = tmp_path / "run"
+    res = run_app_in_process("cicfw.evaluate", "policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]",
+                             "suite.limit=1", "runner.workers=1", "maps=false", override, f"hydra.run.dir={run}")
+    assert_refused(res, key, value)
+    assert not run.exists()

@@ -41,8 +41,9 @@ from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.video import select_episodes, write_video
-from cicfw.core.config_checks import SchemaError, check_kwargs, checked, config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, report_interrupts, report_user_errors
+from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
+from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
+                               report_user_errors)
 from cicfw.core.override_hints import composition_error_line
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
@@ -128,8 +129,9 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     that steers each episode from that episode's observations alone (expert, constant); for a network
     on the CPU, its steering's last float bits depend on the batch's shape (which episodes are still
     running), as they already do between uninterrupted runs (docs/evaluation.md, "Resuming").
-    A call on a finished folder drives nothing and rewrites the same report. While episodes are
-    missing, the folder's report says ``"complete": false`` (table.md: a PARTIAL line). Raises
+    A call on a finished folder drives nothing and rewrites the same report. Until every episode is
+    driven and the trajectories and pictures are written, the folder's report says ``"complete": false``
+    (table.md: a PARTIAL line). Raises
     ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
     (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
     another process is writing it; config errors (``video`` naming no episode of the suite included)
@@ -142,6 +144,7 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
     """
     out_dir = Path(out_dir)
+    check_out_dir(out_dir)
     spec = dict(policy)
     sim = dict(sim) if sim is not None else {"name": "embedded"}
     runner = dict(runner or {})
@@ -181,17 +184,36 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                 log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
-        with writing_outputs(out_dir):
-            summary, report = _write_report(out_dir, label, elog.rows, episodes, meta)
+        # the report that says "complete" is written last: a run stopped while its trajectories or pictures
+        # are written keeps the partial report, and the same command writes them (driving nothing)
+        unwritten = (f"all {len(episodes)} episodes finished, kept in {out_dir}, but the report and pictures are "
+                     f"not all written: {resume_hint or 'call again with the same output folder'} (nothing is "
+                     f"left to drive: it writes them)")
+        with writing_outputs(out_dir), on_interrupt(unwritten):
+            report = _report(out_dir, label, elog.rows, episodes, meta, final=True)
             save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
             pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
                      int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
+            summary = write_run(out_dir, report)
     steps = int(summary.get("steps", 0))
     rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
     log.info("%d episodes (%d driven now, %.1f s), %d steps%s\n%s", len(report.rows), len(missing), wall,
              steps, rate, markdown_table([report]))
     log.info("success %s; report in %s", percent(summary["success"]), out_dir)
     return EvalResult(summary=summary, rows=report.rows, run_dir=out_dir, driven=len(missing), reused=elog.reused)
+
+
+def check_out_dir(out_dir: Path) -> None:
+    """``out_dir`` is a folder or does not exist yet: a file there, or on the way to it, is one line naming
+    ``out_dir`` and that file, before anything is loaded or driven (the episode log's folder was a bare
+    ``FileExistsError``)."""
+    for p in (out_dir, *out_dir.parents):
+        if p.exists() or p.is_symlink():
+            if not p.is_dir():
+                where = "is a file" if p == out_dir else f"lies under the file {p}"
+                raise CicfwError(f"out_dir={out_dir} {where}, not a folder; give a folder that is missing, empty or "
+                                 f"this evaluation's", key="out_dir", value=str(out_dir))
+            return
 
 
 def percent(value: float | None) -> str:
@@ -225,6 +247,7 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     runner's settings, the workers against the simulator, the policy's keys, the suite (towns,
     weathers, ``limit``) and the episodes ``video`` names. Returns the RunnerConfig and the episodes;
     raises one ``ValueError`` line before anything is driven or written."""
+    checked_seed(seed)  # as train's: seed=-1 was taken
     checked(evaluate_schema.RUNNER, runner, "runner")
     checked(evaluate_schema.SUITE, suite, "suite")  # a Python caller's typo (limt=1): named, not a TypeError
     runner_cfg = RunnerConfig(**{**runner, "seed": int(seed), "progress_bar": bool(progress_bar)})
@@ -358,14 +381,22 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
     return fp, info
 
 
-def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
-                  meta: dict[str, Any]):
-    """The report of the episodes finished so far, marked complete only when every one is."""
+def _report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
+            meta: dict[str, Any], final: bool = False) -> Run:
+    """The report of the episodes finished so far (not written), marked complete only when every one is and
+    it is the ``final`` report, written after the trajectories and pictures: a run stopped before that (even
+    after its last episode) must not look finished while they are missing."""
     rows = [rows_by_index[e.index] for e in episodes if e.index in rows_by_index]
-    complete = len(rows) == len(episodes)
+    complete = final and len(rows) == len(episodes)
     meta = {**meta, "complete": complete, "episodes_total": len(episodes),
             "steps": sum(int(r["steps"]) for r in rows)}
-    report = Run(label=label, rows=rows, meta=meta, path=out_dir)
+    return Run(label=label, rows=rows, meta=meta, path=out_dir)
+
+
+def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
+                  meta: dict[str, Any]):
+    """``_report`` (never the final one: marked partial) written into ``out_dir``: its summary and the report."""
+    report = _report(out_dir, label, rows_by_index, episodes, meta)
     return write_run(out_dir, report), report
 
 

@@ -33,6 +33,7 @@ import torch
 
 from cicfw.benchmark.policy import Observations, Policy, make_policy
 from cicfw.benchmark.suite import Episode, make_backend, suite_routes
+from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError
 from cicfw.core.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
@@ -52,7 +53,7 @@ class RunnerConfig:
     off_road_s: float = 3.0  # end as "off_road" after more than this many seconds off the road in total
     off_road_level: float = 0.5  # off-road fraction of the car's width that counts (0.5: its centre is off)
     target_speed_kmh: float | None = None  # None: the planner's speed profile (slows for the turn)
-    threads: int | None = None  # torch threads per worker (None: cores // workers)
+    threads: int | None = None  # torch threads per worker, >= 1 (None: cores // workers)
     progress_bar: bool = True
 
     def __post_init__(self) -> None:
@@ -76,6 +77,9 @@ class RunnerConfig:
             raise ConfigError("runner.off_road_level", self.off_road_level, "a fraction of the car's width in (0, 1]")
         if self.target_speed_kmh is not None and not 0 < self.target_speed_kmh < math.inf:
             raise ConfigError("runner.target_speed_kmh", self.target_speed_kmh, "a finite speed > 0 (or null)")
+        # 0 meant null (the cores / workers) without a word; as diagnose's threads, it is refused
+        if self.threads is not None and not (is_integer(self.threads) and self.threads >= 1):
+            raise ConfigError("runner.threads", self.threads, "null (the cores / workers) or an integer >= 1")
 
 
     def resolve_workers(self, episodes: Sequence[Episode], renders: bool) -> int:

@@ -98,6 +98,18 @@ def whole_number(key: str, value: Any, accepted: str = "an integer") -> int:
     raise ConfigError(key, value, accepted)
 
 
+#: the seeds ``lightning.seed_everything`` (numpy) takes: train's and evaluate's top-level ``seed``
+SEED_RANGE = (0, 2**32 - 1)
+
+
+def checked_seed(value: int, key: str = "seed") -> int:
+    """``seed`` (a whole number: the schemas) within ``SEED_RANGE``, else a ``ConfigError`` naming ``key``
+    (Lightning's own message for ``seed=-3`` named no key)."""
+    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
+        raise ConfigError(key, value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
+    return value
+
+
 # ---- schemas from signatures -----------------------------------------------------------------------
 
 #: attributes of a schema dataclass, for messages: what it configures (``mixer 'gtu'``), the arguments cicfw

@@ -28,7 +28,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import is_number
-from cicfw.core.errors import CicfwError, report_user_errors
+from cicfw.core.errors import USER_ERRORS, CicfwError, report_user_errors
+from cicfw.core.run_folder import undo_run_folder
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.provenance import data_root, recorded_files
 from cicfw.diagnose import steer_diagnostic as sd
@@ -244,5 +245,10 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="diagnose")
 @report_user_errors
 def main(cfg: DictConfig) -> None:
-    diagnose(cfg, Path(HydraConfig.get().runtime.output_dir))
+    out = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        diagnose(cfg, out)
+    except USER_ERRORS:  # refused before its report: the folder as it was, no .hydra or log of a run that never was
+        undo_run_folder(out)  # (a multirun job's folder is not noted: it keeps the log its failure line names)
+        raise
 

@@ -9,6 +9,7 @@ import inspect
 import io
 import logging
 import math
+import os
 import shutil
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -29,7 +30,8 @@ from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_train
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
-from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, same_value
+from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty_cache_setting, is_integer,
+                                      same_value)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
@@ -135,10 +137,36 @@ def ensure_data(data_cfg: DictConfig) -> None:
         return
     path = Path(data_cfg.path).expanduser()
     check_not_your_own_data(path)
+    make_collect_folder(path)
 
     with on_interrupt(f"while collecting the dataset: finished episodes are kept in {path}; run the same "
                       f"command to go on"):
         collect_dataset(data_cfg.collect, path)
+
+
+def make_collect_folder(path: Path) -> None:
+    """``data=sim_default`` collects into ``data.path``, by default under the cicfw cache folder
+    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here, and a folder that cannot be made or written is one
+    line naming what the user of train changes (the collector's own error names collect's ``out_dir``)."""
+    try:
+        if path.exists() and not path.is_dir():
+            why = "a file, not a folder"
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+            why = "" if os.access(path, os.W_OK | os.X_OK) else "permission denied"
+    except OSError as err:
+        why = err.strerror or str(err)
+    if not why:
+        return
+    cache = os.environ.get(CACHE_VARIABLE)
+    root = Path(os.path.abspath(os.path.expanduser(cache))) if cache else None
+    if root is not None and (root == path.absolute() or root in path.absolute().parents):
+        raise CicfwError(f"cannot create or write {path} ({why}), where data=sim_default collects its dataset "
+                         f"under {CACHE_VARIABLE}={cache}; set the environment variable {CACHE_VARIABLE} to a "
+                         f"writable folder, or give data.path=<a writable folder>", key=CACHE_VARIABLE, value=cache)
+    raise CicfwError(f"data.path={path}: cannot create or write this folder ({why}), where data=sim_default collects "
+                     f"its dataset; give data.path=<a writable folder> (or set the environment variable "
+                     f"{CACHE_VARIABLE} to a writable folder for the default one)", key="data.path", value=str(path))
 
 
 #: written by ``cicfw collect`` into every folder it collects (cicfw.collect.META_NAME)
@@ -365,7 +393,7 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
                             split: Mapping[str, Any] | None = None) -> str | None:
     """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
     holds the training state (not weights only), fits this run's model, was trained with this run's
-    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split, and,
+    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split and samples, and,
     given ``trainer_cfg``, leaves something to train. Returns the path for ``Trainer.fit`` (None to start
     afresh)."""
     if path is None or str(path) == "":
@@ -457,18 +485,6 @@ def fit_kwargs() -> dict[str, Any]:
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
-#: the seeds ``lightning.seed_everything`` (numpy) takes
-SEED_RANGE = (0, 2**32 - 1)
-
-
-def checked_seed(value: int) -> int:
-    """``seed`` (a whole number: the schema) within ``SEED_RANGE``, else a ``ConfigError`` naming it
-    (Lightning's own message for ``seed=-3`` named no key)."""
-    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
-        raise ConfigError("seed", value, f"an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}")
-    return value
-
-
 def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
     """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
     config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
@@ -478,7 +494,7 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
     ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None,
-                                        split_settings(cfg.data))  # the same validation episodes
+                                        split_settings(cfg.data))  # the same split and samples
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     return model, ckpt_path, datamodule
 
@@ -489,12 +505,13 @@ def check_evaluation(cfg: DictConfig) -> None:
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
 
 
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
     """Every value ``train`` checks before it collects or reads data, without building the Trainer or
     touching a folder: a multirun checks each job's config with it before its first job trains
-    (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml)."""
+    (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml), ``cicfw.testing.fast_dev_run`` before it
+    writes its tiny dataset. ``refuse_finished``: as ``train``'s."""
     checked_seed(cfg.seed)
-    checked_setup(cfg, refuse_finished=True)
+    checked_setup(cfg, refuse_finished=refuse_finished)
     trainer_kwargs(cfg)
     checked_speed(cfg)
     epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
