@@ -15,7 +15,6 @@ import csv
 import io
 import json
 import logging
-import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
@@ -235,9 +234,3 @@ class SweepSummary(Callback):
             failed = [r for r in rows if r["status"] == "failed"]
             log.info("sweep summary: %d jobs, %d failed: %s", len(rows), len(failed), target)
 
-
-def is_finite_number(value: Any) -> bool:
-    try:
-        return math.isfinite(float(_number(value)))
-    except (TypeError, ValueError):
-        return False
