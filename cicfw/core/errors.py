@@ -240,21 +240,3 @@ def report_user_errors(fn: F) -> F:
 
     return wrapper  # type: ignore[return-value]
 
-
-def report_interrupts(fn: F) -> F:
-    """Exit with ``cicfw: interrupted; <what is kept>`` (status 130) on Ctrl-C instead of a traceback.
-
-    The message is the ``Interrupted``'s (a plain KeyboardInterrupt says only "interrupted"). In a
-    multirun it is re-raised, so the sweep stops as Ctrl-C means. (``report_user_errors`` does the same,
-    SIGTERM included: this is for a function that is not wrapped by it.)"""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except KeyboardInterrupt as err:
-            if _in_multirun():
-                raise
-            _exit_interrupted(err)
-
-    return wrapper  # type: ignore[return-value]

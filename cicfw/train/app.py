@@ -33,8 +33,7 @@ from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, sam
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import camera_names
-from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
-                               report_user_errors)
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
@@ -655,7 +654,6 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
 
 
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="train")
-@report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
