@@ -22,7 +22,7 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from cicfw import COMMANDS
 from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
@@ -67,15 +67,6 @@ LOGGERS: dict[str, Callable[[Path], Logger]] = {
     "csv": csv_logger,
     "tensorboard": lambda run_dir: TensorBoardLogger(str(run_dir), name="tensorboard", version=""),
 }
-
-
-def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
-    """A config-group node is ``name:`` plus the constructor's keyword arguments."""
-    d = OmegaConf.to_container(node, resolve=True)
-    assert isinstance(d, dict)
-    if "name" not in d:
-        raise CicfwError(f"config node {d} has no 'name:' key naming the registered class")
-    return d.pop("name"), d
 
 
 def build_model(cfg: DictConfig) -> CICModule:
@@ -191,13 +182,6 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
             raise CicfwError(f"data.{key}={list(chosen)} chooses none of the cameras the default data records "
                              f"({held}; collect.cameras); choose among those, or train on your own files with "
                              f"data=cil_hdf5 data.path=...")
-
-
-def build_datamodule(cfg: DictConfig) -> CILDataModule:
-    """``make_datamodule``, after collecting the default simulator dataset if it is not complete."""
-    datamodule = make_datamodule(cfg)
-    ensure_data(cfg.data)
-    return datamodule
 
 
 def epoch_list(epochs: Any) -> list[int]:
