@@ -10,11 +10,9 @@ time), so they work on CARLA/CoRL-2017 files as well as on the embedded simulato
 The embedded planner turns the command on ``command_distance`` (12 m) before the junction's entry and off
 at its exit, so with ``approach_m`` = that distance the phases are the junction's geometry.
 
-The model is any plain callable ``steer_fn(images, speed_kmh, command) -> steer`` (images uint8
-(B, 3, 88, 200), speed km/h (B,), command the branch index 0-3 = CIL code - 2, as
-``CICModule.predict_steer`` takes them), wrapped by ``all_commands``; ``model_steer_all`` is the fast
-path for a ``CICModule``: one encoder pass, all four branches decoded by the model's head, so
-classification heads (softmax, hybrid, coexistence, sine) are measured on the steering they drive with.
+The model is any ``steer_all_fn(images, speed_kmh) -> steer under each command``; ``model_steer_all``
+is a ``CICModule``'s: one encoder pass, all four branches decoded by the model's head, so classification
+heads (softmax, hybrid, coexistence, sine) are measured on the steering they drive with.
 """
 from __future__ import annotations
 
@@ -45,9 +43,8 @@ JUNCTION_PHASES = ("approach", "inside", "exit")
 SPLITS = ("val", "train", "all")
 EPS = 1e-6  # metres / seconds: a boundary reached up to float rounding counts as reached
 
-#: steer_fn(images uint8 (B,3,88,200), speed km/h (B,), command branch index (B,)) -> steer (B,)
-SteerFn = Callable[[Any, Any, Any], Any]
-#: steer_all_fn(images, speed) -> steer under each command (B, 4), columns in cicfw.COMMANDS order
+#: steer_all_fn(images uint8 (B,3,88,200), speed km/h (B,)) -> steer under each command (B, 4), columns in
+#: cicfw.COMMANDS order
 SteerAllFn = Callable[[Any, Any], Any]
 
 
@@ -142,22 +139,6 @@ def _to_numpy(x: Any) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().double().numpy()
     return np.asarray(x, np.float64)
-
-
-def all_commands(steer_fn: SteerFn) -> SteerAllFn:
-    """A ``steer_all_fn`` from a plain ``steer_fn``: the same images and speeds under each command."""
-    def steer_all(images: Any, speed: Any) -> np.ndarray:
-        b = len(speed)
-        cols = []
-        for c in range(N_COMMANDS):
-            out = _to_numpy(steer_fn(images, speed, torch.full((b,), c, dtype=torch.long)))
-            if out.shape != (b,):
-                raise DiagnosticError(f"steer_fn returned shape {out.shape} for {b} frames; it must return "
-                                      f"one steering value per frame")
-            cols.append(out)
-        return np.stack(cols, 1)
-
-    return steer_all
 
 
 def model_steer_all(model: Any, device: Any = None) -> SteerAllFn:
@@ -311,8 +292,6 @@ def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Pat
     file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with). ``files``:
     the files to read instead of every file under ``data.path`` (the files the run recorded: a file added
     to its folder since would move episodes between the splits)."""
-    if split not in SPLITS:
-        raise CicfwError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
     cams = tuple(data.val_cameras) if data.val_cameras is not None else None
     source = [str(f) for f in files] if files is not None else data.path
     if split == "all":
