@@ -42,6 +42,7 @@ from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
+from cicfw.data.provenance import file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
                                     refuse_exported_model, resolve_checkpoint)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
@@ -311,14 +312,6 @@ def _jsonable(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
     """The training run's saved config (the nearest ``.hydra/config.yaml`` a few folders above the
     checkpoint), unresolved interpolations left as written; (None, None) when there is none."""
@@ -411,7 +404,7 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
         "normalisation": {"pixels": "/ 255", "speed": f"speed_kmh / {float(model.speed_norm_kmh):g}"},
         "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
         "decoder": decoder_info(model.head, hp["head"]),
-        "checkpoint": {"path": str(checkpoint), "sha256": sha256(checkpoint)},
+        "checkpoint": {"path": str(checkpoint), "sha256": file_sha256(checkpoint)},
         "training_dataset": training_dataset(checkpoint, cfg_path),
     }
 
@@ -487,7 +480,7 @@ def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = F
         why = f"it exists and has no sidecar {sidecar.name!r} saying cicfw export wrote it"
     elif not (isinstance(side, dict) and isinstance(side.get("checkpoint"), dict) and "size_bytes" in side):
         why = f"{sidecar.name!r} exists and is not the sidecar of a cicfw export"
-    elif side["checkpoint"].get("sha256") != sha256(checkpoint) or side.get("format") != fmt:
+    elif side["checkpoint"].get("sha256") != file_sha256(checkpoint) or side.get("format") != fmt:
         why = (f"it is the {side.get('format')} export of another checkpoint "
                f"({side['checkpoint'].get('path')!r}, or another state of it)")
     elif path.exists() and path.stat().st_size != side["size_bytes"]:
