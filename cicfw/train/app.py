@@ -184,26 +184,17 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
                              f"data=cil_hdf5 data.path=...")
 
 
-def epoch_list(epochs: Any) -> list[int]:
-    """``keep_epoch_checkpoints`` as a list of epochs >= 1 (a list of whole numbers: the schema), else one
-    line naming it."""
-    found = list(epochs or [])
-    if any(e < 1 for e in found):
-        raise CicfwError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
-                         f"checkpoints/epochNNN.ckpt), got {found!r}")
-    return found
-
-
 class EpochCheckpoints(Callback):
     """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points."""
 
     def __init__(self, dirpath: Path, epochs, max_epochs: int | None = None) -> None:
-        """``max_epochs``: the run's ``trainer.max_epochs``; a listed epoch beyond it is a ``ConfigError``
-        (it would never be saved)."""
-        beyond = [int(e) for e in epochs if max_epochs is not None and int(e) > max_epochs]
-        if beyond:
-            raise ConfigError("keep_epoch_checkpoints", beyond[0], f"a list of epochs within trainer.max_epochs="
-                              f"{max_epochs} (1 to {max_epochs})")
+        """``epochs``: ``keep_epoch_checkpoints`` (whole numbers: the schema); one below 1 or beyond
+        ``max_epochs`` (the run's ``trainer.max_epochs``) is a ``ConfigError`` (it would never be saved)."""
+        wrong = [int(e) for e in epochs if e < 1 or (max_epochs is not None and e > max_epochs)]
+        if wrong:
+            within = f"within trainer.max_epochs={max_epochs} (1 to {max_epochs})" if max_epochs is not None else ">= 1"
+            raise ConfigError("keep_epoch_checkpoints", wrong[0], f"a list of epochs {within}, e.g. [1,2] (each "
+                              f"keeps checkpoints/epochNNN.ckpt)")
         self.dirpath, self.epochs = Path(dirpath), {int(e) for e in epochs}
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -275,7 +266,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
         DataWait(),  # the share of step time spent waiting for data, in the log each epoch
     ]
-    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
+    epochs = cfg.get("keep_epoch_checkpoints") or []
     if epochs:
         callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs, cfg.trainer.get("max_epochs")))
     ema_decay = float(cfg.model.get("ema_decay", 0.0))
@@ -480,8 +471,7 @@ def check_config(cfg: DictConfig) -> None:
     checked_setup(cfg, refuse_finished=True)
     trainer_kwargs(cfg)
     checked_speed(cfg)
-    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
-    EpochCheckpoints(Path("checkpoints"), epochs, cfg.trainer.get("max_epochs"))
+    EpochCheckpoints(Path("checkpoints"), cfg.get("keep_epoch_checkpoints") or [], cfg.trainer.get("max_epochs"))
     check_evaluation(cfg)
 
 
