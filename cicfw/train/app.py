@@ -154,18 +154,9 @@ def make_datamodule(cfg: DictConfig) -> CILDataModule:
     kwargs = checked_data(cfg)
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
-    check_batches_per_epoch(kwargs.get("batches_per_epoch"))
     datamodule = CILDataModule(**kwargs)
     check_collected_cameras(cfg.data, datamodule)
     return datamodule
-
-
-def check_batches_per_epoch(value: Any) -> None:
-    """``data.batches_per_epoch`` (a whole number or null: the schema): null (the training samples / the
-    batch size) or >= 1; 0 was taken for null and -1 failed inside Lightning's sampler."""
-    if value is not None and value < 1:
-        raise CicfwError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
-                         f">= 1, got {value!r}")
 
 
 def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> None:
