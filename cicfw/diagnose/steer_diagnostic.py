@@ -33,7 +33,7 @@ from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import T, read_targets
 from cicfw.data.datamodule import CILDataModule, ImageStore
-from cicfw.data.frames import Frames, episode_groups, load_frames
+from cicfw.data.frames import META_NAME, Frames, episode_groups, load_frames
 
 log = logging.getLogger(__name__)
 
@@ -338,7 +338,7 @@ def measure(frames: Frames, images: Callable[[np.ndarray], np.ndarray], steer_al
 def dataset_command_distance(path: str | Path) -> float | None:
     """The collector's ``command_distance`` (m) from ``dataset_metadata.json`` in a dataset folder,
     None when the folder has none (CARLA / CoRL-2017 data)."""
-    meta = Path(str(path)).expanduser() / "dataset_metadata.json"
+    meta = Path(str(path)).expanduser() / META_NAME
     if not meta.is_file():
         return None
     try:

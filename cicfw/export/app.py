@@ -42,6 +42,7 @@ from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
+from cicfw.data.frames import META_NAME
 from cicfw.data.provenance import file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
                                     refuse_exported_model, resolve_checkpoint)
@@ -368,7 +369,7 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
     if not files:
         return {"path": str(p), "hash": None, "why": "the dataset is not on this machine"}
     chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
-    meta_file = (p if p.is_dir() else p.parent) / "dataset_metadata.json"
+    meta_file = (p if p.is_dir() else p.parent) / META_NAME
     meta = read_json(meta_file, default={})
     return {"path": str(p), "hash": chash, "hash_of": "file names and sizes", "files": len(files),
             "collect_config_hash": meta.get("config_hash")}

@@ -32,7 +32,7 @@ from cicfw.core.config_checks import did_you_mean as _did_you_mean
 from cicfw.core.config_checks import forget_empty_cache_setting, is_integer, same_value
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
-from cicfw.data.frames import camera_names
+from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
@@ -131,15 +131,11 @@ def ensure_data(data_cfg: DictConfig) -> None:
         collect_dataset(data_cfg.collect, path)
 
 
-#: written by ``cicfw collect`` into every folder it collects (cicfw.collect.META_NAME)
-COLLECTED_META = "dataset_metadata.json"
-
-
 def check_not_your_own_data(path: Path) -> None:
     """``data=sim_default`` (the default) collects into ``data.path``; a folder of CIL files it did not
     collect is the user's own data, which ``data=cil_hdf5`` reads: say so instead of the collector's
     "collect into an empty folder"."""
-    if not path.is_dir() or (path / COLLECTED_META).exists():
+    if not path.is_dir() or (path / META_NAME).exists():
         return
     files = [f for f in path.rglob("*") if f.suffix in (".h5", ".hdf5") and f.is_file()]
     if files:
