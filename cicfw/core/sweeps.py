@@ -1,13 +1,9 @@
-"""One summary row per multirun job, in ``<sweep dir>/summary.csv``.
+"""One summary row per multirun job, in ``<sweep dir>/summary.csv`` (its columns: docs/sweeps.md).
 
-``SweepSummary`` is a Hydra callback (configured under ``hydra.callbacks`` in conf/train.yaml). At
-the end of every job of a multirun it writes that job's row to ``<sweep dir>/.summary/<job>.json``
-(atomically; jobs may run in parallel processes or on other machines) and then rebuilds
-``summary.csv`` from all row files under a file lock, so the CSV is complete and current while the
-sweep runs, and after a sweep that stops early. Columns: ``job status value metric
-closed_loop_success``, one column per swept override (``mixer``, ``head.W`` ...), ``overrides``
-(all of the job's), ``error`` (for failed jobs), ``output_dir``, then every key of the job's
-``metrics.json`` (see ``write_job_metrics``).
+``SweepSummary`` is a Hydra callback (``hydra.callbacks`` in conf/train.yaml). Every job writes its own
+row file (atomically: jobs may run in parallel processes or on other machines) and then rebuilds
+``summary.csv`` from all of them under a file lock, so the CSV is complete and current while the sweep
+runs, and after a sweep that stops early.
 """
 from __future__ import annotations
 
