@@ -107,7 +107,7 @@ class CILDataModule(L.LightningDataModule):
                 raise ConfigError(f"data.{key}", size, ">= 1")
         if not 0.0 < max_abs_steer <= 1.0:
             raise ConfigError("data.max_abs_steer", max_abs_steer, "in (0, 1]")
-        # checked here, before any file is read (the sampler and the split check them again)
+        # checked here, before any file is read (the sampler checks the batch size again)
         if balanced and batch_size % len(COMMANDS):
             raise ConfigError("data.batch_size", batch_size, f"a multiple of {len(COMMANDS)} for balanced batches",
                               f"data.batch_size must be a multiple of {len(COMMANDS)} for balanced batches "
