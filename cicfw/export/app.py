@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import cicfw
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
-                         onnx_session)
+                                onnx_runner, onnx_session, torch_runner)
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
@@ -238,16 +238,8 @@ def to_torchscript(module: torch.nn.Module, example: tuple, metadata: str) -> by
 def runner(fmt: str, data: bytes) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """A function running exported ``data`` in its own runtime: onnxruntime, or torch.jit.load."""
     if fmt == "onnx":
-        session = onnx_session(data)
-        return lambda img, speed, cmd: session.run([OUTPUT_NAME], {"images": img, "speed_kmh": speed,
-                                                                   "command": cmd})[0]
-    module = torch.jit.load(io.BytesIO(data), map_location="cpu").eval()
-
-    def run(img: np.ndarray, speed: np.ndarray, cmd: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return module(torch.from_numpy(img), torch.from_numpy(speed), torch.from_numpy(cmd)).numpy()
-
-    return run
+        return onnx_runner(onnx_session(data))
+    return torch_runner(torch.jit.load(io.BytesIO(data), map_location="cpu").eval(), torch.device("cpu"))
 
 
 # ---- parity ------------------------------------------------------------------------------------
