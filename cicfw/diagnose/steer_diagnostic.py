@@ -247,20 +247,13 @@ def groups(command: np.ndarray, phase: np.ndarray, turn: np.ndarray) -> list[tup
 
 def diagnose(expert: np.ndarray, steer: np.ndarray, command: np.ndarray, phase: np.ndarray,
              turn: np.ndarray) -> Diagnosis:
-    """Every measure on already predicted frames: ``steer`` (n, 4) under each command, ``command`` the
-    recorded branch index (0-3), ``phase``/``turn`` from ``assign_phases``. Raises DiagnosticError when
-    no frame is at a junction (no left / right / straight command)."""
+    """Every measure on already predicted frames (``measure``'s, which holds a junction frame): ``steer``
+    (n, 4) under each command, ``command`` the recorded branch index (0-3), ``phase``/``turn`` from
+    ``assign_phases``."""
     expert = np.asarray(expert, np.float64)
     steer, command = np.asarray(steer, np.float64), np.asarray(command, np.int64)
     phase, turn = np.asarray(phase).astype(str), np.asarray(turn, np.int64)
     n = len(expert)
-    if steer.shape != (n, N_COMMANDS) or len(command) != n or len(phase) != n or len(turn) != n:
-        raise ValueError(f"expected {n} frames: steer (n, 4), command, phase, turn; got {steer.shape}, "
-                         f"{len(command)}, {len(phase)}, {len(turn)}")
-    if not np.isin(phase, ("approach", "inside", "unknown")).any():
-        raise DiagnosticError(
-            f"no junction frame among the {n} frames: no left / right / straight command (CIL codes 3-5 in "
-            f"targets[24]); the diagnostic measures how a model takes junctions, so give data with turns")
     d = Diagnosis(expert, steer, command, phase, turn)
     pred = d.pred
     for by, cmd, ph, mask in groups(command, phase, turn):
