@@ -75,8 +75,6 @@ def assign_phases(codes: Sequence[float], speed_kmh: Sequence[float], time_s: Se
     codes = np.rint(np.asarray(codes, np.float64)).astype(np.int64)
     n = len(codes)
     speed = np.nan_to_num(np.asarray(speed_kmh, np.float64))
-    if len(speed) != n:
-        raise ValueError(f"codes and speed_kmh differ in length ({n} vs {len(speed)})")
     t = None if time_s is None else np.asarray(time_s, np.float64)
     if t is None or len(t) != n or not np.all(np.isfinite(t)) or (n > 1 and not np.all(np.diff(t) > 0)):
         t = np.arange(n, dtype=np.float64) * dt_s
