@@ -8,7 +8,7 @@ import pytest
 
 import cicfw.conf
 from cicfw.data.datamodule import CILDataModule
-from cicfw.train.app import build_model, build_trainer, name_and_kwargs
+from cicfw.train.app import build_model, build_trainer
 from conftest import compose_train
 
 CONF = Path(cicfw.conf.__file__).parent
@@ -29,7 +29,7 @@ def test_model_parts_build(group):
     for option in options(group):
         cfg = compose_train(f"{group}={option}")
         model = build_model(cfg)
-        assert name_and_kwargs(cfg[group])[0] == getattr(model.hparams, group)
+        assert cfg[group].name == getattr(model.hparams, group)
 
 
 @pytest.mark.parametrize("option", options("experiment"))

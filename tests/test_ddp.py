@@ -10,7 +10,7 @@ import pytest
 from lightning.pytorch.strategies import DDPStrategy
 
 from cicfw import N_COMMANDS
-from cicfw.train.app import build_datamodule, build_model, build_trainer
+from cicfw.train.app import build_model, build_trainer, make_datamodule
 from conftest import compose_train
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -76,7 +76,7 @@ def test_two_cpu_processes_each_see_their_own_balanced_batches_and_augmentation(
     cfg = _ddp_cfg(tmp_path / "grey", "trainer.strategy=ddp_spawn")
     trainer = build_trainer(cfg, tmp_path / "run")
     trainer.callbacks += [BatchRecorder(tmp_path), ImageRecorder(tmp_path)]
-    trainer.fit(build_model(cfg), datamodule=build_datamodule(cfg))
+    trainer.fit(build_model(cfg), datamodule=make_datamodule(cfg))
 
     seen = {}
     for rank in (0, 1):

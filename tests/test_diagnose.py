@@ -28,6 +28,16 @@ pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+
+def all_commands(steer_fn):
+    """A ``steer_all_fn`` from a plain ``steer_fn(images, speed, branch) -> steer``: the frames under each command."""
+    def steer_all(images, speed):
+        branch = [torch.full((len(speed),), c, dtype=torch.long) for c in range(4)]
+        return np.stack([torch.as_tensor(steer_fn(images, speed, b)).detach().double().numpy() for b in branch], 1)
+
+    return steer_all
+
+
 # ------------------------------------------------------------------------------------------------
 # tiny episodes: commands over time, steering written into pixel (0, 0) of the red channel
 
@@ -79,7 +89,7 @@ def episodes(tmp_path: Path) -> Path:
 def measure_with(folder: Path, steer_fn, approach_m: float = 3.0, exit_s: float = 0.5, seed: int = 0,
                  split: str = "val"):
     frames, store = sd.load_split(sd.DataSettings(str(folder), seed=seed), split)
-    return sd.measure(frames, store.get, sd.all_commands(steer_fn), approach_m=approach_m, exit_s=exit_s,
+    return sd.measure(frames, store.get, all_commands(steer_fn), approach_m=approach_m, exit_s=exit_s,
                       batch_size=16)
 
 
@@ -218,7 +228,7 @@ def test_the_fast_path_decodes_every_head_like_predict_steer(head, head_kwargs, 
     images = torch.randint(0, 255, (3, 3, 88, 200), dtype=torch.uint8)
     speed = torch.tensor([0.0, 12.0, 30.0])
     fast = sd.model_steer_all(model)(images, speed)
-    slow = sd.all_commands(model.predict_steer)(images, speed)
+    slow = all_commands(model.predict_steer)(images, speed)
     assert fast.shape == (3, 4)
     assert np.allclose(fast, slow, atol=1e-6)
 

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 import cicfw
 import cicfw.core.files as files_mod
 from cicfw.data.cil_hdf5 import N_TARGETS, write_file
-from cicfw.core.files import atomic_write, replacing, write_together
+from cicfw.core.files import atomic_write, write_together
 from cicfw.model.diagnostics import save_png
 
 
@@ -54,10 +54,11 @@ def test_files_get_the_umask_mode_not_owner_only(tmp_path, umask_027, write):
 def test_a_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     path = tmp_path / "table.md"
     path.write_text("old")
+    def disk_full() -> None:
+        raise RuntimeError("disk full")
+
     with pytest.raises(RuntimeError):
-        with replacing(path) as tmp:
-            tmp.write_text("half")
-            raise RuntimeError("disk full")
+        write_together({path: b"half"}, before_rename=disk_full)
     assert path.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["table.md"]
 

@@ -346,7 +346,8 @@ def test_trainer_values_of_every_accepted_type_pass_the_check(tmp_path):
     assert train_mod.trainer_kwargs(_cfg(tmp_path, "trainer.max_time={days:1,hours:2}"))["max_time"] == \
         {"days": 1, "hours": 2}
     assert kwargs["deterministic"] == "warn" and kwargs["max_epochs"] is None and kwargs["fast_dev_run"] == 2
-    assert train_mod.epoch_list(_cfg(tmp_path, "keep_epoch_checkpoints=[1,3]").keep_epoch_checkpoints) == [1, 3]
+    assert train_mod.EpochCheckpoints(tmp_path, _cfg(tmp_path, "keep_epoch_checkpoints=[1,3]").keep_epoch_checkpoints,
+                                      3).epochs == {1, 3}
 
 
 def test_cameras_the_default_data_does_not_record_are_refused_before_collecting(tmp_path, no_data):

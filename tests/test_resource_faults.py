@@ -24,7 +24,7 @@ def _limited(monkeypatch, room: int) -> None:
     from cicfw.data import residency
 
     real = resource.getrlimit
-    limit = residency.address_space_used() + room
+    limit = residency._status_bytes("VmSize") + room  # what RLIMIT_AS counts
 
     def getrlimit(which: int):
         return (limit, limit) if which == resource.RLIMIT_AS else real(which)

@@ -16,7 +16,8 @@ from omegaconf import OmegaConf
 
 from cicfw.core import errors
 from cicfw.registry import MIXERS
-from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics, write_text_atomic
+from cicfw.core.files import atomic_write
+from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics
 from conftest import AppResult, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -88,7 +89,7 @@ def test_concurrent_jobs_all_land_in_the_summary(tmp_path):
     def job(i: int) -> None:
         row = {"job": i, "status": "ok", "value": i / 10, "metric": "m", "closed_loop_success": "",
                "overrides": [f"x={i}"], "error": "", "output_dir": str(i), "metrics": {}}
-        write_text_atomic(rows_dir / f"{i:06d}.json", json.dumps(row))
+        atomic_write(rows_dir / f"{i:06d}.json", json.dumps(row))
         rebuild_summary(tmp_path)
 
     threads = [threading.Thread(target=job, args=(i,)) for i in range(12)]

@@ -42,8 +42,7 @@ from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.video import select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
-from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
-                               report_user_errors)
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error_line
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
@@ -541,7 +540,6 @@ def _quote(s: str) -> str:
 
 
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="evaluate")
-@report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     out = Path(HydraConfig.get().runtime.output_dir)

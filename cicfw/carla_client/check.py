@@ -1,7 +1,7 @@
 """Test a CARLA server with cicfw's CARLA backend in about a minute: ``python -m cicfw.carla_client.check``
 (or ``cicfw carla-check``) ``[--host localhost] [--port 2000] [--town Town01] [--timeout 5]``.
 
-Prints ``PASS`` or ``FAIL`` (or ``SKIP``) and one line of evidence per guarantee of
+Prints ``PASS`` or ``FAIL`` and one line of evidence per guarantee of
 ``cicfw.carla_client.backend``, then a summary; exit status 0 when nothing failed. What it does, on the
 server: loads the town, plans the suite's routes from the server's map, drives one expert episode of
 the suite through the runner (three cameras), a full-lock drive across the road and into the oncoming
@@ -55,9 +55,6 @@ class Report:
             ok, detail = False, f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
         self.add("PASS" if ok else "FAIL", name, detail)
         return ok
-
-    def skip(self, name: str, why: str) -> None:
-        self.add("SKIP", name, why)
 
     @property
     def failed(self) -> int:

@@ -10,41 +10,8 @@ schema: conf/collect.yaml puts its ``schema`` package on Hydra's search path (``
 importing that registers the schema in Hydra's ConfigStore before a collect config is composed.
 
 The package sits above the simulator (``cicfw.sim``) and the data layer (``cicfw.data``, whose CIL format it
-writes) and only apps import it. Its modules, one job each: ``config`` (defaults, validation, hash, the
-backend it names), ``plan`` (the episodes and their sizes), ``episode`` (one episode -> its files and
-marker), ``writing`` (temporary names, in-memory HDF5, a full disk), ``lock`` (one collector per folder),
-``workers`` (worker processes that die with their parent), ``integrity`` (files against their checksums),
-``metadata`` (``dataset_metadata.json``), ``dataset`` (the whole collection, resumed), ``verify``
-(``cicfw collect --verify``), ``progress`` and ``errors``.
-
-Guarantees (each has a fault test in ``tests/test_collect_integrity.py``):
-
-- **One writer per folder.** The whole collection holds an exclusive ``fcntl.flock`` on
-  ``<out_dir>/.collect.lock``, which records the holder (pid, host, start time, worker pids). A second
-  collector (or a second training job filling the same default dataset) waits ``lock_wait`` seconds
-  (``null``: as long as it takes) or refuses at once (``0``), with one line naming the holder. The kernel
-  drops the lock when the holder dies, so a stale lock file never blocks anyone.
-- **Nothing half-written, nothing mixed.** Every file is written under a temporary name unique to the
-  process (``.<name>.<pid>-<random>.part`` / ``.tmp``) and renamed; an episode's files get their final
-  names only when all of them are written, then its marker. The metadata (``complete: false``) is
-  written before the first episode; a folder that holds another config's dataset, another simulator
-  version's unfinished dataset, or HDF5 files this collection does not plan, is an error.
-- **Workers die with their parent.** Worker processes ask the kernel for SIGKILL when their parent dies
-  (``prctl(PR_SET_PDEATHSIG)`` on Linux) and poll their parent pid every second (everywhere); they also
-  check it before giving any file its final name. A worker that dies is reported (exit code, episode).
-- **A full disk is one clear error.** Free space is checked before anything is simulated (the whole
-  remainder) and before each episode; files are built in memory (HDF5 into a ``BytesIO``) and written
-  with plain ``os.write``, so ENOSPC is an ``OSError`` (never a crash inside HDF5), turned into
-  ``DiskFullError`` after removing the episode's temporary files.
-- **Reported before simulating:** every bad config value, an unwritable or unusable output folder.
-- **``complete`` means complete:** true only when every planned episode has its marker and every file
-  exists with its recorded size and SHA-256 (``sha256`` per file in the markers and in the metadata's
-  ``files``; the episode files themselves are plain CIL files, unchanged). A rerun checks every file:
-  one whose bytes changed after it was written (a flipped bit, an edit) is named in one warning and its
-  episode is collected again (deterministic: the same bytes come back). Files of a dataset collected before
-  checksums were kept are checked for size and layout (they open as CIL files with their recorded number
-  of samples), and their checksums are recorded then. ``verify_dataset`` (``cicfw collect --verify``)
-  checks a folder without changing it: one line per missing or corrupt file.
+writes) and only apps import it. Its modules (one job each) and what the collector guarantees (each with a
+fault test in ``tests/test_collect_integrity.py``) are in docs/simulator.md, "Collecting data".
 
 Backend interface (what the engine calls; ``EmbeddedBackend`` implements all of it)::
 

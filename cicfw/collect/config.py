@@ -14,7 +14,7 @@ from typing import Any, Optional
 from omegaconf import OmegaConf
 
 from cicfw.collect.errors import CollectConfigError, CollectError
-from cicfw.core.config_checks import SchemaError, checked
+from cicfw.core.config_checks import SchemaError, checked, is_number
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
 from cicfw.sim.roadgraph import COMMAND_DISTANCE
@@ -111,10 +111,6 @@ def town_key(town: str) -> str:
     return Path(town).stem if _is_path(town) else town
 
 
-def _number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def resolve_config(cfg: Any, backend: Any = None) -> dict:
     """The collect config as a plain dict over DEFAULTS, validated (one clear error per bad key).
 
@@ -147,7 +143,7 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
         raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
                                  f"got {out['workers']!r}")
     check_lock_wait(out["lock_wait"])
-    if not _number(out["command_distance"]) or out["command_distance"] <= 0:
+    if not is_number(out["command_distance"]) or out["command_distance"] <= 0:
         raise CollectConfigError(f"collect.command_distance must be metres > 0, got {out['command_distance']!r}")
     if not out["cameras"]:
         raise CollectConfigError(f"collect.cameras is empty; known: {', '.join(CAMERA_IDS)}")
@@ -158,11 +154,11 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
     if len(set(out["cameras"])) != len(out["cameras"]):
         raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
     nz = out["noise"]
-    if not _number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
+    if not is_number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
         raise CollectConfigError(f"collect.noise.episode_fraction must be in [0, 1], got {nz['episode_fraction']!r}")
     if nz["frequency"] < 0:
         raise CollectConfigError(f"collect.noise.frequency must be an integer >= 0, got {nz['frequency']!r}")
-    if not _number(nz["intensity"]) or nz["intensity"] < 0:
+    if not is_number(nz["intensity"]) or nz["intensity"] < 0:
         raise CollectConfigError(f"collect.noise.intensity must be >= 0, got {nz['intensity']!r}")
     accepted = DEFAULTS["expert"]
     try:  # values the expert cannot drive with (a negative speed, a look-ahead of 0)
@@ -225,7 +221,7 @@ def check_one_command_distance(out: dict) -> None:
     (what the suite's routes use) is not read by it, so a value of its own there would be ignored without a
     word: refused, unless it is the backend's default or equals ``command_distance``."""
     theirs = out["sim"].get("command_distance")
-    if theirs is None or (_number(theirs) and any(math.isclose(float(theirs), v)
+    if theirs is None or (is_number(theirs) and any(math.isclose(float(theirs), v)
                                                   for v in (COMMAND_DISTANCE, float(out["command_distance"])))):
         return
     raise CollectConfigError(f"sim.command_distance={theirs} is not read by a collection: the collector places its "
@@ -235,7 +231,7 @@ def check_one_command_distance(out: dict) -> None:
 
 def check_lock_wait(value: Any) -> None:
     """``lock_wait``: seconds >= 0, or None (wait as long as it takes)."""
-    if value is not None and (not _number(value) or value < 0):
+    if value is not None and (not is_number(value) or value < 0):
         raise CollectConfigError(f"collect.lock_wait must be seconds >= 0 (0: refuse at once) or null "
                                  f"(wait as long as it takes), got {value!r}")
 

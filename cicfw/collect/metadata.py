@@ -6,9 +6,9 @@ from pathlib import Path
 
 from cicfw import __version__
 from cicfw.collect.config import CAMERA_IDS
+from cicfw.data.frames import META_NAME  # noqa: F401  (the collector's modules import it from here)
 
 SIM_VERSION = "embedded-1"  # bump when the embedded simulator's output changes for the same config
-META_NAME = "dataset_metadata.json"
 
 
 def dataset_metadata(cfg: dict, out_dir: Path, plan: list[dict], markers: dict, started: float,

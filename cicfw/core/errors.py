@@ -149,15 +149,11 @@ def _exit_interrupted(err: KeyboardInterrupt) -> None:
 
 
 def install_app_handlers() -> None:
-    """What an app started from the command line installs first thing (each app's ``__main__`` or entry
-    module, and the ``cicfw`` script's ``main``, before importing the app itself), never an import: from
-    then on, through the app's own imports and Hydra's config composition, SIGTERM raises
-    KeyboardInterrupt as Ctrl-C does, and a KeyboardInterrupt no app code caught (or one re-raised by a
-    multirun job) ends with the one line every later stop prints (``cicfw: interrupted (SIGTERM)``) and
-    its status (130, 143), instead of a traceback (Ctrl-C) or a silent exit (SIGTERM); an uncaught
-    ``CicfwError`` is one ``cicfw: error:`` line (status 2); other exceptions keep their traceback. An
-    empty ``CICFW_CACHE`` is dropped, so that the configs' ``${oc.env:CICFW_CACHE,<default>}`` means the
-    default cache, not the file-system root. Off the main thread, or a second time, it does nothing."""
+    """What an app started from the command line installs first thing, before importing the app itself
+    (never an import): through the app's own imports and Hydra's composition too, SIGTERM stops it as
+    Ctrl-C does, and an uncaught stop or ``CicfwError`` ends in the one line and status a later one would
+    (130/143, 2) instead of a traceback or a silent exit. An empty ``CICFW_CACHE`` is dropped, so that
+    ``${oc.env:CICFW_CACHE,<default>}`` means the default cache. Off the main thread or again: nothing."""
     global _installed
     if os.environ.get("CICFW_CACHE") == "":
         del os.environ["CICFW_CACHE"]
@@ -240,21 +236,3 @@ def report_user_errors(fn: F) -> F:
 
     return wrapper  # type: ignore[return-value]
 
-
-def report_interrupts(fn: F) -> F:
-    """Exit with ``cicfw: interrupted; <what is kept>`` (status 130) on Ctrl-C instead of a traceback.
-
-    The message is the ``Interrupted``'s (a plain KeyboardInterrupt says only "interrupted"). In a
-    multirun it is re-raised, so the sweep stops as Ctrl-C means. (``report_user_errors`` does the same,
-    SIGTERM included: this is for a function that is not wrapped by it.)"""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except KeyboardInterrupt as err:
-            if _in_multirun():
-                raise
-            _exit_interrupted(err)
-
-    return wrapper  # type: ignore[return-value]

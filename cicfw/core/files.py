@@ -106,22 +106,6 @@ def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Pat
         raise
 
 
-@contextlib.contextmanager
-def replacing(path: str | os.PathLike) -> Iterator[Path]:
-    """For writers that need a file name (h5py, savefig to a path): yields the temporary file's path,
-    then renames it to ``path``; on any error the temporary file is removed and ``path`` is untouched."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temp_beside(path)
-    os.close(fd)
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def atomic_write(path: str | os.PathLike, data: str | bytes | memoryview) -> None:
     """Write ``data`` (text as UTF-8) to ``path`` through a temporary file beside it, then rename."""
     path = Path(path)

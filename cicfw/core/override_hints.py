@@ -37,8 +37,6 @@ from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.core.run_folder import undo_noted_folders
 from cicfw.core.sweeps import is_worker_process
 
-CONFIG_MODULE = "cicfw.conf"
-
 # Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
 NEEDS_EXTRA = {
     "hparams_search=optuna": ("hydra_plugins.hydra_optuna_sweeper", "sweeps"),
@@ -212,7 +210,7 @@ def register_help() -> None:
         OmegaConf.register_new_resolver(HELP_RESOLVER, app_groups)
 
 
-def run_app(main: Callable[[], Any], config_name: str, config_module: str = CONFIG_MODULE) -> None:
+def run_app(main: Callable[[], Any], config_name: str) -> None:
     """Run a ``@hydra.main`` app: what Hydra refuses is one line (``one_line_config_errors``); a failure
     that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
     import is skipped with one warning first (it would stop the app). ``--help`` lists the app's config

@@ -1,20 +1,10 @@
-"""The run folder checked before Hydra creates it: a read-only folder, a name longer than the
-filesystem allows (``hydra.run.dir=<300 characters>``, ``hydra.job.name=...``) or a path through a
-file is one line (``cicfw: error: ...``, exit status 2), not a traceback from inside Hydra.
+"""A run's folder, checked before anything is written there, refusals as one line (exit status 2).
 
-``RunFolderCheck`` is a Hydra callback (``hydra.callbacks.run_folder`` in conf/evaluate.yaml);
-``check_run_folder`` is the check itself. ``hold_train_folder`` makes a folder a training run's own:
-its lock taken (``TrainFolderLock``), and no other run's checkpoints or metrics in it
-(``check_no_other_run``); ``TrainRunFolderCheck`` (conf/train.yaml) calls it before Hydra writes
-``.hydra`` there, and the app again around the training (a no-op for a folder this process holds).
-A training run refused before it trains leaves nothing behind: ``TrainRunFolderCheck`` notes what the
-folder held before Hydra wrote into it (``note_run_folder``) and the app puts it back
-(``undo_run_folder``); a sweep folder holding another multirun is refused before Hydra writes over it
-(``check_no_other_sweep``), and one made for a sweep whose job configs Hydra refused is removed.
-
-``claim_folder`` is the one rule under all of these, applied by every app to the folder it writes before
-it writes there (``RunFolderCheck.claim`` for the Hydra apps, before Hydra writes ``.hydra``): missing,
-empty or the app's own kind of run, never another app's run, a dataset, an input, or files of no app.
+``check_run_folder``: a read-only folder, a name longer than the filesystem allows or a path through a
+file. ``hold_train_folder``: a training run's folder is its own (its lock, no other run's outputs), and
+a run refused before it trains leaves it as it found it (``note_run_folder``, ``undo_run_folder``).
+``claim_folder``: the one rule every app applies to the folder it writes (docs/training.md). The Hydra
+callbacks ``RunFolderCheck`` and ``TrainRunFolderCheck`` apply them before Hydra writes ``.hydra``.
 """
 from __future__ import annotations
 

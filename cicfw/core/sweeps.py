@@ -1,13 +1,9 @@
-"""One summary row per multirun job, in ``<sweep dir>/summary.csv``.
+"""One summary row per multirun job, in ``<sweep dir>/summary.csv`` (its columns: docs/sweeps.md).
 
-``SweepSummary`` is a Hydra callback (configured under ``hydra.callbacks`` in conf/train.yaml). At
-the end of every job of a multirun it writes that job's row to ``<sweep dir>/.summary/<job>.json``
-(atomically; jobs may run in parallel processes or on other machines) and then rebuilds
-``summary.csv`` from all row files under a file lock, so the CSV is complete and current while the
-sweep runs, and after a sweep that stops early. Columns: ``job status value metric
-closed_loop_success``, one column per swept override (``mixer``, ``head.W`` ...), ``overrides``
-(all of the job's), ``error`` (for failed jobs), ``output_dir``, then every key of the job's
-``metrics.json`` (see ``write_job_metrics``).
+``SweepSummary`` is a Hydra callback (``hydra.callbacks`` in conf/train.yaml). Every job writes its own
+row file (atomically: jobs may run in parallel processes or on other machines) and then rebuilds
+``summary.csv`` from all of them under a file lock, so the CSV is complete and current while the sweep
+runs, and after a sweep that stops early.
 """
 from __future__ import annotations
 
@@ -15,7 +11,6 @@ import csv
 import io
 import json
 import logging
-import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
@@ -41,19 +36,13 @@ FIRST = ["job", "status", "value", "metric", "closed_loop_success"]
 LAST = ["overrides", "error", "output_dir"]
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write to a temporary file beside ``path``, then rename: readers never see half a file (the
-    shared writer, ``cicfw.core.files.atomic_write``: the umask's mode, not ``mkstemp``'s 0600)."""
-    atomic_write(path, text)
-
-
 def write_job_metrics(output_dir: str | Path, metrics: Mapping[str, Any]) -> None:
     """Merge ``metrics`` (name -> number) into ``<output_dir>/metrics.json``; the sweep summary
     adds every key as a column. An evaluation writes ``closed_loop/success`` here."""
     path = Path(output_dir) / METRICS_FILE
     merged = read_job_metrics(path.parent)
     merged.update({str(k): _number(v) for k, v in metrics.items()})
-    write_text_atomic(path, json.dumps(merged, indent=1, sort_keys=True))
+    atomic_write(path, json.dumps(merged, indent=1, sort_keys=True))
 
 
 def read_job_metrics(output_dir: str | Path) -> dict[str, Any]:
@@ -191,7 +180,7 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
         writer.writeheader()
         writer.writerows(flat)
         target = sweep_dir / filename
-        write_text_atomic(target, buf.getvalue())
+        atomic_write(target, buf.getvalue())
     return target
 
 
@@ -214,14 +203,14 @@ class SweepSummary(Callback):
         if is_worker_process():
             return
         rows_dir = Path(config.hydra.sweep.dir) / ROWS_DIR
-        write_text_atomic(rows_dir / SWEEP_FILE, json.dumps({"overrides": list(config.hydra.overrides.task)}))
+        atomic_write(rows_dir / SWEEP_FILE, json.dumps({"overrides": list(config.hydra.overrides.task)}))
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         if config.hydra.mode != RunMode.MULTIRUN or is_worker_process():
             return
         row = job_row(config, job_return)
         sweep_dir = Path(config.hydra.sweep.dir)
-        write_text_atomic(sweep_dir / ROWS_DIR / f"{row['job']:06d}.json", json.dumps(row, default=str))
+        atomic_write(sweep_dir / ROWS_DIR / f"{row['job']:06d}.json", json.dumps(row, default=str))
         target = rebuild_summary(sweep_dir, self.filename)
         shown = row["value"] if row["status"] == "ok" else row["error"]
         log.info("sweep summary: job %d %s (%s) -> %s", row["job"], row["status"], shown, target)
@@ -235,9 +224,3 @@ class SweepSummary(Callback):
             failed = [r for r in rows if r["status"] == "failed"]
             log.info("sweep summary: %d jobs, %d failed: %s", len(rows), len(failed), target)
 
-
-def is_finite_number(value: Any) -> bool:
-    try:
-        return math.isfinite(float(_number(value)))
-    except (TypeError, ValueError):
-        return False

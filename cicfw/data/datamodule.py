@@ -107,11 +107,14 @@ class CILDataModule(L.LightningDataModule):
                 raise ConfigError(f"data.{key}", size, ">= 1")
         if not 0.0 < max_abs_steer <= 1.0:
             raise ConfigError("data.max_abs_steer", max_abs_steer, "in (0, 1]")
-        # checked here, before any file is read (the sampler and the split check them again)
+        # checked here, before any file is read (the sampler checks the batch size again)
         if balanced and batch_size % len(COMMANDS):
             raise ConfigError("data.batch_size", batch_size, f"a multiple of {len(COMMANDS)} for balanced batches",
                               f"data.batch_size must be a multiple of {len(COMMANDS)} for balanced batches "
                               f"({len(COMMANDS)} commands), got {batch_size}; or set data.balanced=false")
+        if batches_per_epoch is not None and batches_per_epoch < 1:  # 0 read as null, -1 failed in the sampler
+            raise ConfigError("data.batches_per_epoch", batches_per_epoch,
+                              "null (training samples / batch size) or an integer >= 1")
         if not 0.0 < val_fraction < 1.0:
             raise ConfigError("data.val_fraction", val_fraction, "in (0, 1)")
         if not math.isfinite(side_camera_correction):  # NaN would train on NaN labels without a word

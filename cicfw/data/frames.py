@@ -347,8 +347,6 @@ def _warn_unknown_cameras(path: Path, camera: np.ndarray, cameras: tuple[int, ..
 
 def split_by_episode(frames: Frames, val_fraction: float, seed: int) -> tuple[Frames, Frames]:
     """Seeded split of whole episodes (never frames): ~``val_fraction`` of the episodes validate."""
-    if not 0.0 < val_fraction < 1.0:
-        raise CicfwError(f"data.val_fraction must be in (0, 1), got {val_fraction}")
     groups = np.unique(frames.group)
     if len(groups) < 2:
         held = len(np.unique(frames.file_idx))

@@ -23,13 +23,12 @@ from typing import Any, Iterable, Mapping, Sequence
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import find_files
+from cicfw.data.frames import META_NAME
 
 #: the run folder's record of its data
 RECORD_FILE = "data.json"
 #: the key of the record in a checkpoint
 CHECKPOINT_KEY = "cicfw_data"
-#: the collection's metadata beside its files (cicfw.collect.META_NAME)
-COLLECTED_META = "dataset_metadata.json"
 HASH_OF = "the files' names (relative to root), sizes and SHA-256"
 
 
@@ -72,7 +71,7 @@ def _collected_hashes(files: Iterable[Path]) -> dict[Path, str]:
     metas: dict[Path, tuple[int, dict]] = {}
     for f in files:
         if f.parent not in metas:
-            meta = f.parent / COLLECTED_META
+            meta = f.parent / META_NAME
             try:
                 metas[f.parent] = (meta.stat().st_mtime_ns, json.loads(meta.read_text()).get("files") or {})
             except (OSError, ValueError, AttributeError):
@@ -116,7 +115,7 @@ def record_data(path: str | os.PathLike, known: Mapping[str, Any] | None = None)
     modification time."""
     root = data_root(path)
     entries = _entries(find_files(absolute(path)), root, known)
-    meta = root / COLLECTED_META
+    meta = root / META_NAME
     try:
         collect_hash = json.loads(meta.read_text()).get("config_hash") if meta.is_file() else None
     except (OSError, ValueError, AttributeError):

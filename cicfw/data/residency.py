@@ -71,11 +71,6 @@ def _status_bytes(field: str) -> int:
     return 0
 
 
-def address_space_used() -> int:
-    """The address space this process maps now: what ``RLIMIT_AS`` counts."""
-    return _status_bytes("VmSize")
-
-
 def process_limits() -> list[tuple[int, str]]:
     """(room left, what it is) for each per-process memory limit set (``ulimit -v``, ``ulimit -d``): an
     array beyond the room fails to allocate (numpy's ``_ArrayMemoryError``) however much the machine has."""

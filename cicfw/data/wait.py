@@ -31,7 +31,7 @@ def batch_size(batch: Any) -> int:
 
 @dataclass
 class RunTotals:
-    """Wait and step seconds, batches and samples measured over a whole run (every epoch so far)."""
+    """Wait and step seconds, batches and samples of the measured batches: an epoch's, or the whole run's."""
 
     wait: float = 0.0
     step: float = 0.0
@@ -52,46 +52,37 @@ class DataWait(Callback):
 
     def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
         self.clock = clock
-        self.wait = self.step = 0.0
-        self.batches = 0
-        self.run = RunTotals()
+        self.epoch, self.run = RunTotals(), RunTotals()
         self._start = self._end = None
 
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.wait = self.step = 0.0
-        self.batches = 0
-        self._end = None
+        self.epoch, self._end = RunTotals(), None
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
         self._start = self.clock()
         if self._end is not None and batch_idx >= WARMUP_BATCHES:
-            self.wait += self._start - self._end
-            self.run.wait += self._start - self._end
+            for totals in (self.epoch, self.run):
+                totals.wait += self._start - self._end
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
         self._end = self.clock()
         if batch_idx >= WARMUP_BATCHES:
-            self.step += self._end - self._start
-            self.batches += 1
-            self.run.step += self._end - self._start
-            self.run.batches += 1
-            self.run.samples += batch_size(batch)
-
-    @property
-    def share(self) -> float:
-        total = self.wait + self.step
-        return self.wait / total if total > 0 else 0.0
+            for totals in (self.epoch, self.run):
+                totals.step += self._end - self._start
+                totals.batches += 1
+                totals.samples += batch_size(batch)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if not self.batches:
+        e = self.epoch
+        if not e.batches:
             return
-        pl_module.log("perf/data_wait_share", self.share, rank_zero_only=True)
+        pl_module.log("perf/data_wait_share", e.share, rank_zero_only=True)
         if trainer.global_rank:
             return
-        line = (f"data: the step waited for data {self.share:.0%} of the time over {self.batches} batches "
-                f"({1000 * self.wait / self.batches:.1f} ms wait, {1000 * self.step / self.batches:.1f} ms step per batch)")
-        if self.share >= WARN_SHARE:
+        line = (f"data: the step waited for data {e.share:.0%} of the time over {e.batches} batches "
+                f"({1000 * e.wait / e.batches:.1f} ms wait, {1000 * e.step / e.batches:.1f} ms step per batch)")
+        if e.share >= WARN_SHARE:
             log.warning("%s; the loader is slower than training: more data.num_workers, data.in_memory, or "
                         "faster storage", line)
         else:

@@ -10,11 +10,9 @@ time), so they work on CARLA/CoRL-2017 files as well as on the embedded simulato
 The embedded planner turns the command on ``command_distance`` (12 m) before the junction's entry and off
 at its exit, so with ``approach_m`` = that distance the phases are the junction's geometry.
 
-The model is any plain callable ``steer_fn(images, speed_kmh, command) -> steer`` (images uint8
-(B, 3, 88, 200), speed km/h (B,), command the branch index 0-3 = CIL code - 2, as
-``CICModule.predict_steer`` takes them), wrapped by ``all_commands``; ``model_steer_all`` is the fast
-path for a ``CICModule``: one encoder pass, all four branches decoded by the model's head, so
-classification heads (softmax, hybrid, coexistence, sine) are measured on the steering they drive with.
+The model is any ``steer_all_fn(images, speed_kmh) -> steer under each command``; ``model_steer_all``
+is a ``CICModule``'s: one encoder pass, all four branches decoded by the model's head, so classification
+heads (softmax, hybrid, coexistence, sine) are measured on the steering they drive with.
 """
 from __future__ import annotations
 
@@ -35,7 +33,7 @@ from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import T, read_targets
 from cicfw.data.datamodule import CILDataModule, ImageStore
-from cicfw.data.frames import Frames, episode_groups, load_frames
+from cicfw.data.frames import META_NAME, Frames, episode_groups, load_frames
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +43,8 @@ JUNCTION_PHASES = ("approach", "inside", "exit")
 SPLITS = ("val", "train", "all")
 EPS = 1e-6  # metres / seconds: a boundary reached up to float rounding counts as reached
 
-#: steer_fn(images uint8 (B,3,88,200), speed km/h (B,), command branch index (B,)) -> steer (B,)
-SteerFn = Callable[[Any, Any, Any], Any]
-#: steer_all_fn(images, speed) -> steer under each command (B, 4), columns in cicfw.COMMANDS order
+#: steer_all_fn(images uint8 (B,3,88,200), speed km/h (B,)) -> steer under each command (B, 4), columns in
+#: cicfw.COMMANDS order
 SteerAllFn = Callable[[Any, Any], Any]
 
 
@@ -78,8 +75,6 @@ def assign_phases(codes: Sequence[float], speed_kmh: Sequence[float], time_s: Se
     codes = np.rint(np.asarray(codes, np.float64)).astype(np.int64)
     n = len(codes)
     speed = np.nan_to_num(np.asarray(speed_kmh, np.float64))
-    if len(speed) != n:
-        raise ValueError(f"codes and speed_kmh differ in length ({n} vs {len(speed)})")
     t = None if time_s is None else np.asarray(time_s, np.float64)
     if t is None or len(t) != n or not np.all(np.isfinite(t)) or (n > 1 and not np.all(np.diff(t) > 0)):
         t = np.arange(n, dtype=np.float64) * dt_s
@@ -142,22 +137,6 @@ def _to_numpy(x: Any) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().double().numpy()
     return np.asarray(x, np.float64)
-
-
-def all_commands(steer_fn: SteerFn) -> SteerAllFn:
-    """A ``steer_all_fn`` from a plain ``steer_fn``: the same images and speeds under each command."""
-    def steer_all(images: Any, speed: Any) -> np.ndarray:
-        b = len(speed)
-        cols = []
-        for c in range(N_COMMANDS):
-            out = _to_numpy(steer_fn(images, speed, torch.full((b,), c, dtype=torch.long)))
-            if out.shape != (b,):
-                raise DiagnosticError(f"steer_fn returned shape {out.shape} for {b} frames; it must return "
-                                      f"one steering value per frame")
-            cols.append(out)
-        return np.stack(cols, 1)
-
-    return steer_all
 
 
 def model_steer_all(model: Any, device: Any = None) -> SteerAllFn:
@@ -266,20 +245,13 @@ def groups(command: np.ndarray, phase: np.ndarray, turn: np.ndarray) -> list[tup
 
 def diagnose(expert: np.ndarray, steer: np.ndarray, command: np.ndarray, phase: np.ndarray,
              turn: np.ndarray) -> Diagnosis:
-    """Every measure on already predicted frames: ``steer`` (n, 4) under each command, ``command`` the
-    recorded branch index (0-3), ``phase``/``turn`` from ``assign_phases``. Raises DiagnosticError when
-    no frame is at a junction (no left / right / straight command)."""
+    """Every measure on already predicted frames (``measure``'s, which holds a junction frame): ``steer``
+    (n, 4) under each command, ``command`` the recorded branch index (0-3), ``phase``/``turn`` from
+    ``assign_phases``."""
     expert = np.asarray(expert, np.float64)
     steer, command = np.asarray(steer, np.float64), np.asarray(command, np.int64)
     phase, turn = np.asarray(phase).astype(str), np.asarray(turn, np.int64)
     n = len(expert)
-    if steer.shape != (n, N_COMMANDS) or len(command) != n or len(phase) != n or len(turn) != n:
-        raise ValueError(f"expected {n} frames: steer (n, 4), command, phase, turn; got {steer.shape}, "
-                         f"{len(command)}, {len(phase)}, {len(turn)}")
-    if not np.isin(phase, ("approach", "inside", "unknown")).any():
-        raise DiagnosticError(
-            f"no junction frame among the {n} frames: no left / right / straight command (CIL codes 3-5 in "
-            f"targets[24]); the diagnostic measures how a model takes junctions, so give data with turns")
     d = Diagnosis(expert, steer, command, phase, turn)
     pred = d.pred
     for by, cmd, ph, mask in groups(command, phase, turn):
@@ -311,8 +283,6 @@ def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Pat
     file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with). ``files``:
     the files to read instead of every file under ``data.path`` (the files the run recorded: a file added
     to its folder since would move episodes between the splits)."""
-    if split not in SPLITS:
-        raise CicfwError(f"split={split!r} is not known; use one of {', '.join(SPLITS)}")
     cams = tuple(data.val_cameras) if data.val_cameras is not None else None
     source = [str(f) for f in files] if files is not None else data.path
     if split == "all":
@@ -359,7 +329,7 @@ def measure(frames: Frames, images: Callable[[np.ndarray], np.ndarray], steer_al
 def dataset_command_distance(path: str | Path) -> float | None:
     """The collector's ``command_distance`` (m) from ``dataset_metadata.json`` in a dataset folder,
     None when the folder has none (CARLA / CoRL-2017 data)."""
-    meta = Path(str(path)).expanduser() / "dataset_metadata.json"
+    meta = Path(str(path)).expanduser() / META_NAME
     if not meta.is_file():
         return None
     try:

@@ -195,7 +195,7 @@ class Agent:
         hp = dict(model.hparams)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
                 "source": str(path)}
-        return cls(_torch_runner(DrivingFunction(model).eval(), dev), info, "torch", model=model, device=dev)
+        return cls(torch_runner(DrivingFunction(model).eval(), dev), info, "torch", model=model, device=dev)
 
     @classmethod
     def _load_torchscript(cls, path: Path, threads: int | None, device: str) -> "Agent":
@@ -209,7 +209,7 @@ class Agent:
             raise CicfwError(f"{str(path)!r} is not a TorchScript model cicfw can run, or it is truncated "
                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
         info = _metadata(extra[METADATA_KEY], path)
-        return cls(_torch_runner(module.eval(), dev), info, "torchscript", device=dev)
+        return cls(torch_runner(module.eval(), dev), info, "torchscript", device=dev)
 
     @classmethod
     def _load_onnx(cls, path: Path, threads: int | None) -> "Agent":
@@ -219,12 +219,7 @@ class Agent:
             raise CicfwError(f"{str(path)!r} is an ONNX model with inputs {list(names)}, not one written by cicfw "
                              f"export (inputs {list(INPUT_NAMES)})")
         meta = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY, "")
-        info = _metadata(meta, path)
-
-        def run(images: np.ndarray, speed: np.ndarray, command: np.ndarray) -> np.ndarray:
-            return session.run([OUTPUT_NAME], {"images": images, "speed_kmh": speed, "command": command})[0]
-
-        return cls(run, info, "onnxruntime")
+        return cls(onnx_runner(session), _metadata(meta, path), "onnxruntime")
 
     def act(self, images: Any, speed_kmh: Any, command: Any) -> float | np.ndarray:
         """Steering in [-1, 1] (positive = right): a float for one frame (H, W, 3), float32 (B,) for a
@@ -237,7 +232,8 @@ class Agent:
         return f"Agent({self.label!r}, runtime={self.runtime!r})"
 
 
-def _torch_runner(module: nn.Module, device: torch.device) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+def torch_runner(module: nn.Module, device: torch.device) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """The graph's function on numpy batches, run by torch (``module``: a ``DrivingFunction`` or its TorchScript)."""
     def run(images: np.ndarray, speed: np.ndarray, command: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
             steer = module(torch.from_numpy(images).to(device), torch.from_numpy(speed).to(device),
@@ -245,6 +241,12 @@ def _torch_runner(module: nn.Module, device: torch.device) -> Callable[[np.ndarr
         return steer.cpu().numpy()
 
     return run
+
+
+def onnx_runner(session: Any) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """The graph's function on numpy batches, run by an onnxruntime ``session``."""
+    return lambda images, speed, command: session.run([OUTPUT_NAME], {"images": images, "speed_kmh": speed,
+                                                                      "command": command})[0]
 
 
 def onnx_session(model: str | Path | bytes, threads: int | None = None):

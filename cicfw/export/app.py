@@ -36,12 +36,14 @@ from omegaconf import DictConfig, OmegaConf
 
 import cicfw
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
-                         onnx_session)
+                                onnx_runner, onnx_session, torch_runner)
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
+from cicfw.data.frames import META_NAME
+from cicfw.data.provenance import file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
                                     refuse_exported_model, resolve_checkpoint)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
@@ -236,16 +238,8 @@ def to_torchscript(module: torch.nn.Module, example: tuple, metadata: str) -> by
 def runner(fmt: str, data: bytes) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """A function running exported ``data`` in its own runtime: onnxruntime, or torch.jit.load."""
     if fmt == "onnx":
-        session = onnx_session(data)
-        return lambda img, speed, cmd: session.run([OUTPUT_NAME], {"images": img, "speed_kmh": speed,
-                                                                   "command": cmd})[0]
-    module = torch.jit.load(io.BytesIO(data), map_location="cpu").eval()
-
-    def run(img: np.ndarray, speed: np.ndarray, cmd: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return module(torch.from_numpy(img), torch.from_numpy(speed), torch.from_numpy(cmd)).numpy()
-
-    return run
+        return onnx_runner(onnx_session(data))
+    return torch_runner(torch.jit.load(io.BytesIO(data), map_location="cpu").eval(), torch.device("cpu"))
 
 
 # ---- parity ------------------------------------------------------------------------------------
@@ -311,14 +305,6 @@ def _jsonable(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
     """The training run's saved config (the nearest ``.hydra/config.yaml`` a few folders above the
     checkpoint), unresolved interpolations left as written; (None, None) when there is none."""
@@ -375,7 +361,7 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
     if not files:
         return {"path": str(p), "hash": None, "why": "the dataset is not on this machine"}
     chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
-    meta_file = (p if p.is_dir() else p.parent) / "dataset_metadata.json"
+    meta_file = (p if p.is_dir() else p.parent) / META_NAME
     meta = read_json(meta_file, default={})
     return {"path": str(p), "hash": chash, "hash_of": "file names and sizes", "files": len(files),
             "collect_config_hash": meta.get("config_hash")}
@@ -411,7 +397,7 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
         "normalisation": {"pixels": "/ 255", "speed": f"speed_kmh / {float(model.speed_norm_kmh):g}"},
         "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
         "decoder": decoder_info(model.head, hp["head"]),
-        "checkpoint": {"path": str(checkpoint), "sha256": sha256(checkpoint)},
+        "checkpoint": {"path": str(checkpoint), "sha256": file_sha256(checkpoint)},
         "training_dataset": training_dataset(checkpoint, cfg_path),
     }
 
@@ -487,7 +473,7 @@ def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = F
         why = f"it exists and has no sidecar {sidecar.name!r} saying cicfw export wrote it"
     elif not (isinstance(side, dict) and isinstance(side.get("checkpoint"), dict) and "size_bytes" in side):
         why = f"{sidecar.name!r} exists and is not the sidecar of a cicfw export"
-    elif side["checkpoint"].get("sha256") != sha256(checkpoint) or side.get("format") != fmt:
+    elif side["checkpoint"].get("sha256") != file_sha256(checkpoint) or side.get("format") != fmt:
         why = (f"it is the {side.get('format')} export of another checkpoint "
                f"({side['checkpoint'].get('path')!r}, or another state of it)")
     elif path.exists() and path.stat().st_size != side["size_bytes"]:

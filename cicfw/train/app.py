@@ -23,7 +23,7 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from cicfw import COMMANDS
 from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
@@ -34,9 +34,8 @@ from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty
                                       same_value)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
-from cicfw.data.frames import camera_names
-from cicfw.core.errors import (USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_interrupts,
-                               report_user_errors)
+from cicfw.data.frames import META_NAME, camera_names
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
@@ -70,15 +69,6 @@ LOGGERS: dict[str, Callable[[Path], Logger]] = {
     "csv": csv_logger,
     "tensorboard": lambda run_dir: TensorBoardLogger(str(run_dir), name="tensorboard", version=""),
 }
-
-
-def name_and_kwargs(node: DictConfig) -> tuple[str, dict[str, Any]]:
-    """A config-group node is ``name:`` plus the constructor's keyword arguments."""
-    d = OmegaConf.to_container(node, resolve=True)
-    assert isinstance(d, dict)
-    if "name" not in d:
-        raise CicfwError(f"config node {d} has no 'name:' key naming the registered class")
-    return d.pop("name"), d
 
 
 def build_model(cfg: DictConfig) -> CICModule:
@@ -169,15 +159,11 @@ def make_collect_folder(path: Path) -> None:
                      f"{CACHE_VARIABLE} to a writable folder for the default one)", key="data.path", value=str(path))
 
 
-#: written by ``cicfw collect`` into every folder it collects (cicfw.collect.META_NAME)
-COLLECTED_META = "dataset_metadata.json"
-
-
 def check_not_your_own_data(path: Path) -> None:
     """``data=sim_default`` (the default) collects into ``data.path``; a folder of CIL files it did not
     collect is the user's own data, which ``data=cil_hdf5`` reads: say so instead of the collector's
     "collect into an empty folder"."""
-    if not path.is_dir() or (path / COLLECTED_META).exists():
+    if not path.is_dir() or (path / META_NAME).exists():
         return
     files = [f for f in path.rglob("*") if f.suffix in (".h5", ".hdf5") and f.is_file()]
     if files:
@@ -192,18 +178,9 @@ def make_datamodule(cfg: DictConfig) -> CILDataModule:
     kwargs = checked_data(cfg)
     kwargs.pop("collect", None)
     kwargs["path"] = str(Path(kwargs["path"]).expanduser())
-    check_batches_per_epoch(kwargs.get("batches_per_epoch"))
     datamodule = CILDataModule(**kwargs)
     check_collected_cameras(cfg.data, datamodule)
     return datamodule
-
-
-def check_batches_per_epoch(value: Any) -> None:
-    """``data.batches_per_epoch`` (a whole number or null: the schema): null (the training samples / the
-    batch size) or >= 1; 0 was taken for null and -1 failed inside Lightning's sampler."""
-    if value is not None and value < 1:
-        raise CicfwError(f"data.batches_per_epoch must be null (training samples / batch size) or an integer "
-                         f">= 1, got {value!r}")
 
 
 def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> None:
@@ -222,33 +199,17 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
                              f"data=cil_hdf5 data.path=...")
 
 
-def build_datamodule(cfg: DictConfig) -> CILDataModule:
-    """``make_datamodule``, after collecting the default simulator dataset if it is not complete."""
-    datamodule = make_datamodule(cfg)
-    ensure_data(cfg.data)
-    return datamodule
-
-
-def epoch_list(epochs: Any) -> list[int]:
-    """``keep_epoch_checkpoints`` as a list of epochs >= 1 (a list of whole numbers: the schema), else one
-    line naming it."""
-    found = list(epochs or [])
-    if any(e < 1 for e in found):
-        raise CicfwError(f"keep_epoch_checkpoints must be a list of epochs >= 1, e.g. [1,2] (each keeps "
-                         f"checkpoints/epochNNN.ckpt), got {found!r}")
-    return found
-
-
 class EpochCheckpoints(Callback):
     """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points."""
 
     def __init__(self, dirpath: Path, epochs, max_epochs: int | None = None) -> None:
-        """``max_epochs``: the run's ``trainer.max_epochs``; a listed epoch beyond it is a ``ConfigError``
-        (it would never be saved)."""
-        beyond = [int(e) for e in epochs if max_epochs is not None and int(e) > max_epochs]
-        if beyond:
-            raise ConfigError("keep_epoch_checkpoints", beyond[0], f"a list of epochs within trainer.max_epochs="
-                              f"{max_epochs} (1 to {max_epochs})")
+        """``epochs``: ``keep_epoch_checkpoints`` (whole numbers: the schema); one below 1 or beyond
+        ``max_epochs`` (the run's ``trainer.max_epochs``) is a ``ConfigError`` (it would never be saved)."""
+        wrong = [int(e) for e in epochs if e < 1 or (max_epochs is not None and e > max_epochs)]
+        if wrong:
+            within = f"within trainer.max_epochs={max_epochs} (1 to {max_epochs})" if max_epochs is not None else ">= 1"
+            raise ConfigError("keep_epoch_checkpoints", wrong[0], f"a list of epochs {within}, e.g. [1,2] (each "
+                              f"keeps checkpoints/epochNNN.ckpt)")
         self.dirpath, self.epochs = Path(dirpath), {int(e) for e in epochs}
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -320,7 +281,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
         MixerDiagnostics(),  # heatmaps of what the mixer learned (C, gates, alphas) per validation epoch
         DataWait(),  # the share of step time spent waiting for data, in the log each epoch
     ]
-    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
+    epochs = cfg.get("keep_epoch_checkpoints") or []
     if epochs:
         callbacks.append(EpochCheckpoints(run_dir / "checkpoints", epochs, cfg.trainer.get("max_epochs")))
     ema_decay = float(cfg.model.get("ema_decay", 0.0))
@@ -514,8 +475,7 @@ def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
     checked_setup(cfg, refuse_finished=refuse_finished)
     trainer_kwargs(cfg)
     checked_speed(cfg)
-    epochs = epoch_list(cfg.get("keep_epoch_checkpoints"))
-    EpochCheckpoints(Path("checkpoints"), epochs, cfg.trainer.get("max_epochs"))
+    EpochCheckpoints(Path("checkpoints"), cfg.get("keep_epoch_checkpoints") or [], cfg.trainer.get("max_epochs"))
     check_evaluation(cfg)
 
 
@@ -672,7 +632,6 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
 
 
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="train")
-@report_interrupts
 @report_user_errors
 def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN

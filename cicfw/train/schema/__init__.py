@@ -7,12 +7,8 @@ ConfigStore) before it composes a train config, and the defaults list lays the s
 ``cicfw_schema/<group>/<name>`` under each chosen encoder, mixer and head option (the registered class's
 arguments, plugins' included).
 OmegaConf then refuses an unknown key or a value of the wrong type while composing, naming its full key,
-before any run folder exists: each value is checked there once. ``checked_part`` and ``checked_node`` look
-only at what composing lets through (keys added with ``+``, a value left ``???``), and check wholly only a
-node composing did not type with the schema of what it builds (an option whose ``name`` selects another
-registered name, a config composed elsewhere). ``checked_trainer`` and ``checked_speed`` also check the
-values a type cannot say (a union of a flag and a word, such as ``trainer.deterministic``), and
-``checked_data`` the collection's ``data.collect.sim`` against the backend it names (``cicfw.sim.schema``).
+before any run folder exists: each value is checked there once. The ``checked_*`` functions look only at
+what composing lets through, and at the values a type cannot say.
 """
 from __future__ import annotations
 
