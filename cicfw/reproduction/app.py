@@ -33,7 +33,6 @@ import json
 import logging
 import os
 import platform
-import re
 import subprocess
 import sys
 import time
@@ -62,9 +61,9 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
-from cicfw.reproduction.catalogue import PAPER_VALUES, row_overrides, speed_node_spelling
+from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
-from cicfw.reproduction.claims import check_margin, load_claims
+from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import continue_published, publish, published_manifest
 from cicfw.reproduction.report import write_report as write
@@ -92,19 +91,13 @@ def known_budgets() -> list[str]:
 
 
 def _hydra_line(err: BaseException) -> str:
-    """A Hydra composition error as one line (its options list folded in)."""
+    """A Hydra composition error as one line: an unknown option of a config group as ``unknown <group>
+    '<option>'; known <group>s: ...`` (Hydra's own list of the group's options)."""
+    group, _, option = str(getattr(err, "missing_cfg_file", None) or "").rpartition("/")
+    if group and getattr(err, "options", None) is not None:
+        return f"unknown {group} {option!r}; known {group}s: {', '.join(err.options)}"
     lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-    if not lines:
-        return type(err).__name__
-    if any(ln.startswith("Available options in") for ln in lines):
-        start = next(i for i, ln in enumerate(lines) if ln.startswith("Available options in")) + 1
-        opts = []
-        for ln in lines[start:]:
-            if ln.startswith("Config search path"):
-                break
-            opts.append(ln)
-        return f"{lines[0]}; available: {', '.join(opts)}"
-    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://"))
+    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://")) or type(err).__name__
 
 
 def _parse(overrides: Sequence[str]) -> None:
@@ -126,9 +119,6 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
     wrong type is one error naming it."""
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
     _parse(plain)
-    for o in plain:
-        if o.split("=", 1)[0].lstrip("+~") == "budget" and "=" in o and o.split("=", 1)[1] not in known_budgets():
-            raise ReproduceError(f"unknown budget {o.split('=', 1)[1]!r}; known budgets: {', '.join(known_budgets())}")
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             cfg = compose("reproduce", overrides=plain)
@@ -140,7 +130,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted: the values the
-    schema cannot say (a row not in the catalogue, a curve epoch < 1, an unknown claim column, the margin)."""
+    schema cannot say (a row not in the catalogue, an unknown claim column)."""
     catalogue = cfg.catalogue
     rows = [str(r) for r in cfg.rows]
     if not rows:
@@ -148,31 +138,11 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     for r in rows:
         if r not in catalogue:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
-        paper = catalogue[r].get("paper")
-        if paper is not None and len(paper) != PAPER_VALUES:
-            raise ReproduceError(f"catalogue.{r}.paper must be the paper's {PAPER_VALUES} Table-4 values (training "
-                                 f"town: training / new weathers, new town: training / new weathers) or null")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
     seeds = seed_list(cfg.seeds)
-    check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
-    try:  # the report needs it after every cell: check it first
-        check_margin(cfg.equivalence_margin)
-    except ValueError as err:
-        raise ReproduceError(str(err)) from None
     return rows, seeds
-
-
-def check_curve(budget: DictConfig) -> None:
-    """``budget.curve_seeds`` >= 0 and ``budget.curve_epochs`` >= 1 (whole numbers: the schema): read only
-    after a cell has trained, so a bad one is refused here instead of failing every curve cell."""
-    for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
-                             ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
-        got = list(budget.get(key) or [])
-        if any(x < least for x in got):
-            raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
-                                 f"null, got {got!r}")
 
 
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
@@ -188,16 +158,9 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
             try:
                 tcfg = compose_train(cfg, r, 0)
             except MissingConfigException as err:
-                line = _hydra_line(err)
-
-                m = re.search(r"Could not find '([\w-]+)/([^']+)'", line)
-                if m and m.group(1) == "experiment":
-                    raise ReproduceError(f"row {r!r}: unknown experiment {m.group(2)!r}; known experiments: "
-                                         f"{line.split('available: ', 1)[-1]}") from None
-                if m:
-                    raise ReproduceError(f"{what}: unknown {m.group(1)} {m.group(2)!r}; known {m.group(1)}s: "
-                                         f"{line.split('available: ', 1)[-1]}") from None
-                raise ReproduceError(f"{what}: {line}") from None
+                line = _hydra_line(err)  # an unknown experiment is the row's own: its overrides say nothing
+                raise ReproduceError(f"{f'row {r!r}' if line.startswith('unknown experiment') else what}: {line}"
+                                     ) from None
             except HydraException as err:
                 schema = config_error(err)  # a wrong type or unknown key the train schema refused
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
