@@ -199,9 +199,6 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
         pub = Path(cfg.publish_dir)
-        if pub.exists() and not pub.is_dir():
-            raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
-                                 f"(created if missing)")
         claim_folder(pub, "reproduce", "publish_dir", data=data)
         check_folder(pub, "publish_dir")
         check_publish_dir(cfg)
@@ -413,6 +410,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     path = results_dir / MANIFEST
     old = read_json(path, default=None)
     src = Path(cfg.continue_from) if cfg.get("continue_from") else None
+    only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
     published = published_manifest(src) if src is not None else None
     folders = []  # (where, what to do instead, its pinned fingerprint)
     if old is not None:
@@ -432,7 +430,6 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
     finished = set(finished_cells(results_dir)) if results_dir.is_dir() else set()
     if src is not None:
-        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
         finished |= {k for k, d in finished_cells(src).items() if only is None or only in str(d.get("machine") or "")}
     check_splits(cfg, rows, seed_list(cfg.seeds), finished)  # a seed whose split cannot train: before any cell
     dataset = dataset_info(data_path)
@@ -455,7 +452,6 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     changed = old is None
     if src is not None:
-        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
         got = continue_published(src, results_dir, machine=only)
         log.info("continue_from=%s: %d finished cell(s) copied, %d already here%s", src, len(got["copied"]),
                  len(got["kept"]), f", {len(got['other_machine'])} left out (machine without {only!r})"
@@ -775,17 +771,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_outputs(cfg, data=check_rows(cfg, rows))
         lock = ResultsLock(Path(cfg.results_dir)).acquire()
         manifest = prepare(cfg, rows)
-    except USER_ERRORS as err:
+    except BaseException as err:
         if lock is not None:
             lock.release()
+        if not isinstance(err, USER_ERRORS):
+            raise
         if debugging():
             traceback.print_exc()
         print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
         return 2
-    except BaseException:
-        if lock is not None:
-            lock.release()
-        raise
     log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
              manifest["budget"], manifest["episodes"], cfg.results_dir)
     # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still
