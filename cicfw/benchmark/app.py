@@ -270,17 +270,23 @@ def check_after_training_overrides(overrides: Any) -> None:
     what is no override string is left to ``compose_overrides`` to name."""
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
-    parser = OverridesParser.create()
-    for o in overrides if isinstance(overrides, (list, tuple)) else []:
-        try:
-            key = parser.parse_override(o).key_or_group
-        except Exception:
-            continue
+    for o, key in _override_keys(overrides if isinstance(overrides, (list, tuple)) else []):
         root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
         if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
             continue
         if root in NOT_AFTER_TRAINING:
             raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
+
+
+def _override_keys(overrides: Sequence[Any]) -> list[tuple[Any, str]]:
+    """(override, its key or config group) of each override Hydra parses; ``compose_overrides`` names the others."""
+    parser, out = OverridesParser.create(), []
+    for o in overrides:
+        try:
+            out.append((o, parser.parse_override(o).key_or_group))
+        except Exception:
+            continue
+    return out
 
 
 def check_evaluation_overrides(overrides: Any) -> None:
@@ -458,14 +464,7 @@ def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tup
     overrides = [str(o) for o in overrides]
     if not fast_dev_run:
         return overrides, "the suite of conf/evaluate.yaml with evaluate_overrides"
-    parser = OverridesParser.create()
-    keys = set()
-    for o in overrides:
-        try:
-            keys.add(parser.parse_override(o).key_or_group)
-        except Exception:
-            continue  # compose_overrides names it
-    if keys & set(_SUITE_SIZE_KEYS):
+    if {key for _, key in _override_keys(overrides)} & set(_SUITE_SIZE_KEYS):
         return overrides, "the suite as evaluate_overrides size it"
     return [*overrides, FAST_DEV_RUN_SUITE], (f"a short suite after trainer.fast_dev_run ({FAST_DEV_RUN_SUITE}: the "
                                               f"first pair of each town; evaluate_overrides=[suite.limit=null] drives "
