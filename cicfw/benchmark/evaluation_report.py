@@ -16,12 +16,11 @@ import os
 import re
 import sys
 import tempfile
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
-from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
-    SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
-)
+from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart
 from cicfw.core.run_folder import claim_folder
@@ -45,9 +44,6 @@ def summary(run: Run) -> dict[str, Any]:
     its ``success`` count, ``episodes`` and ``rate`` (%)."""
     cells = run.cells()
     rate = run.success_rate()
-    reasons: dict[str, int] = {}
-    for r in run.rows:
-        reasons[r["reason"]] = reasons.get(r["reason"], 0) + 1
     return {
         "model": run.label, "episodes": len(run.rows), "success": None if rate is None else round(rate, 2),
         "cells": {cell_key(*c): {"name": cell_name(*c), "success": ok, "episodes": n,
@@ -56,7 +52,7 @@ def summary(run: Run) -> dict[str, Any]:
         "manoeuvres": {m: {"success": ok, "episodes": n, "rate": round(100.0 * ok / n, 2)}
                        for m, (ok, n) in run.manoeuvres().items()},
         "suite": run.suite_name(),
-        "reasons": dict(sorted(reasons.items())),
+        "reasons": dict(sorted(Counter(r["reason"] for r in run.rows).items())),
         **{k: run.meta[k] for k in ("policy", "checkpoint", "seed", "wall_s", "steps") if k in run.meta},
         "complete": is_complete(run),
         **({"episodes_total": run.meta["episodes_total"]} if "episodes_total" in run.meta else {}),
@@ -320,16 +316,12 @@ def _natural(p: Path) -> list:
 
 def _unique_labels(runs: list[Run]) -> list[Run]:
     """Rows need distinct names: runs sharing a label get their folder name appended."""
-    seen: dict[str, int] = {}
-    for r in runs:
-        seen[r.label] = seen.get(r.label, 0) + 1
+    seen = Counter(r.label for r in runs)
     for r in runs:
         if seen[r.label] > 1 and r.path is not None:
             ck = r.meta.get("checkpoint")
             r.label = f"{r.label} ({Path(ck).stem if ck else r.path.name})"
-    counts: dict[str, int] = {}
-    for r in runs:
-        counts[r.label] = counts.get(r.label, 0) + 1
+    counts = Counter(r.label for r in runs)
     for r in runs:  # the same checkpoint name in different runs (last.ckpt): their folders tell them apart
         if counts[r.label] > 1 and r.path is not None:
             r.label = f"{r.label} {r.path}"

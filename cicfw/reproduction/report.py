@@ -117,7 +117,7 @@ from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
+from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells, most_first
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import publish
@@ -191,11 +191,7 @@ def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
 
 def machine_counts(cells: Sequence[CellResult]) -> dict[str, int]:
     """Each machine the cells ran on (``cell.json``'s ``machine``) -> its number of cells, most first."""
-    counts: dict[str, int] = {}
-    for c in cells:
-        m = str(c.meta.get("machine") or "an unrecorded machine")
-        counts[m] = counts.get(m, 0) + 1
-    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+    return most_first(str(c.meta.get("machine") or "an unrecorded machine") for c in cells)
 
 
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
