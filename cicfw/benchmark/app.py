@@ -113,33 +113,16 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                     label: str | None = None, progress_bar: bool = False, maps: bool = True,
                     video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
                     resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> EvalResult:
-    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
+    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left there
+    (docs/evaluation.md, "Resuming": what is kept, which folder is refused, what may change between calls).
 
     ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
     ``{"name": "expert"}``; conf/policy/), ``suite`` the ``suite:`` node of conf/evaluate.yaml
-    (``{"towns": [...], "weathers": [...], "limit": 2, ...}``; build_suite's arguments), ``runner``
-    the ``runner:`` node (RunnerConfig's fields, None for the defaults), ``sim`` the simulator spec
-    (None: the embedded one). ``label`` names the table row (default: the policy's label).
-
-    Each finished episode is appended to ``out_dir/episodes.jsonl`` as it finishes (flushed to disk),
-    so when the process dies, calling again with the same arguments and ``out_dir`` drives only the
-    missing episodes, and the report it writes (episodes.json/.csv rows, summary.json cells,
-    table.md/.tex, trajectories.npz) is the one an uninterrupted call writes: bit for bit for a policy
-    that steers each episode from that episode's observations alone (expert, constant); for a network
-    on the CPU, its steering's last float bits depend on the batch's shape (which episodes are still
-    running), as they already do between uninterrupted runs (docs/evaluation.md, "Resuming").
-    A call on a finished folder drives nothing and rewrites the same report. While episodes are
-    missing, the folder's report says ``"complete": false`` (table.md: a PARTIAL line). Raises
-    ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
-    (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
-    another process is writing it; config errors (``video`` naming no episode of the suite included)
-    raise before anything is written. Ctrl-C raises ``Interrupted`` saying how many episodes are kept
-    and, with ``resume_hint``, how to drive the rest. ``runner.batch_size``, ``workers`` and
-    ``threads`` may change between calls. ``on_start`` is called once ``out_dir`` holds this evaluation's
-    episode log (everything before is checked and refused without writing a result there).
-
-    Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
-    column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
+    (build_suite's arguments), ``runner`` the ``runner:`` node (RunnerConfig's fields, None for the
+    defaults), ``sim`` the simulator spec (None: the embedded one). ``label`` names the table row (default:
+    the policy's label). Config errors raise before anything is written; ``on_start`` is called once
+    ``out_dir`` holds this evaluation's episode log; Ctrl-C raises ``Interrupted``, ending with
+    ``resume_hint``. Returns an ``EvalResult``.
     """
     out_dir = Path(out_dir)
     spec = dict(policy)
