@@ -65,8 +65,8 @@ from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
-from cicfw.reproduction.published import continue_published, publish, published_manifest
-from cicfw.reproduction.report import write_report as write
+from cicfw.reproduction.published import continue_published, published_manifest
+from cicfw.reproduction.report import write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
 from cicfw.train.app import build_model, ensure_data, make_datamodule, train, trainer_kwargs
@@ -736,14 +736,9 @@ def report_so_far(cfg: DictConfig) -> None:
         log.error("the report after this cell was not written: %s", _error_line(err))
 
 
-def write_report(cfg: DictConfig) -> dict[str, Any] | None:
-    results_dir = Path(cfg.results_dir)
-    catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
-    data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
-                 margin=cfg.get("equivalence_margin"), relation_candidates=list(cfg.relation_candidates))
-    if cfg.get("publish_dir"):
-        publish(results_dir, Path(cfg.publish_dir))
-    return data
+def write_report(cfg: DictConfig) -> dict[str, Any]:
+    """The report of this run's results folder, published into ``publish_dir`` when given."""
+    return write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
 
 
 def _error_line(err: BaseException) -> str:

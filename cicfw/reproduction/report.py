@@ -867,6 +867,17 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     return data
 
 
+def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None = None) -> dict[str, Any]:
+    """``write_report`` with a composed reproduce config's catalogue, claims, margin and fine tuning's
+    candidates; then ``publish`` into ``publish_dir`` when given."""
+    data = write_report(Path(results_dir), OmegaConf.to_container(cfg.catalogue, resolve=True),
+                        claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
+                        margin=cfg.get("equivalence_margin"), relation_candidates=list(cfg.relation_candidates))
+    if publish_dir:
+        publish(Path(results_dir), Path(publish_dir))
+    return data
+
+
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
     """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
@@ -887,15 +898,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             claim_folder(Path(a.publish), "reproduce", "--publish")
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            cfg = compose("reproduce")
-            catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
-            claims = load_claims(OmegaConf.to_container(cfg.claims, resolve=True))
-            margin = cfg.get("equivalence_margin")
-            candidates = list(cfg.relation_candidates)
-        data = write_report(Path(a.results_dir), catalogue, claims=claims, margin=margin,
-                            relation_candidates=candidates)
-        if a.publish:
-            publish(Path(a.results_dir), Path(a.publish))
+            data = write_configured(Path(a.results_dir), compose("reproduce"), a.publish)
         if a.markdown:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:
