@@ -65,7 +65,7 @@ from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
-from cicfw.reproduction.published import continue_published, published_manifest
+from cicfw.reproduction.published import PUBLISHED_FILES, continue_published, published_manifest
 from cicfw.reproduction.report import write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
@@ -221,11 +221,6 @@ def check_not_results_dir(cfg: DictConfig) -> None:
         if value and Path(str(value)).expanduser().resolve() == results:
             raise ReproduceError(f"{key}={str(value)!r} is the results folder itself (results_dir="
                                  f"{str(cfg.results_dir)!r}, {results}): {fix}", key=key, value=str(value))
-
-
-#: what ``publish`` writes into ``publish_dir`` (besides cells/<row>/seed<k>/cell.json)
-PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
-                   MANIFEST)
 
 
 def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
