@@ -60,7 +60,6 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
-from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
 from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import load_claims
@@ -166,14 +165,9 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
-            for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
-                try:
-                    registry.get(str(tcfg[group].get("name")))
-                except UnknownNameError as err:
-                    raise ReproduceError(f"{what}: {err}") from None
             try:
                 check_training(tcfg)
-            except (ValueError, TypeError, UnknownNameError) as err:
+            except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
             data.append(str(Path(str(tcfg.data.path)).expanduser()))
     return data
