@@ -48,7 +48,6 @@ from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
-from cicfw.registry import UnknownNameError
 from cicfw.sim.town import load_town
 
 log = logging.getLogger("cicfw.evaluate")
@@ -247,65 +246,46 @@ NOT_AFTER_TRAINING = {
 }
 
 
-def check_after_training_overrides(overrides: Any) -> None:
-    """One ``ValueError`` for an override the evaluation after training would ignore or that would make it
-    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``);
-    what is no override string is left to ``compose_overrides`` to name."""
-    if OmegaConf.is_list(overrides):
-        overrides = OmegaConf.to_container(overrides, resolve=True)
-    for o, key in _override_keys(overrides if isinstance(overrides, (list, tuple)) else []):
-        root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
-        if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
-            continue
-        if root in NOT_AFTER_TRAINING:
-            raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
-
-
-def _override_keys(overrides: Sequence[Any]) -> list[tuple[Any, str]]:
-    """(override, its key or config group) of each override Hydra parses; ``compose_overrides`` names the others."""
-    parser, out = OverridesParser.create(), []
-    for o in overrides:
-        try:
-            out.append((o, parser.parse_override(o).key_or_group))
-        except Exception:
-            continue
-    return out
-
-
-def check_evaluation_overrides(overrides: Any) -> None:
-    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
-    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
-    training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
-    starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key kept, for what the schema refuses)."""
-    try:
-        check_after_training_overrides(overrides)
-        cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
-        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
-                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
-                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
-    except SchemaError as err:
-        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
-    except (ValueError, FileNotFoundError, UnknownNameError) as err:
-        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
-        raise CicfwError(f"evaluate_overrides: {text}", key="evaluate_overrides", value=overrides) from None
-
-
-def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
-    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); an override
-    Hydra cannot parse is one ``ValueError`` line naming it, a composition error ``compose_config``'s."""
+def _override_keys(overrides: Any) -> list[tuple[str, str]]:
+    """``evaluate_overrides`` as (override, its key or config group) pairs: a list of override strings that
+    Hydra parses, or one ``ValueError`` line saying which is not."""
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
     if overrides is None:
         overrides = []
     if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
         raise CicfwError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
-    parser = OverridesParser.create()
+    parser, out = OverridesParser.create(), []
     for o in overrides:
         try:
-            parser.parse_override(o)
+            out.append((o, parser.parse_override(o).key_or_group))
         except Exception as err:
             raise CicfwError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
-    return compose_config([*first, *overrides])
+    return out
+
+
+def check_evaluation_overrides(overrides: Any) -> None:
+    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
+    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
+    training (``plan_evaluation`` with the checkpoint still to be written); an override that would make it
+    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``) is
+    refused. One ``ValueError`` line starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key
+    kept, for what the schema refuses)."""
+    try:
+        pairs = _override_keys(overrides)
+        for o, key in pairs:
+            root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
+            if root in NOT_AFTER_TRAINING and not (root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint"):
+                raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
+        cfg = compose_config([f"checkpoint={_quote('<the trained checkpoint>')}", *(o for o, _ in pairs)])
+        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
+                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
+                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
+    except SchemaError as err:
+        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
+    except (ValueError, FileNotFoundError) as err:
+        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
+        raise CicfwError(f"evaluate_overrides: {text}", key="evaluate_overrides", value=overrides) from None
 
 
 #: policy keys that change how fast or where a policy runs, never which episodes it drives
