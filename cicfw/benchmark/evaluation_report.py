@@ -347,8 +347,9 @@ def writable_folder(path: Path, what: str) -> Path:
     return path
 
 
-def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
-    """Write the joined table (md, tex, csv) and its bar chart into ``out_dir``; return the Markdown."""
+def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False) -> str:
+    """Write the joined table (md, tex, csv) and its bar chart into ``out_dir`` (with ``record``, ``cicfw
+    report``'s record of the runs it joined there too); return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
     try:
@@ -357,6 +358,9 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
         atomic_write(out_dir / "table.csv", table_csv(runs))
         if plots:
             bar_chart(_marked(runs), out_dir / "success_bars.png")
+        if record:
+            atomic_write(out_dir / REPORT_RECORD, json.dumps({"written_by": "cicfw report", "runs": _joined(runs)},
+                                                             indent=1))
     except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
         raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
                          f"with --out") from None
@@ -418,13 +422,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          foreign_ok=args.overwrite)
         check_report_folder(out, runs, args.dirs, what, args.overwrite)
         writable_folder(out, what)
-        md = write_joined(runs, out, plots=not args.no_plots)
-        record = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)}, indent=1)
-        try:
-            atomic_write(out / REPORT_RECORD, record)
-        except OSError as err:
-            raise CicfwError(f"report: cannot write into {out} ({err.strerror or err}); give a writable folder with "
-                             f"--out") from None
+        md = write_joined(runs, out, plots=not args.no_plots, record=True)
     except ValueError as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
