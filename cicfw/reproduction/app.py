@@ -157,9 +157,9 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
             try:
                 tcfg = compose_train(cfg, r, 0)
             except MissingConfigException as err:
-                line = _hydra_line(err)  # an unknown experiment is the row's own: its overrides say nothing
-                raise ReproduceError(f"{f'row {r!r}' if line.startswith('unknown experiment') else what}: {line}"
-                                     ) from None
+                line = _hydra_line(err)
+                where = f"row {r!r}" if line.startswith("unknown experiment") else what  # its overrides: no matter
+                raise ReproduceError(f"{where}: {line}") from None
             except HydraException as err:
                 schema = config_error(err)  # a wrong type or unknown key the train schema refused
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
