@@ -16,6 +16,7 @@ from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
 from cicfw.core.config_checks import SchemaError, config_error
+from cicfw.core.errors import ConfigError
 from cicfw.reproduction.schema import BudgetConfig, check
 from cicfw.reproduction import app as reproduce
 
@@ -88,6 +89,18 @@ AUDIT = [
 def test_the_schema_refuses_naming_the_full_key(overrides, kind, key):
     got = refused(*overrides)
     assert (got.kind, got.key) == (kind, key), got
+
+
+@pytest.mark.parametrize("overrides, key, value", [
+    (["catalogue.cil.paper=[1,2,3]"], "catalogue.cil.paper", [1, 2, 3]),
+    (["budget.curve_epochs=[0]"], "budget.curve_epochs", [0]),
+    (["budget.curve_seeds=[2,-1]"], "budget.curve_seeds", [2, -1]),
+    (["equivalence_margin=0"], "equivalence_margin", 0),
+])
+def test_the_check_refuses_a_value_out_of_range_naming_key_and_value(overrides, key, value):
+    with pytest.raises(ConfigError) as err:
+        check(compose_reproduce(*overrides))
+    assert (err.value.key, err.value.value) == (key, value), err.value
 
 
 def test_seeds_and_weather_family_say_what_they_accept():

@@ -48,7 +48,6 @@ from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
-from cicfw.registry import UnknownNameError
 from cicfw.sim.town import load_town
 
 log = logging.getLogger("cicfw.evaluate")
@@ -113,34 +112,17 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                     label: str | None = None, progress_bar: bool = False, maps: bool = True,
                     video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
                     resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> EvalResult:
-    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left.
+    """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left there
+    (docs/evaluation.md, "Resuming": what is kept, which folder is refused, what may change between calls).
 
     ``policy`` is the policy's plain config (``{"name": "checkpoint", "checkpoint": "x.ckpt"}``,
     ``{"name": "expert"}``; conf/policy/), ``suite`` the ``suite:`` node of conf/evaluate.yaml
-    (``{"towns": [...], "weathers": [...], "limit": 2, ...}``; build_suite's arguments), ``runner``
-    the ``runner:`` node (RunnerConfig's fields, None for the defaults), ``sim`` the simulator spec
-    (None: the embedded one). ``label`` names the table row (default: the policy's label).
-
-    Each finished episode is appended to ``out_dir/episodes.jsonl`` as it finishes (flushed to disk),
-    so when the process dies, calling again with the same arguments and ``out_dir`` drives only the
-    missing episodes, and the report it writes (episodes.json/.csv rows, summary.json cells,
-    table.md/.tex, trajectories.npz) is the one an uninterrupted call writes: bit for bit for a policy
-    that steers each episode from that episode's observations alone (expert, constant); for a network
-    on the CPU, its steering's last float bits depend on the batch's shape (which episodes are still
-    running), as they already do between uninterrupted runs (docs/evaluation.md, "Resuming").
-    A call on a finished folder drives nothing and rewrites the same report. Until every episode is
-    driven and the trajectories and pictures are written, the folder's report says ``"complete": false``
-    (table.md: a PARTIAL line). Raises
-    ``RunFolderError`` (a ValueError, one line) when ``out_dir`` holds episodes of another evaluation
-    (policy, checkpoint file contents, suite, seed, simulator, or the runner's episode rules differ) or
-    another process is writing it; config errors (``video`` naming no episode of the suite included)
-    raise before anything is written. Ctrl-C raises ``Interrupted`` saying how many episodes are kept
-    and, with ``resume_hint``, how to drive the rest. ``runner.batch_size``, ``workers`` and
-    ``threads`` may change between calls. ``on_start`` is called once ``out_dir`` holds this evaluation's
-    episode log (everything before is checked and refused without writing a result there).
-
-    Returns an ``EvalResult``: ``summary`` (as summary.json: ``success`` %, ``cells`` per table
-    column, ``complete``), ``rows``, ``driven`` and ``reused`` episode counts.
+    (build_suite's arguments), ``runner`` the ``runner:`` node (RunnerConfig's fields, None for the
+    defaults), ``sim`` the simulator spec (None: the embedded one). ``label`` names the table row (default:
+    the policy's label). Config errors raise before anything is written; the report says ``"complete": true``
+    only once every episode is driven and the trajectories and pictures are written; ``on_start`` is called once
+    ``out_dir`` holds this evaluation's episode log; Ctrl-C raises ``Interrupted``, ending with
+    ``resume_hint``. Returns an ``EvalResult``.
     """
     out_dir = Path(out_dir)
     check_out_dir(out_dir)
@@ -286,59 +268,46 @@ NOT_AFTER_TRAINING = {
 }
 
 
-def check_after_training_overrides(overrides: Any) -> None:
-    """One ``ValueError`` for an override the evaluation after training would ignore or that would make it
-    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``);
-    what is no override string is left to ``compose_overrides`` to name."""
-    if OmegaConf.is_list(overrides):
-        overrides = OmegaConf.to_container(overrides, resolve=True)
-    parser = OverridesParser.create()
-    for o in overrides if isinstance(overrides, (list, tuple)) else []:
-        try:
-            key = parser.parse_override(o).key_or_group
-        except Exception:
-            continue
-        root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
-        if root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint":
-            continue
-        if root in NOT_AFTER_TRAINING:
-            raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
-
-
-def check_evaluation_overrides(overrides: Any) -> None:
-    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
-    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
-    training (``plan_evaluation`` with the checkpoint still to be written). One ``ValueError`` line
-    starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key kept, for what the schema refuses)."""
-    try:
-        check_after_training_overrides(overrides)
-        cfg = compose_overrides(overrides, [f"checkpoint={_quote('<the trained checkpoint>')}"])
-        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
-                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
-                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
-    except SchemaError as err:
-        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
-    except (ValueError, FileNotFoundError, UnknownNameError) as err:
-        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
-        raise CicfwError(f"evaluate_overrides: {text}", key="evaluate_overrides", value=overrides) from None
-
-
-def compose_overrides(overrides: Any, first: Sequence[str] = ()) -> DictConfig:
-    """conf/evaluate.yaml with ``first`` then ``overrides`` (a list of override strings); an override
-    Hydra cannot parse is one ``ValueError`` line naming it, a composition error ``compose_config``'s."""
+def _override_keys(overrides: Any) -> list[tuple[str, str]]:
+    """``evaluate_overrides`` as (override, its key or config group) pairs: a list of override strings that
+    Hydra parses, or one ``ValueError`` line saying which is not."""
     if OmegaConf.is_list(overrides):
         overrides = OmegaConf.to_container(overrides, resolve=True)
     if overrides is None:
         overrides = []
     if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
         raise CicfwError(f"must be a list of override strings such as [\"suite.towns=[town_a]\"], got {overrides!r}")
-    parser = OverridesParser.create()
+    parser, out = OverridesParser.create(), []
     for o in overrides:
         try:
-            parser.parse_override(o)
+            out.append((o, parser.parse_override(o).key_or_group))
         except Exception as err:
             raise CicfwError(f"cannot parse {o!r}: {str(err).strip().splitlines()[0]}") from None
-    return compose_config([*first, *overrides])
+    return out
+
+
+def check_evaluation_overrides(overrides: Any) -> None:
+    """``cicfw train evaluate_after=true``: the evaluation's config (conf/evaluate.yaml with
+    ``evaluate_overrides``) composed and checked now, before the first batch, rather than after the
+    training (``plan_evaluation`` with the checkpoint still to be written); an override that would make it
+    drive something else than this run's checkpoint (``checkpoint=``, ``policy=expert``, ``hydra.*``) is
+    refused. One ``ValueError`` line starting ``evaluate_overrides:`` (a ``SchemaError``, its kind and key
+    kept, for what the schema refuses)."""
+    try:
+        pairs = _override_keys(overrides)
+        for o, key in pairs:
+            root = "hydra" if key.split(".")[0].split("/")[0] == "hydra" else key
+            if root in NOT_AFTER_TRAINING and not (root == "policy" and o.split("=", 1)[-1].strip() == "checkpoint"):
+                raise CicfwError(f"{o} cannot be given: {NOT_AFTER_TRAINING[root]}")
+        cfg = compose_config([f"checkpoint={_quote('<the trained checkpoint>')}", *(o for o, _ in pairs)])
+        plan_evaluation(policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
+                        OmegaConf.to_container(cfg.runner, resolve=True), OmegaConf.to_container(cfg.sim, resolve=True),
+                        cfg.seed, False, list(cfg.video or []), cfg.video_max)
+    except SchemaError as err:
+        raise SchemaError(f"evaluate_overrides: {err}", err.key, err.kind) from None
+    except (ValueError, FileNotFoundError) as err:
+        text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
+        raise CicfwError(f"evaluate_overrides: {text}", key="evaluate_overrides", value=overrides) from None
 
 
 #: policy keys that change how fast or where a policy runs, never which episodes it drives
@@ -488,14 +457,7 @@ def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tup
     overrides = [str(o) for o in overrides]
     if not fast_dev_run:
         return overrides, "the suite of conf/evaluate.yaml with evaluate_overrides"
-    parser = OverridesParser.create()
-    keys = set()
-    for o in overrides:
-        try:
-            keys.add(parser.parse_override(o).key_or_group)
-        except Exception:
-            continue  # compose_overrides names it
-    if keys & set(_SUITE_SIZE_KEYS):
+    if {key for _, key in _override_keys(overrides)} & set(_SUITE_SIZE_KEYS):
         return overrides, "the suite as evaluate_overrides size it"
     return [*overrides, FAST_DEV_RUN_SUITE], (f"a short suite after trainer.fast_dev_run ({FAST_DEV_RUN_SUITE}: the "
                                               f"first pair of each town; evaluate_overrides=[suite.limit=null] drives "

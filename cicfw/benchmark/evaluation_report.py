@@ -16,12 +16,11 @@ import os
 import re
 import sys
 import tempfile
+from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
-from cicfw.benchmark.finished_run import (  # noqa: F401  (Run, atomic_write, cell_*, load_run: importable from here too)
-    SET_NAMES, Run, atomic_write, cell_key, cell_name, load_run, table_rows,
-)
+from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart
 from cicfw.core.run_folder import claim_folder
@@ -45,9 +44,6 @@ def summary(run: Run) -> dict[str, Any]:
     its ``success`` count, ``episodes`` and ``rate`` (%)."""
     cells = run.cells()
     rate = run.success_rate()
-    reasons: dict[str, int] = {}
-    for r in run.rows:
-        reasons[r["reason"]] = reasons.get(r["reason"], 0) + 1
     return {
         "model": run.label, "episodes": len(run.rows), "success": None if rate is None else round(rate, 2),
         "cells": {cell_key(*c): {"name": cell_name(*c), "success": ok, "episodes": n,
@@ -56,7 +52,7 @@ def summary(run: Run) -> dict[str, Any]:
         "manoeuvres": {m: {"success": ok, "episodes": n, "rate": round(100.0 * ok / n, 2)}
                        for m, (ok, n) in run.manoeuvres().items()},
         "suite": run.suite_name(),
-        "reasons": dict(sorted(reasons.items())),
+        "reasons": dict(sorted(Counter(r["reason"] for r in run.rows).items())),
         **{k: run.meta[k] for k in ("policy", "checkpoint", "seed", "wall_s", "steps") if k in run.meta},
         "complete": is_complete(run),
         **({"episodes_total": run.meta["episodes_total"]} if "episodes_total" in run.meta else {}),
@@ -320,16 +316,12 @@ def _natural(p: Path) -> list:
 
 def _unique_labels(runs: list[Run]) -> list[Run]:
     """Rows need distinct names: runs sharing a label get their folder name appended."""
-    seen: dict[str, int] = {}
-    for r in runs:
-        seen[r.label] = seen.get(r.label, 0) + 1
+    seen = Counter(r.label for r in runs)
     for r in runs:
         if seen[r.label] > 1 and r.path is not None:
             ck = r.meta.get("checkpoint")
             r.label = f"{r.label} ({Path(ck).stem if ck else r.path.name})"
-    counts: dict[str, int] = {}
-    for r in runs:
-        counts[r.label] = counts.get(r.label, 0) + 1
+    counts = Counter(r.label for r in runs)
     for r in runs:  # the same checkpoint name in different runs (last.ckpt): their folders tell them apart
         if counts[r.label] > 1 and r.path is not None:
             r.label = f"{r.label} {r.path}"
@@ -355,8 +347,9 @@ def writable_folder(path: Path, what: str) -> Path:
     return path
 
 
-def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
-    """Write the joined table (md, tex, csv) and its bar chart into ``out_dir``; return the Markdown."""
+def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False) -> str:
+    """Write the joined table (md, tex, csv) and its bar chart into ``out_dir`` (with ``record``, ``cicfw
+    report``'s record of the runs it joined there too); return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
     try:
@@ -365,6 +358,9 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True) -> str:
         atomic_write(out_dir / "table.csv", table_csv(runs))
         if plots:
             bar_chart(_marked(runs), out_dir / "success_bars.png")
+        if record:
+            atomic_write(out_dir / REPORT_RECORD, json.dumps({"written_by": "cicfw report", "runs": _joined(runs)},
+                                                             indent=1))
     except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
         raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
                          f"with --out") from None
@@ -426,13 +422,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          foreign_ok=args.overwrite)
         check_report_folder(out, runs, args.dirs, what, args.overwrite)
         writable_folder(out, what)
-        md = write_joined(runs, out, plots=not args.no_plots)
-        record = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)}, indent=1)
-        try:
-            atomic_write(out / REPORT_RECORD, record)
-        except OSError as err:
-            raise CicfwError(f"report: cannot write into {out} ({err.strerror or err}); give a writable folder with "
-                             f"--out") from None
+        md = write_joined(runs, out, plots=not args.no_plots, record=True)
     except ValueError as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

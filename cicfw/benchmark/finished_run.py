@@ -9,7 +9,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -39,24 +39,23 @@ class Run:
     meta: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
 
+    def _tally(self, key: Callable[[dict[str, Any]], Any]) -> dict[Any, tuple[int, int]]:
+        """key(row) -> (successes, episodes) of the rows, in order of first appearance."""
+        out: dict[Any, tuple[int, int]] = {}
+        for r in self.rows:
+            ok, n = out.get(key(r), (0, 0))
+            out[key(r)] = (ok + bool(r["success"]), n + 1)
+        return out
+
     def cells(self) -> dict[tuple[str, str], tuple[int, int]]:
         """(town_set, weather_set) -> (successes, episodes), for the cells this run has."""
-        out: dict[tuple[str, str], list[int]] = {}
-        for r in self.rows:
-            c = out.setdefault((r["town_set"], r["weather_set"]), [0, 0])
-            c[0] += bool(r["success"])
-            c[1] += 1
-        return {k: (v[0], v[1]) for k, v in out.items()}
+        return self._tally(lambda r: (r["town_set"], r["weather_set"]))
 
     def manoeuvres(self) -> dict[str, tuple[int, int]]:
         """command (left/right/straight) -> (successes, episodes), in that order, for those present."""
-        out: dict[str, list[int]] = {}
-        for r in self.rows:
-            c = out.setdefault(str(r["command"]), [0, 0])
-            c[0] += bool(r["success"])
-            c[1] += 1
         order = {"left": 0, "right": 1, "straight": 2}
-        return {k: (v[0], v[1]) for k, v in sorted(out.items(), key=lambda kv: (order.get(kv[0], 9), kv[0]))}
+        return dict(sorted(self._tally(lambda r: str(r["command"])).items(),
+                           key=lambda kv: (order.get(kv[0], 9), kv[0])))
 
     def suite_name(self) -> str:
         """The suite the run drove (``junctions``, ``single_turn``), from its metadata."""

@@ -139,7 +139,12 @@ def drive(episodes: Sequence[Episode], policy: Policy, backend: Any, cfg: Runner
         close = getattr(backend, "close", None)
         if close is not None:
             close()
-    return RunResult(rows=[r for p in parts for r in p.rows],
+    return _merged(parts, t0)
+
+
+def _merged(parts: Sequence[RunResult], t0: float) -> RunResult:
+    """One result of several (an episode's, or a worker's), its rows in episode order."""
+    return RunResult(rows=sorted((r for p in parts for r in p.rows), key=lambda r: r["episode"]),
                      trajectories={k: v for p in parts for k, v in p.trajectories.items()},
                      wall_s=time.perf_counter() - t0, steps=sum(p.steps for p in parts))
 
@@ -397,12 +402,7 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
             if p.is_alive():
                 p.terminate()
             p.join(timeout=5)
-    rows = sorted((r for res in results.values() for r in res.rows), key=lambda r: r["episode"])
-    trajs: dict[str, dict] = {}
-    for res in results.values():
-        trajs.update(res.trajectories)
-    return RunResult(rows=rows, trajectories=trajs, wall_s=time.perf_counter() - t0,
-                     steps=sum(res.steps for res in results.values()))
+    return _merged([results[k] for k in sorted(results)], t0)
 
 
 def shard(episodes: Sequence[Episode], workers: int) -> list[list[Episode]]:

@@ -46,12 +46,7 @@ def select_episodes(rows: Sequence[Mapping[str, Any]], wanted: Sequence[Any], li
             some = ", ".join(list(by_key)[:3])
             raise CicfwError(f"video: unknown episode {w!r}; give episode indices, keys such as {some}, "
                              f"or 'failures'", value=w)
-    seen, uniq = set(), []
-    for r in out:
-        if r["key"] not in seen:
-            seen.add(r["key"])
-            uniq.append(r)
-    return uniq[: max(int(limit), 0)]
+    return list({r["key"]: r for r in out}.values())[: max(int(limit), 0)]  # each once, first-named first
 
 
 def _overlay(img: np.ndarray, step: int, tr: Mapping[str, np.ndarray], title: str) -> np.ndarray:

@@ -33,7 +33,6 @@ import json
 import logging
 import os
 import platform
-import re
 import subprocess
 import sys
 import time
@@ -61,13 +60,12 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
-from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
-from cicfw.reproduction.catalogue import PAPER_VALUES, row_overrides, speed_node_spelling
+from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
-from cicfw.reproduction.claims import check_margin, load_claims
+from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
-from cicfw.reproduction.published import continue_published, publish, published_manifest
-from cicfw.reproduction.report import write_report as write
+from cicfw.reproduction.published import PUBLISHED_FILES, continue_published, published_manifest
+from cicfw.reproduction.report import write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
 from cicfw.train.app import build_model, ensure_data, make_datamodule, train, trainer_kwargs
@@ -92,19 +90,13 @@ def known_budgets() -> list[str]:
 
 
 def _hydra_line(err: BaseException) -> str:
-    """A Hydra composition error as one line (its options list folded in)."""
+    """A Hydra composition error as one line: an unknown option of a config group as ``unknown <group>
+    '<option>'; known <group>s: ...`` (Hydra's own list of the group's options)."""
+    group, _, option = str(getattr(err, "missing_cfg_file", None) or "").rpartition("/")
+    if group and getattr(err, "options", None) is not None:
+        return f"unknown {group} {option!r}; known {group}s: {', '.join(err.options)}"
     lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-    if not lines:
-        return type(err).__name__
-    if any(ln.startswith("Available options in") for ln in lines):
-        start = next(i for i, ln in enumerate(lines) if ln.startswith("Available options in")) + 1
-        opts = []
-        for ln in lines[start:]:
-            if ln.startswith("Config search path"):
-                break
-            opts.append(ln)
-        return f"{lines[0]}; available: {', '.join(opts)}"
-    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://"))
+    return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://")) or type(err).__name__
 
 
 def _parse(overrides: Sequence[str]) -> None:
@@ -126,9 +118,6 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
     wrong type is one error naming it."""
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
     _parse(plain)
-    for o in plain:
-        if o.split("=", 1)[0].lstrip("+~") == "budget" and "=" in o and o.split("=", 1)[1] not in known_budgets():
-            raise ReproduceError(f"unknown budget {o.split('=', 1)[1]!r}; known budgets: {', '.join(known_budgets())}")
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             cfg = compose("reproduce", overrides=plain)
@@ -140,7 +129,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
 
 def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     """The rows and seeds to run, or one error naming what is wrong and what is accepted: the values the
-    schema cannot say (a row not in the catalogue, a curve epoch < 1, an unknown claim column, the margin)."""
+    schema cannot say (a row not in the catalogue, an unknown claim column)."""
     catalogue = cfg.catalogue
     rows = [str(r) for r in cfg.rows]
     if not rows:
@@ -148,31 +137,11 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     for r in rows:
         if r not in catalogue:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
-        paper = catalogue[r].get("paper")
-        if paper is not None and len(paper) != PAPER_VALUES:
-            raise ReproduceError(f"catalogue.{r}.paper must be the paper's {PAPER_VALUES} Table-4 values (training "
-                                 f"town: training / new weathers, new town: training / new weathers) or null")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
     seeds = seed_list(cfg.seeds)
-    check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
-    try:  # the report needs it after every cell: check it first
-        check_margin(cfg.equivalence_margin)
-    except ValueError as err:
-        raise ReproduceError(str(err)) from None
     return rows, seeds
-
-
-def check_curve(budget: DictConfig) -> None:
-    """``budget.curve_seeds`` >= 0 and ``budget.curve_epochs`` >= 1 (whole numbers: the schema): read only
-    after a cell has trained, so a bad one is refused here instead of failing every curve cell."""
-    for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
-                             ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
-        got = list(budget.get(key) or [])
-        if any(x < least for x in got):
-            raise ReproduceError(f"budget.{key} must be a list of whole numbers >= {least} ({what}, e.g. [1]) or "
-                                 f"null, got {got!r}")
 
 
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
@@ -189,28 +158,16 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 tcfg = compose_train(cfg, r, 0)
             except MissingConfigException as err:
                 line = _hydra_line(err)
-
-                m = re.search(r"Could not find '([\w-]+)/([^']+)'", line)
-                if m and m.group(1) == "experiment":
-                    raise ReproduceError(f"row {r!r}: unknown experiment {m.group(2)!r}; known experiments: "
-                                         f"{line.split('available: ', 1)[-1]}") from None
-                if m:
-                    raise ReproduceError(f"{what}: unknown {m.group(1)} {m.group(2)!r}; known {m.group(1)}s: "
-                                         f"{line.split('available: ', 1)[-1]}") from None
-                raise ReproduceError(f"{what}: {line}") from None
+                where = f"row {r!r}" if line.startswith("unknown experiment") else what  # its overrides: no matter
+                raise ReproduceError(f"{where}: {line}") from None
             except HydraException as err:
                 schema = config_error(err)  # a wrong type or unknown key the train schema refused
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
-            for group, registry in (("encoder", ENCODERS), ("mixer", MIXERS), ("head", HEADS)):
-                try:
-                    registry.get(str(tcfg[group].get("name")))
-                except UnknownNameError as err:
-                    raise ReproduceError(f"{what}: {err}") from None
             try:
                 check_training(tcfg)
-            except (ValueError, TypeError, UnknownNameError) as err:
+            except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
             data.append(str(Path(str(tcfg.data.path)).expanduser()))
     return data
@@ -236,9 +193,6 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
     check_folder(Path(cfg.results_dir))
     if cfg.get("publish_dir"):
         pub = Path(cfg.publish_dir)
-        if pub.exists() and not pub.is_dir():
-            raise ReproduceError(f"publish_dir {str(pub)!r} is a file, not a folder; give publish_dir=<a folder> "
-                                 f"(created if missing)")
         claim_folder(pub, "reproduce", "publish_dir", data=data)
         check_folder(pub, "publish_dir")
         check_publish_dir(cfg)
@@ -261,11 +215,6 @@ def check_not_results_dir(cfg: DictConfig) -> None:
         if value and Path(str(value)).expanduser().resolve() == results:
             raise ReproduceError(f"{key}={str(value)!r} is the results folder itself (results_dir="
                                  f"{str(cfg.results_dir)!r}, {results}): {fix}", key=key, value=str(value))
-
-
-#: what ``publish`` writes into ``publish_dir`` (besides cells/<row>/seed<k>/cell.json)
-PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
-                   MANIFEST)
 
 
 def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
@@ -450,6 +399,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     path = results_dir / MANIFEST
     old = read_json(path, default=None)
     src = Path(cfg.continue_from) if cfg.get("continue_from") else None
+    only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
     published = published_manifest(src) if src is not None else None
     folders = []  # (where, what to do instead, its pinned fingerprint)
     if old is not None:
@@ -469,7 +419,6 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     ensure_data(tcfg.data)  # every row of the budget trains on this one dataset
     finished = set(finished_cells(results_dir)) if results_dir.is_dir() else set()
     if src is not None:
-        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
         finished |= {k for k, d in finished_cells(src).items() if only is None or only in str(d.get("machine") or "")}
     check_splits(cfg, rows, seed_list(cfg.seeds), finished)  # a seed whose split cannot train: before any cell
     dataset = dataset_info(data_path)
@@ -492,7 +441,6 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         "machine": machine(), "code": code(), "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     changed = old is None
     if src is not None:
-        only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
         got = continue_published(src, results_dir, machine=only)
         log.info("continue_from=%s: %d finished cell(s) copied, %d already here%s", src, len(got["copied"]),
                  len(got["kept"]), f", {len(got['other_machine'])} left out (machine without {only!r})"
@@ -777,14 +725,9 @@ def report_so_far(cfg: DictConfig) -> None:
         log.error("the report after this cell was not written: %s", _error_line(err))
 
 
-def write_report(cfg: DictConfig) -> dict[str, Any] | None:
-    results_dir = Path(cfg.results_dir)
-    catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
-    data = write(results_dir, catalogue, claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
-                 margin=cfg.get("equivalence_margin"), relation_candidates=list(cfg.relation_candidates))
-    if cfg.get("publish_dir"):
-        publish(results_dir, Path(cfg.publish_dir))
-    return data
+def write_report(cfg: DictConfig) -> dict[str, Any]:
+    """The report of this run's results folder, published into ``publish_dir`` when given."""
+    return write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
 
 
 def _error_line(err: BaseException) -> str:
@@ -812,17 +755,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_outputs(cfg, data=check_rows(cfg, rows))
         lock = ResultsLock(Path(cfg.results_dir)).acquire()
         manifest = prepare(cfg, rows)
-    except USER_ERRORS as err:
+    except BaseException as err:
         if lock is not None:
             lock.release()
+        if not isinstance(err, USER_ERRORS):
+            raise
         if debugging():
             traceback.print_exc()
         print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
         return 2
-    except BaseException:
-        if lock is not None:
-            lock.release()
-        raise
     log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
              manifest["budget"], manifest["episodes"], cfg.results_dir)
     # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still

@@ -3,9 +3,10 @@ table's columns and selectors (a column, a town, a weather, overall) that result
 from __future__ import annotations
 
 import re
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -78,12 +79,14 @@ def cpu_kind(machine: str | None) -> str:
     return " ".join(name.split()) or "unknown CPU"
 
 
+def most_first(values: Iterable[str]) -> dict[str, int]:
+    """Each value -> how often it occurs, most first (ties by name)."""
+    return dict(sorted(Counter(values).items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
     """CPU kind -> number of ``cells`` that ran on it, most cells first (ties by name)."""
-    counts: dict[str, int] = {}
-    for c in cells:
-        counts[c.cpu] = counts.get(c.cpu, 0) + 1
-    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+    return most_first(c.cpu for c in cells)
 
 
 def load_cell(path: Path) -> CellResult | dict[str, Any]:

@@ -13,7 +13,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 import numpy as np
 import yaml
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
@@ -192,8 +192,9 @@ def check_margin(value: Any) -> float:
     """``equivalence_margin`` as a number of points, or one error line saying what it takes."""
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
     if not ok:
-        raise CicfwError(f"equivalence_margin={value!r}: give a positive number of points of success (e.g. 5), the "
-                         f"margin a 'not better than' claim is tested against")
+        raise ConfigError("equivalence_margin", value, "a positive number of points", message=(
+            f"equivalence_margin={value!r}: give a positive number of points of success (e.g. 5), the margin a "
+            f"'not better than' claim is tested against"))
     return float(value)
 
 

@@ -24,18 +24,10 @@ class ResultsLock(locks.FolderLock):
     check_pid = True
     log = logging.getLogger("cicfw.reproduce")
 
-    @property
-    def dir(self):
-        return self.folder
-
-    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
-        return self._in_use(holder, certain)
-
-    def _in_use(self, holder: Mapping[str, Any], certain: bool) -> FolderInUse:
-        """The refusal's words (a run folder's lock that reuses this one words its own)."""
+    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> FolderInUse:
         who = (f"pid {holder.get('pid', '?')} on host {holder.get('host', '?')}, started "
                f"{holder.get('started', '?')}")
         tail = ("" if certain else f"; if it is no longer running, delete {str(self.path)!r}")
-        return FolderInUse(f"results folder {str(self.dir)!r} is in use by another reproduce run ({who}): one run "
-                           f"per folder; wait for it to finish, or give another results_dir=<path>{tail}",
-                           key="results_dir", value=self.dir)
+        return FolderInUse(f"results folder {str(self.folder)!r} is in use by another reproduce run ({who}): one "
+                           f"run per folder; wait for it to finish, or give another results_dir=<path>{tail}",
+                           key="results_dir", value=self.folder)

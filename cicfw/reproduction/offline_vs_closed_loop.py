@@ -23,14 +23,14 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from scipy.stats import spearmanr, t as student_t
+from scipy.stats import spearmanr
 
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
 from cicfw.reproduction.report import pinned_weather_family
-from cicfw.reproduction.seed_stats import word
+from cicfw.reproduction.seed_stats import t_interval, word
 from cicfw.sim.render.weather import LEGACY_FAMILY
 
 Z95 = 1.959963984540054  # the standard normal's 97.5% point
@@ -126,13 +126,6 @@ def selection_gain(points: Sequence[Point], target: str = "overall") -> float:
     return best.success[target] - float(np.mean([p.success[target] for p in points]))
 
 
-def t_interval(values: Sequence[float]) -> tuple[float, float]:
-    """The 95% t-interval of the mean of ``values`` (each an independent row)."""
-    v = np.asarray(values, float)
-    half = float(student_t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
-    return float(v.mean()) - half, float(v.mean()) + half
-
-
 # ------------------------------------------------------------------------------------------------
 # the data
 
@@ -196,7 +189,7 @@ def analyse(points: Sequence[Point], min_group: int = 3) -> dict[str, Any]:
             "by_budget": {b: vars(correlate([p for p in pts if p.budget == b], "overall"))
                           for b in sorted({p.budget for p in pts})},
             "selection_gain": {"mean": float(np.mean(gains)) if gains else None, "groups": len(gains),
-                               "interval": t_interval(gains) if len(gains) > 1 else None,
+                               "interval": tuple(map(float, t_interval(gains)[1:])) if len(gains) > 1 else None,
                                "best_picked": sum(_picks_best(v) for v in groups.values()),
                                "best_by_chance": sum(1.0 / len(v) for v in groups.values())},
             "table4": _table4(pts, min_group)}

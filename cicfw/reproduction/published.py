@@ -10,14 +10,15 @@ from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.reproduction.cells import cell_files, finished_cells
 
+#: what ``publish`` copies into a published folder besides cells/<row>/seed<k>/cell.json
+PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
+                   "reproduce.json")
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:
     """Copy a reproduction's small results into ``dest`` (for committing): RESULTS.md, results.json/.csv,
     the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs)."""
     results_dir, dest = Path(results_dir), Path(dest)
-    names = ["RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
-             "reproduce.json"]
-    files = [results_dir / n for n in names if (results_dir / n).is_file()]
+    files = [results_dir / n for n in PUBLISHED_FILES if (results_dir / n).is_file()]
     files += cell_files(results_dir)
     out = []
     if dest.exists() and not dest.is_dir():

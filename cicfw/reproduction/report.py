@@ -117,7 +117,7 @@ from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells
+from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells, most_first
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import publish
@@ -191,11 +191,7 @@ def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
 
 def machine_counts(cells: Sequence[CellResult]) -> dict[str, int]:
     """Each machine the cells ran on (``cell.json``'s ``machine``) -> its number of cells, most first."""
-    counts: dict[str, int] = {}
-    for c in cells:
-        m = str(c.meta.get("machine") or "an unrecorded machine")
-        counts[m] = counts.get(m, 0) + 1
-    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+    return most_first(str(c.meta.get("machine") or "an unrecorded machine") for c in cells)
 
 
 def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]],
@@ -871,6 +867,17 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     return data
 
 
+def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None = None) -> dict[str, Any]:
+    """``write_report`` with a composed reproduce config's catalogue, claims, margin and fine tuning's
+    candidates; then ``publish`` into ``publish_dir`` when given."""
+    data = write_report(Path(results_dir), OmegaConf.to_container(cfg.catalogue, resolve=True),
+                        claims=load_claims(OmegaConf.to_container(cfg.claims, resolve=True)),
+                        margin=cfg.get("equivalence_margin"), relation_candidates=list(cfg.relation_candidates))
+    if publish_dir:
+        publish(Path(results_dir), Path(publish_dir))
+    return data
+
+
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
     """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
@@ -891,15 +898,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             claim_folder(Path(a.publish), "reproduce", "--publish")
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            cfg = compose("reproduce")
-            catalogue = OmegaConf.to_container(cfg.catalogue, resolve=True)
-            claims = load_claims(OmegaConf.to_container(cfg.claims, resolve=True))
-            margin = cfg.get("equivalence_margin")
-            candidates = list(cfg.relation_candidates)
-        data = write_report(Path(a.results_dir), catalogue, claims=claims, margin=margin,
-                            relation_candidates=candidates)
-        if a.publish:
-            publish(Path(a.results_dir), Path(a.publish))
+            data = write_configured(Path(a.results_dir), compose("reproduce"), a.publish)
         if a.markdown:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:

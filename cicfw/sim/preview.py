@@ -138,7 +138,6 @@ def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon")
     lvl = int(np.clip(round(math.log2(1 / (base.res * px_per_m))), 0, len(r.ground.pyramid) - 1))
     img = np.ascontiguousarray(r.ground.pyramid[lvl][..., :3])
     f = 1 / (base.res * 2 ** lvl)  # px per metre
-    img = np.ascontiguousarray(img)
 
     def px(p):
         p = np.asarray(p, float).reshape(-1, 2)

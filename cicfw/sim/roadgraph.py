@@ -318,14 +318,10 @@ class RoadGraph:
         return self.build_route(lanes, s0, s_goal, name=name)
 
 
-@functools.lru_cache(maxsize=8)
-def _graph_cached(town_id: int, town: Town, command_distance: float) -> RoadGraph:
-    return RoadGraph(town, command_distance)
-
-
+@functools.lru_cache(maxsize=8)  # a Town hashes by identity (eq=False)
 def road_graph(town: Town, command_distance: float = COMMAND_DISTANCE) -> RoadGraph:
     """The (cached) RoadGraph of a town."""
-    return _graph_cached(id(town), town, command_distance)
+    return RoadGraph(town, command_distance)
 
 
 def single_turn_routes(town: Town, before: float = 30.0, after: float = 25.0,

@@ -72,11 +72,7 @@ class TownMap:
         return False, opp, off, d
 
 
-@functools.lru_cache(maxsize=8)
-def _cached(town_id: int, town: Town) -> TownMap:
-    return TownMap(town)
-
-
+@functools.lru_cache(maxsize=8)  # a Town hashes by identity (eq=False)
 def town_map(town: Town) -> TownMap:
     """The (cached) TownMap of a town."""
-    return _cached(id(town), town)
+    return TownMap(town)

@@ -20,8 +20,9 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from cicfw.core.config_checks import SchemaError, check_composed, checked, is_integer, kwargs_schema, plain_values
-from cicfw.reproduction.catalogue import Row
-from cicfw.reproduction.claims import claim_entry, claim_part
+from cicfw.core.errors import ConfigError
+from cicfw.reproduction.catalogue import PAPER_VALUES, Row
+from cicfw.reproduction.claims import check_margin, claim_entry, claim_part
 from cicfw.sim.render.weather import WEATHER_FAMILIES
 
 ROW = kwargs_schema(Row, "a catalogue row", is_not="a key of a catalogue row")
@@ -98,11 +99,15 @@ def _checked_item(schema: type, value: Any, where: str) -> dict:
 
 def check(cfg: DictConfig) -> None:
     """What composing let through in a reproduce config (``check_composed``): a key added with ``+`` anywhere,
-    ``seeds``, ``weather_family``, every catalogue row and claim. One ``SchemaError`` naming the full key."""
+    ``seeds``, ``weather_family``, every catalogue row and claim, the curve's lists, the margin. One error
+    naming the full key."""
     check_composed(cfg, ReproduceConfig)
     values = plain_values(cfg)
     for name, row in values["catalogue"].items():
-        _checked_item(ROW, row, f"catalogue.{name}")
+        paper = _checked_item(ROW, row, f"catalogue.{name}").get("paper")
+        if paper is not None and len(paper) != PAPER_VALUES:
+            raise ConfigError(f"catalogue.{name}.paper", paper, f"the paper's {PAPER_VALUES} Table-4 values "
+                              f"(training town: training / new weathers, new town: training / new weathers) or null")
     for i, claim in enumerate(values["claims"]):
         for j, part in enumerate(_checked_item(CLAIM, claim, f"claims[{i}]")["parts"]):
             _checked_item(PART, part, f"claims[{i}].parts[{j}]")
@@ -111,6 +116,13 @@ def check(cfg: DictConfig) -> None:
         raise SchemaError(f"relation_candidates names {', '.join(map(repr, unknown))}, not a catalogue row; give rows of "
                           f"catalogue: ({', '.join(values['catalogue'])})", "relation_candidates", "wrong type")
     seed_list(values.get("seeds"))
+    # read only after a cell has trained: a bad one is refused here instead of failing every curve cell
+    for key, least, what in (("curve_seeds", 0, "seeds whose cells also drive earlier epochs"),
+                             ("curve_epochs", 1, "epochs after which those cells' checkpoints are driven")):
+        got = values["budget"].get(key) or []
+        if any(x < least for x in got):
+            raise ConfigError(f"budget.{key}", got, f"a list of whole numbers >= {least} ({what}, e.g. [1]) or null")
+    check_margin(values["equivalence_margin"])  # the report needs it after every cell: checked first
     family = values.get("weather_family")
     if family is not None and family not in WEATHER_FAMILIES:
         raise SchemaError(f"weather_family must be one of {', '.join(WEATHER_FAMILIES)} or null (the simulator's "
