@@ -140,41 +140,31 @@ def test_resuming_with_another_split_is_refused(trained, tmp_path, override, key
     assert not (tmp_path / "run").exists()  # refused before anything was written
 
 
-def test_an_older_checkpoint_s_split_is_read_from_its_run_config(trained, tmp_path):
-    """A checkpoint written before checkpoints recorded their split: its run's .hydra/config.yaml says it."""
+@pytest.mark.parametrize("recorded, override, key, value", [
+    (None, "seed=4", "data.seed", 4),  # written before checkpoints recorded their split
+    ({"seed": 3, "val_fraction": 0.3}, "data.max_abs_steer=0.7", "data.max_abs_steer", 0.7),  # the split only
+])
+def test_an_older_checkpoint_s_data_settings_are_read_from_its_run_config(trained, tmp_path, recorded, override,
+                                                                           key, value):
+    """A checkpoint that recorded no split, or data.seed and data.val_fraction only: the settings it does not
+    record are read from its run's .hydra/config.yaml and compared as the recorded ones are."""
     from cicfw.train.app import train
 
     run = tmp_path / "older"
     shutil.copytree(trained["run"], run)
     last = run / "checkpoints" / "last.ckpt"
     ckpt = torch.load(last, map_location="cpu", weights_only=True)
-    del ckpt["cicfw_split"]
+    if recorded is None:
+        del ckpt["cicfw_split"]
+    else:
+        ckpt["cicfw_split"] = recorded
     torch.save(ckpt, last)
     cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={last}", "trainer.max_epochs=2",
-                        "seed=4")
+                        override)
     with pytest.raises(Exception) as err:
         train(cfg, tmp_path / "run", refuse_finished=True)
     _refusal(err)
-    assert (err.value.key, err.value.value) == ("data.seed", 4)
-
-
-def test_a_checkpoint_recording_the_split_only_is_compared_with_its_run_config(trained, tmp_path):
-    """A checkpoint that recorded data.seed and data.val_fraction only: the other settings its run trained
-    with are read from its run's .hydra/config.yaml."""
-    from cicfw.train.app import train
-
-    run = tmp_path / "older"
-    shutil.copytree(trained["run"], run)
-    last = run / "checkpoints" / "last.ckpt"
-    ckpt = torch.load(last, map_location="cpu", weights_only=True)
-    ckpt["cicfw_split"] = {"seed": 3, "val_fraction": 0.3}
-    torch.save(ckpt, last)
-    cfg = compose_train(*SHORT, f"data.path={trained['data']}", f"ckpt_path={last}", "trainer.max_epochs=2",
-                        "data.max_abs_steer=0.7")
-    with pytest.raises(Exception) as err:
-        train(cfg, tmp_path / "run", refuse_finished=True)
-    _refusal(err)
-    assert (err.value.key, err.value.value) == ("data.max_abs_steer", 0.7)
+    assert (err.value.key, err.value.value) == (key, value)
 
 
 def _diagnose(checkpoint: Path, out: Path, *overrides: str) -> dict:
