@@ -46,6 +46,7 @@ from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted,
 from cicfw.core.override_hints import composition_error_line
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
+from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
 from cicfw.sim.town import load_town
@@ -326,11 +327,7 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
     info: dict[str, Any] = {}
     if pol.get("checkpoint"):
         path = resolve_checkpoint(pol.pop("checkpoint"))
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        pol["checkpoint_sha256"] = h.hexdigest()
+        pol["checkpoint_sha256"] = file_sha256(path)
         info["checkpoint"] = str(path)
     episode_list = [[e.key, e.route, e.command, e.town_set, e.weather_set] for e in episodes]
     fp = {
