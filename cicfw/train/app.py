@@ -47,6 +47,7 @@ from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_recor
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 from cicfw.train.resumed_encoding import check_resumed_encoding
+from cicfw.train.resume_names import with_checkpoint_file
 from cicfw.train.schedule_record import SCHEDULE_KEY, check_resumed_horizon, horizon_settings
 from cicfw.train.split_record import SPLIT_KEY, check_resumed_split, split_settings
 
@@ -519,6 +520,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     run_dir = Path(run_dir)
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
     L.seed_everything(checked_seed(cfg.seed), workers=True)
+    cfg = with_checkpoint_file(cfg, run_dir)  # ckpt_path=last: the file, checked as any other
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     model, ckpt_path, datamodule = checked_setup(cfg, refuse_finished)
     speed = checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd)
