@@ -62,7 +62,7 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.registry import ENCODERS, HEADS, MIXERS, UnknownNameError
-from cicfw.reproduction.catalogue import PAPER_VALUES, row_overrides, speed_node_spelling
+from cicfw.reproduction.catalogue import PAPER_VALUES, budget_settings_in_row, row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import check_margin, load_claims
 from cicfw.reproduction.lock import ResultsLock
@@ -154,6 +154,14 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
                                  f"town: training / new weathers, new town: training / new weathers) or null")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
+    for r in rows:
+        clash = budget_settings_in_row(cfg, r)
+        if clash:
+            ours, theirs = clash[0]
+            raise ReproduceError(f"catalogue.{r}.overrides sets {ours}, which the cell sets after it ({theirs}, "
+                                 f"budget={cfg.budget.name}), so it would be ignored: every row of a budget trains "
+                                 f"with the budget's settings and seeds; give the row other keys, or a budget of its "
+                                 f"own", key=f"catalogue.{r}.overrides", value=ours)
     seeds = seed_list(cfg.seeds)
     check_curve(cfg.budget)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
