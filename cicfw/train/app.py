@@ -491,9 +491,14 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
 
 
 def check_evaluation(cfg: DictConfig) -> None:
-    """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training."""
+    """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training.
+    Without it, ``return_closed_loop=true`` would return the validation metric to a sweeper told it gets
+    the success rate: refused."""
     if cfg.get("evaluate_after"):
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
+    elif cfg.get("return_closed_loop"):
+        raise ConfigError("return_closed_loop", True, "false without evaluate_after=true (the closed-loop success "
+                          "rate it returns is measured by the evaluation after training)")
 
 
 def check_config(cfg: DictConfig) -> None:
