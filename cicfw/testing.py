@@ -114,9 +114,17 @@ def make_targets(n: int, rng: np.random.Generator, commands=(2, 3, 4, 5)) -> np.
     return t
 
 
-def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, commands=(2, 3, 4, 5)) -> Path:
-    """``n_files`` CIL HDF5 files of ``n`` random samples, every given command and camera present."""
+def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, commands=(2, 3, 4, 5),
+                       overwrite: bool = False) -> Path:
+    """``n_files`` CIL HDF5 files of ``n`` random samples, every given command and camera present. A file of
+    that name already there is refused unless ``overwrite``: ``data_00000.h5`` ... is how CoRL-2017's own files
+    are named, so a folder of real data given by mistake would get random pixels in place of its images."""
     folder = Path(folder)
+    there = [folder / f"data_{i:05d}.h5" for i in range(n_files) if (folder / f"data_{i:05d}.h5").exists()]
+    if there and not overwrite:
+        raise CicfwError(f"write_tiny_dataset: {str(there[0])!r} already exists ({len(there)} of the {n_files} files "
+                         f"it would write); give a fresh folder (pytest's tmp_path), or overwrite=True to replace "
+                         f"them", key="folder", value=str(folder))
     rng = np.random.default_rng(seed)
     for i in range(n_files):
         t = make_targets(n, rng, commands)
