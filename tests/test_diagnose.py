@@ -401,3 +401,14 @@ def test_the_cli_refuses_a_bad_thread_count_in_one_line(tmp_path: Path):
                              f"hydra.run.dir={tmp_path / 'out'}", cwd=REPO)
     assert len([x for x in res.stderr.splitlines() if x.strip()]) == 1, res.stderr
     assert_refused(res, "threads", -2)
+
+
+def test_a_failed_job_of_a_diagnose_sweep_is_one_line(tmp_path: Path):
+    """``-m checkpoint=a.ckpt,b.ckpt`` with a missing one: the job's error in one line, as evaluate's, not
+    Hydra's traceback."""
+    missing = tmp_path / "nope.ckpt"
+    res = run_app_in_process("cicfw.diagnose", "-m", f"checkpoint={missing}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+                             "plot=false", cwd=REPO)
+    assert res.returncode != 0 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    line = next(x for x in res.stderr.splitlines() if x.startswith("cicfw: error: job 0"))
+    assert str(missing) in line
