@@ -227,8 +227,14 @@ class EpochCheckpoints(Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         epoch = trainer.current_epoch + 1
-        if epoch in self.epochs:
-            trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
+        if epoch not in self.epochs:
+            return
+        done, planned = trainer.fit_loop.epoch_loop.batch_progress.current.completed, trainer.num_training_batches
+        if math.isfinite(planned) and done < planned:  # stopped inside it (trainer.max_steps, max_time)
+            log.info("epoch %d stopped after %d of its %s batches: no epoch%03d.ckpt (keep_epoch_checkpoints keeps "
+                     "the weights after whole epochs)", epoch, done, planned, epoch)
+            return
+        trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
 
 
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
