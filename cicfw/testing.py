@@ -22,7 +22,8 @@ from hydra.errors import HydraException
 from cicfw import N_COMMANDS
 from cicfw.core.errors import CicfwError
 from cicfw.core.override_hints import composition_error
-from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
+from cicfw.core.files import atomic_write
+from cicfw.data.cil_hdf5 import N_TARGETS, T, file_bytes
 from cicfw.model.heads import Head
 from cicfw.model.mixers import Mixer
 from cicfw.registry import HEADS, MIXERS
@@ -114,14 +115,34 @@ def make_targets(n: int, rng: np.random.Generator, commands=(2, 3, 4, 5)) -> np.
     return t
 
 
-def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, commands=(2, 3, 4, 5)) -> Path:
-    """``n_files`` CIL HDF5 files of ``n`` random samples, every given command and camera present."""
+def write_tiny_dataset(folder: Path, n_files: int = 6, n: int = 24, seed: int = 0, commands=(2, 3, 4, 5),
+                       overwrite: bool = False) -> Path:
+    """``n_files`` CIL HDF5 files of ``n`` random samples, every given command and camera present. A file of
+    that name already there with other contents is refused unless ``overwrite`` (the same files written again
+    are not: a helper may call this twice): ``data_00000.h5`` ... is how CoRL-2017's own files are named, so a
+    folder of real data given by mistake would get random pixels in place of its images."""
     folder = Path(folder)
     rng = np.random.default_rng(seed)
+    files = {}
     for i in range(n_files):
         t = make_targets(n, rng, commands)
-        write_file(folder / f"data_{i:05d}.h5", rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8), t)
+        files[folder / f"data_{i:05d}.h5"] = file_bytes(rng.integers(0, 255, (n, 88, 200, 3), dtype=np.uint8), t)
+    other = [p for p, data in files.items() if p.exists() and not _holds(p, data)]
+    if other and not overwrite:
+        raise CicfwError(f"write_tiny_dataset: {str(other[0])!r} already exists with other contents ({len(other)} of "
+                         f"the {n_files} files it would write); give a fresh folder (pytest's tmp_path), or "
+                         f"overwrite=True to replace them", key="folder", value=str(folder))
+    for path, data in files.items():
+        atomic_write(path, data)
     return folder
+
+
+def _holds(path: Path, data: bytes) -> bool:
+    """Whether the file at ``path`` is exactly ``data`` (its size first: a large file is not read)."""
+    try:
+        return path.stat().st_size == len(data) and path.read_bytes() == data
+    except OSError:
+        return False
 
 
 def fast_dev_run(tmp_path: Path, *overrides: str) -> float:

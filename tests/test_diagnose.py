@@ -290,7 +290,21 @@ def test_the_app_end_to_end(tmp_path: Path, episodes: Path):
     frames = np.load(out / "steer_frames.npz")
     assert sorted(set(frames["episode"].tolist())) == sorted(set(val.group.tolist()))
     assert all((out / f).stat().st_size > 0 for f in ("steer_diagnostic.md", "steer_diagnostic.csv", "steer_scatter.png"))
-    assert "| junction | left | inside |" in (out / "steer_diagnostic.md").read_text()
+    md = (out / "steer_diagnostic.md").read_text()
+    assert "| junction | left | inside |" in md
+    measured = md.splitlines()[2]  # under the title: which frames of which checkpoint
+    assert "val split" in measured and "80 frames" in measured and str(ckpt) in measured, measured
+
+
+@pytest.mark.parametrize("split, said", [("train", "train split"), ("val", "val split"), ("all", "every frame")])
+def test_the_markdown_report_says_which_frames_it_measured(split, said):
+    from cicfw.diagnose.steer_diagnostic import measured_line
+
+    meta = {"checkpoint": "run/checkpoints/last.ckpt", "epoch": 2, "global_step": 6,
+            "data": {"split": split, "path": "/data/x", "frames": 32, "episodes": 4}}
+    line = measured_line(meta)
+    assert said in line and "/data/x" in line and "32 frames" in line and "last.ckpt" in line
+    assert measured_line({"model": "m"}) is None
 
 
 def test_the_cli_lists_diagnose_and_a_missing_checkpoint_is_one_line(tmp_path: Path):
@@ -421,3 +435,14 @@ def test_a_refused_run_in_an_earlier_diagnose_folder_leaves_it_as_it_was(tmp_pat
                              cwd=REPO)
     assert_refused(res, "checkpoint", tmp_path / "nope.ckpt")
     assert {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_a_failed_job_of_a_diagnose_sweep_is_one_line(tmp_path: Path):
+    """``-m checkpoint=a.ckpt,b.ckpt`` with a missing one: the job's error in one line, as evaluate's, not
+    Hydra's traceback."""
+    missing = tmp_path / "nope.ckpt"
+    res = run_app_in_process("cicfw.diagnose", "-m", f"checkpoint={missing}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+                             "plot=false", cwd=REPO)
+    assert res.returncode != 0 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    line = next(x for x in res.stderr.splitlines() if x.startswith("cicfw: error: job 0"))
+    assert str(missing) in line

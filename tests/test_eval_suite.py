@@ -192,3 +192,18 @@ def test_auto_workers(backend):
     with pytest.raises(ValueError) as err:
         RunnerConfig(workers="many")
     assert (err.value.key, err.value.value) == ("runner.workers", "many")
+
+
+def test_filming_the_failures_of_a_run_without_one_says_so(tmp_path, capsys):
+    import json
+
+    from cicfw.benchmark.finished_run import save_trajectories
+    from cicfw.benchmark.video import main
+
+    rows = [{"model": "expert", "episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+             "success": True}]
+    (tmp_path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {}}))
+    save_trajectories(tmp_path / "trajectories.npz", rows, {})
+    assert main([str(tmp_path)]) == 0
+    assert "failures" in capsys.readouterr().err  # what selected nothing, not silence
+    assert not (tmp_path / "videos").exists()

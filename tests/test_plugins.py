@@ -146,3 +146,21 @@ def test_contract_checks_pass_for_every_registered_part():
 
     for name in HEADS.names():
         check_head(name)
+
+
+def test_write_tiny_dataset_never_writes_over_a_file(tmp_path):
+    """CoRL-2017's files are named as the tiny ones (data_00000.h5 ...): a real folder given by mistake keeps
+    its images."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.testing import write_tiny_dataset
+
+    real = tmp_path / "SeqVal"
+    real.mkdir()
+    (real / "data_00001.h5").write_bytes(b"a recorded episode")
+    with pytest.raises(CicfwError) as err:
+        write_tiny_dataset(real, n_files=2, n=4)
+    assert (err.value.key, err.value.value) == ("folder", str(real))
+    assert sorted(p.name for p in real.iterdir()) == ["data_00001.h5"]  # nothing written, before or after
+    assert (real / "data_00001.h5").read_bytes() == b"a recorded episode"
+    write_tiny_dataset(real, n_files=2, n=4, overwrite=True)
+    assert sorted(p.name for p in real.iterdir()) == ["data_00000.h5", "data_00001.h5"]

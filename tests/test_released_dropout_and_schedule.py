@@ -138,3 +138,13 @@ def test_warmup_and_ema_ranges_are_one_line(key, value):
     with pytest.raises(ConfigError) as err:
         build_model(compose_train(f"model.{key}={value}"))
     assert (err.value.key, err.value.value) == (f"model.{key}", value)
+
+
+@pytest.mark.parametrize("override, key, value", [("model.betas=[1.5,0.85]", "model.betas", [1.5, 0.85]),
+                                                 ("model.betas=[0.9]", "model.betas", [0.9]),
+                                                 ("model.weight_decay=-1", "model.weight_decay", -1.0)])
+def test_adam_settings_out_of_range_are_one_line_before_any_data(override, key, value):
+    """Adam refused these only inside fit, with a traceback, after the run folder was made."""
+    with pytest.raises(ConfigError) as err:
+        build_model(compose_train(override))
+    assert (err.value.key, err.value.value) == (key, value)

@@ -147,6 +147,30 @@ def test_a_custom_row_with_a_bad_value_is_refused_up_front(override, key, no_col
     assert not out.exists()
 
 
+@pytest.mark.parametrize("override", ["trainer.max_epochs=5", "+trainer.limit_train_batches=9", "data.batch_size=16",
+                                      "seed=7"])
+def test_a_custom_row_setting_what_the_budget_sets_is_refused_up_front(override, no_collect, tmp_path, capsys):
+    """The budget's overrides and the cell's seed come after the row's: a row's own value for one of them
+    would be ignored, its cells trained with the budget's (the row's label saying otherwise)."""
+    out = tmp_path / "results"
+    row = f"{{experiment: paper_gtu, overrides: ['{override}'], label: mine}}"
+    args = [f"+catalogue.mine={row}", "rows=[cil,mine]", "budget=smoke", f"results_dir={out}"]
+    with pytest.raises(reproduce.ReproduceError) as err:
+        reproduce.check_plan(reproduce.compose_plan(args))
+    assert (err.value.key, err.value.value) == ("catalogue.mine.overrides", override)
+    refused(args, capsys)
+    assert not out.exists()
+
+
+def test_the_catalogues_rows_set_nothing_a_budget_sets(no_collect):
+    from cicfw.reproduction.catalogue import budget_settings_in_row
+
+    for budget in ("smoke", "laptop", "converged", "converged6", "paper"):
+        cfg = reproduce.compose_plan([f"budget={budget}"])
+        assert {row: budget_settings_in_row(cfg, row) for row in cfg.catalogue
+                if budget_settings_in_row(cfg, row)} == {}, budget
+
+
 @pytest.mark.parametrize("arg, kind, key", [
     ("budget.curve_epochs=[abc]", "wrong type", "budget.curve_epochs[0]"),
     ("budget.curve_seeds=abc", "wrong type", "budget.curve_seeds"),

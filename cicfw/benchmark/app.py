@@ -40,6 +40,7 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
+from cicfw.benchmark.trained_sets import training_set_overrides
 from cicfw.benchmark.video import select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
@@ -479,6 +480,10 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
         log.info("training wrote no checkpoint (%s): wrote its final weights to %s for the closed-loop evaluation",
                  why, path)
     overrides, what = after_training_overrides(cfg.get("evaluate_overrides") or [], trainer.fast_dev_run)
+    trained_in = training_set_overrides(cfg.get("data"), overrides)  # the table's training columns: the data's
+    if trained_in:
+        log.info("the table's training columns are the data's towns and weathers: %s", " ".join(trained_in))
+        overrides = [*overrides, *trained_in]
     out = run_dir / "evaluate"
     log.info("closed-loop evaluation of %s: %s, into %s", path, what, out)
     command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])

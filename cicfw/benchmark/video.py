@@ -118,6 +118,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
+    if not chosen:  # e.g. the default, failures, of a run without one: say so rather than exit in silence
+        print(f"no episode to film in {args.run_dir}: {' '.join(args.episodes)} selects none of its "
+              f"{len(run.rows)} episodes", file=sys.stderr)
+        return 0
     towns = {town_label(t): str(t) for t in run.meta.get("suite", {}).get("towns", [])}
     for r in chosen:
         path = Path(args.run_dir) / "videos" / f"{r['key'].replace('/', '_')}.mp4"

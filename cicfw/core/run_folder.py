@@ -100,6 +100,15 @@ class RunFolderCheck(Callback):
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
+        try:
+            data = OmegaConf.select(config, "data.path", default=None)
+        except Exception:  # an interpolation that does not resolve: the app's own checks name it
+            data = None
+        try:
+            claim_sweep_folder(str(config.hydra.sweep.dir), data=[data] if data else [])
+        except RunFolderError as err:
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
         self._check(config.hydra.sweep.dir, "hydra.sweep.dir", [("hydra.job.name", f"{job}.log")])
 
     @staticmethod
@@ -426,6 +435,30 @@ def _same(a: str | Path, b: str | Path) -> bool:
 
 def _listed(names: Sequence[str]) -> str:
     return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+
+def claim_sweep_folder(folder: str | Path, key: str = "hydra.sweep.dir", *, data: Sequence[str | Path] = ()) -> None:
+    """A sweep folder holds the sweep's job folders (``0/``, ``1/`` ...) and what it writes beside them (its
+    record, summary, joined table): a folder that is itself one run of any app (its own kind too: an
+    evaluation's folder would be joined as the sweep's only row), a dataset or the data folder is refused in
+    one ``RunFolderError`` naming ``key``. A missing or empty folder, an earlier sweep or a folder holding
+    runs below it passes (``check_no_other_sweep`` and the apps' own checks see to those)."""
+    folder = Path(folder).expanduser()
+    where, fix = f"{key}={str(folder)!r}", f"give a folder of its own ({key}=<new folder>)"
+    for d in data:
+        if d is not None and str(d) != "" and _same(folder, d):
+            raise RunFolderError(f"{where} is the data folder (data.path) the sweep's jobs read; {fix}",
+                                 key=key, value=str(folder))
+    if not _exists(folder) or not folder.is_dir():
+        return
+    if (folder / "multirun.yaml").is_file() and not (folder / ".hydra").exists():
+        return  # an earlier sweep: whether this one may go on there is the apps' own check (same overrides)
+    owner = folder_owner(folder)
+    if owner is None:
+        return
+    what = "holds a dataset (HDF5 episodes)" if owner == "collect" else f"is a run of cicfw {owner}"
+    raise RunFolderError(f"{where} {what}, not a sweep folder: the sweep would write its job folders and its "
+                         f"files inside it; {fix}", key=key, value=str(folder))
 
 
 def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str | Path] = (),

@@ -237,7 +237,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
                        "exit_s": float(cfg.phases.exit_s), "dt_s": float(cfg.phases.dt_s),
                        "counts": {p: int((d.phase == p).sum()) for p in (*sd.PHASES, "unknown")}}}
     paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
-    log.info("\n%s", sd.markdown(d, f"Steering diagnostic: {label}"))
+    log.info("\n%s", sd.markdown(d, f"Steering diagnostic: {label}", sd.measured_line(meta)))
     log.info("report in %s", out_dir)
     return paths
 

@@ -351,9 +351,22 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
-def markdown(d: Diagnosis, title: str = "Steering diagnostic") -> str:
-    """The two tables (following, and the command-swap shifts per group) and the pair table."""
-    lines = [f"# {title}", "",
+def measured_line(meta: dict[str, Any]) -> str | None:
+    """What the numbers were measured on, from a report's ``meta``: the checkpoint, the split and its
+    frames (a train-split and a validation-split report read alike otherwise); None when ``meta`` does not say."""
+    data = meta.get("data") or {}
+    if not data.get("split"):
+        return None
+    where = "every frame" if data["split"] == "all" else f"the {data['split']} split"
+    return (f"Measured on {where} of {data.get('path')} ({data.get('frames')} frames of {data.get('episodes')} "
+            f"episodes), checkpoint {meta.get('checkpoint')} (epoch {meta.get('epoch')}, step "
+            f"{meta.get('global_step')}).")
+
+
+def markdown(d: Diagnosis, title: str = "Steering diagnostic", measured: str | None = None) -> str:
+    """The two tables (following, and the command-swap shifts per group) and the pair table, under
+    ``measured`` (``measured_line``) when given."""
+    lines = [f"# {title}", "", *([measured, ""] if measured else []),
              "Predicted vs expert steering, least squares `pred = slope * expert + offset` (slope 1, offset 0: "
              "follows the expert). Shifts: mean steering of each command's branch minus the follow branch's, "
              "on the same frames; `needed`: the expert's steering minus the follow branch's.", "",
@@ -449,7 +462,7 @@ def write_report(out_dir: str | Path, d: Diagnosis, meta: dict[str, Any], arrays
     paths = {"json": out / "steer_diagnostic.json", "md": out / "steer_diagnostic.md",
              "csv": out / "steer_diagnostic.csv", "npz": out / "steer_frames.npz"}
     atomic_write(paths["json"], json.dumps(doc, indent=1, default=str) + "\n")
-    atomic_write(paths["md"], markdown(d, title))
+    atomic_write(paths["md"], markdown(d, title, measured_line(meta)))
     atomic_write(paths["csv"], csv_text(d))
     buf = io.BytesIO()
     np.savez_compressed(buf, expert=d.expert, steer=d.steer, command=d.command, phase=d.phase, turn=d.turn,

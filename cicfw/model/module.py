@@ -65,6 +65,12 @@ class CICModule(L.LightningModule):
         self.save_hyperparameters()
         if not (is_number(lr) and lr > 0):  # nan too: Adam would refuse it naming no key
             raise ConfigError("model.lr", lr, "a number > 0", f"model.lr must be > 0, got {lr}")
+        if not (isinstance(betas, (list, tuple)) and len(betas) == 2
+                and all(is_number(b) and 0.0 <= b < 1.0 for b in betas)):  # Adam refused them inside fit
+            raise ConfigError("model.betas", list(betas) if isinstance(betas, (list, tuple)) else betas,
+                              "two numbers in [0, 1), e.g. [0.7,0.85]")
+        if not (is_number(weight_decay) and weight_decay >= 0):
+            raise ConfigError("model.weight_decay", weight_decay, "a number >= 0")
         if lr_schedule not in LR_SCHEDULES:
             raise ConfigError("model.lr_schedule", lr_schedule, f"one of {', '.join(LR_SCHEDULES)}",
                              f"model.lr_schedule={lr_schedule!r} is not known; use one of {', '.join(LR_SCHEDULES)}")

@@ -60,7 +60,7 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
-from cicfw.reproduction.catalogue import row_overrides, speed_node_spelling
+from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
@@ -139,6 +139,14 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
+    for r in rows:
+        clash = budget_settings_in_row(cfg, r)
+        if clash:
+            ours, theirs = clash[0]
+            raise ReproduceError(f"catalogue.{r}.overrides sets {ours}, which the cell sets after it ({theirs}, "
+                                 f"budget={cfg.budget.name}), so it would be ignored: every row of a budget trains "
+                                 f"with the budget's settings and seeds; give the row other keys, or a budget of its "
+                                 f"own", key=f"catalogue.{r}.overrides", value=ours)
     seeds = seed_list(cfg.seeds)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
     return rows, seeds

@@ -25,6 +25,22 @@ class Row:
     paper: Optional[List[float]] = None  # the paper's PAPER_VALUES Table-4 values, or null
 
 
+def override_key(override: Any) -> str:
+    """The config key an override sets (``+trainer.limit_train_batches=2`` -> ``trainer.limit_train_batches``)."""
+    return str(override).split("=", 1)[0].lstrip("+~")
+
+
+def budget_settings_in_row(cfg: DictConfig, row: str) -> list[tuple[str, str]]:
+    """The row's overrides of keys the cell sets after them, each with what wins: the budget's training
+    overrides, the seed and the progress bar. ``row_overrides`` puts the row's first, so such an override
+    would be silently ignored (a row given ``trainer.max_epochs=5`` would train the budget's epochs)."""
+    after = {override_key(o): str(o) for o in speed_node_spelling(cfg.budget.train)}
+    after.update({"seed": "seed=<the cell's seed>", "progress_bar": "progress_bar=<progress_bar>",
+                  "experiment": f"experiment={cfg.catalogue[row].experiment}"})
+    overrides = speed_node_spelling(cfg.catalogue[row].get("overrides") or [])
+    return [(o, after[override_key(o)]) for o in overrides if override_key(o) in after]
+
+
 def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
     """conf/train.yaml overrides of one cell: the row's experiment, the budget, the seed."""
     entry = cfg.catalogue[row]

@@ -48,6 +48,8 @@ from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_recor
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 from cicfw.train.resumed_encoding import check_resumed_encoding
+from cicfw.train.resume_names import with_checkpoint_file
+from cicfw.train.schedule_record import SCHEDULE_KEY, check_resumed_horizon, horizon_settings
 from cicfw.train.split_record import SPLIT_KEY, check_resumed_split, split_settings
 
 log = logging.getLogger("cicfw.train")
@@ -214,8 +216,14 @@ class EpochCheckpoints(Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         epoch = trainer.current_epoch + 1
-        if epoch in self.epochs:
-            trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
+        if epoch not in self.epochs:
+            return
+        done, planned = trainer.fit_loop.epoch_loop.batch_progress.current.completed, trainer.num_training_batches
+        if math.isfinite(planned) and done < planned:  # stopped inside it (trainer.max_steps, max_time)
+            log.info("epoch %d stopped after %d of its %s batches: no epoch%03d.ckpt (keep_epoch_checkpoints keeps "
+                     "the weights after whole epochs)", epoch, done, planned, epoch)
+            return
+        trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
 
 
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
@@ -351,10 +359,12 @@ def load_checkpoint_safely(path: str | Path, what: str = "ckpt_path") -> dict[st
 
 def check_resume_checkpoint(path: str | Path | None, model: CICModule,
                             trainer_cfg: Mapping[str, Any] | None = None,
-                            split: Mapping[str, Any] | None = None) -> str | None:
+                            split: Mapping[str, Any] | None = None,
+                            horizon: Mapping[str, Any] | None = None) -> str | None:
     """Check ``ckpt_path`` before any data is read: a file that loads with ``weights_only=True``,
     holds the training state (not weights only), fits this run's model, was trained with this run's
-    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split and samples, and,
+    optimizer settings and, given ``split`` (``split_settings``), this run's train/validation split and samples,
+    given ``horizon`` (``horizon_settings``), the run length its learning-rate schedule is spread over, and,
     given ``trainer_cfg``, leaves something to train. Returns the path for ``Trainer.fit`` (None to start
     afresh)."""
     if path is None or str(path) == "":
@@ -384,6 +394,8 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
     check_resumed_encoding(path, ckpt.get("hyper_parameters") or {}, model.hparams)  # speed scale, bins
     if split is not None:
         check_resumed_split(path, ckpt, split)
+    if horizon is not None:
+        check_resumed_horizon(path, ckpt, model.hparams, horizon)
     if trainer_cfg is not None:
         check_epochs_left(path, ckpt, trainer_cfg)
     return str(path)
@@ -455,15 +467,21 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
     # a safe, whole, matching checkpoint, with this run's optimizer settings and epochs left to train
     ckpt_path = check_resume_checkpoint(cfg.get("ckpt_path"), model, cfg.trainer if refuse_finished else None,
-                                        split_settings(cfg.data))  # the same split and samples
+                                        split_settings(cfg.data),  # the same split and samples
+                                        horizon_settings(cfg))  # the same schedule length
     datamodule = make_datamodule(cfg)  # data.* arguments (batch size a multiple of 4 ...)
     return model, ckpt_path, datamodule
 
 
 def check_evaluation(cfg: DictConfig) -> None:
-    """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training."""
+    """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training.
+    Without it, ``return_closed_loop=true`` would return the validation metric to a sweeper told it gets
+    the success rate: refused."""
     if cfg.get("evaluate_after"):
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
+    elif cfg.get("return_closed_loop"):
+        raise ConfigError("return_closed_loop", True, "false without evaluate_after=true (the closed-loop success "
+                          "rate it returns is measured by the evaluation after training)")
 
 
 def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
@@ -490,6 +508,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     run_dir = Path(run_dir)
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
     L.seed_everything(checked_seed(cfg.seed), workers=True)
+    cfg = with_checkpoint_file(cfg, run_dir)  # ckpt_path=last: the file, checked as any other
     # Everything a user can get wrong in the config fails first, before any image is collected or read:
     model, ckpt_path, datamodule = checked_setup(cfg, refuse_finished)
     speed = checked_speed(cfg)  # cicfw's speed switches (speed.adam=fusd)
@@ -498,7 +517,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     ensure_data(cfg.data)  # then the data: collected if needed,
     record = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's: refused),
     trainer.callbacks.append(RecordInCheckpoints({CHECKPOINT_KEY: record,  # into every checkpoint too,
-                                                  SPLIT_KEY: split_settings(cfg.data)}))  # with the split
+                                                  SPLIT_KEY: split_settings(cfg.data),  # with the split
+                                                  SCHEDULE_KEY: horizon_settings(cfg)}))  # and run length
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
@@ -524,7 +544,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
 
 class RecordInCheckpoints(Callback):
     """The run's records in every checkpoint it saves, each under its key: the data record
-    (``cicfw.data.provenance``) and the split settings (``cicfw.train.split_record``)."""
+    (``cicfw.data.provenance``), the split settings (``cicfw.train.split_record``) and the run length the
+    learning-rate schedule is spread over (``cicfw.train.schedule_record``)."""
 
     def __init__(self, records: Mapping[str, Mapping[str, Any]]) -> None:
         self.records = {key: dict(record) for key, record in records.items()}

@@ -1,0 +1,73 @@
+"""The towns and weathers a training run's data was collected in, as the evaluation after training's
+``suite.training_towns`` / ``suite.training_weathers``: the table's "training" columns are otherwise the
+defaults (town_a; ClearNoon, ClearSunset), which label a model trained in town_b under CloudyNoon as tested
+in its training town under its training weathers."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+from hydra.core.override_parser.overrides_parser import OverridesParser
+
+from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
+
+#: the keys that say the training sets; an ``evaluate_overrides`` entry for one keeps it as given
+TRAINING_SET_KEYS = ("suite.training_towns", "suite.training_weathers")
+#: the embedded simulator's shipped towns (conf/town/)
+SHIPPED_TOWNS = ("town_a", "town_b")
+
+
+def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
+    """(towns, weathers) the run's data was collected in: the collection it makes (``data.collect``), else the
+    ``dataset_metadata.json`` a cicfw collection left in ``data.path``; None when neither says (other data)."""
+    if data_cfg is None or not hasattr(data_cfg, "get"):
+        return None
+    collect = data_cfg.get("collect")
+    if collect is not None and collect.get("towns") is not None and collect.get("weathers") is not None:
+        return [str(t) for t in collect.towns], [str(w) for w in collect.weathers]
+    try:
+        meta = json.loads((Path(str(data_cfg.get("path"))).expanduser() / "dataset_metadata.json").read_text())
+    except (OSError, ValueError, TypeError):
+        return None
+    towns, weathers = meta.get("towns"), meta.get("weathers")
+    if not isinstance(towns, list) or not isinstance(weathers, list):
+        return None
+    return [str(t) for t in towns], [str(w) for w in weathers]
+
+
+def _given(overrides: Sequence[str]) -> dict[str, Any]:
+    """The ``evaluate_overrides`` as key -> value (those Hydra cannot parse are left to the evaluation)."""
+    parser, out = OverridesParser.create(), {}
+    for o in overrides:
+        try:
+            parsed = parser.parse_override(str(o))
+        except Exception:
+            continue
+        out[parsed.key_or_group.lstrip("+~")] = parsed.value()
+    return out
+
+
+def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]:
+    """``suite.training_towns=[...]`` and ``suite.training_weathers=[...]`` from the run's data, each unless
+    ``overrides`` give it; only names the suite accepts as training ones (a shipped town or one the overrides
+    drive; one of the paper's weathers or one the overrides drive), so that data collected under other
+    weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say."""
+    found = data_sets(data_cfg)
+    if found is None:
+        return []
+    given = _given(overrides)
+    if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
+        return []
+    towns, weathers = found
+    driven_towns = {town_label(t) for t in (given.get("suite.towns") or ())}
+    driven_weathers = {str(w) for w in (given.get("suite.weathers") or ())}
+    out = []
+    if "suite.training_towns" not in given:
+        names = [town_label(t) for t in towns]
+        kept = [t for t in dict.fromkeys(names) if t in SHIPPED_TOWNS or t in driven_towns]
+        out.append(f"suite.training_towns=[{','.join(kept)}]")
+    if "suite.training_weathers" not in given:
+        kept = [w for w in dict.fromkeys(weathers) if w in PAPER_WEATHERS or w in driven_weathers]
+        out.append(f"suite.training_weathers=[{','.join(kept)}]")
+    return out

@@ -1,0 +1,53 @@
+"""``ckpt_path=last`` and ``ckpt_path=hpc``, the names Lightning resolves in the run's own folder, turned into
+the file they name before anything is checked: Lightning would load that file unchecked, so a resume by name
+would skip every check a resume by path gets (the optimizer settings, the split, the schedule's run length,
+the weight averaging). ``best`` never resumes (a fresh Trainer knows no best checkpoint): refused."""
+from __future__ import annotations
+
+import copy
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, open_dict
+
+from cicfw.core.errors import CicfwError
+
+log = logging.getLogger("cicfw.train")
+
+
+def own_checkpoint(name: str, run_dir: Path) -> Path | None:
+    """The file Lightning resumes from for ``name`` in ``run_dir``: for ``last`` the newest checkpoint with
+    "last" in its name under ``checkpoints/`` (or an HPC checkpoint, if newer), for ``hpc`` the highest
+    ``hpc_ckpt_<n>.ckpt``; None when there is none. Hidden files (a checkpoint being written) are not one."""
+    hpc = sorted(((int(p.stem[len("hpc_ckpt_"):]), p) for p in run_dir.glob("hpc_ckpt_*.ckpt")
+                  if p.stem[len("hpc_ckpt_"):].isdigit()), key=lambda vp: vp[0])
+    newest_hpc = [hpc[-1][1]] if hpc else []
+    if name == "hpc":
+        return newest_hpc[0] if newest_hpc else None
+    candidates = [p for p in (run_dir / "checkpoints").glob("*last*.ckpt") if not p.name.startswith(".")]
+    candidates = [p for p in [*candidates, *newest_hpc] if p.is_file()]
+    return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
+
+
+def with_checkpoint_file(cfg: DictConfig, run_dir: Path) -> DictConfig:
+    """``cfg`` with a ``ckpt_path`` of ``last`` or ``hpc`` replaced by the file it names in ``run_dir`` (a copy;
+    ``last`` with none there starts afresh, as Lightning does, and says so); ``best`` and ``hpc`` without a
+    checkpoint are one ``CicfwError`` naming ``ckpt_path``. Any other value is returned as it is."""
+    name = cfg.get("ckpt_path")
+    if name is None or str(name) not in ("last", "hpc", "best"):
+        return cfg
+    name = str(name)
+    if name == "best":
+        raise CicfwError("ckpt_path=best: a run resumes from its latest state, not its best checkpoint; resume with "
+                         "ckpt_path=last (or the file, <run>/checkpoints/last.ckpt), or evaluate the best one with "
+                         "cicfw evaluate checkpoint=<run>", key="ckpt_path", value=name)
+    found = own_checkpoint(name, run_dir)
+    if found is None and name == "hpc":
+        raise CicfwError(f"ckpt_path=hpc: no HPC checkpoint (hpc_ckpt_<n>.ckpt) in {str(run_dir)!r}; give the "
+                         f"checkpoint file to resume from", key="ckpt_path", value=name)
+    if found is None:
+        log.info("ckpt_path=last: no checkpoint in %s yet, so training starts afresh", run_dir / "checkpoints")
+    cfg = copy.deepcopy(cfg)
+    with open_dict(cfg):
+        cfg.ckpt_path = None if found is None else str(found)
+    return cfg

@@ -1,0 +1,75 @@
+"""``ckpt_path=last`` (and ``hpc``), the names Lightning resolves in the run's folder, resume only after the
+checks a checkpoint file gets; ``best``, which never resumes, is one line."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from cicfw.core.errors import CicfwError
+from cicfw.train.app import train
+from cicfw.train.resume_names import own_checkpoint, with_checkpoint_file
+from conftest import compose_train, write_tiny_dataset
+
+SHORT = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
+         "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
+         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", "model.ema_decay=0.5"]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> dict:
+    """A one-step run with weight averaging, its data and its folder."""
+    root = tmp_path_factory.mktemp("named")
+    data = write_tiny_dataset(root / "data", n_files=4, n=32)
+    cfg = compose_train(*SHORT, f"data.path={data}")
+    folder = root / "run"
+    (folder / ".hydra").mkdir(parents=True)
+    OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
+    train(cfg, folder, refuse_finished=True)
+    return {"data": data, "run": folder}
+
+
+@pytest.mark.slow  # trains
+@pytest.mark.parametrize("override, key, value", [("data.val_fraction=0.5", "data.val_fraction", 0.5),
+                                                 ("model.ema_decay=0.0", "ckpt_path", None)])
+def test_resuming_by_name_gets_the_checks_a_file_gets(run, override, key, value):
+    cfg = compose_train(*SHORT, f"data.path={run['data']}", "ckpt_path=last", "trainer.max_epochs=2", override)
+    with pytest.raises(CicfwError) as err:
+        train(cfg, run["run"], refuse_finished=True)
+    assert err.value.key == key
+    assert err.value.value == (value if value is not None else str(run["run"] / "checkpoints" / "last.ckpt"))
+
+
+@pytest.mark.slow  # trains
+def test_best_is_refused_and_hpc_without_a_checkpoint_too(run):
+    for name in ("best", "hpc"):
+        cfg = compose_train(*SHORT, f"data.path={run['data']}", f"ckpt_path={name}", "trainer.max_epochs=2")
+        with pytest.raises(CicfwError) as err:
+            train(cfg, run["run"], refuse_finished=True)
+        assert (err.value.key, err.value.value) == ("ckpt_path", name)
+
+
+@pytest.mark.slow  # trains
+def test_last_resumes_the_run_with_its_settings(run, tmp_path):
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(run["run"], folder)
+    cfg = compose_train(*SHORT, f"data.path={run['data']}", "ckpt_path=last", "trainer.max_epochs=2")
+    train(cfg, folder, refuse_finished=True)
+    last = torch.load(folder / "checkpoints" / "last.ckpt", weights_only=True)
+    assert last["global_step"] == 2 and "current_model_state" in last  # one step more, still averaged
+
+
+def test_last_names_the_newest_checkpoint_file_and_none_starts_afresh(tmp_path):
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    cfg = compose_train("ckpt_path=last")
+    assert with_checkpoint_file(cfg, tmp_path).ckpt_path is None  # nothing there yet
+    (ckpts / "last.ckpt").write_bytes(b"x")
+    (ckpts / ".last.ckpt.tmp.ckpt").write_bytes(b"half")  # a checkpoint being written is not one
+    assert own_checkpoint("last", tmp_path) == ckpts / "last.ckpt"
+    assert with_checkpoint_file(cfg, tmp_path).ckpt_path == str(ckpts / "last.ckpt")
+    assert cfg.ckpt_path == "last"  # the caller's config is left as it was

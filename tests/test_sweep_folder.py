@@ -1,0 +1,49 @@
+"""A multirun's ``hydra.sweep.dir`` holds its job folders and what it writes beside them: a folder that is one
+run (an evaluation, a training run), a dataset or the data folder is refused before any job, where the sweep
+would have written inside it (an evaluate sweep even joined that run as its only row, not its own jobs)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from conftest import assert_refused, run_app_in_process, write_tiny_dataset
+
+EXPERT = ["policy=expert", "suite.towns=[town_a]", "suite.weathers=[ClearNoon]", "runner.workers=1",
+          "progress_bar=false", "maps=false"]
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_an_evaluate_sweep_into_an_evaluation_run_is_refused(tmp_path):
+    run = tmp_path / "run"
+    assert run_app_in_process("cicfw.evaluate", *EXPERT, "suite.limit=1", f"hydra.run.dir={run}").returncode == 0
+    before = _files(run)
+    res = run_app_in_process("cicfw.evaluate", "-m", *EXPERT, "suite.limit=1,2", f"hydra.sweep.dir={run}")
+    assert_refused(res, "hydra.sweep.dir", run)
+    assert _files(run) == before  # no job folder, no table written over the run's
+
+
+def test_a_sweep_into_the_data_folder_or_a_training_run_is_refused(tmp_path):
+    data = write_tiny_dataset(tmp_path / "data", n_files=2, n=8)
+    res = run_app_in_process("cicfw.train", "-m", "data=cil_hdf5", f"data.path={data}", "seed=0,1",
+                             "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
+                             "data.batch_size=8", "progress_bar=false", f"hydra.sweep.dir={data}")
+    assert_refused(res, "hydra.sweep.dir", data)
+    assert sorted(p.name for p in data.iterdir()) == ["data_00000.h5", "data_00001.h5"]
+    trained = tmp_path / "trained"
+    (trained / ".hydra").mkdir(parents=True)
+    (trained / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: train\n")
+    (trained / "checkpoints").mkdir()
+    res = run_app_in_process("cicfw.evaluate", "-m", *EXPERT, "suite.limit=1,2", f"hydra.sweep.dir={trained}")
+    assert_refused(res, "hydra.sweep.dir", trained)
+    assert sorted(p.name for p in trained.iterdir()) == [".hydra", "checkpoints"]
+
+
+def test_an_evaluate_sweep_still_resumes_in_its_own_folder(tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", *EXPERT, "suite.limit=1,2", f"hydra.sweep.dir={sweep}"]
+    assert run_app_in_process("cicfw.evaluate", *args).returncode == 0
+    again = run_app_in_process("cicfw.evaluate", *args)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "Expert" in (sweep / "table.md").read_text()

@@ -1,0 +1,63 @@
+"""The evaluation after training labels the table's "training" columns with the towns and weathers the run's data
+was collected in, not the defaults: a model trained in town_b under CloudyNoon is not tested "in its training
+town under its training weathers" when it drives town_a under ClearNoon."""
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+from omegaconf import OmegaConf
+
+import cicfw.benchmark.app as bench_app
+from cicfw.benchmark.trained_sets import training_set_overrides
+from conftest import compose_train
+
+
+def _collected(towns, weathers):
+    return OmegaConf.create({"path": "/nowhere", "collect": {"towns": towns, "weathers": weathers}})
+
+
+def test_the_data_s_towns_and_weathers_become_the_training_sets():
+    assert training_set_overrides(_collected(["town_b"], ["ClearNoon", "CloudyNoon"]), []) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[ClearNoon]"]  # CloudyNoon is not driven
+    assert training_set_overrides(_collected(["town_b"], ["CloudyNoon"]), ["suite.weathers=[CloudyNoon]"]) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[CloudyNoon]"]
+
+
+def test_the_default_data_keeps_the_default_columns():
+    assert training_set_overrides(compose_train().data, []) == [
+        "suite.training_towns=[town_a]", "suite.training_weathers=[ClearNoon,ClearSunset]"]
+
+
+def test_what_the_user_gives_wins_and_other_simulators_are_left_alone():
+    data = _collected(["town_b"], ["CloudyNoon"])
+    assert training_set_overrides(data, ["suite.training_towns=[town_a]"]) == ["suite.training_weathers=[]"]
+    assert training_set_overrides(data, ["sim=carla"]) == []
+
+
+def test_a_collected_folder_s_metadata_says_it_and_other_data_says_nothing(tmp_path):
+    data = OmegaConf.create({"path": str(tmp_path)})
+    assert training_set_overrides(data, []) == []
+    (tmp_path / "dataset_metadata.json").write_text(json.dumps({"towns": ["town_b"], "weathers": ["MidRainyNoon"]}))
+    assert training_set_overrides(data, []) == ["suite.training_towns=[town_b]",
+                                                "suite.training_weathers=[MidRainyNoon]"]
+
+
+def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
+    seen = {}
+
+    def evaluate_checkpoint(path, out, overrides, resume_hint):
+        seen["overrides"] = list(overrides)
+        return {"success": 50.0, "cells": {}}
+
+    monkeypatch.setattr(bench_app, "evaluate_checkpoint", evaluate_checkpoint)
+    best = tmp_path / "checkpoints" / "best.ckpt"
+    best.parent.mkdir()
+    best.write_bytes(b"weights")
+    trainer = SimpleNamespace(checkpoint_callback=SimpleNamespace(best_model_path=str(best), last_model_path=""),
+                              fast_dev_run=False, logger=None, global_step=1)
+    cfg = compose_train("++data.collect.towns=[town_b]", "++data.collect.weathers=[MidRainyNoon]",
+                        "evaluate_overrides=['suite.limit=1']")
+    bench_app.evaluate_after_training(cfg, trainer, tmp_path)
+    assert seen["overrides"] == ["suite.limit=1", "suite.training_towns=[town_b]",
+                                 "suite.training_weathers=[MidRainyNoon]"]
