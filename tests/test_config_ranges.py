@@ -204,6 +204,22 @@ def test_a_multirun_checks_every_job_before_the_first_trains(tiny_data, tmp_path
     assert not sweep.exists()  # no job ran, no sweep folder left
 
 
+@pytest.mark.parametrize("swept, key", [("runner.threads=1,0", "runner.threads"),
+                                         ("suite.limit=1,0", "suite.limit")])
+def test_an_evaluate_multirun_checks_every_job_before_the_first_drives(tmp_path, swept, key):
+    from conftest import run_app_in_process
+
+    sweep = tmp_path / "sweep"
+    limit = [] if key == "suite.limit" else ["suite.limit=1"]
+    r = run_app_in_process("cicfw.evaluate", "-m", "policy=expert", "suite.towns=[town_a]",
+                           "suite.weathers=[ClearNoon]", *limit, "progress_bar=false", "maps=false",
+                           swept, f"hydra.sweep.dir={sweep}")
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cicfw: error: job 1") and key in lines[0], r.stderr[-2000:]
+    assert not sweep.exists()  # job 0 did not drive, no sweep folder left
+
+
 # ---- values that pass a "<= 0" test as NaN, and the off-road level's range ---------------------------------
 
 

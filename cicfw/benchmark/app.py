@@ -246,6 +246,15 @@ def plan_evaluation(spec: Mapping[str, Any], suite: Mapping[str, Any], runner: M
     return runner_cfg, episodes
 
 
+def check_config(cfg: DictConfig) -> None:
+    """Every value ``evaluate`` checks before it loads a policy's weights or drives (``plan_evaluation``), for
+    a composed config: a multirun checks each job's config with it before its first job drives
+    (``cicfw.core.override_hints.SweepJobsCheck``, conf/evaluate.yaml)."""
+    plain = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("suite", "runner", "sim")}
+    plan_evaluation(policy_spec(cfg), plain["suite"], plain["runner"], plain["sim"], seed=cfg.seed,
+                    video=list(cfg.video or []), video_max=cfg.video_max)
+
+
 def check_policy_device(device: Any) -> None:
     """``policy.device`` a torch device this machine has (``cuda`` on a CPU build failed when the policy
     was built: after the training, for ``cicfw train evaluate_after=true``)."""

@@ -109,7 +109,13 @@ class RunFolderCheck(Callback):
         except RunFolderError as err:
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
+        if not is_worker_process():  # a DDP rank re-running the sweep of its rank 0 shares its folder
+            note_run_folder(str(config.hydra.sweep.dir))  # undone if a job's config is refused up front
         self._check(config.hydra.sweep.dir, "hydra.sweep.dir", [("hydra.job.name", f"{job}.log")])
+
+    def on_job_start(self, config: Any, **kwargs: Any) -> None:
+        if config.hydra.mode == RunMode.MULTIRUN:  # a job runs: the sweep folder is the sweep's now
+            _BEFORE.pop(os.path.abspath(str(config.hydra.sweep.dir)), None)
 
     @staticmethod
     def _check(folder: Any, key: str, files: Sequence[tuple[str, str]]) -> None:
@@ -352,12 +358,7 @@ class TrainRunFolderCheck(RunFolderCheck):
             except RunFolderError as err:
                 print(f"cicfw: error: {err}", file=sys.stderr)
                 sys.exit(2)
-            note_run_folder(str(config.hydra.sweep.dir))  # undone if Hydra refuses a job's config up front
         super().on_multirun_start(config, **kwargs)
-
-    def on_job_start(self, config: Any, **kwargs: Any) -> None:
-        if config.hydra.mode == RunMode.MULTIRUN:  # a job runs: the sweep folder is the sweep's now
-            _BEFORE.pop(os.path.abspath(str(config.hydra.sweep.dir)), None)
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_run_folder(str(config.hydra.run.dir))
