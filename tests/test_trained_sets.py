@@ -61,3 +61,48 @@ def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
     bench_app.evaluate_after_training(cfg, trainer, tmp_path)
     assert seen["overrides"] == ["suite.limit=1", "suite.training_towns=[town_b]",
                                  "suite.training_weathers=[MidRainyNoon]"]
+
+
+def _run_with_checkpoint(tmp_path, towns, weathers):
+    """A run folder as train leaves it: .hydra/config.yaml naming the data's collection, data.json the
+    data's absolute path, and a two-step checkpoint in checkpoints/."""
+    import lightning as L
+    import torch
+    from torch.utils.data import DataLoader, TensorDataset
+
+    from cicfw.model.module import CICModule
+
+    class Frames(TensorDataset):
+        def __getitem__(self, i):
+            return {"image": torch.full((3, 88, 200), i * 20, dtype=torch.uint8), "speed": torch.tensor(10.0),
+                    "command": torch.tensor(i % 4), "steer": torch.tensor(0.0)}
+
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save({"data": {"path": "relative/data", "collect": {"towns": towns, "weathers": weathers}}},
+                   run / ".hydra" / "config.yaml")
+    (run / "data.json").write_text(json.dumps({"path": str(tmp_path / "data")}))
+    L.seed_everything(0)
+    trainer = L.Trainer(max_steps=1, limit_val_batches=0, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
+    trainer.fit(CICModule(), DataLoader(Frames(torch.zeros(4)), batch_size=4))
+    ckpt = run / "checkpoints" / "last.ckpt"
+    trainer.save_checkpoint(ckpt)
+    return ckpt
+
+
+def test_a_checkpoint_s_evaluation_labels_the_columns_with_its_run_s_data(tmp_path):
+    """``cicfw evaluate checkpoint=<run>/checkpoints/last.ckpt``: a model trained in town_b is driven there
+    under its "training town" columns, unless the command names the training towns itself."""
+    from conftest import run_app_in_process
+
+    ckpt = _run_with_checkpoint(tmp_path, ["town_b"], ["ClearNoon"])
+    common = [f"checkpoint={ckpt}", "suite.towns=[town_b]", "suite.weathers=[ClearNoon]", "suite.limit=1",
+              "progress_bar=false", "maps=false", "runner.threads=1"]
+    for given, town_set in (([], "training"), (["suite.training_towns=[town_a]"], "new")):
+        out = tmp_path / f"eval_{town_set}"
+        res = run_app_in_process("cicfw.evaluate", *common, *given, f"hydra.run.dir={out}")
+        assert res.returncode == 0, res.stderr[-2000:]
+        rows = json.loads((out / "episodes.json").read_text())["episodes"]
+        assert rows and {r["town_set"] for r in rows} == {town_set}
+        assert {r["weather_set"] for r in rows} == {"training"}

@@ -40,7 +40,7 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
-from cicfw.benchmark.trained_sets import training_set_overrides
+from cicfw.benchmark.trained_sets import checkpoint_run_data, override_values, training_set_overrides
 from cicfw.benchmark.video import select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
@@ -512,6 +512,27 @@ def _quote(s: str) -> str:
     return "'" + s.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
+def with_trained_sets(cfg: DictConfig, overrides: Sequence[str]) -> None:
+    """``policy=checkpoint``: the table's training columns set in ``cfg`` to the towns and weathers the
+    checkpoint's run collected its data in (``training_set_overrides``, as the evaluation after training
+    does), each unless ``overrides`` give it; nothing for a checkpoint outside a run folder, or data that
+    does not say. A checkpoint that cannot be read is left to the evaluation's own refusal."""
+    spec = OmegaConf.to_container(cfg.policy, resolve=True)
+    path = cfg.get("checkpoint") or spec.get("checkpoint")
+    if spec.get("name") != "checkpoint" or not path:
+        return
+    try:
+        data = checkpoint_run_data(resolve_checkpoint(path))
+    except Exception:  # a bad checkpoint: evaluate names it
+        return
+    trained_in = training_set_overrides(data, overrides)
+    if trained_in:
+        log.info("the table's training columns are the towns and weathers the checkpoint's data was collected "
+                 "in: %s", " ".join(trained_in))
+        for key, value in override_values(trained_in).items():
+            OmegaConf.update(cfg, key, value)
+
+
 @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="evaluate")
 @report_user_errors
 def main(cfg: DictConfig) -> float:
@@ -521,6 +542,7 @@ def main(cfg: DictConfig) -> float:
     resume = f"run the same command with {key}={out if key == 'hydra.run.dir' else out.parent} to drive the rest"
     started = []
     try:
+        with_trained_sets(cfg, list(HydraConfig.get().overrides.task))
         success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume,
                            on_start=lambda: started.append(True))["success"]
     except USER_ERRORS:  # refused before the folder was this run's (a bad checkpoint, another evaluation's

@@ -1,7 +1,7 @@
-"""The towns and weathers a training run's data was collected in, as the evaluation after training's
-``suite.training_towns`` / ``suite.training_weathers``: the table's "training" columns are otherwise the
-defaults (town_a; ClearNoon, ClearSunset), which label a model trained in town_b under CloudyNoon as tested
-in its training town under its training weathers."""
+"""The towns and weathers a training run's data was collected in, as the ``suite.training_towns`` /
+``suite.training_weathers`` of the evaluation after training and of a checkpoint's evaluation: the table's
+"training" columns are otherwise the defaults (town_a; ClearNoon, ClearSunset), which label a model trained
+in town_b under CloudyNoon as tested in its training town under its training weathers."""
 from __future__ import annotations
 
 import json
@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import OmegaConf
 
 from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
 
@@ -36,8 +37,9 @@ def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
     return [str(t) for t in towns], [str(w) for w in weathers]
 
 
-def _given(overrides: Sequence[str]) -> dict[str, Any]:
-    """The ``evaluate_overrides`` as key -> value (those Hydra cannot parse are left to the evaluation)."""
+def override_values(overrides: Sequence[str]) -> dict[str, Any]:
+    """Overrides (``evaluate_overrides``, the app's) as key -> value (those Hydra cannot parse are left to the
+    evaluation)."""
     parser, out = OverridesParser.create(), {}
     for o in overrides:
         try:
@@ -56,7 +58,7 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
     found = data_sets(data_cfg)
     if found is None:
         return []
-    given = _given(overrides)
+    given = override_values(overrides)
     if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
         return []
     towns, weathers = found
@@ -71,3 +73,23 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
         kept = [w for w in dict.fromkeys(weathers) if w in PAPER_WEATHERS or w in driven_weathers]
         out.append(f"suite.training_weathers=[{','.join(kept)}]")
     return out
+
+
+def checkpoint_run_data(checkpoint: Path) -> Any | None:
+    """The ``data`` node of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``): its saved
+    ``.hydra/config.yaml``, with ``data.path`` the absolute one its ``data.json`` recorded (the path as typed
+    may be relative to where it trained). None for a checkpoint outside such a run."""
+    run = Path(checkpoint).parent.parent
+    try:
+        data = OmegaConf.load(run / ".hydra" / "config.yaml").get("data")
+    except Exception:  # no run config, or an unreadable one: nothing says where it trained
+        return None
+    if not OmegaConf.is_dict(data):
+        return None
+    try:
+        recorded = json.loads((run / "data.json").read_text()).get("path")
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    if recorded:
+        OmegaConf.update(data, "path", str(recorded), force_add=True)
+    return data
