@@ -82,6 +82,28 @@ def compose_train(*overrides: str):
         return compose("train", overrides=list(overrides))
 
 
+#: a training of a step or two on a tiny dataset, validated on one batch (``train_tiny_run``'s usual overrides)
+TINY_TRAIN = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
+              "trainer.max_epochs=1", "trainer.limit_val_batches=1", "trainer.num_sanity_val_steps=0",
+              "trainer.enable_model_summary=false"]
+
+
+def train_tiny_run(root: Path, *overrides: str) -> dict:
+    """A run of ``overrides`` on a tiny dataset under ``root``, its config saved in ``.hydra`` as the app
+    leaves it (what resume checks read): its ``data``, ``run`` folder and ``last`` checkpoint."""
+    from omegaconf import OmegaConf
+
+    from cicfw.train.app import train
+
+    data = write_tiny_dataset(root / "data", n_files=4, n=32)
+    cfg = compose_train(*overrides, f"data.path={data}")
+    run = root / "run"
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+    train(cfg, run, refuse_finished=True)
+    return {"data": data, "run": run, "last": run / "checkpoints" / "last.ckpt"}
+
+
 @pytest.fixture
 def fast_cfg(tiny_data: Path):
     """A train config on the tiny data: one fast_dev_run step, batch 8, no progress bar."""

@@ -2,33 +2,22 @@
 checks a checkpoint file gets; ``best``, which never resumes, is one line."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
 from cicfw.train.app import train
 from cicfw.train.resume_names import own_checkpoint, with_checkpoint_file
-from conftest import compose_train, write_tiny_dataset
+from conftest import TINY_TRAIN, compose_train, train_tiny_run
 
-SHORT = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
-         "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
-         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", "model.ema_decay=0.5"]
+SHORT = [*TINY_TRAIN, "trainer.limit_train_batches=1", "model.ema_decay=0.5"]
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> dict:
     """A one-step run with weight averaging, its data and its folder."""
-    root = tmp_path_factory.mktemp("named")
-    data = write_tiny_dataset(root / "data", n_files=4, n=32)
-    cfg = compose_train(*SHORT, f"data.path={data}")
-    folder = root / "run"
-    (folder / ".hydra").mkdir(parents=True)
-    OmegaConf.save(cfg, folder / ".hydra" / "config.yaml")
-    train(cfg, folder, refuse_finished=True)
-    return {"data": data, "run": folder}
+    return train_tiny_run(tmp_path_factory.mktemp("named"), *SHORT)
 
 
 @pytest.mark.slow  # trains

@@ -4,33 +4,22 @@ are refused before any data is read; a constant rate trains on for as long as as
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
 from cicfw.train.app import build_model, check_resume_checkpoint, train
 from cicfw.train.schedule_record import SCHEDULE_KEY, horizon_settings
-from conftest import compose_train, write_tiny_dataset
+from conftest import TINY_TRAIN, compose_train, train_tiny_run
 
-SHORT = ["data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false", "speed.compile=false",
-         "trainer.max_epochs=1", "trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
-         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", "model.lr_schedule=cosine"]
+SHORT = [*TINY_TRAIN, "trainer.limit_train_batches=2", "model.lr_schedule=cosine"]
 
 
 @pytest.fixture(scope="module")
 def cosine_run(tmp_path_factory) -> dict:
     """A one-epoch cosine run with its saved config, as the app leaves it."""
-    root = tmp_path_factory.mktemp("cosine")
-    data = write_tiny_dataset(root / "data", n_files=4, n=32)
-    cfg = compose_train(*SHORT, f"data.path={data}")
-    run = root / "run"
-    (run / ".hydra").mkdir(parents=True)
-    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
-    train(cfg, run, refuse_finished=True)
-    return {"data": data, "run": run, "last": run / "checkpoints" / "last.ckpt"}
+    return train_tiny_run(tmp_path_factory.mktemp("cosine"), *SHORT)
 
 
 @pytest.mark.slow  # trains
