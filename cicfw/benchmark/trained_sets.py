@@ -12,6 +12,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
 from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
+from cicfw.core.run_folder import saved_run_config
 
 #: the keys that say the training sets; an ``evaluate_overrides`` entry for one keeps it as given
 TRAINING_SET_KEYS = ("suite.training_towns", "suite.training_weathers")
@@ -80,10 +81,8 @@ def checkpoint_run_data(checkpoint: Path) -> Any | None:
     ``.hydra/config.yaml``, with ``data.path`` the absolute one its ``data.json`` recorded (the path as typed
     may be relative to where it trained). None for a checkpoint outside such a run."""
     run = Path(checkpoint).parent.parent
-    try:
-        data = OmegaConf.load(run / ".hydra" / "config.yaml").get("data")
-    except Exception:  # no run config, or an unreadable one: nothing says where it trained
-        return None
+    config = saved_run_config(checkpoint)
+    data = config.get("data") if config is not None else None
     if not OmegaConf.is_dict(data):
         return None
     try:

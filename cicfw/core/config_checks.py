@@ -325,6 +325,12 @@ def _refuse_added_keys(node: Any, where: str, skip: tuple[str, ...]) -> None:
             _refuse_added_keys(child, key, skip)
 
 
+def plain_value(value: Any) -> Any:
+    """A config value as plain data (a ListConfig as a list, resolved), as ``torch.load(weights_only=True)``
+    reads it back from a checkpoint."""
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
 def plain_values(cfg: Any) -> dict[str, Any]:
     """A composed app config as plain data (resolved), its ``hydra`` node left out: what ``checked`` takes."""
     return {str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]

@@ -266,6 +266,15 @@ def note_run_folder(folder: str | Path) -> None:
         pass  # an unreadable folder: check_run_folder says so; nothing will be undone in it
 
 
+def saved_run_config(checkpoint: str | Path) -> Any | None:
+    """The config the training run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``) saved in
+    ``<run>/.hydra/config.yaml``, unresolved; None when there is none or it cannot be read."""
+    try:
+        return OmegaConf.load(Path(checkpoint).parent.parent / ".hydra" / "config.yaml")
+    except Exception:  # missing or unreadable: the run says nothing
+        return None
+
+
 def undo_run_folder(folder: str | Path) -> None:
     """Put ``folder`` back as ``note_run_folder`` found it: removed, with the parents made for it, when it
     did not exist; else what the run added removed, ``.hydra`` rewritten as it was and the logs cut back.

@@ -9,8 +9,9 @@ from typing import Any, Mapping
 
 from omegaconf import OmegaConf
 
-from cicfw.core.config_checks import same_value
+from cicfw.core.config_checks import plain_value, same_value
 from cicfw.core.errors import CicfwError
+from cicfw.core.run_folder import saved_run_config
 
 #: the checkpoint key holding the settings
 SCHEDULE_KEY = "cicfw_schedule"
@@ -29,23 +30,18 @@ def step_shaped(model_hparams: Mapping[str, Any]) -> bool:
 
 def horizon_settings(cfg: Any) -> dict[str, Any]:
     """The ``HORIZON_KEYS`` of a train config (a key it does not set is None: Lightning's default)."""
-    return {key: _plain(OmegaConf.select(cfg, key, default=None)) for key in HORIZON_KEYS}
-
-
-def _plain(value: Any) -> Any:
-    """A config value as plain data (a list of devices stays a list), for a checkpoint loaded weights-only."""
-    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+    return {key: plain_value(OmegaConf.select(cfg, key, default=None)) for key in HORIZON_KEYS}
 
 
 def run_config_horizon(checkpoint: Path) -> dict[str, Any] | None:
     """The settings of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``), from its
     ``<run>/.hydra/config.yaml``: for checkpoints written before they recorded them. None when there is none."""
-    config = checkpoint.parent.parent / ".hydra" / "config.yaml"
-    if not config.is_file():
+    config = saved_run_config(checkpoint)
+    if config is None:
         return None
     try:
-        return horizon_settings(OmegaConf.load(config))
-    except Exception:  # an unreadable or unresolvable config says nothing about the schedule
+        return horizon_settings(config)
+    except Exception:  # an unresolvable config says nothing about the schedule
         return None
 
 

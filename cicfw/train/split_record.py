@@ -9,8 +9,9 @@ from typing import Any, Mapping
 
 from omegaconf import OmegaConf
 
-from cicfw.core.config_checks import same_value
+from cicfw.core.config_checks import plain_value, same_value
 from cicfw.core.errors import CicfwError
+from cicfw.core.run_folder import saved_run_config
 
 #: the checkpoint key holding the settings
 SPLIT_KEY = "cicfw_split"
@@ -22,34 +23,24 @@ SAMPLE_KEYS = ("cameras", "val_cameras", "max_abs_steer", "side_camera_correctio
 RECORDED_KEYS = SPLIT_KEYS + SAMPLE_KEYS
 
 
-def _plain(value: Any) -> Any:
-    """A config value as plain data (a ListConfig as a list), as ``torch.load(weights_only=True)`` reads it."""
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
-
-
 def split_settings(data_cfg: Mapping[str, Any]) -> dict[str, Any]:
     """The ``RECORDED_KEYS`` of a run's ``data`` node (a key it lacks: not recorded, so never compared)."""
-    return {key: _plain(data_cfg.get(key)) for key in RECORDED_KEYS if key in data_cfg}
+    return {key: plain_value(data_cfg.get(key)) for key in RECORDED_KEYS if key in data_cfg}
 
 
 def run_config_split(checkpoint: Path) -> dict[str, Any] | None:
     """The settings of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``), read from its
     ``<run>/.hydra/config.yaml``: for checkpoints written before they recorded them. None when there is no
     such config or it does not give the split; a key it lacks or cannot resolve is left out."""
-    config = checkpoint.parent.parent / ".hydra" / "config.yaml"
-    if not config.is_file():
-        return None
-    try:
-        data = OmegaConf.load(config).get("data")
-    except Exception:  # an unreadable config says nothing about the split
-        return None
+    config = saved_run_config(checkpoint)
+    data = config.get("data") if config is not None else None
     if not OmegaConf.is_dict(data):
         return None
     found = {}
     for key in RECORDED_KEYS:
         try:
             if key in data:
-                found[key] = _plain(OmegaConf.select(data, key, throw_on_resolution_failure=True))
+                found[key] = plain_value(OmegaConf.select(data, key, throw_on_resolution_failure=True))
         except Exception:  # an unresolvable value says nothing
             continue
     return found if all(found.get(key) is not None for key in SPLIT_KEYS) else None
