@@ -29,6 +29,7 @@ from cicfw import COMMANDS
 from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
+from cicfw.core.command_line import command_line_keys
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
 from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty_cache_setting, is_integer,
                                       same_value)
@@ -476,12 +477,17 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
 def check_evaluation(cfg: DictConfig) -> None:
     """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training.
     Without it, ``return_closed_loop=true`` would return the validation metric to a sweeper told it gets
-    the success rate: refused."""
+    the success rate, and ``evaluate_overrides`` given on the command line would go unused: refused (an
+    experiment's own ``evaluate_overrides``, for when the evaluation is asked for, are not)."""
     if cfg.get("evaluate_after"):
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
     elif cfg.get("return_closed_loop"):
         raise ConfigError("return_closed_loop", True, "false without evaluate_after=true (the closed-loop success "
                           "rate it returns is measured by the evaluation after training)")
+    elif cfg.get("evaluate_overrides") and "evaluate_overrides" in command_line_keys(cfg, "train"):
+        raise ConfigError("evaluate_overrides", list(cfg.evaluate_overrides), "given with evaluate_after=true (they "
+                          "set the evaluation after training, which runs only then): add evaluate_after=true, or "
+                          "leave evaluate_overrides out")
 
 
 def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
