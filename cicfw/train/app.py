@@ -37,7 +37,7 @@ from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, writable_folder
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
@@ -139,27 +139,17 @@ def ensure_data(data_cfg: DictConfig) -> None:
 
 def make_collect_folder(path: Path) -> None:
     """``data=sim_default`` collects into ``data.path``, by default under the cicfw cache folder
-    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here, and a folder that cannot be made or written is one
-    line naming what the user of train changes (the collector's own error names collect's ``out_dir``)."""
-    try:
-        if path.exists() and not path.is_dir():
-            why = "a file, not a folder"
-        else:
-            path.mkdir(parents=True, exist_ok=True)
-            why = "" if os.access(path, os.W_OK | os.X_OK) else "permission denied"
-    except OSError as err:
-        why = err.strerror or str(err)
-    if not why:
-        return
+    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here (``writable_folder``), and a folder that cannot be
+    made or written is one line naming what the user of train changes, ``CICFW_CACHE`` for a folder under it,
+    else ``data.path`` (the collector's own error names collect's ``out_dir``)."""
     cache = os.environ.get(CACHE_VARIABLE)
     root = Path(os.path.abspath(os.path.expanduser(cache))) if cache else None
     if root is not None and (root == path.absolute() or root in path.absolute().parents):
-        raise CicfwError(f"cannot create or write {path} ({why}), where data=sim_default collects its dataset "
-                         f"under {CACHE_VARIABLE}={cache}; set the environment variable {CACHE_VARIABLE} to a "
-                         f"writable folder, or give data.path=<a writable folder>", key=CACHE_VARIABLE, value=cache)
-    raise CicfwError(f"data.path={path}: cannot create or write this folder ({why}), where data=sim_default collects "
-                     f"its dataset; give data.path=<a writable folder> (or set the environment variable "
-                     f"{CACHE_VARIABLE} to a writable folder for the default one)", key="data.path", value=str(path))
+        key, value, instead = CACHE_VARIABLE, cache, "give data.path=<a writable folder>"
+    else:
+        key, value, instead = "data.path", None, f"set the environment variable {CACHE_VARIABLE} to one for the default"
+    writable_folder(path, key, f"a folder you can write, where data=sim_default collects its dataset (or {instead})",
+                    "the dataset folder", value=value)
 
 
 def check_not_your_own_data(path: Path) -> None:
