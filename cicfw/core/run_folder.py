@@ -13,7 +13,7 @@ import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NoReturn, Sequence
 
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
@@ -304,6 +304,14 @@ def undo_noted_folders() -> None:
     running a job (Hydra refused a job's config while the sweeper checked the sweep)."""
     for folder in list(_BEFORE):
         undo_run_folder(folder)
+
+
+def refuse_before_any_job(line: str) -> NoReturn:
+    """A run refused before its first job: ``line`` as the one ``cicfw: error:`` line, the folders noted for
+    it put back (``undo_noted_folders``: a sweep folder made already), exit status 2."""
+    print(f"cicfw: error: {line}", file=sys.stderr)
+    undo_noted_folders()
+    sys.exit(2)
 
 
 def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> None:
