@@ -1,5 +1,6 @@
 """The one atomic writer (cicfw.core.files) and its users below the apps: files get the umask's mode, a failed
-write leaves the final name untouched and no temporary file behind, and the module sits at the bottom."""
+write leaves the final name untouched and no temporary file behind, and the module sits at the bottom. The
+one check of an output folder, `writable_folder`: one `ConfigError` naming the key that chose the folder."""
 from __future__ import annotations
 
 import ast
@@ -15,7 +16,8 @@ from matplotlib.figure import Figure
 import cicfw
 import cicfw.core.files as files_mod
 from cicfw.data.cil_hdf5 import N_TARGETS, write_file
-from cicfw.core.files import atomic_write, write_together
+from cicfw.core.errors import ConfigError
+from cicfw.core.files import atomic_write, writable_folder, write_together
 from cicfw.model.diagnostics import save_png
 
 
@@ -101,10 +103,48 @@ def test_a_group_of_files_appears_whole_or_not_at_all(tmp_path, monkeypatch):
 
 
 def test_the_writer_is_the_bottom_layer():
-    tree = ast.parse((Path(cicfw.__file__).parent / "core" / "files.py").read_text())
-    found = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    found |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert not [m for m in found if m == "cicfw" or m.startswith("cicfw.")], sorted(found)
+    """files.py imports nothing from cicfw but its errors, which import nothing from cicfw."""
+    def cicfw_imports(name: str) -> list[str]:
+        tree = ast.parse((Path(cicfw.__file__).parent / "core" / f"{name}.py").read_text())
+        found = {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        found |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        return sorted(m for m in found if m == "cicfw" or m.startswith("cicfw."))
+
+    assert cicfw_imports("files") == ["cicfw.core.errors"]
+    assert cicfw_imports("errors") == []
+
+
+@pytest.mark.parametrize("where", ["a file", "under a file", "read-only"])
+def test_a_folder_that_cannot_be_made_or_written_is_a_config_error_naming_its_key(tmp_path, monkeypatch, where):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("mine")
+    folder = {"a file": blocker, "under a file": blocker / "sub", "read-only": tmp_path / "ro"}[where]
+    if where == "read-only":  # as a read-only mount refuses it, whoever runs the test (root ignores modes)
+        folder.mkdir()
+        real_open = os.open
+
+        def refusing_open(path, *a, **k):
+            if os.path.dirname(os.fspath(path)) == str(folder):
+                raise PermissionError(errno.EACCES, "Permission denied", os.fspath(path))
+            return real_open(path, *a, **k)
+
+        monkeypatch.setattr(os, "open", refusing_open)
+    with pytest.raises(ConfigError) as err:
+        writable_folder(folder, "--out", "a folder you can write")
+    assert (err.value.key, err.value.value) == ("--out", str(folder))
+    assert blocker.read_text() == "mine"
+    with pytest.raises(ConfigError) as err:  # the setting that chose the folder, when it is not the path itself
+        writable_folder(folder, "CICFW_CACHE", "a folder you can write", value=str(tmp_path))
+    assert (err.value.key, err.value.value) == ("CICFW_CACHE", str(tmp_path))
+
+
+def test_a_writable_folder_is_made_and_left_as_it_was(tmp_path):
+    folder = tmp_path / "a" / "b"
+    assert writable_folder(folder, "--out", "a folder you can write") == folder
+    assert list(folder.iterdir()) == []
+    (folder / "kept").write_text("x")
+    writable_folder(folder, "--out", "a folder you can write")
+    assert [p.name for p in folder.iterdir()] == ["kept"]  # no probe left behind
 
 
 def test_a_held_run_folder_loses_only_the_temporaries_of_writers_that_no_longer_run(tmp_path):

@@ -88,6 +88,41 @@ def test_evaluate_overrides_the_schema_refuses_are_refused_before_the_first_batc
     assert _one_line(err).startswith("evaluate_overrides: ")
 
 
+def test_evaluate_overrides_without_evaluate_after_are_refused_before_any_run_folder(tmp_path, no_data):
+    """``evaluate_overrides`` on the command line set the evaluation that only ``evaluate_after=true`` runs:
+    without it they were silently unused."""
+    res = train_app(*BASE, f"data.path={tmp_path}/data", 'evaluate_overrides=["suite.limit=1"]',
+                    f"hydra.run.dir={tmp_path / 'run'}")
+    line = assert_refused(res, "evaluate_overrides", "suite.limit=1")
+    assert "evaluate_after=true" in line, line
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("overrides, refused", [
+    (['evaluate_overrides=["suite.limit=1"]'], True),
+    (['++evaluate_overrides=["suite.limit=1"]', "experiment=paper_cil"], True),
+    (['evaluate_overrides=["suite.limit=1"]', "evaluate_after=true"], False),
+    (["experiment=paper_cil"], False),  # the experiment's own, for when the evaluation is asked for
+    (["experiment=paper_cil", "evaluate_after=false"], False),
+    (["evaluate_overrides=[]"], False),
+])
+def test_only_the_command_line_s_evaluate_overrides_need_evaluate_after(overrides, refused):
+    """What a multirun checks of each job (its config with Hydra's record of the job's overrides)."""
+    from hydra import compose, initialize_config_module
+
+    from cicfw.core.errors import ConfigError
+    from cicfw.train.app import check_config
+
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        cfg = compose("train", overrides=[*overrides, "data=cil_hdf5", "data.path=none"], return_hydra_config=True)
+    if not refused:
+        check_config(cfg)
+        return
+    with pytest.raises(ConfigError) as err:
+        check_config(cfg)
+    assert (err.value.key, err.value.value) == ("evaluate_overrides", ["suite.limit=1"])
+
+
 def test_good_evaluate_overrides_pass_the_check():
     from cicfw.benchmark.app import check_evaluation_overrides
 

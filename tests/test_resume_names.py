@@ -62,3 +62,42 @@ def test_last_names_the_newest_checkpoint_file_and_none_starts_afresh(tmp_path):
     assert own_checkpoint("last", tmp_path) == ckpts / "last.ckpt"
     assert with_checkpoint_file(cfg, tmp_path).ckpt_path == str(ckpts / "last.ckpt")
     assert cfg.ckpt_path == "last"  # the caller's config is left as it was
+
+
+@pytest.fixture
+def slurm_requeue(run, tmp_path, monkeypatch) -> dict:
+    """A copy of ``run`` that holds an HPC checkpoint (what Lightning saves before SLURM requeues a job), in an
+    environment where ``SLURMEnvironment.detect()`` finds SLURM: a requeued job, run with no ``ckpt_path``."""
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(run["run"], folder)
+    shutil.copy(folder / "checkpoints" / "last.ckpt", folder / "hpc_ckpt_1.ckpt")
+    for name, value in (("SLURM_NTASKS", "1"), ("SLURM_JOB_NAME", "train"), ("SLURM_PROCID", "0"),
+                        ("SLURM_LOCALID", "0"), ("SLURM_NODEID", "0")):
+        monkeypatch.setenv(name, value)
+    for name in ("SLURM_NTASKS_PER_NODE", "SLURM_NNODES"):
+        monkeypatch.delenv(name, raising=False)
+    return {**run, "run": folder, "hpc": folder / "hpc_ckpt_1.ckpt"}
+
+
+@pytest.mark.slow  # trains
+def test_lightning_s_own_resume_under_slurm_gets_the_checks_hpc_gets(slurm_requeue):
+    req = slurm_requeue
+    cfg = compose_train(*SHORT, f"data.path={req['data']}", "trainer.max_epochs=2", "model.ema_decay=0.0")
+    with pytest.raises(CicfwError) as err:
+        train(cfg, req["run"], refuse_finished=True)
+    assert (err.value.key, err.value.value) == ("ckpt_path", str(req["hpc"]))
+
+
+@pytest.mark.slow  # trains
+def test_lightning_s_own_resume_under_slurm_resumes_the_checked_file(slurm_requeue, monkeypatch):
+    from cicfw.model.module import CICModule
+
+    req = slurm_requeue
+    steps, step = [], CICModule.training_step
+    monkeypatch.setattr(CICModule, "training_step", lambda self, *a, **k: steps.append(1) or step(self, *a, **k))
+    cfg = compose_train(*SHORT, f"data.path={req['data']}", "trainer.max_epochs=2")
+    train(cfg, req["run"], refuse_finished=True)
+    last = torch.load(req["run"] / "checkpoints" / "last.ckpt", weights_only=True)
+    assert (len(steps), last["global_step"]) == (1, 2)  # one step on from the HPC checkpoint's (afresh: 2 and 2)

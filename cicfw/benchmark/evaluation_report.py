@@ -15,7 +15,6 @@ import json
 import os
 import re
 import sys
-import tempfile
 from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -26,6 +25,7 @@ from cicfw.benchmark.plots import bar_chart
 from cicfw.core.run_folder import claim_folder
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
+from cicfw.core.files import writable_folder
 
 ROW_FIELDS = (
     "model", "episode", "key", "town", "weather", "town_set", "weather_set", "pair", "route", "command",
@@ -328,25 +328,6 @@ def _unique_labels(runs: list[Run]) -> list[Run]:
     return runs
 
 
-def writable_folder(path: Path, what: str) -> Path:
-    """Create ``path`` if missing and make sure files can be written into it; one ValueError naming ``what``
-    (e.g. ``--out``) and the folder when it is a file, cannot be created, or is not writable."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise CicfwError(f"report: {what} {path} is a file, not a folder; give a folder (created if missing) for "
-                         f"table.md/.tex/.csv and success_bars.png")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".cicfw-report-", suffix=".probe")
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as err:
-        hint = "" if what == "--out" else " with --out"
-        raise CicfwError(f"report: cannot write to {what} {path} ({err.strerror or err}); give a writable "
-                         f"folder{hint}") from None
-    return path
-
-
 def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False) -> str:
     """Write the joined table (md, tex, csv) and its bar chart into ``out_dir`` (with ``record``, ``cicfw
     report``'s record of the runs it joined there too); return the Markdown."""
@@ -370,6 +351,8 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record:
 #: what ``cicfw report`` writes into its folder, and its record of the runs it joined there
 REPORT_FILES = ("table.md", "table.tex", "table.csv", "success_bars.png")
 REPORT_RECORD = "report.json"
+#: what ``--out`` must be (``writable_folder`` checks it before anything is written)
+REPORT_FOLDER = "a folder you can write (created if missing) for table.md/.tex/.csv and success_bars.png"
 
 
 def _joined(runs: Sequence[Run]) -> list[str]:
@@ -421,7 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             claim_folder(out, "report", "--out", inputs=[*args.dirs, *(r.path for r in runs)],
                          foreign_ok=args.overwrite)
         check_report_folder(out, runs, args.dirs, what, args.overwrite)
-        writable_folder(out, what)
+        writable_folder(out, "--out", REPORT_FOLDER, what)
         md = write_joined(runs, out, plots=not args.no_plots, record=True)
     except ValueError as err:
         print(f"cicfw: error: {err}", file=sys.stderr)

@@ -2,17 +2,21 @@
 reader (or a full disk, or a kill) never finds half a file under the final name; ``write_together``
 does it for a group of files (an episode's parts, a model and its sidecar): all or none. Files get the mode a
 plain ``open`` gives (0666 less the umask), not ``mkstemp``'s owner-only 0600: a shared results folder,
-dataset or run folder stays readable by colleagues. It imports nothing from cicfw (the bottom layer,
+dataset or run folder stays readable by colleagues. ``writable_folder``: an app's output folder made and
+checked before anything is written there. It imports nothing from cicfw but its errors (the bottom layer,
 beside the registry).
 """
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import secrets
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping
+
+from cicfw.core.errors import ConfigError
 
 
 def _temp_name(path: Path, suffix: str) -> Path:
@@ -104,6 +108,33 @@ def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Pat
         for tmp, _ in temps:
             tmp.unlink(missing_ok=True)
         raise
+
+
+#: the probe ``writable_folder`` writes and removes (a folder holding one is no one's output)
+PROBE_PREFIX = ".cicfw-probe-"
+
+
+def writable_folder(path: str | os.PathLike, key: str, accepted: str, what: str = "the folder",
+                    value: object = None) -> Path:
+    """``path`` made (with its parents) and a file written and removed there, before an app writes anything:
+    a file in the way, or a folder that cannot be made or written, is one ``ConfigError`` naming ``key``
+    and ``value`` (the path unless the setting that chose it says otherwise), why, and ``accepted``.
+    ``what`` names the folder in the message ("the run folder")."""
+    path = Path(path)
+    verb = "write" if os.path.isdir(path) else "create"  # os.path's: False, not an error, for a name too long
+    try:
+        if verb == "create" and os.path.lexists(path):
+            raise NotADirectoryError(errno.ENOTDIR, "a file, not a folder")
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f"{PROBE_PREFIX}{os.getpid()}-{secrets.token_hex(4)}"
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+        return path
+    except OSError as err:
+        why = err.strerror or str(err)
+    shown = str(path) if value is None else value
+    got = "" if value is None else f", got {value}"
+    raise ConfigError(key, shown, accepted, f"cannot {verb} {what} {path} ({why}); {key} must be {accepted}{got}")
 
 
 def atomic_write(path: str | os.PathLike, data: str | bytes | memoryview) -> None:

@@ -34,7 +34,7 @@ from omegaconf import OmegaConf
 from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError
 from cicfw.core.hydra_plugins import guard_hydra_plugins
-from cicfw.core.run_folder import undo_noted_folders
+from cicfw.core.run_folder import refuse_before_any_job
 from cicfw.core.sweeps import is_worker_process
 
 # Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
@@ -166,9 +166,7 @@ def one_line_config_errors() -> Iterator[None]:
             line = None if os.environ.get("HYDRA_FULL_ERROR") == "1" else composition_error_line(err, sys.argv[1:])
             if line is None:
                 raise
-            print(f"cicfw: error: {line}", file=sys.stderr)
-            undo_noted_folders()  # a sweep folder made before Hydra refused a job's config
-            sys.exit(2)
+            refuse_before_any_job(line)
 
     hydra_utils.run_and_report = lambda func: report(lambda: one_line(func))
     try:
@@ -286,10 +284,7 @@ class SweepJobsCheck(Callback):
             try:
                 check(job_config)
             except CicfwError as err:
-                print(f"cicfw: error: job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran",
-                      file=sys.stderr)
-                undo_noted_folders()  # the sweep folder, when something made it already
-                sys.exit(2)
+                refuse_before_any_job(f"job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran")
 
 
 class JobFailed(CompactHydraException):

@@ -13,14 +13,14 @@ import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NoReturn, Sequence
 
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import remove_stale_temps
+from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.sweeps import is_worker_process
 
@@ -58,20 +58,13 @@ def _check_names(names: Sequence[tuple[str, str]], limit: int) -> None:
 
 
 def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequence[tuple[str, str]] = ()) -> None:
-    """Create ``folder`` (if needed) and a file in it, or raise one ``RunFolderError`` naming ``key``.
+    """Create ``folder`` (if needed) and a file in it (``writable_folder``): a ``ConfigError`` naming ``key``
+    otherwise, or a ``RunFolderError`` for a name longer than the filesystem takes.
 
     ``files``: (key, file name) pairs the run will create there (the job's log), checked for length."""
     folder = Path(folder)
     _check_names([(key, part) for part in folder.parts] + list(files), name_max(folder))
-    what = "write" if _exists(folder) else "create"
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".cicfw-probe-{os.getpid()}"
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-        os.unlink(probe)
-    except OSError as err:
-        raise RunFolderError(f"cannot {what} the run folder {folder} ({err.strerror or err}); give a folder you "
-                             f"can write: {key}=<folder>") from None
+    writable_folder(folder, key, "a folder you can write", "the run folder")
 
 
 class RunFolderCheck(Callback):
@@ -121,7 +114,7 @@ class RunFolderCheck(Callback):
     def _check(folder: Any, key: str, files: Sequence[tuple[str, str]]) -> None:
         try:
             check_run_folder(str(folder), key, files)
-        except RunFolderError as err:
+        except CicfwError as err:  # a RunFolderError, or writable_folder's ConfigError
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
 
@@ -313,6 +306,14 @@ def undo_noted_folders() -> None:
         undo_run_folder(folder)
 
 
+def refuse_before_any_job(line: str) -> NoReturn:
+    """A run refused before its first job: ``line`` as the one ``cicfw: error:`` line, the folders noted for
+    it put back (``undo_noted_folders``: a sweep folder made already), exit status 2."""
+    print(f"cicfw: error: {line}", file=sys.stderr)
+    undo_noted_folders()
+    sys.exit(2)
+
+
 def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> None:
     """One ``RunFolderError`` when ``folder`` holds another multirun (its ``multirun.yaml``, or a job folder
     with Hydra's record), which this one would write over before any of its jobs could refuse."""
@@ -394,7 +395,7 @@ def _entries(folder: Path) -> list[str]:
         names = sorted(p.name for p in folder.iterdir())
     except OSError:  # missing, a file, or unreadable: check_run_folder (or the app's own check) says so
         return []
-    return [n for n in names if n not in HOUSEKEEPING and not n.startswith((".cicfw-probe-", ".cicfw-report-"))]
+    return [n for n in names if n not in HOUSEKEEPING and not n.startswith(PROBE_PREFIX)]
 
 
 def _hydra_job(folder: Path) -> str | None:

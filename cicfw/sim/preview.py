@@ -12,7 +12,6 @@ import argparse
 import io
 import math
 import os
-import secrets
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import numpy as np
 from PIL import Image
 
 from cicfw.core.errors import CicfwError, report_user_errors
-from cicfw.core.files import write_together
+from cicfw.core.files import writable_folder, write_together
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
@@ -47,19 +46,8 @@ def _png(rgb: np.ndarray, colours: int = 0) -> bytes:
     return data.tobytes()
 
 
-def check_out_folder(out: Path) -> Path:
-    """Create ``--out`` if missing and make sure a file can be written into it, before anything is rendered;
-    one ValueError naming the folder otherwise."""
-    if out.exists() and not out.is_dir():
-        raise CicfwError(f"--out {out} is a file, not a folder; give a folder (created if missing) for the PNGs")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".cicfw-preview.{os.getpid()}-{secrets.token_hex(4)}.probe"
-        probe.touch(exist_ok=False)
-        probe.unlink()
-    except OSError as err:
-        raise CicfwError(f"--out: cannot write to {out} ({err.strerror or err}); give a writable folder") from None
-    return out
+#: what ``--out`` must be (``writable_folder`` checks it before anything is rendered)
+OUT_FOLDER = "a folder you can write (created if missing) for the PNGs"
 
 
 def _label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42, colour=(0, 0, 0)) -> None:
@@ -221,7 +209,7 @@ def _main(argv: list[str] | None = None) -> int:
     towns = load_towns(a.towns or town_names())
     out = Path(a.out).expanduser().resolve()
     new_top = _first_missing(out)
-    check_out_folder(out)  # before the seconds of rendering
+    writable_folder(out, "--out", OUT_FOLDER, "--out")  # before the seconds of rendering
     try:  # every picture is made, then all are written or none: a late failure leaves no half set of PNGs
         images = _render(a, towns)
         write_together((out / name, _png(rgb, a.colours)) for name, rgb in images.items())

@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cicfw.core.files import write_together
-from cicfw.sim.preview import _png, approach_pose, check_out_folder
+from cicfw.core.files import writable_folder, write_together
+from cicfw.sim.preview import OUT_FOLDER, _png, approach_pose
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
 from cicfw.sim.town import load_town, town_names
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--colours", type=int, default=256, help="palette size of the PNG (0: full colour)")
     ap.add_argument("--prefix", default="", help="prefix of the file name (e.g. sim_)")
     a = ap.parse_args(argv)
-    out = check_out_folder(Path(a.out).expanduser().resolve())
+    out = writable_folder(Path(a.out).expanduser().resolve(), "--out", OUT_FOLDER, "--out")
     rgb = sheet([load_town(t) for t in a.towns], a.weathers)
     path = out / f"{a.prefix}weather_families.png"
     write_together([(path, _png(rgb, a.colours))])

@@ -29,6 +29,7 @@ from cicfw import COMMANDS
 from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
+from cicfw.core.command_line import command_line_keys
 from cicfw.core.config_checks import did_you_mean as _did_you_mean
 from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty_cache_setting, is_integer,
                                       same_value)
@@ -36,7 +37,7 @@ from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, writable_folder
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule
@@ -138,27 +139,17 @@ def ensure_data(data_cfg: DictConfig) -> None:
 
 def make_collect_folder(path: Path) -> None:
     """``data=sim_default`` collects into ``data.path``, by default under the cicfw cache folder
-    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here, and a folder that cannot be made or written is one
-    line naming what the user of train changes (the collector's own error names collect's ``out_dir``)."""
-    try:
-        if path.exists() and not path.is_dir():
-            why = "a file, not a folder"
-        else:
-            path.mkdir(parents=True, exist_ok=True)
-            why = "" if os.access(path, os.W_OK | os.X_OK) else "permission denied"
-    except OSError as err:
-        why = err.strerror or str(err)
-    if not why:
-        return
+    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here (``writable_folder``), and a folder that cannot be
+    made or written is one line naming what the user of train changes, ``CICFW_CACHE`` for a folder under it,
+    else ``data.path`` (the collector's own error names collect's ``out_dir``)."""
     cache = os.environ.get(CACHE_VARIABLE)
     root = Path(os.path.abspath(os.path.expanduser(cache))) if cache else None
     if root is not None and (root == path.absolute() or root in path.absolute().parents):
-        raise CicfwError(f"cannot create or write {path} ({why}), where data=sim_default collects its dataset "
-                         f"under {CACHE_VARIABLE}={cache}; set the environment variable {CACHE_VARIABLE} to a "
-                         f"writable folder, or give data.path=<a writable folder>", key=CACHE_VARIABLE, value=cache)
-    raise CicfwError(f"data.path={path}: cannot create or write this folder ({why}), where data=sim_default collects "
-                     f"its dataset; give data.path=<a writable folder> (or set the environment variable "
-                     f"{CACHE_VARIABLE} to a writable folder for the default one)", key="data.path", value=str(path))
+        key, value, instead = CACHE_VARIABLE, cache, "give data.path=<a writable folder>"
+    else:
+        key, value, instead = "data.path", None, f"set the environment variable {CACHE_VARIABLE} to one for the default"
+    writable_folder(path, key, f"a folder you can write, where data=sim_default collects its dataset (or {instead})",
+                    "the dataset folder", value=value)
 
 
 def check_not_your_own_data(path: Path) -> None:
@@ -476,12 +467,17 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
 def check_evaluation(cfg: DictConfig) -> None:
     """With ``evaluate_after``, the evaluation's overrides: a typo there does not wait for the training.
     Without it, ``return_closed_loop=true`` would return the validation metric to a sweeper told it gets
-    the success rate: refused."""
+    the success rate, and ``evaluate_overrides`` given on the command line would go unused: refused (an
+    experiment's own ``evaluate_overrides``, for when the evaluation is asked for, are not)."""
     if cfg.get("evaluate_after"):
         check_evaluation_overrides(cfg.get("evaluate_overrides"))
     elif cfg.get("return_closed_loop"):
         raise ConfigError("return_closed_loop", True, "false without evaluate_after=true (the closed-loop success "
                           "rate it returns is measured by the evaluation after training)")
+    elif cfg.get("evaluate_overrides") and "evaluate_overrides" in command_line_keys(cfg, "train"):
+        raise ConfigError("evaluate_overrides", list(cfg.evaluate_overrides), "given with evaluate_after=true (they "
+                          "set the evaluation after training, which runs only then): add evaluate_after=true, or "
+                          "leave evaluate_overrides out")
 
 
 def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:

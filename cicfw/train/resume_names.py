@@ -1,13 +1,16 @@
 """``ckpt_path=last`` and ``ckpt_path=hpc``, the names Lightning resolves in the run's own folder, turned into
 the file they name before anything is checked: Lightning would load that file unchecked, so a resume by name
 would skip every check a resume by path gets (the optimizer settings, the split, the schedule's run length,
-the weight averaging). ``best`` never resumes (a fresh Trainer knows no best checkpoint): refused."""
+the weight averaging). ``best`` never resumes (a fresh Trainer knows no best checkpoint): refused. No
+``ckpt_path`` under SLURM, where Lightning itself resumes from the run's newest HPC checkpoint (a requeued
+job), is ``hpc`` too."""
 from __future__ import annotations
 
 import copy
 import logging
 from pathlib import Path
 
+from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig, open_dict
 
 from cicfw.core.errors import CicfwError
@@ -29,14 +32,26 @@ def own_checkpoint(name: str, run_dir: Path) -> Path | None:
     return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
 
 
+def lightning_resume_name(ckpt_path: object, run_dir: Path) -> str | None:
+    """``ckpt_path`` as the name Lightning resolves: ``hpc`` for none under SLURM with an HPC checkpoint in
+    ``run_dir`` (Lightning's ``_parse_ckpt_path`` resumes from it by itself), else ``ckpt_path`` as given."""
+    if ckpt_path is not None and str(ckpt_path) != "":
+        return str(ckpt_path)
+    if SLURMEnvironment.detect() and own_checkpoint("hpc", run_dir) is not None:
+        log.info("no ckpt_path under SLURM: resuming from the run's newest HPC checkpoint, as Lightning does "
+                 "(ckpt_path=hpc)")
+        return "hpc"
+    return None
+
+
 def with_checkpoint_file(cfg: DictConfig, run_dir: Path) -> DictConfig:
-    """``cfg`` with a ``ckpt_path`` of ``last`` or ``hpc`` replaced by the file it names in ``run_dir`` (a copy;
-    ``last`` with none there starts afresh, as Lightning does, and says so); ``best`` and ``hpc`` without a
-    checkpoint are one ``CicfwError`` naming ``ckpt_path``. Any other value is returned as it is."""
-    name = cfg.get("ckpt_path")
-    if name is None or str(name) not in ("last", "hpc", "best"):
+    """``cfg`` with a ``ckpt_path`` of ``last`` or ``hpc`` (``lightning_resume_name``) replaced by the file it
+    names in ``run_dir`` (a copy; ``last`` with none there starts afresh, as Lightning does, and says so);
+    ``best`` and ``hpc`` without a checkpoint are one ``CicfwError`` naming ``ckpt_path``. Any other value is
+    returned as it is."""
+    name = lightning_resume_name(cfg.get("ckpt_path"), run_dir)
+    if name is None or name not in ("last", "hpc", "best"):
         return cfg
-    name = str(name)
     if name == "best":
         raise CicfwError("ckpt_path=best: a run resumes from its latest state, not its best checkpoint; resume with "
                          "ckpt_path=last (or the file, <run>/checkpoints/last.ckpt), or evaluate the best one with "

@@ -4,14 +4,13 @@ closed-loop success, higher is better. The wrong one searches for the worst mode
 refused before the first trial."""
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import ConfigError
-from cicfw.core.run_folder import undo_noted_folders
+from cicfw.core.run_folder import refuse_before_any_job
 
 
 def wanted_direction(config: Any) -> str:
@@ -42,6 +41,4 @@ class SweepDirectionCheck(Callback):
         try:
             check_direction(config)
         except ConfigError as err:
-            print(f"cicfw: error: {err}", file=sys.stderr)
-            undo_noted_folders()  # the sweep folder, when something made it already
-            sys.exit(2)
+            refuse_before_any_job(str(err))
