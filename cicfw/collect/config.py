@@ -1,7 +1,7 @@
 """The collect config: ``CollectConfig``, the one place its keys, types and defaults live (conf/collect.yaml
 and ``data.collect`` take them from it through the apps' config schemas, cicfw/collect/schema.py and
-cicfw/train/schema.py); its validation (one clear error per bad key), its hash, and the simulator backend it
-names."""
+cicfw/train/schema.py); its validation (one clear error per bad key), its hash, the simulator backend it
+names, and what it collects: every episode's id, town, weather and seed, its steps, and its size on disk."""
 from __future__ import annotations
 
 import hashlib
@@ -11,10 +11,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.core.config_checks import SchemaError, checked, is_number
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
 from cicfw.sim.roadgraph import COMMAND_DISTANCE
@@ -252,3 +254,27 @@ def config_hash(cfg: dict) -> str:
         keep["town_files"] = files
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
+
+SAMPLE_BYTES = int(np.prod(IMAGE_SHAPE)) + 4 * N_TARGETS  # one sample in a CIL file, before HDF5's overhead
+
+
+def episode_plan(cfg: dict) -> list[dict]:
+    """Every episode's id, town, weather and seed: a pure function of the config."""
+    combos = [(t, w) for t in cfg["towns"] for w in cfg["weathers"]]
+    plan = []
+    for i in range(cfg["episodes"]):
+        town, weather = combos[i % len(combos)]
+        plan.append({"id": f"ep{i:04d}_{town_key(town)}_{weather}", "index": i, "town": town, "weather": weather,
+                     "seed": int(np.random.SeedSequence([int(cfg["seed"]), i]).generate_state(1)[0])})
+    return plan
+
+
+def steps_per_episode(cfg: dict) -> int:
+    return int(round(float(cfg["seconds"]) * 10))
+
+
+def episode_bytes(cfg: dict) -> int:
+    """About what one episode's files take on disk (HDF5 overhead included, rounded up)."""
+    n = steps_per_episode(cfg) * len(cfg["cameras"])
+    parts = -(-n // SAMPLES_PER_FILE)
+    return int(n * SAMPLE_BYTES * 1.01) + parts * 64 * 1024 + 64 * 1024
