@@ -42,9 +42,9 @@ from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.trained_sets import checkpoint_run_data, override_values, training_set_overrides
 from cicfw.benchmark.video import select_episodes, write_video
-from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
+from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
-from cicfw.core.override_hints import composition_error_line
+from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.core.sweeps import write_job_metrics
 from cicfw.data.provenance import file_sha256
@@ -439,7 +439,7 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
             with initialize_config_module("cicfw.conf", version_base="1.3"):
                 cfg = compose("evaluate", overrides=list(overrides))
     except ConfigCompositionException as err:
-        raise config_error(err) or CicfwError(composition_error_line(err, list(overrides))) from None
+        raise composition_error(err, list(overrides)) from None
     evaluate_schema.check(cfg)
     return cfg
 
