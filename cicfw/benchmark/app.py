@@ -40,13 +40,13 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
-from cicfw.benchmark.trained_sets import checkpoint_run_data, override_values, training_set_overrides
+from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overrides
 from cicfw.benchmark.video import select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import undo_run_folder
-from cicfw.core.sweeps import write_job_metrics
+from cicfw.core.sweeps import override_values, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
