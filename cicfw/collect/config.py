@@ -57,6 +57,17 @@ class CollectConfig:
 
 
 DEFAULTS: dict[str, Any] = asdict(CollectConfig())
+#: the values the numbers of a collection accept (a type cannot say them): key -> (test, what is accepted)
+VALUES = {
+    "episodes": (lambda v: v >= 1, "an integer >= 1"),
+    "seconds": (lambda v: math.isfinite(v) and round(v * 10) >= 1, "> 0 (at least 0.1: one step at 10 Hz)"),
+    "seed": (lambda v: v >= 0, "an integer >= 0 (every episode's route, noise and rain derive from it)"),
+    "workers": (lambda v: v >= 0, "an integer >= 0 (0 or 1: in this process)"),
+    "command_distance": (lambda v: is_number(v) and v > 0, "metres > 0"),
+    "noise.episode_fraction": (lambda v: is_number(v) and 0.0 <= v <= 1.0, "in [0, 1]"),
+    "noise.frequency": (lambda v: v >= 0, "an integer >= 0"),
+    "noise.intensity": (lambda v: is_number(v) and v >= 0, ">= 0"),
+}
 # keys that do not change the data (left out of the config hash, so a rerun may change them)
 _NOT_DATA = ("workers", "lock_wait", "sim", "_hash")
 
@@ -133,20 +144,12 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
         if not isinstance(out[k], (list, tuple)) or not all(isinstance(x, str) for x in out[k]):
             raise CollectConfigError(f"collect.{k} must be a list of names, got {out[k]!r}")
         out[k] = list(out[k])
-    if out["episodes"] < 1:
-        raise CollectConfigError(f"collect.episodes must be an integer >= 1, got {out['episodes']!r}")
-    if not math.isfinite(out["seconds"]) or round(out["seconds"] * 10) < 1:
-        raise CollectConfigError(f"collect.seconds must be > 0 (at least 0.1: one step at 10 Hz), "
-                                 f"got {out['seconds']!r}")
-    if out["seed"] < 0:
-        raise CollectConfigError(f"collect.seed must be an integer >= 0 (every episode's route, noise and rain "
-                                 f"derive from it), got {out['seed']!r}")
-    if out["workers"] < 0:
-        raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
-                                 f"got {out['workers']!r}")
+    for key, (ok, accepted) in VALUES.items():  # the schema checked the types: numbers, integers where said
+        value = OmegaConf.select(typed, key)
+        if not ok(value):
+            raise CollectConfigError(f"collect.{key} must be {accepted}, got {value!r}", key=f"collect.{key}",
+                                     value=value)
     check_lock_wait(out["lock_wait"])
-    if not is_number(out["command_distance"]) or out["command_distance"] <= 0:
-        raise CollectConfigError(f"collect.command_distance must be metres > 0, got {out['command_distance']!r}")
     if not out["cameras"]:
         raise CollectConfigError(f"collect.cameras is empty; known: {', '.join(CAMERA_IDS)}")
     for c in out["cameras"]:
@@ -155,13 +158,6 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
                                      key="collect.cameras", value=c)
     if len(set(out["cameras"])) != len(out["cameras"]):
         raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
-    nz = out["noise"]
-    if not is_number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
-        raise CollectConfigError(f"collect.noise.episode_fraction must be in [0, 1], got {nz['episode_fraction']!r}")
-    if nz["frequency"] < 0:
-        raise CollectConfigError(f"collect.noise.frequency must be an integer >= 0, got {nz['frequency']!r}")
-    if not is_number(nz["intensity"]) or nz["intensity"] < 0:
-        raise CollectConfigError(f"collect.noise.intensity must be >= 0, got {nz['intensity']!r}")
     accepted = DEFAULTS["expert"]
     try:  # values the expert cannot drive with (a negative speed, a look-ahead of 0)
         ExpertParams(**out["expert"])
