@@ -152,13 +152,13 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
             pol = spec
         wall = 0.0
         if missing:
-            _write_report(out_dir, label, elog.rows, episodes, meta)  # marked partial until the last episode
+            write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))  # marked partial: not final
             try:
                 res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
                 wall = res.wall_s
             except BaseException as stop:
                 try:
-                    _write_report(out_dir, label, elog.rows, episodes, meta)
+                    write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))
                 except Exception as err:  # e.g. a full disk: the log still holds every finished episode
                     log.error("could not write the partial report: %s", err)
                 kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
@@ -366,13 +366,6 @@ def _report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episod
     meta = {**meta, "complete": complete, "episodes_total": len(episodes),
             "steps": sum(int(r["steps"]) for r in rows)}
     return Run(label=label, rows=rows, meta=meta, path=out_dir)
-
-
-def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
-                  meta: dict[str, Any]):
-    """``_report`` (never the final one: marked partial) written into ``out_dir``: its summary and the report."""
-    report = _report(out_dir, label, rows_by_index, episodes, meta)
-    return write_run(out_dir, report), report
 
 
 def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
