@@ -40,13 +40,13 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
-from cicfw.benchmark.trained_sets import checkpoint_run_data, override_values, training_set_overrides
+from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overrides
 from cicfw.benchmark.video import select_episodes, write_video
-from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed, config_error
+from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
-from cicfw.core.override_hints import composition_error_line
+from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import undo_run_folder
-from cicfw.core.sweeps import write_job_metrics
+from cicfw.core.sweeps import override_values, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
@@ -152,13 +152,13 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
             pol = spec
         wall = 0.0
         if missing:
-            _write_report(out_dir, label, elog.rows, episodes, meta)  # marked partial until the last episode
+            write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))  # marked partial: not final
             try:
                 res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
                 wall = res.wall_s
             except BaseException as stop:
                 try:
-                    _write_report(out_dir, label, elog.rows, episodes, meta)
+                    write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))
                 except Exception as err:  # e.g. a full disk: the log still holds every finished episode
                     log.error("could not write the partial report: %s", err)
                 kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
@@ -368,13 +368,6 @@ def _report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episod
     return Run(label=label, rows=rows, meta=meta, path=out_dir)
 
 
-def _write_report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],
-                  meta: dict[str, Any]):
-    """``_report`` (never the final one: marked partial) written into ``out_dir``: its summary and the report."""
-    report = _report(out_dir, label, rows_by_index, episodes, meta)
-    return write_run(out_dir, report), report
-
-
 def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
              maps: bool, filmed: Sequence[dict]) -> None:
     """The map per town, the bar chart, and the requested videos."""
@@ -439,7 +432,7 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
             with initialize_config_module("cicfw.conf", version_base="1.3"):
                 cfg = compose("evaluate", overrides=list(overrides))
     except ConfigCompositionException as err:
-        raise config_error(err) or CicfwError(composition_error_line(err, list(overrides))) from None
+        raise composition_error(err, list(overrides)) from None
     evaluate_schema.check(cfg)
     return cfg
 

@@ -8,14 +8,12 @@ import json
 from pathlib import Path
 from typing import Any, Sequence
 
-from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
 from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
+from cicfw.core.sweeps import override_values
 
-#: the keys that say the training sets; an ``evaluate_overrides`` entry for one keeps it as given
-TRAINING_SET_KEYS = ("suite.training_towns", "suite.training_weathers")
 #: the embedded simulator's shipped towns (conf/town/)
 SHIPPED_TOWNS = ("town_a", "town_b")
 
@@ -36,19 +34,6 @@ def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
     if not isinstance(towns, list) or not isinstance(weathers, list):
         return None
     return [str(t) for t in towns], [str(w) for w in weathers]
-
-
-def override_values(overrides: Sequence[str]) -> dict[str, Any]:
-    """Overrides (``evaluate_overrides``, the app's) as key -> value (those Hydra cannot parse are left to the
-    evaluation)."""
-    parser, out = OverridesParser.create(), {}
-    for o in overrides:
-        try:
-            parsed = parser.parse_override(str(o))
-        except Exception:
-            continue
-        out[parsed.key_or_group.lstrip("+~")] = parsed.value()
-    return out
 
 
 def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]:

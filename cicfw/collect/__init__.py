@@ -45,14 +45,14 @@ collects in-process when ``workers`` <= 1.
 """
 from __future__ import annotations
 
-from cicfw.collect.config import CAMERA_IDS, DEFAULTS, config_hash, make_backend, resolve_config, town_key
+from cicfw.collect.config import (CAMERA_IDS, DEFAULTS, config_hash, episode_bytes, episode_plan, make_backend,
+                                  resolve_config, steps_per_episode, town_key)
 from cicfw.collect.dataset import collect_dataset
 from cicfw.collect.episode import run_episode
 from cicfw.collect.errors import CollectConfigError, CollectError, DiskFullError, FolderLockedError
+from cicfw.collect.integrity import VerifyReport, verify_dataset
 from cicfw.collect.lock import LOCK_NAME, FolderLock
 from cicfw.collect.metadata import META_NAME, SIM_VERSION
-from cicfw.collect.plan import episode_bytes, episode_plan, steps_per_episode
-from cicfw.collect.verify import VerifyReport, verify_dataset
 
 __all__ = [
     "CAMERA_IDS", "DEFAULTS", "LOCK_NAME", "META_NAME", "SIM_VERSION", "CollectConfigError", "CollectError",

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.collect.config import check_lock_wait
 from cicfw.collect.dataset import collect_dataset
 from cicfw.collect.errors import CollectError
-from cicfw.collect.verify import verify_dataset
+from cicfw.collect.integrity import verify_dataset
 from cicfw.core.errors import on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder

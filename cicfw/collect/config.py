@@ -1,7 +1,7 @@
 """The collect config: ``CollectConfig``, the one place its keys, types and defaults live (conf/collect.yaml
 and ``data.collect`` take them from it through the apps' config schemas, cicfw/collect/schema.py and
-cicfw/train/schema.py); its validation (one clear error per bad key), its hash, and the simulator backend it
-names."""
+cicfw/train/schema.py); its validation (one clear error per bad key), its hash, the simulator backend it
+names, and what it collects: every episode's id, town, weather and seed, its steps, and its size on disk."""
 from __future__ import annotations
 
 import hashlib
@@ -11,10 +11,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.core.config_checks import SchemaError, checked, is_number
+from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE
 from cicfw.registry import SIM_BACKENDS, UnknownNameError
 from cicfw.sim.expert import ExpertParams
 from cicfw.sim.roadgraph import COMMAND_DISTANCE
@@ -55,6 +57,17 @@ class CollectConfig:
 
 
 DEFAULTS: dict[str, Any] = asdict(CollectConfig())
+#: the values the numbers of a collection accept (a type cannot say them): key -> (test, what is accepted)
+VALUES = {
+    "episodes": (lambda v: v >= 1, "an integer >= 1"),
+    "seconds": (lambda v: math.isfinite(v) and round(v * 10) >= 1, "> 0 (at least 0.1: one step at 10 Hz)"),
+    "seed": (lambda v: v >= 0, "an integer >= 0 (every episode's route, noise and rain derive from it)"),
+    "workers": (lambda v: v >= 0, "an integer >= 0 (0 or 1: in this process)"),
+    "command_distance": (lambda v: is_number(v) and v > 0, "metres > 0"),
+    "noise.episode_fraction": (lambda v: is_number(v) and 0.0 <= v <= 1.0, "in [0, 1]"),
+    "noise.frequency": (lambda v: v >= 0, "an integer >= 0"),
+    "noise.intensity": (lambda v: is_number(v) and v >= 0, ">= 0"),
+}
 # keys that do not change the data (left out of the config hash, so a rerun may change them)
 _NOT_DATA = ("workers", "lock_wait", "sim", "_hash")
 
@@ -131,20 +144,12 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
         if not isinstance(out[k], (list, tuple)) or not all(isinstance(x, str) for x in out[k]):
             raise CollectConfigError(f"collect.{k} must be a list of names, got {out[k]!r}")
         out[k] = list(out[k])
-    if out["episodes"] < 1:
-        raise CollectConfigError(f"collect.episodes must be an integer >= 1, got {out['episodes']!r}")
-    if not math.isfinite(out["seconds"]) or round(out["seconds"] * 10) < 1:
-        raise CollectConfigError(f"collect.seconds must be > 0 (at least 0.1: one step at 10 Hz), "
-                                 f"got {out['seconds']!r}")
-    if out["seed"] < 0:
-        raise CollectConfigError(f"collect.seed must be an integer >= 0 (every episode's route, noise and rain "
-                                 f"derive from it), got {out['seed']!r}")
-    if out["workers"] < 0:
-        raise CollectConfigError(f"collect.workers must be an integer >= 0 (0 or 1: in this process), "
-                                 f"got {out['workers']!r}")
+    for key, (ok, accepted) in VALUES.items():  # the schema checked the types: numbers, integers where said
+        value = OmegaConf.select(typed, key)
+        if not ok(value):
+            raise CollectConfigError(f"collect.{key} must be {accepted}, got {value!r}", key=f"collect.{key}",
+                                     value=value)
     check_lock_wait(out["lock_wait"])
-    if not is_number(out["command_distance"]) or out["command_distance"] <= 0:
-        raise CollectConfigError(f"collect.command_distance must be metres > 0, got {out['command_distance']!r}")
     if not out["cameras"]:
         raise CollectConfigError(f"collect.cameras is empty; known: {', '.join(CAMERA_IDS)}")
     for c in out["cameras"]:
@@ -153,13 +158,6 @@ def resolve_config(cfg: Any, backend: Any = None) -> dict:
                                      key="collect.cameras", value=c)
     if len(set(out["cameras"])) != len(out["cameras"]):
         raise CollectConfigError(f"collect.cameras lists a camera twice: {out['cameras']}")
-    nz = out["noise"]
-    if not is_number(nz["episode_fraction"]) or not 0.0 <= nz["episode_fraction"] <= 1.0:
-        raise CollectConfigError(f"collect.noise.episode_fraction must be in [0, 1], got {nz['episode_fraction']!r}")
-    if nz["frequency"] < 0:
-        raise CollectConfigError(f"collect.noise.frequency must be an integer >= 0, got {nz['frequency']!r}")
-    if not is_number(nz["intensity"]) or nz["intensity"] < 0:
-        raise CollectConfigError(f"collect.noise.intensity must be >= 0, got {nz['intensity']!r}")
     accepted = DEFAULTS["expert"]
     try:  # values the expert cannot drive with (a negative speed, a look-ahead of 0)
         ExpertParams(**out["expert"])
@@ -252,3 +250,27 @@ def config_hash(cfg: dict) -> str:
         keep["town_files"] = files
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
+
+SAMPLE_BYTES = int(np.prod(IMAGE_SHAPE)) + 4 * N_TARGETS  # one sample in a CIL file, before HDF5's overhead
+
+
+def episode_plan(cfg: dict) -> list[dict]:
+    """Every episode's id, town, weather and seed: a pure function of the config."""
+    combos = [(t, w) for t in cfg["towns"] for w in cfg["weathers"]]
+    plan = []
+    for i in range(cfg["episodes"]):
+        town, weather = combos[i % len(combos)]
+        plan.append({"id": f"ep{i:04d}_{town_key(town)}_{weather}", "index": i, "town": town, "weather": weather,
+                     "seed": int(np.random.SeedSequence([int(cfg["seed"]), i]).generate_state(1)[0])})
+    return plan
+
+
+def steps_per_episode(cfg: dict) -> int:
+    return int(round(float(cfg["seconds"]) * 10))
+
+
+def episode_bytes(cfg: dict) -> int:
+    """About what one episode's files take on disk (HDF5 overhead included, rounded up)."""
+    n = steps_per_episode(cfg) * len(cfg["cameras"])
+    parts = -(-n // SAMPLES_PER_FILE)
+    return int(n * SAMPLE_BYTES * 1.01) + parts * 64 * 1024 + 64 * 1024

@@ -9,13 +9,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cicfw.collect.config import close_backend, config_hash, make_backend, plain_config, resolve_config, sim_node
+from cicfw.collect.config import (close_backend, config_hash, episode_bytes, episode_plan, make_backend, plain_config,
+                                  resolve_config, sim_node, steps_per_episode)
 from cicfw.collect.episode import run_episode
 from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.collect.integrity import read_markers, record_checksums
 from cicfw.collect.lock import FolderLock
 from cicfw.collect.metadata import META_NAME, SIM_VERSION, dataset_metadata
-from cicfw.collect.plan import episode_bytes, episode_plan, steps_per_episode
 from cicfw.collect.workers import run_workers
 from cicfw.collect.writing import check_free_space, write_json
 from cicfw.data.cil_hdf5 import is_hdf5_name

@@ -10,8 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from cicfw.collect.config import CAMERA_IDS
-from cicfw.collect.plan import episode_bytes, steps_per_episode
+from cicfw.collect.config import CAMERA_IDS, episode_bytes, steps_per_episode
 from cicfw.collect.writing import check_free_space, write_files, write_json
 from cicfw.data import cil_hdf5
 from cicfw.data.cil_hdf5 import IMAGE_SHAPE, N_TARGETS, SAMPLES_PER_FILE, T

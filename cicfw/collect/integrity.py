@@ -1,11 +1,16 @@
-"""Whether a finished episode's files are sound: each against its recorded size and SHA-256 (or, for files
-collected before checksums were kept, its CIL layout)."""
+"""Whether a dataset's files are sound: each against its recorded size and SHA-256 (or, for files collected
+before checksums were kept, its CIL layout), per finished episode as a collection resumes, and for the
+whole folder as ``cicfw collect --verify`` checks it, changing nothing (``verify_dataset``)."""
 from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 
+from cicfw.collect.errors import CollectError
+from cicfw.collect.lock import FolderLock
+from cicfw.collect.metadata import META_NAME
 from cicfw.collect.writing import write_json
 from cicfw.data.cil_hdf5 import CILFormatError, check_file
 from cicfw.data.provenance import file_sha256  # noqa: F401  (a training run's record hashes its files the same way)
@@ -93,3 +98,87 @@ def record_checksums(out_dir: Path, markers: dict[str, dict]) -> int:
         log.info("recorded the checksums of %d file(s) of %s collected before cicfw kept checksums (until now "
                  "they could be checked for size and layout only)", n, out_dir)
     return n
+
+
+class VerifyReport:
+    """What ``verify_dataset`` found: ``problems`` as (path, kind, reason), kind one of ``missing``,
+    ``corrupt``, ``unfinished`` (a file of an episode without a marker: a rerun removes it)."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = out_dir
+        self.files = self.bytes = self.unchecked = self.episodes = self.planned = 0
+        self.complete = False
+        self.problems: list[tuple[Path, str, str]] = []
+
+    def lines(self) -> list[str]:
+        """One line per file that is not sound."""
+        return [f"{kind}: {path}: {why}" for path, kind, why in self.problems]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and self.complete
+
+    def summary(self) -> str:
+        if self.problems:
+            return (f"{len(self.problems)} of {self.files} file(s) of {self.out_dir} are missing, corrupt or "
+                    f"unfinished (listed above); rerun the same collect command (without verify) to collect "
+                    f"their episodes again")
+        if not self.complete:
+            return (f"{self.out_dir} is an unfinished dataset ({self.episodes} of {self.planned} episode(s) "
+                    f"finished; the files of those are sound); rerun the same collect command to finish it")
+        legacy = (f"; {self.unchecked} collected before cicfw kept checksums were checked for size and layout "
+                  f"only (a rerun of collect records their checksums)" if self.unchecked else "")
+        return (f"verified {self.out_dir}: {self.episodes} episode(s), {self.files} file(s) ({self.bytes / 1e6:.1f} MB), "
+                f"all match their checksums{legacy}")
+
+
+def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> VerifyReport:
+    """Check every file of a collected dataset against its recorded size and SHA-256 (files without a
+    recorded checksum: size and CIL layout), changing nothing. Holds the folder's lock while it reads (a
+    collection in progress is waited for as ``lock_wait`` says), unless the folder is read-only (then no
+    one can be writing into it). A folder without ``dataset_metadata.json`` is a CollectError."""
+    out_dir = Path(out_dir).expanduser().resolve()
+    meta_path = out_dir / META_NAME
+    if not meta_path.is_file():
+        what = "does not exist" if not out_dir.exists() else f"has no {META_NAME} (cicfw collect writes one)"
+        raise CollectError(f"no dataset to verify in {out_dir}: it {what}; give the out_dir of a collection "
+                           f"(out_dir=...)", key="out_dir", value=out_dir)
+    lock = None
+    if os.access(out_dir, os.W_OK | os.X_OK):
+        lock = FolderLock(out_dir, lock_wait, {"what": "cicfw collect verify=true"}).acquire()
+    try:
+        try:
+            meta = json.loads(meta_path.read_text())
+        except ValueError:
+            raise CollectError(f"{meta_path} is not valid JSON; this folder's dataset cannot be verified: "
+                               f"delete it and collect again") from None
+        rep = VerifyReport(out_dir)
+        rep.planned = int(meta.get("planned_episodes", 0))
+        recorded: set[str] = set()
+        for mp in sorted((out_dir / ".episodes").glob("*.json")):
+            try:
+                m = json.loads(mp.read_text())
+            except (OSError, ValueError):
+                continue  # an unreadable marker: its episode counts as unfinished
+            if m.get("config_hash", meta.get("config_hash")) != meta.get("config_hash"):
+                continue
+            rep.episodes += 1
+            problems = {name: (kind, why) for name, kind, why in marker_problems(out_dir, m)}
+            for f in m.get("files", []):
+                recorded.add(f["name"])
+                rep.files += 1
+                rep.bytes += int(f.get("bytes", 0))
+                rep.unchecked += "sha256" not in f
+                if f["name"] in problems:
+                    rep.problems.append((out_dir / f["name"], *problems.pop(f["name"])))
+            rep.problems += [(out_dir / name, kind, why) for name, (kind, why) in problems.items()]
+        for p in sorted(out_dir.glob("*.h5")):
+            if p.name not in recorded:
+                rep.files += 1
+                rep.problems.append((p, "unfinished", "no finished episode records it (a collection stopped "
+                                                      "before its episode's marker was written)"))
+        rep.complete = bool(meta.get("complete")) and rep.episodes >= rep.planned
+        return rep
+    finally:
+        if lock is not None:
+            lock.release()

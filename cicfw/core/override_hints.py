@@ -62,37 +62,30 @@ def missing_extras(args: list[str]) -> list[str]:
     return hints
 
 
-def composition_error_line(err: BaseException, args: list[str]) -> str | None:
-    """What Hydra refused before running the app, as one line: an argument it cannot parse (``args``: the
-    command line, to show it quoted), a key or value the config refuses, an unknown option of a config
-    group; None for anything else."""
+def composition_error(err: BaseException, args: list[str]) -> CicfwError | None:
+    """What Hydra refused before running the app, as the error the CLI prints (for code that composes a config
+    itself too: ``cicfw.testing.fast_dev_run``): an argument it cannot parse (``args``: the command line, to
+    show it quoted), a key or value the config refuses (a ``SchemaError`` naming the key), an unknown option
+    of a config group (its key and value: the group and the option); None for anything else."""
     if isinstance(err, OverrideParseException):
-        return _unparsable(err.override, err.message, args)
+        return CicfwError(_unparsable(err.override, err.message, args))
     if not isinstance(err, ConfigCompositionException):
         return None  # raised by the app itself (its own errors keep their report)
     where = re.match(r"In '([^']+)': ", str(err))  # a value in a config file, not on the command line
     refused = config_error(err, f"{where.group(1)}.yaml: " if where else "")
     if refused is not None:
-        return str(refused)
-    if isinstance(err, MissingConfigException) and err.options is not None:
-        group, _, option = str(err.missing_cfg_file or "").rpartition("/")
-        return f"{group}={option}: no option {option!r} in config group {group!r}; options: {', '.join(err.options)}"
-    return " ".join(str(err).split())
-
-
-def composition_error(err: BaseException, args: list[str]) -> CicfwError | None:
-    """What Hydra refused while composing, as the error the CLI prints (``composition_error_line``), for code
-    that composes a config itself (``cicfw.testing.fast_dev_run``): a ``SchemaError`` naming the key, or a
-    ``CicfwError`` whose key and value are the config group and the option it lacks; None for anything
-    else."""
-    refused = config_error(err) if isinstance(err, ConfigCompositionException) else None
-    line = None if refused is not None else composition_error_line(err, args)
-    if refused is not None or line is None:
         return refused
     if isinstance(err, MissingConfigException) and err.options is not None:
         group, _, option = str(err.missing_cfg_file or "").rpartition("/")
-        return CicfwError(line, key=group, value=option)
-    return CicfwError(line)
+        return CicfwError(f"{group}={option}: no option {option!r} in config group {group!r}; options: "
+                          f"{', '.join(err.options)}", key=group, value=option)
+    return CicfwError(" ".join(str(err).split()))
+
+
+def composition_error_line(err: BaseException, args: list[str]) -> str | None:
+    """``composition_error`` as the one line the CLI prints; None where it has none."""
+    refused = composition_error(err, args)
+    return None if refused is None else str(refused)
 
 
 def _unparsable(override: str, message: str, args: list[str]) -> str:

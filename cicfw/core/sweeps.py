@@ -14,7 +14,7 @@ import logging
 import os
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, ContextManager, Mapping
+from typing import Any, ContextManager, Iterable, Mapping
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobReturn, JobStatus
@@ -118,12 +118,13 @@ def _split(override: str) -> tuple[str, str]:
     return key.lstrip("+~"), value
 
 
-def _values(overrides: list[str]) -> dict[str, Any]:
-    """key -> value as Hydra parses it (so ``false`` and ``False`` compare equal; a sweep stays a
-    sweep object); the raw text where parsing fails."""
+def override_values(overrides: Iterable[str]) -> dict[str, Any]:
+    """Overrides (``key=value`` strings) as key -> value as Hydra parses it (so ``false`` and ``False`` compare
+    equal; a sweep stays a sweep object), the key without its ``+`` or ``~``; the raw text where parsing
+    fails (the app that takes the override refuses it)."""
     parser = OverridesParser.create()
     out: dict[str, Any] = {}
-    for text in overrides:
+    for text in map(str, overrides):
         key, raw = _split(text)
         try:
             out[key] = parser.parse_override(text).value()
@@ -143,8 +144,8 @@ def summary_table(rows: list[dict[str, Any]], command_line: list[str] | None = N
     per_job = [dict(_split(o) for o in r["overrides"]) for r in rows]
     keys = list(dict.fromkeys(k for d in per_job for k in d))
     if command_line is not None:
-        given = _values(command_line)
-        parsed = [_values(r["overrides"]) for r in rows]
+        given = override_values(command_line)
+        parsed = [override_values(r["overrides"]) for r in rows]
         swept = [k for k in keys if any(p.get(k) != given.get(k) for p in parsed)]
     else:
         swept = [k for k in keys if len({d.get(k) for d in per_job}) > 1]

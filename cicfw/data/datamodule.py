@@ -19,12 +19,11 @@ from cicfw import COMMANDS
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.core.config_checks import whole_number
-from cicfw.data.batches import SeededBatches, batch_rng
 from cicfw.data.cil_hdf5 import KNOWN_CAMERA_IDS
 from cicfw.data.frames import Frames, camera_names, chosen_cameras, load_frames, split_by_episode
 from cicfw.data.images import ImageStore
 from cicfw.data.residency import decide, in_memory_setting
-from cicfw.data.sampler import CommandBalancedBatchSampler
+from cicfw.data.sampler import CommandBalancedBatchSampler, SeededBatches, batch_rng
 
 log = logging.getLogger(__name__)
 

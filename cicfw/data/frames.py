@@ -5,7 +5,6 @@ Reads only ``targets`` (small); images stay on disk until the dataset asks for t
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 from collections import Counter
 from dataclasses import dataclass
@@ -15,6 +14,7 @@ import numpy as np
 
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
 from cicfw.core.errors import CicfwError
+from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import (COMMAND_CODES, KNOWN_CAMERA_IDS, CILFormatError, T, check_file, find_files,
                                  read_targets)
 
@@ -57,14 +57,7 @@ def folder_metadata(folder: Path) -> dict:
     """A folder's ``dataset_metadata.json`` (``{}`` when it has none), checked for what the loader reads;
     anything else is one error naming the file and the layout it needs."""
     meta = folder / META_NAME
-    if not meta.exists():
-        return {}
-    try:
-        data = json.loads(meta.read_text())
-    except OSError as err:
-        raise CicfwError(f"{meta}: cannot be read ({err.strerror or err})") from None
-    except ValueError as err:  # json's message says where, not which file
-        raise CicfwError(f"{meta}: not valid JSON ({err}); it must be {META_LAYOUT}") from None
+    data = read_json(meta, default={})  # a file that cannot be read or is not JSON: one line naming it
     if not isinstance(data, dict):
         raise CicfwError(f"{meta}: holds a JSON {type(data).__name__}; it must be {META_LAYOUT}")
     files = data.get("files", {})
