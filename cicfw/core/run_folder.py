@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
+from cicfw.core.slurm_requeue import is_requeued_run
 from cicfw.core.sweeps import is_worker_process
 
 
@@ -148,11 +149,16 @@ def resumes_inside(folder: str | Path, ckpt_path: Any) -> bool:
     return Path(os.path.realpath(folder)) in ckpt.parents
 
 
-def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir") -> None:
+def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir",
+                       config: Any = None) -> None:
     """One ``RunFolderError`` when ``folder`` holds another run's outputs (which this run would cut or
-    replace), unless ``ckpt_path`` resumes from a checkpoint inside it."""
+    replace), unless ``ckpt_path`` resumes from a checkpoint inside it, or, with no ``ckpt_path``, this is
+    a SLURM job requeued into its own folder (``is_requeued_run`` with ``config``, the command's composed
+    config), which Lightning resumes from its HPC checkpoint (checked as ``ckpt_path=hpc``)."""
     found = run_outputs(folder)
     if not found or resumes_inside(folder, ckpt_path):
+        return
+    if (ckpt_path is None or str(ckpt_path) == "") and is_requeued_run(folder, config):
         return
     last = Path(folder) / "checkpoints" / "last.ckpt"
     resume = f" or resume that run with ckpt_path={last}" if last.is_file() else ""
@@ -185,9 +191,11 @@ class TrainFolderLock(FolderLock):
 _HELD: dict[str, TrainFolderLock] = {}  # the run folders this process holds, by absolute path
 
 
-def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir") -> None:
+def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hydra.run.dir",
+                      config: Any = None) -> None:
     """Make ``folder`` this process's training folder: its lock taken (unless this process holds it
-    already), then ``check_no_other_run``, the lock given back when that fails. One line otherwise:
+    already), then ``check_no_other_run`` (``config``: the command's, for a requeued SLURM job), the lock
+    given back when that fails. One line otherwise:
     ``FolderBusy`` (another run holds it) or ``RunFolderError``. A DDP worker rank (its ``RANK`` ...
     not 0) shares the folder rank 0 holds: nothing to take. Held, the folder loses the temporary files a
     killed writer left (``remove_stale_temps``)."""
@@ -197,7 +205,7 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     if name not in _HELD:
         _HELD[name] = TrainFolderLock(name, key).acquire()
     try:
-        check_no_other_run(folder, ckpt_path, key)
+        check_no_other_run(folder, ckpt_path, key, config)
     except RunFolderError:
         release_run_folder(folder)
         raise
@@ -355,7 +363,7 @@ class TrainRunFolderCheck(RunFolderCheck):
         note_run_folder(folder)
         super().on_run_start(config, **kwargs)
         try:
-            hold_train_folder(folder, config.get("ckpt_path"), "hydra.run.dir")
+            hold_train_folder(folder, config.get("ckpt_path"), "hydra.run.dir", config)
         except ValueError as err:
             undo_run_folder(folder)
             print(f"cicfw: error: {err}", file=sys.stderr)

@@ -7,16 +7,18 @@ junction under the ``harsh`` preset (left) and the ``carla`` preset derived from
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
-from cicfw.sim.preview import OUT_FOLDER, _png, approach_pose
+from cicfw.sim.preview import OUT_FOLDER, _first_missing, _png, _remove_empty_folders, approach_pose, load_towns
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
-from cicfw.sim.town import load_town, town_names
+from cicfw.sim.town import town_names
 
 FAMILIES = ("harsh", "carla")
 PAD, LABEL_W, HEAD = 4, 150, 34
@@ -59,6 +61,22 @@ def sheet(towns: list, weathers: list[str], scale: int = 2, seed: int = 0, t: fl
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; every bad value is one line (``cicfw: error: ...``, exit status 2)."""
+    return report_user_errors(_main)(argv)
+
+
+def check_args(a: argparse.Namespace) -> None:
+    """One ``CicfwError`` for the first argument outside its domain, before anything is rendered or written."""
+    for name in a.weathers:
+        if any(name not in WEATHER_FAMILIES[fam] for fam in FAMILIES):
+            raise CicfwError(f"--weathers: unknown weather {name!r}; known weathers: "
+                             f"{', '.join(WEATHER_FAMILIES['carla'])}", key="--weathers", value=name)
+    if not (a.colours == 0 or 2 <= a.colours <= 256):
+        raise CicfwError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}", key="--colours",
+                         value=a.colours)
+
+
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m cicfw.sim.weather_sheet", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="sim_preview", help="output folder (default: %(default)s)")
     ap.add_argument("--towns", nargs="+", default=town_names())
@@ -66,13 +84,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--colours", type=int, default=256, help="palette size of the PNG (0: full colour)")
     ap.add_argument("--prefix", default="", help="prefix of the file name (e.g. sim_)")
     a = ap.parse_args(argv)
-    out = writable_folder(Path(a.out).expanduser().resolve(), "--out", OUT_FOLDER, "--out")
-    rgb = sheet([load_town(t) for t in a.towns], a.weathers)
+    check_args(a)
+    towns = load_towns(a.towns)  # an unknown town: one line, before the folder is made
+    out = Path(a.out).expanduser().resolve()
+    new_top = _first_missing(out)
+    writable_folder(out, "--out", OUT_FOLDER, "--out")  # before the seconds of rendering
     path = out / f"{a.prefix}weather_families.png"
-    write_together([(path, _png(rgb, a.colours))])
+    try:
+        write_together([(path, _png(sheet(towns, a.weathers), a.colours))])
+    except BaseException as err:
+        _remove_empty_folders(out, new_top)  # a failed run leaves no folder it made
+        if isinstance(err, OSError):
+            raise CicfwError(f"cannot write {err.filename} ({err.strerror or err}); give a writable --out "
+                             f"folder", key="--out", value=str(out)) from None
+        raise
     print(path)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from cicfw.core.errors import install_app_handlers
+
+    install_app_handlers()
+    sys.exit(main())

@@ -629,7 +629,7 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
     keeps its log, which the sweep's failure line names. A run that stops before its first checkpoint
     (a full disk, Ctrl-C) takes back the metrics it logged (``forget_failed_run``), so the same command,
     which its error advises, runs there again."""
-    hold_train_folder(run_dir, cfg.get("ckpt_path"), key)
+    hold_train_folder(run_dir, cfg.get("ckpt_path"), key, cfg)  # cfg: a requeued SLURM job's folder is its own
     started = []
     try:
         return train(cfg, run_dir, refuse_finished=True, on_start=lambda: started.append(True))

@@ -14,6 +14,7 @@ from lightning.fabric.plugins.environments import SLURMEnvironment
 from omegaconf import DictConfig, open_dict
 
 from cicfw.core.errors import CicfwError
+from cicfw.core.slurm_requeue import newest_hpc_checkpoint
 
 log = logging.getLogger("cicfw.train")
 
@@ -22,9 +23,8 @@ def own_checkpoint(name: str, run_dir: Path) -> Path | None:
     """The file Lightning resumes from for ``name`` in ``run_dir``: for ``last`` the newest checkpoint with
     "last" in its name under ``checkpoints/`` (or an HPC checkpoint, if newer), for ``hpc`` the highest
     ``hpc_ckpt_<n>.ckpt``; None when there is none. Hidden files (a checkpoint being written) are not one."""
-    hpc = sorted(((int(p.stem[len("hpc_ckpt_"):]), p) for p in run_dir.glob("hpc_ckpt_*.ckpt")
-                  if p.stem[len("hpc_ckpt_"):].isdigit()), key=lambda vp: vp[0])
-    newest_hpc = [hpc[-1][1]] if hpc else []
+    hpc = newest_hpc_checkpoint(run_dir)
+    newest_hpc = [hpc] if hpc is not None else []
     if name == "hpc":
         return newest_hpc[0] if newest_hpc else None
     candidates = [p for p in (run_dir / "checkpoints").glob("*last*.ckpt") if not p.name.startswith(".")]
