@@ -17,7 +17,7 @@ from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
-                                          with_episode_floor, word)
+                                          with_episode_floor, word, word_record)
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
 TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
@@ -257,15 +257,6 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
         c["verdict"] = combine([p["verdict"] for p in c["parts"]])
         c["verdict_holm"] = combine([p["verdict_holm"] for p in c["parts"]])
     return out
-
-
-def word_record(d_corrected: Any, margin: float, level: float, correction: str) -> dict[str, Any]:
-    """A comparison's word (``seed_stats.word``) read on its corrected interval ``d_corrected`` (a
-    ``Difference`` at ``level``), with that interval and the correction's name, as results.json keeps it."""
-    e = d_corrected.estimate
-    w = word(e.lo, e.hi, margin) if d_corrected.enough_seeds else None
-    return {"word": w, "lo": e.lo if w else None, "hi": e.hi if w else None, "level": level,
-            "correction": correction}
 
 
 def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels: Mapping[str, str],
