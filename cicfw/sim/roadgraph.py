@@ -12,6 +12,7 @@ import functools
 import heapq
 import math
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -95,6 +96,17 @@ def _slice(poly: np.ndarray, s0: float, s1: float) -> np.ndarray:
 def _heading(poly: np.ndarray) -> np.ndarray:
     d = np.gradient(poly, axis=0)
     return np.arctan2(d[:, 1], d[:, 0])
+
+
+def turn_commands(s: np.ndarray, turns: Sequence[tuple], command_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each route point's command and whether it lies in a junction, from its arc length ``s`` and the route's
+    ``turns`` ``(junction, command, entry, exit)`` (m): a turn's command from ``command_distance`` before its
+    entry to its exit, follow elsewhere."""
+    commands, in_j = np.full(len(s), FOLLOW, np.int8), np.zeros(len(s), bool)
+    for _, cmd, entry, exit_ in turns:
+        commands[(s >= entry - command_distance) & (s <= exit_)] = cmd
+        in_j[(s >= entry) & (s <= exit_)] = True
+    return commands, in_j
 
 
 def _wrap(a):
@@ -274,11 +286,7 @@ class RoadGraph:
         heading = np.unwrap(_heading(pts))
         curv = np.gradient(heading, s) if len(s) > 2 else np.zeros(len(s))
         curv = np.convolve(curv, np.ones(5) / 5, mode="same")
-        commands = np.full(len(pts), FOLLOW, np.int8)
-        in_j = np.zeros(len(pts), bool)
-        for _, cmd, entry, exit_ in turns:
-            commands[(s >= entry - self.command_distance) & (s <= exit_)] = cmd
-            in_j[(s >= entry) & (s <= exit_)] = True
+        commands, in_j = turn_commands(s, turns, self.command_distance)
         return Route(name=name, points=pts, heading=_wrap(heading), s=s, curvature=curv, commands=commands,
                      in_junction=in_j, lanes=tuple(lanes), turns=turns, meta=dict(meta or {}))
 
