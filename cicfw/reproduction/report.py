@@ -483,7 +483,7 @@ def _table4_lines(data: Mapping[str, Any]) -> list[str]:
     column where the folder's cells span kinds of CPU."""
     cpu = len(data.get("cpus") or {}) > 1
     lines = md_table(["Row", "Decoder", "Seeds", *(["CPU (cells)"] if cpu else []), *COLUMN_NAMES, "Overall"],
-                     "llr" + "l" * cpu + "r" * 5)
+                     "llr" + ("l" if cpu else "") + "r" * 5)
     for r in data["rows"]:
         cells = [f"{_est(r['columns'][col])}<br>*{_pct(_paper_value(r['paper'], i))}*"
                  for i, col in enumerate([*COLUMNS, "overall"])]
