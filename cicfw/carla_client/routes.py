@@ -14,23 +14,15 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from cicfw.sim.roadgraph import COMMAND_DISTANCE, COMMAND_NAMES, LEFT, RIGHT, STRAIGHT, Route, turn_commands
+from cicfw.sim.roadgraph import COMMAND_DISTANCE, COMMAND_NAMES, Route, turn_code, turn_commands
 
 STEP = 0.5  # metres between route points
-STRAIGHT_MAX_DEG = 45.0  # |heading change| through a junction below this is "straight"
 
 
 def heading_change_deg(yaw_in_carla: float, yaw_out_carla: float) -> float:
     """The heading change from CARLA yaw ``yaw_in`` to ``yaw_out`` (degrees), in cicfw's sense:
     positive = left (counter-clockwise)."""
     return -((yaw_out_carla - yaw_in_carla + 180.0) % 360.0 - 180.0)
-
-
-def turn_code(change_deg: float) -> int:
-    """CIL command of a manoeuvre with this heading change (positive = left)."""
-    if abs(change_deg) < STRAIGHT_MAX_DEG:
-        return STRAIGHT
-    return LEFT if change_deg > 0 else RIGHT
 
 
 def _walk(wp: Any, length: float, step: float, forward: bool) -> list:

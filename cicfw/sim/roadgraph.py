@@ -21,7 +21,7 @@ from cicfw.sim.town import STEP, Town, TownError, resample
 FOLLOW, LEFT, RIGHT, STRAIGHT = 2, 3, 4, 5  # CIL command codes (branch = code - 2)
 COMMAND_NAMES = {FOLLOW: "follow", LEFT: "left", RIGHT: "right", STRAIGHT: "straight"}
 COMMAND_DISTANCE = 12.0  # metres before a junction's entry where its turn command starts
-STRAIGHT_MAX_DEG = 45.0  # |heading change| below this through a T junction is "straight"
+STRAIGHT_MAX_DEG = 45.0  # |heading change| through a junction below this is "straight"
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +96,13 @@ def _slice(poly: np.ndarray, s0: float, s1: float) -> np.ndarray:
 def _heading(poly: np.ndarray) -> np.ndarray:
     d = np.gradient(poly, axis=0)
     return np.arctan2(d[:, 1], d[:, 0])
+
+
+def turn_code(change_deg: float) -> int:
+    """CIL command of a manoeuvre with this heading change (degrees, positive = left)."""
+    if abs(change_deg) < STRAIGHT_MAX_DEG:
+        return STRAIGHT
+    return LEFT if change_deg > 0 else RIGHT
 
 
 def turn_commands(s: np.ndarray, turns: Sequence[tuple], command_distance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -174,8 +181,7 @@ class RoadGraph:
         """Commands for the exits of one incoming lane, sorted by heading change (right to left)."""
         if len(angles) == 3:  # X: rightmost right, middle straight, leftmost left
             return [RIGHT, STRAIGHT, LEFT]
-        lim = math.radians(STRAIGHT_MAX_DEG)
-        cmds = [STRAIGHT if abs(a) < lim else (LEFT if a > 0 else RIGHT) for a in angles]
+        cmds = [turn_code(math.degrees(a)) for a in angles]
         if len(set(cmds)) != len(cmds):
             raise TownError(
                 f"{self.town.source}: junction {jid!r}: arriving on road {lane.road!r}, two exits would both "
