@@ -27,10 +27,10 @@ from cicfw.benchmark.builtin_policies import ExpertPolicy
 from cicfw.benchmark.runner import RunnerConfig, drive
 from cicfw.benchmark.suite import build_suite, suite_routes
 from cicfw.carla_client.backend import CARLA_VERSION, CarlaBackend, CarlaServerUnavailable, connect, import_carla
-from cicfw.carla_client.routes import STRAIGHT_MAX_DEG
 from cicfw.collect import episode_plan, resolve_config, run_episode
 from cicfw.data.cil_hdf5 import check_file
 from cicfw.sim.expert import Expert
+from cicfw.sim.roadgraph import STRAIGHT_MAX_DEG
 from cicfw.sim.vehicle import VehicleParams
 
 #: known facts of CARLA's maps (checked offline on the OpenDRIVE files)

@@ -14,23 +14,15 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from cicfw.sim.roadgraph import COMMAND_DISTANCE, COMMAND_NAMES, FOLLOW, LEFT, RIGHT, STRAIGHT, Route
+from cicfw.sim.roadgraph import COMMAND_DISTANCE, COMMAND_NAMES, Route, turn_code, turn_commands
 
 STEP = 0.5  # metres between route points
-STRAIGHT_MAX_DEG = 45.0  # |heading change| through a junction below this is "straight"
 
 
 def heading_change_deg(yaw_in_carla: float, yaw_out_carla: float) -> float:
     """The heading change from CARLA yaw ``yaw_in`` to ``yaw_out`` (degrees), in cicfw's sense:
     positive = left (counter-clockwise)."""
     return -((yaw_out_carla - yaw_in_carla + 180.0) % 360.0 - 180.0)
-
-
-def turn_code(change_deg: float) -> int:
-    """CIL command of a manoeuvre with this heading change (positive = left)."""
-    if abs(change_deg) < STRAIGHT_MAX_DEG:
-        return STRAIGHT
-    return LEFT if change_deg > 0 else RIGHT
 
 
 def _walk(wp: Any, length: float, step: float, forward: bool) -> list:
@@ -87,14 +79,8 @@ def build_route(wps: list, turns: Iterable[tuple], name: str, command_distance: 
     heading = np.unwrap(np.array([-math.radians(w.transform.rotation.yaw) for w in keep]))
     curvature = np.gradient(heading, s) if len(s) > 1 else np.zeros(len(s))
     heading = (heading + np.pi) % (2 * np.pi) - np.pi
-    cmds = np.full(len(pts), FOLLOW, np.int8)
-    in_j = np.zeros(len(pts), bool)
-    out_turns = []
-    for jid, code, i0, i1 in turns:
-        s_in, s_out = float(s[kept_idx[i0]]), float(s[kept_idx[i1]])
-        cmds[(s >= s_in - command_distance) & (s <= s_out)] = code
-        in_j[(s >= s_in) & (s <= s_out)] = True
-        out_turns.append((f"j{jid}", int(code), s_in, s_out))
+    out_turns = [(f"j{jid}", int(code), float(s[kept_idx[i0]]), float(s[kept_idx[i1]])) for jid, code, i0, i1 in turns]
+    cmds, in_j = turn_commands(s, out_turns, command_distance)
     start = keep[0].transform
     meta = dict(meta or {})
     meta["spawn"] = (float(start.location.x), float(start.location.y), float(start.location.z),

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import inspect
 import logging
-import os
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -35,16 +34,15 @@ from cicfw.data.provenance import data_root, recorded_files
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.export.agent import torch_device
-from cicfw.model.checkpoint import (checkpoint_hyper_parameters, checkpoint_record, config_parts_differ, describe,
-                                    load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint)
+from cicfw.model.checkpoint import (RUN_CONFIG_LEVELS, checkpoint_hyper_parameters, checkpoint_record,
+                                    config_parts_differ, describe, load_model, prepare_for_inference, read_checkpoint,
+                                    resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.reproduction.catalogue import row_overrides
 
 log = logging.getLogger("cicfw.diagnose")
 
 #: the datamodule arguments that decide which frames are the validation frames
 SPLIT_KEYS = ("path", "seed", "val_fraction", "max_abs_steer", "side_camera_correction", "cameras", "val_cameras")
-#: how many folders above the checkpoint's to search for the training run's .hydra/config.yaml
-SEARCH_LEVELS = 3
 
 
 #: option -> (is the value accepted, what is accepted): checked before the checkpoint or data is read; their
@@ -102,14 +100,11 @@ def _data_values(node: DictConfig, where: str) -> dict[str, Any]:
 
 def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
     """The split settings of the run that wrote ``checkpoint``, and where they came from: the nearest
-    ``.hydra/config.yaml`` at most SEARCH_LEVELS folders above it, either a ``cicfw train`` run's (its
+    ``.hydra/config.yaml`` at most RUN_CONFIG_LEVELS folders above it, either a ``cicfw train`` run's (its
     ``data`` node) or a ``cicfw reproduce`` cell's (the cell's training config composed again from its
     row, seed and budget). None when there is neither, or when the config names other parts than the
     checkpoint (a checkpoint copied into another run's folder: that run's split is not its own)."""
-    for folder in [checkpoint.parent, *checkpoint.parent.parents][:SEARCH_LEVELS + 1]:
-        path = folder / ".hydra" / "config.yaml"
-        if not path.is_file():
-            continue
+    for path in run_config_files(checkpoint):
         cfg = OmegaConf.load(path)
         differ = config_parts_differ(OmegaConf.to_container(cfg, resolve=False), checkpoint_hyper_parameters(checkpoint))
         if differ:
@@ -118,26 +113,13 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
             return None
         if "data" in cfg and "path" in cfg.data:
             values = _data_values(cfg.data, str(path))
-            values["path"] = where_it_ran(values.get("path"), folder)
+            values["path"] = where_it_ran(values.get("path"), path)
             return values, f"{path} (the training run's config)"
         if "cell" in cfg and "budget" in cfg and "catalogue" in cfg:
             row, seed = str(cfg.cell.row), int(cfg.cell.seed)
             tcfg = _compose_train(row_overrides(cfg, row, seed))
             return _data_values(tcfg.data, str(path)), f"{path} (reproduce cell {row} seed {seed}, its training config)"
     return None
-
-
-def where_it_ran(path: Any, folder: Path) -> Any:
-    """A relative ``data.path`` of a run's saved config, made absolute against the directory the run was
-    started from (``hydra.runtime.cwd`` in its ``.hydra/hydra.yaml``), not the one diagnose runs in. (A run
-    that recorded its data, ``cicfw.data.provenance``, gives the absolute path itself.)"""
-    if not isinstance(path, str) or os.path.isabs(os.path.expanduser(path)):
-        return path
-    try:
-        cwd = OmegaConf.select(OmegaConf.load(folder / ".hydra" / "hydra.yaml"), "hydra.runtime.cwd")
-    except Exception:
-        return path
-    return os.path.join(str(cwd), path) if cwd else path
 
 
 def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] | None = None):
@@ -158,7 +140,7 @@ def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] |
     if given:
         source += f"; given here: {', '.join(sorted(given))}"
     searched = f"no training config found beside {str(checkpoint)!r} (searched .hydra/config.yaml up to " \
-               f"{SEARCH_LEVELS} folders above it)"
+               f"{RUN_CONFIG_LEVELS} folders above it)"
     if not values.get("path"):
         raise CicfwError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>",
                          key="data.path")

@@ -45,7 +45,7 @@ from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_
 from cicfw.data.frames import META_NAME
 from cicfw.data.provenance import file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
-                                    refuse_exported_model, resolve_checkpoint)
+                                    refuse_exported_model, resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 
@@ -58,8 +58,6 @@ TOLERANCE = 1e-4
 #: an argmax decoder may pick either bin when the checkpoint's two best logits are this close (a tie in
 #: float rounding, not an export error)
 TIE_MARGIN = 1e-4
-#: how many folders above the checkpoint to look for its training run's ``.hydra/config.yaml``
-RUN_CONFIG_LEVELS = 3
 #: the ONNX opset used when none is given
 DEFAULT_OPSET = 17
 
@@ -306,16 +304,13 @@ def _jsonable(obj: Any) -> Any:
 
 
 def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
-    """The training run's saved config (the nearest ``.hydra/config.yaml`` a few folders above the
-    checkpoint), unresolved interpolations left as written; (None, None) when there is none."""
-    for folder in [checkpoint.parent, *checkpoint.parent.parents][:RUN_CONFIG_LEVELS + 1]:
-        path = folder / ".hydra" / "config.yaml"
-        if path.is_file():
-            try:
-                return OmegaConf.to_container(OmegaConf.load(path), resolve=False), path
-            except Exception:
-                return None, path
-    return None, None
+    """The training run's saved config (the nearest of ``run_config_files``), unresolved interpolations left as
+    written; (None, None) when there is none."""
+    path = next(iter(run_config_files(checkpoint)), None)
+    try:
+        return (None, None) if path is None else (OmegaConf.to_container(OmegaConf.load(path), resolve=False), path)
+    except Exception:
+        return None, path
 
 
 def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
@@ -346,16 +341,10 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
         return {"path": None, "hash": None, "why": f"data.path in {cfg_path} does not resolve here ({err})"}
     if not raw:
         return {"path": None, "hash": None, "why": f"{cfg_path} names no data.path"}
-    p = Path(str(raw)).expanduser()
+    p = Path(where_it_ran(str(raw), cfg_path)).expanduser()
     if not p.is_absolute():
-        try:
-            cwd = OmegaConf.select(OmegaConf.load(cfg_path.parent / "hydra.yaml"), "hydra.runtime.cwd")
-        except Exception:
-            cwd = None
-        if not cwd:
-            return {"path": str(p), "hash": None, "why": f"data.path in {cfg_path} is relative to a directory the run "
-                                                         f"did not record"}
-        p = Path(str(cwd)) / p
+        return {"path": str(p), "hash": None, "why": f"data.path in {cfg_path} is relative to a directory the run "
+                                                     f"did not record"}
     files = (sorted(p.rglob("*.h5")) + sorted(p.rglob("*.hdf5")) if p.is_dir()
              else sorted(Path(q) for q in glob.glob(str(p), recursive=True)))
     if not files:

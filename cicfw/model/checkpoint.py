@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+from omegaconf import OmegaConf
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
@@ -27,6 +28,8 @@ from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 #: the CICModule arguments that name registered parts, with the registry that must know each
 PART_KEYS = ("encoder", "mixer", "head")
+#: how many folders above a checkpoint's to look for its training run's ``.hydra/config.yaml``
+RUN_CONFIG_LEVELS = 3
 
 
 class CheckpointError(CicfwError):
@@ -234,6 +237,27 @@ def config_parts_differ(cfg: Mapping[str, Any], hp: Mapping[str, Any]) -> str | 
         if name is not None and hp.get(part) is not None and str(name) != str(hp[part]):
             differ.append(f"{part} {name}, checkpoint {hp[part]}")
     return "; ".join(differ) or None
+
+
+def run_config_files(checkpoint: Path) -> list[Path]:
+    """Every ``.hydra/config.yaml`` at most ``RUN_CONFIG_LEVELS`` folders above ``checkpoint``, nearest first:
+    the saved config of the ``cicfw train`` run or ``cicfw reproduce`` cell that wrote it, and those around it."""
+    folders = [checkpoint.parent, *checkpoint.parent.parents][:RUN_CONFIG_LEVELS + 1]
+    return [f / ".hydra" / "config.yaml" for f in folders if (f / ".hydra" / "config.yaml").is_file()]
+
+
+def where_it_ran(path: Any, config_file: Path) -> Any:
+    """A relative ``data.path`` of a run's saved config (``config_file``), made absolute against the directory
+    the run was started from (``hydra.runtime.cwd`` in the ``hydra.yaml`` beside it), not the one reading it;
+    as it is where that is not recorded. (A run that recorded its data, ``cicfw.data.provenance``, gives the
+    absolute path itself.)"""
+    if not isinstance(path, str) or os.path.isabs(os.path.expanduser(path)):
+        return path
+    try:
+        cwd = OmegaConf.select(OmegaConf.load(config_file.parent / "hydra.yaml"), "hydra.runtime.cwd")
+    except Exception:
+        return path
+    return os.path.join(str(cwd), path) if cwd else path
 
 
 def checkpoint_hyper_parameters(path: str | Path) -> dict[str, Any]:

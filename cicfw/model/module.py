@@ -63,27 +63,23 @@ class CICModule(L.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        if not (is_number(lr) and lr > 0):  # nan too: Adam would refuse it naming no key
-            raise ConfigError("model.lr", lr, "a number > 0", f"model.lr must be > 0, got {lr}")
-        if not (isinstance(betas, (list, tuple)) and len(betas) == 2
-                and all(is_number(b) and 0.0 <= b < 1.0 for b in betas)):  # Adam refused them inside fit
+        # each number checked here, before any data, not by Adam inside fit (nan too: Adam names no key)
+        for key, value, ok, accepted in (
+                ("lr", lr, lambda v: v > 0, "a number > 0"),
+                ("weight_decay", weight_decay, lambda v: v >= 0, "a number >= 0"),
+                ("lr_final_factor", lr_final_factor, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]"),
+                ("lr_warmup_fraction", lr_warmup_fraction, lambda v: 0.0 <= v < 1.0, "a number in [0, 1)"),
+                ("ema_decay", ema_decay, lambda v: 0.0 <= v < 1.0, "a number in [0, 1) (0: no averaging)"),
+                ("speed_norm_kmh", speed_norm_kmh, lambda v: v > 0, "a number > 0")):
+            if not (is_number(value) and ok(value)):
+                raise ConfigError(f"model.{key}", value, accepted)
+        if not (isinstance(betas, (list, tuple)) and len(betas) == 2 and all(is_number(b) and 0.0 <= b < 1.0
+                                                                             for b in betas)):
             raise ConfigError("model.betas", list(betas) if isinstance(betas, (list, tuple)) else betas,
                               "two numbers in [0, 1), e.g. [0.7,0.85]")
-        if not (is_number(weight_decay) and weight_decay >= 0):
-            raise ConfigError("model.weight_decay", weight_decay, "a number >= 0")
         if lr_schedule not in LR_SCHEDULES:
             raise ConfigError("model.lr_schedule", lr_schedule, f"one of {', '.join(LR_SCHEDULES)}",
                              f"model.lr_schedule={lr_schedule!r} is not known; use one of {', '.join(LR_SCHEDULES)}")
-        if not 0.0 <= lr_final_factor <= 1.0:
-            raise ConfigError("model.lr_final_factor", lr_final_factor, "a number in [0, 1]",
-                             f"model.lr_final_factor={lr_final_factor!r} is not valid; use a number in [0, 1]")
-        if not (is_number(lr_warmup_fraction) and 0.0 <= lr_warmup_fraction < 1.0):
-            raise ConfigError("model.lr_warmup_fraction", lr_warmup_fraction, "a number in [0, 1)")
-        if not (is_number(ema_decay) and 0.0 <= ema_decay < 1.0):
-            raise ConfigError("model.ema_decay", ema_decay, "a number in [0, 1) (0: no averaging)")
-        if not (is_number(speed_norm_kmh) and speed_norm_kmh > 0):
-            raise ConfigError("model.speed_norm_kmh", speed_norm_kmh, "a number > 0",
-                             f"model.speed_norm_kmh must be > 0, got {speed_norm_kmh}")
         self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
         self.head = HEADS.get(head)(**dict(head_kwargs or {}))
         self.mixer = MIXERS.get(mixer)(

@@ -92,10 +92,6 @@ class Analysis:
     keys: list[str] = field(default_factory=list)  # the episodes, in the success matrices' order
     draws: dict[str, np.ndarray] = field(default_factory=dict)  # the episode draws every row shares
 
-    def per_seed(self, row: str, on: str) -> dict[int, float]:
-        """seed -> ``row``'s success on a selector (``cells.SELECTORS``): what a claim's part compares."""
-        return {c.seed: c.value(on) for c in self.rows[row]}
-
     def replicates_of(self, row: str, cells: Sequence[CellResult]) -> np.ndarray:
         """``row``'s bootstrap replicates on ``cells``: the stored ones when they are all its cells, else
         drawn again on the shared episode draws (a comparison within one CPU kind), the seed draw from a
@@ -129,11 +125,6 @@ class Pairing:
     def mixed(self) -> bool:
         """The comparison pools cells of more than one kind of CPU."""
         return self.cpu is None
-
-    @property
-    def paired(self) -> bool:
-        """The rows share seeds, so their cells are compared paired by seed."""
-        return {c.seed for c in self.a} == {c.seed for c in self.b}
 
     def note(self) -> str:
         """What the report's method column adds: which seeds were left out to pair (none when the rows ran the

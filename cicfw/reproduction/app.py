@@ -728,14 +728,9 @@ def report_so_far(cfg: DictConfig) -> None:
     point has its table up to date. A report that cannot be written is logged and the cells go on (the
     report at the end of the run says so in its exit status)."""
     try:
-        write_report(cfg)
+        write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
     except (ValueError, OSError) as err:
         log.error("the report after this cell was not written: %s", _error_line(err))
-
-
-def write_report(cfg: DictConfig) -> dict[str, Any]:
-    """The report of this run's results folder, published into ``publish_dir`` when given."""
-    return write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
 
 
 def _error_line(err: BaseException) -> str:
@@ -786,7 +781,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
     finally:
         try:
-            data = write_report(cfg)
+            data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
         except ValueError as err:

@@ -8,7 +8,7 @@ import inspect
 import math
 from dataclasses import dataclass
 from importlib.resources import files
-from typing import Any, Callable, Mapping, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 import yaml
@@ -17,7 +17,7 @@ from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
-                                          with_episode_floor, word)
+                                          with_episode_floor, word, word_record)
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
 TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
@@ -77,13 +77,14 @@ class Part:
         than" (supported below it), -margin for "not worse than" (supported above it)."""
         return {"not_greater": margin, "not_less": -margin}.get(self.test, 0.0)
 
-    def values(self, per_seed: Callable[[str, str], dict[int, float]], row: str) -> dict[int, float]:
-        """The per-seed statistic of ``row`` this part compares (``per_seed(row, on)``, e.g.
-        ``Analysis.per_seed``, gives a selector's)."""
+    def values(self, cells: Mapping[str, Sequence[CellResult]], row: str) -> dict[int, float]:
+        """seed -> the statistic this part compares, of ``row``'s ``cells`` (each row's cells the comparison
+        uses): its success on a selector (``cells.SELECTORS``), or a gap's difference of two."""
+        per_seed = lambda on: {c.seed: c.value(on) for c in cells[row]}  # noqa: E731
         if self.on == "gap":
-            hard, easy = per_seed(row, self.hard), per_seed(row, self.easy)
+            hard, easy = per_seed(self.hard), per_seed(self.easy)
             return {s: hard[s] - easy[s] for s in hard}
-        return per_seed(row, self.on)
+        return per_seed(self.on)
 
     def paper(self, paper: Mapping[str, Sequence[float]]) -> float | None:
         """The paper's value of this difference (from its Table 4), None when a row has no paper values."""
@@ -259,15 +260,6 @@ def judge(an: Analysis, claims: Sequence[Claim], paper: Mapping[str, Sequence[fl
     return out
 
 
-def word_record(d_corrected: Any, margin: float, level: float, correction: str) -> dict[str, Any]:
-    """A comparison's word (``seed_stats.word``) read on its corrected interval ``d_corrected`` (a
-    ``Difference`` at ``level``), with that interval and the correction's name, as results.json keeps it."""
-    e = d_corrected.estimate
-    w = word(e.lo, e.hi, margin) if d_corrected.enough_seeds else None
-    return {"word": w, "lo": e.lo if w else None, "hi": e.hi if w else None, "level": level,
-            "correction": correction}
-
-
 def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels: Mapping[str, str],
              margin: float, family_size: int = 1) -> dict[str, Any]:
     """One part's record: its difference, p-value, method and uncorrected verdict (``excess``, A - B -
@@ -285,8 +277,7 @@ def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels
         return rec
     pair = an.pair(p.a, p.b)
     cells = {p.b: pair.b, p.a: pair.a}
-    per_seed = lambda row, on: {c.seed: c.value(on) for c in cells[row]}  # noqa: E731
-    va, vb = p.values(per_seed, p.a), p.values(per_seed, p.b)
+    va, vb = p.values(cells, p.a), p.values(cells, p.b)
     d = difference(va, {s: p.b_scale * v for s, v in vb.items()}, null=null)
     terms = episode_terms(cells, p)
     level = family_level(family_size)
@@ -338,12 +329,11 @@ def _boot_part(an: Analysis, p: Part, cells: Mapping[str, Sequence[CellResult]])
     every replicate of A and B (paired by episode draw, seeds drawn per row), on the cells the comparison
     uses (``cells``)."""
     ra, rb = an.replicates_of(p.a, cells[p.a]), an.replicates_of(p.b, cells[p.b])
-    per_seed = lambda row, on: {c.seed: c.value(on) for c in cells[row]}  # noqa: E731
     if p.on == "gap":
         d = ((boot_value(ra, p.hard) - p.b_scale * boot_value(rb, p.hard))
              - (boot_value(ra, p.easy) - p.b_scale * boot_value(rb, p.easy)))
     else:
         d = boot_value(ra, p.on) - p.b_scale * boot_value(rb, p.on)
-    va, vb = p.values(per_seed, p.a), p.values(per_seed, p.b)
+    va, vb = p.values(cells, p.a), p.values(cells, p.b)
     mean = float(np.mean(list(va.values())) - p.b_scale * np.mean(list(vb.values())))
     return Estimate(mean, *percentile_interval(d))

@@ -29,7 +29,7 @@ from cicfw.benchmark.plots import _plt, _save
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
-from cicfw.reproduction.report import pinned_weather_family
+from cicfw.reproduction.report import md_row, md_table, pinned_weather_family
 from cicfw.reproduction.seed_stats import t_interval, word
 from cicfw.sim.render.weather import LEGACY_FAMILY
 
@@ -331,26 +331,24 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
     ]
     lines += _answer(res, kinds)
     lines += ["", "## Pooled and within rows", ""] + _scope_table(res)
-    lines += ["", "## Pooled within one budget (overall)", "",
-              "| scope | " + " | ".join(budgets := sorted(both["by_budget"])) + " |", "|---|" + "---:|" * len(budgets)]
-    for scope, s in res["scopes"].items():
-        lines.append(f"| {scope} | " + " | ".join(_c(s["by_budget"][b]) if b in s["by_budget"] else "–"
-                                                  for b in budgets) + " |")
-    lines += ["", "## Picking the lowest validation error within a row", "",
-              "| scope | rows | mean gain in overall success (points) [95% t] | word | rows where it is the best "
-              "driver (by chance) |", "|---|---:|---:|---|---:|"]
+    budgets = sorted(both["by_budget"])
+    lines += ["", "## Pooled within one budget (overall)", "", *md_table(
+        ["scope", *budgets], "l" + "r" * len(budgets),
+        ([scope, *(_c(s["by_budget"][b]) if b in s["by_budget"] else "–" for b in budgets)]
+         for scope, s in res["scopes"].items()))]
+    lines += ["", "## Picking the lowest validation error within a row", "", *md_table(
+        ["scope", "rows", "mean gain in overall success (points) [95% t]", "word",
+         "rows where it is the best driver (by chance)"], "lrrlr")]
     for scope, s in res["scopes"].items():
         g = s["selection_gain"]
         gain = "–" if g["mean"] is None else f"{g['mean']:+.1f}"
         if g["interval"] is not None:
             gain += f" [{g['interval'][0]:+.1f}, {g['interval'][1]:+.1f}]"
-        lines.append(f"| {scope} | {g['groups']} | {gain} | {gain_word(g) or '–'} | {g['best_picked']} of "
-                     f"{g['groups']} ({g['best_by_chance']:.1f}) |")
-    lines += ["", "## Per row (row / budget / CPU kind)", "",
-              "| row | " + " | ".join(TARGET_NAMES[t] for t in TARGETS) + " |",
-              "|---|" + "---:|" * len(TARGETS)]
-    for g, d in res["groups"].items():
-        lines.append(f"| {g} | " + " | ".join(_c(d[t]) for t in TARGETS) + " |")
+        lines.append(md_row([scope, g["groups"], gain, gain_word(g) or "–",
+                             f"{g['best_picked']} of {g['groups']} ({g['best_by_chance']:.1f})"]))
+    lines += ["", "## Per row (row / budget / CPU kind)", "", *md_table(
+        ["row", *(TARGET_NAMES[t] for t in TARGETS)], "l" + "r" * len(TARGETS),
+        ([g, *(_c(d[t]) for t in TARGETS)] for g, d in res["groups"].items()))]
     for family, fres in res.get("families", {}).items():
         fboth = fres["scopes"][BOTH]
         ffolders = sorted({f for p in points if p.family == family for f in p.folders})
@@ -372,12 +370,11 @@ def markdown(res: dict[str, Any], points: Sequence[Point]) -> str:
 
 def _scope_table(res: dict[str, Any]) -> list[str]:
     """Pooled and within-row rho, per scope and target."""
-    lines = ["| scope | target | pooled rho [95%] | within rows rho [95%] |", "|---|---|---:|---:|"]
     scopes_ = list(res["scopes"].items())
-    for scope, s in scopes_[1:] if len(scopes_) == 2 else scopes_:  # one kind: "both kinds" is that kind
-        for t in TARGETS:
-            lines.append(f"| {scope} | {TARGET_NAMES[t]} | {_c(s['pooled'][t])} | {_c(s['within_rows'][t])} |")
-    return lines
+    shown = scopes_[1:] if len(scopes_) == 2 else scopes_  # one kind: "both kinds" is that kind
+    return md_table(["scope", "target", "pooled rho [95%]", "within rows rho [95%]"], "llrr",
+                    ([scope, TARGET_NAMES[t], _c(s["pooled"][t]), _c(s["within_rows"][t])]
+                     for scope, s in shown for t in TARGETS))
 
 
 def _answer(res: dict[str, Any], kinds: list[str]) -> list[str]:

@@ -12,7 +12,7 @@ from scipy import stats
 
 from cicfw.reproduction.analysis import Analysis
 from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, MIN_SEEDS, NOT_SEPARATED, difference, equivalent,
-                                           family_level, word)
+                                           family_level, word, word_record)
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"
@@ -36,11 +36,9 @@ def overall_difference(an: Analysis, a: str, b: str, margin: float | None = None
            "cpu": "mixed" if pair.mixed else pair.cpu, "seeds": list(d.n)}
     if margin is not None:
         level = family_level(family_size)
-        dc = difference(va, vb, level=level)
-        w = word(dc.estimate.lo, dc.estimate.hi, margin) if d.enough_seeds else None
-        rec["word"] = {"word": w, "lo": dc.estimate.lo if w else None, "hi": dc.estimate.hi if w else None,
-                       "level": level, "correction": f"Bonferroni over the {family_size} comparisons with "
-                                                     f"{BASELINE}" if family_size > 1 else "none (one comparison)"}
+        rec["word"] = word_record(difference(va, vb, level=level), margin, level,
+                                  f"Bonferroni over the {family_size} comparisons with {BASELINE}"
+                                  if family_size > 1 else "none (one comparison)")
         rec["word_uncorrected"] = word(d.estimate.lo, d.estimate.hi, margin) if d.enough_seeds else None
     return rec
 
@@ -135,15 +133,12 @@ def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] |
     pairs = []
     level = family_level(len(values))  # a pair's own word: Bonferroni over every pair of ranked rows
     for (i, j), (va, vb) in values.items():
-        d, dc = difference(va, vb), difference(va, vb, level=level)
-        note = cells[i, j].note()
-        w = word(dc.estimate.lo, dc.estimate.hi, margin) if d.enough_seeds else None
+        d, note = difference(va, vb), cells[i, j].note()
         pairs.append({"a": i, "b": j, "measured": d.estimate.as_dict(),
                       "method": d.method + (f", {note}" if note else ""),
                       "lower": _finite(bounds[i, j][1]), "upper": _finite(bounds[i, j][2]),
-                      "word": {"word": w, "lo": dc.estimate.lo if w else None, "hi": dc.estimate.hi if w else None,
-                               "level": level,
-                               "correction": f"Bonferroni over the {len(values)} pairs of ranked rows"}})
+                      "word": word_record(difference(va, vb, level=level), margin, level,
+                                          f"Bonferroni over the {len(values)} pairs of ranked rows")})
     k = len(ranked)
     return {**res, "pairs": pairs, "procedure": f"Hsu's MCB over the {k} rows with >= {MIN_SEEDS} seeds, Bonferroni "
                                                 f"over each row's {k - 1} comparisons (one-sided "

@@ -104,7 +104,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 from hydra import compose, initialize_config_module
@@ -247,6 +247,11 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
+def _paper_value(paper: Sequence[float] | None, i: int) -> float | None:
+    """The paper's value in column ``i`` of ``[*COLUMNS, "overall"]`` (overall: the mean of its four)."""
+    return None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
+
+
 def results_csv(data: Mapping[str, Any]) -> str:
     """One line per (row, column): the mean over seeds, the t-interval, the bootstrap's (secondary), the
     paper's value and the per-seed values."""
@@ -255,12 +260,21 @@ def results_csv(data: Mapping[str, Any]) -> str:
     for r in data["rows"]:
         for i, col in enumerate([*COLUMNS, "overall"]):
             e, b = r["columns"][col], r["bootstrap"][col]
-            paper = r["paper"]
-            pv = "" if not paper else f"{(paper[i] if i < 4 else float(np.mean(paper))):.2f}"
+            pv = "" if not r["paper"] else f"{_paper_value(r['paper'], i):.2f}"
             per_seed = ";".join(f"{s}:{v[col]}" for s, v in r["per_seed"].items())
             lines.append(f"{r['row']},\"{r['label']}\",{r['decoder'] or ''},{col},{len(r['seeds'])},{e['mean']},"
                          f"{nz(e['lo'])},{nz(e['hi'])},{nz(b['lo'])},{nz(b['hi'])},{pv},{per_seed}")
     return "\n".join(lines) + "\n"
+
+
+def md_row(cells: Iterable[Any]) -> str:
+    """One row of a Markdown table: ``| a | b |``."""
+    return "| " + " | ".join(map(str, cells)) + " |"
+
+
+def md_table(head: Sequence[str], align: str, rows: Iterable[Iterable[Any]] = ()) -> list[str]:
+    """A Markdown table's lines: ``head``, its rule (``align``: ``l`` or ``r`` per column) and ``rows``."""
+    return [md_row(head), "|" + "".join("---:|" if a == "r" else "---|" for a in align), *map(md_row, rows)]
 
 
 def _pct(v: float | None) -> str:
@@ -439,15 +453,12 @@ def forest_lines(data: Mapping[str, Any]) -> list[str]:
              "both ran, Welch's t where they share none. Its word (*ahead*, *behind*, *equivalent within "
              f"±{data.get('equivalence_margin', 5):g}*, *not separated*) is read on the interval corrected by "
              f"Bonferroni over the {size} comparisons of the ranked rows with {base}, shown beside it; a row with "
-             "too few seeds gets none.", "",
-             f"| Row | Seeds | Row − {base} [95% t] | Method | Paper | Word [corrected interval] |",
-             "|---|---:|---:|---|---:|---|"]
-    for r in rows:
-        paper = "–" if r.get("paper") is None else f"{r['paper']:+.1f}"
-        seeds = len(by[r["a"]]["seeds"])
-        lines.append(f"| {by[r['a']]['label']} | {seeds}{'' if not r.get('apart') else ' †'} | "
-                     f"{_est(r['measured'], '+')} | {r['method']} | {paper} | {word_text(r.get('word'))} |")
-    return lines
+             "too few seeds gets none.", ""]
+    return lines + md_table(
+        ["Row", "Seeds", f"Row − {base} [95% t]", "Method", "Paper", "Word [corrected interval]"], "lrrlrl",
+        ([by[r["a"]]["label"], f"{len(by[r['a']]['seeds'])}{'' if not r.get('apart') else ' †'}",
+          _est(r["measured"], "+"), r["method"], "–" if r.get("paper") is None else f"{r['paper']:+.1f}",
+          word_text(r.get("word"))] for r in rows))
 
 
 def pair_lines(data: Mapping[str, Any]) -> list[str]:
@@ -460,31 +471,26 @@ def pair_lines(data: Mapping[str, Any]) -> list[str]:
     lines = ["", "## Each pair of ranked rows (MCB's comparisons)", "",
              f"A − B overall (points) with its 95% t-interval and test; the one-sided {100 * b['confidence']:.2f}% "
              f"bounds MCB reads (lower, upper); and the pair's own word, read on the interval corrected by Bonferroni "
-             f"over all {len(b['pairs'])} pairs.", "",
-             "| A | B | A − B [95% t] | Method | MCB's bounds | Word [corrected interval] |", "|---|---|---:|---|---:|---|"]
-    for p in b["pairs"]:
-        lines.append(f"| {by[p['a']]['label']} | {by[p['b']]['label']} | {_est(p['measured'], '+')} | {p['method']} | "
-                     f"{_bounds(p['lower'], p['upper'])} | {word_text(p.get('word'))} |")
-    return lines
+             f"over all {len(b['pairs'])} pairs.", ""]
+    return lines + md_table(
+        ["A", "B", "A − B [95% t]", "Method", "MCB's bounds", "Word [corrected interval]"], "llrlrl",
+        ([by[p["a"]]["label"], by[p["b"]]["label"], _est(p["measured"], "+"), p["method"],
+          _bounds(p["lower"], p["upper"]), word_text(p.get("word"))] for p in b["pairs"]))
 
 
 def _table4_lines(data: Mapping[str, Any]) -> list[str]:
     """Table 4: each row's mean over seeds [95% t] per column and overall, the paper's value below; a CPU
     column where the folder's cells span kinds of CPU."""
     cpu = len(data.get("cpus") or {}) > 1
-    lines = ["| Row | Decoder | Seeds | " + ("CPU (cells) | " if cpu else "") + " | ".join(COLUMN_NAMES)
-             + " | Overall |",
-             "|---|---|---:|" + ("---|" if cpu else "") + "---:|" * 5]
+    lines = md_table(["Row", "Decoder", "Seeds", *(["CPU (cells)"] if cpu else []), *COLUMN_NAMES, "Overall"],
+                     "llr" + ("l" if cpu else "") + "r" * 5)
     for r in data["rows"]:
-        cells = []
-        for i, col in enumerate([*COLUMNS, "overall"]):
-            paper = r["paper"]
-            pv = None if not paper else (paper[i] if i < 4 else float(np.mean(paper)))
-            cells.append(f"{_est(r['columns'][col])}<br>*{_pct(pv)}*")
+        cells = [f"{_est(r['columns'][col])}<br>*{_pct(_paper_value(r['paper'], i))}*"
+                 for i, col in enumerate([*COLUMNS, "overall"])]
         seeds = (f"{len(r['seeds'])}" + ("" if r["enough_seeds"] else " †")
                  + (f" {RESUMED_MARK}" if r.get("resumed") else ""))
-        kinds = f"{_cpus(r.get('cpus') or {})} | " if cpu else ""
-        lines.append(f"| {r['label']} | {r['decoder'] or '–'} | {seeds} | {kinds}" + " | ".join(cells) + " |")
+        lines.append(md_row([r["label"], r["decoder"] or "–", seeds, *([_cpus(r.get("cpus") or {})] if cpu else []),
+                             *cells]))
     return lines
 
 
@@ -543,10 +549,9 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     resumed = resumed_text(data)
     if resumed:
         lines += ["", resumed]
-    lines += ["", "## The paper's claims", "", _claims_intro(data), "",
-              "| Claim | Comparison | Method | Measured (points) [95% t] | Paper | p | Holm p | Verdict | "
-              "Holm verdict | Word [corrected interval] | Bootstrap (secondary) |",
-              "|---|---|---|---:|---:|---:|---:|---|---|---|---:|"]
+    lines += ["", "## The paper's claims", "", _claims_intro(data), "", *md_table(
+        ["Claim", "Comparison", "Method", "Measured (points) [95% t]", "Paper", "p", "Holm p", "Verdict",
+         "Holm verdict", "Word [corrected interval]", "Bootstrap (secondary)"], "lllrrrrlllr")]
     for c in data["claims"]:
         for k, p in enumerate(c["parts"]):
             meas = p.get("measured")
@@ -557,9 +562,9 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
                 pp += f"; {rel['paper']:+.0f}%"
             boot = _est(p["bootstrap"], "+") if p.get("bootstrap") else "–"
             head = (f"{c['claim']} (**{c['verdict']}**; Holm **{c['verdict_holm']}**)" if k == 0 else "")
-            lines.append(f"| {head} | {p['comparison']} | {p.get('method', '–')} | {ms} | {pp} | {_p(p.get('p'))} | "
-                         f"{_p(p.get('p_holm'))} | {p['verdict']} | {p.get('verdict_holm', '–')} | "
-                         f"{word_text(p.get('word')) if 'measured' in p else '–'} | {boot} |")
+            lines.append(md_row([head, p["comparison"], p.get("method", "–"), ms, pp, _p(p.get("p")),
+                                 _p(p.get("p_holm")), p["verdict"], p.get("verdict_holm", "–"),
+                                 word_text(p.get("word")) if "measured" in p else "–", boot]))
     quoted = [c for c in data["claims"] if c.get("quote")]
     if quoted:
         lines += ["", "### The claims in the paper's words", ""]
@@ -568,27 +573,22 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     lines += pair_lines(data)
     lines += relation_lines(data.get("relation"))
     lines += ["", "## Summary (generated from the numbers above)", "", *summary_lines(data)]
-    lines += ["", "## Per seed (success %, overall = mean of the four columns)", "",
-              "| Row | Seed | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
-    for r in data["rows"]:
-        for s, v in r["per_seed"].items():
-            mark = f" {RESUMED_MARK}" if s in (r.get("resumed") or {}) else ""
-            lines.append(f"| {r['label']} | {s}{mark} | "
-                         + " | ".join(f"{v[c]:.1f}" for c in [*COLUMNS, "overall"]) + " |")
+    lines += ["", "## Per seed (success %, overall = mean of the four columns)", "", *md_table(
+        ["Row", "Seed", *COLUMN_NAMES, "Overall"], "lrrrrrr",
+        ([r["label"], s + (f" {RESUMED_MARK}" if s in (r.get("resumed") or {}) else ""),
+          *(f"{v[c]:.1f}" for c in [*COLUMNS, "overall"])] for r in data["rows"] for s, v in r["per_seed"].items()))]
     lines += ["", f"## Secondary: the two-level episode bootstrap ({data['n_boot']} replicates)", "",
               "Seeds, then episodes within each column, drawn with replacement (paired by episode between rows). "
               "Kept for comparison with earlier reports; with few seeds its intervals are too narrow "
-              "(docs/reproduce.md gives its simulated coverage).", "",
-              "| Row | Seeds | " + " | ".join(COLUMN_NAMES) + " | Overall |", "|---|---:|" + "---:|" * 5]
-    for r in data["rows"]:
-        lines.append(f"| {r['label']} | {len(r['seeds'])} | "
-                     + " | ".join(_est(r["bootstrap"][c]) for c in [*COLUMNS, "overall"]) + " |")
+              "(docs/reproduce.md gives its simulated coverage).", "", *md_table(
+                  ["Row", "Seeds", *COLUMN_NAMES, "Overall"], "lrrrrrr",
+                  ([r["label"], len(r["seeds"]), *(_est(r["bootstrap"][c]) for c in [*COLUMNS, "overall"])]
+                   for r in data["rows"]))]
     if any(r["manoeuvres"] for r in data["rows"]):
         names = [n for n in ("left", "right", "straight") if any(n in r["manoeuvres"] for r in data["rows"])]
-        lines += ["", "## Success by manoeuvre (mean over seeds, %)", "",
-                  "| Row | " + " | ".join(n.capitalize() for n in names) + " |", "|---|" + "---:|" * len(names)]
-        for r in data["rows"]:
-            lines.append(f"| {r['label']} | " + " | ".join(_pct(r["manoeuvres"].get(n)) for n in names) + " |")
+        lines += ["", "## Success by manoeuvre (mean over seeds, %)", "", *md_table(
+            ["Row", *(n.capitalize() for n in names)], "l" + "r" * len(names),
+            ([r["label"], *(_pct(r["manoeuvres"].get(n)) for n in names)] for r in data["rows"]))]
     lines += spread_lines(data)
     curve = curve_table(data)
     if curve:
@@ -600,14 +600,11 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
         ("Machine", "machine", lambda r, s: (r.get("machine") or {}).get(s) or "–"),
     ] if any(r.get(key) for r in data["rows"])]
     where = "on each cell's machine" if any(n == "Machine" for n, _ in optional) else "on the machine above"
-    lines += ["", f"## Wall time per cell (s, {where})", "",
-              "| Row | Seed | Train | Evaluate | Curve evaluations |" + "".join(f" {n} |" for n, _ in optional),
-              "|---|---:|---:|---:|---:|" + "---|" * len(optional)]
-    for r in data["rows"]:
-        for s, w in r["wall_s"].items():
-            w = w or {}
-            lines.append(f"| {r['label']} | {s} | {_pct(w.get('train'))} | {_pct(w.get('evaluate'))} | "
-                         f"{_pct(w.get('curve'))} |" + "".join(f" {value(r, s)} |" for _, value in optional))
+    lines += ["", f"## Wall time per cell (s, {where})", "", *md_table(
+        ["Row", "Seed", "Train", "Evaluate", "Curve evaluations", *(n for n, _ in optional)],
+        "lrrrr" + "l" * len(optional),
+        ([r["label"], s, *(_pct((w or {}).get(k)) for k in ("train", "evaluate", "curve")),
+          *(value(r, s) for _, value in optional)] for r in data["rows"] for s, w in r["wall_s"].items()))]
     if data["failed"]:
         lines += ["", "## Failed cells", ""] + [f"- {f['row']} seed {f['seed']}: {f['error']}" for f in data["failed"]]
     return "\n".join(lines) + "\n"
@@ -625,14 +622,13 @@ def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
              "trains as a row of its own; the one with the lowest mean validation steering error (the held-out "
              "part of the training town's data, never the suite) over the seeds every candidate has "
              f"({', '.join(seeds) or 'none yet'}) is the fine-tuning row, a tie keeping the earlier.", "",
-             "| Candidate | " + " | ".join(f"Seed {s}" for s in every) + " | Mean over shared seeds |",
-             "|---|" + "---:|" * (len(every) + 1)]
+             *md_table(["Candidate", *(f"Seed {s}" for s in every), "Mean over shared seeds"],
+                       "l" + "r" * (len(every) + 1))]
     for c in rel["candidates"]:
         chosen = c["row"] == rel["chosen"]
         mean = "–" if c["mean"] is None else f"{c['mean']:.5f}" + (" (chosen)" if chosen else "")
-        lines.append(f"| {'**' + c['label'] + '**' if chosen else c['label']} | "
-                     + " | ".join(f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else "–" for s in every)
-                     + f" | {mean} |")
+        errors = (f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else "–" for s in every)
+        lines.append(md_row(["**" + c["label"] + "**" if chosen else c["label"], *errors, mean]))
     if rel["chosen"] is None:
         lines += ["", "Not chosen yet: some candidate has no finished cell at a seed the others have."]
     return lines
@@ -656,16 +652,13 @@ def spread_lines(data: Mapping[str, Any]) -> list[str]:
              "Each entry: the p-value of the test that every seed of the row has the same success rate there "
              "(Pearson's chi-square of the seeds' successes and failures, p by Monte Carlo over tables with the "
              "same margins, `cicfw.reproduction.seed_spread`), then each seed's failures in seed order. A small p: "
-             "the seeds trained models of different quality, beyond what the episodes' luck gives.", "",
-             "| Row | Seeds | " + " | ".join(COLUMN_NAMES) + " | "
-             + " | ".join(f"{COLUMN_NAMES[0]}: {m} turns" if m != "straight" else f"{COLUMN_NAMES[0]}: straight"
-                          for m in commands) + " |",
-             "|---|---:|" + "---:|" * (len(COLUMNS) + len(commands))]
-    for r in rows:
-        sp = r["spread"]
-        lines.append(f"| {r['label']} | {len(r['seeds'])} | " + " | ".join(_spread(sp[c]["all"]) for c in COLUMNS)
-                     + " | " + " | ".join(_spread(sp[COLUMNS[0]].get(m)) for m in commands) + " |")
-    return lines
+             "the seeds trained models of different quality, beyond what the episodes' luck gives.", ""]
+    return lines + md_table(
+        ["Row", "Seeds", *COLUMN_NAMES, *(f"{COLUMN_NAMES[0]}: {m} turns" if m != "straight"
+                                          else f"{COLUMN_NAMES[0]}: straight" for m in commands)],
+        "lr" + "r" * (len(COLUMNS) + len(commands)),
+        ([r["label"], len(r["seeds"]), *(_spread(r["spread"][c]["all"]) for c in COLUMNS),
+          *(_spread(r["spread"][COLUMNS[0]].get(m)) for m in commands)] for r in rows))
 
 
 def curve_points(data: Mapping[str, Any]) -> dict[str, list[tuple[int, float, float, float, int]]]:
@@ -689,15 +682,13 @@ def curve_table(data: Mapping[str, Any]) -> list[str]:
     if not pts:
         return []
     samples = sorted({s for v in pts.values() for s, *_ in v})
-    lines = ["| Row | " + " | ".join(f"{s:,} samples" for s in samples) + " |", "|---|" + "---:|" * len(samples)]
 
     def point(m: float, lo: float, hi: float, n: int) -> str:  # one seed has a value, not a range
         return f"{m:.1f}" if n == 1 else f"{m:.1f} [{lo:.1f}, {hi:.1f}] ({n} seeds)"
 
-    for label, v in pts.items():
-        d = {s: rest for s, *rest in v}
-        lines.append(f"| {label} | " + " | ".join(point(*d[s]) if s in d else "–" for s in samples) + " |")
-    return lines
+    cells = {label: {s: rest for s, *rest in v} for label, v in pts.items()}
+    return md_table(["Row", *(f"{s:,} samples" for s in samples)], "l" + "r" * len(samples),
+                    ([label, *(point(*d[s]) if s in d else "–" for s in samples)] for label, d in cells.items()))
 
 
 def row_colours(rows: Sequence[str], order: Sequence[str] = ()) -> dict[str, int]:

@@ -42,6 +42,15 @@ def word(lo: float | None, hi: float | None, margin: float) -> str | None:
     return NOT_SEPARATED
 
 
+def word_record(d_corrected: Difference, margin: float, level: float, correction: str) -> dict:
+    """A comparison's word (``word``) read on its corrected interval ``d_corrected`` (a ``Difference`` at
+    ``level``), with that interval and the correction's name, as results.json keeps it."""
+    e = d_corrected.estimate
+    w = word(e.lo, e.hi, margin) if d_corrected.enough_seeds else None
+    return {"word": w, "lo": e.lo if w else None, "hi": e.hi if w else None, "level": level,
+            "correction": correction}
+
+
 def family_level(size: int, level: float = LEVEL) -> float:
     """Bonferroni: the level of each of ``size`` two-sided intervals that hold jointly with probability
     ``level`` (1 - (1 - level) / size); ``level`` itself for a family of one."""

@@ -136,10 +136,6 @@ class Noiser:
         self._duration = 0.0
         self._value = 0.0
 
-    @property
-    def active(self) -> bool:
-        return self._phase != "off"
-
     def step(self, steer: float, speed_kmh: float) -> tuple[float, bool]:
         """Advance one step; return (applied steering = steer + scaled noise, noise flag)."""
         self.t += self.dt

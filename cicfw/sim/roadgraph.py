@@ -12,6 +12,7 @@ import functools
 import heapq
 import math
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from cicfw.sim.town import STEP, Town, TownError, resample
 FOLLOW, LEFT, RIGHT, STRAIGHT = 2, 3, 4, 5  # CIL command codes (branch = code - 2)
 COMMAND_NAMES = {FOLLOW: "follow", LEFT: "left", RIGHT: "right", STRAIGHT: "straight"}
 COMMAND_DISTANCE = 12.0  # metres before a junction's entry where its turn command starts
-STRAIGHT_MAX_DEG = 45.0  # |heading change| below this through a T junction is "straight"
+STRAIGHT_MAX_DEG = 45.0  # |heading change| through a junction below this is "straight"
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +98,24 @@ def _heading(poly: np.ndarray) -> np.ndarray:
     return np.arctan2(d[:, 1], d[:, 0])
 
 
+def turn_code(change_deg: float) -> int:
+    """CIL command of a manoeuvre with this heading change (degrees, positive = left)."""
+    if abs(change_deg) < STRAIGHT_MAX_DEG:
+        return STRAIGHT
+    return LEFT if change_deg > 0 else RIGHT
+
+
+def turn_commands(s: np.ndarray, turns: Sequence[tuple], command_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each route point's command and whether it lies in a junction, from its arc length ``s`` and the route's
+    ``turns`` ``(junction, command, entry, exit)`` (m): a turn's command from ``command_distance`` before its
+    entry to its exit, follow elsewhere."""
+    commands, in_j = np.full(len(s), FOLLOW, np.int8), np.zeros(len(s), bool)
+    for _, cmd, entry, exit_ in turns:
+        commands[(s >= entry - command_distance) & (s <= exit_)] = cmd
+        in_j[(s >= entry) & (s <= exit_)] = True
+    return commands, in_j
+
+
 def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
@@ -162,8 +181,7 @@ class RoadGraph:
         """Commands for the exits of one incoming lane, sorted by heading change (right to left)."""
         if len(angles) == 3:  # X: rightmost right, middle straight, leftmost left
             return [RIGHT, STRAIGHT, LEFT]
-        lim = math.radians(STRAIGHT_MAX_DEG)
-        cmds = [STRAIGHT if abs(a) < lim else (LEFT if a > 0 else RIGHT) for a in angles]
+        cmds = [turn_code(math.degrees(a)) for a in angles]
         if len(set(cmds)) != len(cmds):
             raise TownError(
                 f"{self.town.source}: junction {jid!r}: arriving on road {lane.road!r}, two exits would both "
@@ -274,11 +292,7 @@ class RoadGraph:
         heading = np.unwrap(_heading(pts))
         curv = np.gradient(heading, s) if len(s) > 2 else np.zeros(len(s))
         curv = np.convolve(curv, np.ones(5) / 5, mode="same")
-        commands = np.full(len(pts), FOLLOW, np.int8)
-        in_j = np.zeros(len(pts), bool)
-        for _, cmd, entry, exit_ in turns:
-            commands[(s >= entry - self.command_distance) & (s <= exit_)] = cmd
-            in_j[(s >= entry) & (s <= exit_)] = True
+        commands, in_j = turn_commands(s, turns, self.command_distance)
         return Route(name=name, points=pts, heading=_wrap(heading), s=s, curvature=curv, commands=commands,
                      in_junction=in_j, lanes=tuple(lanes), turns=turns, meta=dict(meta or {}))
 

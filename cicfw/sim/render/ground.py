@@ -18,6 +18,7 @@ import numpy as np
 
 from cicfw.sim.render.noise import fbm, smooth_noise, stable_seed
 from cicfw.sim.render.weather import Weather
+from cicfw.sim.town.geometry import frames_at
 
 RES = 0.1  # m per texel at level 0
 LEVELS = 7  # mip levels: 0.1 m .. 6.4 m per texel
@@ -91,30 +92,18 @@ def ground_base(town, res: float = RES) -> GroundBase:
     return base
 
 
-def _frames(c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points, unit tangents and left normals of polyline ``c`` at arc lengths ``s``."""
-    seg = np.linalg.norm(np.diff(c, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    s = np.clip(s, 0.0, cum[-1])
-    p = np.stack([np.interp(s, cum, c[:, 0]), np.interp(s, cum, c[:, 1])], axis=1)
-    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(c) - 2)
-    t = c[i + 1] - c[i]
-    t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-9)
-    return p, t, np.stack([-t[:, 1], t[:, 0]], axis=1)
-
-
 def _length(c: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
 
 
 def _offset_line(c: np.ndarray, s0: float, s1: float, off: float, step: float = 0.5) -> np.ndarray:
     s = np.linspace(s0, s1, max(int(math.ceil((s1 - s0) / step)), 1) + 1)
-    p, _, n = _frames(c, s)
+    p, _, n = frames_at(c, s)
     return p + off * n
 
 
 def _quad(c: np.ndarray, s0: float, s1: float, o0: float, o1: float) -> np.ndarray:
-    p, _, n = _frames(c, np.array([s0, s1]))
+    p, _, n = frames_at(c, np.array([s0, s1]))
     return np.array([p[0] + o0 * n[0], p[1] + o0 * n[1], p[1] + o1 * n[1], p[0] + o1 * n[0]])
 
 

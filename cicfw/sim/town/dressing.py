@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from cicfw.sim.town.fields import BUILDING_KEYS, PROP_KEYS, FieldReader
-from cicfw.sim.town.geometry import left_normal, polygon_area, rect
+from cicfw.sim.town.geometry import frames_at, polygon_area, rect
 from cicfw.sim.town.model import Building, Prop, Road, Style
 
 
@@ -56,18 +56,6 @@ class Occupancy:
         cv2.circle(self.grid, tuple(int(v) for v in self.px(c[None])[0, 0]), int(math.ceil(r / self.RES)), 1, -1)
 
 
-def _frames(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points and unit tangents of ``road`` at arc lengths ``s``."""
-    c = road.centreline
-    seg = np.linalg.norm(np.diff(c, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    p = np.stack([np.interp(s, cum, c[:, 0]), np.interp(s, cum, c[:, 1])], axis=1)
-    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(c) - 2)
-    t = c[i + 1] - c[i]
-    t /= np.linalg.norm(t, axis=1, keepdims=True)
-    return p, t
-
-
 def place_buildings(cx: FieldReader, spec: Any, roads: list[Road], frontage: dict, hw: float, sw: float,
                     occ: Occupancy, style: Style) -> list[Building]:
     """The file's listed buildings, then rows of them behind the sidewalks of roads with building frontage
@@ -106,8 +94,8 @@ def place_buildings(cx: FieldReader, spec: Any, roads: list[Road], frontage: dic
                 fac = int(rng.integers(len(style.facades)))
                 if s + w > road.length:
                     break
-                p, t = _frames(road, np.array([s + w / 2]))
-                n = left_normal(t[0]) * side
+                p, t, n = frames_at(road.centreline, np.array([s + w / 2]))
+                n = n[0] * side
                 fp = rect(p[0] + n * (off + d / 2), t[0], w, d)
                 if polygon_area(fp) < 0:
                     fp = fp[::-1]
@@ -151,8 +139,8 @@ def place_props(cx: FieldReader, spec: Any, roads: list[Road], frontage: dict, h
             # poles on the sidewalk near the kerb
             if p_spacing > 0 and sw > 0:
                 for s in np.arange(p_spacing / 2, road.length - 2.0, p_spacing):
-                    p, t = _frames(road, np.array([s]))
-                    out.append(Prop(kind="pole", position=p[0] + left_normal(t[0]) * side * (hw + 0.4),
+                    p, _, n = frames_at(road.centreline, np.array([s]))
+                    out.append(Prop(kind="pole", position=p[0] + n[0] * side * (hw + 0.4),
                                     height=p_height, radius=p_radius))
             # trees behind the sidewalk wherever the lot is free (parks: roads with frontage trees)
             if frontage[road.id] == "none":
@@ -162,8 +150,8 @@ def place_props(cx: FieldReader, spec: Any, roads: list[Road], frontage: dict, h
                 r = rng.uniform(*t_radius)
                 h = rng.uniform(*t_height)
                 keep = rng.random() < t_fill
-                p, t = _frames(road, np.array([s]))
-                c = p[0] + left_normal(t[0]) * side * (hw + sw + r + 1.0)
+                p, _, n = frames_at(road.centreline, np.array([s]))
+                c = p[0] + n[0] * side * (hw + sw + r + 1.0)
                 if keep and occ.free_disc(c, r):
                     occ.take_disc(c, r)
                     out.append(Prop(kind="tree", position=c, height=h, radius=r))

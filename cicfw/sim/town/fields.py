@@ -2,6 +2,7 @@
 bad field, naming the file, the element and what is accepted."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -13,8 +14,7 @@ TOP_KEYS = {
     "name", "lane_width", "sidewalk_width", "junction_radius", "margin", "style",
     "nodes", "roads", "buildings", "props",
 }
-STYLE_KEYS = ("road", "marking", "centre_line", "sidewalk", "terrain", "facades", "roof",
-              "vegetation", "pole", "sky")
+STYLE_KEYS = tuple(f.name for f in dataclasses.fields(Style))  # every colour a style names
 ROAD_KEYS = {"id", "a", "b", "via", "radius", "frontage"}
 FRONTAGES = ("buildings", "trees", "none")
 BUILDING_KEYS = {"seed", "setback", "width", "depth", "height", "gap", "fill", "list"}

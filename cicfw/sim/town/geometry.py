@@ -29,6 +29,18 @@ def resample(poly: np.ndarray, step: float = STEP) -> np.ndarray:
     return np.stack([np.interp(t, s, poly[:, 0]), np.interp(t, s, poly[:, 1])], axis=1)
 
 
+def frames_at(c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, unit tangents and left normals of polyline ``c`` at arc lengths ``s`` (clipped to its length)."""
+    seg = np.linalg.norm(np.diff(c, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    s = np.clip(s, 0.0, cum[-1])
+    p = np.stack([np.interp(s, cum, c[:, 0]), np.interp(s, cum, c[:, 1])], axis=1)
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(c) - 2)
+    t = c[i + 1] - c[i]
+    t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-9)
+    return p, t, np.stack([-t[:, 1], t[:, 0]], axis=1)
+
+
 def rounded_polyline(pts: list, radius: float, end_keep: float) -> np.ndarray:
     """A polyline through ``pts`` with each interior corner rounded by an arc of ``radius`` (or less
     where the segments are short; the end segments keep ``end_keep`` metres straight)."""
