@@ -367,6 +367,20 @@ def test_report_files_are_readable_under_umask_022(tmp_path):
         assert stat.S_IMODE(p.stat().st_mode) == 0o644, (p, oct(p.stat().st_mode))
 
 
+def test_cicfw_report_rewrites_the_report_with_the_runs_own_rows_and_margin(tmp_path):
+    """A run given a row of its own (its label) and another margin wrote its report with them; ``cicfw report`` on
+    its folder rewrote it with conf/reproduce.yaml's defaults: the row under its key, the words at ±5."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "mine") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    reproduce.keep_report_overrides(out, ["budget=smoke", '+catalogue.mine={experiment: paper_gtu, label: "My row"}',
+                                          "rows=[cil,mine]", "seeds=3", "equivalence_margin=3"])
+    assert results.main([str(out)]) == 0
+    data = json.loads((out / "results.json").read_text())
+    assert {r["row"]: r["label"] for r in data["rows"]}["mine"] == "My row"
+    assert data["equivalence_margin"] == 3
+
+
 def test_resumed_cells_are_marked_in_the_report(tmp_path):
     cells = [synthetic("cil", s, 10 + s) for s in range(3)]
     cells += [synthetic("gtu", s, 12 + s, resumed={"training": {"from_epoch": 1}} if s == 1 else None)

@@ -108,7 +108,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 from hydra import compose, initialize_config_module
+from hydra.errors import HydraException
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
@@ -867,6 +869,35 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     return data
 
 
+#: the reproduce config's keys the report reads (``write_configured``): a run's overrides of them (a row of its own
+#: with its label, another margin) are kept in its reproduce.json, so ``cicfw report`` rewrites the report as
+#: the run wrote it rather than with conf/reproduce.yaml's defaults
+REPORT_KEYS = ("catalogue", "claims", "equivalence_margin", "relation_candidates")
+REPORT_OVERRIDES = "report_overrides"
+
+
+def report_overrides(overrides: Sequence[str]) -> list[str]:
+    """The overrides among ``overrides`` that change what the report reads (``REPORT_KEYS``), in order."""
+    def root(o: str) -> str:
+        return o.lstrip("+~").split("=", 1)[0].split(".", 1)[0].split("[", 1)[0].strip()
+
+    return [str(o) for o in overrides if root(str(o)) in REPORT_KEYS]
+
+
+def run_report_config(results_dir: Path) -> Any:
+    """conf/reproduce.yaml composed with the report overrides the folder's runs recorded (``REPORT_OVERRIDES``
+    in reproduce.json; none in a folder made before they were recorded); one error line when they no longer
+    compose."""
+    manifest = read_json(Path(results_dir) / "reproduce.json", default={})
+    overrides = list(manifest.get(REPORT_OVERRIDES) or []) if isinstance(manifest, Mapping) else []
+    try:
+        return compose("reproduce", overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as err:  # an entry this cicfw's config no longer takes
+        raise CicfwError(f"{str(Path(results_dir) / 'reproduce.json')!r} records the report overrides {overrides}, "
+                         f"which do not compose with this cicfw's conf/reproduce.yaml ({str(err).splitlines()[0]}); "
+                         f"edit or remove its {REPORT_OVERRIDES!r}", key=REPORT_OVERRIDES, value=overrides) from None
+
+
 def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None = None) -> dict[str, Any]:
     """``write_report`` with a composed reproduce config's catalogue, claims, margin and fine tuning's
     candidates; then ``publish`` into ``publish_dir`` when given."""
@@ -898,7 +929,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             claim_folder(Path(a.publish), "reproduce", "--publish")
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            data = write_configured(Path(a.results_dir), compose("reproduce"), a.publish)
+            data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
         if a.markdown:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:
