@@ -35,8 +35,9 @@ from cicfw.data.provenance import data_root, recorded_files
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.export.agent import torch_device
-from cicfw.model.checkpoint import (checkpoint_hyper_parameters, checkpoint_record, checkpoint_split, config_parts_differ,
-                                    describe, load_model, prepare_for_inference, read_checkpoint, resolve_checkpoint)
+from cicfw.model.checkpoint import (checkpoint_hyper_parameters, checkpoint_record, checkpoint_split,
+                                    config_parts_differ, describe, load_model, prepare_for_inference, read_checkpoint,
+                                    resolve_checkpoint)
 from cicfw.reproduction.catalogue import row_overrides
 
 log = logging.getLogger("cicfw.diagnose")
