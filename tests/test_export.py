@@ -445,6 +445,20 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
+def test_frames_with_a_command_code_the_model_has_no_branch_for_are_one_line(tmp_path, monkeypatch):
+    """Real frames whose command code is 7 went into the parity check and failed the tracing, which was then
+    reported as an operator TorchScript cannot trace, to be reported as a cicfw bug."""
+    from cicfw.testing import write_tiny_dataset
+
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    frames = write_tiny_dataset(tmp_path / "frames", n_files=1, n=8, commands=(7,))
+    monkeypatch.setattr(export, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
+    with pytest.raises(ExportError) as err:
+        export_model(ckpt, "torchscript", tmp_path / "m.pt", frames=frames, n_frames=2)
+    assert (err.value.key, err.value.value) == ("frames", frames) and "command code 7" in str(err.value)
+    assert not (tmp_path / "m.pt").exists()
+
+
 def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):
     (tmp_path / "notes.h5").write_text("hello\n")
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")

@@ -147,6 +147,12 @@ def dataset_frames(path: str | Path, n: int) -> CheckInputs:
             break
     rgb, t = np.concatenate(images), np.concatenate(targets)
     pick = np.linspace(0, len(t) - 1, min(n, len(t))).round().astype(int)
+    bad = [i for i in pick if t[i, T.COMMAND] not in COMMAND_CODES]  # the model has no branch for it
+    if bad:
+        codes = ", ".join(f"{k} {v}" for k, v in COMMAND_CODES.items())
+        raise ExportError(f"frames={str(path)!r}: {names[bad[0]]} has command code {t[bad[0], T.COMMAND]:g}, which is "
+                          f"not a CIL command ({codes}); give CIL data, or leave frames out (frames rendered by the "
+                          f"embedded simulator)", key="frames", value=path)
     return CheckInputs(rgb[pick], t[pick, T.SPEED].astype(np.float32), t[pick, T.COMMAND].astype(np.int64),
                        [names[i] for i in pick])
 
