@@ -433,6 +433,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2
+    if not args.out and len(args.dirs) == 1 and (Path(args.dirs[0]) / "reproduce.json").is_file():
+        print(f"cicfw: error: report: {args.dirs[0]!r} is a reproduction's results folder, whose report is its Table 4 "
+              f"(cicfw report {args.dirs[0]}); to join the evaluations it holds into one table, give --out <a folder>",
+              file=sys.stderr)
+        return 2
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
     what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"
     try:
