@@ -315,6 +315,7 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
         (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, "out", tmp_path / "nope" / "m.onnx"),
         (dict(out=tmp_path), ExportError, "out", tmp_path),
         (dict(n_frames=0), ExportError, "n_frames", 0),
+        (dict(tolerance=float("inf")), ExportError, "tolerance", float("inf")),  # no check: a NaN model would pass
     ]
     for kwargs, kind, key, value in cases:
         args = {"checkpoint": ckpt, "fmt": "onnx", "out": tmp_path / "m.onnx", **run, **kwargs}

@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 import cicfw
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                                 onnx_runner, onnx_session, torch_runner)
-from cicfw.core.config_checks import is_integer
+from cicfw.core.config_checks import is_integer, is_number
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
@@ -566,8 +566,8 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     if not (isinstance(n_frames, int) and n_frames >= 1):
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",
                           key="n_frames", value=n_frames)
-    if not (isinstance(tolerance, (int, float)) and tolerance > 0):
-        raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)",
+    if not (is_number(tolerance) and tolerance > 0):  # inf would pass a model that steers NaN
+        raise ExportError(f"tolerance={tolerance!r} is not valid; use a finite number > 0 (largest steering difference)",
                           key="tolerance", value=tolerance)
     if fmt == "onnx":
         opset = DEFAULT_OPSET if opset is None else opset
