@@ -406,6 +406,23 @@ def test_cicfw_report_reads_a_reproduction_folder_wherever_its_options_stand(tmp
     assert not any((out / n).exists() for n in (*evaluation_report.REPORT_FILES, "report.json"))
 
 
+def test_report_markdown_copy_replaces_only_an_earlier_copy(tmp_path, capsys):
+    """``--markdown`` (its help said e.g. docs/RESULTS.md, which is composed from the studies' prose) replaced
+    any file with the generated report."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    notes = tmp_path / "RESULTS.md"
+    notes.write_text("# Results\n\nmy prose\n")
+    assert results.main([str(out), "--markdown", str(notes)]) == 2
+    assert "--markdown" in capsys.readouterr().err and notes.read_text() == "# Results\n\nmy prose\n"
+    assert not (out / "RESULTS.md").exists()  # refused before anything was written
+    copy = tmp_path / "copy.md"
+    assert results.main([str(out), "--markdown", str(copy)]) == 0
+    assert results.main([str(out), "--markdown", str(copy)]) == 0  # an earlier copy: replaced
+    assert copy.read_text().startswith(results.TITLE)
+
+
 def test_resumed_cells_are_marked_in_the_report(tmp_path):
     cells = [synthetic("cil", s, 10 + s) for s in range(3)]
     cells += [synthetic("gtu", s, 12 + s, resumed={"training": {"from_epoch": 1}} if s == 1 else None)

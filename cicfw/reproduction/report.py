@@ -521,7 +521,7 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     learning curve and each cell's wall time. ``pictures``: the prefix of the pictures' links."""
     m = data["manifest"]
     min_seeds = data.get("min_seeds", MIN_SEEDS)
-    lines = ["# Reproduction of the paper's Table 4", "", *answer_lines(data, pictures)]
+    lines = [TITLE, "", *answer_lines(data, pictures)]
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
               f"({m.get('episodes', '?')} episodes per cell){weathers_said(m)}; dataset: {m.get('dataset_summary', '?')}.",
               machine_line(data),
@@ -909,8 +909,31 @@ def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None
     return data
 
 
+#: the report's first line: what a file the report may replace (``--markdown``) starts with
+TITLE = "# Reproduction of the paper's Table 4"
+
+
+def check_markdown_target(path: Path) -> None:
+    """``--markdown`` replaces a file only where it is an earlier copy of a report (its first line the report's
+    title): a document of one's own (docs/RESULTS.md, composed from its prose; a README) is refused in one line."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            first = f.readline().rstrip("\n")
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise CicfwError(f"--markdown {str(path)!r} cannot be read ({err.strerror or err}); give a file path",
+                         key="--markdown", value=str(path)) from None
+    if first != TITLE:
+        raise CicfwError(f"--markdown {str(path)!r} is not a copy of a reproduction report (its first line is not "
+                         f"{TITLE!r}), which this would replace; give a new file or an earlier copy",
+                         key="--markdown", value=str(path))
+
+
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
-    """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
+    """The report's Markdown at ``path`` (a file of its own, or an earlier copy), its pictures linked from
+    ``pictures``."""
+    check_markdown_target(Path(path))
     rel = os.path.relpath(Path(pictures), Path(path).parent)
     atomic_write(Path(path), _with_pictures(data, rel, bool(data.get("has_curve"))))
     return Path(path)
@@ -921,12 +944,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
     ap.add_argument("results_dir")
     ap.add_argument("--publish", default=None, help="also copy the small results into this folder")
-    ap.add_argument("--markdown", default=None, help="also write the Markdown here (e.g. docs/RESULTS.md)")
+    ap.add_argument("--markdown", default=None,
+                    help="also write the Markdown to this file (new, or an earlier copy of the report)")
     a = ap.parse_args(argv)
     try:
         claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
         if a.publish:
             claim_folder(Path(a.publish), "reproduce", "--publish")
+        if a.markdown:
+            check_markdown_target(Path(a.markdown))  # before anything is written
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
