@@ -24,6 +24,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: the report options that take a value (the evaluation report's and the reproduction report's)
+REPORT_VALUE_OPTIONS = ("--out", "--publish", "--markdown")
+
+
+def first_positional(args: list[str]) -> str | None:
+    """The first argument that is not an option or an option's value: the folder ``cicfw report`` is given,
+    wherever its options stand (``cicfw report --no-plots DIR`` is DIR's report as ``cicfw report DIR`` is)."""
+    args = iter(args)
+    for a in args:
+        if a in REPORT_VALUE_OPTIONS:
+            next(args, None)
+        elif not a.startswith("-"):
+            return a
+    return None
+
+
 def usage() -> str:
     lines = ["usage: cicfw <command> [args...]", "", "commands:"]
     lines += [f"  {name:<11} {help_}" for name, (_, help_) in COMMANDS.items()]
@@ -40,7 +56,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"cicfw: unknown command {argv[0]!r}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
         sys.exit(2)
     module, _ = COMMANDS[argv[0]]
-    if argv[0] == "report" and len(argv) > 1 and (Path(argv[1]) / "reproduce.json").is_file():
+    folder = first_positional(argv[1:])
+    if argv[0] == "report" and folder is not None and (Path(folder) / "reproduce.json").is_file():
         module = "cicfw.reproduction.report"  # a reproduction's folder: its Table 4 with intervals and verdicts
     from cicfw.core.hydra_plugins import guard_hydra_plugins
 

@@ -67,6 +67,21 @@ def test_files_read_back_with_cil_values(small_dataset: Path):
                                         "sha256": hashlib.sha256(last.read_bytes()).hexdigest()}
 
 
+def test_a_town_that_gets_no_episode_is_not_listed_as_collected(tmp_path: Path, caplog):
+    """episodes=1 over towns [town_a, town_b] collects town_a alone, but the metadata listed both, so an evaluation
+    of a model trained on it labelled town_b its training town."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.trained_sets import training_set_overrides
+
+    collect_dataset({"episodes": 1, "seconds": 0.5, "workers": 0, "cameras": ["centre"], "towns": ["town_a", "town_b"],
+                     "weathers": ["ClearNoon"]}, tmp_path, progress=False)
+    meta = json.loads((tmp_path / "dataset_metadata.json").read_text())
+    assert meta["towns"] == ["town_a"] and meta["config"]["towns"] == ["town_a", "town_b"]
+    assert "suite.training_towns=[town_a]" in training_set_overrides(OmegaConf.create({"path": str(tmp_path)}), [])
+    assert "town_b" in caplog.text  # said while collecting
+
+
 def test_noise_label_is_the_experts_steer_not_the_noisy_one(tmp_path: Path):
     collect_dataset({"episodes": 1, "seconds": 20, "workers": 0, "cameras": ["centre"],
                      "noise": {"episode_fraction": 1.0}}, tmp_path, progress=False)

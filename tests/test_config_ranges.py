@@ -135,6 +135,25 @@ def test_report_refuses_runs_of_different_suites(tmp_path, capsys):
     assert len(set(labels)) == 2
 
 
+def test_report_refuses_two_different_towns_of_one_name(tmp_path):
+    """Two evaluations on files named town_x.yaml with other roads were joined into one table, their rates side by
+    side under one "New town" column of one town name."""
+    from cicfw.benchmark import evaluation_report as report
+
+    def run(folder: str, digest: str):
+        r = _run("constant steer +0.00", SUITE)
+        r.meta["fingerprint"] = {"town_files": {f"/towns/{folder}/town_x.yaml": digest}}
+        report.write_run(tmp_path / folder, r)
+
+    run("a", "1a7c89bda792d776")
+    run("b", "0c1d2e3f40516273")
+    run("c", "1a7c89bda792d776")  # the same file contents elsewhere: the same town
+    with pytest.raises(CicfwError) as raised:
+        report.find_runs([tmp_path / "a", tmp_path / "b"])
+    assert (raised.value.key, raised.value.value) == ("suite.towns", "/towns/b/town_x.yaml")
+    assert len(report.find_runs([tmp_path / "a", tmp_path / "c"])) == 2
+
+
 # ---- training: the epochs to train and to keep -----------------------------------------------------------
 
 

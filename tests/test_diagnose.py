@@ -446,3 +446,23 @@ def test_a_failed_job_of_a_diagnose_sweep_is_one_line(tmp_path: Path):
     assert res.returncode != 0 and "Traceback" not in res.stderr, res.stderr[-3000:]
     line = next(x for x in res.stderr.splitlines() if x.startswith("cicfw: error: job 0"))
     assert str(missing) in line
+
+
+@pytest.mark.parametrize("beside", ["another run's config", "no config"])
+def test_the_split_is_the_one_the_checkpoint_recorded(tmp_path: Path, episodes: Path, beside: str):
+    """A checkpoint trained with seed 3, copied into the folder of a run of the same parts trained with seed 0,
+    was measured on seed 0's validation episodes, among them episodes it trained on; alone in a folder it was
+    refused for want of a data.seed that it records itself."""
+    from cicfw.diagnose.app import data_settings
+
+    run = tmp_path / "run"
+    ckpt = save_checkpoint(run, head="softmax")
+    torch.save({**torch.load(ckpt, weights_only=True), "cicfw_split": {"seed": 3, "val_fraction": 0.3}}, ckpt)
+    if beside == "another run's config":
+        write_run_config(run, episodes, seed=0)
+        overrides = []
+    else:
+        overrides = [f"data.path={episodes}"]
+    settings, source = data_settings(diagnose_cfg(f"checkpoint={ckpt}", *overrides), ckpt)
+    assert settings.seed == 3
+    assert "as the checkpoint recorded them" in source

@@ -315,6 +315,7 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
         (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, "out", tmp_path / "nope" / "m.onnx"),
         (dict(out=tmp_path), ExportError, "out", tmp_path),
         (dict(n_frames=0), ExportError, "n_frames", 0),
+        (dict(tolerance=float("inf")), ExportError, "tolerance", float("inf")),  # no check: a NaN model would pass
     ]
     for kwargs, kind, key, value in cases:
         args = {"checkpoint": ckpt, "fmt": "onnx", "out": tmp_path / "m.onnx", **run, **kwargs}
@@ -443,6 +444,20 @@ def test_frames_that_are_not_cil_data_are_one_line_naming_frames(tmp_path, monke
             export_model(ckpt, "onnx", tmp_path / "m.onnx", frames=tmp_path / name, n_frames=2)
         assert (err.value.key, err.value.value) == ("frames", tmp_path / name) and "\n" not in str(err.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_frames_with_a_command_code_the_model_has_no_branch_for_are_one_line(tmp_path, monkeypatch):
+    """Real frames whose command code is 7 went into the parity check and failed the tracing, which was then
+    reported as an operator TorchScript cannot trace, to be reported as a cicfw bug."""
+    from cicfw.testing import write_tiny_dataset
+
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    frames = write_tiny_dataset(tmp_path / "frames", n_files=1, n=8, commands=(7,))
+    monkeypatch.setattr(export, "load_model", lambda *a, **k: pytest.fail("the model loaded before frames= was checked"))
+    with pytest.raises(ExportError) as err:
+        export_model(ckpt, "torchscript", tmp_path / "m.pt", frames=frames, n_frames=2)
+    assert (err.value.key, err.value.value) == ("frames", frames) and "command code 7" in str(err.value)
+    assert not (tmp_path / "m.pt").exists()
 
 
 def test_the_cli_refuses_a_text_frames_file_in_one_line(tmp_path):

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.heads.coexistence import CoexistenceHead, gaussian_coexistence
 from cicfw.model.heads.hybrid import HybridHead
 from cicfw.model.heads.sine import SineHead
@@ -151,6 +152,16 @@ def test_bad_hyperparameters_raise_one_clear_error(cls, kwargs, words):
         cls(**kwargs)
     for word in words:
         assert word in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("cls, key, value", [(HybridHead, "W", math.inf), (CoexistenceHead, "sigma2", math.inf),
+                                             (HybridHead, "W", math.nan), (CoexistenceHead, "sigma2", math.nan)])
+def test_a_loss_weight_that_is_not_finite_is_refused(cls, key, value):
+    """An infinite weight trained on an infinite loss: every weight of the saved checkpoint NaN, exit status 0."""
+    with pytest.raises(ConfigError) as err:
+        cls(**{key: value})
+    assert err.value.key == f"head.{key}"
+    assert err.value.value is value
 
 
 @pytest.mark.parametrize("path", sorted((CONF / "head").glob("*.yaml")), ids=lambda p: p.stem)

@@ -240,6 +240,24 @@ def test_preview_prefix_with_a_folder_is_one_line_before_rendering(tmp_path: Pat
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_preview_into_an_evaluations_folder_is_refused_before_rendering(tmp_path: Path, capsys, monkeypatch):
+    """``cicfw preview --out <an evaluation's folder>`` replaced its map_town_a.png, the paths the model drove, with
+    the preview's map of the same name."""
+    from cicfw.sim import preview
+
+    monkeypatch.setattr(preview, "contact_sheet", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    run = tmp_path / "evaluation"
+    run.mkdir()
+    (run / "episodes.jsonl").write_text("{}\n")
+    (run / "map_town_a.png").write_bytes(b"the driven paths")
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(run), "--towns", "town_a"])
+    assert exc.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--out" in line and str(run) in line, line
+    assert (run / "map_town_a.png").read_bytes() == b"the driven paths"
+
+
 def test_a_preview_that_fails_after_rendering_started_writes_nothing(tmp_path: Path, capsys, monkeypatch):
     """Every picture is made before the first PNG is written, and a folder the run created is removed:
     a town whose routes cannot be drawn leaves neither sheets nor an empty --out behind."""

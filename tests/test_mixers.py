@@ -1,12 +1,14 @@
 """The mixers' mathematics: each reduces to CIL where it should, C's diagonal, regularizers, bad kwargs."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
+from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.cross_stitch import CrossStitchMixer
 from cicfw.model.mixers.gtu import GTUMixer
 from cicfw.model.mixers.independent import IndependentMixer
@@ -171,6 +173,16 @@ def test_bad_hyperparameters_raise_one_clear_error(cls, kwargs, words):
         cls(IN, K, **kwargs)
     for word in words:
         assert word in str(err.value)
+
+
+@pytest.mark.parametrize("cls, key, value", [(SluiceMixer, "ortho", math.nan), (SluiceMixer, "ortho", math.inf),
+                                             (SoftSharingMixer, "lam", math.inf)])
+def test_a_regularizer_weight_that_is_not_finite_is_refused(cls, key, value):
+    """``mixer.ortho=nan`` trained two steps and saved a checkpoint whose weights were NaN, exit status 0."""
+    with pytest.raises(ConfigError) as err:
+        cls(IN, K, **{key: value})
+    assert err.value.key == f"mixer.{key}"
+    assert err.value.value is value
 
 
 @pytest.mark.parametrize("path", sorted((CONF / "mixer").glob("*.yaml")), ids=lambda p: p.stem)

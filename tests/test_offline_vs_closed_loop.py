@@ -115,6 +115,23 @@ def test_the_report_is_written(tmp_path):
     assert json.loads((out / "results.json").read_text())["cells"] == 6
 
 
+def test_a_folder_holding_files_the_study_did_not_write_is_refused(tmp_path, capsys):
+    """``--out .`` in a clone wrote the study's README.md over the repository's own."""
+    from cicfw.reproduction import offline_vs_closed_loop as study
+
+    root = results_tree(tmp_path / "results")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "README.md").write_text("my notes\n")
+    with pytest.raises(SystemExit) as exc:
+        study.main(["--results", str(root), "--out", str(mine)])
+    assert exc.value.code == 2 and "--out" in capsys.readouterr().err
+    assert (mine / "README.md").read_text() == "my notes\n" and not (mine / "results.json").exists()
+    out = root / "offline_vs_closed_loop"
+    write_report(root, out)
+    write_report(root, out)  # its own earlier report: rewritten
+
+
 def test_another_weather_family_is_analysed_on_its_own(tmp_path):
     root = results_tree(tmp_path / "results")
     calibrated = root / "calibrated"

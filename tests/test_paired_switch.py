@@ -110,6 +110,13 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert ps.main([str(tmp_path / "b"), str(tmp_path / "b"), "--margin", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--margin" in err, err
+    # an infinite margin read every comparison "equivalent within ±inf", a 70-point gap among them
+    for seed in range(3):
+        write_cell(tmp_path / "x", "cil", seed, [1 + seed, 1, 1, 1])
+        write_cell(tmp_path / "y", "cil", seed, [15 + seed, 2, 2, 2])
+    assert ps.main([str(tmp_path / "x"), str(tmp_path / "y"), "--margin", "inf"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--margin" in err and "inf" in err, err
 
 
 def exact_mcnemar_by_hand(lost: int, gained: int) -> float:

@@ -364,12 +364,14 @@ def test_results_folder_of_another_configuration_is_refused(cache, smoke_run, ca
 
 @pytest.mark.parametrize("args, message", [
     (["rows=[cil,gtx]"], "unknown row 'gtx'; known rows: cil, gtu, soft_sharing, moe, sluice, classification, "),
-    (["seeds=0"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got 0"),
-    (["seeds=-2"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got -2"),
-    (["seeds=two"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got 'two'"),
-    (["seeds=[]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got []"),
-    (["seeds=[1,1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got [1, 1]"),
-    (["seeds=[2,-1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4]), got [2, -1]"),
+    (["seeds=0"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got 0"),
+    (["seeds=-2"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got -2"),
+    (["seeds=two"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got 'two'"),
+    (["seeds=[]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got []"),
+    (["seeds=[1,1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got [1, 1]"),
+    (["seeds=[2,-1]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got [2, -1]"),
+    # beyond a training run's seed range: refused after collecting and pinning the folder, as a failed cell
+    (["seeds=[4294967296]"], "seeds must be a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from 0 to 4294967295 ([3,4]), got [4294967296]"),
     (["budget=huge"], "unknown budget 'huge'; known budgets: converged, converged6, laptop, paper, smoke"),
     (["rows=[]"], "rows is empty; known rows: cil, gtu"),
 ])
@@ -391,7 +393,7 @@ def test_seeds_as_a_count_or_as_a_list_of_the_seeds_to_run():
     assert seed_list(3) == [0, 1, 2]
     assert seed_list(OmegaConf.create([4, 1])) == [1, 4]
     assert seed_list([0]) == [0]
-    for bad in (True, 0, [True], [1.5], [], "3"):
+    for bad in (True, 0, [True], [1.5], [], "3", [2**32]):
         with pytest.raises(SchemaError) as err:
             seed_list(bad)
         assert (err.value.kind, err.value.key) == ("wrong type", "seeds"), err.value

@@ -367,6 +367,62 @@ def test_report_files_are_readable_under_umask_022(tmp_path):
         assert stat.S_IMODE(p.stat().st_mode) == 0o644, (p, oct(p.stat().st_mode))
 
 
+def test_cicfw_report_rewrites_the_report_with_the_runs_own_rows_and_margin(tmp_path):
+    """A run given a row of its own (its label) and another margin wrote its report with them; ``cicfw report`` on
+    its folder rewrote it with conf/reproduce.yaml's defaults: the row under its key, the words at ±5."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "mine") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    reproduce.keep_report_overrides(out, ["budget=smoke", '+catalogue.mine={experiment: paper_gtu, label: "My row"}',
+                                          "rows=[cil,mine]", "seeds=3", "equivalence_margin=3"])
+    assert results.main([str(out)]) == 0
+    data = json.loads((out / "results.json").read_text())
+    assert {r["row"]: r["label"] for r in data["rows"]}["mine"] == "My row"
+    assert data["equivalence_margin"] == 3
+
+
+def test_cicfw_report_reads_a_reproduction_folder_wherever_its_options_stand(tmp_path):
+    """``cicfw report --no-plots DIR`` (an option first) ran the evaluation report on a reproduction's folder: it
+    joined the cells' evaluations into table.md, table.tex, table.csv and report.json written into that folder."""
+    from conftest import run_app_in_process
+
+    from cicfw.benchmark import evaluation_report
+
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    row = {"episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon", "town_set": "training",
+           "weather_set": "training", "pair": 0, "route": "town_a/j/a>b/left", "command": "left", "success": True,
+           "reason": "success", "time_s": 1.0, "timeout_s": 30.0, "distance_m": 50.0, "route_length_m": 50.0,
+           "goal_distance_m": 1.0, "progress": 1.0, "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 10}
+    evaluation_report.write_run(out / "cells" / "cil" / "seed0" / "evaluate", evaluation_report.Run("cil", [row], {}))
+    res = run_app_in_process("cicfw.cli", "report", "--publish", str(tmp_path / "pub"), str(out))
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "pub" / "RESULTS.md").is_file() and (out / "RESULTS.md").is_file()
+    assert not any((out / n).exists() for n in evaluation_report.REPORT_FILES)
+    # the evaluation report itself, given the folder alone, writes no table into it
+    res = run_app_in_process("cicfw.benchmark.evaluation_report", str(out), "--no-plots")
+    assert res.returncode == 2 and "--out" in res.stderr
+    assert not any((out / n).exists() for n in (*evaluation_report.REPORT_FILES, "report.json"))
+
+
+def test_report_markdown_copy_replaces_only_an_earlier_copy(tmp_path, capsys):
+    """``--markdown`` (its help said e.g. docs/RESULTS.md, which is composed from the studies' prose) replaced
+    any file with the generated report."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    notes = tmp_path / "RESULTS.md"
+    notes.write_text("# Results\n\nmy prose\n")
+    assert results.main([str(out), "--markdown", str(notes)]) == 2
+    assert "--markdown" in capsys.readouterr().err and notes.read_text() == "# Results\n\nmy prose\n"
+    assert not (out / "RESULTS.md").exists()  # refused before anything was written
+    copy = tmp_path / "copy.md"
+    assert results.main([str(out), "--markdown", str(copy)]) == 0
+    assert results.main([str(out), "--markdown", str(copy)]) == 0  # an earlier copy: replaced
+    assert copy.read_text().startswith(results.TITLE)
+
+
 def test_resumed_cells_are_marked_in_the_report(tmp_path):
     cells = [synthetic("cil", s, 10 + s) for s in range(3)]
     cells += [synthetic("gtu", s, 12 + s, resumed={"training": {"from_epoch": 1}} if s == 1 else None)

@@ -23,7 +23,7 @@ from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name,
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart
 from cicfw.core.run_folder import claim_folder
-from cicfw.benchmark.suite import CELLS
+from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import writable_folder
 
@@ -247,7 +247,26 @@ def check_one_suite(runs: Sequence[Run]) -> None:
         return {k: v for k, v in found.items() if v is not None}
 
     _one_setting(runs, settings, "suite", "drove different suites")
+    check_one_town_per_name(runs)
     check_one_episode_rule(runs)
+
+
+def check_one_town_per_name(runs: Sequence[Run]) -> None:
+    """Runs joined into one table that drove a town given as a file of one name drove the same town: a file
+    counts by its contents (its fingerprint's ``town_files``, as resuming an evaluation counts it), so two
+    files named ``town_x.yaml`` with other roads, whose rows would share one column and one town name, are one
+    ``CicfwError`` naming both runs and both files."""
+    seen: dict[str, tuple[str, str, Run]] = {}  # town name -> (contents' hash, file, the first run)
+    for run in runs:
+        fp = run.meta.get("fingerprint")
+        files = fp.get("town_files") if isinstance(fp, Mapping) else None
+        for path, digest in (files.items() if isinstance(files, Mapping) else ()):
+            name = town_label(str(path))
+            first = seen.setdefault(name, (str(digest), str(path), run))
+            if first[0] != str(digest):
+                raise CicfwError(f"report: {first[2].path} and {run.path} drove two different towns named {name!r} "
+                                 f"(the files {first[1]} and {path} differ), whose success rates one table cannot "
+                                 f"compare; report them separately", key="suite.towns", value=str(path))
 
 
 #: the fingerprint's parts (cicfw/benchmark/app.py ``run_fingerprint``) that decide what an episode sees and
@@ -396,6 +415,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = find_runs(args.dirs, partial="include" if args.partial else "refuse")
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
+        return 2
+    if not args.out and len(args.dirs) == 1 and (Path(args.dirs[0]) / "reproduce.json").is_file():
+        print(f"cicfw: error: report: {args.dirs[0]!r} is a reproduction's results folder, whose report is its Table 4 "
+              f"(cicfw report {args.dirs[0]}); to join the evaluations it holds into one table, give --out <a folder>",
+              file=sys.stderr)
         return 2
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
     what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"

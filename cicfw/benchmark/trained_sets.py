@@ -19,21 +19,27 @@ SHIPPED_TOWNS = ("town_a", "town_b")
 
 
 def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
-    """(towns, weathers) the run's data was collected in: the collection it makes (``data.collect``), else the
-    ``dataset_metadata.json`` a cicfw collection left in ``data.path``; None when neither says (other data)."""
+    """(towns, weathers) the run's data was collected in: those of the ``dataset_metadata.json`` a cicfw
+    collection left in ``data.path`` (the towns and weathers its episodes were collected in: a listed one that got
+    no episode is not among them), else those of the collection the run makes (``data.collect``: not collected
+    yet, or collected with other lists); None when neither says (other data)."""
     if data_cfg is None or not hasattr(data_cfg, "get"):
         return None
     collect = data_cfg.get("collect")
+    listed = None
     if collect is not None and collect.get("towns") is not None and collect.get("weathers") is not None:
-        return [str(t) for t in collect.towns], [str(w) for w in collect.weathers]
+        listed = [str(t) for t in collect.towns], [str(w) for w in collect.weathers]
     try:
         meta = json.loads((Path(str(data_cfg.get("path"))).expanduser() / "dataset_metadata.json").read_text())
     except (OSError, ValueError, TypeError):
-        return None
-    towns, weathers = meta.get("towns"), meta.get("weathers")
-    if not isinstance(towns, list) or not isinstance(weathers, list):
-        return None
-    return [str(t) for t in towns], [str(w) for w in weathers]
+        return listed
+    if not (isinstance(meta, dict) and isinstance(meta.get("towns"), list) and isinstance(meta.get("weathers"), list)):
+        return listed
+    asked = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+    asked_lists = [str(t) for t in asked.get("towns") or ()], [str(w) for w in asked.get("weathers") or ()]
+    if listed is not None and listed != asked_lists:
+        return listed  # the folder holds another collection than the run's node asks for
+    return [str(t) for t in meta["towns"]], [str(w) for w in meta["weathers"]]
 
 
 def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]:

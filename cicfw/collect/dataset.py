@@ -15,7 +15,7 @@ from cicfw.collect.episode import run_episode
 from cicfw.collect.errors import CollectConfigError, CollectError
 from cicfw.collect.integrity import read_markers, record_checksums
 from cicfw.collect.lock import FolderLock
-from cicfw.collect.metadata import META_NAME, SIM_VERSION, dataset_metadata
+from cicfw.collect.metadata import META_NAME, SIM_VERSION, dataset_metadata, planned_sets
 from cicfw.collect.workers import run_workers
 from cicfw.collect.writing import check_free_space, write_json
 from cicfw.data.cil_hdf5 import is_hdf5_name
@@ -87,6 +87,18 @@ def _prepare_folder(out_dir: Path) -> None:
                            key="out_dir", value=out_dir)
 
 
+def _say_what_the_plan_leaves_out(cfg: dict, plan: list[dict]) -> None:
+    """One warning naming the listed towns and weathers that get no episode (fewer episodes than town x weather
+    pairs): the dataset does not hold them, and its metadata does not list them."""
+    towns, weathers = planned_sets(cfg, plan)
+    left = [t for t in cfg["towns"] if t not in towns] + [w for w in cfg["weathers"] if w not in weathers]
+    if left:
+        log.warning("episodes=%d go round-robin over the %d town x weather pairs, town by town: the dataset holds "
+                    "no episode of %s; give episodes >= %d to collect every pair",
+                    cfg["episodes"], len(cfg["towns"]) * len(cfg["weathers"]), ", ".join(map(str, left)),
+                    len(cfg["towns"]) * len(cfg["weathers"]))
+
+
 def collect_dataset(cfg_collect: Any, out_dir: str | Path, progress: bool = True) -> Path:
     """Collect (or finish collecting) a dataset into ``out_dir``; returns the metadata JSON path.
 
@@ -128,6 +140,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
                     f"!= {chash}, seed {old.get('seed')}); collect into another folder or delete this one",
                     key="out_dir", value=out_dir)
         plan = episode_plan(cfg)
+        _say_what_the_plan_leaves_out(cfg, plan)
         _refuse_foreign_files(out_dir, plan)  # again under the lock: a collection's folder, or one changed since
         markers = read_markers(out_dir, plan, chash, say=True)
         record_checksums(out_dir, markers)

@@ -11,6 +11,14 @@ from cicfw.data.frames import META_NAME  # noqa: F401  (the collector's modules 
 SIM_VERSION = "embedded-1"  # bump when the embedded simulator's output changes for the same config
 
 
+def planned_sets(cfg: dict, plan: list[dict]) -> tuple[list[str], list[str]]:
+    """The listed towns and weathers the plan gives an episode: episodes go round-robin over the town x weather
+    pairs, town by town, so fewer episodes than pairs leave the last ones out of the data (an evaluation reads
+    the dataset's towns and weathers as the ones its model was trained in)."""
+    return ([t for t in cfg["towns"] if any(ep["town"] == t for ep in plan)],
+            [w for w in cfg["weathers"] if any(ep["weather"] == w for ep in plan)])
+
+
 def dataset_metadata(cfg: dict, out_dir: Path, plan: list[dict], markers: dict, started: float,
                      sim_version: str, complete: bool) -> dict:
     """The metadata of the dataset as far as ``markers`` (finished episodes) go."""
@@ -24,7 +32,7 @@ def dataset_metadata(cfg: dict, out_dir: Path, plan: list[dict], markers: dict, 
         "complete": complete, "planned_episodes": len(plan),
         "cicfw_version": __version__, "sim": cfg["sim"].get("name", "embedded"), "sim_version": sim_version,
         "config_hash": cfg["_hash"], "config": {k: v for k, v in cfg.items() if k != "_hash"},
-        "towns": cfg["towns"], "weathers": cfg["weathers"], "seed": cfg["seed"],
+        **dict(zip(("towns", "weathers"), planned_sets(cfg, plan))), "seed": cfg["seed"],
         "cameras": {c: {"id": CAMERA_IDS[c][0], "yaw_deg": CAMERA_IDS[c][1]} for c in cfg["cameras"]},
         "counts": counts, "step_commands": cmd,
         "units": {"speed": "km/h", "position": "m (rear axle)", "time": "ms of game time",

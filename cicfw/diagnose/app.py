@@ -35,8 +35,8 @@ from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import (RUN_CONFIG_LEVELS, checkpoint_hyper_parameters, checkpoint_record,
-                                    config_parts_differ, describe, load_model, prepare_for_inference, read_checkpoint,
-                                    resolve_checkpoint, run_config_files, where_it_ran)
+                                    checkpoint_split, config_parts_differ, describe, load_model, prepare_for_inference,
+                                    read_checkpoint, resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.reproduction.catalogue import row_overrides
 
 log = logging.getLogger("cicfw.diagnose")
@@ -132,6 +132,16 @@ def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] |
     if found is not None:
         values.update(found[0])
         source = found[1]
+    # the checkpoint's own record of its split wins over a config beside it, which may be another run's (a
+    # checkpoint copied into a run folder of the same parts, trained with another seed)
+    own = {k: v for k, v in checkpoint_split(checkpoint).items() if k in SPLIT_KEYS and k != "path"}
+    if own:
+        other = sorted(k for k in own if found is not None and k in found[0] and found[0][k] != own[k])
+        if other:
+            log.warning("%s gives data.%s otherwise than the checkpoint recorded (%s), so the checkpoint's are used",
+                        found[1], ", data.".join(other), ", ".join(f"{k}={own[k]}" for k in other))
+        values.update(own)
+        source += "; split settings as the checkpoint recorded them"
     if record is not None:
         values["path"] = record["path"]
         source += "; data.path as the run recorded it"
@@ -144,7 +154,7 @@ def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] |
     if not values.get("path"):
         raise CicfwError(f"{searched}; give data.path=<the CIL HDF5 folder it trained on> and data.seed=<its seed>",
                          key="data.path")
-    if found is None and "seed" not in given and cfg.split != "all":
+    if found is None and "seed" not in given and "seed" not in own and cfg.split != "all":
         raise CicfwError(f"{searched}, so its train/validation split is unknown; give data.seed=<the training "
                          f"run's seed> (and data.val_fraction if not 0.3), or split=all to measure every frame",
                          key="data.seed")

@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 import cicfw
 from cicfw.export.agent import (COMMAND_CODES, IMAGE_SHAPE, INPUT_NAMES, METADATA_KEY, OUTPUT_NAME, DrivingFunction,
                                 onnx_runner, onnx_session, torch_runner)
-from cicfw.core.config_checks import is_integer
+from cicfw.core.config_checks import is_integer, is_number
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
@@ -145,6 +145,12 @@ def dataset_frames(path: str | Path, n: int) -> CheckInputs:
             break
     rgb, t = np.concatenate(images), np.concatenate(targets)
     pick = np.linspace(0, len(t) - 1, min(n, len(t))).round().astype(int)
+    bad = [i for i in pick if t[i, T.COMMAND] not in COMMAND_CODES]  # the model has no branch for it
+    if bad:
+        codes = ", ".join(f"{k} {v}" for k, v in COMMAND_CODES.items())
+        raise ExportError(f"frames={str(path)!r}: {names[bad[0]]} has command code {t[bad[0], T.COMMAND]:g}, which is "
+                          f"not a CIL command ({codes}); give CIL data, or leave frames out (frames rendered by the "
+                          f"embedded simulator)", key="frames", value=path)
     return CheckInputs(rgb[pick], t[pick, T.SPEED].astype(np.float32), t[pick, T.COMMAND].astype(np.int64),
                        [names[i] for i in pick])
 
@@ -549,8 +555,8 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     if not (isinstance(n_frames, int) and n_frames >= 1):
         raise ExportError(f"n_frames={n_frames!r} is not valid; use a positive integer (real frames in the parity check)",
                           key="n_frames", value=n_frames)
-    if not (isinstance(tolerance, (int, float)) and tolerance > 0):
-        raise ExportError(f"tolerance={tolerance!r} is not valid; use a number > 0 (largest steering difference)",
+    if not (is_number(tolerance) and tolerance > 0):  # inf would pass a model that steers NaN
+        raise ExportError(f"tolerance={tolerance!r} is not valid; use a finite number > 0 (largest steering difference)",
                           key="tolerance", value=tolerance)
     if fmt == "onnx":
         opset = DEFAULT_OPSET if opset is None else opset

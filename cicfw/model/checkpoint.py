@@ -151,6 +151,18 @@ def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
     return dict(record) if is_record(record) else None
 
 
+#: the checkpoint key holding the data settings of its run's split and samples (``data.seed``, ``val_fraction``,
+#: ``cameras`` ...: cicfw/train/split_record.py writes it)
+SPLIT_KEY = "cicfw_split"
+
+
+def checkpoint_split(path: str | os.PathLike) -> dict[str, Any]:
+    """The data settings a checkpoint recorded for its split and samples ({} when it recorded none: written
+    before checkpoints recorded them, or not a cicfw checkpoint), its weights not read."""
+    split = _mapped(path).get(SPLIT_KEY)
+    return dict(split) if isinstance(split, Mapping) else {}
+
+
 def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
     """Check ``ckpt`` is a cicfw CICModule checkpoint whose encoder, mixer and head are installed."""
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, Mapping) else None

@@ -65,7 +65,7 @@ from cicfw.reproduction.cells import COLUMNS, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import PUBLISHED_FILES, continue_published, published_manifest
-from cicfw.reproduction.report import write_configured
+from cicfw.reproduction.report import REPORT_OVERRIDES, report_overrides, write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
 from cicfw.train.app import build_model, ensure_data, make_datamodule, train, trainer_kwargs
@@ -465,6 +465,18 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
     return manifest
 
 
+def keep_report_overrides(results_dir: Path, overrides: Sequence[str]) -> None:
+    """Record in the folder's reproduce.json the overrides its report is written with (a row of one's own and its
+    label, another margin or claims), so that ``cicfw report`` rewrites the report as this run writes it."""
+    path = Path(results_dir) / MANIFEST
+    manifest = read_json(path, default=None)
+    wanted = report_overrides(overrides)
+    if not isinstance(manifest, dict) or manifest.get(REPORT_OVERRIDES, []) == wanted:
+        return
+    manifest[REPORT_OVERRIDES] = wanted
+    atomic_write(path, json.dumps(manifest, indent=1))
+
+
 def check_splits(cfg: DictConfig, rows: Sequence[str], seeds: Sequence[int], finished: set[str] = frozenset()) -> None:
     """Each cell's train/validation split of the collected dataset, made now as its training will make it
     (``split_by_episode`` seeded by the cell's ``data.seed``, then its ``data.val_cameras``), without training
@@ -758,6 +770,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_outputs(cfg, data=check_rows(cfg, rows))
         lock = ResultsLock(Path(cfg.results_dir)).acquire()
         manifest = prepare(cfg, rows)
+        keep_report_overrides(Path(cfg.results_dir), args)
     except BaseException as err:
         if lock is not None:
             lock.release()

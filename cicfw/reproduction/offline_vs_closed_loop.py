@@ -26,6 +26,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from cicfw.benchmark.plots import _plt, _save
+from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
@@ -422,8 +423,30 @@ def _selection_reading(s: dict[str, Any]) -> str:
             "closed-loop check of the candidates is the safer choice.")
 
 
+#: the files the study writes into its folder, and the keys that make a results.json this study's
+STUDY_FILES = ("README.md", "results.json", "offline_vs_closed_loop.png")
+STUDY_KEYS = ("cells", "scopes", "points")
+
+
+def check_out(out: Path) -> None:
+    """``out`` may hold the study's files only where they are an earlier run's (its results.json this study's):
+    a folder with a README.md or results.json of something else (``--out .`` in a clone) is refused in one line."""
+    held = [n for n in STUDY_FILES if (out / n).exists()]
+    if not held:
+        return
+    try:
+        earlier = json.loads((out / "results.json").read_text())
+    except (OSError, ValueError):
+        earlier = None
+    if isinstance(earlier, dict) and all(k in earlier for k in STUDY_KEYS):
+        return
+    raise CicfwError(f"--out {str(out)!r} holds {', '.join(held)} that this study did not write, which it would "
+                     f"replace; give a folder of its own (--out <new folder>)", key="--out", value=str(out))
+
+
 def write_report(results: Path, out: Path) -> dict[str, Any]:
     """Analyse the cells under ``results`` and write README.md, results.json and the picture into ``out``."""
+    check_out(out)
     points = collect_points(results, skip=(out.name,))
     main = [p for p in points if p.family == LEGACY_FAMILY]
     res = analyse(main)
@@ -438,6 +461,11 @@ def write_report(results: Path, out: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; a user error is one ``cicfw: error:`` line, exit status 2."""
+    return report_user_errors(_main)(argv)
+
+
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m cicfw.reproduction.offline_vs_closed_loop",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--results", default="docs/results", help="the folder of published studies (default: %(default)s)")

@@ -238,8 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
-        if not args.margin > 0:
-            raise CicfwError(f"--margin must be a positive number of points, got {args.margin}")
+        if not (np.isfinite(args.margin) and args.margin > 0):  # inf would read every pair "equivalent"
+            raise CicfwError(f"--margin must be a positive, finite number of points, got {args.margin}")
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))

@@ -108,7 +108,9 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 from hydra import compose, initialize_config_module
+from hydra.errors import HydraException
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
@@ -525,7 +527,7 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
     learning curve and each cell's wall time. ``pictures``: the prefix of the pictures' links."""
     m = data["manifest"]
     min_seeds = data.get("min_seeds", MIN_SEEDS)
-    lines = ["# Reproduction of the paper's Table 4", "", *answer_lines(data, pictures)]
+    lines = [TITLE, "", *answer_lines(data, pictures)]
     lines += [f"- **Budget:** `{m.get('budget')}`; suite: `{m.get('suite', {}).get('name')}` "
               f"({m.get('episodes', '?')} episodes per cell){weathers_said(m)}; dataset: {m.get('dataset_summary', '?')}.",
               machine_line(data),
@@ -858,6 +860,35 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     return data
 
 
+#: the reproduce config's keys the report reads (``write_configured``): a run's overrides of them (a row of its own
+#: with its label, another margin) are kept in its reproduce.json, so ``cicfw report`` rewrites the report as
+#: the run wrote it rather than with conf/reproduce.yaml's defaults
+REPORT_KEYS = ("catalogue", "claims", "equivalence_margin", "relation_candidates")
+REPORT_OVERRIDES = "report_overrides"
+
+
+def report_overrides(overrides: Sequence[str]) -> list[str]:
+    """The overrides among ``overrides`` that change what the report reads (``REPORT_KEYS``), in order."""
+    def root(o: str) -> str:
+        return o.lstrip("+~").split("=", 1)[0].split(".", 1)[0].split("[", 1)[0].strip()
+
+    return [str(o) for o in overrides if root(str(o)) in REPORT_KEYS]
+
+
+def run_report_config(results_dir: Path) -> Any:
+    """conf/reproduce.yaml composed with the report overrides the folder's runs recorded (``REPORT_OVERRIDES``
+    in reproduce.json; none in a folder made before they were recorded); one error line when they no longer
+    compose."""
+    manifest = read_json(Path(results_dir) / "reproduce.json", default={})
+    overrides = list(manifest.get(REPORT_OVERRIDES) or []) if isinstance(manifest, Mapping) else []
+    try:
+        return compose("reproduce", overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as err:  # an entry this cicfw's config no longer takes
+        raise CicfwError(f"{str(Path(results_dir) / 'reproduce.json')!r} records the report overrides {overrides}, "
+                         f"which do not compose with this cicfw's conf/reproduce.yaml ({str(err).splitlines()[0]}); "
+                         f"edit or remove its {REPORT_OVERRIDES!r}", key=REPORT_OVERRIDES, value=overrides) from None
+
+
 def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None = None) -> dict[str, Any]:
     """``write_report`` with a composed reproduce config's catalogue, claims, margin and fine tuning's
     candidates; then ``publish`` into ``publish_dir`` when given."""
@@ -869,8 +900,31 @@ def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None
     return data
 
 
+#: the report's first line: what a file the report may replace (``--markdown``) starts with
+TITLE = "# Reproduction of the paper's Table 4"
+
+
+def check_markdown_target(path: Path) -> None:
+    """``--markdown`` replaces a file only where it is an earlier copy of a report (its first line the report's
+    title): a document of one's own (docs/RESULTS.md, composed from its prose; a README) is refused in one line."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            first = f.readline().rstrip("\n")
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise CicfwError(f"--markdown {str(path)!r} cannot be read ({err.strerror or err}); give a file path",
+                         key="--markdown", value=str(path)) from None
+    if first != TITLE:
+        raise CicfwError(f"--markdown {str(path)!r} is not a copy of a reproduction report (its first line is not "
+                         f"{TITLE!r}), which this would replace; give a new file or an earlier copy",
+                         key="--markdown", value=str(path))
+
+
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
-    """The report's Markdown at ``path`` (e.g. docs/RESULTS.md), its pictures linked from ``pictures``."""
+    """The report's Markdown at ``path`` (a file of its own, or an earlier copy), its pictures linked from
+    ``pictures``."""
+    check_markdown_target(Path(path))
     rel = os.path.relpath(Path(pictures), Path(path).parent)
     atomic_write(Path(path), _with_pictures(data, rel, bool(data.get("has_curve"))))
     return Path(path)
@@ -881,15 +935,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
     ap.add_argument("results_dir")
     ap.add_argument("--publish", default=None, help="also copy the small results into this folder")
-    ap.add_argument("--markdown", default=None, help="also write the Markdown here (e.g. docs/RESULTS.md)")
+    ap.add_argument("--markdown", default=None,
+                    help="also write the Markdown to this file (new, or an earlier copy of the report)")
     a = ap.parse_args(argv)
     try:
         claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
         if a.publish:
             claim_folder(Path(a.publish), "reproduce", "--publish")
+        if a.markdown:
+            check_markdown_target(Path(a.markdown))  # before anything is written
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
-            data = write_configured(Path(a.results_dir), compose("reproduce"), a.publish)
+            data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
         if a.markdown:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:

@@ -21,6 +21,7 @@ from PIL import Image
 
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
+from cicfw.core.run_folder import claim_folder
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
@@ -209,6 +210,9 @@ def _main(argv: list[str] | None = None) -> int:
     towns = load_towns(a.towns or town_names())
     out = Path(a.out).expanduser().resolve()
     new_top = _first_missing(out)
+    # another app's run or a dataset is not a place for pictures of the same names (an evaluation's map_town_a.png
+    # of its driven paths); a folder of plain files, an earlier preview's among them, is
+    claim_folder(out, "preview", "--out", foreign_ok=True)
     writable_folder(out, "--out", OUT_FOLDER, "--out")  # before the seconds of rendering
     try:  # every picture is made, then all are written or none: a late failure leaves no half set of PNGs
         images = _render(a, towns)

@@ -12,9 +12,8 @@ from omegaconf import OmegaConf
 from cicfw.core.config_checks import plain_value, same_value
 from cicfw.core.errors import CicfwError
 from cicfw.core.run_folder import saved_run_config
+from cicfw.model.checkpoint import SPLIT_KEY
 
-#: the checkpoint key holding the settings
-SPLIT_KEY = "cicfw_split"
 #: the ``data.*`` keys that decide which episodes validate (with the file set, which provenance checks)
 SPLIT_KEYS = ("seed", "val_fraction")
 #: the ``data.*`` keys that decide which samples of those episodes train and validate, and their labels

@@ -11,6 +11,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from cicfw.core.config_checks import is_number
 from cicfw.core.errors import ConfigError
 from cicfw.model.heads.base import Head
 from cicfw.model.heads.bins import SteeringBins
@@ -19,7 +20,7 @@ DECODERS = ("argmax", "expectation")
 
 
 def _number(x: object) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    return is_number(x)  # finite: an inf weight or width would train on a non-finite loss
 
 
 def make_bins(n_classes: object, low: object, high: object, bin_width: object | None) -> SteeringBins:

@@ -29,8 +29,9 @@ class CoexistenceHead(BinnedHead):
                              f"head.W={W!r} is not valid; the co-existence weight must be in the open interval "
                              f"(0, 1) (paper: 0.4, 0.6, 0.8; best 0.6)")
         if not (_number(sigma2) and sigma2 > 0):
-            raise ConfigError("head.sigma2", sigma2, "a number > 0",
-                             f"head.sigma2={sigma2!r} is not valid; the Gaussian's variance must be > 0 (paper: 1)")
+            raise ConfigError("head.sigma2", sigma2, "a finite number > 0",
+                             f"head.sigma2={sigma2!r} is not valid; the Gaussian's variance must be a finite number > 0 "
+                             f"(paper: 1)")
         super().__init__(**bins_kwargs)
         self.W, self.sigma2 = float(W), float(sigma2)
         self.register_buffer("mu", gaussian_coexistence(self.bins.n, self.sigma2), persistent=False)

@@ -21,8 +21,8 @@ class HybridHead(BinnedHead):
 
     def __init__(self, W: float = 10.0, **bins_kwargs) -> None:
         if not (_number(W) and W >= 0):
-            raise ConfigError("head.W", W, "a number >= 0",
-                             f"head.W={W!r} is not valid; the weight of the squared term must be a number >= 0 "
+            raise ConfigError("head.W", W, "a finite number >= 0",
+                             f"head.W={W!r} is not valid; the weight of the squared term must be a finite number >= 0 "
                              f"(paper: 5, 10, 15; best 10)")
         super().__init__(**bins_kwargs)
         self.W = float(W)

@@ -16,6 +16,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from cicfw.core.config_checks import is_number
 from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.base import Mixer
 from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int, check_unit_interval
@@ -49,9 +50,9 @@ class SluiceMixer(Mixer):
                 f"that divides the hidden width (paper: 2)")
         check_unit_interval("alpha_diag", alpha_diag, "the initial self-weight of each (branch, subspace)")
         check_unit_interval("beta_last", beta_last, "the initial weight of the last hidden layer in β")
-        if isinstance(ortho, bool) or not isinstance(ortho, (int, float)) or ortho < 0:
-            raise ConfigError("mixer.ortho", ortho, "a number >= 0",
-                             f"mixer.ortho={ortho!r} is not valid; the orthogonality weight must be a number >= 0")
+        if not (is_number(ortho) and ortho >= 0):  # nan and inf too: either turns every weight NaN
+            raise ConfigError("mixer.ortho", ortho, "a finite number >= 0",
+                             f"mixer.ortho={ortho!r} is not valid; the orthogonality weight must be a finite number >= 0")
         n, layers = self.n_branches, len(HIDDEN_BLOCKS)
         self.subspaces, self.ortho = subspaces, float(ortho)
         self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))

@@ -10,6 +10,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from cicfw.core.config_checks import is_number
 from cicfw.core.errors import ConfigError
 from cicfw.model.mixers.base import Mixer
 from cicfw.model.mixers.common import check_branch_kwargs
@@ -24,9 +25,9 @@ class SoftSharingMixer(Mixer):
     def __init__(self, in_dim: int, out_dim: int, lam: float = 1e-4, hidden: int = 256,
                  dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
         super().__init__(in_dim, out_dim)
-        if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam >= 0):
-            raise ConfigError("mixer.lam", lam, "a number >= 0",
-                             f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a number >= 0")
+        if not (is_number(lam) and lam >= 0):  # finite: an inf weight makes the loss inf, the weights NaN
+            raise ConfigError("mixer.lam", lam, "a finite number >= 0",
+                             f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a finite number >= 0")
         check_branch_kwargs(hidden, dropout)
         self.lam = float(lam)
         self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(self.n_branches))

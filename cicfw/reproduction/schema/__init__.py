@@ -19,7 +19,8 @@ from typing import Any, Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from cicfw.core.config_checks import SchemaError, check_composed, checked, is_integer, kwargs_schema, plain_values
+from cicfw.core.config_checks import (SEED_RANGE, SchemaError, check_composed, checked, is_integer, kwargs_schema,
+                                      plain_values)
 from cicfw.core.errors import ConfigError
 from cicfw.reproduction.catalogue import PAPER_VALUES, Row
 from cicfw.reproduction.claims import check_margin, claim_entry, claim_part
@@ -74,7 +75,8 @@ class ReproduceConfig:
 
 
 #: what ``seeds`` accepts
-SEEDS = "a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds >= 0 ([3,4])"
+SEEDS = (f"a whole number >= 1 (seeds 0..seeds-1 per row) or a list of distinct seeds from {SEED_RANGE[0]} to "
+         f"{SEED_RANGE[1]} ([3,4])")  # the range a training run's seed takes: a cell would fail after collecting
 
 
 def seed_list(seeds: Any) -> list[int]:
@@ -82,9 +84,9 @@ def seed_list(seeds: Any) -> list[int]:
     continued with ``continue_from``); anything else is one ``SchemaError`` naming ``seeds``."""
     got = list(seeds) if OmegaConf.is_list(seeds) or isinstance(seeds, (list, tuple)) else seeds
     if isinstance(got, list):
-        if got and all(is_integer(x) and x >= 0 for x in got) and len(set(got)) == len(got):
+        if got and all(is_integer(x) and SEED_RANGE[0] <= x <= SEED_RANGE[1] for x in got) and len(set(got)) == len(got):
             return sorted(got)
-    elif is_integer(got) and got >= 1:
+    elif is_integer(got) and 1 <= got <= SEED_RANGE[1] + 1:
         return list(range(got))
     raise SchemaError(f"seeds must be {SEEDS}, got {got!r}", "seeds", "wrong type")
 

@@ -12,6 +12,8 @@ with per-sample, content-dependent weights; ``inspect()`` exposes them for the h
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -51,8 +53,8 @@ class AttentionMixer(Mixer):
         _check(hidden % heads == 0, "heads", heads, f"a divisor of mixer.hidden={hidden}")
         _check(_is_prob(dropout), "dropout", dropout, "a probability in [0, 1) (CIL: 0.5)")
         _check(_is_prob(attn_dropout), "attn_dropout", attn_dropout, "a probability in [0, 1)")
-        _check(isinstance(gate_init, (int, float)) and not isinstance(gate_init, bool),
-               "gate_init", gate_init, "a number (0 starts as independent branches)")
+        _check(isinstance(gate_init, (int, float)) and not isinstance(gate_init, bool) and math.isfinite(gate_init),
+               "gate_init", gate_init, "a finite number (0 starts as independent branches)")
         n = self.n_branches
         self.branches = nn.ModuleList(
             nn.Sequential(

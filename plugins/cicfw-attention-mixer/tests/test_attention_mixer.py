@@ -36,6 +36,7 @@ def test_config_found_through_search_path():
     ({"dropout": 1.0}, "probability"),
     ({"attn_dropout": -0.1}, "probability"),
     ({"gate_init": "zero"}, "number"),
+    ({"gate_init": float("nan")}, "finite number"),  # a NaN gate steers NaN from the first step
 ])
 def test_bad_kwargs_say_what_is_accepted(kwargs, word):
     with pytest.raises(ValueError, match=word):
