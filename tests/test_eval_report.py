@@ -61,6 +61,14 @@ def test_latex_table_and_summary():
     assert s["reasons"] == {"off_route": 69, "success": 127}
 
 
+def test_a_row_label_with_latex_specials_prints_as_written():
+    """Every character LaTeX treats as special is escaped in a row label, and an escape's own braces are not
+    escaped again (the expected row is written out by hand)."""
+    tex = latex_table([Run(r"a_b$c{d}^e~f\g&h%i#", CIL.rows)])
+    assert (r"a\_b\$c\{d\}\textasciicircum{}e\textasciitilde{}f\textbackslash{}g\&h\%i\# & 94.74 & 86.84 & 52.50 "
+            r"& 46.25 \\ \hline") in tex
+
+
 def test_runs_are_written_read_back_and_joined(tmp_path: Path):
     for name, run in (("job0", CIL), ("job1", GTU), ("job2", Run("Regression (CIL)", CIL.rows[:40]))):
         write_run(tmp_path / "sweep" / name, Run(run.label, run.rows, {"checkpoint": f"/ck/{name}.ckpt"}))

@@ -156,10 +156,13 @@ def latex_table(runs: Sequence[Run]) -> str:
         body, r"\end{tabular}", ""])
 
 
+#: LaTeX's special characters in text, each as it prints itself (one pass: an escape's own braces stay)
+_TEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{",
+        "}": r"\}", "^": r"\textasciicircum{}", "~": r"\textasciitilde{}"}
+
+
 def _tex_escape(s: str) -> str:
-    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
-        s = str(s).replace(a, b)
-    return s
+    return "".join(_TEX.get(c, c) for c in str(s))
 
 
 def table_csv(runs: Sequence[Run]) -> str:
