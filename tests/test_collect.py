@@ -149,6 +149,10 @@ def test_bad_config_values_give_one_clear_error(tmp_path: Path, small_dataset: P
     with pytest.raises(ValueError) as err:
         resolve_config({"towns": ["town_q"]})
     assert (err.value.key, err.value.value) == ("collect.towns", "town_q")
+    for key, name in (("towns", "town_a"), ("weathers", "ClearNoon")):  # a name listed twice
+        with pytest.raises(CollectConfigError) as err:
+            resolve_config({key: [name, name]})
+        assert (err.value.key, err.value.value) == (f"collect.{key}", name)
     with pytest.raises(CollectConfigError) as err:
         resolve_config({"expert": {"speed": 3}})
     assert (err.value.kind, err.value.key) == ("unknown key", "collect.expert.speed")

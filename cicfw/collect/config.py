@@ -211,6 +211,10 @@ def _resolved_names(out: dict, backend: Any) -> dict:
         if w not in known_w:
             raise CollectConfigError(f"collect.weathers: unknown weather {w!r}; known weathers (sim={sim}): "
                                      f"{', '.join(known_w)}")
+    twice = sorted({w for w in out["weathers"] if out["weathers"].count(w) > 1})
+    if twice:  # as a town listed twice: the metadata would list it twice and its episodes would repeat
+        raise CollectConfigError(f"collect.weathers lists {twice[0]!r} twice; list each weather once",
+                                 key="collect.weathers", value=twice[0])
     return out
 
 
