@@ -87,6 +87,20 @@ def test_an_onnx_model_is_known_by_any_case_or_through_a_link(tmp_path: Path, mo
     assert Agent.load(tmp_path / "model") == ("onnx", "model")
 
 
+@pytest.mark.parametrize("device", ["cuda", "cuda:0"])
+def test_an_onnx_model_asked_to_run_on_a_gpu_is_refused(tmp_path: Path, monkeypatch, device) -> None:
+    """onnxruntime runs the model on the CPU here: device='cuda' ran it there without a word."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.export.agent import Agent
+
+    monkeypatch.setattr(Agent, "_load_onnx", classmethod(lambda cls, p, threads: ("onnx", p.name)))
+    (tmp_path / "m.onnx").write_bytes(b"\x08\x07")
+    with pytest.raises(CicfwError) as err:
+        Agent.load(tmp_path / "m.onnx", device=device)
+    assert (err.value.key, err.value.value) == ("device", device)
+    assert Agent.load(tmp_path / "m.onnx", device="auto") == ("onnx", "m.onnx")
+
+
 def test_an_edited_town_file_is_another_evaluation(tmp_path: Path) -> None:
     """A town file edited between two runs into one folder kept its route names, so the rerun resumed
     (or, finished, reported) the episodes driven in the old town: the fingerprint holds its contents."""

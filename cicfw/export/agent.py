@@ -171,7 +171,7 @@ class Agent:
         """An agent for a checkpoint (``.ckpt`` or a run folder), an ``.onnx`` model or a TorchScript file.
 
         ``threads``: CPU threads (torch's, or the onnxruntime session's); ``device``: where torch runs
-        (``auto``, ``cpu``, ``cuda``; onnxruntime runs on the CPU); ``fuse``: for a checkpoint, fold
+        (``auto``, ``cpu``, ``cuda``; onnxruntime runs on the CPU, and refuses ``cuda``); ``fuse``: for a checkpoint, fold
         BatchNorm into the convolutions and use the NHWC layout (the same function, computed faster).
         """
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, (int, np.integer))
@@ -181,6 +181,10 @@ class Agent:
         p = Path(str(path)).expanduser()
         # by the file's name in any case, or the name a link points at (a link named 'model' to 'm.onnx')
         if p.is_file() and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
+            if device not in ("cpu", "auto"):  # it would run on the CPU while the caller asked for a GPU
+                raise CicfwError(f"device={device!r}: an ONNX model runs on onnxruntime's CPU provider here; use "
+                                 f"device=cpu, or load the checkpoint or its TorchScript export to run on a GPU",
+                                 key="device", value=device)
             return cls._load_onnx(p, threads)
         if p.is_file() and is_torchscript(p):
             return cls._load_torchscript(p, threads, device)
