@@ -391,6 +391,14 @@ def test_a_plugin_operator_that_does_not_export_is_named(tmp_path, episode, monk
     export_model(ckpt, "torchscript", tmp_path / "m.pt", frames=episode_file, n_frames=2)  # and this one does
 
 
+def test_the_agent_names_the_checkpoint_file_it_loaded_from_a_run_folder(tmp_path):
+    """Given a run folder, the agent's ``info["source"]`` is the checkpoint file it chose there, not the folder."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    ckpt = tiny_checkpoint(run / "checkpoints" / "epoch=1-step=3.ckpt", "independent", "softmax")
+    assert Agent.load(run).info["source"] == str(ckpt)
+
+
 # ---- the agent's inputs -------------------------------------------------------------------------
 def test_the_agent_says_what_it_expects(tmp_path):
     agent = Agent.load(tiny_checkpoint(tmp_path / "m.ckpt", "independent", "softmax"))

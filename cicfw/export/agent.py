@@ -20,7 +20,7 @@ from torch import nn
 
 from cicfw.core.errors import CicfwError
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
-from cicfw.model.checkpoint import describe, is_torchscript, load_model, prepare_for_inference
+from cicfw.model.checkpoint import describe, is_torchscript, load_model, prepare_for_inference, resolve_checkpoint
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
@@ -195,6 +195,7 @@ class Agent:
         if threads:
             torch.set_num_threads(int(threads))
         dev = torch_device(device)
+        path = resolve_checkpoint(path)  # a run folder's one best checkpoint: the file named in info
         model = prepare_for_inference(load_model(path), fuse).to(dev)
         hp = dict(model.hparams)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
