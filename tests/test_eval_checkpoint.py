@@ -153,7 +153,8 @@ def test_multirun_joins_its_runs_into_one_table(tmp_path: Path):
 
 
 def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, tmp_path: Path):
-    from cicfw.benchmark.app import compose_config, evaluate, load_trajectories
+    from cicfw.benchmark.app import compose_config, evaluate
+    from cicfw.benchmark.finished_run import load_trajectories
 
     cfg = compose_config([f"checkpoint={ckpt}", f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]",
                           "suite.training_towns=[]", "suite.pairs=[0,13]", "runner.batch_size=2", "runner.threads=1",

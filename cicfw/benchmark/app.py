@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.benchmark import schema as evaluate_schema
 from cicfw.benchmark.evaluation_report import (REPORT_FILES, REPORT_RECORD, find_runs, markdown_table, write_joined,
                                                write_run)
-from cicfw.benchmark.finished_run import Run, load_trajectories, save_trajectories
+from cicfw.benchmark.finished_run import Run, save_trajectories
 from cicfw.benchmark.journal import EpisodeLog
 from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy

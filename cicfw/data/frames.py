@@ -303,7 +303,7 @@ def _say_steer_filter(steer: np.ndarray, dropped: np.ndarray, max_abs_steer: flo
     top = float(np.abs(steer).max())
     cause = (f"|steer| reaches {top:.3g}, beyond CIL's [-1, 1]: targets[0] likely holds degrees or radians; "
              f"convert it to [-1, 1] (steering angle / the car's largest angle)" if top > 1.0 else
-             f"if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)")
+             "if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)")
     log.warning("data.max_abs_steer=%g drops %d of %d samples (%.0f%%): their |steer| (after the side-camera "
                 "correction) is above it; %s", max_abs_steer, k, n, 100.0 * k / n, cause)
 
