@@ -229,7 +229,8 @@ def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys)
     f = tmp_path / "a_file"
     f.write_text("x")
     out = tmp_path / "results"
-    msg = refused(["budget=smoke", f"publish_dir={f}", f"results_dir={out}"], capsys)
+    # one row: the folder check does not depend on the rows, and every row's training config is composed first
+    msg = refused(["budget=smoke", "rows=[cil]", f"publish_dir={f}", f"results_dir={out}"], capsys)
     assert "publish_dir" in msg and str(f) in msg, msg
     assert not out.exists()
 
