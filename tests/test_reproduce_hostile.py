@@ -5,6 +5,7 @@ results folder (a lock naming its holder; a stale one taken over with a warning)
 the docs' own custom-row example parses, report files readable under umask 022, resumed cells marked."""
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -235,11 +236,16 @@ def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys)
     assert not out.exists()
 
 
+@functools.cache
+def _pin(budget: str) -> str:
+    """``budget``'s pin as reproduce.json records it, as JSON: composed once per module, the same for every test."""
+    cfg = reproduce.compose_plan([f"budget={budget}"])
+    return json.dumps(reproduce.fingerprint(cfg, {"config_hash": "0123456789abcdef"}))
+
+
 def smoke_manifest(tmp_path: Path, budget: str = "smoke", **pinned) -> Path:
     """A results folder pinned to ``budget`` as reproduce.json records it (no cell needed)."""
-    cfg = reproduce.compose_plan([f"budget={budget}"])
-    pin = reproduce.fingerprint(cfg, {"config_hash": "0123456789abcdef"})
-    pin.update(pinned)
+    pin = {**json.loads(_pin(budget)), **pinned}
     out = tmp_path / "results"
     out.mkdir()
     (out / "reproduce.json").write_text(json.dumps({"budget": budget, "pinned": pin}))
