@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +20,7 @@ from cicfw.collect import LOCK_NAME
 from cicfw.data.cil_hdf5 import T, check_file, find_files, read_rgb, read_targets
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.backends import EmbeddedBackend
-from conftest import assert_refused
+from conftest import assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -221,8 +219,7 @@ def test_the_schema_refuses_a_type_or_key_while_composing(override: str, kind: s
 
 
 def test_the_real_command_line_prints_one_line(tmp_path: Path):
-    r = subprocess.run([sys.executable, "-m", "cicfw.collect", f"out_dir={tmp_path / 'out'}", "weathers=[Foggy]"],
-                       capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    r = run_app_in_process("cicfw.collect", f"out_dir={tmp_path / 'out'}", "weathers=[Foggy]", cwd=tmp_path)
     assert_refused(r, "collect.weathers", "Foggy")
 
 

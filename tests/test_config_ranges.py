@@ -5,9 +5,6 @@ before the first one trains."""
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -211,11 +208,12 @@ def test_the_agent_refuses_speeds_the_data_reader_refuses(speed):
 
 @pytest.mark.slow
 def test_a_multirun_checks_every_job_before_the_first_trains(tiny_data, tmp_path):
+    from conftest import run_app_in_process
+
     sweep = tmp_path / "sweep"
-    r = subprocess.run([sys.executable, "-m", "cicfw.train", "-m", "data=cil_hdf5", f"data.path={tiny_data}",
-                        "data.batch_size=8", "data.val_batch_size=8", "debug=fast", "progress_bar=false",
-                        "head=hybrid", "head.W=5,-1,10", f"hydra.sweep.dir={sweep}"],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "HYDRA_FULL_ERROR": "0"})
+    r = run_app_in_process("cicfw.train", "-m", "data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8",
+                           "data.val_batch_size=8", "debug=fast", "progress_bar=false", "head=hybrid", "head.W=5,-1,10",
+                           f"hydra.sweep.dir={sweep}", env={"HYDRA_FULL_ERROR": "0"})
     assert r.returncode == 2, r.stderr[-2000:]
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "head.W" in lines[0] and "-1" in lines[0], r.stderr[-2000:]

@@ -8,9 +8,6 @@ The frames are tiny episodes whose image carries its own expert steering in one 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -277,10 +274,8 @@ def test_the_app_end_to_end(tmp_path: Path, episodes: Path):
     ckpt = save_checkpoint(run, head="softmax")
     write_run_config(run, episodes, seed=3)
     out = tmp_path / "out"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    res = subprocess.run([sys.executable, "-m", "cicfw.diagnose", f"checkpoint={ckpt}", f"hydra.run.dir={out}",
-                          "phases.approach_m=3", "threads=1"], cwd=REPO, capture_output=True, text=True,
-                         env=env, timeout=300)
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpt}", f"hydra.run.dir={out}", "phases.approach_m=3",
+                             "threads=1", cwd=REPO, env={"OMP_NUM_THREADS": "1"})
     assert res.returncode == 0, res.stderr[-3000:]
     doc = json.loads((out / "steer_diagnostic.json").read_text())
     _, val = split_by_episode(load_frames(str(episodes)), 0.3, 3)

@@ -16,7 +16,7 @@ import yaml
 from cicfw.benchmark import evaluation_report as report
 from cicfw.benchmark.evaluation_report import Run, write_run
 from cicfw.sim.town import MAX_TOWN_SIDE_M, TownError, build_town, load_town, town_path
-from conftest import assert_refused
+from conftest import assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -161,8 +161,7 @@ def test_carla_check_bad_values_are_one_line(capsys, option: str, value: str):
 
 
 def test_carla_check_cli_port_99999_no_traceback():
-    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "carla-check", "--port", "99999"],
-                       capture_output=True, text=True, timeout=120)
+    r = run_app_in_process("cicfw.cli", "carla-check", "--port", "99999")  # the cicfw command, in this process
     assert_refused(r, "--port", "99999")
 
 

@@ -5,8 +5,6 @@ import hashlib
 import json
 import logging
 import shutil
-import subprocess
-import sys
 
 import h5py
 import numpy as np
@@ -19,6 +17,7 @@ from cicfw.collect import CollectError, collect_dataset, verify_dataset
 from cicfw.data.cil_hdf5 import T
 from cicfw.data.frames import load_frames
 from cicfw.testing import write_tiny_dataset
+from conftest import run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -170,8 +169,7 @@ def test_verify_names_each_corrupt_file_in_one_line_and_exits_2(collected, capsy
 def test_verify_on_the_real_command_line_with_the_flag(collected):
     out, _ = collected
     _flip(out / FIRST)
-    r = subprocess.run([sys.executable, "-m", "cicfw.collect", f"out_dir={out}", "--verify"],
-                       capture_output=True, text=True, timeout=120)
+    r = run_app_in_process("cicfw.collect", f"out_dir={out}", "--verify")  # its command line, in this process
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     lines = r.stderr.strip().splitlines()
     assert lines[0].startswith(f"cicfw: corrupt: {out / FIRST}: "), lines

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -22,7 +20,6 @@ pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 QUICK = ("policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]", "suite.limit=2",
          "progress_bar=false", "runner.workers=1")
-ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
 
 
 @pytest.mark.parametrize("override, key", [("+foo=1", "foo"), ("+vide=[0]", "vide")])
@@ -63,38 +60,31 @@ def test_report_files_are_readable_by_others_under_umask_022(tmp_path):
     assert {n for n, p in zip(names, files) if p.stat().st_mode & 0o044 != 0o044} == set(), modes
 
 
-INTERRUPTING = """
-import os, signal, sys
-from cicfw.benchmark.builtin_policies import ExpertPolicy
-from cicfw.benchmark.policy import POLICIES
+def test_ctrl_c_during_the_evaluation_keeps_the_finished_episodes_and_says_how_to_go_on(tmp_path, monkeypatch):
+    """The app run in this process (its handlers are put back after), Ctrl-C sent by the policy after 340
+    episode-steps: a real SIGINT to this process, as a shell's Ctrl-C reaches the app."""
+    import signal
 
+    from cicfw.benchmark.builtin_policies import ExpertPolicy
+    from cicfw.benchmark.policy import POLICIES
 
-class InterruptedExpert(ExpertPolicy):
-    \"\"\"The expert, until Ctrl-C after STEPS episode-steps.\"\"\"
+    class InterruptedExpert(ExpertPolicy):
+        """The expert, until Ctrl-C after 340 episode-steps."""
 
-    served = 0
+        served = 0
 
-    def act(self, obs):
-        InterruptedExpert.served += len(obs)
-        if InterruptedExpert.served > int(os.environ["STEPS"]):
-            os.kill(os.getpid(), signal.SIGINT)
-        return super().act(obs)
+        def act(self, obs):
+            InterruptedExpert.served += len(obs)
+            if InterruptedExpert.served > 340:
+                os.kill(os.getpid(), signal.SIGINT)
+            return super().act(obs)
 
-
-POLICIES.register("interrupted_expert")(InterruptedExpert)
-import runpy
-runpy.run_module("cicfw.evaluate", run_name="__main__", alter_sys=True)
-"""
-
-
-def test_ctrl_c_during_the_evaluation_keeps_the_finished_episodes_and_says_how_to_go_on(tmp_path):
-    script = tmp_path / "interrupting.py"
-    script.write_text(INTERRUPTING)
+    monkeypatch.setitem(POLICIES._entries, "interrupted_expert", InterruptedExpert)
+    monkeypatch.setitem(POLICIES._origin, "interrupted_expert", "cicfw")
     out = tmp_path / "out"
-    args = [*QUICK, "suite.limit=3", "runner.batch_size=1", "policy.name=interrupted_expert", "maps=false",
-            f"hydra.run.dir={out}"]
-    proc = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True,
-                          env={**ENV, "STEPS": "340"}, timeout=600)
+    proc = run_app_in_process("cicfw.evaluate", *QUICK, "suite.limit=3", "runner.batch_size=1",
+                              "policy.name=interrupted_expert", "maps=false", f"hydra.run.dir={out}",
+                              env={"HYDRA_FULL_ERROR": "0"})
     assert proc.returncode == 130, proc.stderr[-3000:]
     kept = len(read_log(out)[1])
     assert 1 <= kept < 3

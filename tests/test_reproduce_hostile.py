@@ -5,6 +5,7 @@ results folder (a lock naming its holder; a stale one taken over with a warning)
 the docs' own custom-row example parses, report files readable under umask 022, resumed cells marked."""
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -228,16 +229,22 @@ def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys)
     f = tmp_path / "a_file"
     f.write_text("x")
     out = tmp_path / "results"
-    msg = refused(["budget=smoke", f"publish_dir={f}", f"results_dir={out}"], capsys)
+    # one row: the folder check does not depend on the rows, and every row's training config is composed first
+    msg = refused(["budget=smoke", "rows=[cil]", f"publish_dir={f}", f"results_dir={out}"], capsys)
     assert "publish_dir" in msg and str(f) in msg, msg
     assert not out.exists()
 
 
+@functools.cache
+def _pin(budget: str) -> str:
+    """``budget``'s pin as reproduce.json records it, as JSON: composed once per module, the same for every test."""
+    cfg = reproduce.compose_plan([f"budget={budget}"])
+    return json.dumps(reproduce.fingerprint(cfg, {"config_hash": "0123456789abcdef"}))
+
+
 def smoke_manifest(tmp_path: Path, budget: str = "smoke", **pinned) -> Path:
     """A results folder pinned to ``budget`` as reproduce.json records it (no cell needed)."""
-    cfg = reproduce.compose_plan([f"budget={budget}"])
-    pin = reproduce.fingerprint(cfg, {"config_hash": "0123456789abcdef"})
-    pin.update(pinned)
+    pin = {**json.loads(_pin(budget)), **pinned}
     out = tmp_path / "results"
     out.mkdir()
     (out / "reproduce.json").write_text(json.dumps({"budget": budget, "pinned": pin}))

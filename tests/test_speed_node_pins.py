@@ -3,6 +3,7 @@
 (``speed_node_spelling`` in cicfw/reproduction/catalogue.py); a real difference of a switch is still refused."""
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -26,10 +27,16 @@ def test_the_legacy_spelling_becomes_the_speed_nodes():
         "trainer.keep_memory_x=1"]
 
 
-def test_a_legacy_pin_matches_the_budget_that_spells_the_speed_node():
+@pytest.fixture(scope="module")
+def converged6():
+    """The plan of converged6_xeon's budget, composed once for the module (a test that changes it, a copy)."""
+    return reproduce.compose_plan(["budget=converged6", "weather_family=harsh"])
+
+
+def test_a_legacy_pin_matches_the_budget_that_spells_the_speed_node(converged6):
     pinned = published_pin()
     assert "trainer.compile=true" in pinned["train"]  # as published
-    cfg = reproduce.compose_plan(["budget=converged6", "weather_family=harsh"])
+    cfg = converged6
     ours = reproduce.fingerprint(cfg, None)
     assert "speed.compile=true" in ours["train"] and not any(o.startswith("trainer.compile") for o in ours["train"])
     assert reproduce.pinned_differences(pinned, ours, cfg, KEYS) == []
@@ -37,11 +44,11 @@ def test_a_legacy_pin_matches_the_budget_that_spells_the_speed_node():
 
 
 @pytest.mark.parametrize("legacy", [True, False])
-def test_a_real_difference_of_a_speed_switch_is_still_refused(legacy):
+def test_a_real_difference_of_a_speed_switch_is_still_refused(legacy, converged6):
     pinned = published_pin()
     if not legacy:
         pinned = {**pinned, "train": reproduce.speed_node_spelling(pinned["train"])}
-    cfg = reproduce.compose_plan(["budget=converged6", "weather_family=harsh"])
+    cfg = copy.deepcopy(converged6)
     cfg.budget.train = [("speed.compile=false" if o == "speed.compile=true" else o) for o in cfg.budget.train]
     ours = reproduce.fingerprint(cfg, None)
     assert reproduce.pinned_differences(pinned, ours, cfg, KEYS) == ["train"]
