@@ -180,6 +180,24 @@ def test_trainer_counts_lightning_divides_by_are_at_least_one(fast_cfg, tmp_path
     assert (err.value.key, err.value.value) == (f"trainer.{key}", value)
 
 
+@pytest.mark.parametrize("value", [-1.0, float("nan")])
+def test_gradient_clip_below_zero_or_nan_is_refused(fast_cfg, tmp_path, value, no_data):
+    """Lightning skips clipping for a negative value without a word (the run trains unclipped) and fails
+    mid-step on NaN: refused before the data is read; 0 and null stay "no clipping"."""
+    import math
+
+    from cicfw.train.app import check_config, train
+
+    fast_cfg.trainer.gradient_clip_val = value
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert err.value.key == "trainer.gradient_clip_val"
+    assert err.value.value == value or (math.isnan(value) and math.isnan(err.value.value))
+    for fine in (0.0, 0.5, None):
+        fast_cfg.trainer.gradient_clip_val = fine
+        check_config(fast_cfg, refuse_finished=False)
+
+
 def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):
     from cicfw.train.app import train
 
