@@ -180,6 +180,19 @@ def test_trainer_counts_lightning_divides_by_are_at_least_one(fast_cfg, tmp_path
     assert (err.value.key, err.value.value) == (f"trainer.{key}", value)
 
 
+@pytest.mark.parametrize("low,high,least,most", [("min_epochs", "max_epochs", 3, 1), ("min_steps", "max_steps", 5, 2)])
+def test_a_minimum_beyond_the_maximum_is_refused(fast_cfg, tmp_path, low, high, least, most, no_data):
+    """Lightning stops at max_epochs / max_steps and drops a larger minimum without a word: refused."""
+    from cicfw.train.app import check_config, train
+
+    fast_cfg.trainer[low], fast_cfg.trainer[high] = least, most
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == (f"trainer.{low}", least)
+    fast_cfg.trainer[low] = most  # equal is fine
+    check_config(fast_cfg, refuse_finished=False)
+
+
 @pytest.mark.parametrize("value", [-1.0, float("nan")])
 def test_gradient_clip_below_zero_or_nan_is_refused(fast_cfg, tmp_path, value, no_data):
     """Lightning skips clipping for a negative value without a word (the run trains unclipped) and fails
