@@ -140,6 +140,9 @@ class CILDataModule(L.LightningDataModule):
             raise ConfigError("data.augment", augment, "true, false or a dict of overrides",
                               f"data.augment must be true (CIL's augmentation), false (none) or a dict of "
                               f"overrides such as {{p_blur: 0.2}}, got {augment!r}")
+        if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+            # the DataLoader refuses it only when it is built, after the files were read, as a traceback
+            raise ConfigError("data.num_workers", num_workers, "an integer >= 0 (0: batches in the main process)")
         self.in_memory, self.num_workers = in_memory_setting(in_memory), num_workers
         self.train_set: FrameDataset | None = None
         self.val_set: FrameDataset | None = None
