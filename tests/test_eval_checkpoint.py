@@ -128,6 +128,7 @@ def test_evaluate_config_errors(tmp_path: Path):
         (["policy=expert", "suite.towns=[town_z]"], ValueError, None, "town_z"),
         (["policy=constant", "policy.steer=-3"], ValueError, "policy.steer", -3),
         (["policy=expert", "runner.batch_size=0"], ValueError, "runner.batch_size", 0),
+        ([f"checkpoint={tmp_path}/a.ckpt", "policy.camera=bogus"], ValueError, "policy.camera", "bogus"),  # a typo
     ]
     for overrides, kind, key, value in cases:
         with pytest.raises(kind) as err:
