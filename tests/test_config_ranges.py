@@ -308,3 +308,15 @@ def test_a_town_or_weather_named_twice_is_refused(key, value):
     with pytest.raises(ConfigError) as err:
         build_suite(make_backend(None), **{**SUITE, key: value})
     assert (err.value.key, err.value.value) == (f"suite.{key}", value)
+
+
+def test_a_validation_interval_beyond_the_epoch_is_one_line(tmp_path):
+    """Lightning checks val_check_interval against the epoch's batches only once the data is read, and
+    raised a ValueError (exit 1); it is now a CicfwError naming the key."""
+    from conftest import TINY_TRAIN, train_tiny_run
+
+    from cicfw.core.errors import CicfwError
+
+    with pytest.raises(CicfwError) as err:
+        train_tiny_run(tmp_path, *TINY_TRAIN, "trainer.val_check_interval=100")
+    assert (err.value.key, err.value.value) == ("trainer.val_check_interval", 100)
