@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_module
 from hydra.errors import HydraException
 
 from cicfw import N_COMMANDS
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.core.override_hints import composition_error
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import N_TARGETS, T, file_bytes
@@ -36,11 +36,19 @@ def _require(ok: bool, message: str) -> None:
         raise AssertionError(message)
 
 
+def _at_least(key: str, value: object, least: int, why: str) -> None:
+    """A size the contract checks are run at: an empty batch would pass every check while checking nothing."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(key, value, f"an integer >= {least} ({why})")
+
+
 def check_mixer(name: str, in_dim: int = 64, batch: int = 5, **kwargs) -> Mixer:
     """Build the registered mixer ``name`` with ``kwargs`` and check the Mixer contract:
     (B, in_dim) -> (B, 4, K) for K = 1 and 9, finite, no mixing across samples, a scalar
     regularizer, a gradient for every parameter (DDP needs that), well-shaped ``inspect()``,
     and a state_dict that rebuilds the same mixer. Returns the last mixer built."""
+    _at_least("batch", batch, 2, "samples; that none mixes with another needs two")
+    _at_least("in_dim", in_dim, 1, "features per sample")
     cls = MIXERS.get(name)
     torch.manual_seed(0)
     h = torch.randn(batch, in_dim)
@@ -79,6 +87,7 @@ def check_head(name: str, batch: int = 6, **kwargs) -> Head:
     """Build the registered head ``name`` with ``kwargs`` and check the Head contract: a positive
     ``out_dim``, a finite differentiable scalar loss, decoded steering (B,) in [-1, 1], and for
     classification heads ``predict_class`` within the bins. Returns the head."""
+    _at_least("batch", batch, 1, "samples the loss and decoding are checked on")
     cls = HEADS.get(name)
     head = cls(**kwargs)
     _require(isinstance(head, Head), f"head {name!r}: {cls.__name__} must subclass cicfw.model.heads.Head")

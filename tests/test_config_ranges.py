@@ -176,6 +176,37 @@ def test_trainer_counts_lightning_divides_by_are_at_least_one(fast_cfg, tmp_path
     assert (err.value.key, err.value.value) == (f"trainer.{key}", value)
 
 
+@pytest.mark.parametrize("low,high,least,most", [("min_epochs", "max_epochs", 3, 1), ("min_steps", "max_steps", 5, 2)])
+def test_a_minimum_beyond_the_maximum_is_refused(fast_cfg, tmp_path, low, high, least, most, no_data):
+    """Lightning stops at max_epochs / max_steps and drops a larger minimum without a word: refused."""
+    from cicfw.train.app import check_config, train
+
+    fast_cfg.trainer[low], fast_cfg.trainer[high] = least, most
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert (err.value.key, err.value.value) == (f"trainer.{low}", least)
+    fast_cfg.trainer[low] = most  # equal is fine
+    check_config(fast_cfg, refuse_finished=False)
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan")])
+def test_gradient_clip_below_zero_or_nan_is_refused(fast_cfg, tmp_path, value, no_data):
+    """Lightning skips clipping for a negative value without a word (the run trains unclipped) and fails
+    mid-step on NaN: refused before the data is read; 0 and null stay "no clipping"."""
+    import math
+
+    from cicfw.train.app import check_config, train
+
+    fast_cfg.trainer.gradient_clip_val = value
+    with pytest.raises(ConfigError) as err:
+        train(fast_cfg, tmp_path / "run")
+    assert err.value.key == "trainer.gradient_clip_val"
+    assert err.value.value == value or (math.isnan(value) and math.isnan(err.value.value))
+    for fine in (0.0, 0.5, None):
+        fast_cfg.trainer.gradient_clip_val = fine
+        check_config(fast_cfg, refuse_finished=False)
+
+
 def test_epochs_to_keep_are_within_max_epochs(fast_cfg, tmp_path, no_data):
     from cicfw.train.app import train
 
@@ -274,3 +305,15 @@ def test_a_town_or_weather_named_twice_is_refused(key, value):
     with pytest.raises(ConfigError) as err:
         build_suite(make_backend(None), **{**SUITE, key: value})
     assert (err.value.key, err.value.value) == (f"suite.{key}", value)
+
+
+def test_a_validation_interval_beyond_the_epoch_is_one_line(tmp_path):
+    """Lightning checks val_check_interval against the epoch's batches only once the data is read, and
+    raised a ValueError (exit 1); it is now a CicfwError naming the key."""
+    from conftest import TINY_TRAIN, train_tiny_run
+
+    from cicfw.core.errors import CicfwError
+
+    with pytest.raises(CicfwError) as err:
+        train_tiny_run(tmp_path, *TINY_TRAIN, "trainer.val_check_interval=100")
+    assert (err.value.key, err.value.value) == ("trainer.val_check_interval", 100)

@@ -461,3 +461,23 @@ def test_the_split_is_the_one_the_checkpoint_recorded(tmp_path: Path, episodes: 
     settings, source = data_settings(diagnose_cfg(f"checkpoint={ckpt}", *overrides), ckpt)
     assert settings.seed == 3
     assert "as the checkpoint recorded them" in source
+
+
+@pytest.mark.parametrize("given", ["data.seed=0", "data.val_fraction=0.5"])
+def test_another_split_than_the_checkpoint_recorded_is_refused(tmp_path: Path, episodes: Path, given: str):
+    """data.val_fraction=0.5 (or another seed) beside a checkpoint that recorded its split drew another
+    split: the report said "the val split" over episodes the model trained on. Refused for val and train;
+    split=all, which measures every frame, and the recorded value itself are fine."""
+    from cicfw.core.errors import ConfigError
+    from cicfw.diagnose.app import data_settings
+
+    ckpt = save_checkpoint(tmp_path / "run", head="softmax")
+    torch.save({**torch.load(ckpt, weights_only=True), "cicfw_split": {"seed": 3, "val_fraction": 0.3}}, ckpt)
+    key, value = given.split("=")
+    for split in ("val", "train"):
+        with pytest.raises(ConfigError) as err:
+            data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", given, f"split={split}"), ckpt)
+        assert err.value.key == key and float(err.value.value) == float(value)
+    data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", given, "split=all"), ckpt)
+    data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", "data.seed=3", "data.val_fraction=0.3"),
+                  ckpt)

@@ -109,10 +109,10 @@ def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
     # a folder: its single best checkpoint is taken; two are ambiguous
     run = tmp_path / "run" / "checkpoints"
     run.mkdir(parents=True)
-    (run / "epoch001.ckpt").write_bytes(ckpt.read_bytes())
+    (run / "epoch001-mae0.3000.ckpt").write_bytes(ckpt.read_bytes())
     (run / "last.ckpt").write_bytes(ckpt.read_bytes())
     assert read_checkpoint(tmp_path / "run")["hyper_parameters"]["mixer"] == "gtu"
-    (run / "epoch002.ckpt").write_bytes(ckpt.read_bytes())
+    (run / "epoch002-mae0.2000.ckpt").write_bytes(ckpt.read_bytes())
     with pytest.raises(CheckpointError) as err:
         read_checkpoint(tmp_path / "run")
     assert (err.value.key, err.value.value) == ("checkpoint", tmp_path / "run")
@@ -128,6 +128,7 @@ def test_evaluate_config_errors(tmp_path: Path):
         (["policy=expert", "suite.towns=[town_z]"], ValueError, None, "town_z"),
         (["policy=constant", "policy.steer=-3"], ValueError, "policy.steer", -3),
         (["policy=expert", "runner.batch_size=0"], ValueError, "runner.batch_size", 0),
+        ([f"checkpoint={tmp_path}/a.ckpt", "policy.camera=bogus"], ValueError, "policy.camera", "bogus"),  # a typo
     ]
     for overrides, kind, key, value in cases:
         with pytest.raises(kind) as err:

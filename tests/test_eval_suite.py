@@ -207,3 +207,20 @@ def test_filming_the_failures_of_a_run_without_one_says_so(tmp_path, capsys):
     assert main([str(tmp_path)]) == 0
     assert "failures" in capsys.readouterr().err  # what selected nothing, not silence
     assert not (tmp_path / "videos").exists()
+
+
+@pytest.mark.parametrize("most", ["0", "-1"])
+def test_filming_at_most_no_video_is_refused(tmp_path, capsys, most):
+    """--max 0 cut the failed episode it chose and then said that 'failures' selected none, exit 0."""
+    import json
+
+    from cicfw.benchmark.finished_run import save_trajectories
+    from cicfw.benchmark.video import main
+
+    rows = [{"model": "expert", "episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+             "success": False}]
+    (tmp_path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {}}))
+    save_trajectories(tmp_path / "trajectories.npz", rows, {})
+    assert main([str(tmp_path), "--max", most]) == 2
+    assert f"--max={most}" in capsys.readouterr().err
+    assert not (tmp_path / "videos").exists()

@@ -51,6 +51,18 @@ def test_a_run_folder_means_its_own_checkpoint_not_a_nested_run(tmp_path: Path) 
     assert resolve_checkpoint(run) == (run / "checkpoints" / "epoch001-mae0.2000.ckpt").resolve()
 
 
+def test_a_run_folder_never_means_a_kept_epoch_checkpoint(tmp_path: Path) -> None:
+    """keep_epoch_checkpoints' epochNNN.ckpt is no best checkpoint: a run that never validated (or with a
+    best beside kept epochs) means its last.ckpt (or that best), not the weights after an earlier epoch."""
+    from cicfw.model.checkpoint import resolve_checkpoint
+
+    run = tmp_path / "run"
+    _ckpt(run / "checkpoints", "epoch001.ckpt", "last.ckpt")  # two epochs, no validation: epoch 1 kept
+    assert resolve_checkpoint(run) == (run / "checkpoints" / "last.ckpt").resolve()
+    _ckpt(run / "checkpoints", "epoch002.ckpt", "epoch001-mae0.2000.ckpt")
+    assert resolve_checkpoint(run) == (run / "checkpoints" / "epoch001-mae0.2000.ckpt").resolve()
+
+
 def test_a_folder_above_several_runs_is_refused(tmp_path: Path) -> None:
     from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
 

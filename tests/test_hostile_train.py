@@ -340,6 +340,8 @@ def test_a_300_character_run_name_is_one_line(tmp_path):
     (["keep_epoch_checkpoints=[0,2]"], "keep_epoch_checkpoints"),
     (["data.batch_size=0"], "data.batch_size"),
     (["data.val_batch_size=0"], "data.val_batch_size"),
+    (["data.num_workers=-1"], "data.num_workers"),  # the DataLoader's traceback, after the files were read
+    (["data.balanced=false", "data.batches_per_epoch=2"], "data.batches_per_epoch"),  # was ignored: a full pass
     (["data.cameras=5"], "data.cameras"),
     (["data.val_cameras=[]"], "data.val_cameras"),
     (["data.cameras=[5]"], "data.val_cameras"),

@@ -164,3 +164,17 @@ def test_write_tiny_dataset_never_writes_over_a_file(tmp_path):
     assert (real / "data_00001.h5").read_bytes() == b"a recorded episode"
     write_tiny_dataset(real, n_files=2, n=4, overwrite=True)
     assert sorted(p.name for p in real.iterdir()) == ["data_00000.h5", "data_00001.h5"]
+
+
+@pytest.mark.parametrize("check, key, value", [("mixer", "batch", 0), ("mixer", "batch", 1), ("mixer", "in_dim", 0),
+                                               ("head", "batch", 0)])
+def test_the_contract_checks_refuse_a_size_that_checks_nothing(check, key, value):
+    """check_mixer(batch=0) passed on an empty batch, checking nothing; check_head(batch=0) blamed the head's
+    loss for the NaN of an empty mean."""
+    from cicfw.core.errors import ConfigError
+    from cicfw.testing import check_head, check_mixer
+
+    with pytest.raises(ConfigError) as err:
+        (check_mixer if check == "mixer" else check_head)("independent" if check == "mixer" else "softmax",
+                                                           **{key: value})
+    assert (err.value.key, err.value.value) == (key, value)

@@ -194,6 +194,20 @@ def test_a_curve_epoch_below_1_is_refused_up_front(no_collect, tmp_path, capsys)
     assert not out.exists()
 
 
+def test_a_curve_epoch_past_the_training_is_refused_up_front(no_collect, tmp_path, capsys):
+    """smoke trains 2 epochs: a curve point after epoch 5 was skipped without a word, exit 0."""
+    from cicfw.core.errors import ConfigError
+
+    out = tmp_path / "results"
+    with pytest.raises(ConfigError) as err:
+        reproduce.check_rows(reproduce.compose_plan(["budget=smoke", "budget.curve_epochs=[1,5]"]), ["cil"])
+    assert (err.value.key, err.value.value) == ("budget.curve_epochs", 5)
+    msg = refused(["budget=smoke", "rows=[cil]", "budget.curve_epochs=[5]", f"results_dir={out}"], capsys)
+    assert "budget.curve_epochs" in msg and "5" in msg, msg
+    assert not out.exists()
+    reproduce.check_rows(reproduce.compose_plan(["budget=smoke", "budget.curve_epochs=[2]"]), ["cil"])  # the last
+
+
 @pytest.mark.parametrize("margin", ["-1", "0", "nan"])
 def test_a_bad_equivalence_margin_is_refused_before_any_cell(margin, no_collect, tmp_path, capsys):
     """The report needs the margin after every cell has run: a bad one is refused first, naming the key."""

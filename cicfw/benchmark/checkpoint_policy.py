@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.export.agent import Agent
+from cicfw.sim.render.camera import CAMERAS
 
 
 class CheckpointPolicy(Policy):
@@ -26,6 +27,8 @@ class CheckpointPolicy(Policy):
                  label: str | None = None, fuse: bool = True, device: str = "auto") -> None:
         if not checkpoint:
             raise CicfwError("policy=checkpoint needs checkpoint=path/to.ckpt (or use policy=expert)")
+        if camera not in CAMERAS:  # else the first step fails, after the run folder holds a partial run
+            raise ConfigError("policy.camera", camera, "one of " + ", ".join(CAMERAS))
         try:
             self.agent = Agent.load(checkpoint, threads=threads, device=device, fuse=fuse)
         except ValueError as err:

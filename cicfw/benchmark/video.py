@@ -111,6 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="episode numbers, keys (town/weather/pair) or 'failures' (default)")
     ap.add_argument("--max", type=int, default=8, help="at most this many videos")
     args = ap.parse_args(argv)
+    if args.max < 1:  # it would cut every chosen episode and then report that nothing was selected
+        print(f"cicfw: error: --max={args.max} is not valid; accepted: an integer >= 1 (videos at most)", file=sys.stderr)
+        return 2
     try:
         run = load_run(args.run_dir)
         chosen = select_episodes(run.rows, [int(e) if e.isdigit() else e for e in args.episodes], args.max)

@@ -114,6 +114,10 @@ class CILDataModule(L.LightningDataModule):
         if batches_per_epoch is not None and batches_per_epoch < 1:  # 0 read as null, -1 failed in the sampler
             raise ConfigError("data.batches_per_epoch", batches_per_epoch,
                               "null (training samples / batch size) or an integer >= 1")
+        if batches_per_epoch is not None and not balanced:  # the plain shuffled sampler makes one pass per epoch
+            raise ConfigError("data.batches_per_epoch", batches_per_epoch,
+                              "null with data.balanced=false (an epoch is one pass over the training samples); "
+                              "data.balanced=true sets the epoch's length")
         if not 0.0 < val_fraction < 1.0:
             raise ConfigError("data.val_fraction", val_fraction, "in (0, 1)")
         if not math.isfinite(side_camera_correction):  # NaN would train on NaN labels without a word
@@ -140,6 +144,9 @@ class CILDataModule(L.LightningDataModule):
             raise ConfigError("data.augment", augment, "true, false or a dict of overrides",
                               f"data.augment must be true (CIL's augmentation), false (none) or a dict of "
                               f"overrides such as {{p_blur: 0.2}}, got {augment!r}")
+        if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+            # the DataLoader refuses it only when it is built, after the files were read, as a traceback
+            raise ConfigError("data.num_workers", num_workers, "an integer >= 0 (0: batches in the main process)")
         self.in_memory, self.num_workers = in_memory_setting(in_memory), num_workers
         self.train_set: FrameDataset | None = None
         self.val_set: FrameDataset | None = None

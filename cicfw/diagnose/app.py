@@ -26,8 +26,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from cicfw.core.config_checks import is_number
-from cicfw.core.errors import USER_ERRORS, CicfwError, report_user_errors
+from cicfw.core.config_checks import is_number, same_value
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, report_user_errors
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.provenance import data_root, recorded_files
@@ -146,6 +146,11 @@ def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] |
         values["path"] = record["path"]
         source += "; data.path as the run recorded it"
     given = {k: v for k, v in (OmegaConf.to_container(cfg.data, resolve=True) or {}).items() if v is not None}
+    if str(cfg.split) != "all":  # another seed or fraction than the checkpoint's own draws another split: its
+        for key in ("seed", "val_fraction"):  # "val" would hold episodes the model trained on, and say val
+            if key in given and key in own and not same_value(given[key], own[key]):
+                raise ConfigError(f"data.{key}", given[key], f"the checkpoint's own {own[key]!r}, which drew the "
+                                  f"split it trained on (or leave it out); split=all measures every frame")
     values.update(given)
     if given:
         source += f"; given here: {', '.join(sorted(given))}"

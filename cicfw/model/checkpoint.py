@@ -36,10 +36,14 @@ class CheckpointError(CicfwError):
     """A checkpoint that cannot be used; the message says why and what is accepted."""
 
 
+#: the name of a checkpoint ``keep_epoch_checkpoints`` kept (``epoch001.ckpt``), never a run's best
+KEPT_EPOCH = re.compile(r"epoch\d{3,}\.ckpt")
+
+
 def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
-    best checkpoint (``last.ckpt`` aside) in its ``checkpoints/``; a folder without one is searched
-    below, and must hold the checkpoints of one run only."""
+    best checkpoint (``last.ckpt`` and kept ``epochNNN.ckpt`` aside) in its ``checkpoints/``, else its
+    ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only."""
     p = Path(str(path)).expanduser()
     if p.is_dir():
         own = p / "checkpoints"
@@ -51,14 +55,17 @@ def resolve_checkpoint(path: str | Path) -> Path:
                 f"checkpoint={str(path)!r} holds the checkpoints of {len(runs)} runs "
                 f"({', '.join(str(r) for r in runs[:4])}{' ...' if len(runs) > 4 else ''}); give one run's "
                 f"folder or one .ckpt file", key="checkpoint", value=path)
-        found = [f for f in every if f.name != "last.ckpt"]
+        # keep_epoch_checkpoints' epochNNN.ckpt are points on a learning curve, never chosen by validation: a
+        # run without a best checkpoint means its last.ckpt, not the weights after some earlier epoch
+        found = [f for f in every if f.name != "last.ckpt" and not KEPT_EPOCH.fullmatch(f.name)]
         if len(found) == 1:
             return found[0].resolve()
         if not found and runs and (runs[0] / "last.ckpt").is_file():
             return (runs[0] / "last.ckpt").resolve()
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
-            f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt ({listing}); "
+            f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt and kept "
+            f"epochNNN.ckpt ({listing}); "
             f"give one .ckpt file", key="checkpoint", value=path)
     if not p.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "

@@ -54,7 +54,7 @@ from cicfw.benchmark.app import compose_config, evaluate
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
 from cicfw.core.config_checks import config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, debugging
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, debugging
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
@@ -177,6 +177,11 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 check_training(tcfg)
             except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
+            epochs = int(tcfg.trainer.max_epochs)  # a curve point past the training is never driven
+            beyond = [int(e) for e in cfg.budget.get("curve_epochs") or [] if int(e) > epochs]
+            if beyond:
+                raise ConfigError("budget.curve_epochs", beyond[0], f"epochs 1 to {epochs}: {what} trains "
+                                  f"trainer.max_epochs={epochs}, so no checkpoint of a later epoch exists to drive")
             data.append(str(Path(str(tcfg.data.path)).expanduser()))
     return data
 

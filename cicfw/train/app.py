@@ -603,6 +603,11 @@ def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_pa
     becomes ``Interrupted`` naming the checkpoint to resume from."""
     try:
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, **fit_kwargs())
+    except ValueError as err:  # checked by Lightning only against the epoch's batches, once the data is read
+        if "val_check_interval" not in str(err) or isinstance(err, CicfwError):
+            raise
+        raise CicfwError(f"trainer: {' '.join(str(err).split())}", key="trainer.val_check_interval",
+                         value=trainer.val_check_interval) from None
     except SystemExit:
         if not trainer.interrupted:
             raise

@@ -159,12 +159,19 @@ def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
     leaves open (``Any``) checked by what Lightning takes: ``deterministic``, ``max_time``; ``max_epochs``
     >= 1 (Lightning would take -1, training forever, and 0, training nothing); ``limit_train_batches`` > 0
     (0 trains nothing, and the run ends without a checkpoint); ``accumulate_grad_batches``
-    and ``check_val_every_n_epoch`` >= 1 (0 fails in the first step, after the run folder is written)."""
+    and ``check_val_every_n_epoch`` >= 1 (0 fails in the first step, after the run folder is written);
+    ``gradient_clip_val`` >= 0 or null (Lightning ignores a negative one, and NaN fails mid-step);
+    ``min_epochs`` / ``min_steps`` at most ``max_epochs`` / ``max_steps`` (Lightning ignores the excess)."""
     kwargs = checked_node(cfg, "trainer", TRAINER)
     max_epochs = kwargs.get("max_epochs")
     if max_epochs is not None and max_epochs < 1:  # Lightning's -1 trains forever, 0 trains nothing
         raise ConfigError("trainer.max_epochs", max_epochs, "an integer >= 1, the epochs to train "
                           "(trainer.max_steps or trainer.max_time may stop training sooner)")
+    for low, high in (("min_epochs", "max_epochs"), ("min_steps", "max_steps")):  # Lightning stops at the
+        least, most = kwargs.get(low), kwargs.get(high)                          # max without a word
+        if isinstance(least, int) and isinstance(most, int) and most >= 0 and least > most:
+            raise ConfigError(f"trainer.{low}", least, f"at most trainer.{high}={most} (training stops at "
+                              f"trainer.{high}, so more would never run), or null")
     limit = kwargs.get("limit_train_batches")  # Lightning takes 0 and trains nothing: no checkpoint, exit 0
     if isinstance(limit, (int, float)) and not isinstance(limit, bool) and \
             (limit <= 0 or (limit > 1 and limit % 1 != 0)):
@@ -175,6 +182,10 @@ def checked_trainer(cfg: DictConfig) -> dict[str, Any]:
         value = kwargs.get(key)  # Lightning takes 0 and fails on it in its first step (integer modulo by zero)
         if isinstance(value, int) and not isinstance(value, bool) and value < 1:
             raise ConfigError(f"trainer.{key}", value, f"an integer >= 1 ({what})")
+    clip = kwargs.get("gradient_clip_val")  # Lightning skips clipping at <= 0 without a word; NaN fails mid-step
+    if isinstance(clip, (int, float)) and not isinstance(clip, bool) and not clip >= 0:
+        raise ConfigError("trainer.gradient_clip_val", clip, "a number >= 0 (the norm or value gradients are "
+                          "clipped to), or null or 0 for no clipping")
     deterministic, max_time = kwargs.get("deterministic"), kwargs.get("max_time")
     if not _is_one_of(deterministic, (True, False, "warn", None)):
         raise SchemaError(f"trainer.deterministic must be true, false, warn or null, got {deterministic!r}",
