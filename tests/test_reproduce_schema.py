@@ -159,3 +159,25 @@ def test_the_app_refuses_in_one_line_writing_collecting_and_training_nothing(ove
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith(f"cicfw: error: {key} ") or f"{key}'" in line, line
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_checking_a_plan_composes_each_cells_training_config_once(monkeypatch):
+    """While a plan is checked, a cell's training config is composed once and each caller gets its own
+    copy; outside that, as when a cell trains, every call composes afresh."""
+    from omegaconf import OmegaConf
+
+    composed = []
+    real = reproduce.compose
+    monkeypatch.setattr(reproduce, "compose", lambda name, overrides: composed.append(name) or real(name, overrides=overrides))
+    cfg = compose_reproduce("budget=smoke", "rows=[cil,gtu]", "seeds=2")
+    with initialize_config_module("cicfw.conf", version_base="1.3"):
+        fresh = OmegaConf.to_container(reproduce.compose_train(cfg, "cil", 0))
+        with reproduce.checking_the_plan():
+            first = reproduce.compose_train(cfg, "cil", 0)
+            first.model.lr = 123.0  # a caller's change stays in its copy
+            again = reproduce.compose_train(cfg, "cil", 0)
+            other = reproduce.compose_train(cfg, "gtu", 1)
+        after = reproduce.compose_train(cfg, "cil", 0)
+    assert composed == ["train"] * 4  # fresh, cil/0 once, gtu/1, after
+    assert OmegaConf.to_container(again) == fresh == OmegaConf.to_container(after)
+    assert other.seed == 1 and other.mixer.name != again.mixer.name
