@@ -197,7 +197,7 @@ def cil_run(tmp_path_factory) -> Path:
     trainer = L.Trainer(max_steps=2, limit_val_batches=0, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
     trainer.fit(model, loader)
-    ckpt = run / "checkpoints" / "epoch000.ckpt"
+    ckpt = run / "checkpoints" / "epoch000-mae0.5000.ckpt"  # a best checkpoint's name: what a run folder resolves to
     trainer.save_checkpoint(ckpt)
     return ckpt
 
