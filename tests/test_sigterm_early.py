@@ -105,3 +105,22 @@ def test_other_errors_keep_their_traceback(tmp_path):
             "import cicfw; raise RuntimeError('boom')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.returncode == 1 and "Traceback" in out.stderr and "RuntimeError: boom" in out.stderr, out.stderr
+
+
+def test_the_one_line_hook_is_in_place_before_sigterm_is_caught(monkeypatch):
+    """A SIGTERM that arrives the moment the handler is installed (what the tests above send, as soon as the
+    process catches it) must find the excepthook that prints its one line: the hook goes in first."""
+    from cicfw.core import errors
+
+    hook_when_caught = []
+
+    def spy(sig, handler):  # records instead of installing: this test process keeps its own handlers
+        if sig == signal.SIGTERM:
+            hook_when_caught.append(sys.excepthook)
+
+    before = sys.excepthook
+    monkeypatch.setattr(sys, "excepthook", before)  # put back after the test
+    monkeypatch.setattr(errors, "_installed", False)
+    monkeypatch.setattr(errors.signal, "signal", spy)
+    errors.install_app_handlers()
+    assert len(hook_when_caught) == 1 and hook_when_caught[0] is not before

@@ -161,7 +161,6 @@ def install_app_handlers() -> None:
             or signal.getsignal(signal.SIGTERM) is None:
         return
     _installed = True
-    signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
     previous = sys.excepthook
 
     def uncaught(kind: type[BaseException], err: BaseException, tb: object) -> None:
@@ -176,6 +175,8 @@ def install_app_handlers() -> None:
         _exit_now(status)
 
     sys.excepthook = uncaught
+    # the handler last: a SIGTERM the moment it is in place must already find the hook that makes it one line
+    signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
 
 
 def _exit_now(status: int) -> None:
