@@ -152,6 +152,24 @@ def test_rank_shards_stay_disjoint_through_the_wrapper(tmp_path):
     assert shards[0] and shards[1] and not shards[0] & shards[1]
 
 
+def test_unbalanced_batches_give_each_rank_its_share_of_one_shuffled_pass(tmp_path):
+    """data.balanced=false under several ranks: each rank drew a whole pass of its own (two ranks, two passes
+    an epoch). Now the ranks split one pass, disjoint and covering it but the remainder, reshuffled each epoch."""
+    dm = CILDataModule(str(write_tiny_dataset(tmp_path, n_files=6, n=40)), batch_size=8, seed=1, in_memory=False,
+                       balanced=False)
+    dm.setup()
+    n = len(dm.train_set)
+    epochs = []
+    for rank in (0, 1):
+        dm.trainer = fake_trainer(rank, 2)
+        loader = dm.train_dataloader()
+        epochs.append([[i for batch in loader.batch_sampler for i in batch] for _ in range(2)])
+    for e in (0, 1):
+        a, b = set(epochs[0][e]), set(epochs[1][e])
+        assert not a & b and len(a) == len(b) == (n // 2) // 8 * 8  # per rank: its half, in whole batches
+    assert epochs[0][0] != epochs[0][1]  # the next epoch is another shuffle
+
+
 # --- streamed files that change under a running job ----------------------------------------------
 
 def streamed(tmp_path: Path) -> tuple[ImageStore, list[Path]]:

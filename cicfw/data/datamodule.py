@@ -13,7 +13,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.accelerators import CUDAAccelerator
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, RandomSampler
 
 from cicfw import COMMANDS
 from cicfw.core.errors import CicfwError, ConfigError
@@ -198,8 +198,12 @@ class CILDataModule(L.LightningDataModule):
         if self.balanced:
             batches = CommandBalancedBatchSampler(
                 self.train_set.frames.command, self.batch_size, self.batches_per_epoch, self.seed, rank, world)
+        elif world > 1:  # each rank its own share of one shuffled pass, as the balanced sampler shards
+            shard = DistributedSampler(self.train_set, num_replicas=world, rank=rank, shuffle=True, seed=self.seed,
+                                       drop_last=True)
+            batches = BatchSampler(shard, self.batch_size, drop_last=True)
         else:
-            gen = torch.Generator().manual_seed(self.seed + rank)
+            gen = torch.Generator().manual_seed(self.seed)
             batches = BatchSampler(RandomSampler(self.train_set, generator=gen), self.batch_size, drop_last=True)
         # one process draws from the dataset's generator; workers and ranks need a stream per batch
         keyed = self.num_workers > 0 or world > 1

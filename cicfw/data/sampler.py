@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Iterable, Iterator
 
 import numpy as np
-from torch.utils.data import Sampler
+from torch.utils.data import DistributedSampler, Sampler
 
 from cicfw import COMMANDS, N_COMMANDS
 from cicfw.core.errors import CicfwError, ConfigError
@@ -106,5 +106,8 @@ class SeededBatches(Sampler[list[int]]):
     def __iter__(self) -> Iterator[SeededBatch]:
         epoch = self._passes
         self._passes += 1
+        shard = getattr(self.batches, "sampler", None)
+        if isinstance(shard, DistributedSampler):  # a rank's share of the shuffled pass: reshuffled each epoch
+            shard.set_epoch(epoch)
         for i, indices in enumerate(self.batches):
             yield _seeded_batch(list(indices), (self.seed, self.rank, epoch, i) if self.keyed else ())
