@@ -333,8 +333,7 @@ def plain_value(value: Any) -> Any:
 
 def plain_values(cfg: Any) -> dict[str, Any]:
     """A composed app config as plain data (resolved), its ``hydra`` node left out: what ``checked`` takes."""
-    return {str(k): OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-            for k in cfg if k != "hydra"}
+    return {str(k): plain_value(cfg[k]) for k in cfg if k != "hydra"}
 
 
 def _nest(parts: list[str], values: Any) -> Any:
