@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
+from cicfw.data.provenance import folder_record
 
 #: the embedded simulator's shipped towns (conf/town/)
 SHIPPED_TOWNS = ("town_a", "town_b")
@@ -76,10 +77,7 @@ def checkpoint_run_data(checkpoint: Path) -> Any | None:
     data = config.get("data") if config is not None else None
     if not OmegaConf.is_dict(data):
         return None
-    try:
-        recorded = json.loads((run / "data.json").read_text()).get("path")
-    except (OSError, ValueError, AttributeError):
-        recorded = None
+    recorded = (folder_record(run) or {}).get("path")
     if recorded:
         OmegaConf.update(data, "path", str(recorded), force_add=True)
     return data
