@@ -106,3 +106,18 @@ def test_a_checkpoint_s_evaluation_labels_the_columns_with_its_run_s_data(tmp_pa
         rows = json.loads((out / "episodes.json").read_text())["episodes"]
         assert rows and {r["town_set"] for r in rows} == {town_set}
         assert {r["weather_set"] for r in rows} == {"training"}
+
+
+def test_a_checkpoints_data_path_is_the_one_its_run_recorded(tmp_path, tiny_data):
+    """The saved config's data.path as typed (relative to where the run started) is replaced by the absolute
+    path the run recorded in its data.json."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.trained_sets import checkpoint_run_data
+    from cicfw.data.provenance import record_data, write_record
+
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save(OmegaConf.create({"data": {"path": "data"}}), run / ".hydra" / "config.yaml")
+    write_record(run, record_data(tiny_data))
+    assert checkpoint_run_data(run / "checkpoints" / "last.ckpt").path == str(tiny_data.resolve())
