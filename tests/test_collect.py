@@ -223,6 +223,20 @@ def test_the_real_command_line_prints_one_line(tmp_path: Path):
     assert_refused(r, "collect.weathers", "Foggy")
 
 
+@pytest.mark.parametrize("override, key, value", [
+    ("weathers=[Foggy]", "collect.weathers", "Foggy"), ("weathers=[ClearNoon,ClearNoon]", "collect.weathers",
+                                                        "ClearNoon"), ("towns=[nowhere]", "collect.towns", "nowhere")])
+def test_a_refused_collect_leaves_no_run_folder_it_made(tmp_path: Path, override: str, key: str, value: str):
+    made, kept = tmp_path / "outputs" / "run", tmp_path / "mine"  # one made for the run, one that was there
+    kept.mkdir()
+    for folder in (made, kept):
+        r = run_app_in_process("cicfw.collect", f"out_dir={tmp_path / 'out'}", override, f"hydra.run.dir={folder}",
+                               cwd=tmp_path)
+        assert_refused(r, key, value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]  # no outputs/, no out/
+    assert kept.is_dir() and list(kept.iterdir()) == []
+
+
 @pytest.mark.parametrize("args", [  # an option and the value its one line names
     ["--towns", "town_q"], ["--towns", "/no/such/my_town.yaml"], ["--towns", "BAD"], ["--weathers", "Foggy"],
     ["--scale", "0"], ["--colours", "1"], ["--seed", "-1"], ["--prefix", "sub/"],

@@ -242,6 +242,7 @@ def test_command_line_exports_a_cil_model_with_its_sidecar(cil_run, episode, tmp
     assert side["row_config"]["mixer"] == {"name": "gtu"} and side["label"] == "gtu+hybrid"
     assert side["checkpoint"]["sha256"] == hashlib.sha256(cil_run.read_bytes()).hexdigest()
     assert side["decoder"]["decode"] == "expectation" and side["normalisation"]["speed"] == "speed_kmh / 40"
+    assert (side["parity"]["real_frames"], side["parity"]["random_inputs"]) == (4, 4)  # what the check ran on
     inputs = frames + export.random_inputs(64, seed=2)
     assert max_diff(Agent.load(out, threads=1), inputs, reference(cil_run, inputs)) <= TOL
 
@@ -315,6 +316,7 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
         (dict(out=tmp_path / "nope" / "m.onnx"), ExportError, "out", tmp_path / "nope" / "m.onnx"),
         (dict(out=tmp_path), ExportError, "out", tmp_path),
         (dict(n_frames=0), ExportError, "n_frames", 0),
+        (dict(n_frames=65), ExportError, "n_frames", 65),  # the episode holds 64: not padded with random inputs
         (dict(tolerance=float("inf")), ExportError, "tolerance", float("inf")),  # no check: a NaN model would pass
     ]
     for kwargs, kind, key, value in cases:
@@ -337,6 +339,14 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
         export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
     assert err.value.key == "out" and str(err.value.value).endswith("m.onnx.json")  # the file that failed
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ckpt", "m.ckpt", "weights.pt"]
+
+
+def test_more_frames_than_the_rendered_episodes_hold_are_refused_before_the_model_loads(tmp_path, monkeypatch):
+    ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
+    monkeypatch.setattr(export, "load_model", lambda *a, **k: pytest.fail("the model loaded before n_frames was checked"))
+    with pytest.raises(ExportError) as err:
+        export_model(ckpt, "torchscript", tmp_path / "m.pt", n_frames=100_000)
+    assert (err.value.key, err.value.value) == ("n_frames", 100_000)
 
 
 def test_the_cli_prints_one_line_for_a_bad_checkpoint(tmp_path):

@@ -12,6 +12,7 @@ import torch
 
 import cicfw.train.app as train_mod
 from cicfw.core.config_checks import SchemaError
+from cicfw.core.errors import ConfigError
 from cicfw.train.app import train
 from conftest import assert_refused, compose_train, run_app_in_process, write_tiny_dataset
 
@@ -350,6 +351,14 @@ def test_a_bad_value_is_refused_by_its_key_before_any_data(tmp_path, no_data, ov
     with pytest.raises(ValueError) as err:
         train(_cfg(tmp_path, *overrides), tmp_path / "run")
     assert _one_line(err).startswith(key), str(err.value)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("key", ["cameras", "val_cameras"])
+def test_a_camera_id_listed_twice_is_refused_by_its_key_before_any_data(tmp_path, no_data, key):
+    with pytest.raises(ConfigError) as err:
+        train(_cfg(tmp_path, f"data.{key}=[0,0]"), tmp_path / "run")
+    assert (err.value.key, list(err.value.value)) == (f"data.{key}", [0, 0])
     assert not (tmp_path / "run").exists()
 
 

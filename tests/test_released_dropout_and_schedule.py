@@ -13,7 +13,8 @@ from torch import nn
 import cicfw.train.app as train_mod
 from cicfw.core.errors import ConfigError
 from cicfw.train.app import build_model, train
-from conftest import compose_train, write_tiny_dataset
+from cicfw.model.checkpoint import load_model
+from conftest import TINY_TRAIN, compose_train, train_tiny_run, write_tiny_dataset
 
 # carla-simulator/imitation-learning, imitation_learning_network.py: dropout_vec holds KEEP probabilities,
 # 1.0 for the 8 convolutions, 0.7 for the two image FCs, 0.5 for the two speed FCs and the join, then
@@ -97,6 +98,25 @@ def test_constant_schedule_keeps_the_papers_rate(tmp_path, monkeypatch):
 def test_unknown_schedule_is_one_line():
     with pytest.raises(ValueError, match=r"model.lr_schedule='step' is not known; use one of constant, cosine"):
         build_model(compose_train("model.lr_schedule=step"))
+
+
+def test_a_final_factor_the_constant_schedule_never_reads_is_one_line():
+    build_model(compose_train("model.lr_final_factor=0.0"))  # the default, beside the default constant schedule
+    with pytest.raises(ConfigError) as err:
+        build_model(compose_train("model.lr_final_factor=0.1"))
+    assert (err.value.key, err.value.value) == ("model.lr_final_factor", 0.1) and "model.lr_schedule" in str(err.value)
+
+
+@pytest.mark.slow  # trains
+@pytest.mark.parametrize("saved", [{"lr_final_factor": 0.1}, {"lr_schedule": None, "lr_final_factor": None}])
+def test_checkpoints_saved_with_an_unused_factor_or_without_the_keys_load_and_resume(tmp_path, saved):
+    run = train_tiny_run(tmp_path, *TINY_TRAIN, "trainer.limit_train_batches=1")
+    ckpt = torch.load(run["last"], weights_only=True)
+    for key, value in saved.items():  # None: a checkpoint from before the key existed
+        ckpt["hyper_parameters"].pop(key) if value is None else ckpt["hyper_parameters"].update({key: value})
+    torch.save(ckpt, run["last"])
+    assert load_model(run["last"]).hparams.lr_final_factor == 0.0
+    train_mod.check_resumed_optimizer(run["last"], ckpt, build_model(compose_train()))
 
 
 @pytest.mark.slow  # trains

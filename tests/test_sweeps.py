@@ -18,7 +18,7 @@ from cicfw.core import errors
 from cicfw.registry import MIXERS
 from cicfw.core.files import atomic_write
 from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics
-from conftest import AppResult, run_app_in_process
+from conftest import AppResult, assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -65,6 +65,14 @@ def test_optuna_two_trials_write_the_summary(tmp_path, tiny_data):
         assert 2e-5 <= float(r["model.lr"]) <= 2e-3 and r["head.W"] in {"5", "10", "15"} and r["mixer"] == "independent"
     best = yaml.safe_load((tmp_path / "sweep" / "optimization_results.yaml").read_text())
     assert math.isclose(best["best_value"], min(float(r["value"]) for r in rows))
+
+
+def test_an_optuna_search_whose_every_trial_fails_ends_in_one_line(tmp_path, tiny_data):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra: pip install -e .[sweeps]")
+    run, rows = _multirun(tmp_path, tiny_data, "hparams_search=optuna", "hydra.sweeper.n_trials=2",
+                          "hydra.sweeper.params.mixer='choice(independent)'", "data.max_abs_steer=0.0001")
+    assert [r["status"] for r in rows] == ["failed", "failed"]
+    assert_refused(run, tmp_path / "sweep" / "summary.csv", "2 job(s)", status=1)
 
 
 def test_summary_columns_are_the_swept_overrides_and_metrics(tmp_path):

@@ -15,36 +15,37 @@ import sys
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from cicfw.collect.config import check_lock_wait
 from cicfw.collect.dataset import collect_dataset
 from cicfw.collect.errors import CollectError
 from cicfw.collect.integrity import verify_dataset
-from cicfw.core.errors import on_interrupt, report_user_errors
+from cicfw.core.errors import USER_ERRORS, on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import claim_folder
+from cicfw.core.run_folder import claim_folder, undo_run_folder
 
 
-def run(cfg) -> str:
+def _run(cfg) -> str:
     """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
-    @report_user_errors
-    def go() -> str:
-        raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-        verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect/schema.py) checks it
-        out_dir = Path(str(raw["out_dir"])).expanduser()
-        if verify:
-            return _verify(raw, out_dir)
-        # another app's run (a training or evaluation folder) is not a dataset: its episodes would join that
-        # run's files, and the folder would then read as a dataset to every app; other files the engine checks
-        claim_folder(out_dir, "collect", "out_dir", foreign_ok=True)
-        with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
-            meta = collect_dataset(raw, out_dir)
-        m = read_json(meta)
-        return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
-                f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
+    raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect/schema.py) checks it
+    out_dir = Path(str(raw["out_dir"])).expanduser()
+    if verify:
+        return _verify(raw, out_dir)
+    # another app's run (a training or evaluation folder) is not a dataset: its episodes would join that
+    # run's files, and the folder would then read as a dataset to every app; other files the engine checks
+    claim_folder(out_dir, "collect", "out_dir", foreign_ok=True)
+    with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
+        meta = collect_dataset(raw, out_dir)
+    m = read_json(meta)
+    return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
+            f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
 
-    return go()
+
+#: ``_run`` with its user errors as one line (exit status 2): the Python entry point
+run = report_user_errors(_run)
 
 
 def _verify(raw: dict, out_dir: Path) -> str:
@@ -63,8 +64,14 @@ def _main() -> None:
     sys.argv = ["verify=true" if a == "--verify" else a for a in sys.argv]  # `cicfw collect --verify`
 
     @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="collect")
+    @report_user_errors
     def main(cfg: DictConfig) -> None:
-        print(run(cfg))
+        out = Path(HydraConfig.get().runtime.output_dir)
+        try:
+            print(_run(cfg))
+        except USER_ERRORS:  # refused: the run folder as NotedRunFolderCheck found it (a multirun job's keeps its log)
+            undo_run_folder(out)
+            raise
 
     main()
 

@@ -35,7 +35,7 @@ from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError
 from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.core.run_folder import refuse_before_any_job
-from cicfw.core.sweeps import is_worker_process
+from cicfw.core.sweeps import every_job_failed, is_worker_process
 
 # Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
 NEEDS_EXTRA = {
@@ -148,7 +148,8 @@ def one_line_config_errors() -> Iterator[None]:
     """Inside, what Hydra refuses before running the app (``composition_error_line``) is printed as one
     ``cicfw: error:`` line and ends the app with status 2, instead of Hydra's message and its advice to set
     HYDRA_FULL_ERROR; a sweep folder made before Hydra refused a job's config is removed again
-    (``run_folder.undo_noted_folders``). Hydra calls its ``run_and_report``
+    (``run_folder.undo_noted_folders``); a sweep whose every job failed ends in one line saying so and where
+    their errors are (``sweeps.every_job_failed``, status 1). Hydra calls its ``run_and_report``
     around composing and running: that is where this steps in (HYDRA_FULL_ERROR=1 still shows it all)."""
     report = hydra_utils.run_and_report
 
@@ -156,7 +157,13 @@ def one_line_config_errors() -> Iterator[None]:
         try:
             return func()
         except Exception as err:
-            line = None if os.environ.get("HYDRA_FULL_ERROR") == "1" else composition_error_line(err, sys.argv[1:])
+            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise
+            failed = None if isinstance(err, JobFailed) else every_job_failed()  # JobFailed is one line already
+            if failed is not None:  # an Optuna search with no trial to report: not its traceback
+                print(f"cicfw: error: {failed}", file=sys.stderr)
+                sys.exit(1)
+            line = composition_error_line(err, sys.argv[1:])
             if line is None:
                 raise
             refuse_before_any_job(line)

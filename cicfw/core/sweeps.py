@@ -167,14 +167,10 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
     sweep_dir = Path(sweep_dir)
     rows_dir = sweep_dir / ROWS_DIR
     with _locked(rows_dir):
-        rows, command_line = [], None
+        command_line = None
         if (rows_dir / SWEEP_FILE).is_file():
             command_line = read_json(rows_dir / SWEEP_FILE)["overrides"]
-        for path in sorted(rows_dir.glob("[0-9]*.json")):
-            try:
-                rows.append(json.loads(path.read_text()))
-            except (OSError, ValueError) as err:
-                log.warning("sweep summary: skipped unreadable row %s (%s)", path, err)
+        rows = _read_rows(rows_dir, say=True)
         columns, flat = summary_table(rows, command_line)
         buf = io.StringIO()
         writer = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
@@ -183,6 +179,32 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
         target = sweep_dir / filename
         atomic_write(target, buf.getvalue())
     return target
+
+
+def _read_rows(rows_dir: Path, say: bool = False) -> list[dict[str, Any]]:
+    """The row files of every job finished so far, unreadable ones skipped (with a warning when ``say``)."""
+    rows = []
+    for path in sorted(rows_dir.glob("[0-9]*.json")):
+        try:
+            rows.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as err:
+            if say:
+                log.warning("sweep summary: skipped unreadable row %s (%s)", path, err)
+    return rows
+
+
+_RUNNING: list[Path] = []  # the sweep folder of the sweep this process runs (``SweepSummary``), while it runs
+
+
+def every_job_failed() -> str | None:
+    """One line when every job of the sweep this process runs failed (an Optuna search then has no best
+    trial and its sweeper raises): how many, and where their errors are; None otherwise."""
+    for sweep_dir in _RUNNING:
+        rows = _read_rows(sweep_dir / ROWS_DIR)
+        if rows and all(r.get("status") == "failed" for r in rows):
+            return (f"every one of the sweep's {len(rows)} job(s) failed; their errors: {sweep_dir / 'summary.csv'} "
+                    f"(the error column) and each job's log in its folder (e.g. {rows[0].get('output_dir')})")
+    return None
 
 
 RANK_VARIABLES = ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK")
@@ -204,6 +226,7 @@ class SweepSummary(Callback):
         if is_worker_process():
             return
         rows_dir = Path(config.hydra.sweep.dir) / ROWS_DIR
+        _RUNNING[:] = [rows_dir.parent]
         atomic_write(rows_dir / SWEEP_FILE, json.dumps({"overrides": list(config.hydra.overrides.task)}))
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
@@ -217,6 +240,7 @@ class SweepSummary(Callback):
         log.info("sweep summary: job %d %s (%s) -> %s", row["job"], row["status"], shown, target)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        _RUNNING.clear()  # the sweeper returned: its own result stands
         sweep_dir = Path(config.hydra.sweep.dir)
         if not is_worker_process() and (sweep_dir / ROWS_DIR).is_dir():
             target = rebuild_summary(sweep_dir, self.filename)

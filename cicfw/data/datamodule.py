@@ -67,17 +67,18 @@ def _as_batch(batch: Any) -> Any:
 def camera_ids(key: str, cameras: Any) -> tuple[int, ...] | None:
     """``data.cameras`` / ``data.val_cameras`` as a tuple of camera ids (targets[26]), None for every
     camera; anything else is one line naming ``key`` (a lone ``5`` is no list to filter by). Ids beyond
-    the known three are allowed: a user's own files may hold them (load_frames names any it drops)."""
+    the known three are allowed: a user's own files may hold them (load_frames names any it drops). An id
+    listed twice is refused: the camera is read once all the same (``np.isin``), not weighted twice."""
     if cameras is None:
         return None
-    accepted = (f"null (every camera) or a list of camera ids (targets[26]) such as "
+    accepted = (f"null (every camera) or a list of distinct camera ids (targets[26]) such as "
                 f"{list(KNOWN_CAMERA_IDS)} ({camera_names(KNOWN_CAMERA_IDS)})")
     try:
         listed = isinstance(cameras, Sequence) and not isinstance(cameras, str)  # a ListConfig too
         ids = tuple(whole_number(f"data.{key}", c) for c in cameras) if listed else ()
     except ValueError:
         ids = ()
-    if not ids or min(ids) < 0:
+    if not ids or min(ids) < 0 or len(set(ids)) < len(ids):
         raise ConfigError(f"data.{key}", cameras, accepted)
     return ids
 

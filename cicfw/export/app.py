@@ -84,6 +84,14 @@ class CheckInputs:
                            np.concatenate([self.command, other.command]), self.names + other.names)
 
 
+def enough_frames(n: int, held: int, where: str, instead: str) -> None:
+    """``n_frames`` real frames or none: more than ``where`` holds (``held``) is refused in one line, where the
+    check would otherwise run on fewer (or repeated) real frames than docs/deploy.md promises."""
+    if n > held:
+        raise ExportError(f"n_frames={n} asks for more real frames than {where} holds ({held}); give "
+                          f"n_frames={held} or fewer{instead}", key="n_frames", value=n)
+
+
 def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") -> CheckInputs:
     """``n`` centre-camera frames of the embedded simulator's expert driving the training town's first
     left-turn and first right-turn single-turn routes (follow lane, then the turn), evenly spaced over
@@ -104,6 +112,8 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
             steer, v = env.expert_action()
             obs, _, _ = env.step(steer, target_speed_kmh=v)
             step += 1
+    enough_frames(n, len(frames), f"the embedded simulator's two rendered episodes ({town})",
+                  ", or frames=<a CIL HDF5 file or folder>")
     pick = np.linspace(0, len(frames) - 1, n).round().astype(int)
     return CheckInputs(np.stack([frames[i]["images"]["centre"] for i in pick]),
                        np.array([frames[i]["speed_kmh"] for i in pick], np.float32),
@@ -144,7 +154,8 @@ def dataset_frames(path: str | Path, n: int) -> CheckInputs:
         if sum(len(t) for t in targets) >= 4 * n:
             break
     rgb, t = np.concatenate(images), np.concatenate(targets)
-    pick = np.linspace(0, len(t) - 1, min(n, len(t))).round().astype(int)
+    enough_frames(n, len(t), f"frames={str(path)!r}", ", or frames with more of them")
+    pick = np.linspace(0, len(t) - 1, n).round().astype(int)
     bad = [i for i in pick if t[i, T.COMMAND] not in COMMAND_CODES]  # the model has no branch for it
     if bad:
         codes = ", ".join(f"{k} {v}" for k, v in COMMAND_CODES.items())
@@ -571,9 +582,10 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     check_not_the_checkpoint(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)
     check_own_output(path, ckpt, fmt, bool(overwrite))
-    real = dataset_frames(frames, n_frames) if frames else None  # bad frames=: refused before the model loads
+    # bad frames= or too many n_frames: refused before the model loads
+    real = dataset_frames(frames, n_frames) if frames else rendered_frames(n_frames)
     model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
-    inputs = (real if real is not None else rendered_frames(n_frames)) + random_inputs(n_frames)
+    inputs = real + random_inputs(n_frames)
     info = describe_model(model, ckpt, fmt, opset if fmt == "onnx" else None)
     module = graph_module(model)
     example = _example(inputs)
@@ -584,6 +596,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
         raise _export_failure(err, fmt, info["hyper_parameters"], opset) from None
     worst = parity(runner(fmt, data), model, inputs, tolerance)
     info["parity"] = {"max_abs_diff": worst, "tolerance": tolerance, "inputs": len(inputs),
+                      "real_frames": len(inputs) - n_frames, "random_inputs": n_frames,
                       "what": f"{len(inputs) - n_frames} real frames ({'; '.join(_sources(inputs.names[:-n_frames]))}) and "
                               f"{n_frames} random inputs, batch 1 and batch {len(inputs)}, vs the checkpoint's "
                               f"CICModule.predict_steer",

@@ -22,7 +22,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from cicfw.core.errors import CicfwError
 from cicfw.data.provenance import CHECKPOINT_KEY, is_record
-from cicfw.model.module import CICModule
+from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import keep_fp32
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
@@ -194,7 +194,7 @@ def load_model(path: str | Path):
     ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
     keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
-    hp = dict(ckpt["hyper_parameters"])
+    hp = fit_saved_hparams(ckpt["hyper_parameters"])
     try:
         model = CICModule(**hp)
     except TypeError as err:

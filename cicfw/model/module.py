@@ -41,6 +41,15 @@ LR_SCHEDULES: dict[str, Callable[[int, float], Callable[[int], float] | None]] =
 }
 
 
+def fit_saved_hparams(hp: Mapping[str, Any]) -> dict[str, Any]:
+    """A checkpoint's ``hyper_parameters`` as ``CICModule`` takes them now: an ``lr_final_factor`` saved beside
+    the constant schedule, which never read it (and once accepted any), dropped for the default."""
+    hp = dict(hp)
+    if hp.get("lr_schedule", "constant") == "constant":
+        hp.pop("lr_final_factor", None)
+    return hp
+
+
 class CICModule(L.LightningModule):
     """A thin LightningModule: the agent is ``encoder``, ``mixer``, ``head``; this adds training."""
 
@@ -80,6 +89,10 @@ class CICModule(L.LightningModule):
         if lr_schedule not in LR_SCHEDULES:
             raise ConfigError("model.lr_schedule", lr_schedule, f"one of {', '.join(LR_SCHEDULES)}",
                              f"model.lr_schedule={lr_schedule!r} is not known; use one of {', '.join(LR_SCHEDULES)}")
+        if lr_schedule == "constant" and lr_final_factor != 0.0:  # where cosine ends: constant never reads it
+            raise ConfigError("model.lr_final_factor", lr_final_factor, "0.0 with model.lr_schedule=constant",
+                              f"model.lr_final_factor={lr_final_factor} is unused by model.lr_schedule=constant; "
+                              f"give model.lr_schedule=cosine, or leave model.lr_final_factor at 0.0")
         self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
         self.head = HEADS.get(head)(**dict(head_kwargs or {}))
         self.mixer = MIXERS.get(mixer)(

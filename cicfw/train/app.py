@@ -40,7 +40,7 @@ from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted,
 from cicfw.core.files import atomic_write, writable_folder
 from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
-from cicfw.model.module import CICModule
+from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.core.sweeps import is_worker_process
@@ -401,7 +401,7 @@ def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CI
     """Resuming restores the optimizer (its lr, betas, weight decay) and its schedule from the checkpoint, so
     a ``model.*`` value that differs from the checkpoint's would be recorded but not used: refused, naming
     each key and both values."""
-    saved = ckpt.get("hyper_parameters") or {}
+    saved = fit_saved_hparams(ckpt.get("hyper_parameters") or {})
     defaults = inspect.signature(CICModule.__init__).parameters
     differ = []
     for key in RESTORED_BY_RESUMING:
