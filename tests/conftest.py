@@ -5,11 +5,13 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import io
+import json
 import logging
 import math
 import os
 import runpy
 import signal
+import subprocess
 import sys
 import traceback
 import warnings
@@ -287,6 +289,55 @@ def run_app_in_process(module: str, *args: str, cwd: str | os.PathLike | None = 
         err.write(f"{code}\n")
         status = 1
     return AppResult(status, out.getvalue(), err.getvalue())
+
+
+#: run in a fresh interpreter with a JSON {name: [module, *arguments]} as its argument: forks one child per
+#: name, which runs ``python -m <module> <arguments>`` with its stdout and stderr in files; prints
+#: {name: [status, out, err]}
+_FORKS = r"""
+import json, os, runpy, sys, tempfile, traceback
+
+import lightning.pytorch, torch  # noqa: F401  (shared by the forks; no cicfw module, no Hydra config store)
+
+assert not any(m == "cicfw" or m.startswith("cicfw.") for m in sys.modules)
+folder, results = tempfile.mkdtemp(), {}
+for name, argv in json.loads(sys.argv[1]).items():
+    paths = [os.path.join(folder, f"{len(results)}.{s}") for s in ("out", "err")]
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            for fd, path in zip((1, 2), paths):
+                os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+            sys.argv = list(argv)
+            try:
+                runpy.run_module(argv[0], run_name="__main__", alter_sys=True)
+                code = 0
+            except SystemExit as exit_:
+                code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
+            except BaseException:
+                traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    results[name] = [status, *(open(p).read() for p in paths)]
+print(json.dumps(results))
+"""
+
+
+def run_apps_forked(runs: dict[str, list[str]], cwd: str | os.PathLike | None = None,
+                    env: dict[str, str] | None = None, timeout: float = 600) -> dict[str, AppResult]:
+    """Each ``python -m <module> <arguments>`` of ``runs`` (name -> [module, *arguments]) in a process of its
+    own, as a user's shell starts it, for a test about what an app does at its start (its config store, its
+    plugin scan). The processes are forks of one interpreter, started here, that has imported the third-party libraries every
+    app imports first (torch, Lightning): each fork skips those imports (most of an app's start) and imports
+    cicfw and its app itself, as a fresh process does."""
+    run = subprocess.run([sys.executable, "-c", _FORKS, json.dumps(runs)], capture_output=True, text=True,
+                         timeout=timeout, cwd=cwd, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return {name: AppResult(*got) for name, got in json.loads(run.stdout).items()}
 
 
 def load_bench_script(name: str):

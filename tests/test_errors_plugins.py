@@ -10,7 +10,6 @@ from importlib.metadata import version
 
 import json
 import os
-import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from cicfw.registry import MIXERS, as_json, listing, main
+from conftest import AppResult, run_apps_forked
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -50,9 +50,6 @@ def _broken_site(tmp_path: Path, error: str = "RuntimeError('needs a GPU driver,
     return site
 
 
-def _run(site: Path, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(site), "HYDRA_FULL_ERROR": "0", "COLUMNS": "250"}
-    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env, timeout=900)
 
 
 WARNING = (f"cicfw: skipped plugin distribution '{DIST}': its Hydra module 'hydra_plugins.broken_mixer' failed "
@@ -60,9 +57,21 @@ WARNING = (f"cicfw: skipped plugin distribution '{DIST}': its Hydra module 'hydr
            f"everything else works")
 
 
-@pytest.mark.parametrize("app", [["-m", "cicfw.train"], ["-m", "cicfw.cli", "evaluate"]])
-def test_an_app_starts_with_one_warning_naming_the_distribution(tmp_path, app):
-    r = _run(_broken_site(tmp_path), *app, "--cfg", "job")
+APPS = {"train": ["cicfw.train"], "evaluate": ["cicfw.cli", "evaluate"]}
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory) -> dict[str, AppResult]:
+    """Each app of APPS started (``--cfg job``) in a process of its own, the broken plugin installed (the
+    processes are forks of one interpreter that has imported torch and Lightning: run_apps_forked)."""
+    env = {**os.environ, "PYTHONPATH": str(_broken_site(tmp_path_factory.mktemp("apps"))), "HYDRA_FULL_ERROR": "0",
+           "COLUMNS": "250"}
+    return run_apps_forked({name: [*argv, "--cfg", "job"] for name, argv in APPS.items()}, env=env)
+
+
+@pytest.mark.parametrize("app", APPS)
+def test_an_app_starts_with_one_warning_naming_the_distribution(started, app):
+    r = started[app]
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Traceback" not in r.stderr
     assert r.stderr.count("cicfw: skipped") == 1 and WARNING in r.stderr, r.stderr

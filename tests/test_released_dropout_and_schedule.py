@@ -69,11 +69,12 @@ def _lrs_seen(tmp_path, monkeypatch, *overrides: str) -> list[float]:
 
 
 def _train_tiny(tmp_path, monkeypatch, record: L.Callback, *overrides: str) -> None:
-    """Train a tiny dataset in ``tmp_path / "run"`` with ``record`` among the callbacks."""
+    """Train a tiny dataset in ``tmp_path / "run"`` with ``record`` among the callbacks, in batches of 4 (the
+    smallest the data allows): the schedule and the average follow the steps, whatever a step's size."""
     build = train_mod.build_callbacks
     monkeypatch.setattr(train_mod, "build_callbacks", lambda cfg, run_dir: [*build(cfg, run_dir), record])
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
-    cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+    cfg = compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=4", "data.val_batch_size=4",
                         "progress_bar=false", "speed.compile=false", "trainer.limit_val_batches=1",
                         "trainer.num_sanity_val_steps=0", "trainer.enable_model_summary=false", *overrides)
     train(cfg, tmp_path / "run")
