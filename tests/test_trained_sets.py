@@ -121,3 +121,19 @@ def test_a_checkpoints_data_path_is_the_one_its_run_recorded(tmp_path, tiny_data
     OmegaConf.save(OmegaConf.create({"data": {"path": "data"}}), run / ".hydra" / "config.yaml")
     write_record(run, record_data(tiny_data))
     assert checkpoint_run_data(run / "checkpoints" / "last.ckpt").path == str(tiny_data.resolve())
+
+
+def test_a_run_that_saved_no_config_still_names_its_data(tmp_path):
+    """A run with ``hydra.output_subdir=null`` keeps no .hydra/config.yaml, but its data.json names the data
+    folder, whose metadata says where it was collected: a model trained in town_b is not labelled as driving
+    a new town there."""
+    from cicfw.benchmark.trained_sets import checkpoint_run_data
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "dataset_metadata.json").write_text(json.dumps({"towns": ["town_b"], "weathers": ["MidRainyNoon"]}))
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "data.json").write_text(json.dumps({"path": str(data), "files": []}))
+    assert training_set_overrides(checkpoint_run_data(run / "checkpoints" / "last.ckpt"), []) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]

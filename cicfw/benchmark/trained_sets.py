@@ -71,13 +71,17 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
 def checkpoint_run_data(checkpoint: Path) -> Any | None:
     """The ``data`` node of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``): its saved
     ``.hydra/config.yaml``, with ``data.path`` the absolute one its ``data.json`` recorded (the path as typed
-    may be relative to where it trained). None for a checkpoint outside such a run."""
+    may be relative to where it trained); just that path for a run that saved no config
+    (``hydra.output_subdir=null``), whose data folder's metadata still says where it was collected. None for a
+    checkpoint outside such a run."""
     run = Path(checkpoint).parent.parent
     config = saved_run_config(checkpoint)
     data = config.get("data") if config is not None else None
+    recorded = (folder_record(run) or {}).get("path")
+    if config is None and recorded:
+        data = OmegaConf.create({})
     if not OmegaConf.is_dict(data):
         return None
-    recorded = (folder_record(run) or {}).get("path")
     if recorded:
         OmegaConf.update(data, "path", str(recorded), force_add=True)
     return data
