@@ -162,6 +162,19 @@ def test_a_custom_row_setting_what_the_budget_sets_is_refused_up_front(override,
     assert not out.exists()
 
 
+def test_a_custom_row_with_another_row_s_label_is_refused_up_front(no_collect, tmp_path, capsys):
+    """The report names each row by its label: a row of its own labelled as a catalogue row would print two
+    rows of one name in the table and the claims, which no reader can tell apart."""
+    out = tmp_path / "results"
+    args = ["+catalogue.mine={experiment: paper_gtu, label: 'Regression (CIL)'}", "rows=[cil,mine]", "budget=smoke",
+            f"results_dir={out}"]
+    with pytest.raises(reproduce.ConfigError) as err:
+        reproduce.check_plan(reproduce.compose_plan(args))
+    assert (err.value.key, err.value.value) == ("catalogue.mine.label", "Regression (CIL)")
+    refused(args, capsys)
+    assert not out.exists()
+
+
 def test_the_catalogues_rows_set_nothing_a_budget_sets(no_collect):
     from cicfw.reproduction.catalogue import budget_settings_in_row
 

@@ -141,6 +141,13 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
+    labels: dict[str, str] = {}  # the report names rows by label: two rows of one label would read as one
+    for r, entry in catalogue.items():
+        label = str(entry.get("label", r))
+        if label in labels:
+            raise ConfigError(f"catalogue.{r}.label", label, f"a label no other row has (catalogue."
+                              f"{labels[label]} has it): the report names each row by its label")
+        labels[label] = str(r)
     for r in rows:
         clash = budget_settings_in_row(cfg, r)
         if clash:
