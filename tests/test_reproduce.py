@@ -207,6 +207,22 @@ def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, t
     assert "‡ Regression (CIL) seed 0 (training resumed after epoch 1)" in md and "0.12743" in md
 
 
+def test_a_cell_killed_after_its_last_epoch_trains_that_epoch_again(cache, one_cell, tmp_path):
+    """The last epoch's checkpoint is saved before that epoch's validation: a cell killed between the two
+    resumes from the epoch before, so its validation error is measured (not NaN) and the mark says so."""
+    import math
+
+    out = tmp_path / "results"
+    ckpts = out / "cells" / "cil" / "seed0" / "train" / "checkpoints"
+    ckpts.mkdir(parents=True)
+    for name in ("epoch001.ckpt", "epoch002.ckpt"):
+        shutil.copy(one_cell / "cells" / "cil" / "seed0" / "train" / "checkpoints" / name, ckpts)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
+    got = cells(out)["cil/seed0"]
+    assert got["resumed"] == {"training": {"from_epoch": 1}} and got["epochs"] == 2
+    assert math.isfinite(got["val_steer_mae"])
+
+
 def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_path, capsys):
     """A fresh clone continues a published folder: the published cells are copied in and
     skipped (nothing is trained), the report covers them, and publishing back records where they came
