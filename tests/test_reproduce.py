@@ -191,6 +191,18 @@ def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path,
     assert "| Regression (CIL) | – | 2 † |" in (published / "RESULTS.md").read_text()  # and after the last
 
 
+def test_cells_run_in_their_own_folder_still_pin_the_dataset(cache, one_cell, tmp_path, monkeypatch):
+    """hydra.job.chdir=true moves each cell into its folder: a relative results_dir read from there missed the
+    folder's manifest, and the cell recorded no dataset hash (so no later run could check it)."""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    monkeypatch.setattr(reproduce, "_train_and_drive", lambda cfg, row, seed, cell_dir: result)
+    monkeypatch.chdir(tmp_path)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", "results_dir=results", "hydra.job.chdir=true"]) == 0
+    pinned = json.loads((tmp_path / "results" / "reproduce.json").read_text())["pinned"]
+    assert cells(tmp_path / "results")["cil/seed0"]["dataset"] == pinned["dataset"] is not None
+
+
 def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, tmp_path):
     """A cell whose training resumed from an epoch checkpoint (here: the first epoch's, as a killed run
     leaves it) says so in cell.json and in the report's table, with the difference resuming can make."""

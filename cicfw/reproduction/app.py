@@ -49,6 +49,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
 import cicfw
@@ -766,6 +767,9 @@ def _cell_job(cfg: DictConfig) -> str:
     if cfg.cell.row is None:
         raise ReproduceError("cell.row is set by `python -m cicfw.reproduce` itself; give rows=[...] instead")
     hydra_cfg = HydraConfig.get()
+    for key in ("results_dir", "publish_dir"):  # as given where the run started, not in the cell's folder
+        if cfg.get(key) is not None:  # that hydra.job.chdir=true moves into (its manifest unread, unpinned)
+            cfg[key] = to_absolute_path(str(cfg[key]))
     status = run_cell(cfg, Path(hydra_cfg.runtime.output_dir))
     # cells one after another in this process: the report as it stands after each one. Cells in parallel
     # (joblib, SLURM) would write it side by side; their run's report comes at its end.
