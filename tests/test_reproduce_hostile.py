@@ -248,6 +248,24 @@ def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
     assert not (out / "reproduce.lock").exists()
 
 
+def test_ctrl_c_in_a_cell_advises_the_same_command(tmp_path, monkeypatch):
+    """A cell's training stopped by Ctrl-C said "resume with ckpt_path=...", a key reproduce refuses: the app
+    says to run the same command again, which resumes the cell."""
+    from cicfw.core.errors import Interrupted
+
+    def stopped(cfg, row, seed, cell_dir):
+        raise Interrupted("during training epoch 2: ...; resume with ckpt_path=x/last.ckpt")
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", stopped)
+    out = tmp_path / "results"
+    with pytest.raises(Interrupted) as err:
+        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
+    assert "same command" in str(err.value) and "ckpt_path" not in str(err.value)
+    assert not (out / "reproduce.lock").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # checked before any cell and before collecting
 

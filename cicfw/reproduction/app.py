@@ -57,7 +57,7 @@ from cicfw.benchmark.app import compose_config, evaluate
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
 from cicfw.core.config_checks import config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, debugging
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
@@ -836,6 +836,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
         if e.code not in (0, None):
             log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
+    except KeyboardInterrupt:  # a cell's own advice (train's ckpt_path=...) is not this app's
+        raise Interrupted(f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips "
+                          f"them and resumes the unfinished cell from its last epoch checkpoint") from None
     finally:
         try:
             data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
