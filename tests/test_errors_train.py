@@ -64,6 +64,17 @@ def test_any_trainer_argument_passes_without_plus(tmp_path):
     assert build_trainer(cfg, tmp_path / "run2").limit_val_batches == 3
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="fp16 autocast runs on a GPU")
+@pytest.mark.parametrize("precision", ["16-mixed", "16"])
+def test_fp16_on_a_cpu_is_refused_not_trained_in_bf16(tmp_path, precision):
+    """Lightning trains trainer.precision=16-mixed in bf16 on a CPU, with a warning: the run's config and
+    checkpoint would name a precision it never used."""
+    with pytest.raises(ConfigError) as err:
+        build_trainer(_cfg(tmp_path, f"trainer.precision={precision}", "trainer.accelerator=cpu"), tmp_path / "run")
+    assert (err.value.key, str(err.value.value)) == ("trainer.precision", precision)
+    assert build_trainer(_cfg(tmp_path, "trainer.precision=bf16-mixed"), tmp_path / "run2").precision == "bf16-mixed"
+
+
 def test_trainer_arguments_take_plus_alike_on_the_command_line(tmp_path):
     """A typed argument with a value (max_epochs), an untyped one with a value (fast_dev_run) and one that is
     null (limit_train_batches) all take ``+trainer.X=`` as ``trainer.X=``."""

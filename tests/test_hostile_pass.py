@@ -510,3 +510,27 @@ def test_evaluate_refuses_a_negative_seed_and_no_threads(tmp_path: Path, overrid
                              "suite.limit=1", "runner.workers=1", "maps=false", override, f"hydra.run.dir={run}")
     assert_refused(res, key, value)
     assert not run.exists()
+
+
+def test_a_copy_among_a_run_of_the_same_parts_does_not_borrow_its_config(tmp_path: Path) -> None:
+    """A checkpoint of the same parts, trained on other data, copied into a run's folder: the export sidecar's
+    row_config (its seed, its experiment) would be that run's; its own data record tells them apart."""
+    import json
+
+    import torch
+
+    from cicfw.data.provenance import CHECKPOINT_KEY
+    from cicfw.export.app import other_run
+
+    run = tmp_path / "run"
+    _run_with_config(run, "independent")
+    (run / "checkpoints").mkdir()
+    (run / "data.json").write_text(json.dumps({"path": "/data/a", "files": []}))
+    cfg = {"mixer": {"name": "independent"}}
+    hp = {"encoder": "cil", "mixer": "independent", "head": "regression"}
+    for name, data in (("own.ckpt", "/data/a"), ("copied.ckpt", "/data/b")):
+        torch.save({"state_dict": {}, "hyper_parameters": hp, CHECKPOINT_KEY: {"path": data, "files": []}},
+                   run / "checkpoints" / name)
+    config = run / ".hydra" / "config.yaml"
+    assert other_run(cfg, config, hp, run / "checkpoints" / "own.ckpt") is None
+    assert "/data/b" in other_run(cfg, config, hp, run / "checkpoints" / "copied.ckpt")

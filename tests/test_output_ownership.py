@@ -535,3 +535,14 @@ def test_the_training_weathers_error_lists_the_suites_own_weathers():
     assert (err.value.key, err.value.value) == ("suite.training_weathers", "Foggy")
     listed = str(err.value).split("(", 1)[1].split(")", 1)[0]
     assert listed == "CloudyNoon, HardRainNoon", str(err.value)
+
+
+def test_a_run_folder_under_a_literal_tilde_is_refused(tmp_path):
+    """Hydra does not expand '~' in hydra.run.dir: the run would land in a folder named '~' under the working
+    directory (one a later `rm -rf ~` would aim at the home folder instead); refused before anything is made."""
+    from conftest import assert_refused
+
+    res = run_app_in_process("cicfw.evaluate", "policy=expert", "suite.limit=1", 'hydra.run.dir="~/runs/x"',
+                             cwd=tmp_path, env=IN_PROCESS)
+    assert_refused(res, "hydra.run.dir", "~/runs/x")
+    assert not list(tmp_path.iterdir())

@@ -191,6 +191,18 @@ def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path,
     assert "| Regression (CIL) | – | 2 † |" in (published / "RESULTS.md").read_text()  # and after the last
 
 
+def test_cells_run_in_their_own_folder_still_pin_the_dataset(cache, one_cell, tmp_path, monkeypatch):
+    """hydra.job.chdir=true moves each cell into its folder: a relative results_dir read from there missed the
+    folder's manifest, and the cell recorded no dataset hash (so no later run could check it)."""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    monkeypatch.setattr(reproduce, "_train_and_drive", lambda cfg, row, seed, cell_dir: result)
+    monkeypatch.chdir(tmp_path)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", "results_dir=results", "hydra.job.chdir=true"]) == 0
+    pinned = json.loads((tmp_path / "results" / "reproduce.json").read_text())["pinned"]
+    assert cells(tmp_path / "results")["cil/seed0"]["dataset"] == pinned["dataset"] is not None
+
+
 def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, tmp_path):
     """A cell whose training resumed from an epoch checkpoint (here: the first epoch's, as a killed run
     leaves it) says so in cell.json and in the report's table, with the difference resuming can make."""
@@ -207,6 +219,22 @@ def test_a_resumed_cell_is_marked_in_cell_json_and_the_report(cache, one_cell, t
     md = (out / "RESULTS.md").read_text()
     assert "| Regression (CIL) | – | 1 † ‡ |" in md and "| Regression (CIL) | 0 ‡ |" in md
     assert "‡ Regression (CIL) seed 0 (training resumed after epoch 1)" in md and "0.12743" in md
+
+
+def test_a_cell_killed_after_its_last_epoch_trains_that_epoch_again(cache, one_cell, tmp_path):
+    """The last epoch's checkpoint is saved before that epoch's validation: a cell killed between the two
+    resumes from the epoch before, so its validation error is measured (not NaN) and the mark says so."""
+    import math
+
+    out = tmp_path / "results"
+    ckpts = out / "cells" / "cil" / "seed0" / "train" / "checkpoints"
+    ckpts.mkdir(parents=True)
+    for name in ("epoch001.ckpt", "epoch002.ckpt"):
+        shutil.copy(one_cell / "cells" / "cil" / "seed0" / "train" / "checkpoints" / name, ckpts)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
+    got = cells(out)["cil/seed0"]
+    assert got["resumed"] == {"training": {"from_epoch": 1}} and got["epochs"] == 2
+    assert math.isfinite(got["val_steer_mae"])
 
 
 def test_continue_from_a_published_folder_skips_its_cells(cache, one_cell, tmp_path, capsys):

@@ -162,6 +162,19 @@ def test_a_custom_row_setting_what_the_budget_sets_is_refused_up_front(override,
     assert not out.exists()
 
 
+def test_a_custom_row_with_another_row_s_label_is_refused_up_front(no_collect, tmp_path, capsys):
+    """The report names each row by its label: a row of its own labelled as a catalogue row would print two
+    rows of one name in the table and the claims, which no reader can tell apart."""
+    out = tmp_path / "results"
+    args = ["+catalogue.mine={experiment: paper_gtu, label: 'Regression (CIL)'}", "rows=[cil,mine]", "budget=smoke",
+            f"results_dir={out}"]
+    with pytest.raises(reproduce.ConfigError) as err:
+        reproduce.check_plan(reproduce.compose_plan(args))
+    assert (err.value.key, err.value.value) == ("catalogue.mine.label", "Regression (CIL)")
+    refused(args, capsys)
+    assert not out.exists()
+
+
 def test_the_catalogues_rows_set_nothing_a_budget_sets(no_collect):
     from cicfw.reproduction.catalogue import budget_settings_in_row
 
@@ -232,6 +245,24 @@ def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
     assert err[-1].startswith("cicfw: error: ") and all(s in err[-1] for s in ("2 of 2", "cil/seed0", "gtu/seed0")), err
     cell = json.loads((out / "cells" / "cil" / "seed0" / "cell.json").read_text())
     assert cell["status"] == "failed" and cell["error"] == "RuntimeError: out of memory"
+    assert not (out / "reproduce.lock").exists()
+
+
+def test_ctrl_c_in_a_cell_advises_the_same_command(tmp_path, monkeypatch):
+    """A cell's training stopped by Ctrl-C said "resume with ckpt_path=...", a key reproduce refuses: the app
+    says to run the same command again, which resumes the cell."""
+    from cicfw.core.errors import Interrupted
+
+    def stopped(cfg, row, seed, cell_dir):
+        raise Interrupted("during training epoch 2: ...; resume with ckpt_path=x/last.ckpt")
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", stopped)
+    out = tmp_path / "results"
+    with pytest.raises(Interrupted) as err:
+        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
+    assert "same command" in str(err.value) and "ckpt_path" not in str(err.value)
     assert not (out / "reproduce.lock").exists()
 
 

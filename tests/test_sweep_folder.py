@@ -47,3 +47,34 @@ def test_an_evaluate_sweep_still_resumes_in_its_own_folder(tmp_path):
     again = run_app_in_process("cicfw.evaluate", *args)
     assert again.returncode == 0, again.stderr[-2000:]
     assert "Expert" in (sweep / "table.md").read_text()
+
+
+def test_an_evaluate_sweep_s_jobs_take_turns_joining(tmp_path, monkeypatch):
+    """Jobs of a parallel launcher finishing at once each join the sweep's runs: a join read while another job
+    was still driving must not be written after that job's complete one, so each reads and writes holding
+    the sweep folder."""
+    from types import SimpleNamespace
+
+    from hydra.types import RunMode
+
+    import cicfw.benchmark.app as bench_app
+    from cicfw.core.locks import FolderBusy
+    from cicfw.core.sweeps import RowsLock
+
+    hydra_cfg = SimpleNamespace(mode=RunMode.MULTIRUN, job=SimpleNamespace(config_name="evaluate"),
+                                sweep=SimpleNamespace(dir=str(tmp_path)))
+    monkeypatch.setattr(bench_app, "HydraConfig", SimpleNamespace(initialized=lambda: True, get=lambda: hydra_cfg))
+    held = []
+
+    def holding(*args, **kwargs):
+        try:
+            RowsLock(tmp_path, wait=0).acquire().release()
+            held.append(False)
+        except FolderBusy:
+            held.append(True)
+        return []
+
+    monkeypatch.setattr(bench_app, "find_runs", holding)
+    monkeypatch.setattr(bench_app, "write_joined", holding)
+    bench_app.join_sweep()
+    assert held == [True, True]

@@ -121,3 +121,41 @@ def test_a_checkpoints_data_path_is_the_one_its_run_recorded(tmp_path, tiny_data
     OmegaConf.save(OmegaConf.create({"data": {"path": "data"}}), run / ".hydra" / "config.yaml")
     write_record(run, record_data(tiny_data))
     assert checkpoint_run_data(run / "checkpoints" / "last.ckpt").path == str(tiny_data.resolve())
+
+
+def _collected_in_town_b(tmp_path):
+    data = tmp_path / "data_b"
+    data.mkdir()
+    (data / "dataset_metadata.json").write_text(json.dumps({"towns": ["town_b"], "weathers": ["MidRainyNoon"]}))
+    return {"path": str(data), "files": []}
+
+
+def test_a_run_that_saved_no_config_still_names_its_data(tmp_path):
+    """A run with ``hydra.output_subdir=null`` keeps no .hydra/config.yaml, but its data.json names the data
+    folder, whose metadata says where it was collected: a model trained in town_b is not labelled as driving
+    a new town there."""
+    from cicfw.benchmark.trained_sets import checkpoint_run_data
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "data.json").write_text(json.dumps(_collected_in_town_b(tmp_path)))
+    assert training_set_overrides(checkpoint_run_data(run / "checkpoints" / "last.ckpt"), []) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]
+
+
+def test_a_checkpoint_copied_into_another_run_keeps_its_own_data(tmp_path):
+    """A checkpoint trained on town_b data, copied into a run folder whose config and data.json name the
+    default data: its own record of its data says where it trained, not the folder's."""
+    import torch
+
+    from cicfw.benchmark.trained_sets import checkpoint_run_data
+    from cicfw.data.provenance import CHECKPOINT_KEY
+
+    ckpt = _run_with_checkpoint(tmp_path, ["town_a"], ["ClearNoon"])
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "dataset_metadata.json").write_text(json.dumps({"towns": ["town_a"], "weathers": ["ClearNoon"]}))
+    copied = ckpt.with_name("from_b.ckpt")
+    torch.save({**torch.load(ckpt, weights_only=True), CHECKPOINT_KEY: _collected_in_town_b(tmp_path)}, copied)
+    assert training_set_overrides(checkpoint_run_data(ckpt), [])[0] == "suite.training_towns=[town_a]"
+    assert training_set_overrides(checkpoint_run_data(copied), []) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]

@@ -46,7 +46,7 @@ from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import undo_run_folder
-from cicfw.core.sweeps import override_values, write_job_metrics
+from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
@@ -408,16 +408,19 @@ def join_sweep() -> None:
     except Exception:
         return
 
-    try:
-        runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
-    except CicfwError as err:  # e.g. a sweep over suite=single_turn,junctions: one table cannot hold them
-        removed = unjoined_sweep(sweep_dir)
-        tables = sorted(str(p.relative_to(sweep_dir)) for p in sweep_dir.glob("*/table.md"))
-        log.warning("the sweep's runs are not joined into one table: %s; each job's table is in its own folder "
-                    "(%s)%s", err, ", ".join(f"{sweep_dir}/{t}" for t in tables),
-                    f"; removed the sweep folder's earlier join ({', '.join(removed)})" if removed else "")
-        return
-    write_joined(runs, sweep_dir)
+    # jobs of a parallel launcher finishing at once take turns: a join read while another job was still
+    # driving (its row PARTIAL) must not be written over that job's later, complete join
+    with taking_turns(sweep_dir):
+        try:
+            runs = find_runs([sweep_dir], partial="include")  # a job stopped part-way shows as PARTIAL
+        except CicfwError as err:  # e.g. a sweep over suite=single_turn,junctions: one table cannot hold them
+            removed = unjoined_sweep(sweep_dir)
+            tables = sorted(str(p.relative_to(sweep_dir)) for p in sweep_dir.glob("*/table.md"))
+            log.warning("the sweep's runs are not joined into one table: %s; each job's table is in its own "
+                        "folder (%s)%s", err, ", ".join(f"{sweep_dir}/{t}" for t in tables),
+                        f"; removed the sweep folder's earlier join ({', '.join(removed)})" if removed else "")
+            return
+        write_joined(runs, sweep_dir)
     log.info("joined %d run(s) of the sweep into %s", len(runs), sweep_dir / "table.md")
 
 

@@ -14,6 +14,7 @@ from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
 from cicfw.data.provenance import folder_record
+from cicfw.model.checkpoint import checkpoint_record
 
 #: the embedded simulator's shipped towns (conf/town/)
 SHIPPED_TOWNS = ("town_a", "town_b")
@@ -70,14 +71,19 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
 
 def checkpoint_run_data(checkpoint: Path) -> Any | None:
     """The ``data`` node of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``): its saved
-    ``.hydra/config.yaml``, with ``data.path`` the absolute one its ``data.json`` recorded (the path as typed
-    may be relative to where it trained). None for a checkpoint outside such a run."""
-    run = Path(checkpoint).parent.parent
+    ``.hydra/config.yaml``, with ``data.path`` the absolute one the checkpoint (else its run's ``data.json``)
+    recorded (the path as typed may be relative to where it trained). Just that path when the folder's config
+    is not the checkpoint's (it recorded other data: a checkpoint copied into another run's folder) or there is
+    none (``hydra.output_subdir=null``): the data folder's metadata still says where it was collected. None for
+    a checkpoint outside such a run."""
+    own = (checkpoint_record(checkpoint) or {}).get("path")
+    recorded = (folder_record(Path(checkpoint).parent.parent) or {}).get("path")
     config = saved_run_config(checkpoint)
     data = config.get("data") if config is not None else None
+    if (own and own != recorded) or (config is None and recorded):
+        data = OmegaConf.create({})
     if not OmegaConf.is_dict(data):
         return None
-    recorded = (folder_record(run) or {}).get("path")
-    if recorded:
-        OmegaConf.update(data, "path", str(recorded), force_add=True)
+    if own or recorded:
+        OmegaConf.update(data, "path", str(own or recorded), force_add=True)
     return data

@@ -153,10 +153,15 @@ def install_app_handlers() -> None:
     (never an import): through the app's own imports and Hydra's composition too, SIGTERM stops it as
     Ctrl-C does, and an uncaught stop or ``CicfwError`` ends in the one line and status a later one would
     (130/143, 2) instead of a traceback or a silent exit. An empty ``CICFW_CACHE`` is dropped, so that
-    ``${oc.env:CICFW_CACHE,<default>}`` means the default cache. Off the main thread or again: nothing."""
+    ``${oc.env:CICFW_CACHE,<default>}`` means the default cache; a relative one is made absolute here, where
+    the app starts, not in the run folder ``hydra.job.chdir=true`` moves into (a dataset collected per run).
+    Off the main thread or again: nothing."""
     global _installed
-    if os.environ.get("CICFW_CACHE") == "":
+    cache = os.environ.get("CICFW_CACHE")
+    if cache == "":
         del os.environ["CICFW_CACHE"]
+    elif cache is not None and not os.path.isabs(os.path.expanduser(cache)):
+        os.environ["CICFW_CACHE"] = os.path.abspath(cache)
     if _installed or threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGTERM) is None:
         return

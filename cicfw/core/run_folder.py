@@ -19,7 +19,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import OmegaConf
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.slurm_requeue import is_requeued_run
@@ -64,6 +64,9 @@ def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequ
 
     ``files``: (key, file name) pairs the run will create there (the job's log), checked for length."""
     folder = Path(folder)
+    if folder.parts and folder.parts[0].startswith("~"):  # Hydra does not expand it: "~/runs" is ./~/runs
+        raise ConfigError(key, str(folder), "a path without a leading '~', which Hydra does not expand (it would "
+                                            "make a folder named '~' here); give the full path, e.g. $HOME/...")
     _check_names([(key, part) for part in folder.parts] + list(files), name_max(folder))
     writable_folder(folder, key, "a folder you can write", "the run folder")
 

@@ -108,9 +108,10 @@ class RowsLock(FolderLock):
     wait_level = logging.DEBUG
 
 
-def _locked(rows_dir: Path) -> ContextManager[Any]:
-    """``rows_dir`` held for one rebuild (waiting as long as it takes; no lock where flock is missing)."""
-    return RowsLock(rows_dir, wait=None) if flock_available() else nullcontext()
+def taking_turns(folder: Path) -> ContextManager[Any]:
+    """``folder`` held for one rebuild of what a sweep's jobs share there (``summary.csv``, a joined table),
+    waiting as long as it takes; no lock where flock is missing."""
+    return RowsLock(folder, wait=None) if flock_available() else nullcontext()
 
 
 def _split(override: str) -> tuple[str, str]:
@@ -166,7 +167,7 @@ def rebuild_summary(sweep_dir: str | Path, filename: str = "summary.csv") -> Pat
     """(Re)write ``<sweep_dir>/<filename>`` from the row files of every job finished so far."""
     sweep_dir = Path(sweep_dir)
     rows_dir = sweep_dir / ROWS_DIR
-    with _locked(rows_dir):
+    with taking_turns(rows_dir):
         command_line = None
         if (rows_dir / SWEEP_FILE).is_file():
             command_line = read_json(rows_dir / SWEEP_FILE)["overrides"]

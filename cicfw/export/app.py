@@ -43,7 +43,7 @@ from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
-from cicfw.data.provenance import file_sha256
+from cicfw.data.provenance import file_sha256, folder_record
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
                                     refuse_exported_model, resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
@@ -330,6 +330,15 @@ def run_config(checkpoint: Path) -> tuple[dict[str, Any] | None, Path | None]:
         return None, path
 
 
+def other_run(cfg: dict[str, Any], cfg_path: Path, hp: dict[str, Any], checkpoint: Path) -> str | None:
+    """How the run config found beside ``checkpoint`` is another run's (a checkpoint copied into its folder):
+    other parts, or other data than the checkpoint recorded (its run's ``data.json``); None when it is its own."""
+    differ = config_parts_differ(cfg, hp)
+    own = (checkpoint_record(checkpoint) or {}).get("path")
+    theirs = (folder_record(cfg_path.parent.parent) or {}).get("path")
+    return differ or (f"data {theirs}, checkpoint {own}" if own and theirs and own != theirs else None)
+
+
 def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
@@ -377,7 +386,7 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
-    if cfg is not None and (differ := config_parts_differ(cfg, hp)):  # another run's folder, not this model's
+    if cfg is not None and (differ := other_run(cfg, cfg_path, hp, checkpoint)):  # not this model's folder
         log.warning("%s is not the config of %s (%s); the sidecar's row_config is left null", cfg_path,
                     checkpoint, differ)
         cfg, cfg_path = None, None

@@ -49,6 +49,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
 import cicfw
@@ -56,7 +57,7 @@ from cicfw.benchmark.app import compose_config, evaluate
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
 from cicfw.core.config_checks import config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, debugging
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
@@ -141,6 +142,13 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
             raise ReproduceError(f"unknown row {r!r}; known rows: {', '.join(catalogue)}")
     if len(set(rows)) != len(rows):
         raise ReproduceError(f"rows lists a row twice: {rows}")
+    labels: dict[str, str] = {}  # the report names rows by label: two rows of one label would read as one
+    for r, entry in catalogue.items():
+        label = str(entry.get("label", r))
+        if label in labels:
+            raise ConfigError(f"catalogue.{r}.label", label, f"a label no other row has (catalogue."
+                              f"{labels[label]} has it): the report names each row by its label")
+        labels[label] = str(r)
     for r in rows:
         clash = budget_settings_in_row(cfg, r)
         if clash:
@@ -684,7 +692,9 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
     trained = cell_dir / "train" / "trained.json"
     epochs = int(tcfg.trainer.max_epochs)
     if not trained.is_file():
-        saved = sorted(ckpts.glob("epoch[0-9][0-9][0-9].ckpt"))
+        # the last epoch's checkpoint is saved before that epoch's validation: resumed from, it would train and
+        # validate nothing (val_steer_mae NaN), so a cell killed after it trains its last epoch again
+        saved = [p for p in sorted(ckpts.glob("epoch[0-9][0-9][0-9].ckpt")) if int(p.stem[len("epoch"):]) < epochs]
         resumed = None
         if saved:  # a killed cell: resume its training from the latest epoch it saved
             log.info("cell %s seed %d: resuming training from %s (the batch order and augmentation after it will "
@@ -757,6 +767,9 @@ def _cell_job(cfg: DictConfig) -> str:
     if cfg.cell.row is None:
         raise ReproduceError("cell.row is set by `python -m cicfw.reproduce` itself; give rows=[...] instead")
     hydra_cfg = HydraConfig.get()
+    for key in ("results_dir", "publish_dir"):  # as given where the run started, not in the cell's folder
+        if cfg.get(key) is not None:  # that hydra.job.chdir=true moves into (its manifest unread, unpinned)
+            cfg[key] = to_absolute_path(str(cfg[key]))
     status = run_cell(cfg, Path(hydra_cfg.runtime.output_dir))
     # cells one after another in this process: the report as it stands after each one. Cells in parallel
     # (joblib, SLURM) would write it side by side; their run's report comes at its end.
@@ -823,6 +836,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
         if e.code not in (0, None):
             log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
+    except KeyboardInterrupt:  # a cell's own advice (train's ckpt_path=...) is not this app's
+        raise Interrupted(f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips "
+                          f"them and resumes the unfinished cell from its last epoch checkpoint") from None
     finally:
         try:
             data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))

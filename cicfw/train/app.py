@@ -313,9 +313,14 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     callbacks = build_callbacks(cfg, run_dir)  # outside the try below: its errors name their own keys
 
     try:
-        return L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
+        trainer = L.Trainer(default_root_dir=str(run_dir), logger=logger, callbacks=callbacks, **kwargs)
     except (MisconfigurationException, ValueError, TypeError, AttributeError) as err:  # max_time=1:00
         raise CicfwError(f"trainer: {' '.join(str(err).split())}", key="trainer") from None
+    asked = str(kwargs.get("precision"))
+    if asked.startswith("16") and str(trainer.precision).startswith("bf16"):  # Lightning's swap on a CPU
+        raise ConfigError("trainer.precision", asked, "bf16-mixed or 32 here: fp16 autocast needs a GPU, and on "
+                                                      "this CPU Lightning would train in bf16 under the name you gave")
+    return trainer
 
 
 # ckpt_path values Lightning resolves itself (no file to check before training).
