@@ -391,3 +391,32 @@ def test_the_documented_expert_keys_are_set_without_plus():
     assert resolve_config(default)["expert"] == {}
     assert config_hash(resolve_config(default)) == config_hash(resolve_config({}))
     assert resolve_config({"expert": {"cruise_kmh": 27.0, "decel": 2}})["expert"] == {"decel": 2}
+
+
+def test_a_collect_that_fails_while_collecting_keeps_its_episodes_and_log(tmp_path: Path, monkeypatch):
+    # the run folder is the dataset folder (collect accepts it): the disk "fills" before the second episode
+    import cicfw.collect.writing as writing
+    calls, real = [], writing._free_bytes
+
+    def free(path):
+        calls.append(path)
+        return real(path) if len(calls) <= 2 else 0  # the whole plan's check and episode 0: room; then none
+    monkeypatch.setattr(writing, "_free_bytes", free)
+    out = tmp_path / "data"
+    r = run_app_in_process("cicfw.collect", f"out_dir={out}", f"hydra.run.dir={out}", "episodes=2", "seconds=2",
+                           "workers=0", "weathers=[ClearNoon]", "cameras=[centre]", cwd=tmp_path)
+    assert r.returncode == 2 and "free" in r.stderr, r.stderr[-500:]
+    kept = sorted(p.name for p in out.iterdir())
+    assert "collect.log" in kept and ".hydra" in kept, kept  # the failed run's log, which its line points to
+    assert [n for n in kept if n.endswith(".h5")] == ["ep0000_town_a_ClearNoon_000.h5"], kept  # resumable
+
+
+def test_a_finished_collect_is_never_undone_by_a_later_refusal_in_the_process(tmp_path: Path):
+    out = tmp_path / "data"
+    r = run_app_in_process("cicfw.collect", f"out_dir={out}", f"hydra.run.dir={out}", "episodes=1", "seconds=2",
+                           "workers=0", "weathers=[ClearNoon]", "cameras=[centre]", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-500:]
+    before = sorted(p.name for p in out.iterdir())
+    refused = run_app_in_process("cicfw.train", "mixer=nosuch", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert refused.returncode == 2 and "nosuch" in refused.stderr
+    assert sorted(p.name for p in out.iterdir()) == before and "dataset_metadata.json" in before

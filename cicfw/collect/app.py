@@ -27,8 +27,9 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder, undo_run_folder
 
 
-def _run(cfg) -> str:
-    """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept."""
+def _run(cfg, on_start=None) -> str:
+    """Collect into ``cfg.out_dir``; the one-line summary. Ctrl-C or SIGTERM: one line saying what is kept.
+    ``on_start``: called as the first episode is about to be collected (``collect_dataset``)."""
     raw = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     verify = raw.pop("verify", False)  # a bool: the app's schema (cicfw/collect/schema.py) checks it
     out_dir = Path(str(raw["out_dir"])).expanduser()
@@ -38,7 +39,7 @@ def _run(cfg) -> str:
     # run's files, and the folder would then read as a dataset to every app; other files the engine checks
     claim_folder(out_dir, "collect", "out_dir", foreign_ok=True)
     with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
-        meta = collect_dataset(raw, out_dir)
+        meta = collect_dataset(raw, out_dir, on_start=on_start)
     m = read_json(meta)
     return (f"dataset: {out_dir} ({m['counts']['samples']} samples, {m['counts']['episodes']} episodes, "
             f"sim={m.get('sim', 'embedded')}, complete={m['complete']})")
@@ -66,11 +67,12 @@ def _main() -> None:
     @hydra.main(version_base="1.3", config_path="pkg://cicfw.conf", config_name="collect")
     @report_user_errors
     def main(cfg: DictConfig) -> None:
-        out = Path(HydraConfig.get().runtime.output_dir)
+        out, started = Path(HydraConfig.get().runtime.output_dir), []
         try:
-            print(_run(cfg))
-        except USER_ERRORS:  # refused: the run folder as NotedRunFolderCheck found it (a multirun job's keeps its log)
-            undo_run_folder(out)
+            print(_run(cfg, on_start=lambda: started.append(True)))
+        except USER_ERRORS:  # refused before collecting: the run folder as NotedRunFolderCheck found it (a
+            if not started:  # multirun job's keeps its log); once collecting, its log and episodes stay
+                undo_run_folder(out)
             raise
 
     main()

@@ -7,7 +7,7 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from cicfw.collect.config import (close_backend, config_hash, episode_bytes, episode_plan, make_backend, plain_config,
                                   resolve_config, sim_node, steps_per_episode)
@@ -99,21 +99,23 @@ def _say_what_the_plan_leaves_out(cfg: dict, plan: list[dict]) -> None:
                     len(cfg["towns"]) * len(cfg["weathers"]))
 
 
-def collect_dataset(cfg_collect: Any, out_dir: str | Path, progress: bool = True) -> Path:
+def collect_dataset(cfg_collect: Any, out_dir: str | Path, progress: bool = True,
+                    on_start: Callable[[], None] | None = None) -> Path:
     """Collect (or finish collecting) a dataset into ``out_dir``; returns the metadata JSON path.
 
     ``cfg_collect``: a dict / DictConfig with any of DEFAULTS' keys (missing ones take the default;
     ``sim`` is the backend's config node). A rerun with the same config skips finished episodes; a
-    different config in a folder that holds a dataset is an error (use another folder)."""
+    different config in a folder that holds a dataset is an error (use another folder). ``on_start`` is
+    called once every check has passed, as the first episode is about to be collected."""
     raw = plain_config(cfg_collect)
     backend = make_backend(sim_node(raw))
     try:
-        return _collect(raw, backend, Path(out_dir), progress)
+        return _collect(raw, backend, Path(out_dir), progress, on_start)
     finally:
         close_backend(backend)
 
 
-def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
+def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: Callable[[], None] | None) -> Path:
     cfg = resolve_config(raw, backend)
     sim_version = SIM_VERSION if cfg["sim"].get("name", "embedded") == "embedded" else str(
         getattr(backend, "data_version", cfg["sim"].get("name")))
@@ -160,6 +162,8 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool) -> Path:
                                f"collect into another one")
         _remove_episodes(out_dir, todo)  # what is left of them did not validate; they are collected again
         check_free_space(out_dir, len(todo) * episode_bytes(cfg), f"the {len(todo)} episode(s) left")
+        if on_start is not None:
+            on_start()
         write_json(meta_path, dataset_metadata(cfg, out_dir, plan, markers, started, sim_version, False))
         log.info("collecting %d episode(s) (%d already done) into %s", len(todo), len(markers), out_dir)
         bar = ProgressBar(progress, len(todo) * steps_per_episode(cfg) * len(cfg["cameras"]),

@@ -91,9 +91,14 @@ class RunFolderCheck(Callback):
         try:
             claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=[data] if data else [])
         except RunFolderError as err:
-            _BEFORE.pop(os.path.abspath(folder), None)  # nothing was written: nothing to put back
+            forget_run_folder(folder)  # nothing was written: nothing to put back
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
+
+    def on_run_end(self, config: Any, **kwargs: Any) -> None:
+        # after the app's job, which put the folder back itself if it refused the run: a folder that is a
+        # run's now is never put back later (another app refused in the same process, undo_noted_folders)
+        forget_run_folder(str(config.hydra.run.dir))
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
@@ -112,7 +117,7 @@ class RunFolderCheck(Callback):
 
     def on_job_start(self, config: Any, **kwargs: Any) -> None:
         if config.hydra.mode == RunMode.MULTIRUN:  # a job runs: the sweep folder is the sweep's now
-            _BEFORE.pop(os.path.abspath(str(config.hydra.sweep.dir)), None)
+            forget_run_folder(str(config.hydra.sweep.dir))
 
     @staticmethod
     def _check(folder: Any, key: str, files: Sequence[tuple[str, str]]) -> None:
@@ -270,6 +275,11 @@ def note_run_folder(folder: str | Path) -> None:
         pass  # an unreadable folder: check_run_folder says so; nothing will be undone in it
 
 
+def forget_run_folder(folder: str | Path) -> None:
+    """Drop ``folder``'s note: nothing of it is to be put back (nothing was written, or it is a run's now)."""
+    _BEFORE.pop(os.path.abspath(folder), None)
+
+
 def saved_run_config(checkpoint: str | Path) -> Any | None:
     """The config the training run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``) saved in
     ``<run>/.hydra/config.yaml``, unresolved; None when there is none or it cannot be read."""
@@ -341,7 +351,7 @@ def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> No
 
 
 class NotedRunFolderCheck(RunFolderCheck):
-    """Hydra callback (conf/diagnose.yaml): ``RunFolderCheck``'s checks, and what the run folder held noted
+    """Hydra callback (conf/diagnose.yaml, conf/collect.yaml): ``RunFolderCheck``'s checks, and what the run folder held noted
     before Hydra writes ``.hydra`` and the job's log there, so that the app puts it back as it was
     (``undo_run_folder``) when it refuses the run later (a missing checkpoint, an unknown split)."""
 
@@ -351,7 +361,7 @@ class NotedRunFolderCheck(RunFolderCheck):
         try:
             super().on_run_start(config, **kwargs)
         except SystemExit:  # refused here, before Hydra wrote anything: nothing to put back
-            _BEFORE.pop(os.path.abspath(folder), None)
+            forget_run_folder(folder)
             raise
 
 
@@ -383,6 +393,7 @@ class TrainRunFolderCheck(RunFolderCheck):
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_run_folder(str(config.hydra.run.dir))
+        super().on_run_end(config, **kwargs)
 
 
 # ---- every app writes only into a folder of its own -----------------------------------------------
