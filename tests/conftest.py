@@ -295,7 +295,7 @@ def run_app_in_process(module: str, *args: str, cwd: str | os.PathLike | None = 
 #: name, which runs ``python -m <module> <arguments>`` with its stdout and stderr in files; prints
 #: {name: [status, out, err]}
 _FORKS = r"""
-import json, os, runpy, sys, tempfile, traceback
+import json, os, runpy, shutil, sys, tempfile, traceback
 
 import lightning.pytorch, torch  # noqa: F401  (shared by the forks; no cicfw module, no Hydra config store)
 
@@ -323,6 +323,7 @@ for name, argv in json.loads(sys.argv[1]).items():
             os._exit(code)
     status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
     results[name] = [status, *(open(p).read() for p in paths)]
+shutil.rmtree(folder)
 print(json.dumps(results))
 """
 

@@ -35,7 +35,7 @@ from cicfw.core.config_checks import SchemaError, config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError
 from cicfw.core.hydra_plugins import guard_hydra_plugins
 from cicfw.core.run_folder import refuse_before_any_job
-from cicfw.core.sweeps import every_job_failed, is_worker_process
+from cicfw.core.sweeps import every_job_failed, forget_running_sweep, is_worker_process
 
 # Options that need a Hydra plugin from an optional extra: option -> (plugin module, extra).
 NEEDS_EXTRA = {
@@ -154,19 +154,23 @@ def one_line_config_errors() -> Iterator[None]:
     report = hydra_utils.run_and_report
 
     def one_line(func: Callable[[], Any]) -> Any:
+        forget_running_sweep()  # only a sweep this call runs speaks for its error (not one an earlier call ran)
         try:
             return func()
         except Exception as err:
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
                 raise
-            failed = None if isinstance(err, JobFailed) else every_job_failed()  # JobFailed is one line already
-            if failed is not None:  # an Optuna search with no trial to report: not its traceback
+            # Optuna's "no trial is completed" (a ValueError) when every trial failed: not its traceback
+            failed = every_job_failed() if isinstance(err, ValueError) and not isinstance(err, JobFailed) else None
+            if failed is not None:
                 print(f"cicfw: error: {failed}", file=sys.stderr)
                 sys.exit(1)
             line = composition_error_line(err, sys.argv[1:])
             if line is None:
                 raise
             refuse_before_any_job(line)
+        finally:
+            forget_running_sweep()
 
     hydra_utils.run_and_report = lambda func: report(lambda: one_line(func))
     try:

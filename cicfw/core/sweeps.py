@@ -197,6 +197,12 @@ def _read_rows(rows_dir: Path, say: bool = False) -> list[dict[str, Any]]:
 _RUNNING: list[Path] = []  # the sweep folder of the sweep this process runs (``SweepSummary``), while it runs
 
 
+def forget_running_sweep() -> None:
+    """Forget the sweep ``SweepSummary`` noted: it ended, even where Hydra skipped ``on_multirun_end``
+    (its sweeper raised), so that it cannot speak for a later run's error in this process."""
+    _RUNNING.clear()
+
+
 def every_job_failed() -> str | None:
     """One line when every job of the sweep this process runs failed (an Optuna search then has no best
     trial and its sweeper raises): how many, and where their errors are; None otherwise."""
