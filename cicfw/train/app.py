@@ -20,7 +20,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
+from lightning.pytorch.callbacks import Callback, Checkpoint, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig
@@ -192,8 +192,10 @@ def check_collected_cameras(data_cfg: DictConfig, datamodule: CILDataModule) -> 
                              f"data=cil_hdf5 data.path=...")
 
 
-class EpochCheckpoints(Callback):
-    """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points."""
+class EpochCheckpoints(Checkpoint):
+    """``checkpoints/epochNNN.ckpt`` after each listed epoch (1-based), kept: a learning curve's points. A
+    ``Checkpoint``, so that Lightning runs it after the best checkpoint has taken that epoch's validation
+    (listed after it): a run resumed from the file still knows that epoch's score and its best file."""
 
     def __init__(self, dirpath: Path, epochs, max_epochs: int | None = None) -> None:
         """``epochs``: ``keep_epoch_checkpoints`` (whole numbers: the schema); one below 1 or beyond
