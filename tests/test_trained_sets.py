@@ -159,3 +159,19 @@ def test_a_checkpoint_copied_into_another_run_keeps_its_own_data(tmp_path):
     assert training_set_overrides(checkpoint_run_data(ckpt), [])[0] == "suite.training_towns=[town_a]"
     assert training_set_overrides(checkpoint_run_data(copied), []) == [
         "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]
+
+
+def test_an_exported_model_s_evaluation_labels_the_columns_with_its_sidecar_s_data(tmp_path):
+    """``checkpoint=<model.onnx>`` (or .pt): the sidecar export wrote names the data the model trained on, even
+    when the model sits in another run's folder."""
+    from cicfw.benchmark.trained_sets import checkpoint_run_data
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "data.json").write_text(json.dumps({"path": str(tmp_path / "elsewhere"), "files": []}))  # not its data
+    model = run / "checkpoints" / "model.onnx"
+    model.write_bytes(b"onnx")
+    (run / "checkpoints" / "model.onnx.json").write_text(json.dumps(
+        {"training_dataset": {"path": _collected_in_town_b(tmp_path)["path"], "hash": None}}))
+    assert training_set_overrides(checkpoint_run_data(model), []) == [
+        "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]

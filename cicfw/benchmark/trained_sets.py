@@ -69,13 +69,26 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
     return out
 
 
+def exported_model_data(model: Path) -> Any | None:
+    """The ``data`` node of a model ``cicfw export`` wrote: the data folder its sidecar (``<file>.json``)
+    records it trained on (``training_dataset.path``); None for any other file or a sidecar that names none."""
+    try:
+        path = json.loads(Path(model).with_name(Path(model).name + ".json").read_text())["training_dataset"]["path"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return OmegaConf.create({"path": str(path)}) if path else None
+
+
 def checkpoint_run_data(checkpoint: Path) -> Any | None:
     """The ``data`` node of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``): its saved
     ``.hydra/config.yaml``, with ``data.path`` the absolute one the checkpoint (else its run's ``data.json``)
     recorded (the path as typed may be relative to where it trained). Just that path when the folder's config
     is not the checkpoint's (it recorded other data: a checkpoint copied into another run's folder) or there is
     none (``hydra.output_subdir=null``): the data folder's metadata still says where it was collected. None for
-    a checkpoint outside such a run."""
+    a checkpoint outside such a run. An exported model's is the data its sidecar records."""
+    exported = exported_model_data(checkpoint)
+    if exported is not None:
+        return exported
     own = (checkpoint_record(checkpoint) or {}).get("path")
     recorded = (folder_record(Path(checkpoint).parent.parent) or {}).get("path")
     config = saved_run_config(checkpoint)
