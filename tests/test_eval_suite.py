@@ -224,3 +224,19 @@ def test_filming_at_most_no_video_is_refused(tmp_path, capsys, most):
     assert main([str(tmp_path), "--max", most]) == 2
     assert f"--max={most}" in capsys.readouterr().err
     assert not (tmp_path / "videos").exists()
+
+
+def test_pairs_the_suite_does_not_drive_are_named_not_dropped_silently(backend, caplog):
+    """``suite=single_turn`` drives left and right turns: asked for by number, a straight pair is left out
+    with a warning naming it (the episode count alone would not say which)."""
+    every = build_suite(backend, ["town_a"], ["ClearNoon"], name="junctions")
+    straight = next(e.pair for e in every if e.command == "straight")
+    turn = next(e.pair for e in every if e.command in ("left", "right"))
+    with caplog.at_level("WARNING", logger="cicfw.benchmark.suite"):
+        eps = build_suite(backend, ["town_a"], ["ClearNoon"], pairs=[turn, straight], name="single_turn")
+    assert [e.pair for e in eps] == [turn]
+    said = [r.getMessage() for r in caplog.records if r.name == "cicfw.benchmark.suite"]
+    assert len(said) == 1 and f"pair {straight} (straight)" in said[0] and f"pair {turn}" not in said[0], said
+    caplog.clear()
+    build_suite(backend, ["town_a"], ["ClearNoon"], name="single_turn")  # the suite's own choice: nothing to say
+    assert not [r for r in caplog.records if r.name == "cicfw.benchmark.suite"]

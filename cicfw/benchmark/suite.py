@@ -11,6 +11,7 @@ themselves. Towns and weathers are grouped as in the paper's table: training vs 
 from __future__ import annotations
 
 import functools
+import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -20,6 +21,8 @@ from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.render.weather import DEFAULT_FAMILY
 from cicfw.sim.roadgraph import COMMAND_NAMES
+
+log = logging.getLogger(__name__)
 
 #: the paper's four weathers: two seen in training, two new
 PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
@@ -163,7 +166,12 @@ def build_suite(backend: Any, towns: Sequence[str], weathers: Sequence[str],
         if bad:
             raise CicfwError(f"suite.pairs: pair {bad[0]} does not exist in town {town!r}, which has "
                              f"{len(routes)} pairs (0..{len(routes) - 1})", key="suite.pairs", value=bad[0])
-        chosen = [p for p in chosen if _turn_name(routes[p]) in manoeuvres]
+        left_out = [p for p in chosen if _turn_name(routes[p]) not in manoeuvres]
+        if left_out and pairs is not None:  # asked for by number: say which ones the suite does not drive
+            log.warning("suite.pairs: %s of town %r %s not a %s manoeuvre, which suite=%s does not drive: left out",
+                        ", ".join(f"pair {p} ({_turn_name(routes[p])})" for p in left_out), town,
+                        "is" if len(left_out) == 1 else "are", "/".join(manoeuvres), name)
+        chosen = [p for p in chosen if p not in left_out]
         if not chosen:
             raise CicfwError(f"suite {name!r} ({'/'.join(manoeuvres)}) keeps none of the chosen pairs of "
                              f"town {town!r}; pick other suite.pairs or suite=junctions")
