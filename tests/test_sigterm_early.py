@@ -136,3 +136,20 @@ def test_a_relative_cicfw_cache_is_where_the_app_started(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     assert (tmp_path / "cache" / "datasets" / "collected" / "dataset_metadata.json").is_file()
     assert not (tmp_path / "run" / "cache").exists()
+
+
+def test_an_app_without_home_resolves_the_default_cache(monkeypatch):
+    """A batch job's environment may lack HOME: the configs' default cache (${oc.env:HOME}/.cache/cicfw) is then
+    the password database's home, as ``~`` is, not an interpolation traceback."""
+    import pwd
+
+    from cicfw.core import errors
+    from conftest import compose_train
+
+    monkeypatch.delenv("HOME", raising=False)  # put back after the test, with what install_app_handlers sets
+    monkeypatch.delenv("CICFW_CACHE", raising=False)
+    monkeypatch.setattr(errors, "_installed", True)  # the environment only: this process keeps its handlers
+    errors.install_app_handlers()
+    home = pwd.getpwuid(os.getuid()).pw_dir
+    assert os.environ["HOME"] == home
+    assert compose_train().data.path == f"{home}/.cache/cicfw/datasets/sim_default"

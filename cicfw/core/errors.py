@@ -17,7 +17,8 @@ import signal
 import sys
 import threading
 import traceback
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
+from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
 
 #: set to 1 to see the traceback of a user error too
@@ -154,7 +155,8 @@ def install_app_handlers() -> None:
     Ctrl-C does, and an uncaught stop or ``CicfwError`` ends in the one line and status a later one would
     (130/143, 2) instead of a traceback or a silent exit. An empty ``CICFW_CACHE`` is dropped, so that
     ``${oc.env:CICFW_CACHE,<default>}`` means the default cache; a relative one is made absolute here, where
-    the app starts, not in the run folder ``hydra.job.chdir=true`` moves into (a dataset collected per run).
+    the app starts, not in the run folder ``hydra.job.chdir=true`` moves into (a dataset collected per run);
+    without ``HOME`` (and no cache given) the user's home from the password database stands in, as ``~`` does.
     Off the main thread or again: nothing."""
     global _installed
     cache = os.environ.get("CICFW_CACHE")
@@ -162,6 +164,9 @@ def install_app_handlers() -> None:
         del os.environ["CICFW_CACHE"]
     elif cache is not None and not os.path.isabs(os.path.expanduser(cache)):
         os.environ["CICFW_CACHE"] = os.path.abspath(cache)
+    if "HOME" not in os.environ and cache is None:  # the configs' default cache is ${oc.env:HOME}/.cache/cicfw
+        with suppress(KeyError, RuntimeError):  # no entry in the password database: Hydra names HOME
+            os.environ["HOME"] = str(Path.home())  # what ~ means without HOME (a batch job's environment)
     if _installed or threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGTERM) is None:
         return
