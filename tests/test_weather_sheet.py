@@ -30,3 +30,12 @@ def test_an_unknown_weather_or_town_is_one_line_and_makes_no_folder(tmp_path):
                              ([*ONE, "--colours", "1"], "--colours", 1)):
         assert_refused(run_app_in_process(TOOL, "--out", str(out), *args), key, value)
         assert not out.exists()
+
+
+def test_an_out_holding_another_app_s_run_is_one_line(tmp_path):
+    """Another app's outputs (here an evaluation's episode log) are not a picture folder: refused, untouched."""
+    out = tmp_path / "eval_run"
+    out.mkdir()
+    (out / "episodes.jsonl").write_text("{}\n")
+    assert_refused(run_app_in_process(TOOL, "--out", str(out), *ONE), "--out", out)
+    assert sorted(p.name for p in out.iterdir()) == ["episodes.jsonl"]

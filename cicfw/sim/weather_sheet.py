@@ -15,6 +15,7 @@ import numpy as np
 
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
+from cicfw.core.run_folder import claim_folder
 from cicfw.sim.preview import OUT_FOLDER, _first_missing, _png, _remove_empty_folders, approach_pose, load_towns
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
@@ -88,6 +89,7 @@ def _main(argv: list[str] | None = None) -> int:
     towns = load_towns(a.towns)  # an unknown town: one line, before the folder is made
     out = Path(a.out).expanduser().resolve()
     new_top = _first_missing(out)
+    claim_folder(out, "weather_sheet", "--out", foreign_ok=True)  # not another app's run or dataset
     writable_folder(out, "--out", OUT_FOLDER, "--out")  # before the seconds of rendering
     path = out / f"{a.prefix}weather_families.png"
     try:
