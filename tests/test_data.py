@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from cicfw.core.errors import ConfigError
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, write_file
 from cicfw.data.datamodule import CILDataModule
@@ -211,3 +212,15 @@ def test_datamodule_batches(tmp_path, in_memory):
     with h5py.File(fr.files[fr.file_idx[0]], "r") as f:
         stored = f["rgb"][fr.row[0]]
     assert torch.equal(val["image"][0], torch.from_numpy(stored).permute(2, 0, 1))
+
+
+def test_unbalanced_batch_larger_than_the_train_split_is_refused(tmp_path):
+    """drop_last batches of more samples than the split holds would train no step and exit as if trained."""
+    write_tiny_dataset(tmp_path, n_files=4, n=32)
+    dm = CILDataModule(str(tmp_path), batch_size=500, balanced=False, in_memory=True)
+    with pytest.raises(ConfigError) as err:
+        dm.setup("fit")
+    assert (err.value.key, err.value.value) == ("data.batch_size", 500)
+    ok = CILDataModule(str(tmp_path), batch_size=8, balanced=False, in_memory=True)
+    ok.setup("fit")
+    assert len(ok.train_dataloader()) >= 1
