@@ -593,3 +593,14 @@ def test_the_results_plot_says_its_column_bars_are_the_widened_intervals(tmp_pat
     below = ax.containers[0].lines[2][0].get_segments()[0][:, 1]  # the first column's bar, (x, y) ends
     assert min(below) == pytest.approx(lo, abs=1e-6) and max(below) == pytest.approx(100.0)
     assert "Clopper-Pearson" in ax.get_title()
+
+
+def test_the_learning_curve_names_the_suite_it_was_driven_on(tmp_path, monkeypatch):
+    """The curve's title named the single-turn suite whatever suite the budget drove."""
+    drawn = []
+    monkeypatch.setattr(results, "_save", lambda fig, path: drawn.append(fig) or path)
+    data = {"manifest": {"budget": "mine", "suite": {"name": "junctions"}},
+            "rows": [{"label": "CIL", "row": "cil", "curve": {"0": [{"samples": 120, "overall": 60.0}]}}]}
+    results.plot_curve(data, tmp_path / "learning_curve.png")
+    title = drawn[0].axes[0].get_title()
+    assert "junctions" in title and "single-turn" not in title

@@ -822,7 +822,8 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     ax.set_ylim(-3, 105)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title("Learning curve on the single-turn suite (band: min..max over seeds)")
+    suite = (data["manifest"].get("suite") or {}).get("name", "?")  # a budget may drive another suite
+    ax.set_title(f"Learning curve on suite {suite} (band: min..max over seeds)")
     return _save(fig, Path(path))
 
 
