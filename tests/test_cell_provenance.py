@@ -69,3 +69,22 @@ def test_continuing_with_a_machine_copies_only_that_machines_finished_cells(tmp_
     assert sorted(p.parent.name for p in dst.glob("cells/*/*/cell.json")) == ["seed0"]
     got = continue_published(src, dst)  # no filter: the other machine's cell too, seed 0 kept
     assert got == {"copied": ["cil/seed1"], "kept": ["cil/seed0"], "other_machine": []}
+
+
+@pytest.mark.parametrize("folder", ["cells/cil/seed2", "cells/gtu/seed0"])
+def test_a_cell_copied_under_another_row_or_seed_is_refused(tmp_path, folder):
+    """seed0's cell copied to seed2 counted seed 0 twice: a row of two seeds reported three and got verdicts."""
+    import json
+
+    from cicfw.core.errors import CicfwError
+    from cicfw.reproduction.cells import load_cells
+
+    cell = {"status": "ok", "row": "cil", "seed": 0, "episodes": {}}
+    for where in ("cells/cil/seed0", folder):
+        (tmp_path / where).mkdir(parents=True)
+        (tmp_path / where / "cell.json").write_text(json.dumps(cell))
+    with pytest.raises(CicfwError) as err:
+        load_cells(tmp_path)
+    assert err.value.value == str(tmp_path / folder / "cell.json")
+    (tmp_path / folder / "cell.json").unlink()
+    assert [(c.row, c.seed) for c in load_cells(tmp_path)[0]] == [("cil", 0)]

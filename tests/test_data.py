@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from cicfw.core.errors import ConfigError
 from cicfw.data.augment import AugmentConfig, augment_batch
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, write_file
 from cicfw.data.datamodule import CILDataModule
@@ -211,3 +212,36 @@ def test_datamodule_batches(tmp_path, in_memory):
     with h5py.File(fr.files[fr.file_idx[0]], "r") as f:
         stored = f["rgb"][fr.row[0]]
     assert torch.equal(val["image"][0], torch.from_numpy(stored).permute(2, 0, 1))
+
+
+def test_unbalanced_batch_larger_than_the_train_split_is_refused(tmp_path):
+    """drop_last batches of more samples than the split holds would train no step and exit as if trained."""
+    write_tiny_dataset(tmp_path, n_files=4, n=32)
+    dm = CILDataModule(str(tmp_path), batch_size=500, balanced=False, in_memory=True)
+    with pytest.raises(ConfigError) as err:
+        dm.setup("fit")
+    assert (err.value.key, err.value.value) == ("data.batch_size", 500)
+    ok = CILDataModule(str(tmp_path), batch_size=8, balanced=False, in_memory=True)
+    ok.setup("fit")
+    assert len(ok.train_dataloader()) >= 1
+
+
+def test_collected_parts_copied_without_their_metadata_stay_one_episode(tmp_path, caplog):
+    """A collected episode's files copied without dataset_metadata.json were one episode each: its parts
+    trained and validated at once. Grouped by their names, with a warning; CoRL-style names stay apart."""
+    from cicfw.data.frames import episode_groups
+
+    rng = np.random.default_rng(0)
+    for ep in range(6):
+        for part in range(2):
+            write_file(tmp_path / f"ep{ep:04d}_town_a_ClearNoon_{part:03d}.h5",
+                       rng.integers(0, 255, (8, 88, 200, 3), dtype=np.uint8), make_targets(8, rng))
+    with caplog.at_level("WARNING", logger="cicfw.data.frames"):
+        frames = load_frames(str(tmp_path))
+    assert len(np.unique(frames.group)) == 6 and "grouped into 6 episodes" in caplog.text
+    for seed in range(5):
+        train, val = split_by_episode(frames, 0.3, seed=seed)
+        episode = lambda fr: {frames.files[i].name[:6] for i in np.unique(fr.file_idx)}  # noqa: E731
+        assert not episode(train) & episode(val)
+    corl = write_tiny_dataset(tmp_path / "corl", n_files=3)
+    assert len(set(episode_groups(find_files(corl)).tolist())) == 3

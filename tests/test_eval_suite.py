@@ -240,3 +240,36 @@ def test_pairs_the_suite_does_not_drive_are_named_not_dropped_silently(backend, 
     caplog.clear()
     build_suite(backend, ["town_a"], ["ClearNoon"], name="single_turn")  # the suite's own choice: nothing to say
     assert not [r for r in caplog.records if r.name == "cicfw.benchmark.suite"]
+
+
+@pytest.mark.parametrize("sim, family", [({"name": "embedded", "weather_family": "harsh"}, "harsh"),
+                                         ({"name": "embedded", "weather_family": "carla"}, "carla"),
+                                         ({"name": "embedded"}, "harsh")])  # recorded before the families
+def test_a_video_renders_the_weather_family_the_run_drove_under(tmp_path, monkeypatch, sim, family):
+    """A film of a run under sim.weather_family=harsh was rendered with the default family's MidRainyNoon."""
+    import json
+
+    import numpy as np
+
+    import cicfw.benchmark.video as video
+    from cicfw.benchmark.finished_run import save_trajectories
+    from cicfw.sim.render.weather import WEATHER_FAMILIES
+
+    rows = [{"model": "expert", "episode": 0, "key": "town_a/MidRainyNoon/000", "town": "town_a",
+             "weather": "MidRainyNoon", "route": "r", "success": False, "reason": "timeout"}]
+    (tmp_path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {"sim": sim}}))
+    save_trajectories(tmp_path / "trajectories.npz", rows, {rows[0]["key"]: {"x": np.zeros(1)}})
+    seen = []
+
+    class Rendered(Exception):
+        pass
+
+    def renderer(town, weather, seed, cameras):
+        seen.append(weather)
+        raise Rendered
+
+    monkeypatch.setattr(video, "get_renderer", renderer)
+    with pytest.raises(Rendered):
+        video.main([str(tmp_path), "0"])
+    assert seen == [WEATHER_FAMILIES[family]["MidRainyNoon"]]
+    assert WEATHER_FAMILIES["harsh"]["MidRainyNoon"] != WEATHER_FAMILIES["carla"]["MidRainyNoon"]

@@ -578,3 +578,29 @@ def test_a_learning_curve_of_one_seed_shows_its_value_not_a_range():
     assert lines[0] == "| Row | 120 samples | 240 samples |"
     assert lines[2] == "| CIL | 60.9 | 59.1 |"
     assert lines[3] == f"| GTU | {(50 + 70 + 66) / 3:.1f} [50.0, 70.0] (3 seeds) | – |"
+
+
+def test_the_results_plot_says_its_column_bars_are_the_widened_intervals(tmp_path, monkeypatch):
+    """Seeds that all drove 100% have a t-interval of no width; the plot draws the column's Clopper-Pearson
+    floor, as the table does, and its title must say so rather than call the bar a t-interval alone."""
+    drawn = []
+    monkeypatch.setattr(results, "_save", lambda fig, path: drawn.append(fig) or path)
+    cells = [at("cil", s, 40, n=40) for s in range(3)]  # 40 of 40 in every column, each seed
+    data = report_data(cells, [], {"cil": {"label": "CIL"}}, {"budget": "smoke"}, n_boot=50)
+    results.plot_results(data, tmp_path / "results.png")
+    ax = drawn[0].axes[0]
+    lo = 100 * stats.beta.ppf(0.025, 120, 1)  # Clopper-Pearson's lower bound for 120 of 120
+    below = ax.containers[0].lines[2][0].get_segments()[0][:, 1]  # the first column's bar, (x, y) ends
+    assert min(below) == pytest.approx(lo, abs=1e-6) and max(below) == pytest.approx(100.0)
+    assert "Clopper-Pearson" in ax.get_title()
+
+
+def test_the_learning_curve_names_the_suite_it_was_driven_on(tmp_path, monkeypatch):
+    """The curve's title named the single-turn suite whatever suite the budget drove."""
+    drawn = []
+    monkeypatch.setattr(results, "_save", lambda fig, path: drawn.append(fig) or path)
+    data = {"manifest": {"budget": "mine", "suite": {"name": "junctions"}},
+            "rows": [{"label": "CIL", "row": "cil", "curve": {"0": [{"samples": 120, "overall": 60.0}]}}]}
+    results.plot_curve(data, tmp_path / "learning_curve.png")
+    title = drawn[0].axes[0].get_title()
+    assert "junctions" in title and "single-turn" not in title

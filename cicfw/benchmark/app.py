@@ -41,7 +41,7 @@ from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overrides
-from cicfw.benchmark.video import select_episodes, write_video
+from cicfw.benchmark.video import run_weather_family, select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error
@@ -51,6 +51,7 @@ from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
 from cicfw.model.checkpoint import resolve_checkpoint
 from cicfw.sim.town import load_town
+from cicfw.sim.render.weather import DEFAULT_FAMILY
 
 log = logging.getLogger("cicfw.evaluate")
 
@@ -176,7 +177,7 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
             report = _report(out_dir, label, elog.rows, episodes, meta, final=True)
             save_trajectories(out_dir / "trajectories.npz", report.rows, elog.trajectories)
             pictures(report, elog.trajectories, out_dir, [str(t) for t in suite["towns"]], str(sim.get("name")),
-                     int(seed), maps, select_episodes(report.rows, filmed, int(video_max)))
+                     int(seed), maps, select_episodes(report.rows, filmed, int(video_max)), run_weather_family(meta))
             summary = write_run(out_dir, report)
     steps = int(summary.get("steps", 0))
     rate = f", {steps / wall:.0f} frames/s" if missing and len(missing) == len(report.rows) and wall > 0 else ""
@@ -369,7 +370,7 @@ def _report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episod
 
 
 def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], sim_name: str, seed: int,
-             maps: bool, filmed: Sequence[dict]) -> None:
+             maps: bool, filmed: Sequence[dict], family: str = DEFAULT_FAMILY) -> None:
     """The map per town, the bar chart, and the requested videos."""
     towns = {town_label(t): str(t) for t in towns}
     if maps:
@@ -381,7 +382,7 @@ def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], si
             return
         for r in filmed:
             path = run_dir / "videos" / f"{r['key'].replace('/', '_')}.mp4"
-            write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed)
+            write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed, family=family)
             log.info("video: %s", path)
 
 

@@ -16,6 +16,7 @@ from cicfw.benchmark.finished_run import load_run, load_trajectories
 from cicfw.benchmark.suite import town_label
 from cicfw.core.errors import CicfwError
 from cicfw.sim.env import get_renderer
+from cicfw.sim.render.weather import DEFAULT_FAMILY, LEGACY_FAMILY, get_weather
 from cicfw.sim.town import load_town
 
 
@@ -75,10 +76,17 @@ def _overlay(img: np.ndarray, step: int, tr: Mapping[str, np.ndarray], title: st
     return canvas
 
 
+def run_weather_family(meta: Mapping[str, Any]) -> str:
+    """The weather family a run drove under (its ``sim.weather_family``); a run recorded before the
+    families drove under the legacy one."""
+    return str((meta.get("sim") or {}).get("weather_family", LEGACY_FAMILY))
+
+
 def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray], town: Any, weather: str,
-                seed: int = 0, fps: float = 10.0) -> Path:
-    """Film one episode to ``path`` (MP4, written to a temporary name first)."""
-    renderer = get_renderer(town, weather, seed, ("centre",))
+                seed: int = 0, fps: float = 10.0, family: str = DEFAULT_FAMILY) -> Path:
+    """Film one episode to ``path`` (MP4, written to a temporary name first), its ``weather`` rendered as
+    ``family`` renders it: the film shows what the run's cameras saw."""
+    renderer = get_renderer(town, get_weather(weather, family), seed, ("centre",))
     outcome = "reached the goal" if row["success"] else f"failed: {row['reason'].replace('_', ' ')}"
     title = f"{row['key']}  ({row['route']}):  {outcome}"
     path = Path(path)
@@ -129,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for r in chosen:
         path = Path(args.run_dir) / "videos" / f"{r['key'].replace('/', '_')}.mp4"
         write_video(path, r, trajs[r["key"]], load_town(towns.get(r["town"], r["town"])), r["weather"],
-                    int(run.meta.get("seed", 0)))
+                    int(run.meta.get("seed", 0)), family=run_weather_family(run.meta))
         print(path)
     return 0
 

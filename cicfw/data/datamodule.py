@@ -161,6 +161,11 @@ class CILDataModule(L.LightningDataModule):
             # none left: an error naming the ids the validation episodes hold (else no metric after epoch 1)
             chosen = chosen_cameras(val.camera, self.val_cameras, "val_cameras", "validation samples: they")
             val = val.subset(chosen)
+        rank, world = self._rank()
+        if not self.balanced and len(train) < self.batch_size * world:
+            # drop_last batches of more samples than the split holds: an epoch of no step, a run that trains nothing
+            raise ConfigError("data.batch_size", self.batch_size,
+                              f"at most the {len(train) // world} training samples per rank with data.balanced=false")
         counts = dict(zip(COMMANDS, np.bincount(train.command, minlength=4).tolist()))
         log.info("data: %d train / %d val samples from %d files; train per command %s",
                  len(train), len(val), len(frames.files), counts)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,17 +70,37 @@ def folder_metadata(folder: Path) -> dict:
     return data
 
 
+#: a part of a collected episode as cicfw.collect names it: ``<episode id>_<part>.h5`` (ep0003_town_a_ClearNoon_001.h5)
+EPISODE_PART = re.compile(r"^(ep\d{4}_.+)_\d{3}\.h5$")
+
+
 def episode_groups(files: list[Path]) -> np.ndarray:
     """Episode id per file: from ``dataset_metadata.json`` (key ``files``: name -> {episode}) when a
-    folder has one, else each file is its own episode (CoRL-2017 files are separate recordings)."""
+    folder has one, else each file is its own episode (CoRL-2017 files are separate recordings), but for
+    the parts of a collected episode copied without their metadata, grouped by name (``EPISODE_PART``):
+    split one per file, an episode would train and validate at once."""
     meta_cache: dict[Path, dict] = {}
     keys: list[str] = []
+    by_name: dict[Path, list[str]] = {}  # folder -> the episode ids its files' names gave
     for f in files:
         if f.parent not in meta_cache:
             meta_cache[f.parent] = folder_metadata(f.parent).get("files", {})
         entry = meta_cache[f.parent].get(f.name)
-        keys.append(f"{f.parent}/episode:{entry['episode']}" if entry and "episode" in entry else str(f))
+        part = None if meta_cache[f.parent] else EPISODE_PART.match(f.name)
+        if entry and "episode" in entry:
+            keys.append(f"{f.parent}/episode:{entry['episode']}")
+        elif part:
+            keys.append(f"{f.parent}/episode:{part.group(1)}")
+            by_name.setdefault(f.parent, []).append(part.group(1))
+        else:
+            keys.append(str(f))
     _, groups = np.unique(np.array(keys), return_inverse=True)
+    for folder, ids in by_name.items():
+        if len(set(ids)) < len(ids):  # some episode has several parts here
+            log.warning("%s has no %s: its %d collected file(s) are grouped into %d episodes by their names "
+                        "(<episode>_<part>.h5), so that no episode is split between training and validation; "
+                        "copy the collection's %s with them to say so", folder, META_NAME, len(ids),
+                        len(set(ids)), META_NAME)
     return groups.astype(np.int32)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import cell_key, cell_name
 from cicfw.benchmark.suite import CELLS
+from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
 
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
@@ -107,6 +108,11 @@ def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]
     ok, failed = [], []
     for p in cell_files(results_dir):
         c = load_cell(p)
+        if isinstance(c, CellResult) and (c.row, f"seed{c.seed}") != (p.parent.parent.name, p.parent.name):
+            # a cell folder copied under another name (seed0 as seed2) would count its seed twice
+            raise CicfwError(f"{p}: a cell of row {c.row!r} seed {c.seed} in the folder of row "
+                             f"{p.parent.parent.name!r} {p.parent.name}: each cell lies in cells/<row>/seed<k>; "
+                             f"move it back or remove the copy", key="cell", value=str(p))
         (ok if isinstance(c, CellResult) else failed).append(c)
     return ok, failed
 

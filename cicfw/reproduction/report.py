@@ -707,7 +707,8 @@ def _colour(plt: Any, k: int) -> Any:
 
 
 def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
-    """Success per column with 95% t-interval bars (over seeds) for each row; the paper's values as crosses
+    """Success per column with 95% t-interval bars (over seeds; a column's widened to its episodes' floor, as the
+    table's) for each row; the paper's values as crosses
     in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
     plt = _plt()
     rows = data["rows"]
@@ -734,7 +735,9 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=min(len(rows) + 1, 4), frameon=False)
     suite = (data["manifest"].get("suite") or {}).get("name", "?")
-    ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds")
+    # the bars are row_estimate's: a column's t-interval is widened to its pooled episodes' Clopper-Pearson one
+    ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds\n"
+                 f"(in a column never narrower than its pooled episodes' Clopper-Pearson interval)", fontsize=10)
     return _save(fig, Path(path))
 
 
@@ -819,7 +822,8 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     ax.set_ylim(-3, 105)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title("Learning curve on the single-turn suite (band: min..max over seeds)")
+    suite = (data["manifest"].get("suite") or {}).get("name", "?")  # a budget may drive another suite
+    ax.set_title(f"Learning curve on suite {suite} (band: min..max over seeds)")
     return _save(fig, Path(path))
 
 
