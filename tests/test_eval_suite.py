@@ -273,3 +273,31 @@ def test_a_video_renders_the_weather_family_the_run_drove_under(tmp_path, monkey
         video.main([str(tmp_path), "0"])
     assert seen == [WEATHER_FAMILIES[family]["MidRainyNoon"]]
     assert WEATHER_FAMILIES["harsh"]["MidRainyNoon"] != WEATHER_FAMILIES["carla"]["MidRainyNoon"]
+
+
+def test_a_film_cut_short_leaves_no_half_written_file(tmp_path, monkeypatch):
+    """A render that fails after the MP4 writer opened (an error, Ctrl-C) leaves neither the film nor its
+    hidden temporary file."""
+    import numpy as np
+
+    import cicfw.benchmark.video as video
+
+    class Cut(Exception):
+        pass
+
+    class Renderer:
+        calls = 0
+
+        def render(self, x, y, yaw, t):
+            Renderer.calls += 1
+            if Renderer.calls > 2:
+                raise Cut
+            return {"centre": np.zeros((88, 200, 3), np.uint8)}
+
+    monkeypatch.setattr(video, "get_renderer", lambda *a, **k: Renderer())
+    tr = {k: np.zeros(4) for k in ("x", "y", "yaw", "steer", "speed_kmh")}
+    tr["command"] = np.full(4, 2)
+    row = {"key": "town_a/ClearNoon/000", "route": "r", "success": False, "reason": "timeout"}
+    with pytest.raises(Cut):
+        video.write_video(tmp_path / "film.mp4", row, tr, None, "ClearNoon")
+    assert Renderer.calls == 3 and list(tmp_path.iterdir()) == []

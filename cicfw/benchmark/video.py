@@ -103,6 +103,12 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
                 if not writer.isOpened():
                     raise RuntimeError("OpenCV could not open an MP4 writer (codec mp4v)")
             writer.write(frame)
+    except BaseException:  # a film cut short (an error, Ctrl-C) is no film: no half-written file left
+        if writer is not None:
+            writer.release()
+            writer = None
+        tmp.unlink(missing_ok=True)
+        raise
     finally:
         if writer is not None:
             writer.release()
