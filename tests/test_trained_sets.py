@@ -175,3 +175,16 @@ def test_an_exported_model_s_evaluation_labels_the_columns_with_its_sidecar_s_da
         {"training_dataset": {"path": _collected_in_town_b(tmp_path)["path"], "hash": None}}))
     assert training_set_overrides(checkpoint_run_data(model), []) == [
         "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]
+
+
+def test_data_that_says_nothing_leaves_the_default_columns_with_a_warning(tmp_path, caplog):
+    """Data without a collection's metadata (a public CIL folder, one whose metadata was lost): the default
+    training columns are kept, and the evaluation says they are the defaults, not the data's."""
+    data = OmegaConf.create({"path": str(tmp_path)})
+    with caplog.at_level("WARNING", logger="cicfw.benchmark.trained_sets"):
+        assert training_set_overrides(data, []) == []
+    assert [r for r in caplog.records if str(tmp_path) in r.getMessage() and "defaults" in r.getMessage()]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="cicfw.benchmark.trained_sets"):  # the user named both: nothing to say
+        training_set_overrides(data, ["suite.training_towns=[town_b]", "suite.training_weathers=[ClearNoon]"])
+    assert not caplog.records

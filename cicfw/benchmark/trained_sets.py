@@ -5,16 +5,19 @@ in town_b under CloudyNoon as tested in its training town under its training wea
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any, Sequence
 
 from omegaconf import OmegaConf
 
-from cicfw.benchmark.suite import PAPER_WEATHERS, town_label
+from cicfw.benchmark.suite import PAPER_WEATHERS, TRAINING_TOWNS, TRAINING_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
 from cicfw.data.provenance import folder_record
 from cicfw.model.checkpoint import checkpoint_record
+
+log = logging.getLogger(__name__)
 
 #: the embedded simulator's shipped towns (conf/town/)
 SHIPPED_TOWNS = ("town_a", "town_b")
@@ -51,6 +54,12 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
     weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say."""
     found = data_sets(data_cfg)
     if found is None:
+        if data_cfg is not None and not {"suite.training_towns", "suite.training_weathers"} <= set(
+                override_values(overrides)):  # a label nobody chose: say so rather than pass it for the data's
+            log.warning("the data (%s) says nothing of the towns and weathers it was collected in (no %s): the "
+                        "table's training columns are the suite's defaults (%s; %s) unless suite.training_towns / "
+                        "suite.training_weathers name them", data_cfg.get("path") if hasattr(data_cfg, "get") else
+                        data_cfg, "dataset_metadata.json", ", ".join(TRAINING_TOWNS), ", ".join(TRAINING_WEATHERS))
         return []
     given = override_values(overrides)
     if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
