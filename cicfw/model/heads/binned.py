@@ -19,22 +19,18 @@ from cicfw.model.heads.bins import SteeringBins
 DECODERS = ("argmax", "expectation")
 
 
-def _number(x: object) -> bool:
-    return is_number(x)  # finite: an inf weight or width would train on a non-finite loss
-
-
 def make_bins(n_classes: object, low: object, high: object, bin_width: object | None) -> SteeringBins:
     """SteeringBins from the head's kwargs, or one ValueError naming the mismatch."""
     if isinstance(n_classes, bool) or not isinstance(n_classes, int) or n_classes < 2:
         raise ConfigError("head.n_classes", n_classes, "an integer >= 2",
                          f"head.n_classes={n_classes!r} is not valid; use an integer >= 2 (paper: 9)")
-    if not (_number(low) and _number(high) and -1.0 <= low < high <= 1.0):
+    if not (is_number(low) and is_number(high) and -1.0 <= low < high <= 1.0):
         raise ConfigError(
             "head.low", [low, high], "-1 <= low < high <= 1",
             f"head.low={low!r}, head.high={high!r} are not valid; need -1 <= low < high <= 1 "
             f"(paper: -0.9, 0.9)")
     if bin_width is not None:
-        if not (_number(bin_width) and bin_width > 0):
+        if not (is_number(bin_width) and bin_width > 0):
             raise ConfigError("head.bin_width", bin_width, "a number > 0 or null",
                              f"head.bin_width={bin_width!r} is not valid; use a number > 0 or null (paper: 0.2)")
         if not math.isclose(n_classes * bin_width, high - low, rel_tol=1e-6, abs_tol=1e-9):

@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 
 from cicfw.core.errors import ConfigError
-from cicfw.model.heads.binned import BinnedHead, _number
+from cicfw.core.config_checks import is_number
+from cicfw.model.heads.binned import BinnedHead
 from cicfw.registry import HEADS
 
 
@@ -24,11 +25,11 @@ class CoexistenceHead(BinnedHead):
     """−(1−W)·CCE − W·Oᵀ μ O; decode the argmax midpoint (or the expectation)."""
 
     def __init__(self, W: float = 0.6, sigma2: float = 1.0, **bins_kwargs) -> None:
-        if not (_number(W) and 0.0 < W < 1.0):
+        if not (is_number(W) and 0.0 < W < 1.0):
             raise ConfigError("head.W", W, "a number in (0, 1)",
                              f"head.W={W!r} is not valid; the co-existence weight must be in the open interval "
                              f"(0, 1) (paper: 0.4, 0.6, 0.8; best 0.6)")
-        if not (_number(sigma2) and sigma2 > 0):
+        if not (is_number(sigma2) and sigma2 > 0):
             raise ConfigError("head.sigma2", sigma2, "a finite number > 0",
                              f"head.sigma2={sigma2!r} is not valid; the Gaussian's variance must be a finite number > 0 "
                              f"(paper: 1)")

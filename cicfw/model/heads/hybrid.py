@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 
 from cicfw.core.errors import ConfigError
-from cicfw.model.heads.binned import BinnedHead, _number
+from cicfw.core.config_checks import is_number
+from cicfw.model.heads.binned import BinnedHead
 from cicfw.registry import HEADS
 
 
@@ -20,7 +21,7 @@ class HybridHead(BinnedHead):
     default_decode = "expectation"
 
     def __init__(self, W: float = 10.0, **bins_kwargs) -> None:
-        if not (_number(W) and W >= 0):
+        if not (is_number(W) and W >= 0):
             raise ConfigError("head.W", W, "a finite number >= 0",
                              f"head.W={W!r} is not valid; the weight of the squared term must be a finite number >= 0 "
                              f"(paper: 5, 10, 15; best 10)")
