@@ -92,7 +92,7 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.mp4")
-    writer = None
+    writer, filmed = None, False
     try:
         for k in range(len(tr["x"])):
             img = renderer.render(float(tr["x"][k]), float(tr["y"][k]), float(tr["yaw"][k]), k * 0.1)["centre"]
@@ -103,15 +103,12 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
                 if not writer.isOpened():
                     raise RuntimeError("OpenCV could not open an MP4 writer (codec mp4v)")
             writer.write(frame)
-    except BaseException:  # a film cut short (an error, Ctrl-C) is no film: no half-written file left
-        if writer is not None:
-            writer.release()
-            writer = None
-        tmp.unlink(missing_ok=True)
-        raise
+        filmed = True
     finally:
         if writer is not None:
             writer.release()
+        if not filmed:  # a film cut short (an error, Ctrl-C) is no film: no half-written file left
+            tmp.unlink(missing_ok=True)
     os.replace(tmp, path)
     return path
 
