@@ -52,17 +52,17 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
     ``overrides`` give it; only names the suite accepts as training ones (a shipped town or one the overrides
     drive; one of the paper's weathers or one the overrides drive), so that data collected under other
     weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say."""
+    given = override_values(overrides)
+    if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
+        return []
     found = data_sets(data_cfg)
     if found is None:
-        if data_cfg is not None and not {"suite.training_towns", "suite.training_weathers"} <= set(
-                override_values(overrides)):  # a label nobody chose: say so rather than pass it for the data's
+        if data_cfg is not None and not {"suite.training_towns", "suite.training_weathers"} <= set(given):
+            # a label nobody chose: say so rather than pass it for the data's
             log.warning("the data (%s) says nothing of the towns and weathers it was collected in (no %s): the "
                         "table's training columns are the suite's defaults (%s; %s) unless suite.training_towns / "
                         "suite.training_weathers name them", data_cfg.get("path") if hasattr(data_cfg, "get") else
                         data_cfg, "dataset_metadata.json", ", ".join(TRAINING_TOWNS), ", ".join(TRAINING_WEATHERS))
-        return []
-    given = override_values(overrides)
-    if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
         return []
     towns, weathers = found
     driven_towns = {town_label(t) for t in (given.get("suite.towns") or ())}

@@ -247,7 +247,7 @@ class SweepSummary(Callback):
         log.info("sweep summary: job %d %s (%s) -> %s", row["job"], row["status"], shown, target)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        _RUNNING.clear()  # the sweeper returned: its own result stands
+        forget_running_sweep()  # the sweeper returned: its own result stands
         sweep_dir = Path(config.hydra.sweep.dir)
         if not is_worker_process() and (sweep_dir / ROWS_DIR).is_dir():
             target = rebuild_summary(sweep_dir, self.filename)

@@ -692,8 +692,8 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
     trained = cell_dir / "train" / "trained.json"
     epochs = int(tcfg.trainer.max_epochs)
     if not trained.is_file():
-        # the last epoch's checkpoint is saved before that epoch's validation: resumed from, it would train and
-        # validate nothing (val_steer_mae NaN), so a cell killed after it trains its last epoch again
+        # resumed from the last epoch's checkpoint, training has nothing left to train or validate (its
+        # val_steer_mae NaN), so a cell killed after that file was written trains its last epoch again
         saved = [p for p in sorted(ckpts.glob("epoch[0-9][0-9][0-9].ckpt")) if int(p.stem[len("epoch"):]) < epochs]
         resumed = None
         if saved:  # a killed cell: resume its training from the latest epoch it saved
