@@ -54,6 +54,9 @@ def test_checkpoint_round_trip_and_policy_uses_the_commands_branch(ckpt: Path):
         assert torch.equal(a, b)
     pol = CheckpointPolicy(checkpoint=str(ckpt))
     assert pol.cameras == ("centre",) and pol.label == "gtu+hybrid"
+    side = CheckpointPolicy(checkpoint=str(ckpt), camera="left")  # a table row must not read as the centre's
+    assert side.cameras == ("left",) and side.label == "gtu+hybrid (left camera)"
+    assert CheckpointPolicy(checkpoint=str(ckpt), camera="left", label="mine").label == "mine"
     rng = np.random.default_rng(0)
     img = rng.integers(0, 255, (4, 88, 200, 3), dtype=np.uint8)
     speed = np.array([5.0, 10.0, 15.0, 20.0], np.float32)

@@ -342,8 +342,11 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
 
 
 def test_more_frames_than_the_rendered_episodes_hold_are_refused_before_the_model_loads(tmp_path, monkeypatch):
+    from cicfw.sim.render import Renderer
+
     ckpt = tiny_checkpoint(tmp_path / "m.ckpt", "independent", "regression")
     monkeypatch.setattr(export, "load_model", lambda *a, **k: pytest.fail("the model loaded before n_frames was checked"))
+    monkeypatch.setattr(Renderer, "render", lambda *a, **k: pytest.fail("a frame drawn before n_frames was checked"))
     with pytest.raises(ExportError) as err:
         export_model(ckpt, "torchscript", tmp_path / "m.pt", n_frames=100_000)
     assert (err.value.key, err.value.value) == ("n_frames", 100_000)

@@ -27,7 +27,7 @@ def _after_training(tmp_path: Path, monkeypatch, overrides: list[str], fast_dev_
 
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", drive)
     saved = []
-    trainer = SimpleNamespace(checkpoint_callback=None, fast_dev_run=fast_dev_run, logger=None, global_step=1,
+    trainer = SimpleNamespace(checkpoint_callbacks=[], fast_dev_run=fast_dev_run, logger=None, global_step=1,
                               save_checkpoint=saved.append)
     evaluate.evaluate_after_training(OmegaConf.create({"evaluate_overrides": overrides}), trainer, tmp_path)
     assert saved == [str(tmp_path / "checkpoints" / "final.ckpt")] == [seen["path"]]
@@ -71,3 +71,20 @@ def test_debug_fast_with_evaluate_after_drives_the_first_pair(tiny_data: Path, t
     s = json.loads((tmp_path / "run" / "evaluate" / "summary.json").read_text())
     assert s["episodes"] == 1 and s["complete"] is True
     assert Path(s["checkpoint"]) == tmp_path / "run" / "checkpoints" / "final.ckpt"
+
+
+@pytest.mark.slow  # trains one step and drives one episode
+def test_a_training_without_validation_drives_its_last_checkpoint_without_a_copy(tiny_data: Path, tmp_path: Path):
+    from cicfw.train.app import train
+    from conftest import compose_train
+
+    overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "suite.limit=1", "maps=false",
+                 "runner.threads=1"]
+    cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "progress_bar=false",
+                        "trainer.max_steps=1", "trainer.limit_val_batches=0", "evaluate_after=true",
+                        f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
+    train(cfg, tmp_path / "run")
+    checkpoints = tmp_path / "run" / "checkpoints"
+    assert sorted(p.name for p in checkpoints.iterdir()) == ["last.ckpt"]  # no final.ckpt beside it
+    s = json.loads((tmp_path / "run" / "evaluate" / "summary.json").read_text())
+    assert Path(s["checkpoint"]) == checkpoints / "last.ckpt"

@@ -176,6 +176,13 @@ def test_verify_on_the_real_command_line_with_the_flag(collected):
     assert lines[-1].startswith("cicfw: error: 1 of 2 file(s) of "), lines
 
 
+def test_verify_leaves_no_run_folder(collected, tmp_path):
+    out, _ = collected
+    r = run_app_in_process("cicfw.collect", f"out_dir={out}", "--verify", cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout.startswith(f"verified {out}: "), r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["collected"]  # no outputs/<date>/<time>
+
+
 def test_verify_of_a_folder_without_a_dataset_is_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         collect_mod.run(_collect_cfg(tmp_path / "none", "verify=true"))

@@ -266,6 +266,27 @@ def test_ctrl_c_in_a_cell_advises_the_same_command(tmp_path, monkeypatch):
     assert not (out / "reproduce.lock").exists()
 
 
+def test_ctrl_c_in_the_final_report_says_the_cells_are_kept_and_how_to_write_it(tmp_path, monkeypatch):
+    """Ctrl-C while the report is written after the cells ended in a bare "cicfw: interrupted"."""
+    from cicfw.core.errors import Interrupted
+
+    def failed(cfg, row, seed, cell_dir):
+        raise RuntimeError("not trained here")
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", failed)
+    monkeypatch.setattr(reproduce, "write_configured", stopped)
+    out = tmp_path / "results"
+    with pytest.raises(Interrupted) as err:
+        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
+    assert f"kept in {out}" in str(err.value) and f"cicfw report {out}" in str(err.value), str(err.value)
+    assert not (out / "reproduce.lock").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # checked before any cell and before collecting
 

@@ -144,6 +144,17 @@ def test_a_filter_dropping_most_rows_says_how_many_and_why(tmp_path, caplog):
     assert f"{160 - len(frames)} of 160" in lines[0] and "degrees" in lines[0]
 
 
+def test_a_large_side_camera_correction_is_named_as_the_cause_not_the_units(tmp_path, caplog):
+    from cicfw.data.frames import load_frames
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=40)  # steer within 0.6, side cameras at +-30 deg
+    with caplog.at_level(logging.WARNING, logger="cicfw"):
+        load_frames(str(data), max_abs_steer=0.8, side_camera_correction=2.0)
+    lines = [r.getMessage() for r in caplog.records if "data.max_abs_steer" in r.getMessage()]
+    assert len(lines) == 1, [r.getMessage() for r in caplog.records]
+    assert "data.side_camera_correction=2 " in lines[0] and "degrees" not in lines[0], lines[0]
+
+
 def test_too_few_episodes_after_the_filters_names_episodes_and_files(tmp_path):
     from cicfw.data.frames import load_frames, split_by_episode
 

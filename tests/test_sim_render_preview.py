@@ -25,3 +25,24 @@ def test_preview_rejects_unknown_weather(tmp_path, capsys):
         preview.main(["--out", str(tmp_path), "--weathers", "Foggy"])
     err = capsys.readouterr().err
     assert "unknown weather 'Foggy'" in err and "ClearNoon" in err
+
+
+def test_preview_draws_the_weather_family_it_is_given(tmp_path):
+    """The two families render MidRainyNoon differently (harsh: overcast, fog at 70 m)."""
+    sheets = {}
+    for family in ("carla", "harsh"):
+        out = tmp_path / family
+        assert preview.main(["--out", str(out), "--towns", "town_b", "--weathers", "MidRainyNoon", "--scale", "1",
+                             "--routes", "0", "--weather-family", family]) == 0
+        sheets[family] = cv2.imread(str(out / "contact_sheet.png"))
+    assert sheets["carla"].shape == sheets["harsh"].shape
+    assert (sheets["carla"] != sheets["harsh"]).mean() > 0.1  # the pictures, not only the title
+
+
+def test_preview_rejects_an_unknown_weather_family_before_writing(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        preview.main(["--out", str(tmp_path / "pics"), "--weather-family", "gloomy"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'gloomy'" in err[0] and "carla" in err[0] and "harsh" in err[0], err
+    assert not (tmp_path / "pics").exists()

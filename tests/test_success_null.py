@@ -62,7 +62,7 @@ def test_after_training_metrics_leave_out_a_missing_rate(tmp_path, monkeypatch):
 
     monkeypatch.setattr(evaluate, "evaluate_checkpoint",
                         lambda *a, **k: {"success": None, "cells": {}})
-    trainer = SimpleNamespace(checkpoint_callback=None, fast_dev_run=False, logger=None, global_step=0,
+    trainer = SimpleNamespace(checkpoint_callbacks=[], fast_dev_run=False, logger=None, global_step=0,
                               save_checkpoint=lambda p: Path(p).parent.mkdir(parents=True, exist_ok=True))
     cfg = SimpleNamespace(get=lambda key, default=None: None)
     evaluate.evaluate_after_training(cfg, trainer, tmp_path)

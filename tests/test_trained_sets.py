@@ -54,7 +54,7 @@ def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
     best = tmp_path / "checkpoints" / "best.ckpt"
     best.parent.mkdir()
     best.write_bytes(b"weights")
-    trainer = SimpleNamespace(checkpoint_callback=SimpleNamespace(best_model_path=str(best), last_model_path=""),
+    trainer = SimpleNamespace(checkpoint_callbacks=[SimpleNamespace(best_model_path=str(best), last_model_path="")],
                               fast_dev_run=False, logger=None, global_step=1)
     cfg = compose_train("++data.collect.towns=[town_b]", "++data.collect.weathers=[MidRainyNoon]",
                         "evaluate_overrides=['suite.limit=1']")

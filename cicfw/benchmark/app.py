@@ -477,9 +477,11 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary, whose
     ``success`` is a number: it returns only once every episode is driven (a stop raises ``Interrupted``)."""
     run_dir = Path(run_dir)
-    cb = trainer.checkpoint_callback
-    path = (cb.best_model_path or cb.last_model_path) if cb is not None else ""
-    if not path or not Path(path).is_file():
+    # the best checkpoint's callback comes first; without validation it saved none, and last.ckpt's has the
+    # final weights: saving them again as final.ckpt would keep two copies of the same weights
+    path = next((p for cb in trainer.checkpoint_callbacks for p in (cb.best_model_path, cb.last_model_path)
+                 if p and Path(p).is_file()), "")
+    if not path:
         path = str(run_dir / "checkpoints" / "final.ckpt")
         trainer.save_checkpoint(path)
         why = "trainer.fast_dev_run saves none" if trainer.fast_dev_run else "none was saved"

@@ -14,7 +14,8 @@ from cicfw.sim.render.camera import CAMERAS
 
 
 class CheckpointPolicy(Policy):
-    """A trained CICModule steering from the centre camera (as in the paper), in eval mode, no grad.
+    """A trained CICModule steering from ``camera`` (the centre one as in the paper; another is named in
+    the row label), in eval mode, no grad.
 
     It drives through ``cicfw.export.agent.Agent`` (one inference path for the suite, CARLA and a user's own
     stack): the CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
@@ -39,7 +40,7 @@ class CheckpointPolicy(Policy):
         self.device = self.agent.device
         self.model = self.agent.model  # the CICModule (None for an exported model)
         self.cameras = (camera,)
-        self.label = label or self.agent.label
+        self.label = label or self.agent.label + ("" if camera == "centre" else f" ({camera} camera)")
 
     def act(self, obs: Observations) -> np.ndarray:
         return self.agent.act(obs.images[self.cameras[0]], obs.speed_kmh, obs.command)

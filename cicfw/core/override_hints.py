@@ -92,9 +92,13 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
     """One line for an argument Hydra cannot parse: which, Hydra's reason, and a hint only where the cause is
     known: a value the shell split at a space (``model.lr=1 e-3`` typed without quotes reaches Hydra as
     ``model.lr=1`` and ``e-3``: joined again they parse), a list element holding ``=`` (it must be quoted),
-    brackets left open."""
-    said = [ln.strip() for ln in message.splitlines()[1:] if ln.strip() and not ln.startswith("See https://")]
+    brackets left open, a '~' (the shell expands it only at the start of a word)."""
+    lines = message.splitlines()
+    said = [ln.strip() for ln in lines[1:] if ln.strip() and not ln.startswith("See https://")]
     reason = said[0] if said else "not in Hydra's override grammar"
+    if reason == "^":  # the lexer's: the argument ends its first line, the caret is under what it cannot read
+        at = lines[1].index("^") - len(lines[0]) + len(override)
+        reason = f"{override[at:at + 1]!r} at character {at + 1} is not in Hydra's override grammar"
     line = f"cannot parse the argument {override!r} ({reason})"
     joined = _rejoined(override, args)
     if joined is not None:
@@ -105,6 +109,8 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
         return f"{line}: a list element holding '=' must be quoted, e.g. '{quoted}'"
     if any(value.count(a) != value.count(b) for a, b in ("[]", "{}", "()")):
         return f"{line}: its brackets do not close"
+    if eq and value.startswith("~"):
+        return f"{line}: the shell expands '~' only at the start of a word; write $HOME, e.g. {key}=$HOME{value[1:]}"
     return line
 
 

@@ -194,23 +194,25 @@ def _read_rows(rows_dir: Path, say: bool = False) -> list[dict[str, Any]]:
     return rows
 
 
-_RUNNING: list[Path] = []  # the sweep folder of the sweep this process runs (``SweepSummary``), while it runs
+_running: Path | None = None  # the sweep folder of the sweep this process runs (``SweepSummary``), while it runs
 
 
 def forget_running_sweep() -> None:
     """Forget the sweep ``SweepSummary`` noted: it ended, even where Hydra skipped ``on_multirun_end``
     (its sweeper raised), so that it cannot speak for a later run's error in this process."""
-    _RUNNING.clear()
+    global _running
+    _running = None
 
 
 def every_job_failed() -> str | None:
     """One line when every job of the sweep this process runs failed (an Optuna search then has no best
     trial and its sweeper raises): how many, and where their errors are; None otherwise."""
-    for sweep_dir in _RUNNING:
-        rows = _read_rows(sweep_dir / ROWS_DIR)
-        if rows and all(r.get("status") == "failed" for r in rows):
-            return (f"every one of the sweep's {len(rows)} job(s) failed; their errors: {sweep_dir / 'summary.csv'} "
-                    f"(the error column) and each job's log in its folder (e.g. {rows[0].get('output_dir')})")
+    if _running is None:
+        return None
+    rows = _read_rows(_running / ROWS_DIR)
+    if rows and all(r.get("status") == "failed" for r in rows):
+        return (f"every one of the sweep's {len(rows)} job(s) failed; their errors: {_running / 'summary.csv'} "
+                f"(the error column) and each job's log in its folder (e.g. {rows[0].get('output_dir')})")
     return None
 
 
@@ -233,7 +235,8 @@ class SweepSummary(Callback):
         if is_worker_process():
             return
         rows_dir = Path(config.hydra.sweep.dir) / ROWS_DIR
-        _RUNNING[:] = [rows_dir.parent]
+        global _running
+        _running = rows_dir.parent
         atomic_write(rows_dir / SWEEP_FILE, json.dumps({"overrides": list(config.hydra.overrides.task)}))
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:

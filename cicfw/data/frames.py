@@ -8,7 +8,7 @@ import hashlib
 import logging
 import re
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -189,6 +189,7 @@ class _Tally:
     neg_rows: int = 0
     neg_files: int = 0
     lowest: tuple[float, str, int] = (0.0, "", 0)  # the most negative speed: value, file, row
+    recorded: list = field(default_factory=list)  # per file, |steer| as recorded (before the side-camera correction)
 
 
 def _columns(f: Path, i: int, t: np.ndarray, cameras: tuple[int, ...] | None, side_camera_correction: float,
@@ -226,6 +227,7 @@ def _columns(f: Path, i: int, t: np.ndarray, cameras: tuple[int, ...] | None, si
     camera = t[rows, T.CAMERA_ID].astype(np.int32)
     if cameras is not None:
         _warn_unknown_cameras(f, camera, cameras)
+    tally.recorded.append(np.abs(t[rows, T.STEER]))
     steer = t[rows, T.STEER] - side_camera_correction * t[rows, T.CAMERA_YAW] / 30.0
     return (np.full(len(rows), i, np.int32), rows.astype(np.int32), steer.astype(np.float32),
             t[rows, T.SPEED].astype(np.float32), (codes[rows] - 2).astype(np.int64), camera)
@@ -307,7 +309,7 @@ def load_frames(
     if not keep.any():
         raise _nothing_left(path, len(files), tally, len(frames), int(by_steer.sum()),
                             int((~by_steer & ~keep).sum()), max_abs_steer, cameras)
-    _say_steer_filter(frames.steer, by_steer, max_abs_steer)
+    _say_steer_filter(by_steer, max_abs_steer, np.concatenate(tally.recorded), side_camera_correction)
     return frames.subset(keep)
 
 
@@ -315,16 +317,23 @@ def load_frames(
 DROP_WARN_SHARE = 0.10
 
 
-def _say_steer_filter(steer: np.ndarray, dropped: np.ndarray, max_abs_steer: float) -> None:
+def _say_steer_filter(dropped: np.ndarray, max_abs_steer: float, recorded: np.ndarray, correction: float) -> None:
     """One warning when ``data.max_abs_steer`` drops more than ``DROP_WARN_SHARE`` of the samples: how many,
-    why, and the likely cause (steering stored in degrees or radians rather than CIL's [-1, 1])."""
-    n, k = len(steer), int(dropped.sum())
+    why, and the likely cause: steering stored in degrees or radians rather than CIL's [-1, 1], a
+    side-camera correction that pushes labels the recorded steer keeps (``recorded``: |steer| as recorded)
+    beyond the filter, or a steering scaled otherwise."""
+    n, k = len(dropped), int(dropped.sum())
     if not n or k <= DROP_WARN_SHARE * n:
         return
-    top = float(np.abs(steer).max())
-    cause = (f"|steer| reaches {top:.3g}, beyond CIL's [-1, 1]: targets[0] likely holds degrees or radians; "
-             f"convert it to [-1, 1] (steering angle / the car's largest angle)" if top > 1.0 else
-             "if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)")
+    top, by_recorded = float(recorded.max()), int((recorded > max_abs_steer).sum())
+    if top > 1.0:
+        cause = (f"the recorded |steer| reaches {top:.3g}, beyond CIL's [-1, 1]: targets[0] likely holds degrees "
+                 f"or radians; convert it to [-1, 1] (steering angle / the car's largest angle)")
+    elif by_recorded <= DROP_WARN_SHARE * n:  # the recorded labels pass: the correction moved the side cameras'
+        cause = (f"as recorded, only {by_recorded} are: data.side_camera_correction={correction:g} (the label "
+                 f"offset per 30 deg of camera yaw) moves the side cameras' labels past it; set it nearer CIL's 0.15")
+    else:
+        cause = "if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)"
     log.warning("data.max_abs_steer=%g drops %d of %d samples (%.0f%%): their |steer| (after the side-camera "
                 "correction) is above it; %s", max_abs_steer, k, n, 100.0 * k / n, cause)
 

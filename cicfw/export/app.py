@@ -48,6 +48,7 @@ from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, desc
                                     refuse_exported_model, resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
+from cicfw.sim.env import get_renderer
 
 log = logging.getLogger("cicfw.export")
 
@@ -100,9 +101,9 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
     backend = EmbeddedBackend()
     routes = backend.single_turn_routes(town)
     frames, names = [], []
-    for code in (3, 4):  # left, right
+    for code in (3, 4):  # left, right: driven without pictures, so n_frames is checked before any is drawn
         route = next(r for r in routes if code in np.asarray(r.commands))
-        env = backend.make_env(town, route, weather, cameras=("centre",))
+        env = backend.make_env(town, route, weather, cameras=("centre",), renderer=False)
         obs, step = env.reset(), 0
         while True:
             frames.append(obs)
@@ -115,7 +116,8 @@ def rendered_frames(n: int, town: str = "town_a", weather: str = "ClearNoon") ->
     enough_frames(n, len(frames), f"the embedded simulator's two rendered episodes ({town})",
                   ", or frames=<a CIL HDF5 file or folder>")
     pick = np.linspace(0, len(frames) - 1, n).round().astype(int)
-    return CheckInputs(np.stack([frames[i]["images"]["centre"] for i in pick]),
+    renderer = get_renderer(env.town, env.weather, env.seed, env.cameras)  # the one make_env would have drawn with
+    return CheckInputs(np.stack([renderer.render(*frames[i]["pose"], frames[i]["t"])["centre"] for i in pick]),
                        np.array([frames[i]["speed_kmh"] for i in pick], np.float32),
                        np.array([frames[i]["command"] for i in pick], np.int64), [names[i] for i in pick])
 

@@ -57,7 +57,7 @@ from cicfw.benchmark.app import compose_config, evaluate
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
 from cicfw.core.config_checks import config_error
-from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging
+from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging, on_interrupt
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
@@ -841,7 +841,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                           f"them and resumes the unfinished cell from its last epoch checkpoint") from None
     finally:
         try:
-            data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
+            publish = f" --publish {cfg.publish_dir}" if cfg.get("publish_dir") else ""
+            with on_interrupt(f"the finished cells are kept in {cfg.results_dir}; write their report with cicfw report "
+                              f"{cfg.results_dir}{publish}, or run the same command again"):
+                data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
         except ValueError as err:

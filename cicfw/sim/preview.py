@@ -1,10 +1,11 @@
 """Pictures of the embedded simulator: ``python -m cicfw.sim.preview --out DIR``.
 
 Writes ``contact_sheet.png`` (the three cameras x the weathers x the towns, a dozen metres before a
-junction), ``turn_sheet.png`` (the cameras in the middle of a left turn) and ``map_<town>.png`` (a
-top-down map drawn from the renderer's ground texture with buildings, trees and a few routes
-coloured by their high-level command). A bad value (unknown town or weather, a missing or broken town
-file, an unwritable folder) prints one line, ``cicfw: error: ...``, and exits with status 2.
+junction), ``turn_sheet.png`` (the cameras in the middle of a left turn), both in the ``--weather-family`` a
+run names as ``sim.weather_family``, and ``map_<town>.png`` (a top-down map drawn from the renderer's ground
+texture with buildings, trees and a few routes coloured by their high-level command). A bad value (unknown
+town or weather, a missing or broken town file, an unwritable folder) prints one line, ``cicfw: error:
+...``, and exits with status 2.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
+from cicfw.sim.render.weather import DEFAULT_FAMILY, WEATHER_FAMILIES, get_weather, weather_family
 from cicfw.sim.roadgraph import road_graph, single_turn_routes
 from cicfw.sim.town import load_town, town_names
 
@@ -99,25 +101,27 @@ def _grid(rows: list[tuple[str, dict]], scale: int, title: str) -> np.ndarray:
 
 
 def contact_sheet(towns: list, weathers: list[str], scale: int = 1, seed: int = 0, t: float = 0.3,
-                  before: float = 12.0) -> np.ndarray:
+                  before: float = 12.0, family: str = DEFAULT_FAMILY) -> np.ndarray:
     rows = []
     for town in towns:
         pose, _ = approach_pose(town, before)
         for wx in weathers:
-            ims = Renderer(town, wx, seed=seed).render(*pose, t=t)
+            ims = Renderer(town, get_weather(wx, family), seed=seed).render(*pose, t=t)
             rows.append((f"{town.name}\n{wx}", ims))
-    return _grid(rows, scale, f"{before:.0f} m before a junction (camera to junction entry)")
+    return _grid(rows, scale, f"{before:.0f} m before a junction (camera to junction entry), {family} weathers")
 
 
-def turn_sheet(towns: list, weathers: list[str], scale: int = 1, seed: int = 0) -> np.ndarray:
+def turn_sheet(towns: list, weathers: list[str], scale: int = 1, seed: int = 0,
+               family: str = DEFAULT_FAMILY) -> np.ndarray:
     rows = []
     for town in towns:
         _, route = approach_pose(town, command=3)
         s_entry, s_exit = route.turns[0][2], route.turns[0][3]
         pose = pose_on_route(route, 0.5 * (s_entry + s_exit) - MOUNT_FORWARD)
         for wx in weathers:
-            rows.append((f"{town.name}\n{wx}", Renderer(town, wx, seed=seed).render(*pose, t=0.3)))
-    return _grid(rows, scale, "in the middle of a left turn")
+            ims = Renderer(town, get_weather(wx, family), seed=seed).render(*pose, t=0.3)
+            rows.append((f"{town.name}\n{wx}", ims))
+    return _grid(rows, scale, f"in the middle of a left turn, {family} weathers")
 
 
 def town_map(town, routes=(), px_per_m: float = 2.5, weather: str = "ClearNoon") -> np.ndarray:
@@ -182,10 +186,11 @@ def load_towns(names: list[str]) -> list:
     return [load_town(backend.resolve_town(n)) for n in names]
 
 
-def check_weathers(weathers: list[str]) -> list[str]:
+def check_weathers(weathers: list[str], family: str = DEFAULT_FAMILY) -> list[str]:
+    presets = weather_family(family)  # an unknown family: one line naming the known ones
     for wx in weathers:
-        if wx not in WEATHERS:
-            raise CicfwError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(WEATHERS)}")
+        if wx not in presets:
+            raise CicfwError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(presets)}")
     return weathers
 
 
@@ -199,6 +204,9 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="sim_preview", help="output folder (created; default: %(default)s)")
     ap.add_argument("--towns", nargs="+", default=None, help=f"towns (default: all shipped: {town_names()})")
     ap.add_argument("--weathers", nargs="+", default=list(WEATHERS), help="weathers (default: all)")
+    ap.add_argument("--weather-family", default=DEFAULT_FAMILY,
+                    help=f"the weathers' presets, as a run's sim.weather_family: {' | '.join(WEATHER_FAMILIES)} "
+                         f"(default: %(default)s)")
     ap.add_argument("--scale", type=int, default=2, help="image upscale in the sheets (default: %(default)s)")
     ap.add_argument("--routes", type=int, default=4, help="routes drawn on each map (default: %(default)s)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the images and the maps' routes, >= 0 (default: 0)")
@@ -232,8 +240,8 @@ def _render(a: argparse.Namespace, towns: list) -> dict[str, np.ndarray]:
     """The PNGs' file names -> their RGB images: the two sheets and a map per town."""
     pre = a.prefix
     turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
-    images = {f"{pre}contact_sheet.png": contact_sheet(towns, a.weathers, a.scale, a.seed),
-              f"{pre}turn_sheet.png": turn_sheet(towns, turn_weathers, a.scale, a.seed)}
+    images = {f"{pre}contact_sheet.png": contact_sheet(towns, a.weathers, a.scale, a.seed, family=a.weather_family),
+              f"{pre}turn_sheet.png": turn_sheet(towns, turn_weathers, a.scale, a.seed, a.weather_family)}
     for town in towns:
         images[f"{pre}map_{town.name}.png"] = town_map(town, sample_routes(town, a.routes, a.seed))
     return images
@@ -264,7 +272,7 @@ def _remove_empty_folders(out: Path, top: Path | None) -> None:
 
 def check_args(a: argparse.Namespace) -> None:
     """One ValueError for the first argument outside its domain, before anything is rendered or written."""
-    check_weathers(a.weathers)
+    check_weathers(a.weathers, a.weather_family)
     if a.scale < 1:
         raise CicfwError(f"--scale must be >= 1, got {a.scale}")
     if not (a.colours == 0 or 2 <= a.colours <= 256):
