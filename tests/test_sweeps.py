@@ -75,14 +75,23 @@ def test_an_optuna_search_whose_every_trial_fails_ends_in_one_line(tmp_path, tin
     assert_refused(run, tmp_path / "sweep" / "summary.csv", "2 job(s)", status=1)
 
 
-def test_a_failed_sweep_does_not_speak_for_a_later_run_in_the_process(tmp_path, tiny_data):
-    """A basic sweep whose job failed ends without Hydra's on_multirun_end; a later run's own error in the same
-    process (a composition error: one line, status 2) is still its own, not "every job failed"."""
+def test_a_failed_sweep_does_not_speak_for_a_later_run_in_the_process(tmp_path, tiny_data, monkeypatch):
+    """A basic sweep whose job failed ends without Hydra's on_multirun_end; a later run's own ``ValueError`` in
+    the same process (here a planted bug, which reaches the same handler as Optuna's "no trial is completed")
+    keeps its traceback, and is not reported as "every job failed"."""
+    import cicfw.train.app
+
     run, rows = _multirun(tmp_path, tiny_data, "-m", "mixer=independent", "data.max_abs_steer=0.0001")
     assert [r["status"] for r in rows] == ["failed"] and run.returncode == 1
-    later = run_app_in_process("cicfw.train", "mixer=nosuch", *TINY, f"data.path={tiny_data}",
-                               f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
-    assert_refused(later, "mixer", "nosuch")
+
+    def planted(*_args, **_kwargs):
+        raise ValueError("planted bug")
+
+    monkeypatch.setattr(cicfw.train.app, "train_in_folder", planted)
+    later = run_app_in_process("cicfw.train", *TINY, f"data.path={tiny_data}", f"hydra.run.dir={tmp_path / 'run'}",
+                               cwd=tmp_path)
+    assert later.returncode == 1 and "Traceback" in later.stderr and "planted bug" in later.stderr, later.stderr
+    assert "every one of the sweep" not in later.stderr
 
 
 def test_summary_columns_are_the_swept_overrides_and_metrics(tmp_path):
