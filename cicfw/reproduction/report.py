@@ -104,7 +104,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from hydra import compose, initialize_config_module
@@ -112,6 +112,7 @@ from hydra.errors import HydraException
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from cicfw.benchmark.evaluation_report import md_row, md_table
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
@@ -267,16 +268,6 @@ def results_csv(data: Mapping[str, Any]) -> str:
             lines.append(f"{r['row']},\"{r['label']}\",{r['decoder'] or ''},{col},{len(r['seeds'])},{e['mean']},"
                          f"{nz(e['lo'])},{nz(e['hi'])},{nz(b['lo'])},{nz(b['hi'])},{pv},{per_seed}")
     return "\n".join(lines) + "\n"
-
-
-def md_row(cells: Iterable[Any]) -> str:
-    """One row of a Markdown table: ``| a | b |``."""
-    return "| " + " | ".join(map(str, cells)) + " |"
-
-
-def md_table(head: Sequence[str], align: str, rows: Iterable[Iterable[Any]] = ()) -> list[str]:
-    """A Markdown table's lines: ``head``, its rule (``align``: ``l`` or ``r`` per column) and ``rows``."""
-    return [md_row(head), "|" + "".join("---:|" if a == "r" else "---|" for a in align), *map(md_row, rows)]
 
 
 def _pct(v: float | None) -> str:
