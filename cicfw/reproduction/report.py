@@ -1,17 +1,12 @@
 """The paper's comparison as results: per-cell outcomes -> Table 4 with 95% intervals -> a verdict per claim.
 
 A *cell* is one (row, seed) of a reproduction: a model trained with that seed and driven on the suite;
-``cell.json`` keeps every episode's outcome. Everything in these modules is numpy/scipy/statsmodels over
-those outcomes, so ``cicfw report`` and the tests use it without training anything. This module writes
-the report (results.json/.csv, RESULTS.md, the pictures); the parts live beside it, one job each:
-``cells`` (cell.json as data, the table's columns), ``seed_stats`` (the intervals, the episodes' floor,
-Holm), ``analysis`` (a folder's estimates, the episode bootstrap, which cells a comparison pairs),
-``claims`` (the paper's claims and their verdicts), ``ranking`` (which row drives best, each row against
-CIL) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
-a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference``
--> ``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a
-relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``;
-which row drives best, ``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
+``cell.json`` keeps every episode's outcome. This module writes the report (results.json/.csv, RESULTS.md, the
+pictures); the parts it reads live beside it (the package's docstring lists them). Where each figure comes from:
+a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference`` ->
+``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a relative
+change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; which row drives best,
+``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
 ``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
 reading the paper's table), never the success pooled over all episodes; a seed's overall is the mean of
