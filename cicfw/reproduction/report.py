@@ -912,9 +912,8 @@ def check_markdown_target(path: Path) -> None:
 
 
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
-    """The report's Markdown at ``path`` (a file of its own, or an earlier copy), its pictures linked from
-    ``pictures``."""
-    check_markdown_target(Path(path))
+    """The report's Markdown at ``path`` (a file of its own, or an earlier copy: ``check_markdown_target``,
+    which the caller runs before anything is written), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
     atomic_write(Path(path), _with_pictures(data, rel, bool(data.get("has_curve"))))
     return Path(path)
