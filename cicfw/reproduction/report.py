@@ -119,7 +119,7 @@ from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_coun
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import publish
-from cicfw.reproduction.ranking import BASELINE, apart, best, forest, ranking
+from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
 from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
@@ -154,11 +154,6 @@ def _families(claims: Sequence[Mapping[str, Any]]) -> str:
         return f"a family fixed in advance, the {sum(sizes.values())} parts of the claims below"
     named = [f"the {n} parts of the {f!r} claims" for f, n in sizes.items()]
     return f"families fixed in advance, each adjusted on its own: {', '.join(named)}"
-
-
-def _row_order(rows: Sequence[str], catalogue: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    order = list(catalogue)
-    return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
 def _method_text() -> str:
@@ -207,7 +202,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
     paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
     machines = {c.meta.get("machine") for cs in an.rows.values() for c in cs}
     rows = []
-    for r in _row_order(list(an.rows), catalogue):
+    for r in in_catalogue_order(an.rows, catalogue):
         cs = an.rows[r]
         man: dict[str, list[float]] = {}
         for c in cs:
