@@ -22,7 +22,7 @@ from cicfw.collect import LOCK_NAME as COLLECT_LOCK
 from cicfw.collect import FolderLock as CollectLock
 from cicfw.collect import FolderLockedError
 from cicfw.core.locks import FolderBusy, FolderLock
-from cicfw.reproduction.lock import LOCK_FILE, FolderInUse, ResultsLock
+from cicfw.reproduction.lock import LOCK_FILE, ResultsLock
 from cicfw.core.sweeps import ROWS_DIR, RowsLock, rebuild_summary
 
 HOLDER = """
@@ -182,12 +182,12 @@ def test_an_evaluation_folder_is_refused_to_a_second_writer_and_left_without_a_l
 def test_the_results_lock_refuses_a_live_holder_and_leaves_no_file(tmp_path: Path):
     out = tmp_path / "results"
     with ResultsLock(out):
-        with pytest.raises(FolderInUse) as err:
+        with pytest.raises(FolderBusy) as err:
             ResultsLock(out).acquire()
         assert (err.value.key, err.value.value) == ("results_dir", out) and f"pid {os.getpid()}" in str(err.value)
     assert not out.exists()  # made by the lock, nothing written into it
     path = leave_record(out, LOCK_FILE, pid=1, host="elsewhere", started="2020-01-01 00:00:00")
-    with pytest.raises(FolderInUse) as err:
+    with pytest.raises(FolderBusy) as err:
         ResultsLock(out).acquire()
     assert str(path) in str(err.value)  # the stale record to delete
     assert path.is_file()

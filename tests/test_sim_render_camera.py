@@ -5,7 +5,33 @@ import numpy as np
 import pytest
 
 from cicfw.sim.render import camera as cm
-from cicfw.sim.render.camera import CAMERAS, CX, CY, FX, FY, HORIZON_ROW, get_camera, project_world
+from cicfw.sim.render.camera import (CAMERAS, CX, CY, FX, FY, HORIZON_ROW, IMAGE_H, IMAGE_W, NEAR, Camera,
+                                     get_camera)
+
+
+def local_to_camera(points: np.ndarray, cam: Camera) -> np.ndarray:
+    """(..., 3) vehicle-local points -> camera coordinates."""
+    return (np.asarray(points, float) - cam.position) @ cam.rotation.T
+
+
+def world_to_local(points: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+    """(..., 2 or 3) world points -> vehicle-local (pose (x, y, yaw) of the vehicle)."""
+    p = np.array(points, float)
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = p[..., 0] - x, p[..., 1] - y
+    p[..., 0], p[..., 1] = c * dx + s * dy, -s * dx + c * dy
+    return p
+
+
+def project_world(points: np.ndarray, pose: tuple[float, float, float], cam: Camera
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) world points -> (u, v, visible); a point behind the near plane is not visible."""
+    pc = local_to_camera(world_to_local(points, *pose), cam)
+    z = pc[..., 2]
+    zs = np.where(z > NEAR, z, np.nan)
+    u, v = FX * pc[..., 0] / zs + CX, FY * pc[..., 1] / zs + CY
+    vis = (z > NEAR) & (u >= -0.5) & (u < IMAGE_W - 0.5) & (v >= -0.5) & (v < IMAGE_H - 0.5)
+    return u, v, vis
 
 
 def test_intrinsics_follow_cils_crop():

@@ -108,8 +108,7 @@ def markdown_table(runs: Sequence[Run]) -> str:
         "|---|---:|---:|---:|---:|",
         "| | *Training weathers* | *New weathers* | *Training weathers* | *New weathers* |",
     ]
-    for label, rates, _ in rows:
-        lines.append(f"| {_md_escape(label)} | " + " | ".join(_fmt(v) for v in rates) + " |")
+    lines += [md_row([_md_escape(label), *map(_fmt, rates)]) for label, rates, _ in rows]
     counts = {tuple(n) for _, _, n in rows}
     if len(counts) == 1:
         n = next(iter(counts))
@@ -128,18 +127,24 @@ def manoeuvre_table(runs: Sequence[Run]) -> str:
     names = [m for m in ("left", "right", "straight") if any(m in run.manoeuvres() for run in runs)]
     if not names:
         return ""
-    lines = ["", "**Success by manoeuvre (%, successes/episodes)**", "",
-             "| Model | " + " | ".join(n.capitalize() for n in names) + " |",
-             "|---|" + "---:|" * len(names)]
-    for run in runs:
-        m = run.manoeuvres()
-        cells = [f"{100.0 * m[n][0] / m[n][1]:.2f} ({m[n][0]}/{m[n][1]})" if n in m else "–" for n in names]
-        lines.append(f"| {_md_escape(run.label)} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    table = md_table(["Model", *(n.capitalize() for n in names)], "l" + "r" * len(names), (
+        [_md_escape(run.label), *(f"{100.0 * m[n][0] / m[n][1]:.2f} ({m[n][0]}/{m[n][1]})" if n in m else "–"
+                                  for n in names)] for run in runs for m in [run.manoeuvres()]))
+    return "\n".join(["", "**Success by manoeuvre (%, successes/episodes)**", "", *table]) + "\n"
 
 
 def _md_escape(s: str) -> str:
     return str(s).replace("|", "\\|")
+
+
+def md_row(cells: Iterable[Any]) -> str:
+    """One row of a Markdown table: ``| a | b |``."""
+    return "| " + " | ".join(map(str, cells)) + " |"
+
+
+def md_table(head: Sequence[str], align: str, rows: Iterable[Iterable[Any]] = ()) -> list[str]:
+    """A Markdown table's lines: ``head``, its rule (``align``: ``l`` or ``r`` per column) and ``rows``."""
+    return [md_row(head), "|" + "".join("---:|" if a == "r" else "---|" for a in align), *map(md_row, rows)]
 
 
 def latex_table(runs: Sequence[Run]) -> str:

@@ -23,17 +23,12 @@ from typing import Any, Mapping
 import numpy as np
 from omegaconf import OmegaConf
 
-from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderLock
-from cicfw.core.run_folder import RunFolderCheck, note_run_folder, undo_run_folder
+from cicfw.core.run_folder import RunFolderCheck, RunFolderError, note_run_folder, undo_run_folder
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"
 FORMAT = "cicfw-episode-log/1"
-
-
-class RunFolderError(CicfwError):
-    """A run folder that cannot be resumed into (another configuration, or another writer)."""
 
 
 def _encode_traj(traj: Mapping[str, np.ndarray]) -> dict[str, list]:

@@ -2,7 +2,6 @@
 per weather), and a bar chart of the paper's table (success per column, one bar per model)."""
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -10,29 +9,11 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import Run, cell_name, table_rows
 from cicfw.benchmark.suite import CELLS
-from cicfw.core.files import atomic_write
-from cicfw.sim.mapplot import draw_town
+from cicfw.sim.mapplot import draw_town, pyplot as _plt, save_png as _save  # the report's too
 from cicfw.sim.town import load_town
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"
 REASON_MARKERS = {"off_road": "X", "off_route": "P", "timeout": "s"}
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
-    atomic_write(path, buf.getvalue())
-    return path
 
 
 def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], out_dir: Path,

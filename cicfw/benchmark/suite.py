@@ -19,14 +19,13 @@ from typing import Any, Iterable, Mapping, Sequence
 from cicfw.core.config_checks import whole_number
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.registry import SIM_BACKENDS
-from cicfw.sim.render.weather import DEFAULT_FAMILY
+from cicfw.sim.render.weather import DEFAULT_FAMILY, NEW_WEATHERS, TRAINING_WEATHERS
 from cicfw.sim.roadgraph import COMMAND_NAMES
 
 log = logging.getLogger(__name__)
 
 #: the paper's four weathers: two seen in training, two new
-PAPER_WEATHERS = ("ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset")
-TRAINING_WEATHERS = ("ClearNoon", "ClearSunset")
+PAPER_WEATHERS = (*TRAINING_WEATHERS, *NEW_WEATHERS)
 #: the town the default data is collected in: the table's "Training town" columns unless told otherwise
 TRAINING_TOWNS = ("town_a",)
 #: the paper's table columns, in its order: (town set, weather set)

@@ -16,11 +16,9 @@ from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
 from cicfw.data.provenance import folder_record
 from cicfw.model.checkpoint import checkpoint_record
+from cicfw.sim.town import town_names
 
 log = logging.getLogger(__name__)
-
-#: the embedded simulator's shipped towns (conf/town/)
-SHIPPED_TOWNS = ("town_a", "town_b")
 
 
 def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
@@ -65,12 +63,12 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]
                         data_cfg, "dataset_metadata.json", ", ".join(TRAINING_TOWNS), ", ".join(TRAINING_WEATHERS))
         return []
     towns, weathers = found
-    driven_towns = {town_label(t) for t in (given.get("suite.towns") or ())}
+    known_towns = {*town_names(), *(town_label(t) for t in (given.get("suite.towns") or ()))}  # shipped or driven
     driven_weathers = {str(w) for w in (given.get("suite.weathers") or ())}
     out = []
     if "suite.training_towns" not in given:
         names = [town_label(t) for t in towns]
-        kept = [t for t in dict.fromkeys(names) if t in SHIPPED_TOWNS or t in driven_towns]
+        kept = [t for t in dict.fromkeys(names) if t in known_towns]
         out.append(f"suite.training_towns=[{','.join(kept)}]")
     if "suite.training_weathers" not in given:
         kept = [w for w in dict.fromkeys(weathers) if w in PAPER_WEATHERS or w in driven_weathers]

@@ -10,10 +10,6 @@ from cicfw.core import locks
 LOCK_FILE = "reproduce.lock"
 
 
-class FolderInUse(locks.FolderBusy):
-    """Another run holds the results folder (or its lock kept changing): one line naming the holder."""
-
-
 class ResultsLock(locks.FolderLock):
     """``<results_dir>/reproduce.lock`` names the holder (pid, host, start time, command) for the run's life.
     Another run on the folder is refused in one line naming the holder. A record whose holder is gone (its
@@ -24,10 +20,10 @@ class ResultsLock(locks.FolderLock):
     check_pid = True
     log = logging.getLogger("cicfw.reproduce")
 
-    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> FolderInUse:
+    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> locks.FolderBusy:
         who = (f"pid {holder.get('pid', '?')} on host {holder.get('host', '?')}, started "
                f"{holder.get('started', '?')}")
         tail = ("" if certain else f"; if it is no longer running, delete {str(self.path)!r}")
-        return FolderInUse(f"results folder {str(self.folder)!r} is in use by another reproduce run ({who}): one "
-                           f"run per folder; wait for it to finish, or give another results_dir=<path>{tail}",
-                           key="results_dir", value=self.folder)
+        return locks.FolderBusy(f"results folder {str(self.folder)!r} is in use by another reproduce run ({who}): "
+                                f"one run per folder; wait for it to finish, or give another results_dir=<path>{tail}",
+                                key="results_dir", value=self.folder)

@@ -25,12 +25,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.stats import spearmanr
 
+from cicfw.benchmark.evaluation_report import md_row, md_table
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells
-from cicfw.reproduction.report import md_row, md_table, pinned_weather_family
+from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells, most_first
+from cicfw.reproduction.report import pinned_weather_family
 from cicfw.reproduction.seed_stats import t_interval, word
 from cicfw.sim.render.weather import LEGACY_FAMILY
 
@@ -165,7 +166,7 @@ def by_group(points: Sequence[Point]) -> dict[str, list[Point]]:
 
 def scopes(points: Sequence[Point]) -> dict[str, list[Point]]:
     """Both CPU kinds together, then each kind alone (most cells first)."""
-    kinds = sorted({p.cpu for p in points}, key=lambda k: (-sum(p.cpu == k for p in points), k))
+    kinds = most_first(p.cpu for p in points)
     return {BOTH: list(points), **{k: [p for p in points if p.cpu == k] for k in kinds}}
 
 

@@ -2,12 +2,12 @@
 continue one from a fresh clone (its finished cells copied back, so the launcher skips them)."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
+from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import cell_files, finished_cells
 
 #: what ``publish`` copies into a published folder besides cells/<row>/seed<k>/cell.json
@@ -38,13 +38,11 @@ def published_manifest(src: Path) -> dict[str, Any]:
     if not src.is_dir():
         raise CicfwError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
                          f"(reproduce.json and cells/<row>/seed<k>/cell.json, e.g. docs/results/<budget>)")
-    try:
-        return json.loads((src / "reproduce.json").read_text())
-    except FileNotFoundError:
+    manifest = read_json(src / "reproduce.json", default=None)  # not JSON: one line naming the file
+    if manifest is None:
         raise CicfwError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
-                         f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json") from None
-    except json.JSONDecodeError as err:
-        raise CicfwError(f"continue_from={str(src)!r}: reproduce.json is not JSON ({err})") from None
+                         f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json")
+    return manifest
 
 
 def continue_published(src: Path, results_dir: Path, machine: str | None = None) -> dict[str, list[str]]:

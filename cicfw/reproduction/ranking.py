@@ -5,7 +5,7 @@ its bounds and its words; tests/test_ranking.py recomputes it by hand."""
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 from scipy import stats
@@ -45,22 +45,21 @@ def overall_difference(an: Analysis, a: str, b: str, margin: float | None = None
 
 def ranking(an: Analysis, order: Sequence[str] = ()) -> list[str]:
     """The rows with at least ``MIN_SEEDS`` seeds by overall success (mean over seeds), best first; equal
-    means keep ``order`` (the catalogue's), then the name."""
-    place = _places(an, order)
-    return sorted((r for r in an.rows if len(an.rows[r]) >= MIN_SEEDS),
-                  key=lambda r: (-an.estimates[r][4].mean, place[r]))
+    means keep ``order`` (the catalogue's), then the name (the sort is stable)."""
+    return sorted(in_catalogue_order((r for r in an.rows if len(an.rows[r]) >= MIN_SEEDS), order),
+                  key=lambda r: -an.estimates[r][4].mean)
 
 
 def apart(an: Analysis, order: Sequence[str] = ()) -> list[str]:
     """The rows with fewer than ``MIN_SEEDS`` seeds, in the catalogue's order (``order``), then by name:
     listed apart, never ranked."""
-    place = _places(an, order)
-    return sorted((r for r in an.rows if len(an.rows[r]) < MIN_SEEDS), key=lambda r: place[r])
+    return in_catalogue_order((r for r in an.rows if len(an.rows[r]) < MIN_SEEDS), order)
 
 
-def _places(an: Analysis, order: Sequence[str]) -> dict[str, tuple[int, str]]:
+def in_catalogue_order(rows: Iterable[str], order: Sequence[str]) -> list[str]:
+    """``rows`` in the catalogue's order (``order``), the rows outside it after, by name."""
     order = list(order)
-    return {r: (order.index(r) if r in order else len(order), r) for r in an.rows}
+    return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
 def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float) -> tuple[float, float, float]:

@@ -1,17 +1,12 @@
 """The paper's comparison as results: per-cell outcomes -> Table 4 with 95% intervals -> a verdict per claim.
 
 A *cell* is one (row, seed) of a reproduction: a model trained with that seed and driven on the suite;
-``cell.json`` keeps every episode's outcome. Everything in these modules is numpy/scipy/statsmodels over
-those outcomes, so ``cicfw report`` and the tests use it without training anything. This module writes
-the report (results.json/.csv, RESULTS.md, the pictures); the parts live beside it, one job each:
-``cells`` (cell.json as data, the table's columns), ``seed_stats`` (the intervals, the episodes' floor,
-Holm), ``analysis`` (a folder's estimates, the episode bootstrap, which cells a comparison pairs),
-``claims`` (the paper's claims and their verdicts), ``ranking`` (which row drives best, each row against
-CIL) and ``published`` (docs/results folders: publish, continue). Where each figure comes from:
-a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference``
--> ``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a
-relative change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``;
-which row drives best, ``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
+``cell.json`` keeps every episode's outcome. This module writes the report (results.json/.csv, RESULTS.md, the
+pictures); the parts it reads live beside it (the package's docstring lists them). Where each figure comes from:
+a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference`` ->
+``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a relative
+change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; which row drives best,
+``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
 ``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
 reading the paper's table), never the success pooled over all episodes; a seed's overall is the mean of
@@ -104,7 +99,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from hydra import compose, initialize_config_module
@@ -112,6 +107,7 @@ from hydra.errors import HydraException
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from cicfw.benchmark.evaluation_report import md_row, md_table
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
@@ -123,7 +119,7 @@ from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_coun
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import publish
-from cicfw.reproduction.ranking import BASELINE, apart, best, forest, ranking
+from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
 from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
@@ -158,11 +154,6 @@ def _families(claims: Sequence[Mapping[str, Any]]) -> str:
         return f"a family fixed in advance, the {sum(sizes.values())} parts of the claims below"
     named = [f"the {n} parts of the {f!r} claims" for f, n in sizes.items()]
     return f"families fixed in advance, each adjusted on its own: {', '.join(named)}"
-
-
-def _row_order(rows: Sequence[str], catalogue: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    order = list(catalogue)
-    return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
 def _method_text() -> str:
@@ -211,7 +202,7 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
     paper = {r: list(catalogue[r]["paper"]) for r in catalogue if (catalogue[r] or {}).get("paper")}
     machines = {c.meta.get("machine") for cs in an.rows.values() for c in cs}
     rows = []
-    for r in _row_order(list(an.rows), catalogue):
+    for r in in_catalogue_order(an.rows, catalogue):
         cs = an.rows[r]
         man: dict[str, list[float]] = {}
         for c in cs:
@@ -267,16 +258,6 @@ def results_csv(data: Mapping[str, Any]) -> str:
             lines.append(f"{r['row']},\"{r['label']}\",{r['decoder'] or ''},{col},{len(r['seeds'])},{e['mean']},"
                          f"{nz(e['lo'])},{nz(e['hi'])},{nz(b['lo'])},{nz(b['hi'])},{pv},{per_seed}")
     return "\n".join(lines) + "\n"
-
-
-def md_row(cells: Iterable[Any]) -> str:
-    """One row of a Markdown table: ``| a | b |``."""
-    return "| " + " | ".join(map(str, cells)) + " |"
-
-
-def md_table(head: Sequence[str], align: str, rows: Iterable[Iterable[Any]] = ()) -> list[str]:
-    """A Markdown table's lines: ``head``, its rule (``align``: ``l`` or ``r`` per column) and ``rows``."""
-    return [md_row(head), "|" + "".join("---:|" if a == "r" else "---|" for a in align), *map(md_row, rows)]
 
 
 def _pct(v: float | None) -> str:
@@ -926,9 +907,8 @@ def check_markdown_target(path: Path) -> None:
 
 
 def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> Path:
-    """The report's Markdown at ``path`` (a file of its own, or an earlier copy), its pictures linked from
-    ``pictures``."""
-    check_markdown_target(Path(path))
+    """The report's Markdown at ``path`` (a file of its own, or an earlier copy: ``check_markdown_target``,
+    which the caller runs before anything is written), its pictures linked from ``pictures``."""
     rel = os.path.relpath(Path(pictures), Path(path).parent)
     atomic_write(Path(path), _with_pictures(data, rel, bool(data.get("has_curve"))))
     return Path(path)

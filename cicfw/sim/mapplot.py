@@ -1,11 +1,13 @@
 """Top-down map of a town (roads, junctions, buildings, props) with optional routes coloured by command."""
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
+from cicfw.core.files import atomic_write
 from cicfw.sim.town import Town
 
 COMMAND_COLOURS = {2: "#888888", 3: "#1f77b4", 4: "#d62728", 5: "#2ca02c"}  # follow, left, right, straight
@@ -61,20 +63,30 @@ def _band(ax, c: np.ndarray, off: float, colour) -> None:
     ax.add_patch(Polygon(poly, closed=True, fc=colour, ec="none"))
 
 
-def save_map(town: Town, path: str | Path, routes: Iterable = (), title: str | None = None,
-             size: float = 10.0) -> Path:
-    """Write a PNG map of ``town`` (and routes) to ``path``."""
+def pyplot():
+    """matplotlib.pyplot on the Agg backend: pictures are files, never windows."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def save_png(fig, path: Path) -> Path:
+    """``fig`` as a PNG at ``path``, written whole or not at all; the figure is closed."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    pyplot().close(fig)
+    atomic_write(path, buf.getvalue())
+    return path
+
+
+def save_map(town: Town, path: str | Path, routes: Iterable = (), title: str | None = None,
+             size: float = 10.0) -> Path:
+    """Write a PNG map of ``town`` (and routes) to ``path``."""
     x0, y0, x1, y1 = town.bounds
-    fig, ax = plt.subplots(figsize=(size, size * (y1 - y0) / (x1 - x0) + 0.4))
+    fig, ax = pyplot().subplots(figsize=(size, size * (y1 - y0) / (x1 - x0) + 0.4))
     draw_town(ax, town, routes)
     ax.set_title(title or town.name)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_png(fig, Path(path))

@@ -298,10 +298,6 @@ class RoadGraph:
 
     # ------------------------------------------------------------------------------------------
 
-    def junction_manoeuvres(self) -> list[Connector]:
-        """Every possible manoeuvre (connector) at every junction, sorted by junction, source, target."""
-        return sorted(self.connectors.values(), key=lambda c: (c.junction, c.src, c.dst))
-
     def random_route(self, rng: np.random.Generator, min_length: float, name: str = "random",
                      counts: dict | None = None) -> Route:
         """A random route of at least ``min_length`` m from a random lane point; at each junction the
@@ -351,7 +347,7 @@ def single_turn_routes(town: Town, before: float = 30.0, after: float = 25.0,
     """
     g = road_graph(town, command_distance)
     routes = []
-    for c in g.junction_manoeuvres():
+    for c in sorted(g.connectors.values(), key=lambda c: (c.junction, c.src, c.dst)):  # every manoeuvre
         li, lo = g.lanes[c.src], g.lanes[c.dst]
         s0 = max(li.length - before, min(2.0, li.length / 2))
         s1 = min(after, lo.length - 2.0)

@@ -20,6 +20,7 @@ from cicfw.sim.render.atlas import PPM, TILE_TOP, Atlas
 from cicfw.sim.render.camera import MOUNT_HEIGHT
 from cicfw.sim.render.noise import stable_seed
 from cicfw.sim.render.weather import Weather
+from cicfw.sim.town.geometry import polygon_area
 
 P = 8  # vertices per item polygon (quads repeat their last vertex)
 FAR_BUILDINGS = 200.0  # m; also at most 4 fog distances (farther walls are fog-coloured anyway)
@@ -47,9 +48,7 @@ class Items:
 
 
 def _ccw(poly: np.ndarray) -> np.ndarray:
-    x, y = poly[:, 0], poly[:, 1]
-    area = 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
-    return poly if area >= 0 else poly[::-1]
+    return poly if polygon_area(poly) >= 0 else poly[::-1]
 
 
 class Scene:
