@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
-from cicfw.core.slurm_requeue import is_requeued_run
+from cicfw.core.slurm_requeue import is_requeued_run, saved_config
 from cicfw.core.sweeps import is_worker_process
 
 
@@ -282,11 +282,8 @@ def forget_run_folder(folder: str | Path) -> None:
 
 def saved_run_config(checkpoint: str | Path) -> Any | None:
     """The config the training run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``) saved in
-    ``<run>/.hydra/config.yaml``, unresolved; None when there is none or it cannot be read."""
-    try:
-        return OmegaConf.load(Path(checkpoint).parent.parent / ".hydra" / "config.yaml")
-    except Exception:  # missing or unreadable: the run says nothing
-        return None
+    ``<run>/.hydra/config.yaml`` (``saved_config``)."""
+    return saved_config(Path(checkpoint).parent.parent)
 
 
 def undo_run_folder(folder: str | Path) -> None:
