@@ -396,7 +396,8 @@ class CarlaEnv:
             car_bp = lib.find(be.vehicle)
             if car_bp.has_attribute("role_name"):
                 car_bp.set_attribute("role_name", "hero")
-            x, y, z, yaw = self.route.meta.get("spawn") or (*_carla_xy(self.route), 0.0, _carla_yaw(self.route))
+            (x0, y0), h0 = self.route.points[0], self.route.heading[0]  # without a spawn: the start, CARLA's frame
+            x, y, z, yaw = self.route.meta.get("spawn") or (float(x0), float(-y0), 0.0, float(-math.degrees(h0)))
             tf = carla.Transform(carla.Location(x=x, y=y, z=z + 0.3), carla.Rotation(yaw=yaw))
             try:
                 self.car = self.world.spawn_actor(car_bp, tf)
@@ -606,12 +607,3 @@ class CarlaEnv:
                          self.lane_fractions())
         end = {k: info.pop(k) for k in ("success", "reason", "t")}  # the events sit before them
         return {**info, **self.events, **end, "frame": self.frame}
-
-
-def _carla_xy(route: Route) -> tuple[float, float]:
-    x, y = route.points[0]
-    return float(x), float(-y)
-
-
-def _carla_yaw(route: Route) -> float:
-    return float(-math.degrees(route.heading[0]))
