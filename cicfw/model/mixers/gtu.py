@@ -11,9 +11,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.independent import IndependentMixer
 from cicfw.registry import MIXERS
 
 
@@ -40,8 +38,8 @@ def colearn(coefs: torch.Tensor, outputs: torch.Tensor) -> tuple[torch.Tensor, t
     return torch.bmm(c, outputs), c
 
 
-class CoLearningMixer(Mixer):
-    """CIL branches (``self.branches``) mixed per sample by ``A = C Â``, ``C = I + offdiag(coefficients(h))``."""
+class CoLearningMixer(IndependentMixer):
+    """CIL branches (``independent``'s) mixed per sample by ``A = C Â``, ``C = I + offdiag(coefficients(h))``."""
 
     _c: torch.Tensor | None = None  # the last forward's C, for inspect()
 
@@ -65,10 +63,8 @@ class GTUMixer(CoLearningMixer):
 
     def __init__(self, in_dim: int, out_dim: int, hidden: int = 256,
                  dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
-        super().__init__(in_dim, out_dim)
-        check_branch_kwargs(hidden, dropout)
+        super().__init__(in_dim, out_dim, hidden, dropout)
         n = self.n_branches
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
         self.coef = nn.Linear(in_dim, n * (n - 1))  # W_a: the co-learning coefficient, tanh -> [-1, 1]
         self.gate = nn.Linear(in_dim, n * (n - 1))  # W_g: the gate, sigmoid -> [0, 1]
 
