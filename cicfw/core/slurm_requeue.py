@@ -48,5 +48,5 @@ def is_requeued_run(folder: str | Path, config: Any) -> bool:
         return False
     from lightning.fabric.plugins.environments import SLURMEnvironment  # only here: Lightning is slow to import
 
-    saved = saved_config(folder)  # the run there is this command's when it saved the same values
-    return SLURMEnvironment.detect() and saved is not None and saved_values(saved) == saved_values(config)
+    saved = saved_config(folder) if SLURMEnvironment.detect() else None
+    return saved is not None and saved_values(saved) == saved_values(config)  # this command's run: the same values
