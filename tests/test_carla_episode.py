@@ -6,6 +6,7 @@ and car; one tick per step; the image of the ticked frame; no non-finite control
 restored and no actor left after success, an exception, a missing frame and Ctrl-C."""
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -279,3 +280,16 @@ def test_runner_workers_are_servers_for_carla():
         RunnerConfig(workers=[2000, 2000])
     assert (err.value.key, err.value.value) == ("runner.workers", [2000, 2000])
     assert RunnerConfig(workers=[2000, 2002]).resolve_workers(list(range(5)), True) == 2
+
+
+def test_a_failing_cleanup_step_is_logged_and_the_others_still_run(caplog):
+    si, be = make()
+    env = be.make_env("town_a", be.single_turn_routes("town_a")[0], "ClearNoon", cameras=CAMS)
+    env.reset()
+    first = next(iter(env.sensors.values()))
+    first.stop.side_effect = RuntimeError("the sensor is gone")
+    with caplog.at_level(logging.WARNING, logger="cicfw.carla_client.backend"):
+        env.close()
+    assert "1 step(s) failed: stop: the sensor is gone" in caplog.text
+    assert_clean(si)  # every actor destroyed all the same
+    assert not si.settings.synchronous_mode  # and the world's settings put back

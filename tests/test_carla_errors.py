@@ -90,6 +90,17 @@ def test_config_errors_name_the_key():
     assert "'town_z'" in str(err.value)
 
 
+@needs_maps
+def test_a_map_the_server_lacks_is_one_line_naming_the_town_and_the_maps_it_has():
+    si = StandIn(MAPS)
+    backend = CarlaBackend(client=si.client, town_map={"town_z": "Town99"})
+    for refuse, town in ((lambda: backend.world("town_z"), "town 'town_z': "),
+                         (lambda: backend.resolve_town("town_z"), "")):
+        with pytest.raises(CarlaError) as err:
+            refuse()
+        assert str(err.value).startswith(f"{town}map 'Town99' is not on the CARLA server") and "Town01" in str(err.value)
+
+
 @pytest.mark.parametrize("case", ["evaluate", "collect", "evaluate-no-client"])
 def test_the_apps_print_one_line(case, tmp_path, monkeypatch):
     port = unused_port()

@@ -137,6 +137,15 @@ def test_soft_sharing_regularizer_is_zero_for_identical_branches_and_positive_ot
     assert mixer.regularizer() == 0
 
 
+def test_soft_sharing_branches_are_cil_branches_of_its_width_and_dropout():
+    torch.manual_seed(0)
+    ref = IndependentMixer(IN, K, hidden=16, dropout=(0.3, 0.1))
+    torch.manual_seed(0)
+    mixer = SoftSharingMixer(IN, K, lam=0.1, hidden=16, dropout=(0.3, 0.1))
+    assert str(mixer.branches) == str(ref.branches)  # the widths and the dropout rates
+    assert all(torch.equal(a, b) for a, b in zip(mixer.branches.parameters(), ref.branches.parameters()))
+
+
 def test_soft_sharing_regularizer_gradient_pulls_branches_together():
     mixer = SoftSharingMixer(IN, K, lam=1.0, hidden=16)
     before = mixer.distance().item()

@@ -46,6 +46,15 @@ def test_in_memory_auto_counts_the_address_space_limit(monkeypatch):
     assert err.value.key == "data.in_memory"
 
 
+@pytest.mark.skipif(not Path("/proc/meminfo").is_file(), reason="no /proc/meminfo (not Linux)")
+def test_in_memory_auto_counts_no_more_than_the_kernel_says_is_available():
+    from cicfw.data import residency
+
+    kb = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
+              if line.startswith("MemAvailable:"))
+    assert residency.available_bytes() <= kb * 1024 * 1.1  # it moves a little between the two reads
+
+
 # ---- a corrupt file -----------------------------------------------------------------------------------------
 
 

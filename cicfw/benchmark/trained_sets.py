@@ -14,8 +14,7 @@ from omegaconf import OmegaConf
 from cicfw.benchmark.suite import PAPER_WEATHERS, TRAINING_TOWNS, TRAINING_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
-from cicfw.data.provenance import folder_record
-from cicfw.model.checkpoint import checkpoint_record
+from cicfw.model.checkpoint import recorded_data_paths
 from cicfw.sim.town import town_names
 
 log = logging.getLogger(__name__)
@@ -96,8 +95,7 @@ def checkpoint_run_data(checkpoint: Path) -> Any | None:
     exported = exported_model_data(checkpoint)
     if exported is not None:
         return exported
-    own = (checkpoint_record(checkpoint) or {}).get("path")
-    recorded = (folder_record(Path(checkpoint).parent.parent) or {}).get("path")
+    own, recorded = recorded_data_paths(checkpoint)
     config = saved_run_config(checkpoint)
     data = config.get("data") if config is not None else None
     if (own and own != recorded) or (config is None and recorded):

@@ -220,10 +220,7 @@ class CarlaBackend:
         if world.get_map().name.rsplit("/", 1)[-1] != name:
             if self._live is not None:
                 raise CarlaBusy(f"cannot load {name} while an episode runs on {self.host}:{self.port}")
-            available = [m.rsplit("/", 1)[-1] for m in self.client.get_available_maps()]
-            if name not in available:
-                raise CarlaError(f"town {town!r}: map {name!r} is not on the CARLA server at "
-                                 f"{self.host}:{self.port}; it has {', '.join(sorted(available))} (sim.town_map)")
+            self._check_map(self.client, self.port, name, f"town {town!r}: ")
             log.info("CARLA %s:%d: loading %s", self.host, self.port, name)
             world = self.client.load_world(name)
         return world
@@ -260,15 +257,20 @@ class CarlaBackend:
     def check_servers(self, carla_town: str | None = None) -> None:
         """Connect now to the server (and to every one in ``ports``) and check it has ``carla_town``:
         the one-line errors come before anything is written or simulated."""
+        ports = [self.port] + [p for p in (self.ports or []) if p != self.port]
         clients = [self.client] + [connect(self.host, p, self.connect_timeout_s, self.timeout_s, self.carla)
-                                   for p in (self.ports or []) if p != self.port]
+                                   for p in ports[1:]]
         if carla_town is None:
             return
-        for port, client in zip([self.port] + [p for p in (self.ports or []) if p != self.port], clients):
-            available = [m.rsplit("/", 1)[-1] for m in client.get_available_maps()]
-            if carla_town not in available:
-                raise CarlaError(f"map {carla_town!r} is not on the CARLA server at {self.host}:{port}; it has "
-                                 f"{', '.join(sorted(available))} (sim.town_map)")
+        for port, client in zip(ports, clients):
+            self._check_map(client, port, carla_town)
+
+    def _check_map(self, client: Any, port: int, name: str, where: str = "") -> None:
+        """One ``CarlaError`` when the server at ``port`` has no map ``name``, listing the maps it has."""
+        available = [m.rsplit("/", 1)[-1] for m in client.get_available_maps()]
+        if name not in available:
+            raise CarlaError(f"{where}map {name!r} is not on the CARLA server at {self.host}:{port}; it has "
+                             f"{', '.join(sorted(available))} (sim.town_map)")
 
     def random_route(self, town: str, rng: np.random.Generator, min_length: float, name: str = "random",
                      command_distance: float | None = None, counts: dict | None = None) -> Route:
@@ -394,7 +396,8 @@ class CarlaEnv:
             car_bp = lib.find(be.vehicle)
             if car_bp.has_attribute("role_name"):
                 car_bp.set_attribute("role_name", "hero")
-            x, y, z, yaw = self.route.meta.get("spawn") or (*_carla_xy(self.route), 0.0, _carla_yaw(self.route))
+            (x0, y0), h0 = self.route.points[0], self.route.heading[0]  # without a spawn: the start, CARLA's frame
+            x, y, z, yaw = self.route.meta.get("spawn") or (float(x0), float(-y0), 0.0, float(-math.degrees(h0)))
             tf = carla.Transform(carla.Location(x=x, y=y, z=z + 0.3), carla.Rotation(yaw=yaw))
             try:
                 self.car = self.world.spawn_actor(car_bp, tf)
@@ -444,21 +447,15 @@ class CarlaEnv:
         """Stop the sensors, destroy every actor this episode spawned, restore the world's settings.
         Safe to call twice; a failing step is logged and the others still run."""
         failures = []
-        for s in self.sensors.values():
-            try:
-                s.stop()
-            except Exception as err:  # noqa: BLE001 - keep cleaning up
-                failures.append(f"stop: {err}")
-        for a in reversed(self.actors):
-            try:
-                a.destroy()
-            except Exception as err:  # noqa: BLE001
-                failures.append(f"destroy: {err}")
+        steps = [("stop", s.stop) for s in self.sensors.values()]
+        steps += [("destroy", a.destroy) for a in reversed(self.actors)]
         if self._saved_settings is not None and self.world is not None:
+            steps.append(("apply_settings", lambda: self.world.apply_settings(self._saved_settings)))
+        for what, step in steps:
             try:
-                self.world.apply_settings(self._saved_settings)
-            except Exception as err:  # noqa: BLE001
-                failures.append(f"apply_settings: {err}")
+                step()
+            except Exception as err:  # noqa: BLE001 - keep cleaning up
+                failures.append(f"{what}: {err}")
         self.actors, self.sensors, self.queues = [], {}, {}
         self._saved_settings = None
         self.car = None
@@ -610,12 +607,3 @@ class CarlaEnv:
                          self.lane_fractions())
         end = {k: info.pop(k) for k in ("success", "reason", "t")}  # the events sit before them
         return {**info, **self.events, **end, "frame": self.frame}
-
-
-def _carla_xy(route: Route) -> tuple[float, float]:
-    x, y = route.points[0]
-    return float(x), float(-y)
-
-
-def _carla_yaw(route: Route) -> float:
-    return float(-math.degrees(route.heading[0]))

@@ -40,22 +40,6 @@ def _walk(wp: Any, length: float, step: float, forward: bool) -> list:
     return out
 
 
-def _walk_back(wp: Any, length: float, step: float) -> list:
-    """Waypoints behind ``wp`` (nearest first, ``wp`` excluded), up to ``length`` m, before any junction."""
-    return _walk(wp, length, step, forward=False)
-
-
-def _walk_forward(wp: Any, length: float, step: float) -> list:
-    """``wp`` and the waypoints ahead of it, up to ``length`` m, stopping before any junction (``wp``
-    itself is expected outside one)."""
-    return [wp] + _walk(wp, length, step, forward=True)
-
-
-def _through(wp: Any, step: float) -> list:
-    """``wp`` (a junction lane's first waypoint) and its lane to the end."""
-    return [wp] + list(wp.next_until_lane_end(step))
-
-
 def build_route(wps: list, turns: Iterable[tuple], name: str, command_distance: float = COMMAND_DISTANCE,
                 step: float = STEP, meta: dict | None = None) -> Route:
     """A cicfw ``Route`` from CARLA waypoints in driving order.
@@ -92,7 +76,7 @@ def build_route(wps: list, turns: Iterable[tuple], name: str, command_distance: 
 
 def _lane_turn(wp: Any, step: float) -> tuple[list, int, float]:
     """The junction lane starting at ``wp``: its waypoints, CIL code and heading change (deg)."""
-    lane = _through(wp, step)
+    lane = [wp] + list(wp.next_until_lane_end(step))
     change = heading_change_deg(lane[0].transform.rotation.yaw, lane[-1].transform.rotation.yaw)
     return lane, turn_code(change), change
 
@@ -106,12 +90,11 @@ def single_turn_routes(cmap: Any, town: str, before: float = 30.0, after: float 
         if not wp_a.is_junction:
             continue  # keep the lanes inside junctions: one per manoeuvre
         lane, code, change = _lane_turn(wp_a, step)
-        back = _walk_back(wp_a, before, step)[::-1]
+        back = _walk(wp_a, before, step, forward=False)[::-1]
         exit_ = [w for w in lane[-1].next(step) if not w.is_junction]
         if not back or not exit_:
             continue  # a junction lane straight into another junction: no single-turn route
-        ahead = _walk_forward(exit_[0], after, step)
-        wps = back + lane + ahead
+        wps = back + lane + [exit_[0]] + _walk(exit_[0], after, step, forward=True)
         jid = wp_a.get_junction().id
         name = f"{town}/j{jid}/{wp_a.road_id}:{wp_a.lane_id}/{COMMAND_NAMES[code]}"
         routes.append(build_route(wps, [(jid, code, len(back), len(back) + len(lane) - 1)], name,

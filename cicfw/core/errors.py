@@ -135,18 +135,13 @@ def sigterm_as_interrupt() -> Iterator[None]:
 _installed = False  # install_app_handlers ran in this process
 
 
-def _interrupted_line(err: BaseException) -> tuple[str, int]:
-    """``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and its exit status: 130 (Ctrl-C) or 128 + the signal."""
+def _exit_interrupted(err: BaseException, exit: Callable[[int], Any] = sys.exit) -> None:
+    """Print ``cicfw: interrupted[ (SIGTERM)][; <what is kept>]`` and ``exit`` with 130 (Ctrl-C) or 128 + the
+    signal."""
     detail = f"; {err}" if isinstance(err, Interrupted) and str(err) else ""
     by = f" ({signal.Signals(_stopped_by).name})" if _stopped_by else ""
-    return f"cicfw: interrupted{by}{detail}", 128 + _stopped_by if _stopped_by else 130
-
-
-def _exit_interrupted(err: KeyboardInterrupt) -> None:
-    """Print ``_interrupted_line`` and exit with its status."""
-    line, status = _interrupted_line(err)
-    print(line, file=sys.stderr)
-    sys.exit(status)
+    print(f"cicfw: interrupted{by}{detail}", file=sys.stderr)
+    exit(128 + _stopped_by if _stopped_by else 130)
 
 
 def install_app_handlers() -> None:
@@ -180,9 +175,7 @@ def install_app_handlers() -> None:
         if not issubclass(kind, KeyboardInterrupt):
             previous(kind, err, tb)
             return
-        line, status = _interrupted_line(err)
-        print(line, file=sys.stderr)
-        _exit_now(status)
+        _exit_interrupted(err, _exit_now)
 
     sys.excepthook = uncaught
     # the handler last: a SIGTERM the moment it is in place must already find the hook that makes it one line

@@ -28,7 +28,7 @@ def _temp_name(path: Path, suffix: str) -> Path:
 TEMP_NAME = re.compile(r"^\..+\.(\d+)-[0-9a-f]{8}\.[a-z]+$")
 
 
-def _running(pid: int) -> bool:
+def running(pid: int) -> bool:
     """Whether a process ``pid`` runs on this machine (one owned by another user counts)."""
     try:
         os.kill(pid, 0)
@@ -44,7 +44,7 @@ def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
     process killed while writing (SIGKILL, a lost node) cannot clean up after itself. Only for a folder
     the caller holds (its lock), so that no writer on another machine is still filling one. Returns them."""
     stale = [p for p in Path(folder).rglob(".*") if p.is_file() and (m := TEMP_NAME.match(p.name))
-             and int(m.group(1)) != os.getpid() and not _running(int(m.group(1)))]
+             and int(m.group(1)) != os.getpid() and not running(int(m.group(1)))]
     for p in stale:
         p.unlink(missing_ok=True)
     return stale

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from cicfw.core.errors import CicfwError
+from cicfw.core.files import running
 
 try:
     import fcntl
@@ -216,12 +217,9 @@ def pid_alive(holder: Mapping[str, Any]) -> bool:
     """Whether the record's pid (on this host) is a live process that is not younger than the record."""
     try:
         pid = int(holder.get("pid"))
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass  # alive, someone else's
     except (TypeError, ValueError):
+        return False
+    if not running(pid):
         return False
     started = holder.get("started_epoch")
     try:  # a pid reused after the holder died (a reboot, a container) started after the lock was taken

@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
-from cicfw.core.slurm_requeue import is_requeued_run
+from cicfw.core.slurm_requeue import is_requeued_run, saved_config
 from cicfw.core.sweeps import is_worker_process
 
 
@@ -71,6 +71,15 @@ def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequ
     writable_folder(folder, key, "a folder you can write", "the run folder")
 
 
+def _data_path(config: Any) -> list[str]:
+    """The app's data folder (``data.path``) as ``claim_folder``'s ``data``: none where it has none."""
+    try:
+        data = OmegaConf.select(config, "data.path", default=None)
+    except Exception:  # an interpolation that does not resolve: the app's own checks name it
+        return []
+    return [data] if data else []
+
+
 class RunFolderCheck(Callback):
     """Hydra callback: the run folder (or the sweep folder) checked before the job starts."""
 
@@ -85,11 +94,7 @@ class RunFolderCheck(Callback):
         the data folder being ``data.path`` where the app has one; one line (exit status 2) when refused."""
         folder = str(config.hydra.run.dir)
         try:
-            data = OmegaConf.select(config, "data.path", default=None)
-        except Exception:  # an interpolation that does not resolve: the app's own checks name it
-            data = None
-        try:
-            claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=[data] if data else [])
+            claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=_data_path(config))
         except RunFolderError as err:
             forget_run_folder(folder)  # nothing was written: nothing to put back
             print(f"cicfw: error: {err}", file=sys.stderr)
@@ -103,11 +108,7 @@ class RunFolderCheck(Callback):
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
         try:
-            data = OmegaConf.select(config, "data.path", default=None)
-        except Exception:  # an interpolation that does not resolve: the app's own checks name it
-            data = None
-        try:
-            claim_sweep_folder(str(config.hydra.sweep.dir), data=[data] if data else [])
+            claim_sweep_folder(str(config.hydra.sweep.dir), data=_data_path(config))
         except RunFolderError as err:
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
@@ -282,11 +283,8 @@ def forget_run_folder(folder: str | Path) -> None:
 
 def saved_run_config(checkpoint: str | Path) -> Any | None:
     """The config the training run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``) saved in
-    ``<run>/.hydra/config.yaml``, unresolved; None when there is none or it cannot be read."""
-    try:
-        return OmegaConf.load(Path(checkpoint).parent.parent / ".hydra" / "config.yaml")
-    except Exception:  # missing or unreadable: the run says nothing
-        return None
+    ``<run>/.hydra/config.yaml`` (``saved_config``)."""
+    return saved_config(Path(checkpoint).parent.parent)
 
 
 def undo_run_folder(folder: str | Path) -> None:
@@ -470,6 +468,12 @@ def _listed(names: Sequence[str]) -> str:
     return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
 
 
+def _refuse_data_folder(folder: Path, data: Sequence[str | Path], key: str, tail: str) -> None:
+    """One ``RunFolderError`` naming ``key`` when ``folder`` is one of the data folders ``data``."""
+    if any(d is not None and str(d) != "" and _same(folder, d) for d in data):
+        raise RunFolderError(f"{key}={str(folder)!r} is the data folder (data.path) {tail}", key=key, value=str(folder))
+
+
 def claim_sweep_folder(folder: str | Path, key: str = "hydra.sweep.dir", *, data: Sequence[str | Path] = ()) -> None:
     """A sweep folder holds the sweep's job folders (``0/``, ``1/`` ...) and what it writes beside them (its
     record, summary, joined table): a folder that is itself one run of any app (its own kind too: an
@@ -478,10 +482,7 @@ def claim_sweep_folder(folder: str | Path, key: str = "hydra.sweep.dir", *, data
     runs below it passes (``check_no_other_sweep`` and the apps' own checks see to those)."""
     folder = Path(folder).expanduser()
     where, fix = f"{key}={str(folder)!r}", f"give a folder of its own ({key}=<new folder>)"
-    for d in data:
-        if d is not None and str(d) != "" and _same(folder, d):
-            raise RunFolderError(f"{where} is the data folder (data.path) the sweep's jobs read; {fix}",
-                                 key=key, value=str(folder))
+    _refuse_data_folder(folder, data, key, f"the sweep's jobs read; {fix}")
     if not _exists(folder) or not folder.is_dir():
         return
     if (folder / "multirun.yaml").is_file() and not (folder / ".hydra").exists():
@@ -505,10 +506,7 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
     folder = Path(folder).expanduser()
     where = f"{key}={str(folder)!r}"
     fix = f"give a fresh folder ({key}=<new folder>)"
-    for d in data:
-        if d is not None and str(d) != "" and _same(folder, d):
-            raise RunFolderError(f"{where} is the data folder (data.path) whose episodes cicfw {app} reads; {fix}",
-                                 key=key, value=str(folder))
+    _refuse_data_folder(folder, data, key, f"whose episodes cicfw {app} reads; {fix}")
     for src in inputs:
         if _same(folder, src):
             raise RunFolderError(f"{where} is one of the folders cicfw {app} reads ({src}), whose files it would "

@@ -30,14 +30,14 @@ def saved_values(config: Any) -> dict:
     return OmegaConf.to_container(OmegaConf.create(OmegaConf.to_yaml(OmegaConf.create(values))), resolve=False)
 
 
-def same_run_config(folder: str | Path, config: Any) -> bool:
-    """Whether ``folder/.hydra/config.yaml`` holds the values of ``config`` (the command's composed config):
-    the run there is this command's. False when the file is missing or unreadable."""
+def saved_config(folder: str | Path) -> DictConfig | None:
+    """The config the Hydra run in ``folder`` saved (``.hydra/config.yaml``), unresolved; None when there is
+    none, it cannot be read or it holds no mapping."""
     try:
         saved = OmegaConf.load(Path(folder) / ".hydra" / "config.yaml")
-    except Exception:  # missing or unreadable: nothing says the run there is this one
-        return False
-    return isinstance(saved, DictConfig) and saved_values(saved) == saved_values(config)
+    except Exception:  # missing or unreadable: nothing says which run is there
+        return None
+    return saved if isinstance(saved, DictConfig) else None
 
 
 def is_requeued_run(folder: str | Path, config: Any) -> bool:
@@ -48,4 +48,5 @@ def is_requeued_run(folder: str | Path, config: Any) -> bool:
         return False
     from lightning.fabric.plugins.environments import SLURMEnvironment  # only here: Lightning is slow to import
 
-    return SLURMEnvironment.detect() and same_run_config(folder, config)
+    saved = saved_config(folder) if SLURMEnvironment.detect() else None
+    return saved is not None and saved_values(saved) == saved_values(config)  # this command's run: the same values

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
 from cicfw.core.errors import CicfwError
@@ -122,19 +124,11 @@ def distinct_files(files: list[Path]) -> tuple[list[Path], list[tuple[Path, Path
 
 def merge_copies(groups: np.ndarray, copies: list[tuple[int, int]]) -> np.ndarray:
     """Episode ids where each (copy, original) pair of file indices shares one episode, whole episodes
-    merged, so no copy validates what its original trains."""
-    parent = {g: g for g in np.unique(groups).tolist()}
-
-    def root(g: int) -> int:
-        while parent[g] != g:
-            g = parent[g]
-        return g
-
-    for i, j in copies:
-        a, b = root(int(groups[i])), root(int(groups[j]))
-        parent[max(a, b)] = min(a, b)
-    _, merged = np.unique([root(int(g)) for g in groups], return_inverse=True)
-    return merged.astype(np.int32)
+    merged, so no copy validates what its original trains (numbered in order of each's lowest id)."""
+    n = int(groups.max()) + 1 if len(groups) else 0
+    edges = np.array([(groups[i], groups[j]) for i, j in copies], np.int64).reshape(-1, 2)
+    linked = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(linked, directed=False)[1][groups].astype(np.int32)
 
 
 def find_copies(files: list[Path], digests: dict[int, bytes]) -> list[tuple[int, int]]:

@@ -33,13 +33,8 @@ def in_memory_setting(value: object) -> bool | str:
 def available_bytes() -> int:
     """Memory this process can still take: MemAvailable, capped by the cgroup's limit and by the room a
     per-process limit leaves (``process_limits``: ``ulimit -v`` counts the address space, not the memory)."""
-    found = []
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                found.append(int(line.split()[1]) * 1024)
-    except OSError:
-        pass
+    memory = _status_bytes("MemAvailable", "/proc/meminfo")
+    found = [memory] if memory else []
     try:
         limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
         used = int(Path("/sys/fs/cgroup/memory.current").read_text())
@@ -59,11 +54,11 @@ LIMITS = ((resource.RLIMIT_AS, "VmSize", "ulimit -v, the address-space limit"),
           (resource.RLIMIT_DATA, "VmData", "ulimit -d, the data-segment limit"))
 
 
-def _status_bytes(field: str) -> int:
-    """A size line of /proc/self/status (``VmSize``: the address space this process maps now), in bytes; 0
-    where there is none."""
+def _status_bytes(field: str, path: str = "/proc/self/status") -> int:
+    """A size line of /proc/self/status (``VmSize``: the address space this process maps now) or of ``path``
+    (/proc/meminfo's ``MemAvailable``), in bytes; 0 where there is none."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
+        for line in Path(path).read_text().splitlines():
             if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):

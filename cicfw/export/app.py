@@ -43,9 +43,10 @@ from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
-from cicfw.data.provenance import file_sha256, folder_record
+from cicfw.data.provenance import file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
-                                    refuse_exported_model, resolve_checkpoint, run_config_files, where_it_ran)
+                                    recorded_data_paths, refuse_exported_model, resolve_checkpoint, run_config_files,
+                                    where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.env import get_renderer
@@ -336,8 +337,7 @@ def other_run(cfg: dict[str, Any], cfg_path: Path, hp: dict[str, Any], checkpoin
     """How the run config found beside ``checkpoint`` is another run's (a checkpoint copied into its folder):
     other parts, or other data than the checkpoint recorded (its run's ``data.json``); None when it is its own."""
     differ = config_parts_differ(cfg, hp)
-    own = (checkpoint_record(checkpoint) or {}).get("path")
-    theirs = (folder_record(cfg_path.parent.parent) or {}).get("path")
+    own, theirs = recorded_data_paths(checkpoint, cfg_path.parent.parent)
     return differ or (f"data {theirs}, checkpoint {own}" if own and theirs and own != theirs else None)
 
 

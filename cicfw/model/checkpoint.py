@@ -21,7 +21,7 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from cicfw.core.errors import CicfwError
-from cicfw.data.provenance import CHECKPOINT_KEY, is_record
+from cicfw.data.provenance import CHECKPOINT_KEY, folder_record, is_record
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import keep_fp32
 from cicfw.registry import ENCODERS, HEADS, MIXERS
@@ -156,6 +156,14 @@ def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
     not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
     record = _mapped(path).get(CHECKPOINT_KEY)
     return dict(record) if is_record(record) else None
+
+
+def recorded_data_paths(checkpoint: str | Path, run: str | Path | None = None) -> tuple[str | None, str | None]:
+    """The data path ``checkpoint`` recorded and the one its run folder's ``data.json`` recorded (``run``, by
+    default ``<run>/checkpoints/x.ckpt``'s), None for no record: a checkpoint copied into another run's
+    folder names other data than the folder does."""
+    theirs = folder_record(Path(checkpoint).parent.parent if run is None else run)
+    return (checkpoint_record(checkpoint) or {}).get("path"), (theirs or {}).get("path")
 
 
 #: the checkpoint key holding the data settings of its run's split and samples (``data.seed``, ``val_fraction``,

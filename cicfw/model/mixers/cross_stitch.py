@@ -12,9 +12,8 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs, check_unit_interval
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.common import check_unit_interval
+from cicfw.model.mixers.independent import IndependentMixer
 from cicfw.registry import MIXERS
 
 # Slices of a ``branch_mlp`` Sequential: two hidden blocks (Linear, ReLU, Dropout), then the output Linear.
@@ -35,19 +34,16 @@ def run_block(branches: nn.ModuleList, block: slice, x: torch.Tensor) -> torch.T
 
 
 @MIXERS.register("cross_stitch")
-class CrossStitchMixer(Mixer):
+class CrossStitchMixer(IndependentMixer):
     """CIL branches with a learned 4x4 cross-stitch α after each of their two hidden layers."""
 
     def __init__(
         self, in_dim: int, out_dim: int, alpha_diag: float = 0.9, hidden: int = 256,
         dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
-        super().__init__(in_dim, out_dim)
         check_unit_interval("alpha_diag", alpha_diag, "the initial self-weight of each branch (paper: 0.9)")
-        check_branch_kwargs(hidden, dropout)
-        n = self.n_branches
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
-        self.alphas = nn.ParameterList(nn.Parameter(stitch_init(n, alpha_diag)) for _ in HIDDEN_BLOCKS)
+        super().__init__(in_dim, out_dim, hidden, dropout)  # the branches
+        self.alphas = nn.ParameterList(nn.Parameter(stitch_init(self.n_branches, alpha_diag)) for _ in HIDDEN_BLOCKS)
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         x = h[:, None].expand(-1, self.n_branches, -1)

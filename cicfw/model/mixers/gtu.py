@@ -11,9 +11,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.independent import IndependentMixer
 from cicfw.registry import MIXERS
 
 
@@ -40,26 +38,35 @@ def colearn(coefs: torch.Tensor, outputs: torch.Tensor) -> tuple[torch.Tensor, t
     return torch.bmm(c, outputs), c
 
 
-@MIXERS.register("gtu")
-class GTUMixer(Mixer):
-    """CIL branches, then ``A = C Â`` with ``C = I + offdiag(tanh(W_a h) * sigmoid(W_g h))`` per sample."""
+class CoLearningMixer(IndependentMixer):
+    """CIL branches (``independent``'s) mixed per sample by ``A = C Â``, ``C = I + offdiag(coefficients(h))``."""
 
-    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256,
-                 dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
-        super().__init__(in_dim, out_dim)
-        check_branch_kwargs(hidden, dropout)
-        n = self.n_branches
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
-        self.coef = nn.Linear(in_dim, n * (n - 1))  # W_a: the co-learning coefficient, tanh -> [-1, 1]
-        self.gate = nn.Linear(in_dim, n * (n - 1))  # W_g: the gate, sigmoid -> [0, 1]
-        self._c: torch.Tensor | None = None
+    _c: torch.Tensor | None = None  # the last forward's C, for inspect()
+
+    def coefficients(self, h: torch.Tensor) -> torch.Tensor:
+        """The off-diagonal coefficients (B, n(n-1)) of C for features ``h``."""
+        raise NotImplementedError
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
-        coefs = torch.tanh(self.coef(h)) * torch.sigmoid(self.gate(h))
-        mixed, c = colearn(coefs, outputs)
+        mixed, c = colearn(self.coefficients(h), outputs)
         self._c = c.detach()  # for inspect(); detached so it does not hold the graph
         return mixed
 
     def inspect(self) -> dict[str, torch.Tensor]:
         return {} if self._c is None else {"C": self._c}
+
+
+@MIXERS.register("gtu")
+class GTUMixer(CoLearningMixer):
+    """CIL branches, then ``A = C Â`` with ``C = I + offdiag(tanh(W_a h) * sigmoid(W_g h))`` per sample."""
+
+    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256,
+                 dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
+        super().__init__(in_dim, out_dim, hidden, dropout)
+        n = self.n_branches
+        self.coef = nn.Linear(in_dim, n * (n - 1))  # W_a: the co-learning coefficient, tanh -> [-1, 1]
+        self.gate = nn.Linear(in_dim, n * (n - 1))  # W_g: the gate, sigmoid -> [0, 1]
+
+    def coefficients(self, h: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.coef(h)) * torch.sigmoid(self.gate(h))

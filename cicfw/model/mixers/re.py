@@ -13,10 +13,8 @@ from torch import nn
 
 from cicfw import COMMANDS
 from cicfw.core.errors import ConfigError
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int
-from cicfw.model.mixers.gtu import colearn, offdiag_mask
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.common import check_positive_int
+from cicfw.model.mixers.gtu import CoLearningMixer, offdiag_mask
 from cicfw.registry import MIXERS
 
 # Every pair of branches related: the paper does not publish the R it tuned.
@@ -40,7 +38,7 @@ def check_relationship(R: Sequence[Sequence[int]], n: int) -> torch.Tensor:
 
 
 @MIXERS.register("re")
-class REMixer(Mixer):
+class REMixer(CoLearningMixer):
     """CIL branches, then ``A = C Â`` with ``C = I + R ∘ offdiag(tanh(MLP(h)))``, R fixed and binary."""
 
     def __init__(
@@ -52,26 +50,17 @@ class REMixer(Mixer):
         hidden: int = 256,
         dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
-        super().__init__(in_dim, out_dim)
         n = self.n_branches
         r = check_relationship(R, n)
-        check_branch_kwargs(hidden, dropout)
+        super().__init__(in_dim, out_dim, hidden, dropout)  # the branches
         check_positive_int("coef_hidden", coef_hidden, "the width of the coefficient MLP")
         self.register_buffer("R", r)  # persistent: a checkpoint remembers its R
         # R's off-diagonal positions, row-major (an index, not a boolean mask: torch.compile traces it)
         self.register_buffer("_off", torch.nonzero(offdiag_mask(n).flatten()).flatten(), persistent=False)
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
         # E: the "dedicated neural network" of the paper, one tanh coefficient per off-diagonal entry.
         self.coef = nn.Sequential(nn.Linear(in_dim, coef_hidden), nn.ReLU(inplace=True),
                                   nn.Linear(coef_hidden, n * (n - 1)))
-        self._c: torch.Tensor | None = None
 
-    def forward(self, h: torch.Tensor) -> torch.Tensor:
-        outputs = torch.stack([branch(h) for branch in self.branches], dim=1)
+    def coefficients(self, h: torch.Tensor) -> torch.Tensor:
         r_off = self.R.flatten()[self._off]  # (n(n-1),), row-major like colearn
-        mixed, c = colearn(r_off * torch.tanh(self.coef(h)), outputs)
-        self._c = c.detach()  # for inspect(); detached so it does not hold the graph
-        return mixed
-
-    def inspect(self) -> dict[str, torch.Tensor]:
-        return {} if self._c is None else {"C": self._c}
+        return r_off * torch.tanh(self.coef(h))

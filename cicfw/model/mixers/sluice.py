@@ -18,15 +18,14 @@ from torch import nn
 
 from cicfw.core.config_checks import is_number
 from cicfw.core.errors import ConfigError
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs, check_positive_int, check_unit_interval
+from cicfw.model.mixers.common import check_positive_int, check_unit_interval
 from cicfw.model.mixers.cross_stitch import HIDDEN_BLOCKS, OUTPUT_LAYER, run_block, stitch_init
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.independent import IndependentMixer
 from cicfw.registry import MIXERS
 
 
 @MIXERS.register("sluice")
-class SluiceMixer(Mixer):
+class SluiceMixer(IndependentMixer):
     """CIL branches with subspace-split hidden layers, learned α (units across branches), β (over layers)."""
 
     def __init__(
@@ -40,8 +39,7 @@ class SluiceMixer(Mixer):
         hidden: int = 256,
         dropout: float | Sequence[float] = (0.5, 0.0),
     ) -> None:
-        super().__init__(in_dim, out_dim)
-        check_branch_kwargs(hidden, dropout)
+        super().__init__(in_dim, out_dim, hidden, dropout)  # the branches
         check_positive_int("subspaces", subspaces, "the number of subspaces per hidden layer (paper: 2)")
         if subspaces < 2 or hidden % subspaces:
             raise ConfigError(
@@ -55,7 +53,6 @@ class SluiceMixer(Mixer):
                              f"mixer.ortho={ortho!r} is not valid; the orthogonality weight must be a finite number >= 0")
         n, layers = self.n_branches, len(HIDDEN_BLOCKS)
         self.subspaces, self.ortho = subspaces, float(ortho)
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(n))
         self.alphas = nn.ParameterList(nn.Parameter(stitch_init(n * subspaces, alpha_diag)) for _ in HIDDEN_BLOCKS)
         beta = torch.full((n, layers), (1.0 - beta_last) / (layers - 1))  # Ruder et al.'s "imbalanced" init
         beta[:, -1] = beta_last

@@ -8,32 +8,24 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
-from torch import nn
 
 from cicfw.core.config_checks import is_number
 from cicfw.core.errors import ConfigError
-from cicfw.model.mixers.base import Mixer
-from cicfw.model.mixers.common import check_branch_kwargs
-from cicfw.model.mixers.independent import branch_mlp
+from cicfw.model.mixers.independent import IndependentMixer
 from cicfw.registry import MIXERS
 
 
 @MIXERS.register("soft_sharing")
-class SoftSharingMixer(Mixer):
+class SoftSharingMixer(IndependentMixer):
     """Four CIL branches; regularizer ``λ Σ_{i<j} ||θ_i − θ_j||²`` (all weights and biases of a branch)."""
 
     def __init__(self, in_dim: int, out_dim: int, lam: float = 1e-4, hidden: int = 256,
                  dropout: float | Sequence[float] = (0.5, 0.0)) -> None:
-        super().__init__(in_dim, out_dim)
         if not (is_number(lam) and lam >= 0):  # finite: an inf weight makes the loss inf, the weights NaN
             raise ConfigError("mixer.lam", lam, "a finite number >= 0",
                              f"mixer.lam={lam!r} is not valid; the L2 weight λ must be a finite number >= 0")
-        check_branch_kwargs(hidden, dropout)
+        super().__init__(in_dim, out_dim, hidden, dropout)
         self.lam = float(lam)
-        self.branches = nn.ModuleList(branch_mlp(in_dim, hidden, out_dim, dropout) for _ in range(self.n_branches))
-
-    def forward(self, h: torch.Tensor) -> torch.Tensor:
-        return torch.stack([branch(h) for branch in self.branches], dim=1)
 
     def distance(self) -> torch.Tensor:
         """``Σ_{i<j} ||θ_i − θ_j||²`` (unweighted)."""
