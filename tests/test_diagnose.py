@@ -291,6 +291,22 @@ def test_the_app_end_to_end(tmp_path: Path, episodes: Path):
     assert "val split" in measured and "80 frames" in measured and str(ckpt) in measured, measured
 
 
+def test_an_unreadable_saved_config_is_one_line_naming_it(tmp_path: Path, episodes: Path):
+    """A run config beside the checkpoint that YAML cannot read: one line naming that file, nothing written."""
+    run = tmp_path / "run"
+    ckpt = save_checkpoint(run, head="softmax")
+    write_run_config(run, episodes, seed=3)
+    config = run / ".hydra" / "config.yaml"
+    config.write_text("data: {path: [unclosed\n")
+    out = tmp_path / "out"
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpt}", f"hydra.run.dir={out}", "threads=1", cwd=REPO,
+                             env={"OMP_NUM_THREADS": "1"})
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    line = [ln for ln in res.stderr.splitlines() if ln.startswith("cicfw: error:")]
+    assert len(line) == 1 and str(config) in line[0], res.stderr
+    assert not (out / "steer_diagnostic.json").exists()
+
+
 @pytest.mark.parametrize("split, said", [("train", "train split"), ("val", "val split"), ("all", "every frame")])
 def test_the_markdown_report_says_which_frames_it_measured(split, said):
     from cicfw.diagnose.steer_diagnostic import measured_line

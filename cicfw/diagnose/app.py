@@ -105,7 +105,11 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
     row, seed and budget). None when there is neither, or when the config names other parts than the
     checkpoint (a checkpoint copied into another run's folder: that run's split is not its own)."""
     for path in run_config_files(checkpoint):
-        cfg = OmegaConf.load(path)
+        try:
+            cfg = OmegaConf.load(path)
+        except Exception as err:  # a truncated or hand-broken file: its split settings are unknown
+            raise CicfwError(f"cannot read the saved config {path} of the run that wrote {checkpoint} ({err}); "
+                             "its split settings come from there: mend or remove that file") from err
         differ = config_parts_differ(OmegaConf.to_container(cfg, resolve=False), checkpoint_hyper_parameters(checkpoint))
         if differ:
             log.warning("%s is not the config of %s (%s), so its split settings are not used", path, checkpoint,
