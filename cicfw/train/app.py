@@ -536,7 +536,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else float("nan")
-    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
+    log.info("%s", outcome(cfg.optimized_metric, None if value is None else metric, run_dir, before, trainer,
+                           bool(cfg.get("evaluate_after"))))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
 
         success = evaluate_after_training(cfg, trainer, run_dir)["success"]
@@ -592,11 +593,15 @@ def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
     return {p.name: (p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(folder.glob("*.ckpt"))}
 
 
-def outcome(metric_name: str, metric: float, run_dir: Path, before: Mapping[str, tuple[int, int]],
+def outcome(metric_name: str, metric: float | None, run_dir: Path, before: Mapping[str, tuple[int, int]],
             trainer: L.Trainer, evaluate_after: bool = False) -> str:
-    """The run's last line, saying what happened: the metric (or that no validation ran) and the
-    checkpoints this run wrote (or that it wrote none, and why when Lightning saves none)."""
-    said = f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else f"{metric_name}: no value (no validation ran)"
+    """The run's last line, saying what happened: the metric (None: no validation ran; NaN or inf: the
+    validation ran and the model's steering is not finite) and the checkpoints this run wrote (or that it
+    wrote none, and why when Lightning saves none)."""
+    said = (f"{metric_name}: no value (no validation ran)" if metric is None else
+            f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else
+            f"{metric_name} = {metric} (validated, but the model steers NaN or inf: training diverged; lower "
+            f"model.lr, or look for NaN or huge values in the data)")
     written = [name for name, stamp in checkpoint_files(run_dir).items() if before.get(name) != stamp]
     if written:
         return f"{said}; checkpoints written in {run_dir / 'checkpoints'}: {', '.join(written)}"
