@@ -5,6 +5,7 @@ the run's last line says what was written."""
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
 import pytest
@@ -78,6 +79,18 @@ def test_a_diverged_run_says_so_rather_than_that_no_validation_ran(tmp_path, cap
     line = [r.getMessage() for r in caplog.records if r.name == "cicfw.train"][-1]
     assert value in (float("inf"), float("nan")) or value != value, value
     assert "diverged" in line and "no validation ran" not in line, line
+
+
+def test_a_run_folder_moved_and_resumed_there_keeps_one_best_checkpoint(tmp_path):
+    """Lightning forgets the best seen so far when the run folder's path changed: a moved run resumed there
+    saved a second best checkpoint and reported the later epoch's value as the run's."""
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    train(_cfg(data, "trainer.max_epochs=1"), tmp_path / "before")
+    shutil.copytree(tmp_path / "before", tmp_path / "moved")
+    last = tmp_path / "moved" / "checkpoints" / "last.ckpt"
+    value = train(_cfg(data, "trainer.max_epochs=2", f"ckpt_path={last}"), tmp_path / "moved")
+    best = sorted(p.name for p in last.parent.glob("epoch*-mae*.ckpt"))
+    assert len(best) == 1 and best[0].endswith(f"mae{value:.4f}.ckpt"), (best, value)
 
 
 def test_a_resume_with_the_checkpoints_values_and_epochs_left_passes(run):

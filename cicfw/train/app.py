@@ -219,6 +219,27 @@ class EpochCheckpoints(Checkpoint):
         trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
 
 
+class BestCheckpoint(ModelCheckpoint):
+    """The best checkpoint by the monitored metric. A run folder moved or copied and resumed there keeps its
+    best: Lightning forgets the best seen so far when the folder's path changed, so a worse later epoch was
+    saved as a second best and reported as the run's value; the state is re-rooted here when the files it
+    names lie in this folder under their names (another run's checkpoint resumed in a new folder is not)."""
+
+    @property
+    def state_key(self) -> str:  # ModelCheckpoint's, under which every run's checkpoints keep this state
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        old = state_dict.get("dirpath")
+        if old and self.dirpath and old != self.dirpath:
+            here = lambda p: os.path.join(self.dirpath, os.path.basename(p)) if p else p  # noqa: E731
+            best = {here(p): v for p, v in (state_dict.get("best_k_models") or {}).items()}
+            if best and all(os.path.isfile(p) for p in best):
+                state_dict = {**state_dict, "dirpath": self.dirpath, "best_k_models": best,
+                              **{k: here(state_dict.get(k)) for k in ("best_model_path", "kth_best_model_path")}}
+        super().load_state_dict(state_dict)
+
+
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
     """``<dirpath>/last.ckpt`` rewritten at the end of every training epoch (after its validation, when one
     runs): always the latest weights and training state, the one to resume from. A callback of its own
@@ -275,7 +296,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     before ``last.ckpt`` so that file records the updated best), ``last.ckpt``, the mixer's diagnostics,
     the data-wait report, the kept epochs, the weights' moving average and the progress bar."""
     callbacks: list[Callback] = [
-        ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
+        BestCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
                         save_last=False, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
                         auto_insert_metric_name=False),
         last_checkpoint(run_dir / "checkpoints"),
