@@ -383,6 +383,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help="only print the bf16 license study's design, commands and rule for this GPU (no training)")
     p.add_argument("--act-on-cpu", nargs=2, metavar=("CKPT", "FRAMES"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    # its data files are named as CoRL-2017's are, and its run would resume or overwrite another's: a folder
+    # already holding either is refused before anything is written
+    held = [Path(args.workdir, d) for d in ("data", "run") if args.workdir and any(Path(args.workdir, d).glob("*"))]
+    if held:
+        p.error(f"--workdir {args.workdir}: {held[0]} already holds files, which the check would overwrite or "
+                f"train on; give an empty or new folder")
     dry = args.dry_run
     for key, gpu, cpu in (("steps", 300, 20), ("epochs", 3, 2), ("frames", 4000, 480), ("batch_size", 120, 32)):
         if getattr(args, key) is None:

@@ -169,6 +169,7 @@ def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
      ["head=softmax", "head.n_classes=5", "head.low=-0.9", "head.high=0.9", "head.bin_width=0.36"], "head.low", -0.9),
     (["head=sine", "head.phase_range=0.9"], ["head=sine", "head.phase_range=0.5"], "head.phase_range", 0.5),
     ([], ["model.speed_norm_kmh=80"], "model.speed_norm_kmh", 80.0),
+    (["mixer=re"], ["mixer=re", "mixer.R=[[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,0]]"], "mixer.R", [[0] * 4] * 4),
 ])
 def test_resuming_with_another_input_scale_or_output_encoding_is_refused(tmp_path, no_data, trained, resumed, key,
                                                                           value):

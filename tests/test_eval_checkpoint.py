@@ -109,6 +109,15 @@ def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
             read_checkpoint(tmp_path / f"no_{key}.ckpt")
         assert (err.value.key, err.value.value) == (key, "their_plugin")
         assert all(n in str(err.value) for n in registered.split(", "))  # those installed
+    # a diverged run's NaN weights: refused when loaded, not a NaN steer in the middle of a suite
+    state = dict(data["state_dict"])
+    name = next(k for k, v in state.items() if v.is_floating_point())
+    state[name] = torch.full_like(state[name], float("nan"))
+    torch.save({**data, "state_dict": state}, tmp_path / "diverged.ckpt")
+    with pytest.raises(CheckpointError) as err:
+        load_model(tmp_path / "diverged.ckpt")
+    assert (err.value.key, err.value.value) == ("checkpoint", str(tmp_path / "diverged.ckpt"))
+    assert name in str(err.value)
     # a folder: its single best checkpoint is taken; two are ambiguous
     run = tmp_path / "run" / "checkpoints"
     run.mkdir(parents=True)

@@ -70,6 +70,19 @@ def test_without_cuda_it_says_so_and_exits_2():
     assert proc.stdout.strip().splitlines() == [proc.stdout.strip()] and "--dry-run" in proc.stdout
 
 
+def test_a_workdir_holding_data_or_a_run_is_refused_before_writing(tmp_path):
+    """Its data_00000.h5 ... are CoRL-2017's own names: another folder's files are neither overwritten nor
+    trained on."""
+    for sub in ("data", "run"):
+        (tmp_path / sub).mkdir(exist_ok=True)
+        (tmp_path / sub / "data_00000.h5").write_bytes(b"theirs")
+        proc = subprocess.run([sys.executable, str(SCRIPT), "--dry-run", "--workdir", str(tmp_path)],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2 and str(tmp_path / sub) in proc.stderr, proc.stderr
+        assert (tmp_path / sub / "data_00000.h5").read_bytes() == b"theirs"
+        (tmp_path / sub / "data_00000.h5").unlink()
+
+
 @pytest.mark.slow
 def test_dry_run_passes_every_check(monkeypatch):
     """The script run in this interpreter, as ``python bench/gpu_check.py --dry-run`` runs it (the test

@@ -498,6 +498,24 @@ def test_evaluate_policy_into_a_file_is_one_line_naming_out_dir(tmp_path: Path, 
     assert blocker.read_text() == "kept"
 
 
+def test_evaluate_policy_into_a_folder_of_other_files_is_refused(tmp_path: Path) -> None:
+    """evaluate_policy wrote its table.md, summary.json ... over files no cicfw app wrote (or a training
+    run's folder); an earlier call's folder still resumes."""
+    from cicfw.benchmark.app import evaluate_policy
+    from cicfw.core.run_folder import RunFolderError
+
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "table.md").write_text("mine")
+    suite = {"towns": [str(TOWN)], "weathers": ["ClearNoon"], "training_towns": [], "limit": 1}
+    with pytest.raises(RunFolderError) as err:
+        evaluate_policy({"name": "expert"}, suite, {"workers": 1}, out, maps=False)
+    assert (err.value.key, err.value.value) == ("out_dir", str(out))
+    assert sorted(p.name for p in out.iterdir()) == ["table.md"] and (out / "table.md").read_text() == "mine"
+    for _ in range(2):  # a fresh folder, then the same folder again
+        assert evaluate_policy({"name": "expert"}, suite, {"workers": 1}, tmp_path / "own", maps=False).success == 100.0
+
+
 @pytest.mark.parametrize("override, key, value", [("seed=-1", "seed", -1), ("runner.threads=0", "runner.threads", 0),
                                                   ("runner.threads=-2", "runner.threads", -2)])
 def test_evaluate_refuses_a_negative_seed_and_no_threads(tmp_path: Path, override: str, key: str, value) -> None:

@@ -87,6 +87,18 @@ def test_overall_is_the_mean_of_the_columns_and_tost_matches_by_hand(tmp_path):
     assert got.lo == pytest.approx(sum(d) / 3 - stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3))
 
 
+def test_the_printed_interval_says_a_column_is_widened_to_the_episodes(tmp_path):
+    """A column's interval, widened to Newcombe's, was headed '95% t' as if it were the seeds' t-interval."""
+    for s, (k, j) in enumerate([(15, 11), (16, 11), (15, 12)]):  # differences 20, 25, 15 points: a narrow t
+        write_cell(tmp_path / "a", "x", s, [k] * 4)
+        write_cell(tmp_path / "b", "y", s, [j] * 4)
+    a, b = ps.load_row(tmp_path / "a"), ps.load_row(tmp_path / "b")
+    column, overall = ps.compare(a, b, 5.0)[0], ps.compare(a, b, 5.0)[-1]
+    assert column.hi - column.lo > overall.hi - overall.lo  # the same seeds' differences, widened in a column
+    out = ps.lines(a, b, 5.0)
+    assert "95% t]" not in out[1] and any("widened" in line and "Newcombe" in line for line in out), out
+
+
 def test_episode_tost_is_dual_to_newcombes_interval_by_hand():
     """192 of 192 against 180 of 192 (+6.25 points), margin 10: the p-value is the alpha at which Newcombe's
     (1 - 2 alpha) interval, from Wilson's closed form with z = the normal quantile 1 - alpha, reaches

@@ -5,6 +5,7 @@ the run's last line says what was written."""
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
 import pytest
@@ -69,6 +70,29 @@ def test_resuming_with_nothing_left_says_so_where_it_is_not_refused(run, tmp_pat
     assert value != value and line == "val/steer_mae: no value (no validation ran); no checkpoint written", line
 
 
+def test_a_diverged_run_says_so_rather_than_that_no_validation_ran(tmp_path, caplog):
+    """A validation whose steering is NaN is a diverged model, not a missing validation."""
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    with caplog.at_level(logging.INFO, logger="cicfw.train"):
+        value = train(_cfg(data, "trainer.max_epochs=1", "trainer.limit_train_batches=2", "model.lr=1e30"),
+                      tmp_path / "run")
+    line = [r.getMessage() for r in caplog.records if r.name == "cicfw.train"][-1]
+    assert value in (float("inf"), float("nan")) or value != value, value
+    assert "diverged" in line and "no validation ran" not in line, line
+
+
+def test_a_run_folder_moved_and_resumed_there_keeps_one_best_checkpoint(tmp_path):
+    """Lightning forgets the best seen so far when the run folder's path changed: a moved run resumed there
+    saved a second best checkpoint and reported the later epoch's value as the run's."""
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    train(_cfg(data, "trainer.max_epochs=1"), tmp_path / "before")
+    shutil.copytree(tmp_path / "before", tmp_path / "moved")
+    last = tmp_path / "moved" / "checkpoints" / "last.ckpt"
+    value = train(_cfg(data, "trainer.max_epochs=2", f"ckpt_path={last}"), tmp_path / "moved")
+    best = sorted(p.name for p in last.parent.glob("epoch*-mae*.ckpt"))
+    assert len(best) == 1 and best[0].endswith(f"mae{value:.4f}.ckpt"), (best, value)
+
+
 def test_a_resume_with_the_checkpoints_values_and_epochs_left_passes(run):
     last = run[0] / "checkpoints" / "last.ckpt"
     cfg = _cfg(run[1], "trainer.max_epochs=4", f"ckpt_path={last}")
@@ -124,6 +148,6 @@ def test_the_last_line_says_what_evaluate_after_will_save_after_a_fast_dev_run(t
 
     from cicfw.train.app import outcome
 
-    line = outcome("val/steer_mae", float("nan"), tmp_path, {}, SimpleNamespace(fast_dev_run=True), evaluate_after=True)
+    line = outcome("val/steer_mae", None, tmp_path, {}, SimpleNamespace(fast_dev_run=True), evaluate_after=True)
     assert "no checkpoint written" in line and line.endswith("checkpoints/final.ckpt and drives them"), line
-    assert "final.ckpt" not in outcome("val/steer_mae", float("nan"), tmp_path, {}, SimpleNamespace(fast_dev_run=True))
+    assert "final.ckpt" not in outcome("val/steer_mae", None, tmp_path, {}, SimpleNamespace(fast_dev_run=True))

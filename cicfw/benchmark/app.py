@@ -45,7 +45,7 @@ from cicfw.benchmark.video import run_weather_family, select_episodes, write_vid
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error
-from cicfw.core.run_folder import undo_run_folder
+from cicfw.core.run_folder import claim_folder, undo_run_folder
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
@@ -88,7 +88,7 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=cfg.seed,
         label=str(cfg.name) if cfg.name else None, progress_bar=cfg.progress_bar, maps=cfg.maps,
         video=list(cfg.video or []), video_max=cfg.video_max, new_folder_hint=new_folder_hint,
-        resume_hint=resume_hint, on_start=on_start)
+        resume_hint=resume_hint, on_start=on_start, claim=False)  # run_dir was claimed by the app that made it
     join_sweep()
     return res.summary
 
@@ -114,7 +114,8 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                     out_dir: str | Path, *, sim: Mapping[str, Any] | None = None, seed: int = 0,
                     label: str | None = None, progress_bar: bool = False, maps: bool = True,
                     video: Sequence[Any] = (), video_max: int = 8, new_folder_hint: str | None = None,
-                    resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> EvalResult:
+                    resume_hint: str | None = None, on_start: Callable[[], Any] | None = None,
+                    claim: bool = True) -> EvalResult:
     """Drive the closed-loop suite with a policy into ``out_dir``, resuming what an earlier call left there
     (docs/evaluation.md, "Resuming": what is kept, which folder is refused, what may change between calls).
 
@@ -125,10 +126,13 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     the policy's label). Config errors raise before anything is written; the report says ``"complete": true``
     only once every episode is driven and the trajectories and pictures are written; ``on_start`` is called once
     ``out_dir`` holds this evaluation's episode log; Ctrl-C raises ``Interrupted``, ending with
-    ``resume_hint``. Returns an ``EvalResult``.
+    ``resume_hint``. ``out_dir`` holding another app's run or files no cicfw app wrote is refused
+    (``claim_folder``; ``claim=False``: the caller claimed it). Returns an ``EvalResult``.
     """
     out_dir = Path(out_dir)
     check_out_dir(out_dir)
+    if claim:
+        claim_folder(out_dir, "evaluate", "out_dir")
     spec = dict(policy)
     sim = dict(sim) if sim is not None else {"name": "embedded"}
     runner = dict(runner or {})

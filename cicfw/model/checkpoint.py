@@ -218,6 +218,11 @@ def load_model(path: str | Path):
         first = str(err).splitlines()[0]
         raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its "
                               f"hyper_parameters describe ({first})") from None
+    # a diverged run saves NaN weights: refused here, not as a NaN steer in the middle of a suite or export
+    bad = next((k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()), None)
+    if bad is not None:
+        raise CheckpointError(f"checkpoint {str(path)!r}: its weights hold NaN or inf (first in {bad!r}): the run "
+                              f"that wrote it diverged; retrain it (a lower model.lr)", key="checkpoint", value=str(path))
     return model.eval()
 
 

@@ -153,13 +153,15 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
     out = [f"A {names[0]} (row {row_names(a)}) vs B {names[1]} (row {row_names(b)}), paired seeds {seeds} "
            f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points; words read "
            + (f"on the Bonferroni interval over {family} comparisons" if family > 1 else "on the 95% interval"),
-           f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95% t]':>22s} {'TOST p':>7s}  verdict; word"]
+           f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95%]':>22s} {'TOST p':>7s}  verdict; word"]
     for e in compare(a, b, margin, family):
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
         p = "–" if e.p_tost is None else f"{e.p_tost:.3f}"
         said = "too few seeds" if e.word is None else f"{e.word} [{e.word_lo:+.1f}, {e.word_hi:+.1f}]"
         out.append(f"{e.on:36s} {' '.join(f'{x:5.1f}' for x in e.a):>22s} {' '.join(f'{x:5.1f}' for x in e.b):>22s} "
                    f"{ci:>22s} {p:>7s}  {e.verdict}; {said}")
+    out.append("[95%]: the paired t-interval over seeds, in a table column widened to the pooled episodes' "
+               "(Newcombe's) interval where that is wider")
     ta = [a[s].meta.get("wall_s", {}).get("train") for s in seeds]
     tb = [b[s].meta.get("wall_s", {}).get("train") for s in seeds]
     if all(ta) and all(tb):

@@ -219,6 +219,27 @@ class EpochCheckpoints(Checkpoint):
         trainer.save_checkpoint(str(self.dirpath / f"epoch{epoch:03d}.ckpt"))
 
 
+class BestCheckpoint(ModelCheckpoint):
+    """The best checkpoint by the monitored metric. A run folder moved or copied and resumed there keeps its
+    best: Lightning forgets the best seen so far when the folder's path changed, so a worse later epoch was
+    saved as a second best and reported as the run's value; the state is re-rooted here when the files it
+    names lie in this folder under their names (another run's checkpoint resumed in a new folder is not)."""
+
+    @property
+    def state_key(self) -> str:  # ModelCheckpoint's, under which every run's checkpoints keep this state
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        old = state_dict.get("dirpath")
+        if old and self.dirpath and old != self.dirpath:
+            here = lambda p: os.path.join(self.dirpath, os.path.basename(p)) if p else p  # noqa: E731
+            best = {here(p): v for p, v in (state_dict.get("best_k_models") or {}).items()}
+            if best and all(os.path.isfile(p) for p in best):
+                state_dict = {**state_dict, "dirpath": self.dirpath, "best_k_models": best,
+                              **{k: here(state_dict.get(k)) for k in ("best_model_path", "kth_best_model_path")}}
+        super().load_state_dict(state_dict)
+
+
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
     """``<dirpath>/last.ckpt`` rewritten at the end of every training epoch (after its validation, when one
     runs): always the latest weights and training state, the one to resume from. A callback of its own
@@ -275,7 +296,7 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list[Callback]:
     before ``last.ckpt`` so that file records the updated best), ``last.ckpt``, the mixer's diagnostics,
     the data-wait report, the kept epochs, the weights' moving average and the progress bar."""
     callbacks: list[Callback] = [
-        ModelCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
+        BestCheckpoint(dirpath=run_dir / "checkpoints", monitor=cfg.optimized_metric, mode="min",
                         save_last=False, filename="epoch{epoch:03d}-mae{val/steer_mae:.4f}",
                         auto_insert_metric_name=False),
         last_checkpoint(run_dir / "checkpoints"),
@@ -536,7 +557,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else float("nan")
-    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
+    log.info("%s", outcome(cfg.optimized_metric, None if value is None else metric, run_dir, before, trainer,
+                           bool(cfg.get("evaluate_after"))))
     if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
 
         success = evaluate_after_training(cfg, trainer, run_dir)["success"]
@@ -592,11 +614,15 @@ def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
     return {p.name: (p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(folder.glob("*.ckpt"))}
 
 
-def outcome(metric_name: str, metric: float, run_dir: Path, before: Mapping[str, tuple[int, int]],
+def outcome(metric_name: str, metric: float | None, run_dir: Path, before: Mapping[str, tuple[int, int]],
             trainer: L.Trainer, evaluate_after: bool = False) -> str:
-    """The run's last line, saying what happened: the metric (or that no validation ran) and the
-    checkpoints this run wrote (or that it wrote none, and why when Lightning saves none)."""
-    said = f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else f"{metric_name}: no value (no validation ran)"
+    """The run's last line, saying what happened: the metric (None: no validation ran; NaN or inf: the
+    validation ran and the model's steering is not finite) and the checkpoints this run wrote (or that it
+    wrote none, and why when Lightning saves none)."""
+    said = (f"{metric_name}: no value (no validation ran)" if metric is None else
+            f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else
+            f"{metric_name} = {metric} (validated, but the model steers NaN or inf: training diverged; lower "
+            f"model.lr, or look for NaN or huge values in the data)")
     written = [name for name, stamp in checkpoint_files(run_dir).items() if before.get(name) != stamp]
     if written:
         return f"{said}; checkpoints written in {run_dir / 'checkpoints'}: {', '.join(written)}"

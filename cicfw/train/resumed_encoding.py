@@ -1,6 +1,7 @@
 """What a checkpoint's inputs and outputs mean must not change when training resumes from it: another speed
 scale, or other steering bins or phases of the same shapes, would load the weights unchanged, train on with
-the new meaning and record only the new one, so the model would be neither."""
+the new meaning and record only the new one, so the model would be neither; another ``re`` R would be
+replaced by the checkpoint's and trained with, while the run records the new one."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,6 +14,8 @@ from cicfw.core.errors import CicfwError
 INPUT_KEYS = ("speed_norm_kmh",)
 #: ``head.*`` values that say what the head's outputs mean (the built-in heads' bins and sine phases)
 OUTPUT_KEYS = ("n_classes", "low", "high", "bin_width", "n_units", "phase_range")
+#: ``mixer.*`` values kept in a persistent buffer (re's R): the checkpoint's would replace this run's unsaid
+MIXER_KEYS = ("R",)
 
 
 def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
@@ -20,10 +23,11 @@ def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[
     hyper-parameters ``saved`` and this run's ``ours`` (a key the checkpoint does not record is not compared)."""
     differ = [(f"model.{k}", ours.get(k), saved[k]) for k in INPUT_KEYS
               if k in saved and not same_value(ours.get(k), saved[k])]
-    if saved.get("head") == ours.get("head"):
-        theirs, mine = saved.get("head_kwargs") or {}, ours.get("head_kwargs") or {}
-        differ += [(f"head.{k}", mine[k], theirs[k]) for k in OUTPUT_KEYS
-                   if k in theirs and k in mine and not same_value(mine[k], theirs[k])]
+    for node, keys in (("head", OUTPUT_KEYS), ("mixer", MIXER_KEYS)):
+        if saved.get(node) == ours.get(node):
+            theirs, mine = saved.get(f"{node}_kwargs") or {}, ours.get(f"{node}_kwargs") or {}
+            differ += [(f"{node}.{k}", mine[k], theirs[k]) for k in keys
+                       if k in theirs and k in mine and not same_value(mine[k], theirs[k])]
     return differ
 
 
