@@ -109,7 +109,7 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
         return f"{line}: a list element holding '=' must be quoted, e.g. '{quoted}'"
     if any(value.count(a) != value.count(b) for a, b in ("[]", "{}", "()")):
         return f"{line}: its brackets do not close"
-    if eq and value.startswith("~"):
+    if eq and (value == "~" or value.startswith("~/")):  # ~name is name's home, not $HOME
         return f"{line}: the shell expands '~' only at the start of a word; write $HOME, e.g. {key}=$HOME{value[1:]}"
     return line
 
