@@ -75,6 +75,14 @@ def test_a_tilde_hydra_cannot_read_is_named_in_one_line(tmp_path, arg, at, hint)
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_argument_ending_in_a_line_break_is_one_line(tmp_path):
+    """A line read from a file keeps its line break; the caret then stood on a line of its own (a traceback)."""
+    r = _app("cicfw.train", "trainer.max_epochs=1\n", cwd=str(tmp_path))
+    assert r.returncode == 2, r.stderr[-800:]
+    (line,) = r.stderr.strip().splitlines()
+    assert "'\\n' at character 21 " in line, line
+    assert list(tmp_path.iterdir()) == []
+
 def test_an_unknown_option_of_a_group_is_one_line_listing_the_options(tmp_path):
     r = _app("cicfw.train", "mixer=gtuu", f"hydra.run.dir={tmp_path}/run")
     assert r.returncode == 2
