@@ -63,16 +63,25 @@ def test_a_value_the_shell_split_at_a_space_is_one_line_saying_to_quote_it(tmp_p
 
 
 @pytest.mark.parametrize("arg, at, hint", [("hydra.run.dir=~/x", 15, "hydra.run.dir=$HOME/x"),
-                                           ("data.path=[~/a]", 12, None)])
+                                           ("data.path=[~/a]", 12, None),
+                                           ("data.path=~bob/a", 11, None)])  # another user's home, not $HOME
 def test_a_tilde_hydra_cannot_read_is_named_in_one_line(tmp_path, arg, at, hint):
     """The shell leaves a '~' after '=' as it is; Hydra's lexer then said no more than a caret: '(^)'."""
     r = _app("cicfw.train", arg, cwd=str(tmp_path))
     assert r.returncode == 2, r.stderr[-800:]
     (line,) = r.stderr.strip().splitlines()
     assert line.startswith(f"cicfw: error: cannot parse the argument {arg!r} ('~' at character {at} "), line
-    assert "^" not in line and (hint is None or line.endswith(f"e.g. {hint}")), line
+    assert "^" not in line and (line.endswith(f"e.g. {hint}") if hint else "$HOME" not in line), line
     assert list(tmp_path.iterdir()) == []
 
+
+def test_an_argument_ending_in_a_line_break_is_one_line(tmp_path):
+    """A line read from a file keeps its line break; the caret then stood on a line of its own (a traceback)."""
+    r = _app("cicfw.train", "trainer.max_epochs=1\n", cwd=str(tmp_path))
+    assert r.returncode == 2, r.stderr[-800:]
+    (line,) = r.stderr.strip().splitlines()
+    assert "'\\n' at character 21 " in line, line
+    assert list(tmp_path.iterdir()) == []
 
 def test_an_unknown_option_of_a_group_is_one_line_listing_the_options(tmp_path):
     r = _app("cicfw.train", "mixer=gtuu", f"hydra.run.dir={tmp_path}/run")

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from cicfw.core.config_checks import SchemaError
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction import app as reproduce
 from cicfw.reproduction import report as results
 from cicfw.reproduction.cells import COLUMNS, CellResult
@@ -494,6 +495,19 @@ def test_report_markdown_copy_replaces_only_an_earlier_copy(tmp_path, capsys):
     assert results.main([str(out), "--markdown", str(copy)]) == 0  # an earlier copy: replaced
     assert copy.read_text().startswith(results.TITLE)
 
+
+def test_report_markdown_copy_may_not_replace_a_file_the_report_writes(tmp_path, capsys):
+    """A published folder's results.csv did not exist yet when --markdown was checked: it was published, then
+    replaced by the Markdown."""
+    out, pub = tmp_path / "results", tmp_path / "pub"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    with pytest.raises(CicfwError) as err:
+        results.check_markdown_target(pub / "results.csv", [out, pub])
+    assert (err.value.key, err.value.value) == ("--markdown", str(pub / "results.csv"))
+    assert results.main([str(out), "--publish", str(pub), "--markdown", str(pub / "results.csv")]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not (out / "RESULTS.md").exists() and not (pub / "results.csv").exists()  # refused before writing
 
 def test_resumed_cells_are_marked_in_the_report(tmp_path):
     cells = [synthetic("cil", s, 10 + s) for s in range(3)]

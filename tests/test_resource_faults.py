@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cicfw.core.errors import CicfwError, ConfigError
-from cicfw.testing import make_targets, write_tiny_dataset
+from cicfw.testing import file_bytes, make_targets, write_tiny_dataset
 
 # ---- the address-space limit (ulimit -v) ------------------------------------------------------------------
 
@@ -162,6 +162,22 @@ def test_a_large_side_camera_correction_is_named_as_the_cause_not_the_units(tmp_
     lines = [r.getMessage() for r in caplog.records if "data.max_abs_steer" in r.getMessage()]
     assert len(lines) == 1, [r.getMessage() for r in caplog.records]
     assert "data.side_camera_correction=2 " in lines[0] and "degrees" not in lines[0], lines[0]
+
+
+def test_a_filter_tighter_than_cils_side_camera_offset_is_named_as_the_cause(tmp_path, caplog):
+    """Mostly straight driving (|steer| <= 0.05) under data.max_abs_steer=0.1 and CIL's correction, 0.15: the
+    warning advised setting the correction nearer 0.15."""
+    from cicfw.data.frames import T, load_frames
+
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        t = make_targets(40, rng, (2, 3, 4, 5))
+        t[:, T.STEER] *= 0.05 / np.abs(t[:, T.STEER]).max()
+        (tmp_path / f"data_{i:05d}.h5").write_bytes(file_bytes(np.zeros((40, 88, 200, 3), np.uint8), t))
+    with caplog.at_level(logging.WARNING, logger="cicfw"):
+        load_frames(str(tmp_path), max_abs_steer=0.1, side_camera_correction=0.15)
+    (line,) = [r.getMessage() for r in caplog.records if "data.max_abs_steer" in r.getMessage()]
+    assert "raise data.max_abs_steer" in line and "nearer" not in line, line
 
 
 def test_too_few_episodes_after_the_filters_names_episodes_and_files(tmp_path):

@@ -148,6 +148,22 @@ def test_the_last_line_says_what_evaluate_after_will_save_after_a_fast_dev_run(t
 
     from cicfw.train.app import outcome
 
-    line = outcome("val/steer_mae", None, tmp_path, {}, SimpleNamespace(fast_dev_run=True), evaluate_after=True)
+    trainer = SimpleNamespace(fast_dev_run=True, checkpoint_callbacks=[])
+    line = outcome("val/steer_mae", None, tmp_path, {}, trainer, evaluate_after=True)
     assert "no checkpoint written" in line and line.endswith("checkpoints/final.ckpt and drives them"), line
-    assert "final.ckpt" not in outcome("val/steer_mae", None, tmp_path, {}, SimpleNamespace(fast_dev_run=True))
+    assert "final.ckpt" not in outcome("val/steer_mae", None, tmp_path, {}, trainer)
+
+
+def test_the_last_line_promises_no_final_ckpt_when_an_earlier_last_ckpt_is_driven(tmp_path):
+    """A resumed run that trained no further wrote no checkpoint, yet evaluate_after drives its last.ckpt."""
+    from types import SimpleNamespace
+
+    from cicfw.train.app import checkpoint_files, outcome
+
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    last.parent.mkdir()
+    last.write_bytes(b"weights")
+    trainer = SimpleNamespace(fast_dev_run=False,
+                              checkpoint_callbacks=[SimpleNamespace(best_model_path=str(last), last_model_path="")])
+    line = outcome("val/steer_mae", None, tmp_path, checkpoint_files(tmp_path), trainer, evaluate_after=True)
+    assert "no checkpoint written" in line and "final.ckpt" not in line, line

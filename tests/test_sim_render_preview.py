@@ -2,6 +2,7 @@
 import cv2
 import pytest
 
+from cicfw.core.errors import CicfwError
 from cicfw.sim import preview
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -46,3 +47,6 @@ def test_preview_rejects_an_unknown_weather_family_before_writing(tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'gloomy'" in err[0] and "carla" in err[0] and "harsh" in err[0], err
     assert not (tmp_path / "pics").exists()
+    with pytest.raises(CicfwError) as refused:  # this command's option, not a run's sim.weather_family
+        preview.check_weathers(["ClearNoon"], "gloomy")
+    assert (refused.value.key, refused.value.value) == ("--weather-family", "gloomy")

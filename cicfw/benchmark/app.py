@@ -472,6 +472,14 @@ def after_training_overrides(overrides: Sequence[str], fast_dev_run: Any) -> tup
                                               f"the whole suite)")
 
 
+def saved_checkpoint(trainer: Any) -> str:
+    """The checkpoint ``evaluate_after_training`` drives, "" where no callback saved one. The best checkpoint's
+    callback comes first; without validation it saved none, and last.ckpt's has the final weights: saving them
+    again as final.ckpt would keep two copies of the same weights."""
+    return next((p for cb in trainer.checkpoint_callbacks for p in (cb.best_model_path, cb.last_model_path)
+                 if p and Path(p).is_file()), "")
+
+
 def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
     """``cicfw train evaluate_after=true``: the suite on the run's best checkpoint (else its last one,
     else the final weights saved now as ``checkpoints/final.ckpt``: a ``trainer.fast_dev_run`` saves
@@ -481,10 +489,7 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     ``metrics.json`` (the sweep summary's ``closed_loop_success`` column); returns the summary, whose
     ``success`` is a number: it returns only once every episode is driven (a stop raises ``Interrupted``)."""
     run_dir = Path(run_dir)
-    # the best checkpoint's callback comes first; without validation it saved none, and last.ckpt's has the
-    # final weights: saving them again as final.ckpt would keep two copies of the same weights
-    path = next((p for cb in trainer.checkpoint_callbacks for p in (cb.best_model_path, cb.last_model_path)
-                 if p and Path(p).is_file()), "")
+    path = saved_checkpoint(trainer)
     if not path:
         path = str(run_dir / "checkpoints" / "final.ckpt")
         trainer.save_checkpoint(path)

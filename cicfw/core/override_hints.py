@@ -96,8 +96,9 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
     lines = message.splitlines()
     said = [ln.strip() for ln in lines[1:] if ln.strip() and not ln.startswith("See https://")]
     reason = said[0] if said else "not in Hydra's override grammar"
-    if reason == "^":  # the lexer's: the argument ends its first line, the caret is under what it cannot read
-        at = lines[1].index("^") - len(lines[0]) + len(override)
+    if reason == "^":  # the lexer's: the argument's first line ends the message's, the caret under what it cannot read
+        caret = next(ln for ln in lines[1:] if ln.strip())  # after an argument ending in a line break, a blank line
+        at = caret.index("^") - len(lines[0]) + len((override.splitlines() or [""])[0])
         reason = f"{override[at:at + 1]!r} at character {at + 1} is not in Hydra's override grammar"
     line = f"cannot parse the argument {override!r} ({reason})"
     joined = _rejoined(override, args)
@@ -109,7 +110,7 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
         return f"{line}: a list element holding '=' must be quoted, e.g. '{quoted}'"
     if any(value.count(a) != value.count(b) for a, b in ("[]", "{}", "()")):
         return f"{line}: its brackets do not close"
-    if eq and value.startswith("~"):
+    if eq and (value == "~" or value.startswith("~/")):  # ~name is name's home, not $HOME
         return f"{line}: the shell expands '~' only at the start of a word; write $HOME, e.g. {key}=$HOME{value[1:]}"
     return line
 

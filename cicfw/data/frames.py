@@ -324,8 +324,10 @@ def _say_steer_filter(dropped: np.ndarray, max_abs_steer: float, recorded: np.nd
         cause = (f"the recorded |steer| reaches {top:.3g}, beyond CIL's [-1, 1]: targets[0] likely holds degrees "
                  f"or radians; convert it to [-1, 1] (steering angle / the car's largest angle)")
     elif by_recorded <= DROP_WARN_SHARE * n:  # the recorded labels pass: the correction moved the side cameras'
+        fix = ("set it nearer CIL's 0.15" if abs(correction) > 0.15 else  # else the filter is the tighter one
+               "raise data.max_abs_steer above that offset (the paper keeps 0.8)")
         cause = (f"as recorded, only {by_recorded} are: data.side_camera_correction={correction:g} (the label "
-                 f"offset per 30 deg of camera yaw) moves the side cameras' labels past it; set it nearer CIL's 0.15")
+                 f"offset per 30 deg of camera yaw) moves the side cameras' labels past it; {fix}")
     else:
         cause = "if your steering is in [-1, 1] but scaled otherwise, set data.max_abs_steer to suit it (at most 1)"
     log.warning("data.max_abs_steer=%g drops %d of %d samples (%.0f%%): their |steer| (after the side-camera "

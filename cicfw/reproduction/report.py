@@ -118,7 +118,7 @@ from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells, most_first
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
-from cicfw.reproduction.published import publish
+from cicfw.reproduction.published import PUBLISHED_FILES, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
 from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
 from cicfw.reproduction.seed_spread import seed_spread
@@ -889,9 +889,14 @@ def write_configured(results_dir: Path, cfg: Any, publish_dir: str | Path | None
 TITLE = "# Reproduction of the paper's Table 4"
 
 
-def check_markdown_target(path: Path) -> None:
+def check_markdown_target(path: Path, folders: Sequence[Path] = ()) -> None:
     """``--markdown`` replaces a file only where it is an earlier copy of a report (its first line the report's
-    title): a document of one's own (docs/RESULTS.md, composed from its prose; a README) is refused in one line."""
+    title): a document of one's own (docs/RESULTS.md, composed from its prose; a README) is refused in one line,
+    and so is a file the report writes into ``folders`` but RESULTS.md (results.csv, which may not exist yet)."""
+    written = {(Path(d) / n).resolve() for d in folders for n in PUBLISHED_FILES if n != "RESULTS.md"}
+    if Path(path).resolve() in written:
+        raise CicfwError(f"--markdown {str(path)!r} is a file the report itself writes; give a new file or an earlier "
+                         f"copy of the report", key="--markdown", value=str(path))
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             first = f.readline().rstrip("\n")
@@ -927,7 +932,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.publish:
             claim_folder(Path(a.publish), "reproduce", "--publish")
         if a.markdown:
-            check_markdown_target(Path(a.markdown))  # before anything is written
+            check_markdown_target(Path(a.markdown), [Path(a.results_dir), *([Path(a.publish)] if a.publish else [])])
 
         with initialize_config_module("cicfw.conf", version_base="1.3"):
             data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)

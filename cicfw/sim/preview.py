@@ -26,7 +26,7 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.render import CAMERAS, WEATHERS, Renderer
 from cicfw.sim.render.camera import MOUNT_FORWARD
-from cicfw.sim.render.weather import DEFAULT_FAMILY, WEATHER_FAMILIES, get_weather, weather_family
+from cicfw.sim.render.weather import DEFAULT_FAMILY, WEATHER_FAMILIES, get_weather
 from cicfw.sim.roadgraph import road_graph, single_turn_routes
 from cicfw.sim.town import load_town, town_names
 
@@ -187,7 +187,10 @@ def load_towns(names: list[str]) -> list:
 
 
 def check_weathers(weathers: list[str], family: str = DEFAULT_FAMILY) -> list[str]:
-    presets = weather_family(family)  # an unknown family: one line naming the known ones
+    if family not in WEATHER_FAMILIES:  # named as this command's option, not as a run's sim.weather_family
+        raise CicfwError(f"--weather-family: unknown weather family {family!r}; known: {', '.join(WEATHER_FAMILIES)}",
+                         key="--weather-family", value=family)
+    presets = WEATHER_FAMILIES[family]
     for wx in weathers:
         if wx not in presets:
             raise CicfwError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(presets)}")

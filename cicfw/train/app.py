@@ -26,7 +26,7 @@ from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig
 
 from cicfw import COMMANDS
-from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training
+from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training, saved_checkpoint
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.command_line import command_line_keys
@@ -627,7 +627,8 @@ def outcome(metric_name: str, metric: float | None, run_dir: Path, before: Mappi
     if written:
         return f"{said}; checkpoints written in {run_dir / 'checkpoints'}: {', '.join(written)}"
     why = " (trainer.fast_dev_run saves none)" if trainer.fast_dev_run else ""
-    then = "; evaluate_after saves the final weights as checkpoints/final.ckpt and drives them" if evaluate_after else ""
+    then = ("; evaluate_after saves the final weights as checkpoints/final.ckpt and drives them"
+            if evaluate_after and not saved_checkpoint(trainer) else "")  # else an earlier run's, e.g. last.ckpt
     return f"{said}; no checkpoint written{why}{then}"
 
 
