@@ -162,9 +162,10 @@ def test_the_speed_node_takes_its_defaults_from_speed_config():
 
     from cicfw.model.speed import SPEED_SWITCHES, SpeedConfig
 
-    assert OmegaConf.to_container(compose_train().speed) == dataclasses.asdict(SpeedConfig())
+    default = compose_train()
+    assert OmegaConf.to_container(default.speed) == dataclasses.asdict(SpeedConfig())
     assert checked_speed(compose_train("speed.compile=true")) == SpeedConfig(compile=True)
-    assert not set(SPEED_SWITCHES) & set(trainer_kwargs(compose_train()))
+    assert not set(SPEED_SWITCHES) & set(trainer_kwargs(default))
 
 
 @pytest.mark.parametrize("overrides, key", [

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -93,8 +91,9 @@ def test_runs_are_written_read_back_and_joined(tmp_path: Path):
 
 
 def test_report_command_errors_are_one_line(tmp_path: Path):
-    proc = subprocess.run([sys.executable, "-m", "cicfw.benchmark.evaluation_report", str(tmp_path / "nope")],
-                          capture_output=True, text=True)
+    from conftest import run_app_in_process
+
+    proc = run_app_in_process("cicfw.benchmark.evaluation_report", str(tmp_path / "nope"))
     assert proc.returncode == 2
     assert proc.stderr.strip() == (f"cicfw: error: report: {str(tmp_path / 'nope')!r} is not a folder; give "
                                    f"evaluation run folders (holding episodes.json) or folders that contain them")

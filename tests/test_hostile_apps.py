@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -109,8 +108,7 @@ def test_report_cli_at_a_file_no_traceback(tmp_path: Path):
     run = _run_folder(tmp_path)
     f = tmp_path / "afile"
     f.write_text("x")
-    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "report", str(run), "--out", str(f)],
-                       capture_output=True, text=True, timeout=120)
+    r = run_app_in_process("cicfw.cli", "report", str(run), "--out", str(f))
     assert r.returncode == 2, r.stderr
     _one_error_line(r.stderr)
 
@@ -221,8 +219,7 @@ def test_preview_cli_seed_below_zero_is_one_line_naming_seed(tmp_path: Path):
     """``cicfw preview --seed -1`` used to render and write both sheets, then end on numpy's
     "expected non-negative integer" (no option named)."""
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "cicfw.cli", "preview", "--out", str(out), "--seed", "-1"],
-                       capture_output=True, text=True, timeout=120)
+    r = run_app_in_process("cicfw.cli", "preview", "--out", str(out), "--seed", "-1")
     assert_refused(r, "--seed", "-1")
     assert not out.exists()
 

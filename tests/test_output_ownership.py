@@ -52,6 +52,15 @@ def _evaluate(run: Path, *extra: str, process: bool = False):
                           capture_output=True, text=True, env=ENV, timeout=600)
 
 
+@pytest.fixture(scope="module")
+def one_episode_eval(tmp_path_factory) -> Path:
+    """A finished evaluation of one expert episode, shared: a test that writes into it works on a copy."""
+    run = tmp_path_factory.mktemp("eval") / "eval"
+    res = _evaluate(run)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return run
+
+
 def _hydra_state(run: Path) -> dict[str, bytes]:
     """What Hydra writes into a run folder: ``.hydra``'s files, and the log."""
     return {str(p.relative_to(run)): p.read_bytes() for p in [*(run / ".hydra").glob("*"), run / "evaluate.log"]
@@ -196,13 +205,11 @@ def test_publish_dir_a_run_may_write(tmp_path):
 # ---- report: --out -------------------------------------------------------------------------------
 
 
-def test_report_out_holding_files_it_did_not_write_is_refused(tmp_path, capsys):
+def test_report_out_holding_files_it_did_not_write_is_refused(one_episode_eval, tmp_path, capsys):
     """``cicfw report <runs> --out <a run folder>`` would replace that run's own table with other runs'."""
     from cicfw.benchmark.evaluation_report import main as report
 
-    run = tmp_path / "eval"
-    res = _evaluate(run)
-    assert res.returncode == 0, res.stderr[-3000:]
+    run = one_episode_eval  # read only: every report here writes elsewhere
     other = tmp_path / "other_run"
     other.mkdir()
     (other / "table.md").write_text("| another run's table |\n")
@@ -219,10 +226,11 @@ def test_report_out_holding_files_it_did_not_write_is_refused(tmp_path, capsys):
 # ---- evaluate: the run folder, .hydra included -----------------------------------------------------
 
 
-def test_an_evaluation_of_other_options_into_a_finished_folder_leaves_its_hydra_files(tmp_path):
+def test_an_evaluation_of_other_options_into_a_finished_folder_leaves_its_hydra_files(one_episode_eval, tmp_path):
+    import shutil
+
     run = tmp_path / "eval"
-    first = _evaluate(run)
-    assert first.returncode == 0, first.stderr[-3000:]
+    shutil.copytree(one_episode_eval, run)
     kept = _hydra_state(run)
     assert ".hydra/config.yaml" in kept and ".hydra/overrides.yaml" in kept
     second = _evaluate(run, "seed=5", "name=OTHER")

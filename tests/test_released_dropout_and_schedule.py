@@ -108,16 +108,22 @@ def test_a_final_factor_the_constant_schedule_never_reads_is_one_line():
     assert (err.value.key, err.value.value) == ("model.lr_final_factor", 0.1) and "model.lr_schedule" in str(err.value)
 
 
+@pytest.fixture(scope="module")
+def tiny_last(tmp_path_factory):
+    """The last checkpoint of one tiny training, shared: each test edits a copy of it."""
+    return train_tiny_run(tmp_path_factory.mktemp("tiny"), *TINY_TRAIN, "trainer.limit_train_batches=1")["last"]
+
+
 @pytest.mark.slow  # trains
 @pytest.mark.parametrize("saved", [{"lr_final_factor": 0.1}, {"lr_schedule": None, "lr_final_factor": None}])
-def test_checkpoints_saved_with_an_unused_factor_or_without_the_keys_load_and_resume(tmp_path, saved):
-    run = train_tiny_run(tmp_path, *TINY_TRAIN, "trainer.limit_train_batches=1")
-    ckpt = torch.load(run["last"], weights_only=True)
+def test_checkpoints_saved_with_an_unused_factor_or_without_the_keys_load_and_resume(tiny_last, tmp_path, saved):
+    last = tmp_path / "last.ckpt"
+    ckpt = torch.load(tiny_last, weights_only=True)
     for key, value in saved.items():  # None: a checkpoint from before the key existed
         ckpt["hyper_parameters"].pop(key) if value is None else ckpt["hyper_parameters"].update({key: value})
-    torch.save(ckpt, run["last"])
-    assert load_model(run["last"]).hparams.lr_final_factor == 0.0
-    train_mod.check_resumed_optimizer(run["last"], ckpt, build_model(compose_train()))
+    torch.save(ckpt, last)
+    assert load_model(last).hparams.lr_final_factor == 0.0
+    train_mod.check_resumed_optimizer(last, ckpt, build_model(compose_train()))
 
 
 @pytest.mark.slow  # trains

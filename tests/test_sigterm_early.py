@@ -129,10 +129,11 @@ def test_the_one_line_hook_is_in_place_before_sigterm_is_caught(monkeypatch):
 def test_a_relative_cicfw_cache_is_where_the_app_started(tmp_path):
     """hydra.job.chdir=true moves the app into its run folder before the config's ${oc.env:CICFW_CACHE} is read:
     a relative cache would be a new one inside every run folder, its dataset collected again there."""
-    out = subprocess.run([sys.executable, "-m", "cicfw.collect", "episodes=1", "seconds=0.1", "workers=1",
-                          "cameras=[centre]", "hydra.job.chdir=true", f"hydra.run.dir={tmp_path / 'run'}"],
-                         capture_output=True, text=True, timeout=300, cwd=tmp_path,
-                         env={**os.environ, "CICFW_CACHE": "cache"})
+    from conftest import run_app_in_process
+
+    out = run_app_in_process("cicfw.collect", "episodes=1", "seconds=0.1", "workers=1", "cameras=[centre]",
+                             "hydra.job.chdir=true", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path,
+                             env={"CICFW_CACHE": "cache"})
     assert out.returncode == 0, out.stderr[-3000:]
     assert (tmp_path / "cache" / "datasets" / "collected" / "dataset_metadata.json").is_file()
     assert not (tmp_path / "run" / "cache").exists()

@@ -147,14 +147,25 @@ def test_train_with_compile_forced_and_no_compiler_still_trains(monkeypatch, cap
 
 
 def test_auto_compiles_only_runs_long_enough_to_pay():
-    cfg = compose_train().trainer
-    assert compose_train().speed.compile == "auto"
+    from omegaconf import open_dict
+
+    full = compose_train()
+    cfg = full.trainer
+    assert full.speed.compile == "auto"
+
+    def trainer(**values):
+        """The default trainer node with ``values`` set, as the overrides ``trainer.<key>=<value>`` give it."""
+        node = cfg.copy()
+        with open_dict(node):
+            node.update(values)
+        return node
+
     assert planned_steps(cfg, 250) == 250 * cfg.max_epochs >= AUTO_COMPILE_MIN_STEPS
-    assert planned_steps(compose_train("trainer.max_epochs=1").trainer, 3) == 3 < AUTO_COMPILE_MIN_STEPS
-    assert planned_steps(compose_train("trainer.fast_dev_run=true").trainer, 250) == 1
-    assert planned_steps(compose_train("trainer.max_steps=50").trainer, 250) == 50
-    assert planned_steps(compose_train("trainer.max_epochs=-1").trainer, 3) == float("inf")
-    assert planned_steps(compose_train("+trainer.limit_train_batches=0.5").trainer, 250) == 125 * cfg.max_epochs
+    assert planned_steps(trainer(max_epochs=1), 3) == 3 < AUTO_COMPILE_MIN_STEPS
+    assert planned_steps(trainer(fast_dev_run=True), 250) == 1
+    assert planned_steps(trainer(max_steps=50), 250) == 50
+    assert planned_steps(trainer(max_epochs=-1), 3) == float("inf")
+    assert planned_steps(trainer(limit_train_batches=0.5), 250) == 125 * cfg.max_epochs
 
 
 def test_every_trainer_config_and_experiment_gets_the_default_speed():
