@@ -183,6 +183,23 @@ def test_verify_leaves_no_run_folder(collected, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["collected"]  # no outputs/<date>/<time>
 
 
+def test_verify_in_its_dataset_folder_keeps_what_others_write_meanwhile(collected, monkeypatch):
+    """With the dataset folder as its run folder, a verify takes back only Hydra's files: a file another
+    process writes there while the check runs stays."""
+    out, _ = collected
+    before = sorted(p.name for p in out.iterdir())
+    real = collect_mod.verify_dataset
+
+    def verify_while_a_user_writes(*args, **kwargs):
+        (out / "notes.txt").write_text("written while the check ran")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(collect_mod, "verify_dataset", verify_while_a_user_writes)
+    r = run_app_in_process("cicfw.collect", f"out_dir={out}", "--verify", f"hydra.run.dir={out}")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted([*before, "notes.txt"])
+
+
 def test_verify_of_a_folder_without_a_dataset_is_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         collect_mod.run(_collect_cfg(tmp_path / "none", "verify=true"))

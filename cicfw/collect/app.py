@@ -74,9 +74,9 @@ def _main() -> None:
             if not started:  # multirun job's keeps its log); once collecting, its log and episodes stay
                 undo_run_folder(out)
             raise
-        finally:  # a check writes nothing, so it leaves no run folder either
+        finally:  # a check writes nothing, so it leaves no run folder either (a file written beside it stays)
             if cfg.verify:
-                undo_run_folder(out)
+                undo_run_folder(out, hydra_only=True)
 
     main()
 

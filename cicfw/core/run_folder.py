@@ -287,10 +287,12 @@ def saved_run_config(checkpoint: str | Path) -> Any | None:
     return saved_config(Path(checkpoint).parent.parent)
 
 
-def undo_run_folder(folder: str | Path) -> None:
+def undo_run_folder(folder: str | Path, hydra_only: bool = False) -> None:
     """Put ``folder`` back as ``note_run_folder`` found it: removed, with the parents made for it, when it
     did not exist; else what the run added removed, ``.hydra`` rewritten as it was and the logs cut back.
-    Nothing happens to a folder that was not noted (a multirun job's folder keeps its log)."""
+    ``hydra_only``: of what was added to a folder that existed, remove only Hydra's ``.hydra`` and job log
+    (after a long check, when another writer may have added files meanwhile). Nothing happens to a folder
+    that was not noted (a multirun job's folder keeps its log)."""
     folder = Path(os.path.abspath(folder))
     before = _BEFORE.pop(str(folder), None)
     if before is None or not _exists(folder):
@@ -306,7 +308,7 @@ def undo_run_folder(folder: str | Path) -> None:
             parent = parent.parent
         return
     for entry in folder.iterdir():
-        if entry.name not in before.entries:
+        if entry.name not in before.entries and not (hydra_only and entry.name != ".hydra" and entry.suffix != ".log"):
             shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
     for p in (folder / ".hydra").glob("*") if before.hydra_files else ():
         if str(p.relative_to(folder)) not in before.hydra_files:
