@@ -299,7 +299,7 @@ def test_a_report_folder_without_a_log_is_not_overwritten(whole, tmp_path: Path)
     (old / "episodes.json").write_text(json.dumps(data))
     with pytest.raises(RunFolderError) as err:
         drive(old)
-    assert err.value.value == old
+    assert err.value.key == "out_dir" and str(err.value.value) == str(old)
     assert not (old / LOG_NAME).exists()
 
 
