@@ -155,6 +155,8 @@ def train(args) -> None:
         print("  " + line.rstrip()[:240])
     print(f"exit {rc}; {time.perf_counter() - t0:.0f} s; peak RSS {peak.rss / 1e9:.2f} GB summed over the process "
           f"tree (PSS {peak.pss / 1e9:.2f} GB); load {os.getloadavg()[0]:.2f} after")
+    if rc:  # the training's failure is the bench's: a caller reading the exit status must not see success
+        sys.exit(rc)
 
 
 def main() -> None:

@@ -64,6 +64,7 @@ def test_subsets_by_town_weather_and_pair(backend):
     assert [(e.town, e.pair) for e in eps] == [("town_a", 0), ("town_a", 3), ("town_b", 0), ("town_b", 3)]
     assert [e.town_set for e in eps] == ["training", "training", "new", "new"]
     assert len(build_suite(backend, ["town_b"], ["ClearNoon"], limit=5)) == 5
+    assert build_suite(backend, "town_b", "ClearNoon", limit=5) == build_suite(backend, ["town_b"], ["ClearNoon"], limit=5)
     with pytest.raises(ValueError) as err:
         build_suite(backend, ["town_b"], ["ClearNoon"], pairs=[999])
     assert (err.value.key, err.value.value) == ("suite.pairs", 999) and "'town_b'" in str(err.value)

@@ -409,7 +409,9 @@ def test_the_agent_names_the_checkpoint_file_it_loaded_from_a_run_folder(tmp_pat
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     ckpt = tiny_checkpoint(run / "checkpoints" / "epoch=1-step=3.ckpt", "independent", "softmax")
-    assert Agent.load(run).info["source"] == str(ckpt)
+    agent = Agent.load(run)
+    assert agent.info["source"] == str(ckpt)
+    assert agent.info["decoder"]["decode"] == "argmax"  # as a sidecar gives it (docs/deploy.md)
 
 
 # ---- the agent's inputs -------------------------------------------------------------------------

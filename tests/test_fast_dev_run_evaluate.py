@@ -88,3 +88,17 @@ def test_a_training_without_validation_drives_its_last_checkpoint_without_a_copy
     assert sorted(p.name for p in checkpoints.iterdir()) == ["last.ckpt"]  # no final.ckpt beside it
     s = json.loads((tmp_path / "run" / "evaluate" / "summary.json").read_text())
     assert Path(s["checkpoint"]) == checkpoints / "last.ckpt"
+
+
+@pytest.mark.slow  # trains one step
+def test_a_ddp_worker_rank_leaves_the_evaluation_after_training_to_rank_0(tiny_data, tmp_path, monkeypatch):
+    import cicfw.train.app as train_app
+    from conftest import compose_train
+
+    drove = []
+    monkeypatch.setattr(train_app, "evaluate_after_training", lambda *a: drove.append(a) or {"success": 0.0})
+    monkeypatch.setenv("LOCAL_RANK", "1")  # what Lightning sets in the rank it re-runs the app as
+    cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "progress_bar=false",
+                        "trainer.max_steps=1", "trainer.limit_val_batches=0", "evaluate_after=true")
+    train_app.train(cfg, tmp_path / "run")
+    assert drove == []

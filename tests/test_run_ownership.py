@@ -85,6 +85,21 @@ def test_a_ddp_worker_rank_shares_the_folder_its_rank_0_holds(tmp_path, monkeypa
         rank0.release()
 
 
+def test_a_ddp_worker_rank_is_not_refused_as_another_app_in_its_rank_0_run(tmp_path, monkeypatch):
+    """Lightning re-runs the app per rank with hydra.job.name=train_ddp_process_<k>, into rank 0's folder."""
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save({"hydra": {"job": {"name": "train"}}}, run / ".hydra" / "hydra.yaml")
+    (run / "train.log").write_text("")
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)},
+                                                            "job": {"name": "train_ddp_process_1"}}})
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    TrainRunFolderCheck.claim(config)  # no SystemExit
+    monkeypatch.delenv("LOCAL_RANK")
+    with pytest.raises(SystemExit):  # the same job name outside DDP is another app's
+        TrainRunFolderCheck.claim(config)
+
+
 def test_the_apps_callback_refuses_a_held_folder_in_one_line_before_hydra_writes_there(tmp_path, capsys):
     run = tmp_path / "run"
     config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": "train"}}})

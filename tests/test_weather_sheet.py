@@ -27,9 +27,11 @@ def test_an_unknown_weather_or_town_is_one_line_and_makes_no_folder(tmp_path):
     out = tmp_path / "img"
     for args, key, value in ((["--towns", "town_b", "--weathers", "Foggy"], "--weathers", "Foggy"),
                              (["--towns", "nowhere", "--weathers", "ClearNoon"], None, "nowhere"),
-                             ([*ONE, "--colours", "1"], "--colours", 1)):
+                             ([*ONE, "--colours", "1"], "--colours", 1),
+                             ([*ONE, "--prefix", "../up_"], "--prefix", "../up_")):  # a name outside --out
         assert_refused(run_app_in_process(TOOL, "--out", str(out), *args), key, value)
         assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_an_out_holding_another_app_s_run_is_one_line(tmp_path):

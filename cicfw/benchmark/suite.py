@@ -82,7 +82,7 @@ def suite_routes(backend: Any, town: str) -> tuple:
 
 def check_names(kind: str, given: Iterable[str], known: Sequence[str], path_ok: bool = False) -> list[str]:
     """``given`` as a list, or one error naming the first unknown entry and listing the known ones."""
-    out = [str(g) for g in given]
+    out = [given] if isinstance(given, str) else [str(g) for g in given]  # one name, not its letters
     if not out:
         raise CicfwError(f"the suite needs at least one {kind}; known {kind}s: {', '.join(known)}")
     for g in out:

@@ -93,6 +93,8 @@ class RunFolderCheck(Callback):
         """``claim_folder`` for the run folder, the app named by Hydra's job name (what Hydra records there),
         the data folder being ``data.path`` where the app has one; one line (exit status 2) when refused."""
         folder = str(config.hydra.run.dir)
+        if is_worker_process():  # a DDP rank Lightning re-runs as job 'train_ddp_process_<k>' in its rank 0's folder
+            return
         try:
             claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=_data_path(config))
         except RunFolderError as err:

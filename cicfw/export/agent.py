@@ -197,9 +197,11 @@ class Agent:
         dev = torch_device(device)
         path = resolve_checkpoint(path)  # a run folder's one best checkpoint: the file named in info
         model = prepare_for_inference(load_model(path), fuse).to(dev)
-        hp = dict(model.hparams)
+        from cicfw.export.app import decoder_info  # the app imports this module
+
+        hp = dict(model.hparams)  # the decoder too, as an exported model's sidecar gives it (docs/deploy.md)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
-                "source": str(path)}
+                "decoder": decoder_info(model.head, hp["head"]), "source": str(path)}
         return cls(torch_runner(DrivingFunction(model).eval(), dev), info, "torch", model=model, device=dev)
 
     @classmethod

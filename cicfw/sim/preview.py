@@ -285,9 +285,14 @@ def check_args(a: argparse.Namespace) -> None:
     if a.seed < 0:
         raise CicfwError(f"--seed must be an integer >= 0 (the seed of the images and of the maps' routes), "
                          f"got {a.seed}")
-    if "/" in a.prefix or os.sep in a.prefix:
+    check_prefix(a.prefix)
+
+
+def check_prefix(prefix: str) -> None:
+    """``--prefix`` starts file names: a '/' in it would write outside ``--out``."""
+    if "/" in prefix or os.sep in prefix:
         raise CicfwError(f"--prefix is the start of the PNGs' file names and takes no '/' (e.g. sim_), got "
-                         f"{a.prefix!r}; choose their folder with --out")
+                         f"{prefix!r}; choose their folder with --out", key="--prefix", value=prefix)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,8 @@ import numpy as np
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
 from cicfw.core.run_folder import claim_folder
-from cicfw.sim.preview import OUT_FOLDER, _first_missing, _png, _remove_empty_folders, approach_pose, load_towns
+from cicfw.sim.preview import (OUT_FOLDER, _first_missing, _png, _remove_empty_folders, approach_pose, check_prefix,
+                               load_towns)
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
 from cicfw.sim.town import town_names
@@ -75,6 +76,7 @@ def check_args(a: argparse.Namespace) -> None:
     if not (a.colours == 0 or 2 <= a.colours <= 256):
         raise CicfwError(f"--colours must be 0 (full colour) or 2..256, got {a.colours}", key="--colours",
                          value=a.colours)
+    check_prefix(a.prefix)
 
 
 def _main(argv: list[str] | None = None) -> int:

@@ -559,7 +559,9 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     metric = float(value) if value is not None else float("nan")
     log.info("%s", outcome(cfg.optimized_metric, None if value is None else metric, run_dir, before, trainer,
                            bool(cfg.get("evaluate_after"))))
-    if cfg.get("evaluate_after"):  # the closed-loop suite on the best checkpoint (docs/evaluation.md)
+    # the closed-loop suite on the best checkpoint (docs/evaluation.md), driven once: by rank 0, not by every
+    # DDP rank into the same folder (the second refused there, or rank 0 itself)
+    if cfg.get("evaluate_after") and not is_worker_process():
 
         success = evaluate_after_training(cfg, trainer, run_dir)["success"]
         if cfg.get("return_closed_loop"):
