@@ -20,7 +20,8 @@ from torch import nn
 
 from cicfw.core.errors import CicfwError
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
-from cicfw.model.checkpoint import describe, is_torchscript, load_model, prepare_for_inference, resolve_checkpoint
+from cicfw.model.checkpoint import (decoder_info, describe, is_torchscript, load_model, prepare_for_inference,
+                                    resolve_checkpoint)
 
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
@@ -197,8 +198,6 @@ class Agent:
         dev = torch_device(device)
         path = resolve_checkpoint(path)  # a run folder's one best checkpoint: the file named in info
         model = prepare_for_inference(load_model(path), fuse).to(dev)
-        from cicfw.export.app import decoder_info  # the app imports this module
-
         hp = dict(model.hparams)  # the decoder too, as an exported model's sidecar gives it (docs/deploy.md)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
                 "decoder": decoder_info(model.head, hp["head"]), "source": str(path)}

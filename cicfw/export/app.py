@@ -44,9 +44,9 @@ from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
 from cicfw.data.provenance import file_sha256
-from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, describe, load_model, prepare_for_inference,
-                                    recorded_data_paths, refuse_exported_model, resolve_checkpoint, run_config_files,
-                                    where_it_ran)
+from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, decoder_info, describe, load_model,
+                                    prepare_for_inference, recorded_data_paths, refuse_exported_model,
+                                    resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
 from cicfw.sim.env import get_renderer
@@ -301,24 +301,6 @@ def parity(run: Callable, model: torch.nn.Module, inputs: CheckInputs, tolerance
 
 
 # ---- what is written ---------------------------------------------------------------------------
-def decoder_info(head: torch.nn.Module, name: str) -> dict[str, Any]:
-    """How the head's output becomes steering, in words and numbers (the sidecar's ``decoder``)."""
-    mode = getattr(head, "decode_mode", None)
-    if mode is not None and getattr(head, "bins", None) is not None:
-        mids = [round(float(m), 6) for m in head.bins.midpoints]
-        what = ("the expectation: softmax scores times the bin midpoints" if mode == "expectation"
-                else "the midpoint of the argmax bin")
-        return {"head": name, "decode": mode, "bin_midpoints": mids, "description": what}
-    if hasattr(head, "max_phase"):
-        return {"head": name, "decode": "phase", "n_units": int(head.out_dim),
-                "phase_range": round(float(head.max_phase) / np.pi, 12),
-                "description": "the phase of the output wave (atan2 of its projections on cos and sin) / "
-                               "(phase_range * pi), clamped to [-1, 1]"}
-    if name == "regression":
-        return {"head": name, "decode": "identity", "description": "the single output, clamped to [-1, 1]"}
-    return {"head": name, "decode": type(head).__name__ + ".decode", "description": "the head's own decode()"}
-
-
 def _jsonable(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 

@@ -8,6 +8,7 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 from __future__ import annotations
 
 import json
+import math
 import os
 import pickle
 import re
@@ -248,6 +249,24 @@ def prepare_for_inference(model, fuse: bool = True):
     if hasattr(model, "use_channels_last"):
         model.use_channels_last()
     return model
+
+
+def decoder_info(head: nn.Module, name: str) -> dict[str, Any]:
+    """How the head's output becomes steering, in words and numbers (the sidecar's ``decoder``)."""
+    mode = getattr(head, "decode_mode", None)
+    if mode is not None and getattr(head, "bins", None) is not None:
+        mids = [round(float(m), 6) for m in head.bins.midpoints]
+        what = ("the expectation: softmax scores times the bin midpoints" if mode == "expectation"
+                else "the midpoint of the argmax bin")
+        return {"head": name, "decode": mode, "bin_midpoints": mids, "description": what}
+    if hasattr(head, "max_phase"):
+        return {"head": name, "decode": "phase", "n_units": int(head.out_dim),
+                "phase_range": round(float(head.max_phase) / math.pi, 12),
+                "description": "the phase of the output wave (atan2 of its projections on cos and sin) / "
+                               "(phase_range * pi), clamped to [-1, 1]"}
+    if name == "regression":
+        return {"head": name, "decode": "identity", "description": "the single output, clamped to [-1, 1]"}
+    return {"head": name, "decode": type(head).__name__ + ".decode", "description": "the head's own decode()"}
 
 
 def describe(hp: Mapping[str, Any]) -> str:
