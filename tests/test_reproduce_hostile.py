@@ -524,3 +524,13 @@ def test_resumed_cells_are_marked_in_the_report(tmp_path):
     assert "can differ from an uninterrupted run's" in note and "0.12519" in note and "0.12743" in note
     assert any(ln.startswith("| Co-learning (GTU) | 1 ‡ |") for ln in lines)  # the per-seed table
     assert data["rows"][1]["resumed"] == {"1": {"training": {"from_epoch": 1}}}
+
+
+def test_a_relation_candidate_that_is_no_fine_tuning_row_is_refused_up_front(no_collect):
+    """The report names the candidate chosen as fine tuning's row: CIL would be named so."""
+    from cicfw.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        reproduce.check_rows(reproduce.compose_plan(["budget=smoke", "relation_candidates=[re_all,cil]"]), ["gtu"])
+    assert (err.value.key, err.value.value) == ("relation_candidates", "cil")
+    reproduce.check_rows(reproduce.compose_plan(["budget=smoke"]), ["gtu"])  # the shipped candidates

@@ -165,10 +165,12 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     """Every row's training config composes and names a registered encoder, mixer and head: a custom row
     with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
-    the rows' data folders (``data.path``), which no output folder may be."""
+    the rows' data folders (``data.path``), which no output folder may be. Fine tuning's ``relation_candidates``
+    compose too and must train the ``re`` mixer: the report names the one chosen as the fine-tuning row."""
     data: list[str] = []
+    candidates = [str(c) for c in cfg.get("relation_candidates") or []]
     with initialize_config_module("cicfw.conf", version_base="1.3"):
-        for r in rows:
+        for r in [*rows, *(c for c in candidates if c not in rows)]:
             entry = cfg.catalogue[r]
             ov = [str(o) for o in entry.get("overrides") or []]
             what = f"row {r!r} (experiment {entry.experiment}" + (f", overrides {ov})" if ov else ")")
@@ -183,6 +185,11 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
+            if r in candidates and tcfg.mixer.get("name") != "re":
+                raise ConfigError("relation_candidates", r, "catalogue rows that train fine tuning's mixer (mixer=re), "
+                                  "such as re_all, re_pairs, re_none")
+            if r not in rows:
+                continue
             try:
                 check_training(tcfg)
             except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
