@@ -534,3 +534,14 @@ def test_a_relation_candidate_that_is_no_fine_tuning_row_is_refused_up_front(no_
         reproduce.check_rows(reproduce.compose_plan(["budget=smoke", "relation_candidates=[re_all,cil]"]), ["gtu"])
     assert (err.value.key, err.value.value) == ("relation_candidates", "cil")
     reproduce.check_rows(reproduce.compose_plan(["budget=smoke"]), ["gtu"])  # the shipped candidates
+
+
+@pytest.mark.parametrize("key", ["publish_dir", "continue_from", "results_dir"])
+def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path, capsys, key):
+    """A corrupt record is refused as a truncated one is, not read as a folder without one."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "reproduce.json").write_text("null")
+    folders = {"results_dir": tmp_path / "results", key: other}
+    msg = refused(["budget=smoke", "rows=[cil]", *(f"{k}={v}" for k, v in folders.items())], capsys)
+    assert str(other / "reproduce.json") in msg and "null" in msg, msg

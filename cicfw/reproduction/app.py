@@ -450,7 +450,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         n_episodes = count_episodes(evcfg)
     results_dir = Path(cfg.results_dir)
     path = results_dir / MANIFEST
-    old = read_json(path, default=None)
+    old = read_json(path, default=None, kind=dict)
     src = Path(cfg.continue_from) if cfg.get("continue_from") else None
     only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
     published = published_manifest(src) if src is not None else None
@@ -514,7 +514,7 @@ def keep_report_overrides(results_dir: Path, overrides: Sequence[str]) -> None:
     """Record in the folder's reproduce.json the overrides its report is written with (a row of one's own and its
     label, another margin or claims), so that ``cicfw report`` rewrites the report as this run writes it."""
     path = Path(results_dir) / MANIFEST
-    manifest = read_json(path, default=None)
+    manifest = read_json(path, default=None, kind=dict)
     wanted = report_overrides(overrides)
     if not isinstance(manifest, dict) or manifest.get(REPORT_OVERRIDES, []) == wanted:
         return
