@@ -545,3 +545,22 @@ def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path
     folders = {"results_dir": tmp_path / "results", key: other}
     msg = refused(["budget=smoke", "rows=[cil]", *(f"{k}={v}" for k, v in folders.items())], capsys)
     assert str(other / "reproduce.json") in msg and "null" in msg, msg
+
+
+def test_a_second_ctrl_c_in_the_final_report_keeps_the_first_ones_advice(tmp_path, monkeypatch):
+    """Ctrl-C in a cell, then again while the report of the finished cells is written."""
+    from cicfw.core.errors import Interrupted
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", stopped)
+    monkeypatch.setattr(reproduce, "write_configured", stopped)
+    out = tmp_path / "results"
+    with pytest.raises(Interrupted) as err:
+        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
+    said = str(err.value)
+    assert f"kept in {out}" in said and "resumes the unfinished cell" in said and f"cicfw report {out}" in said, said
+    assert not (out / "reproduce.lock").exists()

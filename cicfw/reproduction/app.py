@@ -837,20 +837,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     # compares every row on the same seeds
     sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
     t0 = time.time()
-    code = 0
+    code, stopped = 0, None
     try:
         _cell_job()
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
         if e.code not in (0, None):
             log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
     except KeyboardInterrupt:  # a cell's own advice (train's ckpt_path=...) is not this app's
-        raise Interrupted(f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips "
-                          f"them and resumes the unfinished cell from its last epoch checkpoint") from None
+        stopped = (f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips them and "
+                   f"resumes the unfinished cell from its last epoch checkpoint")
+        raise Interrupted(stopped) from None
     finally:
         try:
             publish = f" --publish {cfg.publish_dir}" if cfg.get("publish_dir") else ""
-            with on_interrupt(f"the finished cells are kept in {cfg.results_dir}; write their report with cicfw report "
-                              f"{cfg.results_dir}{publish}, or run the same command again"):
+            report = f"write their report with cicfw report {cfg.results_dir}{publish}"
+            # a second Ctrl-C here keeps the first one's advice (how to resume) and adds how to write the report
+            with on_interrupt(f"{stopped}; the report was not written: {report}" if stopped else
+                              f"the finished cells are kept in {cfg.results_dir}; {report}, or run the same command again"):
                 data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
