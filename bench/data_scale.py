@@ -19,11 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+
+from cicfw.core.errors import ConfigError, report_user_errors
 
 FRAMES_PER_FILE = 200
 
@@ -36,9 +39,10 @@ def write(folder: Path, files: int, seed: int) -> None:
     from cicfw.data.cil_hdf5 import write_file
     from cicfw.testing import make_targets
 
-    folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     pool = [rng.integers(0, 256, (FRAMES_PER_FILE, 88, 200, 3), dtype=np.uint8) for _ in range(8)]
+    refuse_other_files(folder, pool, seed)
+    folder.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     for i in range(files):
         path = folder / f"data_{i:05d}.h5"
@@ -51,6 +55,29 @@ def write(folder: Path, files: int, seed: int) -> None:
             rate = (i + 1) * FRAMES_PER_FILE * 52_800 / (time.perf_counter() - start) / 1e6
             print(f"  {i + 1}/{files} files ({rate:.0f} MB/s)", flush=True)
     print(f"wrote {files} files x {FRAMES_PER_FILE} frames into {folder}")
+
+
+def refuse_other_files(folder: Path, pool: list, seed: int) -> None:
+    """``write`` skips the files it finds (a rerun finishes an earlier one), so a folder holding any file it
+    did not write with this ``seed`` is refused before anything is written: real data (the public set's
+    names are ``data_NNNNN.h5`` too) would get random files beside it. Ours: file i's first frame is pool
+    block i's frame -i (``np.roll``); dot files are temporaries of a killed write."""
+    import h5py
+    import numpy as np
+
+    for p in sorted(folder.iterdir()) if folder.is_dir() else []:
+        if p.name.startswith("."):
+            continue
+        m = re.fullmatch(r"data_(\d{5})\.h5", p.name)
+        try:
+            i = int(m.group(1)) if m else -1
+            with h5py.File(p, "r") as f:
+                ours = i >= 0 and np.array_equal(f["rgb"][0], pool[i % len(pool)][-i % FRAMES_PER_FILE])
+        except (OSError, KeyError):  # not HDF5, or no rgb: not ours either
+            ours = False
+        if not ours:
+            raise ConfigError("folder", str(folder), f"a new folder or one this command filled with --seed {seed} "
+                              f"({p.name} is not its file: random files would be written beside real data)")
 
 
 def tree_memory(pid: int) -> tuple[int, int]:
@@ -159,6 +186,7 @@ def train(args) -> None:
         sys.exit(rc)
 
 
+@report_user_errors
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "_child":
         return child(sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))

@@ -15,6 +15,7 @@ from cicfw.sim.expert import ExpertParams
 @pytest.mark.parametrize("override, key, accepted", [
     ("expert.cruise_kmh=-5", "collect.expert.cruise_kmh", "> 0 km/h"),
     ("expert.cruise_kmh=0", "collect.expert.cruise_kmh", "> 0 km/h"),
+    ("expert.cruise_kmh=500", "collect.expert.cruise_kmh", "the car's top speed, got 500"),
     ("expert.lookahead_max=0", "collect.expert.lookahead_max", "> 0 m"),
     ("expert.lookahead_max=2", "collect.expert.lookahead_max", "below expert.lookahead_min"),
     ("expert.decel=-1", "collect.expert.decel", "> 0 m/s^2"),

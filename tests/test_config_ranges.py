@@ -273,7 +273,8 @@ def test_an_evaluate_multirun_checks_every_job_before_the_first_drives(tmp_path,
 @pytest.mark.parametrize("key,value", [("off_road_s", math.nan), ("off_road_s", math.inf), ("off_road_s", 0.0),
                                        ("off_road_level", -1.0), ("off_road_level", 0.0), ("off_road_level", 2.0),
                                        ("off_road_level", math.nan), ("target_speed_kmh", math.nan),
-                                       ("target_speed_kmh", math.inf), ("target_speed_kmh", -5.0)])
+                                       ("target_speed_kmh", math.inf), ("target_speed_kmh", -5.0),
+                                       ("target_speed_kmh", 1000.0)])  # beyond the car's top speed
 def test_the_runners_rules_refuse_values_that_would_switch_them_off(key, value):
     from cicfw.benchmark.runner import RunnerConfig
 

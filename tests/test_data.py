@@ -112,6 +112,17 @@ def test_unknown_command_code_is_an_error(tmp_path):
     assert err.value.value == [7.0]
 
 
+def test_a_fractional_camera_id_in_a_file_is_an_error_not_camera_0(tmp_path):
+    f = find_files(write_tiny_dataset(tmp_path, n_files=2))[1]
+    with h5py.File(f, "a") as h:
+        t = h["targets"][...]
+        t[3, T.CAMERA_ID] = 0.5
+        h["targets"][...] = t
+    with pytest.raises(CILFormatError) as err:
+        load_frames(str(tmp_path))
+    assert err.value.value == 0.5 and f.name in str(err.value)
+
+
 def test_nan_rows_dropped_and_reported_once(tmp_path, caplog):
     rng = np.random.default_rng(1)
     t = make_targets(20, rng)

@@ -92,3 +92,17 @@ def test_two_cpu_processes_each_see_their_own_balanced_batches_and_augmentation(
     digests = [(tmp_path / f"images{rank}.txt").read_text().split() for rank in (0, 1)]
     assert len(digests[0]) == len(digests[1]) == 2
     assert not set(digests[0]) & set(digests[1]), "the two ranks drew the same augmentation"
+
+
+@pytest.mark.parametrize("rank_zero", [True, False])
+def test_only_global_rank_0_says_the_runs_last_line(tmp_path, monkeypatch, caplog, rank_zero):
+    """Every DDP rank re-runs the app: the last line (metric and checkpoints) is rank 0's alone."""
+    import logging
+
+    from cicfw.testing import fast_dev_run
+
+    monkeypatch.setattr(L.Trainer, "is_global_zero", property(lambda self: rank_zero))
+    with caplog.at_level(logging.INFO, logger="cicfw.train"):
+        fast_dev_run(tmp_path)
+    said = [r for r in caplog.records if "no checkpoint written" in r.getMessage()]
+    assert len(said) == int(rank_zero), [r.getMessage() for r in said]

@@ -210,6 +210,18 @@ def test_filming_the_failures_of_a_run_without_one_says_so(tmp_path, capsys):
     assert not (tmp_path / "videos").exists()
 
 
+def test_filming_a_training_run_folder_points_at_its_evaluation(tmp_path, capsys):
+    from cicfw.benchmark.video import main
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "evaluate").mkdir()
+    (tmp_path / "evaluate" / "episodes.json").write_text('{"episodes": [], "meta": {}}')
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "evaluate") in err[0], err
+    assert not (tmp_path / "videos").exists()
+
+
 @pytest.mark.parametrize("most", ["0", "-1"])
 def test_filming_at_most_no_video_is_refused(tmp_path, capsys, most):
     """--max 0 cut the failed episode it chose and then said that 'failures' selected none, exit 0."""

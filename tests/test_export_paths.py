@@ -41,3 +41,16 @@ def test_export_refuses_an_out_suffix_of_the_other_format(checkpoint, tmp_path, 
     assert f"format={fmt}" in text and wants in text, text
     assert all(s in text for s in ("format=onnx", ".onnx", "format=torchscript", ".pt")), text  # each format's suffix
     assert not (tmp_path / out).exists()
+
+
+def test_agent_load_of_a_folder_without_a_checkpoint_says_what_it_holds_and_what_loads(tmp_path):
+    from cicfw.export.agent import Agent
+    from cicfw.model.checkpoint import CheckpointError
+
+    for name in ("m.onnx", "m.onnx.json"):
+        (tmp_path / name).write_bytes(b"x")
+    with pytest.raises(CheckpointError) as err:
+        Agent.load(tmp_path)
+    text = str(err.value)
+    assert str(err.value.value) == str(tmp_path) and "m.onnx, m.onnx.json" in text, text
+    assert all(s in text for s in (".ckpt", ".pt", ".onnx", "run folder")), text

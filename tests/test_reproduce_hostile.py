@@ -524,3 +524,43 @@ def test_resumed_cells_are_marked_in_the_report(tmp_path):
     assert "can differ from an uninterrupted run's" in note and "0.12519" in note and "0.12743" in note
     assert any(ln.startswith("| Co-learning (GTU) | 1 ‡ |") for ln in lines)  # the per-seed table
     assert data["rows"][1]["resumed"] == {"1": {"training": {"from_epoch": 1}}}
+
+
+def test_a_relation_candidate_that_is_no_fine_tuning_row_is_refused_up_front(no_collect):
+    """The report names the candidate chosen as fine tuning's row: CIL would be named so."""
+    from cicfw.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        reproduce.check_rows(reproduce.compose_plan(["budget=smoke", "relation_candidates=[re_all,cil]"]), ["gtu"])
+    assert (err.value.key, err.value.value) == ("relation_candidates", "cil")
+    reproduce.check_rows(reproduce.compose_plan(["budget=smoke"]), ["gtu"])  # the shipped candidates
+
+
+@pytest.mark.parametrize("key", ["publish_dir", "continue_from", "results_dir"])
+def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path, capsys, key):
+    """A corrupt record is refused as a truncated one is, not read as a folder without one."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "reproduce.json").write_text("null")
+    folders = {"results_dir": tmp_path / "results", key: other}
+    msg = refused(["budget=smoke", "rows=[cil]", *(f"{k}={v}" for k, v in folders.items())], capsys)
+    assert str(other / "reproduce.json") in msg and "null" in msg, msg
+
+
+def test_a_second_ctrl_c_in_the_final_report_keeps_the_first_ones_advice(tmp_path, monkeypatch):
+    """Ctrl-C in a cell, then again while the report of the finished cells is written."""
+    from cicfw.core.errors import Interrupted
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
+    monkeypatch.setattr(reproduce, "_train_and_drive", stopped)
+    monkeypatch.setattr(reproduce, "write_configured", stopped)
+    out = tmp_path / "results"
+    with pytest.raises(Interrupted) as err:
+        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
+    said = str(err.value)
+    assert f"kept in {out}" in said and "resumes the unfinished cell" in said and f"cicfw report {out}" in said, said
+    assert not (out / "reproduce.lock").exists()

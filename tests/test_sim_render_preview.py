@@ -50,3 +50,14 @@ def test_preview_rejects_an_unknown_weather_family_before_writing(tmp_path, caps
     with pytest.raises(CicfwError) as refused:  # this command's option, not a run's sim.weather_family
         preview.check_weathers(["ClearNoon"], "gloomy")
     assert (refused.value.key, refused.value.value) == ("--weather-family", "gloomy")
+
+
+@pytest.mark.parametrize("args, option, twice", [
+    (["--towns", "town_b", "town_b", "--weathers", "ClearNoon"], "--towns", "town_b"),
+    (["--towns", "town_b", "--weathers", "ClearNoon", "CloudyNoon", "ClearNoon"], "--weathers", "ClearNoon"),
+])
+def test_preview_refuses_a_town_or_weather_listed_twice_before_writing(tmp_path, args, option, twice):
+    with pytest.raises(CicfwError) as err:
+        preview._main(["--out", str(tmp_path / "pics"), *args])
+    assert (err.value.key, err.value.value) == (option, twice)
+    assert not (tmp_path / "pics").exists()

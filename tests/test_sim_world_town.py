@@ -163,3 +163,21 @@ def test_a_left_turn_gets_command_3_before_the_junction_and_2_after_it():
     r2 = g.route((100.0, 1.75, np.pi), (61.75, 60.0))
     assert [lane.split(":")[0] for lane in r2.lanes] == ["S1-S2", "S1-N1"]
     assert [t[1] for t in r2.turns] == [RIGHT]
+
+
+@pytest.mark.parametrize("name, head", [("map.svg", b"<?xml"), ("map.png", b"\x89PNG"), ("map.pdf", b"%PDF")])
+def test_a_map_is_written_in_the_format_its_suffix_names(tmp_path: Path, name, head):
+    from cicfw.sim.mapplot import save_map
+
+    town = build_town(copy.deepcopy(SMALL))
+    assert save_map(town, tmp_path / name, size=2).read_bytes().startswith(head)
+
+
+def test_a_map_suffix_no_format_matches_is_refused_before_writing(tmp_path: Path):
+    from cicfw.core.errors import ConfigError
+    from cicfw.sim.mapplot import save_map
+
+    with pytest.raises(ConfigError) as e:
+        save_map(build_town(copy.deepcopy(SMALL)), tmp_path / "map.jpgx")
+    assert e.value.key == "path" and e.value.value.endswith("map.jpgx")
+    assert not list(tmp_path.iterdir())

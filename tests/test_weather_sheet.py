@@ -28,6 +28,8 @@ def test_an_unknown_weather_or_town_is_one_line_and_makes_no_folder(tmp_path):
     for args, key, value in ((["--towns", "town_b", "--weathers", "Foggy"], "--weathers", "Foggy"),
                              (["--towns", "nowhere", "--weathers", "ClearNoon"], None, "nowhere"),
                              ([*ONE, "--colours", "1"], "--colours", 1),
+                             (["--towns", "town_b", "town_b", "--weathers", "ClearNoon"], "--towns", "town_b"),
+                             ([*ONE, "ClearNoon"], "--weathers", "ClearNoon"),  # drawn twice otherwise
                              ([*ONE, "--prefix", "../up_"], "--prefix", "../up_")):  # a name outside --out
         assert_refused(run_app_in_process(TOOL, "--out", str(out), *args), key, value)
         assert not out.exists()

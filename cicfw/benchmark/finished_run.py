@@ -87,7 +87,9 @@ def load_run(run_dir: Path) -> Run:
         rows, meta = data["episodes"], data.get("meta", {})
         label = meta.get("model") or (rows[0]["model"] if rows else Path(run_dir).name)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{str(run_dir)!r} is not an evaluation run folder (no episodes.json)") from None
+        inner = Path(run_dir) / "evaluate"  # a training run's own evaluation (evaluate_after=true)
+        hint = f"; its evaluation is in {str(inner)!r}: give that folder" if (inner / "episodes.json").is_file() else ""
+        raise FileNotFoundError(f"{str(run_dir)!r} is not an evaluation run folder (no episodes.json){hint}") from None
     except (json.JSONDecodeError, KeyError, TypeError, IndexError) as err:
         raise CicfwError(f"{str(p)!r} is not an evaluation report written by cicfw ({err})") from None
     return Run(label=str(label), rows=rows, meta=meta, path=Path(run_dir))

@@ -37,6 +37,7 @@ from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError
 from cicfw.core.progress import ProgressBar
 from cicfw.registry import SIM_BACKENDS
+from cicfw.sim.vehicle import TOP_SPEED_KMH
 
 #: the simulator's reasons mapped to the report's (the embedded env calls "far off route" "lost")
 REASONS = {"success": "success", "timeout": "timeout", "lost": "off_route", "off_route": "off_route",
@@ -75,8 +76,9 @@ class RunnerConfig:
             raise ConfigError("runner.off_road_s", self.off_road_s, "a finite number of seconds > 0")
         if not 0 < self.off_road_level <= 1:
             raise ConfigError("runner.off_road_level", self.off_road_level, "a fraction of the car's width in (0, 1]")
-        if self.target_speed_kmh is not None and not 0 < self.target_speed_kmh < math.inf:
-            raise ConfigError("runner.target_speed_kmh", self.target_speed_kmh, "a finite speed > 0 (or null)")
+        if self.target_speed_kmh is not None and not 0 < self.target_speed_kmh <= TOP_SPEED_KMH:
+            raise ConfigError("runner.target_speed_kmh", self.target_speed_kmh,
+                              f"a speed > 0 and at most {TOP_SPEED_KMH} km/h, the car's top speed (or null)")
         # 0 meant null (the cores / workers) without a word; as diagnose's threads, it is refused
         if self.threads is not None and not (is_integer(self.threads) and self.threads >= 1):
             raise ConfigError("runner.threads", self.threads, "null (the cores / workers) or an integer >= 1")

@@ -13,10 +13,11 @@ from cicfw.core.errors import CicfwError
 _NO_DEFAULT: Any = object()
 
 
-def read_json(path: str | os.PathLike, default: Any = _NO_DEFAULT) -> Any:
+def read_json(path: str | os.PathLike, default: Any = _NO_DEFAULT, kind: type | None = None) -> Any:
     """The JSON value in ``path``; ``default``, when given, for a file that does not exist. A file that is not
     valid JSON (truncated by a kill or a full disk, edited by hand) or cannot be read is one ``CicfwError``
-    naming it: json's own message says where in the text, not which file."""
+    naming it: json's own message says where in the text, not which file. ``kind`` (``dict``): the value must
+    be one, else the same error, so that a record holding ``null`` is not read as a missing one."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -29,7 +30,12 @@ def read_json(path: str | os.PathLike, default: Any = _NO_DEFAULT) -> Any:
     except OSError as err:
         raise CicfwError(f"{path}: cannot be read ({err.strerror or err})") from None
     try:
-        return json.loads(text)
+        value = json.loads(text)
     except json.JSONDecodeError as err:
         raise CicfwError(f"{path}: not valid JSON ({err.msg}: line {err.lineno} column {err.colno}); the file "
                          f"is truncated (a kill, a full disk) or was edited by hand") from None
+    if kind is not None and not isinstance(value, kind):
+        raise CicfwError(f"{path}: holds {json.dumps(value)[:40]} where a JSON "
+                         f"{'object' if kind is dict else kind.__name__} belongs; the file was edited by hand or "
+                         f"written by something else")
+    return value

@@ -218,7 +218,13 @@ def _columns(f: Path, i: int, t: np.ndarray, cameras: tuple[int, ...] | None, si
         tally.lowest = min(tally.lowest, (float(speed[negative].min()), f.name,
                                           int(np.argmin(np.where(negative, speed, 0)))))
     rows = np.flatnonzero(finite & camera_known)
-    camera = t[rows, T.CAMERA_ID].astype(np.int32)
+    ids = t[rows, T.CAMERA_ID]
+    fractional = ids != np.round(ids)  # astype would truncate 0.5 to camera 0 and train on it as the centre
+    if fractional.any():
+        r = int(rows[np.argmax(fractional)])
+        raise CILFormatError(f"{f}: camera id {float(t[r, T.CAMERA_ID]):g} in targets[26] at row {r}; a camera id "
+                             f"is a whole number (0 centre, 1 left, 2 right)", value=float(t[r, T.CAMERA_ID]))
+    camera = ids.astype(np.int32)
     if cameras is not None:
         _warn_unknown_cameras(f, camera, cameras)
     tally.recorded.append(np.abs(t[rows, T.STEER]))

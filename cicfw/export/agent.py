@@ -196,7 +196,8 @@ class Agent:
         if threads:
             torch.set_num_threads(int(threads))
         dev = torch_device(device)
-        path = resolve_checkpoint(path)  # a run folder's one best checkpoint: the file named in info
+        # a run folder's one best checkpoint: the file named in info
+        path = resolve_checkpoint(path, "a .ckpt, a TorchScript .pt or an .onnx file, or a training run folder")
         model = prepare_for_inference(load_model(path), fuse).to(dev)
         hp = dict(model.hparams)  # the decoder too, as an exported model's sidecar gives it (docs/deploy.md)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],

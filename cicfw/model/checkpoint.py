@@ -41,10 +41,11 @@ class CheckpointError(CicfwError):
 KEPT_EPOCH = re.compile(r"epoch\d{3,}\.ckpt")
 
 
-def resolve_checkpoint(path: str | Path) -> Path:
+def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written by cicfw train, or its run folder") -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
     best checkpoint (``last.ckpt`` and kept ``epochNNN.ckpt`` aside) in its ``checkpoints/``, else its
-    ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only."""
+    ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only.
+    ``accepted``: what the caller takes, for the line refusing a folder that holds no checkpoint."""
     p = Path(str(path)).expanduser()
     if p.is_dir():
         own = p / "checkpoints"
@@ -63,6 +64,11 @@ def resolve_checkpoint(path: str | Path) -> Path:
             return found[0].resolve()
         if not found and runs and (runs[0] / "last.ckpt").is_file():
             return (runs[0] / "last.ckpt").resolve()
+        if not every:  # say what the folder holds instead (a folder of exported models, of data ...)
+            held = sorted(f.name for f in p.iterdir())
+            raise CheckpointError(f"checkpoint={str(path)!r} is a folder holding no .ckpt file ("
+                                  f"{', '.join(held[:6]) + (' ...' if len(held) > 6 else '') or 'nothing'}); "
+                                  f"give {accepted}", key="checkpoint", value=path)
         listing = ", ".join(str(f) for f in found[:8]) or "none"
         raise CheckpointError(
             f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt and kept "

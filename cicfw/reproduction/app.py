@@ -165,10 +165,12 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     """Every row's training config composes and names a registered encoder, mixer and head: a custom row
     with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
-    the rows' data folders (``data.path``), which no output folder may be."""
+    the rows' data folders (``data.path``), which no output folder may be. Fine tuning's ``relation_candidates``
+    compose too and must train the ``re`` mixer: the report names the one chosen as the fine-tuning row."""
     data: list[str] = []
+    candidates = [str(c) for c in cfg.get("relation_candidates") or []]
     with initialize_config_module("cicfw.conf", version_base="1.3"):
-        for r in rows:
+        for r in [*rows, *(c for c in candidates if c not in rows)]:
             entry = cfg.catalogue[r]
             ov = [str(o) for o in entry.get("overrides") or []]
             what = f"row {r!r} (experiment {entry.experiment}" + (f", overrides {ov})" if ov else ")")
@@ -183,6 +185,11 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
                 raise ReproduceError(f"{what}: {schema if schema is not None else _hydra_line(err)}") from None
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
+            if r in candidates and tcfg.mixer.get("name") != "re":
+                raise ConfigError("relation_candidates", r, "catalogue rows that train fine tuning's mixer (mixer=re), "
+                                  "such as re_all, re_pairs, re_none")
+            if r not in rows:
+                continue
             try:
                 check_training(tcfg)
             except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
@@ -443,7 +450,7 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         n_episodes = count_episodes(evcfg)
     results_dir = Path(cfg.results_dir)
     path = results_dir / MANIFEST
-    old = read_json(path, default=None)
+    old = read_json(path, default=None, kind=dict)
     src = Path(cfg.continue_from) if cfg.get("continue_from") else None
     only = None if cfg.get("continue_machine") is None else str(cfg.continue_machine)
     published = published_manifest(src) if src is not None else None
@@ -507,7 +514,7 @@ def keep_report_overrides(results_dir: Path, overrides: Sequence[str]) -> None:
     """Record in the folder's reproduce.json the overrides its report is written with (a row of one's own and its
     label, another margin or claims), so that ``cicfw report`` rewrites the report as this run writes it."""
     path = Path(results_dir) / MANIFEST
-    manifest = read_json(path, default=None)
+    manifest = read_json(path, default=None, kind=dict)
     wanted = report_overrides(overrides)
     if not isinstance(manifest, dict) or manifest.get(REPORT_OVERRIDES, []) == wanted:
         return
@@ -830,20 +837,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     # compares every row on the same seeds
     sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
     t0 = time.time()
-    code = 0
+    code, stopped = 0, None
     try:
         _cell_job()
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
         if e.code not in (0, None):
             log.error("the launcher stopped (exit %s); reporting the cells that finished", e.code)
     except KeyboardInterrupt:  # a cell's own advice (train's ckpt_path=...) is not this app's
-        raise Interrupted(f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips "
-                          f"them and resumes the unfinished cell from its last epoch checkpoint") from None
+        stopped = (f"the finished cells are kept in {cfg.results_dir}; run the same command again: it skips them and "
+                   f"resumes the unfinished cell from its last epoch checkpoint")
+        raise Interrupted(stopped) from None
     finally:
         try:
             publish = f" --publish {cfg.publish_dir}" if cfg.get("publish_dir") else ""
-            with on_interrupt(f"the finished cells are kept in {cfg.results_dir}; write their report with cicfw report "
-                              f"{cfg.results_dir}{publish}, or run the same command again"):
+            report = f"write their report with cicfw report {cfg.results_dir}{publish}"
+            # a second Ctrl-C here keeps the first one's advice (how to resume) and adds how to write the report
+            with on_interrupt(f"{stopped}; the report was not written: {report}" if stopped else
+                              f"the finished cells are kept in {cfg.results_dir}; {report}, or run the same command again"):
                 data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")

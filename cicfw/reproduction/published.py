@@ -38,7 +38,7 @@ def published_manifest(src: Path) -> dict[str, Any]:
     if not src.is_dir():
         raise CicfwError(f"continue_from={str(src)!r} is not a folder; give a published results folder "
                          f"(reproduce.json and cells/<row>/seed<k>/cell.json, e.g. docs/results/<budget>)")
-    manifest = read_json(src / "reproduce.json", default=None)  # not JSON: one line naming the file
+    manifest = read_json(src / "reproduce.json", default=None, kind=dict)  # not JSON: one line naming the file
     if manifest is None:
         raise CicfwError(f"continue_from={str(src)!r} is not a published results folder (no reproduce.json); give "
                          f"the folder that holds reproduce.json and cells/<row>/seed<k>/cell.json")

@@ -828,7 +828,7 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     learning curve) in ``results_dir``; returns the data. ``claims``, the equivalence ``margin`` and
     ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
-    manifest = read_json(results_dir / "reproduce.json", default={})
+    manifest = read_json(results_dir / "reproduce.json", default={}, kind=dict)
     cells, failed = load_cells(results_dir)
     if not cells:
         raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
@@ -864,8 +864,8 @@ def run_report_config(results_dir: Path) -> Any:
     """conf/reproduce.yaml composed with the report overrides the folder's runs recorded (``REPORT_OVERRIDES``
     in reproduce.json; none in a folder made before they were recorded); one error line when they no longer
     compose."""
-    manifest = read_json(Path(results_dir) / "reproduce.json", default={})
-    overrides = list(manifest.get(REPORT_OVERRIDES) or []) if isinstance(manifest, Mapping) else []
+    manifest = read_json(Path(results_dir) / "reproduce.json", default={}, kind=dict)
+    overrides = list(manifest.get(REPORT_OVERRIDES) or [])
     try:
         return compose("reproduce", overrides=overrides)
     except (HydraException, OmegaConfBaseException) as err:  # an entry this cicfw's config no longer takes

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.sim.roadgraph import Route
-from cicfw.sim.vehicle import DT, VehicleParams, VehicleState
+from cicfw.sim.vehicle import DT, TOP_SPEED_KMH, VehicleParams, VehicleState
 
 
 #: what each value must be: key -> (lowest, whether the lowest itself is allowed, unit)
@@ -44,6 +44,8 @@ class ExpertParams:
                 raise CicfwError(f"expert.{key} must be a number ({unit}), got {v!r}")
             if v < low or (v == low and not inclusive):
                 raise CicfwError(f"expert.{key} must be {'>=' if inclusive else '>'} {low:g} {unit}, got {v!r}")
+        if self.cruise_kmh > TOP_SPEED_KMH:  # the data would not hold the speed asked for
+            raise ConfigError("expert.cruise_kmh", self.cruise_kmh, f"at most {TOP_SPEED_KMH} km/h, the car's top speed")
         if self.min_kmh > self.cruise_kmh:
             raise CicfwError(f"expert.min_kmh={self.min_kmh!r} is above expert.cruise_kmh={self.cruise_kmh!r}; the "
                              f"slowest planned speed must be at most the cruise speed")

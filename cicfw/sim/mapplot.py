@@ -7,9 +7,11 @@ from typing import Iterable
 
 import numpy as np
 
+from cicfw.core.errors import ConfigError
 from cicfw.core.files import atomic_write
 from cicfw.sim.town import Town
 
+MAP_FORMATS = ("png", "svg", "pdf")
 COMMAND_COLOURS = {2: "#888888", 3: "#1f77b4", 4: "#d62728", 5: "#2ca02c"}  # follow, left, right, straight
 
 
@@ -73,10 +75,10 @@ def pyplot():
     return plt
 
 
-def save_png(fig, path: Path) -> Path:
-    """``fig`` as a PNG at ``path``, written whole or not at all; the figure is closed."""
+def save_png(fig, path: Path, fmt: str = "png") -> Path:
+    """``fig`` as a PNG (or ``fmt``) at ``path``, written whole or not at all; the figure is closed."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(buf, format=fmt, dpi=110, bbox_inches="tight")
     pyplot().close(fig)
     atomic_write(path, buf.getvalue())
     return path
@@ -84,9 +86,13 @@ def save_png(fig, path: Path) -> Path:
 
 def save_map(town: Town, path: str | Path, routes: Iterable = (), title: str | None = None,
              size: float = 10.0) -> Path:
-    """Write a PNG map of ``town`` (and routes) to ``path``."""
+    """Write a map of ``town`` (and routes) to ``path``, in the format its suffix names (png, svg or pdf)."""
+    path = Path(path)
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt not in MAP_FORMATS:  # a file's name must not lie about its bytes
+        raise ConfigError("path", str(path), "a file name ending in " + ", ".join("." + f for f in MAP_FORMATS))
     x0, y0, x1, y1 = town.bounds
     fig, ax = pyplot().subplots(figsize=(size, size * (y1 - y0) / (x1 - x0) + 0.4))
     draw_town(ax, town, routes)
     ax.set_title(title or town.name)
-    return save_png(fig, Path(path))
+    return save_png(fig, path, fmt)

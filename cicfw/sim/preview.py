@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from cicfw.core.errors import CicfwError, report_user_errors
+from cicfw.core.errors import CicfwError, ConfigError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
 from cicfw.core.run_folder import claim_folder
 from cicfw.sim.backends import EmbeddedBackend
@@ -181,9 +181,18 @@ def sample_routes(town, n: int, seed: int = 0, min_length: float = 150.0) -> lis
 
 def load_towns(names: list[str]) -> list:
     """Towns by shipped name or file path; a ValueError (one line) for an unknown name, a missing file
-    ("no such town file") or a broken one (the file and its problem)."""
+    ("no such town file"), a broken one (the file and its problem) or a town listed twice (by any name)."""
     backend = EmbeddedBackend()
-    return [load_town(backend.resolve_town(n)) for n in names]
+    towns = [load_town(backend.resolve_town(n)) for n in names]
+    refuse_twice("--towns", [t.name for t in towns])
+    return towns
+
+
+def refuse_twice(option: str, values: list[str]) -> None:
+    """A town or weather listed twice would be drawn twice: one line naming the option, as collect's."""
+    twice = [v for i, v in enumerate(values) if v in values[:i]]
+    if twice:
+        raise ConfigError(option, twice[0], "", message=f"{option} lists {twice[0]!r} twice; give each once")
 
 
 def check_weathers(weathers: list[str], family: str = DEFAULT_FAMILY) -> list[str]:
@@ -191,6 +200,7 @@ def check_weathers(weathers: list[str], family: str = DEFAULT_FAMILY) -> list[st
         raise CicfwError(f"--weather-family: unknown weather family {family!r}; known: {', '.join(WEATHER_FAMILIES)}",
                          key="--weather-family", value=family)
     presets = WEATHER_FAMILIES[family]
+    refuse_twice("--weathers", weathers)
     for wx in weathers:
         if wx not in presets:
             raise CicfwError(f"--weathers: unknown weather {wx!r}; known weathers: {', '.join(presets)}")

@@ -111,3 +111,13 @@ class SpeedController:
         self._i = min(max(self._i + err * self.dt, -2.0), 2.0)
         throttle = ff + self.kp * err + self.ki * self._i
         return min(max(throttle, 0.0), 1.0), 0.0
+
+
+def _level_speed(p: VehicleParams) -> float:
+    """m/s where full throttle only balances drag and rolling resistance: how fast the car really gets."""
+    a, b, c = p.drag, p.max_accel / p.top_speed, p.max_accel - p.rolling
+    return (-b + math.sqrt(b * b + 4 * a * c)) / (2 * a)
+
+
+#: the embedded car's top speed in km/h (rounded down): a target speed above it is never reached
+TOP_SPEED_KMH = math.floor(_level_speed(VehicleParams()) * 3.6)

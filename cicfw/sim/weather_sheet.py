@@ -17,7 +17,7 @@ from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import writable_folder, write_together
 from cicfw.core.run_folder import claim_folder
 from cicfw.sim.preview import (OUT_FOLDER, _first_missing, _png, _remove_empty_folders, approach_pose, check_prefix,
-                               load_towns)
+                               load_towns, refuse_twice)
 from cicfw.sim.render import Renderer
 from cicfw.sim.render.weather import WEATHER_FAMILIES, Weather
 from cicfw.sim.town import town_names
@@ -69,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def check_args(a: argparse.Namespace) -> None:
     """One ``CicfwError`` for the first argument outside its domain, before anything is rendered or written."""
+    refuse_twice("--weathers", a.weathers)
     for name in a.weathers:
         if any(name not in WEATHER_FAMILIES[fam] for fam in FAMILIES):
             raise CicfwError(f"--weathers: unknown weather {name!r}; known weathers: "

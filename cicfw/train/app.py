@@ -557,7 +557,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else None  # None: no validation ran
-    log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
+    if trainer.is_global_zero:  # the run's last line, once: not again by each DDP rank
+        log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
     # the closed-loop suite on the best checkpoint (docs/evaluation.md), driven once: by rank 0, not by every
     # DDP rank into the same folder (the second refused there, or rank 0 itself)
     if cfg.get("evaluate_after") and not is_worker_process():
