@@ -497,3 +497,22 @@ def test_another_split_than_the_checkpoint_recorded_is_refused(tmp_path: Path, e
     data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", given, "split=all"), ckpt)
     data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", "data.seed=3", "data.val_fraction=0.3"),
                   ckpt)
+
+
+def test_a_folder_holding_another_checkpoints_diagnosis_is_refused_and_kept(tmp_path: Path, episodes: Path):
+    """Diagnosing checkpoint B into the folder of A's diagnosis would replace A's report: refused, the folder
+    as it was. A's own diagnosis again (other options) rewrites it."""
+    runs = [tmp_path / "a", tmp_path / "b"]
+    ckpts = [save_checkpoint(run, head="softmax") for run in runs]
+    for run in runs:
+        write_run_config(run, episodes, seed=3)
+    out = tmp_path / "out"
+    common = [f"hydra.run.dir={out}", "phases.approach_m=3", "threads=1", "plot=false"]
+    first = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[0]}", *common, cwd=REPO)
+    assert first.returncode == 0, first.stderr[-3000:]
+    before = {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[1]}", *common, cwd=REPO)
+    assert_refused(res, "hydra.run.dir", out)
+    assert {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    again = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[0]}", *common, "phases.exit_s=1", cwd=REPO)
+    assert again.returncode == 0, again.stderr[-3000:]
