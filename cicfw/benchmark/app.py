@@ -167,8 +167,12 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                 except Exception as err:  # e.g. a full disk: the log still holds every finished episode
                     log.error("could not write the partial report: %s", err)
                 kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
+                again = resume_hint or 'call again with the same output folder to drive the rest'
                 if isinstance(stop, KeyboardInterrupt):
-                    raise Interrupted(f"{kept}: {resume_hint or 'call again with the same output folder to drive the rest'}") from None
+                    raise Interrupted(f"{kept}: {again}") from None
+                if isinstance(stop, OSError) and stop.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                    raise OutputWriteError(f"could not write the episode log ({stop.strerror}); {kept}: free some "
+                                           f"space, then {again}") from None
                 log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
