@@ -257,7 +257,11 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
             "phases": {"approach_m": float(approach_m), "approach_m_from": approach_from,
                        "exit_s": float(cfg.phases.exit_s), "dt_s": float(cfg.phases.dt_s),
                        "counts": {p: int((d.phase == p).sum()) for p in (*sd.PHASES, "unknown")}}}
-    paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
+    try:
+        paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
+    except OSError as err:  # a full disk: no file of the report was written
+        raise CicfwError(f"could not write {err.filename} ({err.strerror or err}); nothing of the report was "
+                         f"written: free some space, then run the same command") from None
     log.info("\n%s", sd.markdown(d, f"Steering diagnostic: {label}", sd.measured_line(meta)))
     log.info("report in %s", out_dir)
     return paths
