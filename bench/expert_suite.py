@@ -24,6 +24,8 @@ def main() -> None:
     ap.add_argument("--towns", nargs="+", default=town_names())
     ap.add_argument("--seeds", type=int, default=3, help="noise seeds per route")
     args = ap.parse_args()
+    if args.seeds < 1:  # the noisy share would be out of no episode
+        ap.error(f"--seeds must be >= 1 (noise seeds per route), got {args.seeds}")
     print("expert on all single-turn routes (no rendering: the expert ignores images, so weather "
           "does not change these figures)")
     print(f"{'town':<8} {'routes':>6} {'no noise':>10} {'noise':>16} {'worst dev m':>12} "

@@ -410,6 +410,22 @@ def test_a_town_given_by_path(tmp_path: Path):
     assert err.value.key == "collect.towns" and err.value.value == "my_town"
 
 
+def test_a_town_file_whose_name_is_too_long_for_the_episode_files_is_refused_before_simulating(tmp_path: Path,
+                                                                                             monkeypatch):
+    """A town file's stem goes into every episode's file names: one the filesystem cannot take is one line
+    naming the town before anything is driven or written, not a write error after the episode."""
+    from cicfw.sim.town import town_path
+
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    town = tmp_path / ("t" * 235 + ".yaml")  # a legal name (240 bytes), but not with the episode's prefix and suffix
+    shutil.copy(town_path("town_b"), town)
+    out = tmp_path / "ds"
+    with pytest.raises(CollectConfigError) as err:
+        collect_dataset({**TINY, "episodes": 1, "towns": [str(town)]}, out, progress=False)
+    assert err.value.key == "collect.towns" and str(town) in str(err.value.value)
+    assert not out.exists()
+
+
 def test_complete_is_true_only_when_every_file_validates(tmp_path: Path, monkeypatch):
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
     first = tmp_path / "ep0000_town_a_ClearNoon_000.h5"

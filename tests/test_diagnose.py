@@ -497,3 +497,52 @@ def test_another_split_than_the_checkpoint_recorded_is_refused(tmp_path: Path, e
     data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", given, "split=all"), ckpt)
     data_settings(diagnose_cfg(f"checkpoint={ckpt}", f"data.path={episodes}", "data.seed=3", "data.val_fraction=0.3"),
                   ckpt)
+
+
+def test_a_folder_holding_another_checkpoints_diagnosis_is_refused_and_kept(tmp_path: Path, episodes: Path):
+    """Diagnosing checkpoint B into the folder of A's diagnosis would replace A's report: refused, the folder
+    as it was. A's own diagnosis again (other options) rewrites it."""
+    runs = [tmp_path / "a", tmp_path / "b"]
+    ckpts = [save_checkpoint(run, head="softmax") for run in runs]
+    for run in runs:
+        write_run_config(run, episodes, seed=3)
+    out = tmp_path / "out"
+    common = [f"hydra.run.dir={out}", "phases.approach_m=3", "threads=1", "plot=false"]
+    first = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[0]}", *common, cwd=REPO)
+    assert first.returncode == 0, first.stderr[-3000:]
+    before = {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    res = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[1]}", *common, cwd=REPO)
+    assert_refused(res, "hydra.run.dir", out)
+    assert {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    again = run_app_in_process("cicfw.diagnose", f"checkpoint={ckpts[0]}", *common, "phases.exit_s=1", cwd=REPO)
+    assert again.returncode == 0, again.stderr[-3000:]
+
+
+def test_a_full_disk_while_writing_the_report_is_one_line_and_writes_none_of_it(tmp_path: Path, episodes: Path,
+                                                                                 monkeypatch):
+    """The disk fills as the last file of the report (the scatter plot) is written: one CicfwError line, and
+    no file of the report under its name (not a table beside no plot, nor an earlier run's plot beside it)."""
+    import errno
+    import os
+
+    import cicfw.core.files
+    from cicfw.core.errors import CicfwError
+    from cicfw.diagnose.app import diagnose
+
+    write_all = cicfw.core.files.write_all
+
+    def full_for_the_plot(fd, data):
+        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        write_all(fd, data)
+
+    run = tmp_path / "run"
+    ckpt = save_checkpoint(run, head="softmax")
+    write_run_config(run, episodes, seed=3)
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.setattr(cicfw.core.files, "write_all", full_for_the_plot)
+    with pytest.raises(CicfwError) as err:
+        diagnose(diagnose_cfg(f"checkpoint={ckpt}", "phases.approach_m=3", "threads=1"), out)
+    assert "steer_scatter.png" in str(err.value) and "\n" not in str(err.value)
+    assert list(out.iterdir()) == []

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+import cicfw.benchmark.journal
 import cicfw.core.files
 from cicfw.benchmark.app import OutputWriteError, evaluate_policy
 from cicfw.train.app import make_datamodule, train
@@ -128,3 +129,28 @@ def test_a_full_disk_while_writing_the_pictures_is_one_line_and_leaves_no_torn_f
     assert not list(out.glob("*.png"))
     again = evaluate_policy(spec, suite, {"workers": 1}, out)  # room again: the pictures, nothing driven
     assert again.driven == 0 and list(out.glob("*.png"))
+
+
+def test_a_full_disk_while_logging_an_episode_is_one_line_and_the_rerun_resumes(tmp_path, monkeypatch):
+    """The episode log's write cut short by a full disk: one OutputWriteError line saying what is kept and how to
+    go on (not an OSError traceback); with room again the same call drives only the rest."""
+    write_all = cicfw.core.files.write_all
+    written = []
+
+    def full_after_two(fd, data):
+        if os.readlink(f"/proc/self/fd/{fd}").endswith("episodes.jsonl") and len(written) >= 2:
+            os.write(fd, bytes(data)[:10])  # a short write, then the disk is full
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(fd)
+        write_all(fd, data)
+
+    out = tmp_path / "run"
+    spec, suite = {"name": "constant", "steer": 0.0}, {"towns": [TOWN], "weathers": ["ClearNoon"], "limit": 4}
+    with monkeypatch.context() as mp:
+        mp.setattr(cicfw.benchmark.journal, "write_all", full_after_two)
+        with pytest.raises(OutputWriteError) as err:
+            evaluate_policy(spec, suite, {"workers": 1}, out)
+    text = str(err.value)
+    assert "No space left on device" in text and "2 of 4 episodes" in text and str(out) in text, text
+    again = evaluate_policy(spec, suite, {"workers": 1}, out)
+    assert again.driven == 2 and again.reused == 2

@@ -99,3 +99,31 @@ def test_report_command_errors_are_one_line(tmp_path: Path):
                                    f"evaluation run folders (holding episodes.json) or folders that contain them")
     (tmp_path / "empty").mkdir()
     assert report.main([str(tmp_path / "empty")]) == 2
+
+
+def test_a_full_disk_while_reporting_leaves_a_folder_the_same_command_finishes(tmp_path: Path, monkeypatch,
+                                                                                 capsys):
+    """The disk fills as ``cicfw report`` writes its chart: one line, the tables and the record of the runs
+    written together, so that the same command (with room again) finishes the folder instead of refusing its
+    tables as files no report wrote."""
+    import errno
+    import os
+
+    import cicfw.core.files
+
+    write_run(tmp_path / "runs" / "a", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/a.ckpt"}))
+    out = tmp_path / "joined"
+    write_all = cicfw.core.files.write_all
+
+    def full_for_the_chart(fd, data):
+        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        write_all(fd, data)
+
+    with monkeypatch.context() as mp:
+        mp.setattr(cicfw.core.files, "write_all", full_for_the_chart)
+        assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and "No space left on device" in line and "\n" not in line, line
+    assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 0
+    assert (out / "success_bars.png").is_file() and (out / "report.json").is_file()

@@ -313,3 +313,17 @@ def test_a_preview_whose_disk_fills_while_writing_leaves_no_png(tmp_path: Path, 
     line = _one_error_line(capsys.readouterr().err)
     assert f"cannot write {out / 'turn_sheet.png'} (No space left on device)" in line, line
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("seeds", ["0", "-1"])
+def test_the_expert_bench_refuses_no_noise_seed_before_driving(monkeypatch, capsys, seeds: str):
+    """bench/expert_suite.py --seeds 0 drove every route, then divided the noisy successes by no episode."""
+    from conftest import load_bench_script
+
+    bench = load_bench_script("expert_suite")
+    monkeypatch.setattr(bench, "run_expert", lambda *a, **k: pytest.fail("drove"))
+    monkeypatch.setattr("sys.argv", ["expert_suite.py", "--towns", "town_b", "--seeds", seeds])
+    with pytest.raises(SystemExit) as stop:
+        bench.main()
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--seeds" in err and f"got {seeds}" in err, err

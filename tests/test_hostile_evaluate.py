@@ -148,3 +148,31 @@ def test_a_python_caller_s_suite_typo_names_the_key_before_anything_is_written(t
                         tmp_path / "out")
     assert err.value.key == "suite.limt" and "limit" in str(err.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_town_file_named_like_another_town_inside_gets_its_own_map(tmp_path):
+    """Two towns driven in one run whose files carry one ``name:`` inside (a copy of a shipped town, edited)
+    are two rows' towns, by their file stems: each gets its own map under that name, not one file both
+    write."""
+    import shutil
+
+    copy = tmp_path / "my_town.yaml"
+    shutil.copy(TOWN, copy)
+    quick = [o for o in QUICK if not o.startswith("suite.towns=")]
+    out = tmp_path / "run"
+    evaluate(compose_config([*quick, f"suite.towns=[{TOWN},{copy}]", "suite.limit=1"]), out)
+    assert sorted(p.name for p in out.glob("map_*.png")) == ["map_bench_town.png", "map_my_town.png"]
+
+
+def test_a_town_file_too_long_for_its_map_name_is_refused_before_driving(tmp_path):
+    """A town file's stem names its map (and videos): one the filesystem cannot take while the map is written
+    is one line naming the town before any episode is driven, not a write error after the suite."""
+    import shutil
+
+    town = tmp_path / ("t" * 235 + ".yaml")  # a legal name, but not as map_<stem>.png's temporary name
+    shutil.copy(TOWN, town)
+    quick = [o for o in QUICK if not o.startswith("suite.towns=")]
+    with pytest.raises(ValueError) as err:
+        evaluate(compose_config([*quick, f"suite.towns=[{town}]"]), tmp_path / "run")
+    assert err.value.key == "suite.towns" and err.value.value == town.stem, str(err.value)
+    assert not (tmp_path / "run").exists()

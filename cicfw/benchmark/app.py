@@ -16,6 +16,7 @@ import errno
 import hashlib
 import json
 import logging
+import os
 import shlex
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -45,7 +46,7 @@ from cicfw.benchmark.video import run_weather_family, select_episodes, write_vid
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.override_hints import composition_error
-from cicfw.core.run_folder import claim_folder, undo_run_folder
+from cicfw.core.run_folder import claim_folder, name_max, undo_run_folder
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
@@ -139,6 +140,7 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     suite = dict(suite)
     filmed = list(video)
     runner_cfg, episodes = plan_evaluation(spec, suite, runner, sim, seed, progress_bar, filmed, video_max)
+    check_town_file_names(out_dir, episodes, maps, bool(filmed))
     pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
     label = label or spec.get("label") or pol.label
     fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
@@ -167,8 +169,12 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                 except Exception as err:  # e.g. a full disk: the log still holds every finished episode
                     log.error("could not write the partial report: %s", err)
                 kept = f"{len(elog.rows)} of {len(episodes)} episodes finished, kept in {out_dir}"
+                again = resume_hint or 'call again with the same output folder to drive the rest'
                 if isinstance(stop, KeyboardInterrupt):
-                    raise Interrupted(f"{kept}: {resume_hint or 'call again with the same output folder to drive the rest'}") from None
+                    raise Interrupted(f"{kept}: {again}") from None
+                if isinstance(stop, OSError) and stop.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                    raise OutputWriteError(f"could not write the episode log ({stop.strerror}); {kept}: free some "
+                                           f"space, then {again}") from None
                 log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
@@ -202,6 +208,20 @@ def check_out_dir(out_dir: Path) -> None:
                 raise CicfwError(f"out_dir={out_dir} {where}, not a folder; give a folder that is missing, empty or "
                                  f"this evaluation's", key="out_dir", value=str(out_dir))
             return
+
+
+def check_town_file_names(out_dir: Path, episodes: Sequence[Any], maps: bool, videos: bool) -> None:
+    """The files named after a town (its map, its episodes' videos), under their temporary names while written
+    (cicfw.core.files), fit the filesystem: a town file's long stem is one line now, not after the driving."""
+    names = [(town_label(e.town), f".map_{town_label(e.town)}.png.{os.getpid()}-00000000.tmp")
+             for e in episodes if maps]
+    names += [(town_label(e.town), f".{e.key.replace('/', '_')}.tmp.mp4") for e in episodes if videos]
+    limit = name_max(out_dir)
+    for town, name in names:
+        if len(os.fsencode(name)) > limit:
+            raise ConfigError("suite.towns", town, "a town whose file names fit", f"suite.towns: the town {town!r} "
+                              f"makes file names of {len(os.fsencode(name))} bytes (its map, its videos), more than "
+                              f"this filesystem allows ({limit}); give the town file a shorter name")
 
 
 def percent(value: float | None) -> str:

@@ -25,7 +25,7 @@ from cicfw.benchmark.plots import bar_chart
 from cicfw.core.run_folder import claim_folder
 from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import writable_folder
+from cicfw.core.files import writable_folder, write_together
 
 ROW_FIELDS = (
     "model", "episode", "key", "town", "weather", "town_set", "weather_set", "pair", "route", "command",
@@ -360,18 +360,18 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record:
     report``'s record of the runs it joined there too); return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
+    tables = {out_dir / "table.md": md, out_dir / "table.tex": latex_table(runs),
+              out_dir / "table.csv": table_csv(runs)}
+    if record:  # with the tables, never without: a folder of tables and no record is refused as no report's
+        tables[out_dir / REPORT_RECORD] = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)}, indent=1)
     try:
-        atomic_write(out_dir / "table.md", md)
-        atomic_write(out_dir / "table.tex", latex_table(runs))
-        atomic_write(out_dir / "table.csv", table_csv(runs))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_together((path, text.encode()) for path, text in tables.items())  # all or none (a full disk)
         if plots:
             bar_chart(_marked(runs), out_dir / "success_bars.png")
-        if record:
-            atomic_write(out_dir / REPORT_RECORD, json.dumps({"written_by": "cicfw report", "runs": _joined(runs)},
-                                                             indent=1))
-    except OSError as err:  # e.g. the disk filled up half-way (each file is written whole or not at all)
+    except OSError as err:  # e.g. the disk filled up: the same command writes them again
         raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
-                         f"with --out") from None
+                         f"with --out, or free some space and run the same command") from None
     return md
 
 

@@ -23,6 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 from omegaconf import OmegaConf
 
+from cicfw.core.files import write_all
 from cicfw.core.locks import FolderLock
 from cicfw.core.run_folder import RunFolderCheck, RunFolderError, note_run_folder, undo_run_folder
 
@@ -146,9 +147,7 @@ class EpisodeLog:
         """Keep one finished episode: one line, written at once, flushed to the disk."""
         rec = {"row": dict(row), "traj": _encode_traj(traj)}
         data = (json.dumps(rec) + "\n").encode()
-        n = os.write(self._fd, data)
-        if n != len(data):
-            raise OSError(f"episode log {self.run_dir / LOG_NAME}: short write ({n} of {len(data)} bytes)")
+        write_all(self._fd, data)  # a full disk's short write: the next write raises its OSError (ENOSPC)
         os.fsync(self._fd)
         self.rows[int(row["episode"])] = dict(row)
         self.trajectories[str(row["key"])] = {k: np.asarray(v) for k, v in traj.items()}

@@ -58,7 +58,7 @@ def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], ou
                 if not r["success"]:
                     ax.plot(xs[-1], ys[-1], REASON_MARKERS.get(r["reason"], "o"), color="k", mfc=FAILURE,
                             ms=7, zorder=9)
-            ax.set_title(f"{town.name} · {weather}: {ok}/{len(sel)} reached the goal", fontsize=10)
+            ax.set_title(f"{town_name} · {weather}: {ok}/{len(sel)} reached the goal", fontsize=10)
             ax.set_xticks([])
             ax.set_yticks([])
         for ax in list(axes.flat)[len(weathers):]:
@@ -70,8 +70,9 @@ def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], ou
         handles += [Line2D([], [], ls="", marker=m, color="k", mfc=FAILURE, label=k.replace("_", " "))
                     for k, m in REASON_MARKERS.items()]
         fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
-        fig.suptitle(f"{run.label}: driven paths in {town.name}", fontsize=12)
-        out.append(_save(fig, Path(out_dir) / f"map_{town.name}.png"))
+        # named as the rows name it (a town file by its stem, whatever its own name: two files may share one)
+        fig.suptitle(f"{run.label}: driven paths in {town_name}", fontsize=12)
+        out.append(_save(fig, Path(out_dir) / f"map_{town_name}.png"))
     return out
 
 

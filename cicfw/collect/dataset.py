@@ -20,6 +20,7 @@ from cicfw.collect.workers import run_workers
 from cicfw.collect.writing import check_free_space, write_json
 from cicfw.data.cil_hdf5 import is_hdf5_name
 from cicfw.core.progress import ProgressBar
+from cicfw.core.run_folder import name_max
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +123,14 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
     cfg["_hash"] = chash = config_hash(cfg)
     out_dir = out_dir.expanduser().resolve()
     _refuse_inside_a_dataset(out_dir)
+    # an episode's longest file name is its HDF5 part's temporary one (cicfw.core.files): a town file's long
+    # stem must be refused now, not after the episode is driven
+    longest = max(episode_plan(cfg), key=lambda ep: len(os.fsencode(ep["id"])))
+    size, limit = len(os.fsencode(f".{longest['id']}_000.h5.{os.getpid()}-00000000.part")), name_max(out_dir)
+    if size > limit:
+        raise CollectConfigError(f"collect.towns: the town {longest['town']!r} makes episode file names of {size} "
+                                 f"bytes (while written), more than this filesystem allows ({limit}); give the town "
+                                 f"file a shorter name", key="collect.towns", value=longest["town"])
     _prepare_folder(out_dir)
     if not (out_dir / META_NAME).exists():  # not a collection's folder: refuse it before the lock file is made
         _refuse_foreign_files(out_dir, episode_plan(cfg))

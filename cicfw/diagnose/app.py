@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+import os
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -28,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.config_checks import is_number, same_value
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, report_user_errors
+from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.provenance import data_root, recorded_files
@@ -187,6 +189,23 @@ def recorded_split_files(cfg: DictConfig, data: Any, record: Mapping[str, Any] |
                           f"the checkpoint {str(checkpoint)!r}", instead)
 
 
+def check_earlier_diagnosis(out_dir: Path, checkpoint: Path, split: str, data_path: str) -> None:
+    """A folder holding the diagnosis of another checkpoint, split or data folder is refused: writing there
+    would replace that report and its frames. The same diagnosis again (other phases, a fresh plot) may."""
+    earlier = read_json(out_dir / "steer_diagnostic.json", default=None)
+    data = earlier.get("data") if isinstance(earlier, dict) else None
+    if not isinstance(data, dict):
+        return
+    for what, there, here in (("checkpoint", earlier.get("checkpoint"), str(checkpoint)),
+                              ("split", data.get("split"), split), ("data.path", data.get("path"), data_path)):
+        same = there == here or (what != "split" and os.path.realpath(str(there)) == os.path.realpath(here))
+        if there is not None and not same:
+            raise ConfigError("hydra.run.dir", str(out_dir), "a new folder or this diagnosis's own",
+                              f"hydra.run.dir={str(out_dir)!r} holds the diagnosis of another {what} ({there!r} "
+                              f"there, {here!r} now), which this run would replace; give a new folder "
+                              f"(hydra.run.dir=<new folder>)")
+
+
 def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     """Load the checkpoint, pick its frames, measure, write the report into ``out_dir``; returns the paths."""
     if not cfg.get("checkpoint"):
@@ -203,6 +222,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     record = checkpoint_record(ckpt_path)  # the absolute data path and the files the run trained on
     data, source = data_settings(cfg, ckpt_path, record)
     files, added = recorded_split_files(cfg, data, record, ckpt_path)
+    check_earlier_diagnosis(out_dir, ckpt_path, str(cfg.split), str(data.path))
     if added:
         log.info("%d HDF5 file(s) added to %s since the run trained are left out of the split: %s", len(added),
                  data.path, ", ".join(added[:5]) + (" ..." if len(added) > 5 else ""))
@@ -237,7 +257,11 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
             "phases": {"approach_m": float(approach_m), "approach_m_from": approach_from,
                        "exit_s": float(cfg.phases.exit_s), "dt_s": float(cfg.phases.dt_s),
                        "counts": {p: int((d.phase == p).sum()) for p in (*sd.PHASES, "unknown")}}}
-    paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
+    try:
+        paths = sd.write_report(out_dir, d, meta, arrays, plot=bool(cfg.get("plot", True)))
+    except OSError as err:  # a full disk: no file of the report was written
+        raise CicfwError(f"could not write {err.filename} ({err.strerror or err}); nothing of the report was "
+                         f"written: free some space, then run the same command") from None
     log.info("\n%s", sd.markdown(d, f"Steering diagnostic: {label}", sd.measured_line(meta)))
     log.info("report in %s", out_dir)
     return paths

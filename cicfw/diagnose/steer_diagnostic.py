@@ -30,7 +30,7 @@ from scipy.stats import linregress
 
 from cicfw import COMMANDS, N_COMMANDS
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import atomic_write
+from cicfw.core.files import write_together
 from cicfw.data.cil_hdf5 import T, read_targets
 from cicfw.data.datamodule import CILDataModule, ImageStore
 from cicfw.data.frames import META_NAME, Frames, episode_groups, load_frames
@@ -455,23 +455,21 @@ def write_report(out_dir: str | Path, d: Diagnosis, meta: dict[str, Any], arrays
                  plot: bool = True) -> dict[str, Path]:
     """``steer_diagnostic.json`` (meta + rows + pairs), ``.md``, ``.csv``, ``steer_frames.npz`` (every frame's
     expert steering, steering under each command, command, phase, turn, plus ``arrays``) and, with ``plot``,
-    ``steer_scatter.png``; each written atomically. Returns the paths by kind."""
+    ``steer_scatter.png``; all written or none (a full disk). Returns the paths by kind."""
     out = Path(out_dir)
     title = f"Steering diagnostic: {meta.get('model', '')}".rstrip(": ")
     doc = {**meta, "rows": d.rows, "pairs": d.pairs}
     paths = {"json": out / "steer_diagnostic.json", "md": out / "steer_diagnostic.md",
              "csv": out / "steer_diagnostic.csv", "npz": out / "steer_frames.npz"}
-    atomic_write(paths["json"], json.dumps(doc, indent=1, default=str) + "\n")
-    atomic_write(paths["md"], markdown(d, title, measured_line(meta)))
-    atomic_write(paths["csv"], csv_text(d))
     buf = io.BytesIO()
     np.savez_compressed(buf, expert=d.expert, steer=d.steer, command=d.command, phase=d.phase, turn=d.turn,
                         **(arrays or {}))
-    atomic_write(paths["npz"], buf.getvalue())
+    data = {"json": (json.dumps(doc, indent=1, default=str) + "\n").encode(),
+            "md": markdown(d, title, measured_line(meta)).encode(), "csv": csv_text(d).encode(), "npz": buf.getvalue()}
     if plot:
         fig = scatter_figure(d, title)
         png = io.BytesIO()
         fig.savefig(png, format="png", dpi=90)
-        paths["png"] = out / "steer_scatter.png"
-        atomic_write(paths["png"], png.getvalue())
+        paths["png"], data["png"] = out / "steer_scatter.png", png.getvalue()
+    write_together({paths[k]: v for k, v in data.items()})  # all or none: never one run's table beside another's
     return paths
