@@ -163,9 +163,7 @@ def test_the_lock_is_released_on_errors_and_names_its_holder(tmp_path: Path, mon
 
 def test_workers_end_when_their_collector_is_killed(tmp_path: Path):
     out = tmp_path / "ds"
-    # 3 episodes for 2 workers: at the first finished one the other worker is still driving or waits for the
-    # third, so the kill still finds both alive and the dataset incomplete; the rest is finished here after
-    cfg = {**TINY, "episodes": 3, "seconds": 4, "workers": 2}
+    cfg = {**TINY, "episodes": 6, "seconds": 4, "workers": 2}
     p = _collector(out, cfg)
     try:
         _wait_for(lambda: len(_holder(out).get("workers", [])) == 2, 600, "two workers", p)
@@ -187,7 +185,7 @@ def test_workers_end_when_their_collector_is_killed(tmp_path: Path):
     assert not _meta(out)["complete"]
     # the lock died with the collector: a new one takes over at once and finishes the dataset
     meta = json.loads(collect_dataset({**cfg, "workers": 0, "lock_wait": 0}, out, progress=False).read_text())
-    assert meta["complete"] and meta["counts"]["episodes"] == 3 and _temp_files(out) == []
+    assert meta["complete"] and meta["counts"]["episodes"] == 6 and _temp_files(out) == []
 
 
 PARENT = ("import os, subprocess, sys, time\n"
