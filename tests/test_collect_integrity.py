@@ -33,6 +33,8 @@ from conftest import process_alive
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
 TINY = {"episodes": 2, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
+#: the benchmark tests' small town: a process of its own bakes its ground in half town_a's CPU time
+SMALL_TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
 COLLECTOR = ("import json, sys\nfrom cicfw.collect import collect_dataset\n"
              "collect_dataset(json.loads(sys.argv[1]), sys.argv[2], progress=False)\n")
 
@@ -84,13 +86,13 @@ def _mount_tmpfs(where: Path, options: str) -> None:
 
 def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
     out = tmp_path / "ds"
-    a_cfg = {**TINY, "episodes": 3, "seed": 0}
+    a_cfg = {**TINY, "episodes": 3, "seed": 0, "towns": [SMALL_TOWN]}  # only the first collector renders
     a = _collector(out, a_cfg)
     try:
         _wait_for(lambda: _holder(out).get("pid") == a.pid, 600, "the first collector to take the lock", a)
         # a second collector with another seed, told not to wait: one line naming the holder
         with pytest.raises(FolderLockedError) as err:
-            collect_dataset({**TINY, "episodes": 3, "seed": 1, "lock_wait": 0}, out, progress=False)
+            collect_dataset({**a_cfg, "seed": 1, "lock_wait": 0}, out, progress=False)
         msg = str(err.value)
         assert err.value.key == "out_dir" and err.value.value == out.resolve()
         assert f"pid {a.pid}" in msg and socket.gethostname() in msg and "\n" not in msg
@@ -106,7 +108,7 @@ def test_two_collectors_at_once_never_mix(tmp_path: Path, caplog):
     assert meta["complete"] and meta["seed"] == 0
     # the second one again, now that the folder is free: refused, it holds another config's dataset
     with pytest.raises(CollectConfigError) as err:
-        collect_dataset({**TINY, "episodes": 3, "seed": 1, "lock_wait": 0}, out, progress=False)
+        collect_dataset({**a_cfg, "seed": 1, "lock_wait": 0}, out, progress=False)
     assert err.value.key == "out_dir" and err.value.value == out.resolve()
     # the folder holds exactly the first collector's plan: its episodes, seeds and files, nothing else
     plan = episode_plan(resolve_config(a_cfg))

@@ -128,6 +128,9 @@ def test_collect_workers_hold_nothing_the_resource_tracker_must_clean(tmp_path: 
     registered = []
     real = resource_tracker.register
     monkeypatch.setattr(resource_tracker, "register", lambda name, rtype: (registered.append(rtype), real(name, rtype)))
-    meta = json.loads(collect_dataset({**TINY, "workers": 2}, tmp_path / "ds", progress=False).read_text())
+    # the benchmark tests' small town: each worker bakes its ground in half town_a's CPU time
+    small = str(Path(__file__).parent / "data" / "bench_town.yaml")
+    meta = json.loads(collect_dataset({**TINY, "workers": 2, "towns": [small]}, tmp_path / "ds",
+                                      progress=False).read_text())
     assert meta["complete"] and meta["counts"]["episodes"] == 2
     assert registered == []
