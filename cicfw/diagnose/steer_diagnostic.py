@@ -471,5 +471,6 @@ def write_report(out_dir: str | Path, d: Diagnosis, meta: dict[str, Any], arrays
         png = io.BytesIO()
         fig.savefig(png, format="png", dpi=90)
         paths["png"], data["png"] = out / "steer_scatter.png", png.getvalue()
+    out.mkdir(parents=True, exist_ok=True)
     write_together({paths[k]: v for k, v in data.items()})  # all or none: never one run's table beside another's
     return paths
