@@ -565,6 +565,16 @@ def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path
     assert str(other / "reproduce.json") in msg and "null" in msg, msg
 
 
+@pytest.mark.parametrize("text", ["null", "[]"])
+def test_a_cell_json_holding_no_object_is_refused_naming_it(no_collect, tmp_path, capsys, text):
+    """A cell's record edited by hand is refused as a reproduce.json holding null is, not an AttributeError."""
+    cell = tmp_path / "results" / "cells" / "cil" / "seed0" / "cell.json"
+    cell.parent.mkdir(parents=True)
+    cell.write_text(text)
+    msg = refused(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={tmp_path / 'results'}"], capsys)
+    assert str(cell) in msg and text in msg, msg
+
+
 def test_a_second_ctrl_c_in_the_final_report_keeps_the_first_ones_advice(tmp_path, monkeypatch):
     """Ctrl-C in a cell, then again while the report of the finished cells is written."""
     from cicfw.core.errors import Interrupted
