@@ -428,6 +428,23 @@ def test_a_town_file_whose_name_is_too_long_for_the_episode_files_is_refused_bef
     assert not out.exists()
 
 
+def test_a_town_file_name_too_long_only_in_a_worker_s_temporary_name_is_refused(tmp_path: Path, monkeypatch):
+    """A worker writes the episode's parts under names holding its own pid, which may have more digits than the
+    collector's: a town file's stem one byte too long for a 7-digit pid is refused before simulating."""
+    from cicfw.core.run_folder import name_max
+    from cicfw.sim.town import town_path
+
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    out = tmp_path / "ds"
+    # .ep0000_<stem>_ClearNoon_000.h5.<7-digit pid>-<8 hex>.part: the stem plus 47 bytes
+    town = tmp_path / ("t" * (name_max(tmp_path) + 1 - 47) + ".yaml")
+    shutil.copy(town_path("town_b"), town)
+    with pytest.raises(CollectConfigError) as err:
+        collect_dataset({**TINY, "episodes": 1, "towns": [str(town)]}, out, progress=False)
+    assert err.value.key == "collect.towns" and str(town) in str(err.value.value)
+    assert not out.exists()
+
+
 def test_complete_is_true_only_when_every_file_validates(tmp_path: Path, monkeypatch):
     assert json.loads(collect_dataset(TINY, tmp_path, progress=False).read_text())["complete"]
     first = tmp_path / "ep0000_town_a_ClearNoon_000.h5"

@@ -210,6 +210,26 @@ def test_filming_the_failures_of_a_run_without_one_says_so(tmp_path, capsys):
     assert not (tmp_path / "videos").exists()
 
 
+def test_filming_an_episode_of_a_town_whose_file_name_is_too_long_is_one_line_before_rendering(tmp_path, capsys,
+                                                                                              monkeypatch):
+    """An evaluation without maps or videos takes a town file's long stem; filming it later names the episode
+    and its town in one line, before a frame is rendered, not a write error after the first film."""
+    import json
+
+    import cicfw.benchmark.video as video
+
+    town = "t" * 240  # a legal town file stem (with .yaml), too long for .<stem>_ClearNoon_000.tmp.mp4
+    row = {"model": "m", "episode": 0, "key": f"{town}/ClearNoon/000", "town": town, "weather": "ClearNoon", "success": False,
+           "reason": "timeout", "route": "r"}
+    (tmp_path / "episodes.json").write_text(json.dumps({"episodes": [row], "meta": {}}))
+    np.savez(tmp_path / "trajectories.npz", **{"e0.x": np.zeros(2), "e0.y": np.zeros(2), "e0.yaw": np.zeros(2)})
+    monkeypatch.setattr(video, "write_video", lambda *a, **k: pytest.fail("rendered"))
+    assert video.main([str(tmp_path), "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and row["key"] in err[0] and repr(town) in err[0], err
+    assert not (tmp_path / "videos").exists()
+
+
 def test_filming_a_training_run_folder_points_at_its_evaluation(tmp_path, capsys):
     from cicfw.benchmark.video import main
 

@@ -536,6 +536,24 @@ def test_a_relation_candidate_that_is_no_fine_tuning_row_is_refused_up_front(no_
     reproduce.check_rows(reproduce.compose_plan(["budget=smoke"]), ["re_all"])  # a shipped candidate, as a row
 
 
+@pytest.mark.parametrize("where", ["results_dir", "continue_from"])
+def test_a_relation_candidate_whose_earlier_cells_are_no_fine_tuning_row_is_refused(no_collect, tmp_path, where):
+    """A candidate that is no row of this run still has its cells chosen among, from an earlier run in the folder
+    (or the folder continued from): CIL's would be named fine tuning's row."""
+    from cicfw.core.errors import ConfigError
+
+    folder = tmp_path / where
+    for row, mixer in (("cil", "independent"), ("re_all", "re")):
+        (folder / "cells" / row / "seed0").mkdir(parents=True)
+        (folder / "cells" / row / "seed0" / "cell.json").write_text(json.dumps(
+            {"row": row, "seed": 0, "status": "ok", "mixer": mixer, "val_steer_mae": 0.1}))
+    plan = ["budget=smoke", f"results_dir={tmp_path / 'results_dir'}", f"{where}={folder}"]
+    with pytest.raises(ConfigError) as err:
+        reproduce.check_rows(reproduce.compose_plan([*plan, "relation_candidates=[re_all,cil]"]), ["re_pairs"])
+    assert (err.value.key, err.value.value) == ("relation_candidates", "cil")
+    reproduce.check_rows(reproduce.compose_plan(plan), ["re_pairs"])  # the shipped candidates: re_all's cells
+
+
 @pytest.mark.parametrize("key", ["publish_dir", "continue_from", "results_dir"])
 def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path, capsys, key):
     """A corrupt record is refused as a truncated one is, not read as a folder without one."""
@@ -545,6 +563,16 @@ def test_a_reproduce_json_holding_null_is_refused_naming_it(no_collect, tmp_path
     folders = {"results_dir": tmp_path / "results", key: other}
     msg = refused(["budget=smoke", "rows=[cil]", *(f"{k}={v}" for k, v in folders.items())], capsys)
     assert str(other / "reproduce.json") in msg and "null" in msg, msg
+
+
+@pytest.mark.parametrize("text", ["null", "[]"])
+def test_a_cell_json_holding_no_object_is_refused_naming_it(no_collect, tmp_path, capsys, text):
+    """A cell's record edited by hand is refused as a reproduce.json holding null is, not an AttributeError."""
+    cell = tmp_path / "results" / "cells" / "cil" / "seed0" / "cell.json"
+    cell.parent.mkdir(parents=True)
+    cell.write_text(text)
+    msg = refused(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={tmp_path / 'results'}"], capsys)
+    assert str(cell) in msg and text in msg, msg
 
 
 def test_a_second_ctrl_c_in_the_final_report_keeps_the_first_ones_advice(tmp_path, monkeypatch):

@@ -15,6 +15,7 @@ import numpy as np
 from cicfw.benchmark.finished_run import load_run, load_trajectories
 from cicfw.benchmark.suite import town_label
 from cicfw.core.errors import CicfwError
+from cicfw.core.run_folder import name_max
 from cicfw.sim.env import get_renderer
 from cicfw.sim.render.weather import DEFAULT_FAMILY, LEGACY_FAMILY, get_weather
 from cicfw.sim.town import load_town
@@ -136,6 +137,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"no episode to film in {args.run_dir}: {' '.join(args.episodes)} selects none of its "
               f"{len(run.rows)} episodes", file=sys.stderr)
         return 0
+    # a town file's long stem (which evaluate takes without maps or videos) is one line now, not a write error
+    # after the first film is rendered: write_video films to .<name>.tmp.mp4 first
+    limit = name_max(Path(args.run_dir))
+    long = [r for r in chosen if len(os.fsencode(f".{r['key'].replace('/', '_')}.tmp.mp4")) > limit]
+    if long:
+        print(f"cicfw: error: episode {long[0]['key']!r} cannot be filmed: its town {long[0]['town']!r} makes a video "
+              f"file name longer than this filesystem allows ({limit} bytes)", file=sys.stderr)
+        return 2
     towns = {town_label(t): str(t) for t in run.meta.get("suite", {}).get("towns", [])}
     for r in chosen:
         path = Path(args.run_dir) / "videos" / f"{r['key'].replace('/', '_')}.mp4"

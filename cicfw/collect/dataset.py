@@ -124,9 +124,10 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
     out_dir = out_dir.expanduser().resolve()
     _refuse_inside_a_dataset(out_dir)
     # an episode's longest file name is its HDF5 part's temporary one (cicfw.core.files): a town file's long
-    # stem must be refused now, not after the episode is driven
+    # stem must be refused now, not after the episode is driven. A worker writes it, whose pid may have more
+    # digits than this process's: counted as the widest (7, Linux's largest pid)
     longest = max(episode_plan(cfg), key=lambda ep: len(os.fsencode(ep["id"])))
-    size, limit = len(os.fsencode(f".{longest['id']}_000.h5.{os.getpid()}-00000000.part")), name_max(out_dir)
+    size, limit = len(os.fsencode(f".{longest['id']}_000.h5.{'0' * 7}-00000000.part")), name_max(out_dir)
     if size > limit:
         raise CollectConfigError(f"collect.towns: the town {longest['town']!r} makes episode file names of {size} "
                                  f"bytes (while written), more than this filesystem allows ({limit}); give the town "

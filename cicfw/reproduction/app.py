@@ -167,9 +167,18 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
     the rows' data folders (``data.path``), which no output folder may be. A row among fine tuning's
     ``relation_candidates`` must train the ``re`` mixer: the report names the one chosen as the fine-tuning row
-    (a candidate that is not a row trains no cell here and is not composed: each compose costs a third of a second)."""
+    (a candidate that is not a row trains no cell here and is not composed: each compose costs a third of a second;
+    its cells an earlier run left, here or in ``continue_from``, are chosen among all the same: their mixer must be
+    ``re`` too)."""
     data: list[str] = []
     candidates = [str(c) for c in cfg.get("relation_candidates") or []]
+    for folder in (cfg.results_dir, cfg.get("continue_from")):
+        for key, cell in finished_cells(Path(folder)).items() if folder else ():
+            row = key.split("/seed")[0]
+            if row in candidates and row not in rows and cell.get("mixer") not in (None, "re"):
+                raise ConfigError("relation_candidates", row, "catalogue rows that train fine tuning's mixer (mixer=re),"
+                                  f" such as re_all, re_pairs, re_none ({row}'s cells in {folder} trained mixer="
+                                  f"{cell.get('mixer')})")
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         for r in rows:
             entry = cfg.catalogue[r]

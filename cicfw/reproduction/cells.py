@@ -92,7 +92,7 @@ def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
 
 def load_cell(path: Path) -> CellResult | dict[str, Any]:
     """One ``cell.json``: its CellResult when it finished (status ok), else the file's dict as it is."""
-    d = read_json(path)
+    d = read_json(path, kind=dict)
     if d.get("status") == "ok":
         return CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
     return d
@@ -127,7 +127,7 @@ def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:
     """``row/seedK`` -> cell.json of every finished (status ok) cell under ``folder``."""
     out = {}
     for f in cell_files(folder):
-        d = read_json(f)
+        d = read_json(f, kind=dict)  # null (edited by hand): one line naming the file
         if d.get("status") == "ok":
             out[f"{f.parent.parent.name}/{f.parent.name}"] = d
     return out
