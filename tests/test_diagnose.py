@@ -546,3 +546,19 @@ def test_a_full_disk_while_writing_the_report_is_one_line_and_writes_none_of_it(
         diagnose(diagnose_cfg(f"checkpoint={ckpt}", "phases.approach_m=3", "threads=1"), out)
     assert "steer_scatter.png" in str(err.value) and "\n" not in str(err.value)
     assert list(out.iterdir()) == []
+
+
+def test_the_same_diagnosis_again_without_its_plot_leaves_no_earlier_plot(tmp_path: Path, episodes: Path):
+    """A rerun with plot=false (and other phases) rewrites the tables: the earlier scatter plot, drawn with the
+    other phases, is not left beside them as if it were this diagnosis's."""
+    from cicfw.diagnose.app import diagnose
+
+    run = tmp_path / "run"
+    ckpt = save_checkpoint(run, head="softmax")
+    write_run_config(run, episodes, seed=3)
+    out = tmp_path / "out"
+    diagnose(diagnose_cfg(f"checkpoint={ckpt}", "phases.approach_m=3", "threads=1"), out)
+    assert (out / "steer_scatter.png").is_file()
+    diagnose(diagnose_cfg(f"checkpoint={ckpt}", "phases.approach_m=2", "threads=1", "plot=false"), out)
+    assert json.loads((out / "steer_diagnostic.json").read_text())["phases"]["approach_m"] == 2
+    assert not (out / "steer_scatter.png").exists()

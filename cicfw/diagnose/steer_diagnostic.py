@@ -455,7 +455,8 @@ def write_report(out_dir: str | Path, d: Diagnosis, meta: dict[str, Any], arrays
                  plot: bool = True) -> dict[str, Path]:
     """``steer_diagnostic.json`` (meta + rows + pairs), ``.md``, ``.csv``, ``steer_frames.npz`` (every frame's
     expert steering, steering under each command, command, phase, turn, plus ``arrays``) and, with ``plot``,
-    ``steer_scatter.png``; all written or none (a full disk). Returns the paths by kind."""
+    ``steer_scatter.png`` (without it, an earlier one is removed); all written or none (a full disk). Returns
+    the paths by kind."""
     out = Path(out_dir)
     title = f"Steering diagnostic: {meta.get('model', '')}".rstrip(": ")
     doc = {**meta, "rows": d.rows, "pairs": d.pairs}
@@ -473,4 +474,6 @@ def write_report(out_dir: str | Path, d: Diagnosis, meta: dict[str, Any], arrays
         paths["png"], data["png"] = out / "steer_scatter.png", png.getvalue()
     out.mkdir(parents=True, exist_ok=True)
     write_together({paths[k]: v for k, v in data.items()})  # all or none: never one run's table beside another's
+    if not plot:  # an earlier diagnosis's plot (other phases) must not pass for this one's
+        (out / "steer_scatter.png").unlink(missing_ok=True)
     return paths
