@@ -54,3 +54,18 @@ def test_agent_load_of_a_folder_without_a_checkpoint_says_what_it_holds_and_what
     text = str(err.value)
     assert str(err.value.value) == str(tmp_path) and "m.onnx, m.onnx.json" in text, text
     assert all(s in text for s in (".ckpt", ".pt", ".onnx", "run folder")), text
+
+
+def test_a_dataset_record_holding_no_object_gives_no_collector_hash(tmp_path: Path):
+    """The sidecar's dataset: a dataset_metadata.json holding null (edited by hand) carries no collector hash;
+    the files' hash is still given (it used to end in an AttributeError traceback)."""
+    from cicfw.export.app import dataset_hash
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "data_00000.h5").write_bytes(b"x" * 10)
+    (data / "dataset_metadata.json").write_text("null\n")
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(f"data:\n  path: {data}\n")
+    got = dataset_hash(cfg)
+    assert got["files"] == 1 and got["hash"] and got["collect_config_hash"] is None

@@ -361,9 +361,9 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
         return {"path": str(p), "hash": None, "why": "the dataset is not on this machine"}
     chash = hashlib.sha256("".join(f"{f.name}:{f.stat().st_size}" for f in files).encode()).hexdigest()[:16]
     meta_file = (p if p.is_dir() else p.parent) / META_NAME
-    meta = read_json(meta_file, default={})
+    meta = read_json(meta_file, default={})  # a record that is no object (null) carries no collector hash
     return {"path": str(p), "hash": chash, "hash_of": "file names and sizes", "files": len(files),
-            "collect_config_hash": meta.get("config_hash")}
+            "collect_config_hash": meta.get("config_hash") if isinstance(meta, dict) else None}
 
 
 def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
