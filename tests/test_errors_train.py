@@ -180,6 +180,34 @@ def test_resuming_with_another_input_scale_or_output_encoding_is_refused(tmp_pat
     assert (err.value.key, err.value.value) == (key, value) and "\n" not in str(err.value)
 
 
+def test_resuming_with_another_model_whose_weights_fit_is_refused(tmp_path, no_data):
+    """A plugin's head or mixer of another name can fit a checkpoint's weights exactly: another model."""
+    model = build_model(_cfg(tmp_path))
+    ckpt = _resumable(model, tmp_path / "last.ckpt", hyper_parameters={**model.hparams, "head": "tanh"})
+    with pytest.raises(CicfwError) as err:
+        train(_cfg(tmp_path, f"ckpt_path={ckpt}"), tmp_path / "run")
+    assert (err.value.key, err.value.value) == ("head", "regression") and "tanh" in str(err.value)
+    binned = _resumable(build_model(_cfg(tmp_path, "head=softmax")), tmp_path / "softmax.ckpt")
+    with pytest.raises(CicfwError) as err:  # another binned head may take over, but only with the same bins
+        train(_cfg(tmp_path, "head=hybrid", "head.low=-1", "head.high=0.8",
+                   f"ckpt_path={binned}"), tmp_path / "run")
+    assert (err.value.key, err.value.value) == ("head.low", -1.0)
+    assert check_resume_checkpoint(binned, build_model(_cfg(tmp_path, "head=hybrid"))) == str(binned)
+
+
+def test_a_part_keeps_the_kwargs_it_names_on_resume(tmp_path, no_data, monkeypatch):
+    """A mixer (a plugin's attention heads) names the kwargs whose other value would change what its weights do."""
+    from cicfw.registry import MIXERS
+
+    ckpt = _resumable(build_model(_cfg(tmp_path, "mixer=gtu")), tmp_path / "last.ckpt")
+    other = build_model(_cfg(tmp_path, "mixer=gtu", "mixer.dropout=[0.3,0.0]"))
+    assert check_resume_checkpoint(ckpt, other) == str(ckpt)  # dropout may change ...
+    monkeypatch.setattr(MIXERS.get("gtu"), "kept_on_resume", ("dropout",))
+    with pytest.raises(CicfwError) as err:  # ... unless the mixer says it may not
+        check_resume_checkpoint(ckpt, other)
+    assert (err.value.key, err.value.value) == ("mixer.dropout", [0.3, 0.0])
+
+
 def test_resuming_with_another_loss_weight_or_decoder_passes_the_check(tmp_path, no_data):
     """The loss and how steering is read out may change on resume: the weights keep their meaning."""
     model = build_model(_cfg(tmp_path, "head=hybrid", "head.W=10"))

@@ -63,6 +63,17 @@ def test_a_run_folder_never_means_a_kept_epoch_checkpoint(tmp_path: Path) -> Non
     assert resolve_checkpoint(run) == (run / "checkpoints" / "epoch001-mae0.2000.ckpt").resolve()
 
 
+def test_a_reproduction_cell_means_the_weights_its_table_drove(tmp_path: Path) -> None:
+    """A cell drives its last epoch's weights; its folder resolved to the best validation checkpoint instead."""
+    from cicfw.model.checkpoint import resolve_checkpoint
+
+    cell = tmp_path / "cells" / "gtu" / "seed0"
+    _ckpt(cell / "train" / "checkpoints", "epoch000-mae0.2000.ckpt", "epoch001.ckpt", "epoch002.ckpt", "last.ckpt")
+    (cell / "cell.json").write_text('{"row": "gtu", "seed": 0, "epochs": 2}')
+    assert resolve_checkpoint(cell) == (cell / "train" / "checkpoints" / "epoch002.ckpt").resolve()
+    assert resolve_checkpoint(cell / "train").name == "epoch000-mae0.2000.ckpt"  # a run folder: its best
+
+
 def test_a_folder_above_several_runs_is_refused(tmp_path: Path) -> None:
     from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
 

@@ -20,7 +20,7 @@ from cicfw.model.mixers import Mixer
 from cicfw.registry import MIXERS, listing, main
 from cicfw.testing import check_head, check_mixer
 from cicfw.train.app import train
-from conftest import compose_train
+from conftest import assert_refused, compose_train, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -50,6 +50,15 @@ def test_fast_dev_run_trains_with_the_plugin_mixer_by_name(plugin_installed, tin
     assert cfg.mixer.name == "attention" and cfg.mixer.heads == 4  # the plugin's own yaml, via its SearchPathPlugin
     value = train(cfg, tmp_path / "run")
     assert 0.0 <= value < 2.0
+
+
+def test_a_plugin_refusing_its_settings_is_one_line_and_leaves_no_run(plugin_installed, tiny_data, tmp_path):
+    """The contract lets a plugin refuse bad kwargs with a plain ValueError: a user error, not a traceback."""
+    run = tmp_path / "run"
+    result = run_app_in_process("cicfw.train", "mixer=attention", "mixer.heads=3", "data=cil_hdf5",
+                                f"data.path={tiny_data}", f"hydra.run.dir={run}")
+    assert_refused(result, "mixer.heads", 3)
+    assert not run.exists()
 
 
 def _fake_dist(site: Path, name: str, entry_points: str, module: str, source: str) -> None:

@@ -44,9 +44,14 @@ KEPT_EPOCH = re.compile(r"epoch\d{3,}\.ckpt")
 def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written by cicfw train, or its run folder") -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
     best checkpoint (``last.ckpt`` and kept ``epochNNN.ckpt`` aside) in its ``checkpoints/``, else its
-    ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only.
+    ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only. A
+    reproduction cell's folder means the final weights its table drove (``train/checkpoints/epochNNN.ckpt`` of
+    its last epoch, as its ``cell.json`` records it), not its best validation checkpoint.
     ``accepted``: what the caller takes, for the line refusing a folder that holds no checkpoint."""
     p = Path(str(path)).expanduser()
+    final = _cell_final(p)
+    if final is not None:
+        return final.resolve()
     if p.is_dir():
         own = p / "checkpoints"
         # a run folder: its own checkpoints only, not those of a run trained in a folder inside it
@@ -78,6 +83,16 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
                                 f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
     return p.resolve()
+
+
+def _cell_final(folder: Path) -> Path | None:
+    """The checkpoint a reproduction cell (``folder`` holding ``cell.json``) drove, when it is there."""
+    try:
+        epochs = json.loads((folder / "cell.json").read_text()).get("epochs")
+    except (OSError, ValueError, AttributeError):
+        return None
+    final = folder / "train" / "checkpoints" / f"epoch{epochs:03d}.ckpt" if isinstance(epochs, int) else None
+    return final if final is not None and final.is_file() else None
 
 
 def is_torchscript(path: Path) -> bool:

@@ -82,8 +82,13 @@ def build_model(cfg: DictConfig) -> CICModule:
     mix, mix_kw = checked_part(cfg, "mixer")
     head, head_kw = checked_part(cfg, "head")
     model_kw = checked_node(cfg, "model", MODEL)
-    model = CICModule(encoder=enc, encoder_kwargs=enc_kw, mixer=mix, mixer_kwargs=mix_kw,
-                      head=head, head_kwargs=head_kw, **model_kw)
+    try:
+        model = CICModule(encoder=enc, encoder_kwargs=enc_kw, mixer=mix, mixer_kwargs=mix_kw,
+                          head=head, head_kwargs=head_kw, **model_kw)
+    except CicfwError:
+        raise
+    except ValueError as err:  # a plugin's part refuses its settings with a plain ValueError (docs/plugins.md)
+        raise CicfwError(str(err)) from None
     if cfg.speed.get("channels_last"):
         model.use_channels_last()
     return model

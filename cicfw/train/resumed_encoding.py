@@ -1,7 +1,10 @@
 """What a checkpoint's inputs and outputs mean must not change when training resumes from it: another speed
 scale, or other steering bins or phases of the same shapes, would load the weights unchanged, train on with
-the new meaning and record only the new one, so the model would be neither; another ``re`` R would be
-replaced by the checkpoint's and trained with, while the run records the new one."""
+the new meaning and record only the new one, so the model would be neither (a mixer or head names its own
+such kwargs in ``kept_on_resume``); another ``re`` R would be replaced by the checkpoint's and trained with,
+while the run records the new one. Another encoder, mixer or head whose weights happen to fit (a plugin's)
+is another model; only a binned head may become another binned head (softmax, coexistence, hybrid: the same
+bins, another loss)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,12 +26,33 @@ def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[
     hyper-parameters ``saved`` and this run's ``ours`` (a key the checkpoint does not record is not compared)."""
     differ = [(f"model.{k}", ours.get(k), saved[k]) for k in INPUT_KEYS
               if k in saved and not same_value(ours.get(k), saved[k])]
+    differ += [(node, ours.get(node), saved[node]) for node in ("encoder", "mixer", "head")
+               if saved.get(node) not in (None, ours.get(node)) and not (node == "head" and _binned(saved[node])
+                                                                       and _binned(ours.get(node)))]
     for node, keys in (("head", OUTPUT_KEYS), ("mixer", MIXER_KEYS)):
-        if saved.get(node) == ours.get(node):
+        keys = (*keys, *getattr(_part(node, ours.get(node)), "kept_on_resume", ()))  # a plugin's own
+        if saved.get(node) == ours.get(node) or node == "head":  # binned heads of other names: same bins
             theirs, mine = saved.get(f"{node}_kwargs") or {}, ours.get(f"{node}_kwargs") or {}
             differ += [(f"{node}.{k}", mine[k], theirs[k]) for k in keys
                        if k in theirs and k in mine and not same_value(mine[k], theirs[k])]
     return differ
+
+
+def _part(node: str, name: Any) -> type | None:
+    """The registered class of the head or mixer ``name`` (None when there is none)."""
+    from cicfw.registry import HEADS, MIXERS
+
+    try:
+        return (HEADS if node == "head" else MIXERS).get(str(name))
+    except KeyError:
+        return None
+
+
+def _binned(name: Any) -> bool:
+    """Whether the registered head ``name`` is a binned classification head (its outputs are bins' scores)."""
+    from cicfw.model.heads.binned import BinnedHead
+
+    return issubclass(_part("head", name) or object, BinnedHead)
 
 
 def check_resumed_encoding(path: str | Path, saved: Mapping[str, Any], ours: Mapping[str, Any]) -> None:

@@ -26,6 +26,7 @@ class Head(nn.Module):
 
     out_dim: int
     bins = None  # a SteeringBins for classification heads
+    kept_on_resume: tuple[str, ...] = ()  # kwargs a resume must keep: the outputs would mean something else
 
     def loss(self, out: torch.Tensor, steer: torch.Tensor) -> torch.Tensor:
         """Scalar training loss for outputs (B, out_dim) against steering targets (B,)."""

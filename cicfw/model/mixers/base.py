@@ -28,12 +28,15 @@ class Mixer(nn.Module):
       unless the method has one.
     - **inspect() -> {name: tensor}** from the last forward, for the diagnostics heatmaps: (B, r, c)
       per sample (averaged per command) or (r, c) global. Optional.
+    - **kept_on_resume**: the kwargs whose other value would give the same-shaped weights another meaning
+      (an attention's number of heads): resuming a checkpoint with another value is refused. Optional.
     - **Registration.** Built-ins: ``@MIXERS.register("name")``. Plugins: an entry point in the
       group ``cicfw.mixers`` (``name = package.module:Class``) and a config ``mixer/<name>.yaml``
       on Hydra's search path (a SearchPathPlugin); see docs/plugins.md. Names are unique.
     """
 
     n_branches: int = N_COMMANDS
+    kept_on_resume: tuple[str, ...] = ()
 
     def __init__(self, in_dim: int, out_dim: int) -> None:
         super().__init__()

@@ -37,6 +37,8 @@ class AttentionMixer(Mixer):
     """Branch hidden states (B, 4, hidden) -> self-attention across branches -> gated residual ->
     per-branch output layers (B, 4, K)."""
 
+    kept_on_resume = ("heads",)  # the same weights split into other heads attend otherwise
+
     def __init__(
         self,
         in_dim: int,
