@@ -87,8 +87,8 @@ def build_model(cfg: DictConfig) -> CICModule:
                           head=head, head_kwargs=head_kw, **model_kw)
     except CicfwError:
         raise
-    except ValueError as err:  # a plugin's part refuses its settings with a plain ValueError (docs/plugins.md)
-        raise CicfwError(str(err)) from None
+    except ValueError as err:  # a plugin's part refuses its settings with a plain ValueError (docs/plugins.md);
+        raise CicfwError(str(err)) from err  # chained: CICFW_DEBUG=1 shows where the plugin raised it
     if cfg.speed.get("channels_last"):
         model.use_channels_last()
     return model

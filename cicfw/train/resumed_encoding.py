@@ -12,6 +12,8 @@ from typing import Any, Mapping
 
 from cicfw.core.config_checks import same_value
 from cicfw.core.errors import CicfwError
+from cicfw.model.heads.binned import BinnedHead
+from cicfw.registry import HEADS, MIXERS
 
 #: ``model.*`` values that say how the encoder reads its input
 INPUT_KEYS = ("speed_norm_kmh",)
@@ -40,8 +42,6 @@ def changed_encoding(saved: Mapping[str, Any], ours: Mapping[str, Any]) -> list[
 
 def _part(node: str, name: Any) -> type | None:
     """The registered class of the head or mixer ``name`` (None when there is none)."""
-    from cicfw.registry import HEADS, MIXERS
-
     try:
         return (HEADS if node == "head" else MIXERS).get(str(name))
     except KeyError:
@@ -50,8 +50,6 @@ def _part(node: str, name: Any) -> type | None:
 
 def _binned(name: Any) -> bool:
     """Whether the registered head ``name`` is a binned classification head (its outputs are bins' scores)."""
-    from cicfw.model.heads.binned import BinnedHead
-
     return issubclass(_part("head", name) or object, BinnedHead)
 
 
