@@ -267,8 +267,11 @@ def test_ctrl_c_in_a_cell_advises_the_same_command(tmp_path, monkeypatch):
     assert not (out / "reproduce.lock").exists()
 
 
-def test_ctrl_c_in_the_final_report_says_the_cells_are_kept_and_how_to_write_it(tmp_path, monkeypatch):
-    """Ctrl-C while the report is written after the cells ended in a bare "cicfw: interrupted"."""
+@pytest.mark.parametrize("cell", ["failed", "stopped"])
+def test_ctrl_c_in_the_final_report_says_the_cells_are_kept_and_how_to_write_it(tmp_path, monkeypatch, cell):
+    """Ctrl-C while the report is written, after a failed cell or after a first Ctrl-C stopped one: the line
+    says the cells are kept and how to write their report, and a second Ctrl-C keeps the first's advice
+    (how to resume the stopped cell)."""
     from cicfw.core.errors import Interrupted
 
     def failed(cfg, row, seed, cell_dir):
@@ -279,12 +282,14 @@ def test_ctrl_c_in_the_final_report_says_the_cells_are_kept_and_how_to_write_it(
 
     monkeypatch.setattr(sys, "argv", list(sys.argv))
     monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
-    monkeypatch.setattr(reproduce, "_train_and_drive", failed)
+    monkeypatch.setattr(reproduce, "_train_and_drive", failed if cell == "failed" else stopped)
     monkeypatch.setattr(reproduce, "write_configured", stopped)
     out = tmp_path / "results"
     with pytest.raises(Interrupted) as err:
         reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
-    assert f"kept in {out}" in str(err.value) and f"cicfw report {out}" in str(err.value), str(err.value)
+    said = str(err.value)
+    assert f"kept in {out}" in said and f"cicfw report {out}" in said, said
+    assert cell == "failed" or "resumes the unfinished cell" in said, said
     assert not (out / "reproduce.lock").exists()
 
 
@@ -575,20 +580,3 @@ def test_a_cell_json_holding_no_object_is_refused_naming_it(no_collect, tmp_path
     assert str(cell) in msg and text in msg, msg
 
 
-def test_a_second_ctrl_c_in_the_final_report_keeps_the_first_ones_advice(tmp_path, monkeypatch):
-    """Ctrl-C in a cell, then again while the report of the finished cells is written."""
-    from cicfw.core.errors import Interrupted
-
-    def stopped(*a, **k):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(sys, "argv", list(sys.argv))
-    monkeypatch.setattr(reproduce, "prepare", lambda cfg, rows: {"budget": "smoke", "episodes": 4})
-    monkeypatch.setattr(reproduce, "_train_and_drive", stopped)
-    monkeypatch.setattr(reproduce, "write_configured", stopped)
-    out = tmp_path / "results"
-    with pytest.raises(Interrupted) as err:
-        reproduce.main(["budget=smoke", "rows=[cil]", "seeds=1", f"results_dir={out}"])
-    said = str(err.value)
-    assert f"kept in {out}" in said and "resumes the unfinished cell" in said and f"cicfw report {out}" in said, said
-    assert not (out / "reproduce.lock").exists()
