@@ -50,10 +50,11 @@ def _smoke(part: str, replace: dict, *extra: str) -> str:
 # the CPU time. 6 episodes of 7 s (420 frames) still hold every command and fill the 2 training batches and
 # the validation batch (of BATCH, not the data config's 256: a cell validates 3 times). The untrained cells'
 # episodes start 6 m before their turn (inside its command's 12 m, so at its command) and end 2 m off their
-# route: a fraction of the frames each, the same 4 episodes, turns and table columns.
+# route: a fraction of the frames each, the same 4 episodes, turns and table columns. No test here reads a
+# cell's town maps (tests/test_hostile_evaluate.py does): not drawing them saves about a second a cell.
 SMALL = [_smoke("train", {"data.collect.episodes": 6, "data.collect.seconds": 7, "data.batch_size": BATCH},
                 f"data.val_batch_size={BATCH}"),
-         _smoke("suite", {}, "sim.route_before=6", "sim.max_deviation=2")]
+         _smoke("suite", {}, "sim.route_before=6", "sim.max_deviation=2", "maps=false")]
 SMOKE = ["budget=smoke", "seeds=2", *SMALL]
 
 
