@@ -45,6 +45,7 @@ from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overr
 from cicfw.benchmark.video import run_weather_family, select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
+from cicfw.core.files import temp_name_bytes
 from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import claim_folder, name_max, undo_run_folder
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
@@ -213,14 +214,13 @@ def check_out_dir(out_dir: Path) -> None:
 def check_town_file_names(out_dir: Path, episodes: Sequence[Any], maps: bool, videos: bool) -> None:
     """The files named after a town (its map, its episodes' videos), under their temporary names while written
     (cicfw.core.files), fit the filesystem: a town file's long stem is one line now, not after the driving."""
-    names = [(town_label(e.town), f".map_{town_label(e.town)}.png.{os.getpid()}-00000000.tmp")
-             for e in episodes if maps]
-    names += [(town_label(e.town), f".{e.key.replace('/', '_')}.tmp.mp4") for e in episodes if videos]
+    sizes = [(town_label(e.town), temp_name_bytes(f"map_{town_label(e.town)}.png")) for e in episodes if maps]
+    sizes += [(town_label(e.town), len(os.fsencode(f".{e.key.replace('/', '_')}.tmp.mp4"))) for e in episodes if videos]
     limit = name_max(out_dir)
-    for town, name in names:
-        if len(os.fsencode(name)) > limit:
+    for town, size in sizes:
+        if size > limit:
             raise ConfigError("suite.towns", town, "a town whose file names fit", f"suite.towns: the town {town!r} "
-                              f"makes file names of {len(os.fsencode(name))} bytes (its map, its videos), more than "
+                              f"makes file names of {size} bytes (its map, its videos), more than "
                               f"this filesystem allows ({limit}); give the town file a shorter name")
 
 

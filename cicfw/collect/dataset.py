@@ -18,9 +18,10 @@ from cicfw.collect.lock import FolderLock
 from cicfw.collect.metadata import META_NAME, SIM_VERSION, dataset_metadata, planned_sets
 from cicfw.collect.workers import run_workers
 from cicfw.collect.writing import check_free_space, write_json
-from cicfw.data.cil_hdf5 import is_hdf5_name
+from cicfw.core.files import temp_name_bytes
 from cicfw.core.progress import ProgressBar
 from cicfw.core.run_folder import name_max
+from cicfw.data.cil_hdf5 import is_hdf5_name
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
     # stem must be refused now, not after the episode is driven. A worker writes it, whose pid may have more
     # digits than this process's: counted as the widest (7, Linux's largest pid)
     longest = max(episode_plan(cfg), key=lambda ep: len(os.fsencode(ep["id"])))
-    size, limit = len(os.fsencode(f".{longest['id']}_000.h5.{'0' * 7}-00000000.part")), name_max(out_dir)
+    size, limit = temp_name_bytes(f"{longest['id']}_000.h5", ".part", pid=9_999_999), name_max(out_dir)
     if size > limit:
         raise CollectConfigError(f"collect.towns: the town {longest['town']!r} makes episode file names of {size} "
                                  f"bytes (while written), more than this filesystem allows ({limit}); give the town "

@@ -19,9 +19,15 @@ from typing import Callable, Iterable, Iterator, Mapping
 from cicfw.core.errors import ConfigError
 
 
-def _temp_name(path: Path, suffix: str) -> Path:
+def _temp_name(path: Path, suffix: str, pid: int | None = None) -> Path:
     """``.<name>.<pid>-<random><suffix>`` beside ``path``: hidden, and telling which process left it."""
-    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+    return path.with_name(f".{path.name}.{os.getpid() if pid is None else pid}-{secrets.token_hex(4)}{suffix}")
+
+
+def temp_name_bytes(name: str, suffix: str = ".tmp", pid: int | None = None) -> int:
+    """How long (bytes) the temporary name of a file ``name`` is while process ``pid`` (this one) writes it:
+    what the filesystem's name limit must take, checked before the work that writes it."""
+    return len(os.fsencode(_temp_name(Path(name), suffix, pid).name))
 
 
 #: ``_temp_name``'s files: the writer's pid is the first group
