@@ -3,6 +3,7 @@ the statistics tests recompute with."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import importlib.util
 import io
 import json
@@ -363,3 +364,18 @@ def assert_refused(result: object, key: object, value: object = None, status: in
     for part in (key, value):
         assert part is None or str(part) in lines[0], (part, lines[0])
     return lines[0]
+
+
+def fill_the_disk_for_pictures(mp: pytest.MonkeyPatch) -> None:
+    """cicfw's file writes (``cicfw.core.files.write_all``) fail with ENOSPC for a PNG's temporary file, as a
+    disk that fills while a picture is written; every other file is written as usual. ``mp``: a monkeypatch."""
+    import cicfw.core.files
+
+    write_all = cicfw.core.files.write_all
+
+    def full_for_pictures(fd, data):
+        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        write_all(fd, data)
+
+    mp.setattr(cicfw.core.files, "write_all", full_for_pictures)

@@ -19,7 +19,7 @@ from hydra import compose, initialize_config_module
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.data.cil_hdf5 import N_TARGETS, T, write_file
 from cicfw.data.frames import load_frames, split_by_episode
-from conftest import assert_refused, run_app_in_process
+from conftest import assert_refused, fill_the_disk_for_pictures, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -522,26 +522,15 @@ def test_a_full_disk_while_writing_the_report_is_one_line_and_writes_none_of_it(
                                                                                  monkeypatch):
     """The disk fills as the last file of the report (the scatter plot) is written: one CicfwError line, and
     no file of the report under its name (not a table beside no plot, nor an earlier run's plot beside it)."""
-    import errno
-    import os
-
-    import cicfw.core.files
     from cicfw.core.errors import CicfwError
     from cicfw.diagnose.app import diagnose
-
-    write_all = cicfw.core.files.write_all
-
-    def full_for_the_plot(fd, data):
-        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
-            raise OSError(errno.ENOSPC, "No space left on device")
-        write_all(fd, data)
 
     run = tmp_path / "run"
     ckpt = save_checkpoint(run, head="softmax")
     write_run_config(run, episodes, seed=3)
     out = tmp_path / "out"
     out.mkdir()
-    monkeypatch.setattr(cicfw.core.files, "write_all", full_for_the_plot)
+    fill_the_disk_for_pictures(monkeypatch)
     with pytest.raises(CicfwError) as err:
         diagnose(diagnose_cfg(f"checkpoint={ckpt}", "phases.approach_m=3", "threads=1"), out)
     assert "steer_scatter.png" in str(err.value) and "\n" not in str(err.value)

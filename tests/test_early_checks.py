@@ -14,7 +14,7 @@ import cicfw.benchmark.journal
 import cicfw.core.files
 from cicfw.benchmark.app import OutputWriteError, evaluate_policy
 from cicfw.train.app import make_datamodule, train
-from conftest import compose_train, run_app_in_process, write_tiny_dataset
+from conftest import compose_train, fill_the_disk_for_pictures, run_app_in_process, write_tiny_dataset
 
 BASE = ("data=cil_hdf5", "data.batch_size=8", "data.val_batch_size=8", "progress_bar=false")
 TOWN = str(Path(__file__).parent / "data" / "bench_town.yaml")
@@ -109,17 +109,10 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
 
 
 def test_a_full_disk_while_writing_the_pictures_is_one_line_and_leaves_no_torn_file(tmp_path, monkeypatch):
-    write_all = cicfw.core.files.write_all
-
-    def full_for_pictures(fd, data):
-        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
-            raise OSError(errno.ENOSPC, "No space left on device")
-        write_all(fd, data)
-
     out = tmp_path / "run"
     spec, suite = {"name": "constant", "steer": 0.0}, {"towns": [TOWN], "weathers": ["ClearNoon"], "limit": 1}
     with monkeypatch.context() as mp:
-        mp.setattr(cicfw.core.files, "write_all", full_for_pictures)
+        fill_the_disk_for_pictures(mp)
         with pytest.raises(OutputWriteError) as err:
             evaluate_policy(spec, suite, {"workers": 1}, out)
     text = str(err.value)

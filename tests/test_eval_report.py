@@ -106,22 +106,12 @@ def test_a_full_disk_while_reporting_leaves_a_folder_the_same_command_finishes(t
     """The disk fills as ``cicfw report`` writes its chart: one line, the tables and the record of the runs
     written together, so that the same command (with room again) finishes the folder instead of refusing its
     tables as files no report wrote."""
-    import errno
-    import os
-
-    import cicfw.core.files
+    from conftest import fill_the_disk_for_pictures
 
     write_run(tmp_path / "runs" / "a", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/a.ckpt"}))
     out = tmp_path / "joined"
-    write_all = cicfw.core.files.write_all
-
-    def full_for_the_chart(fd, data):
-        if ".png." in os.readlink(f"/proc/self/fd/{fd}"):
-            raise OSError(errno.ENOSPC, "No space left on device")
-        write_all(fd, data)
-
     with monkeypatch.context() as mp:
-        mp.setattr(cicfw.core.files, "write_all", full_for_the_chart)
+        fill_the_disk_for_pictures(mp)
         assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 2
     line = capsys.readouterr().err.strip()
     assert line.startswith("cicfw: error:") and "No space left on device" in line and "\n" not in line, line
