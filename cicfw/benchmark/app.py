@@ -16,7 +16,6 @@ import errno
 import hashlib
 import json
 import logging
-import os
 import shlex
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -42,7 +41,7 @@ from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
 from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overrides
-from cicfw.benchmark.video import run_weather_family, select_episodes, write_video
+from cicfw.benchmark.video import film_name_bytes, film_path, run_weather_family, select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import temp_name_bytes
@@ -215,7 +214,7 @@ def check_town_file_names(out_dir: Path, episodes: Sequence[Any], maps: bool, vi
     """The files named after a town (its map, its episodes' videos), under their temporary names while written
     (cicfw.core.files), fit the filesystem: a town file's long stem is one line now, not after the driving."""
     sizes = [(town_label(e.town), temp_name_bytes(f"map_{town_label(e.town)}.png")) for e in episodes if maps]
-    sizes += [(town_label(e.town), len(os.fsencode(f".{e.key.replace('/', '_')}.tmp.mp4"))) for e in episodes if videos]
+    sizes += [(town_label(e.town), film_name_bytes(e.key)) for e in episodes if videos]
     limit = name_max(out_dir)
     for town, size in sizes:
         if size > limit:
@@ -405,7 +404,7 @@ def pictures(report, trajectories: dict, run_dir: Path, towns: Sequence[str], si
             log.warning("videos are re-rendered with the embedded simulator; sim=%s has none", sim_name)
             return
         for r in filmed:
-            path = run_dir / "videos" / f"{r['key'].replace('/', '_')}.mp4"
+            path = film_path(run_dir, r["key"])
             write_video(path, r, trajectories[r["key"]], load_town(towns[r["town"]]), r["weather"], seed, family=family)
             log.info("video: %s", path)
 

@@ -83,6 +83,22 @@ def run_weather_family(meta: Mapping[str, Any]) -> str:
     return str((meta.get("sim") or {}).get("weather_family", LEGACY_FAMILY))
 
 
+def film_path(run_dir: Path, key: str) -> Path:
+    """Where episode ``key``'s film goes: ``<run>/videos/<key with / as _>.mp4``."""
+    return Path(run_dir) / "videos" / f"{key.replace('/', '_')}.mp4"
+
+
+def _filming(path: Path) -> Path:
+    """The temporary name a film is written to, renamed to ``path`` once whole."""
+    return path.with_name(f".{path.stem}.tmp.mp4")
+
+
+def film_name_bytes(key: str) -> int:
+    """How long (bytes) episode ``key``'s longest film file name is (its temporary one): what the filesystem's
+    name limit must take, checked before anything is rendered."""
+    return len(os.fsencode(_filming(film_path(Path("."), key)).name))
+
+
 def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray], town: Any, weather: str,
                 seed: int = 0, fps: float = 10.0, family: str = DEFAULT_FAMILY) -> Path:
     """Film one episode to ``path`` (MP4, written to a temporary name first), its ``weather`` rendered as
@@ -92,7 +108,7 @@ def write_video(path: Path, row: Mapping[str, Any], tr: Mapping[str, np.ndarray]
     title = f"{row['key']}  ({row['route']}):  {outcome}"
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.mp4")
+    tmp = _filming(path)
     writer, filmed = None, False
     try:
         for k in range(len(tr["x"])):
@@ -138,16 +154,16 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{len(run.rows)} episodes", file=sys.stderr)
         return 0
     # a town file's long stem (which evaluate takes without maps or videos) is one line now, not a write error
-    # after the first film is rendered: write_video films to .<name>.tmp.mp4 first
+    # after the first film is rendered
     limit = name_max(Path(args.run_dir))
-    long = [r for r in chosen if len(os.fsencode(f".{r['key'].replace('/', '_')}.tmp.mp4")) > limit]
+    long = [r for r in chosen if film_name_bytes(r["key"]) > limit]
     if long:
         print(f"cicfw: error: episode {long[0]['key']!r} cannot be filmed: its town {long[0]['town']!r} makes a video "
               f"file name longer than this filesystem allows ({limit} bytes)", file=sys.stderr)
         return 2
     towns = {town_label(t): str(t) for t in run.meta.get("suite", {}).get("towns", [])}
     for r in chosen:
-        path = Path(args.run_dir) / "videos" / f"{r['key'].replace('/', '_')}.mp4"
+        path = film_path(args.run_dir, r["key"])
         write_video(path, r, trajs[r["key"]], load_town(towns.get(r["town"], r["town"])), r["weather"],
                     int(run.meta.get("seed", 0)), family=run_weather_family(run.meta))
         print(path)
