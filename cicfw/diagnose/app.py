@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import inspect
 import logging
-import os
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -32,7 +31,7 @@ from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, report_user_
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import undo_run_folder
 from cicfw.data.datamodule import CILDataModule
-from cicfw.data.provenance import data_root, recorded_files
+from cicfw.data.provenance import data_root, recorded_files, same_place
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.export.agent import torch_device
@@ -198,7 +197,7 @@ def check_earlier_diagnosis(out_dir: Path, checkpoint: Path, split: str, data_pa
         return
     for what, there, here in (("checkpoint", earlier.get("checkpoint"), str(checkpoint)),
                               ("split", data.get("split"), split), ("data.path", data.get("path"), data_path)):
-        same = there == here or (what != "split" and os.path.realpath(str(there)) == os.path.realpath(here))
+        same = there == here or (what != "split" and same_place(str(there), here))
         if there is not None and not same:
             raise ConfigError("hydra.run.dir", str(out_dir), "a new folder or this diagnosis's own",
                               f"hydra.run.dir={str(out_dir)!r} holds the diagnosis of another {what} ({there!r} "

@@ -162,6 +162,10 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     return rows, seeds
 
 
+#: what ``relation_candidates`` accepts
+FINE_TUNING_ROWS = "catalogue rows that train fine tuning's mixer (mixer=re), such as re_all, re_pairs, re_none"
+
+
 def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
     """Every row's training config composes and names a registered encoder, mixer and head: a custom row
     with an unknown experiment, head or mixer is refused before anything is collected or trained. Returns
@@ -176,9 +180,8 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
         for key, cell in finished_cells(Path(folder)).items() if folder else ():
             row = key.split("/seed")[0]
             if row in candidates and row not in rows and cell.get("mixer") not in (None, "re"):
-                raise ConfigError("relation_candidates", row, "catalogue rows that train fine tuning's mixer (mixer=re),"
-                                  f" such as re_all, re_pairs, re_none ({row}'s cells in {folder} trained mixer="
-                                  f"{cell.get('mixer')})")
+                raise ConfigError("relation_candidates", row, f"{FINE_TUNING_ROWS} ({row}'s cells in {folder} trained "
+                                  f"mixer={cell.get('mixer')})")
     with initialize_config_module("cicfw.conf", version_base="1.3"):
         for r in rows:
             entry = cfg.catalogue[r]
@@ -196,8 +199,7 @@ def check_rows(cfg: DictConfig, rows: Sequence[str]) -> list[str]:
             except ValueError as err:  # e.g. trainer.max_epochs=abc, read as a whole number here
                 raise ReproduceError(f"{what}: {_error_line(err)}") from None
             if r in candidates and tcfg.mixer.get("name") != "re":
-                raise ConfigError("relation_candidates", r, "catalogue rows that train fine tuning's mixer (mixer=re), "
-                                  "such as re_all, re_pairs, re_none")
+                raise ConfigError("relation_candidates", r, FINE_TUNING_ROWS)
             try:
                 check_training(tcfg)
             except (ValueError, TypeError) as err:  # an unknown encoder, mixer or head too
