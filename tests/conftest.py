@@ -62,12 +62,32 @@ def wilson(k: int, n: int, z: float) -> tuple[float, float]:
     return centre - half, centre + half
 
 
+def mover(terms: list[tuple[float, int, int]], z: float) -> tuple[float, float]:
+    """Zou & Donner's MOVER interval (points) of ``sum c * k / n`` over ``terms`` of ``(c, k, n)``, by hand
+    from ``wilson``: the value less the root of the summed squared distances each term can pull it down (to
+    Wilson's lower bound for c > 0, its upper for c < 0, times |c|), the upper bound the mirror."""
+    value = down = up = 0.0
+    for c, k, n in terms:
+        p, (lo, hi) = k / n, wilson(k, n, z)
+        value += c * p
+        down += (c * (p - lo if c > 0 else hi - p)) ** 2
+        up += (c * (hi - p if c > 0 else p - lo)) ** 2
+    return 100 * (value - math.sqrt(down)), 100 * (value + math.sqrt(up))
+
+
 def at(row: str, seed: int, pct: int, n: int = 100):
     """A reproduction cell with ``pct`` successes of ``n`` episodes in every column: overall ``pct``%."""
     from cicfw.reproduction.cells import COLUMNS, CellResult
 
     eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left"} for c in COLUMNS for k in range(n)}
     return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}})
+
+
+def pinned(row: str, seed: int, pct: int):
+    """``at`` with 3,000 episodes a column (``pct`` x 30 successes): three seeds pool 9,000 a column, which pin
+    a row's overall to under a point, so the episodes' floor stays inside the seeds' t-interval and a test's
+    figures are the t-test's by hand (``seed_stats.with_episode_floor`` leaves them alone)."""
+    return at(row, seed, pct * 30, n=3000)
 
 
 def p_two_sided_2df(t: float) -> float:

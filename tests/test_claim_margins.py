@@ -16,7 +16,7 @@ from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_SHOWN, SU
                                        combine, default_claims, default_margin, judge, load_claims, part_verdict)
 from cicfw.reproduction.report import markdown, report_data
 from cicfw.reproduction.seed_stats import difference
-from conftest import at, p_two_sided_2df
+from conftest import p_two_sided_2df, pinned as at
 
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
 
@@ -119,7 +119,7 @@ def test_not_worse_than_mirrors_it_at_minus_the_margin():
     -5: t = 4 sqrt 3 = 6.93, p = 1 - 6.93 / sqrt(2 + 48) = 0.0202."""
     cells = [at("b", s, 50) for s in range(3)] + [at("a", s, 50 + d) for s, d in zip(range(3), (-2, -1, 0))]
     rec = one_part(cells, Part("a", "b", test="not_less"))
-    assert rec["null"] == -5.0 and rec["verdict"] == SUPPORTED
+    assert rec["null"] == -5.0 and rec["verdict"] == SUPPORTED and "widened" not in rec["method"]
     assert rec["p"] == pytest.approx(p_two_sided_2df(4 * math.sqrt(3)), abs=1e-9)
     assert rec["comparison"] == "a not worse than b by 5 points or more (overall)"
 

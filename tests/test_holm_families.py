@@ -8,7 +8,7 @@ import pytest
 
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.claims import Claim, Part, default_claims, holm_families, judge, load_claims
-from conftest import at, p_two_sided_2df
+from conftest import p_two_sided_2df, pinned as at
 
 
 def test_each_family_is_adjusted_on_its_own_by_hand():

@@ -13,7 +13,7 @@ from scipy import stats
 from cicfw.reproduction import paired_switch as ps
 from cicfw.reproduction.cells import COLUMNS
 
-from conftest import wilson
+from conftest import mover, wilson
 
 EPISODES = 20  # per column
 
@@ -54,9 +54,9 @@ def test_tost_against_a_hand_computation():
 
 
 def test_verdicts_on_cells_with_a_known_answer(tmp_path):
-    """Equal cells (every seed, every column): equivalent overall, and in each column only where its 60
-    pooled episodes can resolve the margin (±25, not ±5: equal seeds are no evidence that the episodes'
-    luck is small); a switch that costs 5 of 20 episodes (25 points) in every column: not shown; two
+    """Equal cells (every seed, every column): equivalent, in each column and overall, only where the 60
+    pooled episodes a column can resolve the margin (±25, not ±5: equal seeds are no evidence that the
+    episodes' luck is small; overall, the mean of four columns, is no exception); a switch that costs 5 of 20 episodes (25 points) in every column: not shown; two
     paired seeds: too few."""
     for s in range(3):
         write_cell(tmp_path / "fp32", "cil", s, [18, 10, 12, 5 + s])
@@ -65,8 +65,8 @@ def test_verdicts_on_cells_with_a_known_answer(tmp_path):
     base = ps.load_row(tmp_path / "fp32")
     same = ps.compare(ps.load_row(tmp_path / "same"), base, 5.0)
     assert [e.on for e in same] == [*COLUMNS, "overall"]
-    assert all(e.mean == 0 for e in same) and same[-1].verdict == "equivalent within ±5"
-    assert all(e.verdict == "not shown" and e.hi > 9 for e in same[:-1])
+    assert all(e.mean == 0 for e in same) and all(e.verdict == "not shown" for e in same)
+    assert all(e.hi > 9 for e in same[:-1]) and same[-1].hi > 5
     assert all(e.verdict == "equivalent within ±25" for e in ps.compare(ps.load_row(tmp_path / "same"), base, 25.0))
     worse = ps.compare(ps.load_row(tmp_path / "worse"), base, 5.0)
     assert all(e.verdict == "not shown" and e.mean == pytest.approx(-25.0) for e in worse)
@@ -83,8 +83,16 @@ def test_overall_is_the_mean_of_the_columns_and_tost_matches_by_hand(tmp_path):
     got = ps.compare(ps.load_row(tmp_path / "a"), ps.load_row(tmp_path / "b"), 5.0)[-1]
     d = [sum(x - y for x, y in zip(a[s], b[s])) * 100 / EPISODES / 4 for s in range(3)]  # overall, points
     assert got.on == "overall" and got.mean == pytest.approx(sum(d) / 3)
-    assert got.p_tost == pytest.approx(tost_by_hand(d, 5.0), rel=1e-9)
-    assert got.lo == pytest.approx(sum(d) / 3 - stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3))
+    # the pooled episodes: each column's 60 of A against B's, a quarter each (the mean of the four columns)
+    terms = [(w, sum(x[s][c] for s in range(3)), 3 * EPISODES) for c in range(4) for w, x in ((0.25, a), (-0.25, b))]
+    p_seeds = tost_by_hand(d, 5.0)
+    assert got.p_tost > p_seeds  # here the episodes are the weaker evidence: TOST takes their p-value
+    z = float(stats.norm.ppf(1 - got.p_tost))  # at the dual level the farther bound touches its margin
+    lo, hi = mover(terms, z)
+    assert max(-lo, hi) == pytest.approx(5.0, abs=1e-6) and min(-lo, hi) < 5.0
+    lo95, hi95 = mover(terms, stats.norm.ppf(0.975))
+    half = stats.t.ppf(0.975, 2) * stats.tstd(d) / math.sqrt(3)
+    assert (got.lo, got.hi) == pytest.approx((min(lo95, sum(d) / 3 - half), max(hi95, sum(d) / 3 + half)))
 
 
 def test_the_printed_interval_says_a_column_is_widened_to_the_episodes(tmp_path):
@@ -103,13 +111,13 @@ def test_episode_tost_is_dual_to_newcombes_interval_by_hand():
     """192 of 192 against 180 of 192 (+6.25 points), margin 10: the p-value is the alpha at which Newcombe's
     (1 - 2 alpha) interval, from Wilson's closed form with z = the normal quantile 1 - alpha, reaches
     +10; a difference outside the margin gives 1, a margin far wider than the episodes' luck about 0."""
-    p = ps.episode_tost((192, 192), (180, 192), 10.0)
+    p = ps.episode_tost([(1.0, 192, 192), (-1.0, 180, 192)], 10.0)
     z = float(stats.norm.ppf(1 - p))
     (l1, u1), (l2, u2) = wilson(192, 192, z), wilson(180, 192, z)
     upper = 100 * (1.0 - 180 / 192 + math.sqrt((u1 - 1.0) ** 2 + (180 / 192 - l2) ** 2))
     assert 0.01 < p < 0.05 and upper == pytest.approx(10.0, abs=1e-6)
-    assert ps.episode_tost((192, 192), (150, 192), 10.0) == 1.0
-    assert ps.episode_tost((96, 192), (96, 192), 60.0) < 1e-9
+    assert ps.episode_tost([(1.0, 192, 192), (-1.0, 150, 192)], 10.0) == 1.0
+    assert ps.episode_tost([(1.0, 96, 192), (-1.0, 96, 192)], 60.0) < 1e-9
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):

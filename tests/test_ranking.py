@@ -17,6 +17,8 @@ from cicfw.reproduction.ranking import _mcb, apart, best, forest, one_sided_boun
 from cicfw.reproduction.report import markdown, report_data, write_report
 from cicfw.reproduction.seed_stats import ALPHA
 
+from conftest import mover, wilson
+
 T_975_2 = 4.303  # t_{0.975, 2} from a printed table
 CATALOGUE = {"cil": {"label": "CIL", "paper": [94.74, 86.84, 52.5, 46.25]},
              "gtu": {"label": "GTU", "paper": [100.0, 93.42, 81.25, 75.0]},
@@ -96,8 +98,35 @@ def test_pairs_share_seeds_or_go_welch():
     assert est == pytest.approx(17.0) and lo == pytest.approx(17 - T_975_2 / math.sqrt(3), abs=2e-3)
     an = analyse(cells(), n_boot=50)
     pairs = {(p["a"], p["b"]): p for p in best(an, ranking(an), 5.0)["pairs"]}
-    assert pairs["hybrid", "cil"]["method"].startswith("paired t, 3 seeds, on the seeds both ran (0 of A's and 1 of B's")
+    # the seeds' differences (16, 18, 17) agree more closely than 300 episodes a column can tell: widened
+    assert pairs["hybrid", "cil"]["method"].startswith("paired t, 3 seeds, widened to the episodes' interval, "
+                                                       "on the seeds both ran (0 of A's and 1 of B's")
     assert pairs["hybrid", "cil"]["measured"]["mean"] == pytest.approx(17.0)
+
+
+def test_a_bound_is_never_closer_than_the_pooled_episodes_allow():
+    """Seeds whose overall differences agree exactly (every seed 60 of 100 against 50 of 100 in each column)
+    leave the t-bounds no width; each one-sided 97.5% bound is pushed out to the pooled episodes' (the MOVER
+    interval at 95% two-sided of the four columns' mean, 1/4 each, 180 of 300 against 150 of 300), and MCB
+    reads its bounds on those."""
+    a, b = {s: 60.0 for s in range(3)}, {s: 50.0 for s in range(3)}
+    terms = [(0.25, 180, 300)] * 4 + [(-0.25, 150, 300)] * 4
+    assert one_sided_bounds(a, b, 0.975) == (10.0, 10.0, 10.0)
+    lo, hi = mover(terms, stats.norm.ppf(0.975))
+    assert one_sided_bounds(a, b, 0.975, terms) == pytest.approx((10.0, lo, hi))
+    assert lo == pytest.approx(10 - 100 * math.sqrt(sum((0.25 * (p - wilson(k, 300, 1.959964)[0])) ** 2
+                                                           for p, k in [(0.6, 180)] * 4)
+                                                       + sum((0.25 * (wilson(k, 300, 1.959964)[1] - p)) ** 2
+                                                             for p, k in [(0.5, 150)] * 4)), abs=1e-4)
+    an = analyse([at("a", s, 60) for s in range(3)] + [at("b", s, 50) for s in range(3)], n_boot=50)
+    got = best(an, ranking(an), 5.0)
+    rows = {r["row"]: r for r in got["rows"]}
+    # two rows: MCB's one comparison each is one-sided at 95%, the 90% two-sided MOVER interval's bounds
+    lo90, hi90 = mover(terms, stats.norm.ppf(0.95))
+    assert got["confidence"] == pytest.approx(0.95) and got["best"] == ["a"] and rows["b"]["hi"] == 0.0
+    assert rows["b"]["lo"] == pytest.approx(-hi90) and rows["a"]["hi"] == pytest.approx(hi90)
+    assert rows["a"]["word"] == "ahead" and rows["b"]["word"] == "behind"
+    assert got["pairs"][0]["measured"]["lo"] == pytest.approx(lo)  # the pair's own 95% interval
 
 
 def simulate(n_exp: int, means: list[float], seed: int, alpha_scale: float = 1.0) -> tuple[float, float]:
@@ -146,7 +175,11 @@ def test_the_forest_is_each_row_minus_cil_with_the_papers_difference_and_a_word(
     gtu = rows[1]
     assert gtu["measured"]["mean"] == pytest.approx(10.0) and gtu["method"].startswith("paired t, 3 seeds")
     half = stats.t.ppf(1 - 0.05 / 4, 2) * 1 / math.sqrt(3)
-    assert (gtu["word"]["lo"], gtu["word"]["hi"]) == pytest.approx((10 - half, 10 + half))
+    # widened to the pooled episodes' interval at the same 97.5%: per column GTU 186 of 300, CIL 156 of 300
+    lo, hi = mover([(0.25, 186, 300)] * 4 + [(-0.25, 156, 300)] * 4, stats.norm.ppf(1 - 0.05 / 4))
+    assert lo < 10 - half and hi > 10 + half  # the floor is the wider here
+    assert (gtu["word"]["lo"], gtu["word"]["hi"]) == pytest.approx((lo, hi))
+    assert "widened to the episodes' interval" in gtu["method"]
     assert gtu["word"]["word"] == "ahead" and "Bonferroni over the 2" in gtu["word"]["correction"]
     assert rows[2].get("apart") and "word" not in rows[2]
     assert forest(analyse([at("gtu", s, 60) for s in range(3)], n_boot=50), ["gtu"], {}, 5.0) == []  # no CIL

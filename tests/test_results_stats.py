@@ -21,7 +21,7 @@ from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, NOT_
 from cicfw.reproduction.report import markdown, report_data
 from cicfw.reproduction.seed_stats import difference, holm, ratio_interval, t_interval
 
-from conftest import wilson
+from conftest import mover, wilson
 
 # Student's t quantiles t_{0.975, df} from a printed table
 T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776}
@@ -139,6 +139,56 @@ def test_seeds_whose_differences_agree_still_get_the_episodes_interval():
     assert (part["measured"]["lo"], part["measured"]["hi"]) == pytest.approx((lo, hi), abs=0.01)
     assert part["method"] == "paired t, 3 seeds, widened to the episodes' interval"
     assert 0.005 < part["p"] < 0.05 and part["verdict"] == CONTRADICTED
+
+
+def test_an_overall_claim_on_seeds_that_agree_gets_the_episodes_interval():
+    """GTU 3 of 12 episodes in every column on each of three seeds, CIL 0 of 12: every seed's overall
+    difference is +25, so the t-interval had no width ("supported, +25.0 [+25.0, +25.0]"). Overall is the
+    mean of the four columns, so its floor is the MOVER interval of 1/4 x (9 of 36) per column against
+    1/4 x (0 of 36), by hand from Wilson's closed form; the p-value is dual to it: at z = the normal quantile
+    of 1 - p / 2 its lower bound touches 0."""
+    a = [cell("gtu", s, {c: [1] * 3 + [0] * 9 for c in COLUMNS}) for s in range(3)]
+    b = [cell("cil", s, {c: [0] * 12 for c in COLUMNS}) for s in range(3)]
+    got = judge(analyse(a + b, n_boot=200), [Claim("x", "GTU beats CIL", (Part("gtu", "cil"),))], {}, {})[0]["parts"][0]
+    terms = [(0.25, 9, 36)] * 4 + [(-0.25, 0, 36)] * 4
+    lo, hi = mover(terms, 1.959964)
+    # by hand once more: each side's four equal terms sum to 4 (d / 4)^2 = (d / 2)^2
+    assert lo == pytest.approx(100 * (0.25 - math.hypot((0.25 - wilson(9, 36, 1.959964)[0]) / 2,
+                                                        (wilson(0, 36, 1.959964)[1] - 0) / 2)))
+    assert got["measured"] == pytest.approx({"mean": 25.0, "lo": lo, "hi": hi}, abs=1e-6)
+    assert got["method"] == "paired t, 3 seeds, widened to the episodes' interval"
+    assert 0 < lo < 25 < hi and got["verdict"] == SUPPORTED
+    z = float(stats.norm.ppf(1 - got["p"] / 2))
+    assert mover(terms, z)[0] == pytest.approx(0.0, abs=1e-5) and 0 < got["p"] < 0.05
+    one = judge(analyse([c for c in a + b if c.seed == 0] + [cell("cil", 9, {c: [0] * 12 for c in COLUMNS})],
+                        n_boot=50), [Claim("x", "x", (Part("gtu", "cil"),))], {}, {})[0]["parts"][0]
+    assert one["measured"]["lo"] is None  # one paired seed: no interval to widen
+
+
+def test_a_town_gap_sums_a_column_counted_twice():
+    """A gap on means of columns, the new weathers (columns 1 and 3) minus the new town (2 and 3): column 3
+    enters both with opposite signs and drops out, so the floor is the MOVER interval of the four remaining
+    terms (+1/2 on column 1, -1/2 on column 2, each for A and, negated, for B), never a column counted as two
+    independent proportions."""
+    per = {COLUMNS[0]: 10, COLUMNS[1]: 8, COLUMNS[2]: 4, COLUMNS[3]: 6}
+    a = [cell("gtu", s, {c: [1] * k + [0] * (16 - k) for c, k in per.items()}) for s in range(3)]
+    b = [cell("cil", s, {c: [1] * (k - 2) + [0] * (18 - k) for c, k in per.items()}) for s in range(3)]
+    part = Part("gtu", "cil", on="gap", hard="new_weathers", easy="new_town")
+    got = judge(analyse(a + b, n_boot=50), [Claim("g", "g", (part,))], {}, {})[0]["parts"][0]
+    terms = [(0.5, 24, 48), (-0.5, 18, 48), (-0.5, 12, 48), (0.5, 6, 48)]  # A col 1, B col 1, A col 2, B col 2
+    lo, hi = mover(terms, 1.959964)
+    assert got["measured"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert (got["measured"]["lo"], got["measured"]["hi"]) == pytest.approx((lo, hi), abs=1e-6)
+
+
+def test_a_rows_overall_on_agreeing_seeds_gets_the_episodes_interval():
+    """Three seeds each at 3 of 12 in every column: the overall t-interval has no width; the floor is the
+    MOVER interval of the four columns' mean, 1/4 x (9 of 36) each: 25 less half of Wilson's distance down."""
+    e = row_estimate([cell("gtu", s, {c: [1] * 3 + [0] * 9 for c in COLUMNS}) for s in range(3)], "overall")
+    lo, hi = wilson(9, 36, 1.959964)
+    assert (e.mean, e.lo, e.hi) == pytest.approx((25.0, 25 - 100 * (0.25 - lo) / 2, 25 + 100 * (hi - 0.25) / 2))
+    town = row_estimate([cell("gtu", s, {c: [1] * 3 + [0] * 9 for c in COLUMNS}) for s in range(3)], "new_town")
+    assert town.lo == pytest.approx(25 - 100 * (0.25 - lo) / math.sqrt(2))  # two columns: sqrt(2 (d / 2)^2)
 
 
 def test_paired_over_the_seeds_both_ran():
@@ -277,7 +327,9 @@ def test_a_row_with_fewer_than_three_seeds_gets_no_verdict():
     g = got["g"]["parts"][0]
     assert g["measured"]["mean"] == 60.0 and g["verdict"] == TOO_FEW and got["g"]["verdict"] == TOO_FEW
     assert g["verdict_holm"] == TOO_FEW and "p_holm" not in g
-    assert g["method"] == "paired t, 2 seeds, on the seeds both ran (0 of A's and 1 of B's cells left out)"
+    # the seeds agree exactly (90 - 30 on both), so the interval is the pooled episodes' (widened)
+    assert g["method"] == ("paired t, 2 seeds, widened to the episodes' interval, on the seeds both ran "
+                           "(0 of A's and 1 of B's cells left out)")
     assert got["s"]["verdict"] == TOO_FEW and got["s"]["parts"][0]["measured"]["lo"] is None
     assert got["m"]["verdict"] == NOT_RUN
     assert an.estimates["sine"][4].lo is None and an.estimates["gtu"][4].lo is not None
@@ -581,8 +633,9 @@ def test_a_learning_curve_of_one_seed_shows_its_value_not_a_range():
 
 
 def test_the_results_plot_says_its_column_bars_are_the_widened_intervals(tmp_path, monkeypatch):
-    """Seeds that all drove 100% have a t-interval of no width; the plot draws the column's Clopper-Pearson
-    floor, as the table does, and its title must say so rather than call the bar a t-interval alone."""
+    """Seeds that all drove 100% have a t-interval of no width; the plot draws the episodes' floor, as the
+    table does (a column's Clopper-Pearson interval, overall the MOVER interval of the four columns' mean),
+    and its title must say so rather than call the bar a t-interval alone."""
     drawn = []
     monkeypatch.setattr(results, "_save", lambda fig, path: drawn.append(fig) or path)
     cells = [at("cil", s, 40, n=40) for s in range(3)]  # 40 of 40 in every column, each seed
@@ -592,7 +645,11 @@ def test_the_results_plot_says_its_column_bars_are_the_widened_intervals(tmp_pat
     lo = 100 * stats.beta.ppf(0.025, 120, 1)  # Clopper-Pearson's lower bound for 120 of 120
     below = ax.containers[0].lines[2][0].get_segments()[0][:, 1]  # the first column's bar, (x, y) ends
     assert min(below) == pytest.approx(lo, abs=1e-6) and max(below) == pytest.approx(100.0)
-    assert "Clopper-Pearson" in ax.get_title()
+    overall = ax.containers[0].lines[2][0].get_segments()[4][:, 1]
+    z = stats.norm.ppf(0.975)
+    # each column 120 of 120 at weight 1/4: 100 - sqrt(4 (d / 4)^2) = 100 - d / 2, d Wilson's distance down
+    assert min(overall) == pytest.approx(100 - (100 - 100 * wilson(120, 120, z)[0]) / 2, abs=1e-6)
+    assert "never narrower than the interval of the episodes pooled over the seeds" in ax.get_title()
 
 
 def test_the_learning_curve_names_the_suite_it_was_driven_on(tmp_path, monkeypatch):

@@ -8,9 +8,9 @@ import pytest
 from scipy import stats
 
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMNS, CellResult
 from cicfw.reproduction.claims import Claim, Part, judge
 from cicfw.reproduction.seed_stats import difference, family_level, word
+from conftest import pinned as at
 
 
 def test_the_rule_by_its_cases():
@@ -42,11 +42,6 @@ def test_equivalent_is_tost_at_half_the_intervals_error():
     assert "equivalent within ±5" in seen and "not separated" in seen
 
 
-def at(row: str, seed: int, pct: int, n: int = 100) -> CellResult:
-    eps = {f"{c}/{k:03d}": {"success": k < pct, "column": c, "command": "left"} for c in COLUMNS for k in range(n)}
-    return CellResult(row=row, seed=seed, episodes=eps, meta={"decoder": None, "wall_s": {}})
-
-
 def test_a_claims_word_is_read_on_scipys_interval_at_its_familys_bonferroni_level():
     """A family of 4 parts: GTU - CIL paired over the 3 seeds both ran (CIL's seed 3 left out), 9, 10, 10 points
     apart: its word is read on the 98.75% interval (scipy's ``ttest_rel``), which excludes 0 (ahead); sine -
@@ -61,6 +56,7 @@ def test_a_claims_word_is_read_on_scipys_interval_at_its_familys_bonferroni_leve
         ci = stats.ttest_rel(a, b).confidence_interval(1 - 0.05 / 4)
         assert (rec["word"]["lo"], rec["word"]["hi"]) == pytest.approx((ci.low, ci.high))
         assert rec["word"]["word"] == word(ci.low, ci.high, 5.0)
+        assert "widened" not in rec["method"]  # 9,000 episodes a column: the floor lies inside scipy's interval
         assert rec["word"]["correction"] == "Bonferroni over the 4 parts of its family"
     assert got[0]["word"]["word"] == "ahead" and got[0]["word_uncorrected"] == "ahead"
     assert got[1]["word"]["word"] == "not separated"

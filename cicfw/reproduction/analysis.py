@@ -8,21 +8,26 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import COLUMNS, SELECTORS, CellResult, pooled_counts
-from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS, Estimate, pooled_clopper_pearson, t_interval
+from cicfw.reproduction.cells import COLUMNS, SELECTORS, CellResult, episode_terms, pooled_counts
+from cicfw.reproduction.seed_stats import (LEVEL, MIN_SEEDS, Estimate, contrast_interval, pooled_clopper_pearson,
+                                           t_interval)
 
 
 def row_estimate(cells: Sequence[CellResult], on: str, level: float = LEVEL) -> Estimate:
-    """A row's mean over seeds on ``on`` with its t-interval over seeds; on a single table column the
-    interval is widened to contain the pooled episodes' Clopper-Pearson interval. No interval for one seed."""
+    """A row's mean over seeds on ``on`` with its t-interval over seeds, widened to contain the interval of
+    the episodes pooled over its seeds: on a single table column their Clopper-Pearson interval, on a mean
+    of columns (overall, a town, a weather) the MOVER interval of that mean of proportions
+    (``seed_stats.contrast_interval``). No interval for one seed."""
     v = np.array([c.value(on) for c in cells])
     mean, lo, hi = (float(x) for x in t_interval(v, level))
     if len(v) < 2:
         return Estimate(mean, None, None)
     if len(SELECTORS[on]) == 1:
-        col = COLUMNS[SELECTORS[on][0]]
-        cp_lo, cp_hi = pooled_clopper_pearson(*pooled_counts(cells, col), level)
-        lo, hi = min(lo, cp_lo), max(hi, cp_hi)
+        floor = pooled_clopper_pearson(*pooled_counts(cells, COLUMNS[SELECTORS[on][0]]), level)
+    else:
+        terms = episode_terms({"row": cells}, [(1.0, "row", on)])
+        floor = contrast_interval(terms, level) if terms else (lo, hi)
+    lo, hi = min(lo, floor[0]), max(hi, floor[1])
     return Estimate(mean, max(lo, 0.0), min(hi, 100.0))  # a rate lies in [0, 100]
 
 

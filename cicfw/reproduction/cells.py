@@ -6,7 +6,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -121,6 +121,22 @@ def pooled_counts(cells: Sequence[CellResult], column: str) -> tuple[int, int]:
     """(successes, episodes) in one table column, pooled over ``cells``: the episodes' floor's input."""
     k, n = (sum(x) for x in zip(*(c.counts(column) for c in cells)))
     return k, n
+
+
+def episode_terms(cells: Mapping[str, Sequence[CellResult]],
+                  contrast: Iterable[tuple[float, str, str]]) -> list[tuple[float, int, int]] | None:
+    """A contrast of selectors on the episodes pooled over each row's cells, ``(coefficient, row, selector)``
+    each (``cells``: row -> its cells), as ``seed_stats.contrast_interval`` takes it: ``(c / k, successes,
+    episodes)`` for each of a selector's k columns (a selector is their mean), the coefficients of a
+    (row, column) met twice summed, as one proportion is not two independent ones. None where a column has
+    no episode (its rate, and so the contrast, is undefined)."""
+    weights: dict[tuple[str, str], float] = {}
+    for c, row, on in contrast:
+        for i in SELECTORS[on]:
+            key = (row, COLUMNS[i])
+            weights[key] = weights.get(key, 0.0) + c / len(SELECTORS[on])
+    terms = [(w, *pooled_counts(cells[row], col)) for (row, col), w in weights.items() if w != 0.0]
+    return terms if all(n > 0 for _, _, n in terms) else None
 
 
 def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:

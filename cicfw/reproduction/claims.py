@@ -15,7 +15,7 @@ import yaml
 
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
-from cicfw.reproduction.cells import COLUMNS, SELECTOR_NAMES, SELECTORS, CellResult, pooled_counts
+from cicfw.reproduction.cells import SELECTOR_NAMES, SELECTORS, CellResult, episode_terms
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
                                           with_episode_floor, word, word_record)
 
@@ -48,7 +48,7 @@ class Part:
     advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
     (``TESTS``); ``relative`` also reports A / B - 1. ``on`` is the part's
     ``column:`` in conf/reproduce.yaml; ``b_scale`` multiplies B before the difference is taken (the
-    statistics see B already scaled) and turns off the episodes' floor (``episode_terms``)."""
+    statistics see B already scaled) and turns off the episodes' floor (``part_terms``)."""
 
     a: str
     b: str
@@ -279,10 +279,10 @@ def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels
     cells = {p.b: pair.b, p.a: pair.a}
     va, vb = p.values(cells, p.a), p.values(cells, p.b)
     d = difference(va, {s: p.b_scale * v for s, v in vb.items()}, null=null)
-    terms = episode_terms(cells, p)
+    terms = part_terms(cells, p)
     level = family_level(family_size)
     dc = difference(va, {s: p.b_scale * v for s, v in vb.items()}, level=level)
-    if terms:  # on single table columns: the episodes' floor, as ``analysis.row_estimate`` has for a row
+    if terms:  # the episodes' floor, as ``analysis.row_estimate`` has for a row
         d = with_episode_floor(d, terms, null=null)
         dc = with_episode_floor(dc, terms, level=level)
     note = pair.note()
@@ -310,18 +310,14 @@ def _cpu(pair: Pairing) -> str:
     return "mixed" if pair.mixed else str(pair.cpu)
 
 
-def episode_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> list[tuple[float, int, int]] | None:
+def part_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> list[tuple[float, int, int]] | None:
     """A part as a contrast of its rows' pooled episodes (``cells``: each row's cells the comparison uses),
-    ``(coefficient, successes, episodes)`` per row and column, for the episodes' floor; None where it is not
-    made of single table columns (overall, a town or weather's mean of two columns: a mean of column rates,
-    whose t-interval keeps its width) or B is scaled."""
+    for the episodes' floor (``cells.episode_terms``): A - B on its selector, or that on ``hard`` minus that
+    on ``easy``; None where B is scaled (a scaled count is no proportion)."""
     if p.b_scale != 1.0:
         return None
     sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
-    if any(col not in COLUMNS for col, _ in sides):
-        return None
-    return [(sign * side, *pooled_counts(cells[row], col))
-            for col, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))]
+    return episode_terms(cells, [(sign * side, row, on) for on, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))])
 
 
 def _boot_part(an: Analysis, p: Part, cells: Mapping[str, Sequence[CellResult]]) -> Estimate:

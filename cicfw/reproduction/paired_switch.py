@@ -9,11 +9,12 @@
 A speed switch (bf16 autocast, a faster optimizer step) is licensed by driving, not by a short run's loss
 (docs/training.md): each seed trains twice, with and without it, on the same split and batch order, and
 both models drive the same suite. Per table column and overall this prints the paired difference A - B
-over seeds (t-interval, ``seed_stats.difference``; in a table column widened by the episodes' floor) and an equivalence test against a margin stated in
-advance: two one-sided t-tests (TOST, ``statsmodels.stats.weightstats.ttost_paired``), *equivalent*
-when both reject at 5%, i.e. the 90% interval lies inside ±margin; in a table column the episodes
-pooled over the seeds must show it too (Newcombe's 90% interval inside ±margin, ``episode_tost``), as
-seeds that differ by the same number of episodes leave the t-test no spread. Too few seeds or too wide an
+over seeds (t-interval, ``seed_stats.difference``, widened by the episodes' floor) and an equivalence test
+against a margin stated in advance: two one-sided t-tests (TOST,
+``statsmodels.stats.weightstats.ttost_paired``), *equivalent* when both reject at 5%, i.e. the 90% interval
+lies inside ±margin; the episodes pooled over the seeds must show it too (the same contrast's 90% interval
+inside ±margin: Newcombe's in a column, MOVER's on the mean of the four, ``episode_tost``), as seeds that
+differ by the same number of episodes leave the t-test no spread. Too few seeds or too wide an
 interval reads *not shown*, never *equivalent*. ``--episodes`` compares two models of one seed (a cell's
 ``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both drove: per column, the
 episodes one model lost and the other gained, with McNemar's exact test (``statsmodels``). It also prints the cells' training wall time, which
@@ -35,8 +36,8 @@ from statsmodels.stats.weightstats import ttost_paired
 
 from cicfw.benchmark.finished_run import cell_key
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import COLUMNS, CellResult, load_cell, pooled_counts
-from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, difference_terms, family_level,
+from cicfw.reproduction.cells import COLUMNS, CellResult, episode_terms, load_cell
+from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
                                            with_episode_floor, word)
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
@@ -47,7 +48,7 @@ EPISODE_COLUMNS = ("key", "town_set", "weather_set", "success")  # what --episod
 @dataclass
 class Equivalence:
     """A - B on one table column, or overall (``on`` None), over the paired seeds: the 95% t-interval
-    (widened by the episodes' floor in a table column), the TOST p-value and its verdict."""
+    (widened by the episodes' floor), the TOST p-value and its verdict."""
 
     on: str
     a: list[float]
@@ -86,20 +87,19 @@ def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
     return float(ttost_paired(np.asarray(a, float), np.asarray(b, float), -margin, margin)[0])
 
 
-def episode_tost(a: tuple[int, int], b: tuple[int, int], margin: float) -> float:
-    """The equivalence p-value on the pooled episodes, ``(successes, episodes)`` each: the smallest alpha
-    at which Newcombe's (1 - 2 alpha) interval for A - B lies inside ±margin (TOST's duality: half the
-    two-sided level at which the farther bound crosses its margin), 1 when the difference itself is not
-    inside. The floor ``seed_stats.with_episode_floor`` gives an interval."""
-    terms = difference_terms(a, b)
+def episode_tost(terms: Sequence[tuple[float, int, int]], margin: float) -> float:
+    """The equivalence p-value on the pooled episodes, A - B as the terms of a contrast
+    (``cells.episode_terms``): the smallest alpha at which its (1 - 2 alpha) interval (MOVER; on one column
+    Newcombe's) lies inside ±margin (TOST's duality: half the two-sided level at which the farther bound
+    crosses its margin), 1 when the difference itself is not inside. The floor
+    ``seed_stats.with_episode_floor`` gives an interval."""
     levels = contrast_level(terms, "lo", -margin), contrast_level(terms, "hi", margin)
     return 1.0 if max(levels) == 1.0 else max(levels) / 2.0
 
 
 def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
             family: int = 1) -> list[Equivalence]:
-    """Every column and overall, on the seeds both sides ran. In a table column both the interval and the
-    TOST p-value also answer to the episodes pooled over those seeds (``with_episode_floor``,
+    """Every column and overall, on the seeds both sides ran. Both the interval and the TOST p-value answer to the episodes pooled over those seeds (``with_episode_floor``,
     ``episode_tost``), so seeds whose differences happen to agree are not *equivalent* by luck. Each entry's
     ``word`` is read on its interval at the Bonferroni level of ``family`` comparisons (the caller's table:
     1 for one comparison)."""
@@ -109,17 +109,19 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
         va = {s: a[s].rate(col) for s in seeds}
         vb = {s: b[s].rate(col) for s in seeds}
         d, dc = difference(va, vb), difference(va, vb, level=family_level(family))
-        pooled = None if col is None or not seeds else tuple(pooled_counts([x[s] for s in seeds], col) for x in (a, b))
-        if pooled is not None:
-            d = with_episode_floor(d, difference_terms(*pooled))
-            dc = with_episode_floor(dc, difference_terms(*pooled), level=family_level(family))
+        on = col or "overall"
+        terms = episode_terms({"a": [a[s] for s in seeds], "b": [b[s] for s in seeds]},
+                              [(1.0, "a", on), (-1.0, "b", on)]) if seeds else None
+        if terms:
+            d = with_episode_floor(d, terms)
+            dc = with_episode_floor(dc, terms, level=family_level(family))
         w = word(dc.estimate.lo, dc.estimate.hi, margin) if len(seeds) >= MIN_SEEDS else None
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
         else:
             p = tost_paired(list(va.values()), list(vb.values()), margin)
-            if pooled is not None:
-                p = max(p, episode_tost(*pooled, margin))
+            if terms:
+                p = max(p, episode_tost(terms, margin))
             verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
         out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
                                d.estimate.lo, d.estimate.hi, p, verdict, w, dc.estimate.lo if w else None,
@@ -160,8 +162,8 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
         said = "too few seeds" if e.word is None else f"{e.word} [{e.word_lo:+.1f}, {e.word_hi:+.1f}]"
         out.append(f"{e.on:36s} {' '.join(f'{x:5.1f}' for x in e.a):>22s} {' '.join(f'{x:5.1f}' for x in e.b):>22s} "
                    f"{ci:>22s} {p:>7s}  {e.verdict}; {said}")
-    out.append("[95%]: the paired t-interval over seeds, in a table column widened to the pooled episodes' "
-               "(Newcombe's) interval where that is wider")
+    out.append("[95%]: the paired t-interval over seeds, widened to the pooled episodes' interval where that is "
+               "wider (Newcombe's in a column, MOVER's overall)")
     ta = [a[s].meta.get("wall_s", {}).get("train") for s in seeds]
     tb = [b[s].meta.get("wall_s", {}).get("train") for s in seeds]
     if all(ta) and all(tb):

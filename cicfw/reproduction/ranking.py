@@ -11,8 +11,10 @@ import numpy as np
 from scipy import stats
 
 from cicfw.reproduction.analysis import Analysis
-from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, MIN_SEEDS, NOT_SEPARATED, difference, equivalent,
-                                           family_level, word, word_record)
+from cicfw.reproduction.cells import CellResult, episode_terms
+from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, LEVEL, MIN_SEEDS, NOT_SEPARATED, Difference,
+                                           contrast_interval, difference, equivalent, family_level,
+                                           with_episode_floor, word, word_record)
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"
@@ -29,18 +31,30 @@ def overall_difference(an: Analysis, a: str, b: str, margin: float | None = None
     Bonferroni interval over ``family_size`` comparisons and ``word_uncorrected`` on the 95% one."""
     pair = an.pair(a, b)
     va, vb = ({c.seed: c.value("overall") for c in cs} for cs in (pair.a, pair.b))
-    d = difference(va, vb)
+    terms = overall_terms(pair.a, pair.b)
+    d = floored(difference(va, vb), terms)
     note = pair.note()
     rec = {"a": a, "b": b, "measured": d.estimate.as_dict(), "p": d.p,
            "method": d.method + (f", {note}" if note else ""), "paired": d.paired,
            "cpu": "mixed" if pair.mixed else pair.cpu, "seeds": list(d.n)}
     if margin is not None:
         level = family_level(family_size)
-        rec["word"] = word_record(difference(va, vb, level=level), margin, level,
+        rec["word"] = word_record(floored(difference(va, vb, level=level), terms, level), margin, level,
                                   f"Bonferroni over the {family_size} comparisons with {BASELINE}"
                                   if family_size > 1 else "none (one comparison)")
         rec["word_uncorrected"] = word(d.estimate.lo, d.estimate.hi, margin) if d.enough_seeds else None
     return rec
+
+
+def overall_terms(a: Sequence[CellResult], b: Sequence[CellResult]) -> list[tuple[float, int, int]] | None:
+    """A's overall minus B's on the episodes pooled over each side's ``cells``: the episodes' floor's terms."""
+    return episode_terms({"a": a, "b": b}, [(1.0, "a", "overall"), (-1.0, "b", "overall")])
+
+
+def floored(d: Difference, terms: list[tuple[float, int, int]] | None, level: float = LEVEL) -> Difference:
+    """``d`` widened to the episodes' interval of the same contrast (``seed_stats.with_episode_floor``),
+    as every difference in the report is: seeds that agree leave the t-interval no width."""
+    return with_episode_floor(d, terms, level=level) if terms else d
 
 
 def ranking(an: Analysis, order: Sequence[str] = ()) -> list[str]:
@@ -62,11 +76,23 @@ def in_catalogue_order(rows: Iterable[str], order: Sequence[str]) -> list[str]:
     return sorted(rows, key=lambda r: (order.index(r) if r in order else len(order), r))
 
 
-def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float) -> tuple[float, float, float]:
+def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float,
+                     terms: Sequence[tuple[float, int, int]] | None = None) -> tuple[float, float, float]:
     """(A - B, lower, upper): the one-sided ``confidence`` bounds of mu_A - mu_B (each a one-sided interval
     of its own), paired over the seeds both have (``scipy.stats.ttest_rel``), Welch's where they share none
     (``ttest_ind(equal_var=False)``); -inf / +inf where there is no spread to estimate (fewer than two paired
-    seeds, or one seed on a side)."""
+    seeds, or one seed on a side). With the pooled episodes' ``terms`` (``overall_terms``), each bound is
+    pushed out to the same contrast's one-sided bound at ``confidence`` (the two-sided MOVER interval at
+    2 x confidence - 1), as the episodes' floor widens every interval of the report."""
+    est, lo, hi = _t_bounds(a, b, confidence)
+    if terms and math.isfinite(lo) and math.isfinite(hi):
+        ep_lo, ep_hi = contrast_interval(terms, 2.0 * confidence - 1.0)
+        lo, hi = min(lo, ep_lo), max(hi, ep_hi)
+    return est, lo, hi
+
+
+def _t_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float) -> tuple[float, float, float]:
+    """``one_sided_bounds`` from the seeds alone."""
     shared = sorted(set(a) & set(b))
     if shared:
         x, y = np.array([a[s] for s in shared]), np.array([b[s] for s in shared])
@@ -90,16 +116,19 @@ def one_sided_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence:
 
 
 def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int, float]]], rows: Sequence[str],
-         margin: float, alpha: float = ALPHA) -> tuple[dict[str, Any], dict[tuple[str, str], Bounds]]:
-    """MCB from each unordered pair's per-seed values (A's, B's): the intervals, the words and G, and the
-    one-sided (estimate, lower, upper) bounds of every ordered pair they were read from."""
+         margin: float, alpha: float = ALPHA,
+         terms: Mapping[tuple[str, str], Sequence[tuple[float, int, int]] | None] | None = None,
+         ) -> tuple[dict[str, Any], dict[tuple[str, str], Bounds]]:
+    """MCB from each unordered pair's per-seed values (A's, B's) and, where given, its pooled episodes'
+    ``terms`` (the floor, ``one_sided_bounds``): the intervals, the words and G, and the one-sided
+    (estimate, lower, upper) bounds of every ordered pair they were read from."""
     k = len(rows)
     if k < 2:
         return {"rows": [], "best": list(rows), "confidence": None, "comparisons": 0}, {}
     q = 1.0 - alpha / (k - 1)
     bounds = {}
     for (i, j), (va, vb) in pairs.items():
-        est, lo, hi = one_sided_bounds(va, vb, q)
+        est, lo, hi = one_sided_bounds(va, vb, q, (terms or {}).get((i, j)))
         bounds[i, j], bounds[j, i] = (est, lo, hi), (-est, -hi, -lo)
     # Hsu's U_i = max(0, min_j up_ij), G = {i : U_i > 0}, L_i = 0 if G = {i} else min(0, min_{j in G} lo_ij)
     upper = {i: max(0.0, min(bounds[i, j][2] for j in rows if j != i)) for i in rows}
@@ -128,15 +157,16 @@ def best(an: Analysis, ranked: Sequence[str], margin: float) -> dict[str, Any] |
         return None
     cells = {(i, j): an.pair(i, j) for x, i in enumerate(ranked) for j in ranked[x + 1:]}
     values = {ij: tuple({c.seed: c.value("overall") for c in cs} for cs in (p.a, p.b)) for ij, p in cells.items()}
-    res, bounds = _mcb(values, ranked, margin)
+    terms = {ij: overall_terms(p.a, p.b) for ij, p in cells.items()}
+    res, bounds = _mcb(values, ranked, margin, terms=terms)
     pairs = []
     level = family_level(len(values))  # a pair's own word: Bonferroni over every pair of ranked rows
     for (i, j), (va, vb) in values.items():
-        d, note = difference(va, vb), cells[i, j].note()
+        d, note = floored(difference(va, vb), terms[i, j]), cells[i, j].note()
         pairs.append({"a": i, "b": j, "measured": d.estimate.as_dict(),
                       "method": d.method + (f", {note}" if note else ""),
                       "lower": _finite(bounds[i, j][1]), "upper": _finite(bounds[i, j][2]),
-                      "word": word_record(difference(va, vb, level=level), margin, level,
+                      "word": word_record(floored(difference(va, vb, level=level), terms[i, j], level), margin, level,
                                           f"Bonferroni over the {len(values)} pairs of ranked rows")})
     k = len(ranked)
     return {**res, "pairs": pairs, "procedure": f"Hsu's MCB over the {k} rows with >= {MIN_SEEDS} seeds, Bonferroni "

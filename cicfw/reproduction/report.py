@@ -4,7 +4,7 @@ A *cell* is one (row, seed) of a reproduction: a model trained with that seed an
 ``cell.json`` keeps every episode's outcome. This module writes the report (results.json/.csv, RESULTS.md, the
 pictures); the parts it reads live beside it (the package's docstring lists them). Where each figure comes from:
 a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference`` ->
-``seed_stats.with_episode_floor`` (its terms from ``claims.episode_terms``) -> ``seed_stats.holm``; a relative
+``seed_stats.with_episode_floor`` (its terms from ``claims.part_terms``) -> ``seed_stats.holm``; a relative
 change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; which row drives best,
 ``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
@@ -14,23 +14,25 @@ its four column rates.
 
 **Intervals (primary): the seed is the unit of replication.** A row's value in a column is the mean over
 its seeds of each seed's success rate there; its 95% interval is Student's t-interval over those per-seed
-rates, ``mean ± t_{0.975, n-1} · sd / sqrt(n)`` (``scipy.stats.t``; ``sd`` with ``n - 1``), widened, in a
-table column, to contain the Clopper-Pearson interval of the episodes pooled over the seeds
-(``statsmodels ... proportion_confint(method="beta")``), so that seeds that all drove 100% (or 0%) do not
-get a zero-width interval. A row with one seed has no interval. A difference between two rows (A - B) is
+rates, ``mean ± t_{0.975, n-1} · sd / sqrt(n)`` (``scipy.stats.t``; ``sd`` with ``n - 1``), widened to
+contain the interval of the episodes pooled over the seeds (in a table column their Clopper-Pearson interval,
+``statsmodels ... proportion_confint(method="beta")``; on a mean of columns, overall or a town's or weather's
+two, the MOVER interval below of that mean of proportions), so that seeds that all drove 100% (or 0%, or
+the same number of episodes) do not get a zero-width interval. A row with one seed has no interval. A difference between two rows (A - B) is
 computed on per-seed values: where the rows share seeds (the same seed trains on the same
 train/validation split, so the cells are paired), the t-interval over the per-seed differences
 ``A_s - B_s`` of the seeds both ran, with ``n - 1`` degrees of freedom (a row's other seeds are left out,
 and the method says how many); only where they share no seed, Welch's t-interval
 (``scipy.stats.ttest_ind(equal_var=False)``, Welch-Satterthwaite degrees of freedom) over all seeds of
-each; on one table column (or a gap between two table columns) it too is widened, to contain the interval
-of the same contrast of the two rows' success on their pooled episodes (Zou & Donner's MOVER from each
-proportion's Wilson interval, ``statsmodels ... proportion_confint(method="wilson")``; on one column this is
-Newcombe's hybrid score interval), and its p-value is then the larger of the t-test's and the one dual to
+each; it too is widened, to contain the interval of the same contrast of the two rows' success on their
+pooled episodes (a column, a mean of columns with 1/k on each of its k columns, or a gap between two of
+them: Zou & Donner's MOVER from each proportion's Wilson interval,
+``statsmodels ... proportion_confint(method="wilson")``; on one column this is Newcombe's hybrid score
+interval), and its p-value is then the larger of the t-test's and the one dual to
 that interval, so seeds whose differences happen to agree (a column's rates come in steps of 1/64 or 1/96,
 an easy column often sits at 100%) do not get a zero-width interval and p = 0; the method column says
-"widened to the episodes' interval" where it moved a bound. Overall and a town's or weather's mean of two
-columns keep their t-interval, as a row's overall does. Cells record their machine, and the same seed
+"widened to the episodes' interval" where it moved a bound. Which row drives best (MCB) reads its one-sided
+bounds widened the same way. Cells record their machine, and the same seed
 trains another model on another kind of CPU: a difference is computed on the cells of one CPU kind where
 both rows have at least 3 seeds there (the method says "within" that kind and how many cells of other
 kinds it left out), and where no kind has that, on all cells, marked "mixed CPUs" with each kind's cells.
@@ -519,8 +521,8 @@ def markdown(data: Mapping[str, Any], pictures: str = "") -> str:
               f"- **Cells:** {sum(len(r['seeds']) for r in data['rows'])} finished"
               + (f", {len(data['failed'])} failed" if data["failed"] else "") + ".",
               "- **Intervals:** 95% t-intervals over seeds (the seed is the unit of replication: "
-              "`mean ± t(0.975, n−1) · sd / √n` over the per-seed success rates; in a table column never narrower "
-              "than the pooled episodes' Clopper-Pearson interval). Success in %; each cell "
+              "`mean ± t(0.975, n−1) · sd / √n` over the per-seed success rates; never narrower than the interval of "
+              "the episodes pooled over the seeds: Clopper-Pearson's in a column, MOVER's overall). Success in %; each cell "
               "`mean over seeds [95% interval]`, the paper's value in *italics* below. *Overall* is the mean of "
               "the four columns (per seed, then over seeds), not the success pooled over episodes. The rows keep "
               "the paper's order here (by overall success above). "
@@ -688,7 +690,7 @@ def _colour(plt: Any, k: int) -> Any:
 
 
 def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
-    """Success per column with 95% t-interval bars (over seeds; a column's widened to its episodes' floor, as the
+    """Success per column with 95% t-interval bars (over seeds, widened to the episodes' floor, as the
     table's) for each row; the paper's values as crosses
     in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
     plt = _plt()
@@ -716,9 +718,9 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=min(len(rows) + 1, 4), frameon=False)
     suite = (data["manifest"].get("suite") or {}).get("name", "?")
-    # the bars are row_estimate's: a column's t-interval is widened to its pooled episodes' Clopper-Pearson one
+    # the bars are row_estimate's: the t-interval widened to the pooled episodes' interval
     ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds\n"
-                 f"(in a column never narrower than its pooled episodes' Clopper-Pearson interval)", fontsize=10)
+                 f"(never narrower than the interval of the episodes pooled over the seeds)", fontsize=10)
     return _save(fig, Path(path))
 
 

@@ -225,13 +225,12 @@ def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LE
     which recovers each side's variance from the proportions' Wilson score intervals (statsmodels), so it
     keeps a width at 0% and 100%; for one difference, ``[(1, A), (-1, B)]``, it is Newcombe's hybrid score
     interval, and for a gap, ``(A - B)`` in one column minus ``(A - B)`` in another, its four-term form."""
-    value, below, above = 0.0, 0.0, 0.0
-    for c, k, n in terms:
-        p = k / n
-        lo, hi = (float(x) for x in proportion_confint(k, n, alpha=1.0 - level, method="wilson"))
-        down, up = (p - lo, hi - p) if c > 0 else (hi - p, p - lo)  # a negative coefficient swaps the sides
-        value, below, above = value + c * p, below + (c * down) ** 2, above + (c * up) ** 2
-    return 100.0 * (value - math.sqrt(below)), 100.0 * (value + math.sqrt(above))
+    c, k, n = (np.array(x, dtype=float) for x in zip(*terms))
+    p = k / n
+    lo, hi = proportion_confint(k, n, alpha=1.0 - level, method="wilson")  # every term's in one call
+    down, up = np.where(c > 0, p - lo, hi - p), np.where(c > 0, hi - p, p - lo)  # c < 0 swaps the sides
+    value = float(np.sum(c * p))
+    return 100.0 * (value - math.sqrt(np.sum((c * down) ** 2))), 100.0 * (value + math.sqrt(np.sum((c * up) ** 2)))
 
 
 def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float, int, int]]:
