@@ -144,7 +144,7 @@ def floor_coverage(n_seeds: int, on: str = "new_new", n_exp: int = 1000, seed: i
         f = seed_stats.with_episode_floor(d, terms)
         covered_t += d.estimate.lo <= truth <= d.estimate.hi
         covered_floor += f.estimate.lo <= truth <= f.estimate.hi
-        moved += f is not d
+        moved += (f.estimate.lo, f.estimate.hi) != (d.estimate.lo, d.estimate.hi)
     return {"t": covered_t / n_exp, "floor": covered_floor / n_exp, "moved": moved / n_exp}
 
 

@@ -19,7 +19,8 @@ from cicfw.reproduction.analysis import analyse, row_estimate
 from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, NOT_SHOWN, SUPPORTED, TOO_FEW, Claim,
                                        Part, _boot_part, combine, default_claims, judge, load_claims)
 from cicfw.reproduction.report import markdown, report_data
-from cicfw.reproduction.seed_stats import difference, holm, ratio_interval, t_interval
+from cicfw.reproduction.seed_stats import (Difference, Estimate, difference, holm, ratio_interval, t_interval,
+                                          with_episode_floor)
 
 from conftest import mover, wilson
 
@@ -189,6 +190,30 @@ def test_a_rows_overall_on_agreeing_seeds_gets_the_episodes_interval():
     assert (e.mean, e.lo, e.hi) == pytest.approx((25.0, 25 - 100 * (0.25 - lo) / 2, 25 + 100 * (hi - 0.25) / 2))
     town = row_estimate([cell("gtu", s, {c: [1] * 3 + [0] * 9 for c in COLUMNS}) for s in range(3)], "new_town")
     assert town.lo == pytest.approx(25 - 100 * (0.25 - lo) / math.sqrt(2))  # two columns: sqrt(2 (d / 2)^2)
+
+
+def test_the_method_says_widened_only_where_a_bound_moved():
+    """A floor that raises the p-value but lies inside the seeds' interval (equal pooled episodes, 50 of 100
+    against 50 of 100: Newcombe's interval is about ±13.7, the seeds' ±20) takes the larger p-value and
+    leaves the interval and the method alone."""
+    d = Difference(Estimate(0.0, -20.0, 20.0), 0.5, "paired t, 3 seeds", True, (3, 3))
+    f = with_episode_floor(d, [(1.0, 50, 100), (-1.0, 50, 100)])
+    assert (f.estimate.lo, f.estimate.hi, f.p, f.method) == (-20.0, 20.0, 1.0, "paired t, 3 seeds")
+    lo, hi = newcombe((50, 100), (50, 100), 1.959964)
+    assert -20 < lo < -13 and 13 < hi < 20  # inside, as the docstring says
+
+
+def test_a_scaled_part_gets_the_floor_of_its_scaled_contrast():
+    """Cross-stitch below a quarter of CIL: every seed's A - 0.25 x B is 30 - 0.25 x 80 = +10 points in
+    every column (a t-interval of no width); the floor is MOVER's on A's 90 of 300 against -0.25 x B's 240 of
+    300 per column, a quarter each, by hand."""
+    a = [at("cross_stitch", s, 30) for s in range(3)]
+    b = [at("cil", s, 80) for s in range(3)]
+    part = Part("cross_stitch", "cil", test="less", b_scale=0.25)
+    got = judge(analyse(a + b, n_boot=50), [Claim("x", "x", (part,))], {}, {})[0]["parts"][0]
+    lo, hi = mover([(0.25, 90, 300)] * 4 + [(-0.0625, 240, 300)] * 4, 1.959964)
+    assert got["measured"] == pytest.approx({"mean": 10.0, "lo": lo, "hi": hi}, abs=1e-6)
+    assert got["method"] == "paired t, 3 seeds, widened to the episodes' interval" and got["verdict"] == CONTRADICTED
 
 
 def test_paired_over_the_seeds_both_ran():

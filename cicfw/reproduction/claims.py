@@ -48,7 +48,7 @@ class Part:
     advantage over B on ``hard`` minus that on ``easy``; ``test`` says which way the claim goes
     (``TESTS``); ``relative`` also reports A / B - 1. ``on`` is the part's
     ``column:`` in conf/reproduce.yaml; ``b_scale`` multiplies B before the difference is taken (the
-    statistics see B already scaled) and turns off the episodes' floor (``part_terms``)."""
+    statistics see B already scaled; the episodes' floor scales B's terms, ``part_terms``)."""
 
     a: str
     b: str
@@ -312,12 +312,11 @@ def _cpu(pair: Pairing) -> str:
 
 def part_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> list[tuple[float, int, int]] | None:
     """A part as a contrast of its rows' pooled episodes (``cells``: each row's cells the comparison uses),
-    for the episodes' floor (``cells.episode_terms``): A - B on its selector, or that on ``hard`` minus that
-    on ``easy``; None where B is scaled (a scaled count is no proportion)."""
-    if p.b_scale != 1.0:
-        return None
+    for the episodes' floor (``cells.episode_terms``): A - b_scale x B on its selector, or that on ``hard``
+    minus that on ``easy`` (a scaled B is the same linear contrast with coefficient -b_scale)."""
     sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
-    return episode_terms(cells, [(sign * side, row, on) for on, sign in sides for row, side in ((p.a, 1.0), (p.b, -1.0))])
+    return episode_terms(cells, [(sign * side, row, on) for on, sign in sides
+                                 for row, side in ((p.a, 1.0), (p.b, -p.b_scale))])
 
 
 def _boot_part(an: Analysis, p: Part, cells: Mapping[str, Sequence[CellResult]]) -> Estimate:

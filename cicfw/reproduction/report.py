@@ -419,7 +419,7 @@ def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
                   for r in few]
     if data.get("forest"):
         base = by[BASELINE]["label"]
-        lines += ["", f"![each row's overall success minus {base}'s, 95% t-intervals, the paper's difference beside]"
+        lines += ["", f"![each row's overall success minus {base}'s, 95% intervals, the paper's difference beside]"
                       f"({pictures}forest.png)"]
     return lines + [""]
 
@@ -435,7 +435,8 @@ def forest_lines(data: Mapping[str, Any]) -> list[str]:
     size = sum(not r.get("apart") for r in rows)
     lines = ["", f"## Each row against {base} (the forest plot)", "",
              f"Each row's overall success minus {base}'s (points) with its 95% t-interval: paired over the seeds "
-             "both ran, Welch's t where they share none. Its word (*ahead*, *behind*, *equivalent within "
+             "both ran, Welch's t where they share none, widened to the pooled episodes' interval where that is "
+             "wider (the method says so). Its word (*ahead*, *behind*, *equivalent within "
              f"±{data.get('equivalence_margin', 5):g}*, *not separated*) is read on the interval corrected by "
              f"Bonferroni over the {size} comparisons of the ranked rows with {base}, shown beside it; a row with "
              "too few seeds gets none.", ""]
@@ -454,8 +455,9 @@ def pair_lines(data: Mapping[str, Any]) -> list[str]:
         return []
     by = {r["row"]: r for r in data["rows"]}
     lines = ["", "## Each pair of ranked rows (MCB's comparisons)", "",
-             f"A − B overall (points) with its 95% t-interval and test; the one-sided {100 * b['confidence']:.2f}% "
-             f"bounds MCB reads (lower, upper); and the pair's own word, read on the interval corrected by Bonferroni "
+             f"A − B overall (points) with its 95% t-interval and test (widened to the pooled episodes' interval "
+             f"where the method says so); the one-sided {100 * b['confidence']:.2f}% bounds MCB reads (lower, upper; "
+             f"never closer than the pooled episodes' at that confidence); and the pair's own word, read on the interval corrected by Bonferroni "
              f"over all {len(b['pairs'])} pairs.", ""]
     return lines + md_table(
         ["A", "B", "A − B [95% t]", "Method", "MCB's bounds", "Word [corrected interval]"], "llrlrl",
@@ -768,7 +770,7 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     ax.axvline(0.0, color="grey", lw=1)
     ax.grid(axis="x", alpha=0.3)
     ax.set_xlabel(f"overall success minus {by[BASELINE]['label']}'s (points)")
-    handles = [ax.plot([], [], "o-", color="black", lw=2.5, label="mean over seeds, 95% t-interval")[0]]
+    handles = [ax.plot([], [], "o-", color="black", lw=2.5, label="mean over seeds, 95% interval (t, never narrower than the episodes')")[0]]
     if any((r.get("word") or {}).get("lo") is not None for r in rows):
         handles.append(ax.plot([], [], "-", color="black", lw=1, alpha=0.6,
                                label="Bonferroni interval (the word's)")[0])

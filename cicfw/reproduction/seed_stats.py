@@ -244,15 +244,17 @@ def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], l
     widened to contain the episodes' interval (``episode_interval``), its p-value (of A - B = ``null``)
     the larger of the two: seeds whose differences happen to agree (rates come in steps of 1/64 or 1/96,
     and an easy column often sits at 100% for every seed) leave the t-interval no width, but never remove
-    the episodes' luck. The method says so where the floor moved a bound."""
+    the episodes' luck. The method says so where the floor moved a bound (a larger p-value alone is not
+    remarked: it may be the seeds' mean and the pooled value differing in the 15th digit)."""
     e = d.estimate
     if e.lo is None or e.hi is None or d.p is None:
         return d
     lo, hi, p = episode_interval(terms, level, null)
     if lo >= e.lo and hi <= e.hi and p <= d.p:
         return d
+    moved = lo < e.lo or hi > e.hi
     return Difference(Estimate(e.mean, min(e.lo, lo), max(e.hi, hi)), max(d.p, p),
-                      d.method + ", widened to the episodes' interval", d.paired, d.n)
+                      d.method + (", widened to the episodes' interval" if moved else ""), d.paired, d.n)
 
 
 def holm(pvalues: Sequence[float], alpha: float = ALPHA,
