@@ -56,7 +56,7 @@ def test_a_claims_word_is_read_on_scipys_interval_at_its_familys_bonferroni_leve
         ci = stats.ttest_rel(a, b).confidence_interval(1 - 0.05 / 4)
         assert (rec["word"]["lo"], rec["word"]["hi"]) == pytest.approx((ci.low, ci.high))
         assert rec["word"]["word"] == word(ci.low, ci.high, 5.0)
-        assert "widened" not in rec["method"]  # 9,000 episodes a column: the floor lies inside scipy's interval
+        assert "widened" not in rec["method"]  # 3,000 episodes a column: the floor lies inside scipy's interval
         assert rec["word"]["correction"] == "Bonferroni over the 4 parts of its family"
     assert got[0]["word"]["word"] == "ahead" and got[0]["word_uncorrected"] == "ahead"
     assert got[1]["word"]["word"] == "not separated"
