@@ -241,6 +241,11 @@ def test_report_into_the_folder_given_keeps_a_users_file_of_a_tables_name(one_ep
     assert report([str(folder), "--overwrite"]) == 0  # on purpose
     assert report([str(folder)]) == 0  # now the folder's own report of the same runs
     assert report([str(folder / "run")]) == 0  # a run's own tables, which its evaluation wrote
+    (tmp_path / "notes").mkdir()
+    shutil.copytree(one_episode_eval, tmp_path / "notes" / "run")
+    (tmp_path / "notes" / "report.json").write_text('{"mine": 1}\n')  # no table, a record of the user's
+    assert report([str(tmp_path / "notes")]) == 2 and "report.json" in capsys.readouterr().err
+    assert (tmp_path / "notes" / "report.json").read_text() == '{"mine": 1}\n'
 
 
 # ---- evaluate: the run folder, .hydra included -----------------------------------------------------

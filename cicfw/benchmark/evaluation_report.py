@@ -392,7 +392,7 @@ def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], wha
     the sweep joined), where it holds the report of the same runs (``report.json``), or with
     ``--overwrite``: a user's file of the same name, another run's table or another report is refused in
     one line before anything is written. ``dirs``: the folders given (``out`` defaults to the one given)."""
-    held = [n for n in REPORT_FILES if (Path(out) / n).exists()]
+    held = [n for n in (*REPORT_FILES, REPORT_RECORD) if (Path(out) / n).exists()]
     if overwrite or not held:
         return
     given = any(os.path.realpath(out) == os.path.realpath(d) for d in dirs)
