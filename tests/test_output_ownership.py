@@ -223,6 +223,31 @@ def test_report_out_holding_files_it_did_not_write_is_refused(one_episode_eval, 
     assert report([str(run), "--out", str(other), "--overwrite"]) == 0  # on purpose
 
 
+def test_report_into_the_folder_given_keeps_a_users_file_of_a_tables_name(one_episode_eval, tmp_path, capsys):
+    """``cicfw report <folder holding runs>`` writes into that folder by default: a table.md of the user's
+    there (no report of these runs wrote it) is refused as ``--out`` refuses it; the one run's own folder and
+    the folder's own earlier report are still rewritten."""
+    import shutil
+
+    from cicfw.benchmark.evaluation_report import main as report
+
+    folder = tmp_path / "mine"
+    shutil.copytree(one_episode_eval, folder / "run")
+    (folder / "table.md").write_text("my notes\n")
+    assert report([str(folder)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(folder) in err[0] and "table.md" in err[0], err
+    assert (folder / "table.md").read_text() == "my notes\n" and not (folder / "table.csv").exists()
+    assert report([str(folder), "--overwrite"]) == 0  # on purpose
+    assert report([str(folder)]) == 0  # now the folder's own report of the same runs
+    assert report([str(folder / "run")]) == 0  # a run's own tables, which its evaluation wrote
+    (tmp_path / "notes").mkdir()
+    shutil.copytree(one_episode_eval, tmp_path / "notes" / "run")
+    (tmp_path / "notes" / "report.json").write_text('{"mine": 1}\n')  # no table, a record of the user's
+    assert report([str(tmp_path / "notes")]) == 2 and "report.json" in capsys.readouterr().err
+    assert (tmp_path / "notes" / "report.json").read_text() == '{"mine": 1}\n'
+
+
 # ---- evaluate: the run folder, .hydra included -----------------------------------------------------
 
 

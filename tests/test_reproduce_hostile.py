@@ -307,6 +307,21 @@ def test_publish_dir_at_a_file_is_refused_up_front(no_collect, tmp_path, capsys)
     assert not out.exists()
 
 
+@pytest.mark.parametrize("inside", ["cells/cil/seed0", "published"])
+def test_publish_dir_inside_the_results_folder_is_refused_up_front(no_collect, tmp_path, capsys, inside):
+    """A cell's folder (or any folder in the results folder) as publish_dir would put a published copy,
+    reproduce.json and cells/ among the run's own files: refused before anything is written."""
+    out = tmp_path / "results"
+    cell = out / "cells" / "cil" / "seed0"
+    (cell / ".hydra").mkdir(parents=True)  # a cell's folder is the reproduce job's own (its Hydra record)
+    (cell / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: reproduce\n")
+    (cell / "cell.json").write_text('{"status": "ok"}')
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    msg = refused(["budget=smoke", "rows=[cil]", f"publish_dir={out / inside}", f"results_dir={out}"], capsys)
+    assert "publish_dir" in msg and str(out / inside) in msg, msg
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+
+
 @functools.cache
 def _pin(budget: str) -> str:
     """``budget``'s pin as reproduce.json records it, as JSON: composed once per module, the same for every test."""

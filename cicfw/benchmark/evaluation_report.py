@@ -387,12 +387,18 @@ def _joined(runs: Sequence[Run]) -> list[str]:
 
 
 def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], what: str, overwrite: bool) -> None:
-    """The report writes into ``out`` only where it holds none of ``REPORT_FILES``, where it is one of the
-    folders joined (a run's or a sweep's own tables, joined from what it holds), where it holds the report
-    of the same runs (``report.json``), or with ``--overwrite``: another run's table or another report is
-    refused in one line before anything is written."""
-    held = [n for n in REPORT_FILES if (Path(out) / n).exists()]
-    if overwrite or not held or any(os.path.realpath(out) == os.path.realpath(d) for d in dirs):
+    """The report writes into ``out`` only where it holds none of ``REPORT_FILES``, where those are cicfw's
+    own (``out`` is the one run joined, whose tables its evaluation wrote, or a sweep folder, whose tables
+    the sweep joined), where it holds the report of the same runs (``report.json``), or with
+    ``--overwrite``: a user's file of the same name, another run's table or another report is refused in
+    one line before anything is written. ``dirs``: the folders given (``out`` defaults to the one given)."""
+    held = [n for n in (*REPORT_FILES, REPORT_RECORD) if (Path(out) / n).exists()]
+    if overwrite or not held:
+        return
+    given = any(os.path.realpath(out) == os.path.realpath(d) for d in dirs)
+    one_run = [os.path.realpath(r.path) for r in runs] == [os.path.realpath(out)]
+    sweep = (Path(out) / "multirun.yaml").is_file() and not (Path(out) / ".hydra").exists()
+    if given and (one_run or sweep):
         return
     try:
         earlier = json.loads((Path(out) / REPORT_RECORD).read_text()).get("runs")

@@ -244,8 +244,16 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
 
 def check_not_results_dir(cfg: DictConfig) -> None:
     """``publish_dir`` or ``continue_from`` at the results folder itself (links and ``..`` resolved) would copy
-    the folder onto itself: harmless but meaningless, so almost surely a mistyped path; refused in one line."""
+    the folder onto itself: harmless but meaningless, so almost surely a mistyped path; refused in one line.
+    A ``publish_dir`` inside it (a cell's folder, say) would put a published copy among the run's own files,
+    where a later report reads them as cells: refused too."""
     results = Path(cfg.results_dir).expanduser().resolve()
+    pub = cfg.get("publish_dir")
+    if pub and results in Path(str(pub)).expanduser().resolve().parents:
+        raise ReproduceError(f"publish_dir={str(pub)!r} lies inside the results folder (results_dir="
+                             f"{str(cfg.results_dir)!r}), among the run's own cells and files: give publish_dir="
+                             f"<a folder outside it> (e.g. docs/results/<budget>) or leave it out",
+                             key="publish_dir", value=str(pub))
     why = {"publish_dir": "the report is written there already; give publish_dir=<another folder> "
                           "(e.g. docs/results/<budget>) or leave it out",
            "continue_from": "its finished cells are kept and skipped by a rerun already; give continue_from="
