@@ -1,5 +1,6 @@
-"""Rows are compared within one kind of CPU: the same seed trains another model on another kind, so a
-comparison whose cells span kinds uses the kind where both rows have 3 seeds, or says *mixed CPUs*; the
+"""Rows are compared within one kind of CPU (plus GPU, where a cell had one): the same seed trains another
+model on another kind, so a comparison whose cells span kinds uses the kind where both rows have 3 seeds, or
+says *mixed CPUs* (*mixed machines* where a GPU is among them); the
 report's header lists every machine with its cells, and Table 4 each row's kinds where they differ."""
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import math
 import pytest
 
 from cicfw.reproduction.analysis import analyse, pair_cells
-from cicfw.reproduction.cells import COLUMNS, CellResult, cpu_counts, cpu_kind
+from cicfw.reproduction.cells import COLUMNS, CellResult, cpu_counts, cpu_kind, machine_kind
 from cicfw.reproduction.claims import SUPPORTED, Claim, Part, judge
 from cicfw.reproduction.report import markdown, report_data
 
@@ -91,3 +92,41 @@ def test_the_report_lists_every_machine_and_flags_mixed_comparisons():
     md1 = markdown(one)
     assert "CPU (cells)" not in md1 and f"- **Machine:** {AMD} (all 3 cells)." in md1
     assert one["rows"][0]["cpus"] == {}
+
+
+XEON_H100 = "2 cores (Intel(R) Xeon(R) Processor), NVIDIA H100 80GB HBM3, Python 3.11.7, torch 2.13.0+cu126"
+
+
+def test_a_gpu_is_part_of_the_kind_and_no_gpu_reads_as_before():
+    assert machine_kind(XEON_H100) == "Intel Xeon + NVIDIA H100" and cpu_kind(XEON_H100) == "Intel Xeon"
+    assert machine_kind(XEON) == "Intel Xeon" == machine_kind("8 cores (Intel(R) Xeon(R) Processor), no GPU, "
+                                                              "Python 3.12.1, torch 2.14.0+cpu")
+    assert machine_kind("16 cores (AMD EPYC 7763 64-Core Processor), NVIDIA A100-SXM4-40GB, Python 3.11.7, "
+                        "torch 2.13.0+cu126") == "AMD EPYC 7763 64-Core + NVIDIA A100-SXM4"
+    assert machine_kind(None) == "unknown CPU" and machine_kind("arm64") == "arm64"
+    cells = [at("a", 0, 50, XEON), at("a", 1, 50, XEON_H100), at("a", 2, 50, XEON)]
+    assert cpu_counts(cells) == {"Intel Xeon": 2, "Intel Xeon + NVIDIA H100": 1}
+
+
+def test_gpu_cells_and_cpu_cells_of_one_processor_are_compared_as_mixed_machines():
+    a = [at("gtu", s, 60, XEON_H100) for s in range(3)] + [at("gtu", s, 60, XEON) for s in (3, 4)]
+    b = [at("cil", s, 50, XEON) for s in range(5)]
+    p = pair_cells(a, b)
+    assert p.mixed and p.note() == "mixed machines (A: Intel Xeon 2, Intel Xeon + NVIDIA H100 3; B: Intel Xeon 5)"
+    # with 3 seeds of each row on the CPU alone (GTU's seeds 3-5), the comparison stays there
+    a3 = a + [at("gtu", 5, 60, XEON)]
+    b3 = b + [at("cil", 5, 50, XEON)]
+    assert pair_cells(a3, b3).note() == ("on the seeds both ran (0 of A's and 3 of B's cells left out), "
+                                         "within Intel Xeon (3 cell(s) of other machine kinds left out)")
+    catalogue = {"cil": {"label": "CIL"}, "gtu": {"label": "GTU"}}
+    data = report_data([*a, *b], [], catalogue, {"budget": "smoke"}, n_boot=50,
+                       claims=[Claim("g", "GTU beats CIL", (Part("gtu", "cil"),))], margin=5.0)
+    md = markdown(data)
+    assert data["claims"][0]["parts"][0]["cpu"] == "mixed"
+    claim_row = next(line for line in md.splitlines() if line.startswith("| GTU beats CIL"))
+    assert "paired t, 5 seeds" in claim_row
+    assert "mixed machines (A: Intel Xeon 2, Intel Xeon + NVIDIA H100 3; B: Intel Xeon 5)" in claim_row
+    assert "2 kinds of machine (Intel Xeon: 7 cells, Intel Xeon + NVIDIA H100: 3 cells)" in md
+    assert "| Row | Decoder | Seeds | Machine (cells) |" in md
+    assert "1 of the 1 pairs pool cells of different machine kinds (*mixed machines*)" in md
+    assert "CPU kind" not in md and "mixed CPUs (" not in md

@@ -8,7 +8,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import COLUMNS, SELECTORS, CellResult, episode_terms, pooled_counts
+from cicfw.reproduction.cells import (COLUMNS, MIXED_CPUS, MIXED_MACHINES, SELECTORS, CellResult, episode_terms,
+                                     kind_noun, pooled_counts)
 from cicfw.reproduction.seed_stats import (LEVEL, MIN_SEEDS, Estimate, contrast_interval, pooled_clopper_pearson,
                                            t_interval)
 
@@ -113,8 +114,9 @@ class Analysis:
 
 @dataclass(frozen=True)
 class Pairing:
-    """The cells a comparison of rows A and B uses, and the CPU kinds behind them: ``cpu`` names the one
-    kind they all ran on, or None where they mix kinds ("mixed CPUs"); ``left_out`` counts the cells of
+    """The cells a comparison of rows A and B uses, and the machine kinds behind them (``CellResult.cpu``): ``cpu``
+    names the one kind they all ran on, or None where they mix kinds ("mixed CPUs", "mixed machines" where a
+    GPU is among them); ``left_out`` counts the cells of
     other kinds a comparison within one kind leaves out; ``kinds``: each kind's cells of A and of B;
     ``unshared``: the cells of A and of B left out because the other row did not run their seed (rows that
     share seeds are compared paired over the seeds both ran)."""
@@ -128,24 +130,26 @@ class Pairing:
 
     @property
     def mixed(self) -> bool:
-        """The comparison pools cells of more than one kind of CPU."""
+        """The comparison pools cells of more than one machine kind."""
         return self.cpu is None
 
     def note(self) -> str:
         """What the report's method column adds: which seeds were left out to pair (none when the rows ran the
-        same seeds), then "" on one kind throughout, else within which kind or "mixed CPUs" with each kind's
-        cells of A and of B."""
+        same seeds), then "" on one kind throughout, else within which kind or "mixed CPUs" ("mixed machines"
+        where a GPU is among the kinds) with each kind's cells of A and of B."""
         out = []
         if any(self.unshared):
             out.append(f"on the seeds both ran ({self.unshared[0]} of A's and {self.unshared[1]} of B's cells "
                        "left out)")
         if len(self.kinds) > 1:
+            cpus = kind_noun(self.kinds) == "CPU"  # else a GPU is among the kinds: they are machines, not CPUs
             if self.cpu is not None:
-                out.append(f"within {self.cpu} ({self.left_out} cell(s) of other CPUs left out)")
+                other = "other CPUs" if cpus else "other machine kinds"
+                out.append(f"within {self.cpu} ({self.left_out} cell(s) of {other} left out)")
             else:  # the kinds of the cells compared
                 used = {k: (sum(c.cpu == k for c in self.a), sum(c.cpu == k for c in self.b)) for k in self.kinds}
                 side = lambda i: ", ".join(f"{k} {n[i]}" for k, n in used.items() if n[i])  # noqa: E731
-                out.append(f"mixed CPUs (A: {side(0)}; B: {side(1)})")
+                out.append(f"{MIXED_CPUS if cpus else MIXED_MACHINES} (A: {side(0)}; B: {side(1)})")
         return ", ".join(out)
 
 
@@ -160,8 +164,8 @@ def _on_shared_seeds(a: Sequence[CellResult], b: Sequence[CellResult]) -> tuple[
 
 
 def pair_cells(a: Sequence[CellResult], b: Sequence[CellResult], min_seeds: int = MIN_SEEDS) -> Pairing:
-    """Compare within one kind of CPU (the same seed trains another model on another kind): all cells when
-    both rows ran on one kind; where they span kinds, the cells of the kind on which both rows have at
+    """Compare within one machine kind, CPU plus GPU (the same seed trains another model on another kind): all
+    cells when both rows ran on one kind; where they span kinds, the cells of the kind on which both rows have at
     least ``min_seeds`` (the most common seeds, then the most cells, then the name decide between kinds);
     where no kind has that, all cells, marked mixed. Then, where the rows share seeds (and so splits), only
     the cells of the seeds both ran: they are compared paired; rows that share none, by Welch's t."""

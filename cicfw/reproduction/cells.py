@@ -49,8 +49,9 @@ class CellResult:
 
     @property
     def cpu(self) -> str:
-        """The kind of CPU the cell ran on (``cpu_kind`` of its ``machine``)."""
-        return cpu_kind(self.meta.get("machine"))
+        """The kind of machine the cell ran on (``machine_kind`` of its ``machine``): its CPU kind, plus its GPU
+        where it had one; named ``cpu`` as results.json's keys are."""
+        return machine_kind(self.meta.get("machine"))
 
     def counts(self, column: str, command: str | None = None) -> tuple[int, int]:
         """(successes, episodes) in one table column, or in its episodes of one command."""
@@ -59,25 +60,67 @@ class CellResult:
         return sum(v), len(v)
 
 
-def cpu_kind(machine: str | None) -> str:
-    """The kind of CPU a cell's ``machine`` names, "2 cores (AMD EPYC), no GPU, ..." -> "AMD EPYC": the text
-    in its first parentheses without trademark marks or a trailing "Processor" / "CPU @ 2.9GHz". The same
-    seed trains another model on another kind, so rows are compared within one kind."""
-    if not machine:
-        return "unknown CPU"
-    text = str(machine)
+#: joins a machine kind's CPU kind and its GPU: "Intel Xeon + NVIDIA H100"
+GPU_JOIN = " + "
+#: a comparison's mark where it pools kinds: of CPUs alone, or where a GPU is among them
+MIXED_CPUS, MIXED_MACHINES = "mixed CPUs", "mixed machines"
+
+
+def _first_parentheses(text: str) -> tuple[int, int] | None:
+    """The span of ``text``'s first parentheses, nested ones included: (index of "(", index of its ")")."""
     start = text.find("(")
     if start < 0:
-        return text.split(",")[0].strip() or "unknown CPU"
+        return None
     depth, end = 0, len(text)
     for i in range(start, len(text)):
         depth += {"(": 1, ")": -1}.get(text[i], 0)
         if depth == 0:
             end = i
             break
-    name = re.sub(r"\((?:R|TM)\)", "", text[start + 1:end], flags=re.I)
+    return start, end
+
+
+def cpu_kind(machine: str | None) -> str:
+    """The kind of CPU a cell's ``machine`` names, "2 cores (AMD EPYC), no GPU, ..." -> "AMD EPYC": the text
+    in its first parentheses without trademark marks or a trailing "Processor" / "CPU @ 2.9GHz"."""
+    if not machine:
+        return "unknown CPU"
+    text = str(machine)
+    span = _first_parentheses(text)
+    if span is None:
+        return text.split(",")[0].strip() or "unknown CPU"
+    name = re.sub(r"\((?:R|TM)\)", "", text[span[0] + 1:span[1]], flags=re.I)
     name = re.sub(r"\s+(?:Processor|CPU)\b.*$", "", name)
     return " ".join(name.split()) or "unknown CPU"
+
+
+def gpu_kind(machine: str | None) -> str | None:
+    """The GPU a cell's ``machine`` names after its CPU, "..., NVIDIA H100 80GB HBM3, Python ..." ->
+    "NVIDIA H100" (without trademark marks or a trailing memory size); None for "no GPU" or none named."""
+    text = str(machine or "")
+    span = _first_parentheses(text)
+    if span is None:
+        return None
+    field = text[span[1] + 1:].lstrip(" ,").split(",")[0].strip()
+    if not field or field.lower() == "no gpu" or re.match(r"(?:Python|torch)\b", field):
+        return None
+    name = re.sub(r"\((?:R|TM)\)", "", field, flags=re.I)
+    name = re.sub(r"[\s-]*\d+\s*GB\b.*$", "", name, flags=re.I)
+    return " ".join(name.split()) or None
+
+
+def machine_kind(machine: str | None) -> str:
+    """What rows are compared within: the CPU kind, plus the GPU where the cell had one ("Intel Xeon +
+    NVIDIA H100"; "Intel Xeon" alone for no GPU). The same seed trains another model on another CPU, and
+    on a GPU (its kernels sum in another order) even more surely."""
+    gpu = gpu_kind(machine)
+    return cpu_kind(machine) + (f"{GPU_JOIN}{gpu}" if gpu else "")
+
+
+def kind_noun(kinds: Iterable[str]) -> str:
+    """How the report names ``kinds``: "CPU" where each is a CPU alone (they differ only by CPU), "machine"
+    where one had a GPU."""
+    return "machine" if any(GPU_JOIN in k for k in kinds) else "CPU"
 
 
 def most_first(values: Iterable[str]) -> dict[str, int]:
@@ -86,7 +129,7 @@ def most_first(values: Iterable[str]) -> dict[str, int]:
 
 
 def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
-    """CPU kind -> number of ``cells`` that ran on it, most cells first (ties by name)."""
+    """Machine kind (``CellResult.cpu``) -> number of ``cells`` that ran on it, most cells first (ties by name)."""
     return most_first(c.cpu for c in cells)
 
 

@@ -117,7 +117,8 @@ from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, CellResult, cpu_counts, load_cells, most_first
+from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellResult, cpu_counts,
+                                     kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, publish
@@ -158,11 +159,19 @@ def _families(claims: Sequence[Mapping[str, Any]]) -> str:
     return f"families fixed in advance, each adjusted on its own: {', '.join(named)}"
 
 
-def _method_text() -> str:
+def _method_text(kinds: Sequence[str] = ()) -> str:
     """results.json's ``method``: this module's docstring from **Intervals (primary)** up to **Verdicts**
-    (editing that span changes every re-rendered report under docs/results)."""
+    (editing that span changes every re-rendered report under docs/results), and where a GPU is among the
+    cells' ``kinds``, what a kind then is."""
     doc = __doc__ or ""
-    return doc.split("**Intervals (primary):")[1].split("**Verdicts.**")[0].strip() if "**Intervals (primary):" in doc else ""
+    text = ""
+    if "**Intervals (primary):" in doc:
+        text = doc.split("**Intervals (primary):")[1].split("**Verdicts.**")[0].strip()
+    if kind_noun(kinds) == "machine":
+        text += (" Some of these cells ran on a GPU, where the same seed trains another model again (its kernels sum "
+                 "in another order): a kind is then the CPU kind plus the GPU where there was one, and a comparison "
+                 f"that pools a GPU's cells with others is marked \"{MIXED_MACHINES}\".")
+    return text
 
 
 def spread_data(cs: Sequence[CellResult]) -> dict[str, dict[str, Any]]:
@@ -225,13 +234,14 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "code": {str(c.seed): c.meta["code"] for c in cs if c.meta.get("code")},
             # each cell's machine, only where the folder's cells come from more than one (``continue_from``)
             "machine": {str(c.seed): c.meta.get("machine") for c in cs} if len(machines) > 1 else {},
-            # the row's cells per CPU kind, only where the folder's cells span kinds
+            # the row's cells per machine kind (CPU, plus GPU where it had one), only where the folder's cells
+            # span kinds
             "cpus": cpu_counts(cs) if len(kinds) > 1 else {},
             "resumed": {str(c.seed): c.meta["resumed"] for c in cs if c.meta.get("resumed")},
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
     ranked, few = ranking(an, list(catalogue)), apart(an, list(catalogue))
-    return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
+    return {"manifest": dict(manifest), "method": _method_text(list(kinds)), "n_boot": n_boot, "level": LEVEL,
             "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
             "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
             "ranking": ranked, "apart": few, "best": best(an, ranked, margin),
@@ -346,11 +356,18 @@ def machine_line(data: Mapping[str, Any]) -> str:
         return f"- **Machine:** {m}" + (f" (all {machines[m]} cells)." if m in machines else ".")
     line = "- **Machines:** " + "; ".join(f"{n} cells on {m}" for m, n in machines.items()) + "."
     if len(data.get("cpus") or {}) > 1:
-        line += (f" {len(data['cpus'])} kinds of CPU (" + ", ".join(f"{k}: {n} cells" for k, n in data["cpus"].items())
+        line += (f" {len(data['cpus'])} kinds of {kind_noun(data['cpus'])} ("
+                 + ", ".join(f"{k}: {n} cells" for k, n in data["cpus"].items())
                  + "), and the same seed trains another model on another kind: rows are compared on the cells of "
                  f"one kind where both have {data.get('min_seeds', MIN_SEEDS)} seeds there, and a comparison that "
-                 "pools kinds says *mixed CPUs*.")
+                 f"pools kinds says {_mixed_marks(data)}.")
     return line
+
+
+def _mixed_marks(data: Mapping[str, Any]) -> str:
+    """How a comparison that pools kinds is marked: *mixed CPUs*, and *mixed machines* where a GPU is among them."""
+    gpu = kind_noun(data.get("cpus") or {}) == "machine"
+    return f"*{MIXED_CPUS}*" + (f" (*{MIXED_MACHINES}* where a GPU is among them)" if gpu else "")
 
 
 def _cpus(counts: Mapping[str, int]) -> str:
@@ -401,9 +418,11 @@ def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
         text += (f" Fewer than {min_seeds} seeds, listed apart and not ranked: "
                  + ", ".join(f"{label(r)} ({len(by[r]['seeds'])} seed{'s' if len(by[r]['seeds']) != 1 else ''})"
                              for r in few) + ".")
-    mixed = sum("mixed CPUs" in p["method"] for p in b.get("pairs") or [])
+    marks = [m for m in (MIXED_CPUS, MIXED_MACHINES) if any(m in p["method"] for p in b.get("pairs") or [])]
+    mixed = sum(any(m in p["method"] for m in marks) for p in b.get("pairs") or [])
     if mixed:
-        text += f" {mixed} of the {len(b['pairs'])} pairs pool cells of different CPU kinds (*mixed CPUs*)."
+        text += (f" {mixed} of the {len(b['pairs'])} pairs pool cells of different {kind_noun(data.get('cpus') or {})} "
+                 f"kinds (" + " or ".join(f"*{m}*" for m in marks) + ").")
     lines = [text, "", f"Rows with at least {min_seeds} seeds by overall success, best first: mean over seeds [95% "
              "t-interval], then the MCB interval of the row's success minus the best of the others' (an upper "
              "bound of +0.0: some row drives better; a lower bound of +0.0: it drives best) and its word:", ""]
@@ -467,9 +486,10 @@ def pair_lines(data: Mapping[str, Any]) -> list[str]:
 
 def _table4_lines(data: Mapping[str, Any]) -> list[str]:
     """Table 4: each row's mean over seeds [95% t] per column and overall, the paper's value below; a CPU
-    column where the folder's cells span kinds of CPU."""
+    column (Machine where a GPU is among the kinds) where the folder's cells span kinds."""
     cpu = len(data.get("cpus") or {}) > 1
-    lines = md_table(["Row", "Decoder", "Seeds", *(["CPU (cells)"] if cpu else []), *COLUMN_NAMES, "Overall"],
+    head = "CPU (cells)" if kind_noun(data.get("cpus") or {}) == "CPU" else "Machine (cells)"
+    lines = md_table(["Row", "Decoder", "Seeds", *([head] if cpu else []), *COLUMN_NAMES, "Overall"],
                      "llr" + ("l" if cpu else "") + "r" * 5)
     for r in data["rows"]:
         cells = [f"{_est(r['columns'][col])}<br>*{_pct(_paper_value(r['paper'], i))}*"
@@ -488,10 +508,11 @@ def _claims_intro(data: Mapping[str, Any]) -> str:
     return ("Each part of a claim is a difference of per-seed values (A − B, points) with its two-sided 95% "
             "t-interval and the two-sided t-test dual to it: **paired t** over the per-seed differences when both "
             "rows ran the same seeds (the same seed trains on the same split), **Welch t** otherwise; on the cells "
-            f"of one CPU kind where both rows have {min_seeds} seeds there (the method says *within* it), else on all "
-            "of them, marked *mixed CPUs*. A part that A beats B (>, or <) is tested against 0: *supported* when "
-            "the interval lies on the claim's side of 0, *contradicted* on the other side, *inconclusive* when "
-            "it holds 0. A part that A is *not better than* B is tested against the equivalence margin, "
+            f"of one {kind_noun(data.get('cpus') or {})} kind where both rows have {min_seeds} seeds there (the method "
+            f"says *within* it), else on all of them, marked {_mixed_marks(data)}. A part that A beats B (>, or <) "
+            "is tested against 0: *supported* when the interval lies on the claim's side of 0, *contradicted* on the "
+            "other side, *inconclusive* when it holds 0. A part that A is *not better than* B is tested against "
+            "the equivalence margin, "
             f"+{margin:g} points (`equivalence_margin` in conf/reproduce.yaml): *supported* when the interval lies "
             f"below +{margin:g} (non-superiority, the upper of TOST's two one-sided tests), *contradicted* when "
             f"above +{margin:g}, *not shown* when it holds +{margin:g}; p is the test against the part's null. "
@@ -730,7 +751,7 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     """Each row's overall success minus CIL's (``data["forest"]``): the ranked rows best first, with the 95%
     t-interval (thick) and the Bonferroni interval its word is read on (thin), the paper's difference as a
     cross beside it, the numbers and the word at the right; below a line, apart, the rows with too few seeds
-    (not ranked, no word). A hollow point where the comparison pools CPU kinds. None (nothing drawn) without
+    (not ranked, no word). A hollow point where the comparison pools kinds. None (nothing drawn) without
     CIL or another row."""
     rows = data.get("forest") or []
     if not rows:
@@ -775,8 +796,10 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
         handles.append(ax.plot([], [], "-", color="black", lw=1, alpha=0.6,
                                label="Bonferroni interval (the word's)")[0])
     if any(r["cpu"] == "mixed" for r in rows):
+        noun = kind_noun(data.get("cpus") or {})
         handles.append(ax.plot([], [], "o", color="black", mfc="white",
-                               label="hollow: pools CPU kinds (mixed CPUs)")[0])
+                               label=f"hollow: pools {noun} kinds ({MIXED_CPUS}"
+                                     + (")" if noun == "CPU" else f" or {MIXED_MACHINES})"))[0])
     if any(r["paper"] is not None for r in rows):
         handles.append(ax.plot([], [], "x", color="black", mew=2, label="the paper's difference (its Table 4)")[0])
     fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=len(handles), frameon=False)
