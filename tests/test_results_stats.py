@@ -19,8 +19,8 @@ from cicfw.reproduction.analysis import analyse, row_estimate
 from cicfw.reproduction.claims import (CONTRADICTED, INCONCLUSIVE, NOT_RUN, NOT_SHOWN, SUPPORTED, TOO_FEW, Claim,
                                        Part, _boot_part, combine, default_claims, judge, load_claims)
 from cicfw.reproduction.report import markdown, report_data
-from cicfw.reproduction.seed_stats import (Difference, Estimate, difference, holm, ratio_interval, t_interval,
-                                          with_episode_floor)
+from cicfw.reproduction.seed_stats import (Difference, Estimate, difference, holm, mover_ratio, ratio_interval,
+                                          t_interval, with_episode_floor, with_ratio_floor)
 
 from conftest import mover, wilson
 
@@ -253,6 +253,70 @@ def test_ratio_interval_by_hand():
     assert (r, lo, hi) == pytest.approx((1.75, 45.156 / 40, 94.844 / 40), abs=5e-4)
     r, lo, hi = ratio_interval([60.0, 70.0, 80.0], [0.0, 3.0, 0.0], paired=True)
     assert r == pytest.approx(70.0) and lo is None and hi is None
+
+
+def mover_r(a: float, a_lim: tuple[float, float], b: float, b_lim: tuple[float, float]) -> tuple[float, float]:
+    """Donner & Zou's MOVER-R limits of a / b, written out from the paper's closed form."""
+    (l1, u1), (l2, u2) = a_lim, b_lim
+    lower = (a * b - math.sqrt((a * b) ** 2 - l1 * u2 * (2 * a - l1) * (2 * b - u2))) / (u2 * (2 * b - u2))
+    upper = (a * b + math.sqrt((a * b) ** 2 - u1 * l2 * (2 * a - u1) * (2 * b - l2))) / (l2 * (2 * b - l2))
+    return lower, upper
+
+
+def test_mover_ratio_by_hand():
+    """MOVER-R of two estimates with asymmetric limits, against the closed form; the same limits given in
+    points or as fractions give the same ratio interval."""
+    got = mover_ratio(30.0, (20.0, 45.0), 60.0, (50.0, 68.0))
+    assert got == pytest.approx(mover_r(30.0, (20.0, 45.0), 60.0, (50.0, 68.0)), rel=1e-12)
+    assert got == pytest.approx(mover_ratio(0.3, (0.2, 0.45), 0.6, (0.5, 0.68)), rel=1e-12)
+    assert 20 / 68 < got[0] < 0.5 < got[1] < 45 / 50  # inside the crude bounds of the limits' ratios
+
+
+def test_a_relative_change_on_seeds_that_agree_gets_the_episodes_ratio_interval():
+    """GTU built as CIL's cells with exactly 2 more successes of 64 in each column (CIL 48, 50 and 52 on
+    seeds 0-2): the difference's t-interval has no width and is floored to Newcombe's, which holds 0, but
+    Fieller's ratio interval of +4% is about a point wide and excluded 0. Floored, it contains MOVER-R of
+    the pooled 156 of 192 against 150 of 192, each Wilson's interval, by hand, and the record says so."""
+    b = [cell("cil", s, {c: [1] * k + [0] * (64 - k) for c in COLUMNS}) for s, k in enumerate((48, 50, 52))]
+    a = [cell("gtu", s, {c: [1] * (k + 2) + [0] * (62 - k) for c in COLUMNS}) for s, k in enumerate((48, 50, 52))]
+    part = Part("gtu", "cil", on=COLUMNS[3], relative=True)
+    got = judge(analyse(a + b, n_boot=50), [Claim("h", "h", (part,))], {}, {})[0]["parts"][0]
+    _, f_lo, f_hi = ratio_interval([50.0, 52.0, 54.0], [48.0, 50.0, 52.0], paired=True)
+    assert 1.0 < f_lo < f_hi < 1.06  # Fieller alone: +4% [+4, +5], 0 excluded
+    z = 1.959964
+    lo, hi = mover_r(156 / 192, wilson(156, 192, z), 150 / 192, wilson(150, 192, z))
+    assert got["measured"]["lo"] < 0 < got["measured"]["hi"] and got["verdict"] == INCONCLUSIVE
+    assert got["relative"]["mean"] == pytest.approx(4.0, abs=0.05)
+    assert (got["relative"]["lo"], got["relative"]["hi"]) == pytest.approx((100 * (lo - 1), 100 * (hi - 1)), abs=0.051)
+    assert got["relative"]["lo"] < 0 < got["relative"]["hi"]
+    assert got["relative"]["method"] == "Fieller, widened to the episodes' interval"
+    assert results._relative(got["relative"]).endswith("widened to the episodes' interval")
+
+
+def test_a_wider_fieller_interval_is_left_alone():
+    """A at 60, 70 and 80 of 100 over seeds against B at 40 on each: Fieller's [1.129, 2.371] (the
+    t-interval of A over 40) holds MOVER-R of the pooled 210 of 300 against 120 of 300, so nothing moves."""
+    r, f_lo, f_hi = ratio_interval([60.0, 70.0, 80.0], [40.0, 40.0, 40.0], paired=True)
+    z = 1.959964
+    lo, hi = mover_r(0.7, wilson(210, 300, z), 0.4, wilson(120, 300, z))
+    assert f_lo < lo < 1.75 < hi < f_hi
+    assert with_ratio_floor(f_lo, f_hi, [(1.0, 210, 300)], [(1.0, 120, 300)]) == (f_lo, f_hi, False)
+    a = [at("gtu", s, p) for s, p in enumerate((60, 70, 80))]
+    b = [at("cil", s, 40) for s in range(3)]
+    got = judge(analyse(a + b, n_boot=50), [Claim("h", "h", (Part("gtu", "cil", on=COLUMNS[3], relative=True),))],
+                {}, {})[0]["parts"][0]
+    assert got["relative"] == pytest.approx({"paper": None, "mean": 75.0, "lo": round(100 * (f_lo - 1), 1),
+                                             "hi": round(100 * (f_hi - 1), 1), "method": "Fieller"})
+
+
+def test_a_floor_unbounded_where_b_may_be_zero():
+    """B's lower limit at or below 0: MOVER-R has no bound, as Fieller's then; a pooled B of 0 of 64
+    (Wilson's lower limit 0) makes a bounded Fieller interval unbounded, and says the floor moved it; an
+    unbounded Fieller interval stays so."""
+    assert mover_ratio(50.0, (40.0, 60.0), 2.0, (-1.0, 5.0)) == (None, None)
+    assert mover_ratio(50.0, (40.0, 60.0), 2.0, (0.0, 5.0)) == (None, None)
+    assert with_ratio_floor(1.0, 1.2, [(1.0, 30, 64)], [(1.0, 0, 64)]) == (None, None, True)
+    assert with_ratio_floor(None, None, [(1.0, 30, 64)], [(1.0, 20, 64)]) == (None, None, False)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import SELECTOR_NAMES, SELECTORS, CellResult, episode_terms
 from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
-                                          with_episode_floor, word, word_record)
+                                          with_episode_floor, with_ratio_floor, word, word_record)
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
 TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
@@ -296,7 +296,11 @@ def _measure(an: Analysis, p: Part, paper: Mapping[str, Sequence[float]], labels
     rec["bootstrap"] = _boot_part(an, p, cells).as_dict()
     if p.relative:
         r, lo, hi = ratio_interval([va[s] for s in sorted(va)], [vb[s] for s in sorted(vb)], d.paired)
-        rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi))
+        method, sides = "Fieller", ratio_terms(cells, p)
+        if sides:  # the episodes' floor, as the difference has
+            lo, hi, moved = with_ratio_floor(lo, hi, *sides)
+            method += ", widened to the episodes' interval" if moved else ""
+        rec["relative"].update(mean=_pct_change(r), lo=_pct_change(lo), hi=_pct_change(hi), method=method)
     if not d.enough_seeds:
         rec.update(verdict=TOO_FEW, verdict_holm=TOO_FEW)
     else:
@@ -317,6 +321,15 @@ def part_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> list[tuple
     sides = [(p.hard, 1.0), (p.easy, -1.0)] if p.on == "gap" else [(p.on, 1.0)]
     return episode_terms(cells, [(sign * side, row, on) for on, sign in sides
                                  for row, side in ((p.a, 1.0), (p.b, -p.b_scale))])
+
+
+def ratio_terms(cells: Mapping[str, Sequence[CellResult]], p: Part) -> tuple[list, list] | None:
+    """A relative part's A and B each as its own terms of pooled episodes on the part's selector, for the
+    ratio's episodes' floor (``seed_stats.with_ratio_floor``); None for a gap or a column with no episode."""
+    if p.on == "gap":
+        return None
+    sides = [episode_terms(cells, [(1.0, row, p.on)]) for row in (p.a, p.b)]
+    return (sides[0], sides[1]) if all(sides) else None
 
 
 def _boot_part(an: Analysis, p: Part, cells: Mapping[str, Sequence[CellResult]]) -> Estimate:

@@ -5,7 +5,8 @@ A *cell* is one (row, seed) of a reproduction: a model trained with that seed an
 pictures); the parts it reads live beside it (the package's docstring lists them). Where each figure comes from:
 a Table-4 entry, ``analysis.row_estimate``; a claim's part, ``claims.judge`` -> ``seed_stats.difference`` ->
 ``seed_stats.with_episode_floor`` (its terms from ``claims.part_terms``) -> ``seed_stats.holm``; a relative
-change, ``seed_stats.ratio_interval``; the bootstrap, ``analysis.bootstrap_replicates``; which row drives best,
+change, ``seed_stats.ratio_interval`` -> ``seed_stats.with_ratio_floor`` (its terms from
+``claims.ratio_terms``); the bootstrap, ``analysis.bootstrap_replicates``; which row drives best,
 ``ranking.best`` (MCB), and the forest plot, ``ranking.forest``. The
 method below, from **Intervals (primary)** up to **Verdicts**, is copied into every report (results.json's
 ``method``). *Overall* is always the mean of the four table columns (each column weighs the same, as in
@@ -38,7 +39,11 @@ both rows have at least 3 seeds there (the method says "within" that kind and ho
 kinds it left out), and where no kind has that, on all cells, marked "mixed CPUs" with each kind's cells.
 Every interval is two-sided at 95%, and every test is the two-sided t-test dual to it. A relative change
 (``A / B - 1``) gets Fieller's interval for a ratio of means, with the same variances, covariance (paired)
-and degrees of freedom; it is unbounded when B is not clearly above 0.
+and degrees of freedom, widened likewise to contain the ratio interval of the two rows' success on their
+pooled episodes (each a proportion, or a mean of columns' proportions, with its Wilson or MOVER interval
+above; the ratio by Donner & Zou's MOVER-R), the relative change saying "widened to the episodes'
+interval" where that moved a bound; it is unbounded when B is not clearly above 0 (Fieller's, or the
+pooled B's lower limit at 0).
 Simulated experiments with a known truth (``tests/test_results_coverage.py``) check that these intervals
 cover the truth in at least 93% of experiments at 3 and at 5 seeds.
 
@@ -302,7 +307,8 @@ def _relative(rel: Mapping[str, Any] | None) -> str:
         return ""
     if rel.get("lo") is None or rel.get("hi") is None:
         return f"; relative {rel['mean']:+.0f}% (interval unbounded)"
-    return f"; relative {rel['mean']:+.0f}% [{rel['lo']:+.0f}, {rel['hi']:+.0f}]"
+    widened = ", widened to the episodes' interval" if "widened" in rel.get("method", "") else ""
+    return f"; relative {rel['mean']:+.0f}% [{rel['lo']:+.0f}, {rel['hi']:+.0f}]{widened}"
 
 
 def summary_lines(data: Mapping[str, Any]) -> list[str]:

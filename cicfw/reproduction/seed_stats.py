@@ -121,6 +121,45 @@ def ratio_interval(a: Sequence[float], b: Sequence[float], paired: bool,
     return ratio, (qb - root) / qa, (qb + root) / qa
 
 
+def mover_ratio(a: float, a_limits: tuple[float, float], b: float,
+                b_limits: tuple[float, float]) -> tuple[float | None, float | None]:
+    """The interval of a / b for two independent estimates from each one's limits (l, u) at the level
+    wanted: MOVER-R (Donner & Zou 2012), Fieller's theorem with each variance recovered from its own
+    limits. For a and its limits at or above 0 (a success rate; Newcombe 2013 treats either sign); (None,
+    None) where b's lower limit is at or below 0, as Fieller's is then unbounded."""
+    (l1, u1), (l2, u2) = a_limits, b_limits
+    if l2 <= 0:
+        return None, None
+    ab = a * b
+
+    def root(lim_a: float, lim_b: float, sign: float) -> float:  # lim_b (2b - lim_b) R^2 - 2ab R + ... = 0
+        den, const = lim_b * (2 * b - lim_b), lim_a * (2 * a - lim_a)
+        disc = math.sqrt(max(ab * ab - den * const, 0.0))
+        if den == 0:  # u2 = 2b: the quadratic is linear (a = 0 leaves a bound of 0)
+            return const / (2 * ab) if ab else 0.0
+        return (ab + sign * disc) / den
+
+    return root(l1, u2, -1.0), root(u1, l2, 1.0)
+
+
+def with_ratio_floor(lo: float | None, hi: float | None,
+                     a_terms: Sequence[tuple[float, int, int]], b_terms: Sequence[tuple[float, int, int]],
+                     level: float = LEVEL) -> tuple[float | None, float | None, bool]:
+    """Fieller's interval ``[lo, hi]`` of a ratio of rows' means over seeds widened to contain the
+    ratio interval of the same two rows' success on their pooled episodes (``mover_ratio`` of A's and B's
+    ``contrast_interval``, each on its own ``terms``): seeds whose values agree leave Fieller's no width
+    but never remove the episodes' luck. Returns (lo, hi, whether a bound moved); an unbounded one (None)
+    stays unbounded, and a floor unbounded (B's pooled lower limit at 0) makes it so."""
+    if lo is None or hi is None:
+        return lo, hi, False
+    a = 100.0 * sum(c * k / n for c, k, n in a_terms)
+    b = 100.0 * sum(c * k / n for c, k, n in b_terms)
+    flo, fhi = mover_ratio(a, contrast_interval(a_terms, level), b, contrast_interval(b_terms, level))
+    if flo is None or fhi is None:
+        return None, None, True
+    return min(lo, flo), max(hi, fhi), flo < lo or fhi > hi
+
+
 @dataclass
 class Estimate:
     """A mean (%, or points for a difference) with its interval; ``lo``/``hi`` are None where there is
