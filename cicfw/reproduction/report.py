@@ -110,10 +110,10 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cicfw.benchmark.evaluation_report import md_row, md_table
-from cicfw.benchmark.plots import _plt, _save
+from cicfw.benchmark.plots import _plt, _save, png_bytes
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
@@ -691,10 +691,11 @@ def _colour(plt: Any, k: int) -> Any:
     return plt.get_cmap("tab20")((2 * k) % 20 + (k // 10) % 2)
 
 
-def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
+def results_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Success per column with 95% t-interval bars (over seeds, widened to the episodes' floor, as the
     table's) for each row; the paper's values as crosses
-    in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
+    in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``).
+    Returns the figure, not yet saved (``plot_results`` saves it)."""
     plt = _plt()
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(max(7.5, 1.2 * len(rows) + 4), 4.4))
@@ -723,15 +724,15 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
     # the bars are row_estimate's: the t-interval widened to the pooled episodes' interval
     ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds\n"
                  f"(never narrower than the interval of the episodes pooled over the seeds)", fontsize=10)
-    return _save(fig, Path(path))
+    return fig
 
 
-def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+def forest_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Each row's overall success minus CIL's (``data["forest"]``): the ranked rows best first, with the 95%
     t-interval (thick) and the Bonferroni interval its word is read on (thin), the paper's difference as a
     cross beside it, the numbers and the word at the right; below a line, apart, the rows with too few seeds
-    (not ranked, no word). A hollow point where the comparison pools CPU kinds. None (nothing drawn) without
-    CIL or another row."""
+    (not ranked, no word). A hollow point where the comparison pools CPU kinds. The figure, not yet saved;
+    None (nothing drawn) without CIL or another row."""
     rows = data.get("forest") or []
     if not rows:
         return None
@@ -783,12 +784,12 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     suite = (data["manifest"].get("suite") or {}).get("name", "?")
     ax.set_title(f"Each row against {by[BASELINE]['label']}, suite {suite}, budget {data['manifest'].get('budget')}",
                  fontsize=10)
-    return _save(fig, Path(path))
+    return fig
 
 
-def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+def curve_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Overall success against training samples seen, per row (mean over seeds, band = min..max), each row
-    in its colour of ``plot_results``."""
+    in its colour of ``plot_results``. The figure, not yet saved; None without a curve."""
     pts = curve_points(data)
     if not pts:
         return None
@@ -809,7 +810,24 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     ax.legend(fontsize=8)
     suite = (data["manifest"].get("suite") or {}).get("name", "?")  # a budget may drive another suite
     ax.set_title(f"Learning curve on suite {suite} (band: min..max over seeds)")
-    return _save(fig, Path(path))
+    return fig
+
+
+def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
+    """``results_figure`` written to ``path``."""
+    return _save(results_figure(data, order), Path(path))
+
+
+def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """``forest_figure`` written to ``path``; None (nothing written) without one."""
+    fig = forest_figure(data, order)
+    return None if fig is None else _save(fig, Path(path))
+
+
+def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """``curve_figure`` written to ``path``; None (nothing written) without one."""
+    fig = curve_figure(data, order)
+    return None if fig is None else _save(fig, Path(path))
 
 
 def _prefix(pics: Path | str) -> str:
@@ -829,8 +847,9 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
                  claims: Sequence[Claim] | None = None, margin: float | None = None,
                  relation_candidates: Sequence[str] | None = None) -> dict[str, Any]:
     """results.json, results.csv, RESULTS.md and the pictures (success per column, the forest plot, the
-    learning curve) in ``results_dir``; returns the data. ``claims``, the equivalence ``margin`` and
-    ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
+    learning curve) in ``results_dir``, all or none: everything is rendered first, then written together
+    (``write_together``), so a full disk leaves the earlier report whole. Returns the data. ``claims``, the
+    equivalence ``margin`` and ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
     manifest = read_json(results_dir / "reproduce.json", default={}, kind=dict)
     cells, failed = load_cells(results_dir)
@@ -839,13 +858,16 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
                          + (f"; {len(failed)} failed" if failed else ""))
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin,
                        relation_candidates=relation_candidates)
-    atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
-    atomic_write(results_dir / "results.csv", results_csv(data))
-    plot_results(data, results_dir / "results.png", order=list(catalogue))
-    plot_forest(data, results_dir / "forest.png", order=list(catalogue))
-    curve = plot_curve(data, results_dir / "learning_curve.png", order=list(catalogue))
-    data["has_curve"] = curve is not None
-    atomic_write(results_dir / "RESULTS.md", _with_pictures(data, ".", data["has_curve"]))
+    order = list(catalogue)
+    files = {"results.json": json.dumps(data, indent=1).encode(), "results.csv": results_csv(data).encode()}
+    for name, figure in (("results.png", results_figure), ("forest.png", forest_figure),
+                         ("learning_curve.png", curve_figure)):
+        fig = figure(data, order)
+        if fig is not None:
+            files[name] = png_bytes(fig)
+    data["has_curve"] = "learning_curve.png" in files  # results.json is written without it, as ever
+    files["RESULTS.md"] = _with_pictures(data, ".", data["has_curve"]).encode()
+    write_together({results_dir / name: content for name, content in files.items()})
     return data
 
 
