@@ -122,7 +122,8 @@ from cicfw.reproduction.claims import (Claim, check_margin, default_claims, defa
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
-from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
+from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
+                                                val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.sim.render.weather import LEGACY_FAMILY
@@ -231,14 +232,15 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
     ranked, few = ranking(an, list(catalogue)), apart(an, list(catalogue))
+    named = {f"{c.row}/seed{c.seed}": c.meta for c in cells}  # row/seedK -> cell.json, as relation_choice reads them
     return {"manifest": dict(manifest), "method": _method_text(), "n_boot": n_boot, "level": LEVEL,
             "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
             "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
             "ranking": ranked, "apart": few, "best": best(an, ranked, margin),
             "forest": forest(an, ranked, paper, margin, few),
             "rows": rows, "claims": judge(an, claims, paper, labels, margin),
-            "relation": relation_data(val_errors({f"{c.row}/seed{c.seed}": c.meta for c in cells}, candidates),
-                                      candidates, labels),
+            "relation": relation_data(val_errors(named, candidates), candidates, labels,
+                                      unusable_errors(named, candidates)),
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
@@ -603,7 +605,9 @@ def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
     if not rel:
         return []
     seeds = [str(s) for s in rel["seeds"]]
-    every = sorted({s for c in rel["candidates"] for s in c["val_steer_mae"]}, key=int)
+    left = rel.get("unusable") or {}  # row/seedK -> its val_steer_mae that is no finite number
+    every = sorted({s for c in rel["candidates"] for s in c["val_steer_mae"]}
+                   | {k.split("/seed")[1] for k in left}, key=int)
     lines = ["", "## Fine tuning's R, chosen by validation error", "",
              "The paper sets Table 1's relationship matrix R by hand and does not publish it. Each candidate R "
              "trains as a row of its own; the one with the lowest mean validation steering error (the held-out "
@@ -614,10 +618,15 @@ def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
     for c in rel["candidates"]:
         chosen = c["row"] == rel["chosen"]
         mean = "–" if c["mean"] is None else f"{c['mean']:.5f}" + (" (chosen)" if chosen else "")
-        errors = (f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else "–" for s in every)
+        errors = (f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else left.get(f"{c['row']}/seed{s}", "–")
+                  for s in every)
         lines.append(md_row(["**" + c["label"] + "**" if chosen else c["label"], *errors, mean]))
+    if left:
+        lines += ["", f"Left out: {unusable_text(left)}; a cell without a finite validation error leaves its "
+                      "candidate out at that seed, so the means are over the seeds where every candidate has one."]
     if rel["chosen"] is None:
-        lines += ["", "Not chosen yet: some candidate has no finished cell at a seed the others have."]
+        lines += ["", "Not chosen yet: no seed has a finite validation error for every candidate." if left else
+                  "Not chosen yet: some candidate has no finished cell at a seed the others have."]
     return lines
 
 
