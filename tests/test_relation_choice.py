@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from cicfw.reproduction.relation_choice import choose, choose_in, main, val_errors
+from cicfw.reproduction.relation_choice import choose, choose_in, main, unusable_errors, val_errors
 
 
 def test_the_lowest_mean_over_shared_seeds_wins():
@@ -58,6 +58,29 @@ def test_a_results_folder_and_the_command_line(tmp_path, capsys):
     assert main([str(tmp_path / "missing")]) == 2
 
 
+def test_a_diverged_candidate_is_named_not_called_missing(tmp_path, capsys):
+    """Seed 0 finished for every candidate but re_all's error is NaN: the command said no seed had a finished
+    cell and advised running seed 0 again; it names the cell and its NaN and advises the other seeds."""
+    _cell(tmp_path, "re_all", 0, float("nan"))
+    _cell(tmp_path, "re_pairs", 0, 0.046)
+    _cell(tmp_path, "re_pairs", 1, 0.045)
+    assert main([str(tmp_path), "--candidates", "re_all", "re_pairs"]) == 1
+    out = capsys.readouterr().out
+    assert "re_all/seed0 (val_steer_mae NaN" in out and "'seeds=[1]'" in out, out
+    _cell(tmp_path, "re_all", 1, 0.050)  # seed 1 is shared: chosen there, the NaN cell still named
+    assert main([str(tmp_path), "--candidates", "re_all", "re_pairs"]) == 0
+    out = capsys.readouterr().out
+    assert "left out: re_all/seed0 (val_steer_mae NaN" in out and "over seeds [1]" in out, out
+
+
+def test_unusable_errors_names_each_kind():
+    cells = {"a/seed0": {"val_steer_mae": float("nan")}, "a/seed1": {}, "a/seed2": {"val_steer_mae": float("inf")},
+             "a/seed3": {"val_steer_mae": "0.1"}, "a/seed4": {"val_steer_mae": 0.1}, "b/seed0": {}}
+    assert unusable_errors(cells, ["a"]) == {"a/seed0": "NaN", "a/seed1": "missing", "a/seed2": "inf",
+                                             "a/seed3": '"0.1"'}
+
+
+# ---- the report's account of the choice
 # ---- the report's account of the choice
 
 
@@ -96,6 +119,24 @@ def test_the_report_shows_each_candidates_error_and_the_choice():
     part = report_data(cells[:3], [], catalogue, {}, n_boot=20, claims=[], margin=5.0,
                        relation_candidates=CANDIDATES)["relation"]
     assert part["chosen"] is None and part["seeds"] == []
+
+
+def test_the_report_names_a_diverged_candidate():
+    """re_all's seed 0 NaN: the report said some candidate had no finished cell; it names the cell, shows NaN in
+    the table and chooses over the seeds left (seed 1)."""
+    from cicfw.reproduction.report import markdown, report_data
+
+    cells = [_result("re_all", 0, float("nan")), _result("re_pairs", 0, 0.046), _result("re_none", 0, 0.050)]
+    catalogue = {r: {"label": LABELS[r]} for r in LABELS}
+    data = report_data(cells, [], catalogue, {}, n_boot=20, claims=[], margin=5.0, relation_candidates=CANDIDATES)
+    assert data["relation"]["chosen"] is None and data["relation"]["unusable"] == {"re_all/seed0": "NaN"}
+    section = markdown(json.loads(json.dumps(data))).split("## Fine tuning's R")[1].split("\n## ")[0]
+    assert "| R: every pair | NaN | – |" in section
+    assert "re_all/seed0 (val_steer_mae NaN" in section and "no finished cell" not in section
+    cells += [_result(r, 1, mae) for r, mae in (("re_all", 0.040), ("re_pairs", 0.045), ("re_none", 0.050))]
+    rel = report_data(cells, [], catalogue, {}, n_boot=20, claims=[], margin=5.0,
+                      relation_candidates=CANDIDATES)["relation"]
+    assert rel["seeds"] == [1] and rel["chosen"] == "re_all" and rel["unusable"] == {"re_all/seed0": "NaN"}
 
 
 def test_the_shipped_candidates_are_catalogue_rows_and_the_commands_default():

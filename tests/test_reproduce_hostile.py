@@ -460,6 +460,64 @@ def test_report_files_are_readable_under_umask_022(tmp_path):
         assert stat.S_IMODE(p.stat().st_mode) == 0o644, (p, oct(p.stat().st_mode))
 
 
+REPORT_FILES = ("results.json", "results.csv", "results.png", "forest.png", "RESULTS.md")
+
+
+def too_large_over(limit: int, monkeypatch) -> None:
+    """Every file write of more than ``limit`` bytes fails as under ``ulimit -f`` (EFBIG)."""
+    import errno
+
+    from cicfw.core import files
+
+    real = files.write_all
+
+    def write_all(fd, data):
+        if len(data) > limit:
+            raise OSError(errno.EFBIG, "File too large")
+        real(fd, data)
+
+    monkeypatch.setattr(files, "write_all", write_all)
+
+
+def test_a_report_that_cannot_be_written_whole_leaves_the_earlier_one(tmp_path, capsys, monkeypatch):
+    """A file-size limit that results.json and results.csv fit under and the pictures do not: the report
+    fails in one line naming the picture, and the earlier report is left whole (no new table beside old
+    figures)."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    assert results.main([str(out)]) == 0
+    before = {n: (out / n).read_bytes() for n in REPORT_FILES}
+    limit = max(len(before["results.json"]), len(before["results.csv"])) + 2000
+    assert len(before["results.png"]) > limit
+    write_cells(out, [synthetic("gtu", 0, 5)])  # another outcome: every file of the report would change
+    capsys.readouterr()
+    too_large_over(limit, monkeypatch)
+    assert results.main([str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and repr(str(out / "results.png")) in err[0], err
+    assert {n: (out / n).read_bytes() for n in REPORT_FILES} == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_a_publish_that_cannot_be_written_whole_leaves_the_earlier_copy(tmp_path, monkeypatch):
+    """The same limit while publishing: the published folder keeps its earlier report, not a new RESULTS.md
+    beside old pictures."""
+    out, pub = tmp_path / "results", tmp_path / "pub"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    results.write_report(out, CATALOGUE, n_boot=50)
+    publish(out, pub)
+    before = {p: p.read_bytes() for p in pub.rglob("*") if p.is_file()}
+    write_cells(out, [synthetic("gtu", 0, 5)])
+    results.write_report(out, CATALOGUE, n_boot=50)
+    too_large_over(len((out / "results.png").read_bytes()) - 1, monkeypatch)
+    with pytest.raises(OSError) as err:
+        publish(out, pub)
+    assert err.value.filename == str(pub / "results.png")
+    assert {p: p.read_bytes() for p in pub.rglob("*") if p.is_file()} == before
+
+
 def test_cicfw_report_rewrites_the_report_with_the_runs_own_rows_and_margin(tmp_path):
     """A run given a row of its own (its label) and another margin wrote its report with them; ``cicfw report`` on
     its folder rewrote it with conf/reproduce.yaml's defaults: the row under its key, the words at ±5."""

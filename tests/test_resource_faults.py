@@ -234,6 +234,24 @@ def test_a_truncated_cell_json_is_named(tmp_path):
     assert str(cell) in str(err.value)
 
 
+@pytest.mark.parametrize("field, value", [("success", 2), ("success", "false"), ("success", None),
+                                          ("column", "town_x/ClearNoon")])
+def test_a_bad_episode_in_a_cell_json_is_named(tmp_path, field, value):
+    """A hand-edited episode surfaced as matplotlib's "'yerr' must not contain negative values" or numpy's
+    "could not convert string to float": now one error naming the file, the episode and the value."""
+    from cicfw.reproduction.cells import COLUMNS, load_cells
+
+    cell = tmp_path / "cells" / "cil" / "seed0" / "cell.json"
+    cell.parent.mkdir(parents=True)
+    episodes = {f"e{k}": {"success": k % 2 == 0, "column": c, "command": "left"} for k, c in enumerate(COLUMNS)}
+    episodes["e1"][field] = value
+    cell.write_text(json.dumps({"status": "ok", "row": "cil", "seed": 0, "episodes": episodes}))
+    with pytest.raises(CicfwError) as err:
+        load_cells(tmp_path)
+    assert (err.value.key, err.value.value) == (f"episodes.e1.{field}", value)
+    assert str(cell) in str(err.value) and "'e1'" in str(err.value) and json.dumps(value) in str(err.value)
+
+
 def test_read_json_names_the_file(tmp_path):
     from cicfw.core.json_files import read_json
 

@@ -2,6 +2,7 @@
 table's columns and selectors (a column, a town, a weather, overall) that results are read on."""
 from __future__ import annotations
 
+import json
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -133,11 +134,33 @@ def cpu_counts(cells: Sequence[CellResult]) -> dict[str, int]:
     return most_first(c.cpu for c in cells)
 
 
+def check_episodes(path: Path, episodes: Any) -> dict[str, dict[str, Any]]:
+    """A finished cell's ``episodes``, each checked: an object whose ``success`` is a JSON boolean and whose
+    ``column`` is a table column, else one ``CicfwError`` naming the file, the episode and the value (a
+    hand-edited 2 or "false" would otherwise surface as matplotlib's or numpy's message, far from its cause)."""
+    if not isinstance(episodes, dict):
+        raise CicfwError(f"{path}: 'episodes' is {json.dumps(episodes)[:40]}; a finished cell's episodes must be a "
+                         f"JSON object of episode key -> outcome", key="episodes", value=episodes)
+    for k, e in episodes.items():
+        if not isinstance(e, dict):
+            raise CicfwError(f"{path}: episode {k!r} is {json.dumps(e)[:40]}; each episode must be a JSON object "
+                             f"with 'success' and 'column'", key=f"episodes.{k}", value=e)
+        if not isinstance(e.get("success"), bool):
+            raise CicfwError(f"{path}: episode {k!r} has success {json.dumps(e.get('success'))[:40]}; it must be "
+                             f"a JSON boolean, true or false", key=f"episodes.{k}.success", value=e.get("success"))
+        if e.get("column") not in COLUMNS:
+            raise CicfwError(f"{path}: episode {k!r} has column {json.dumps(e.get('column'))[:60]}; it must be one "
+                             f"of the table's columns, {', '.join(COLUMNS)}", key=f"episodes.{k}.column",
+                             value=e.get("column"))
+    return episodes
+
+
 def load_cell(path: Path) -> CellResult | dict[str, Any]:
-    """One ``cell.json``: its CellResult when it finished (status ok), else the file's dict as it is."""
+    """One ``cell.json``: its CellResult when it finished (status ok, its episodes checked: ``check_episodes``),
+    else the file's dict as it is."""
     d = read_json(path, kind=dict)
     if d.get("status") == "ok":
-        return CellResult(row=d["row"], seed=int(d["seed"]), episodes=d["episodes"], meta=d)
+        return CellResult(row=d["row"], seed=int(d["seed"]), episodes=check_episodes(path, d.get("episodes")), meta=d)
     return d
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import cell_files, finished_cells
 
@@ -16,19 +16,23 @@ PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:
     """Copy a reproduction's small results into ``dest`` (for committing): RESULTS.md, results.json/.csv,
-    the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs)."""
+    the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs). All or none
+    (``write_together``): a full disk leaves the earlier copy whole, never its report beside newer cells."""
     results_dir, dest = Path(results_dir), Path(dest)
     files = [results_dir / n for n in PUBLISHED_FILES if (results_dir / n).is_file()]
     files += cell_files(results_dir)
-    out = []
     if dest.exists() and not dest.is_dir():
         raise CicfwError(f"publish_dir {str(dest)!r} is a file, not a folder; give publish_dir=<a folder>")
-    for f in files:
-        target = dest / f.relative_to(results_dir)
-        if target.resolve() != f.resolve():
-            atomic_write(target, f.read_bytes())
-        out.append(target)
-    return out
+    pairs = [(f, dest / f.relative_to(results_dir)) for f in files]
+    copies = [(f, target) for f, target in pairs if target.resolve() != f.resolve()]
+
+    def contents():  # one file's bytes in memory at a time
+        for f, target in copies:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            yield target, f.read_bytes()
+
+    write_together(contents())
+    return [target for _, target in pairs]
 
 
 def published_manifest(src: Path) -> dict[str, Any]:

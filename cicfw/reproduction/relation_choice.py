@@ -3,14 +3,17 @@
 The paper sets R "manually before training" and does not publish it. A reproduction needs a rule that
 does not peek at the driving suite: train each candidate R (conf/reproduce.yaml ``relation_candidates``)
 with the same seeds, and keep the one whose mean validation steering error (``val_steer_mae`` of its
-cells: the held-out part of the training town's data) is lowest; a tie keeps the earlier candidate. The
-report shows the choice (``relation_data``); so does
+cells: the held-out part of the training town's data) is lowest; a tie keeps the earlier candidate. A cell
+whose error is not a finite number (NaN: its training diverged; or none recorded) leaves its candidate out at
+that seed, so that seed is no shared one, and the report and the command name it. The report shows the choice
+(``relation_data``); so does
 
     python -m cicfw.reproduction.relation_choice outputs/reproduce/converged6_carla
 """
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from dataclasses import dataclass
@@ -31,15 +34,43 @@ class RelationChoice:
     chosen: str | None  # None while some candidate has no finished cell at a shared seed
 
 
+def _finite(value: Any) -> bool:
+    """Whether a cell's ``val_steer_mae`` is a finite number (not NaN, infinite, missing or text)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> dict[str, dict[int, float]]:
-    """row -> {seed: val_steer_mae} of the finished cells (``row/seedK`` -> cell.json) of ``rows``."""
+    """row -> {seed: val_steer_mae} of the finished cells (``row/seedK`` -> cell.json) of ``rows`` whose error
+    is a finite number (``unusable_errors`` names the others)."""
     out: dict[str, dict[int, float]] = {r: {} for r in rows}
     for key, cell in cells.items():
         row, seed = key.split("/seed")
         value = cell.get("val_steer_mae")
-        if row in out and value is not None and math.isfinite(float(value)):
+        if row in out and _finite(value):
             out[row][int(seed)] = float(value)
     return out
+
+
+def unusable_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> dict[str, str]:
+    """``row/seedK`` -> what its ``val_steer_mae`` is, for each finished cell of ``rows`` that ``val_errors``
+    leaves out: "NaN" (a diverged training), "inf", "missing" or the JSON value."""
+    out = {}
+    for key, cell in sorted(cells.items()):
+        if key.split("/seed")[0] not in rows or _finite(value := cell.get("val_steer_mae")):
+            continue
+        if value is None:
+            out[key] = "missing"
+        elif isinstance(value, float):
+            out[key] = "NaN" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+        else:
+            out[key] = json.dumps(value)[:40]
+    return out
+
+
+def unusable_text(unusable: Mapping[str, str]) -> str:
+    """The cells left out, in words: ``re_all/seed0 (val_steer_mae NaN: its training diverged)``."""
+    why = {"NaN": ": its training diverged", "missing": ": none recorded"}
+    return ", ".join(f"{k} (val_steer_mae {v}{why.get(v, '')})" for k, v in unusable.items())
 
 
 def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str]) -> RelationChoice:
@@ -61,17 +92,19 @@ def shipped_candidates() -> list[str]:
 
 
 def relation_data(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str],
-                  labels: Mapping[str, str]) -> dict[str, Any] | None:
+                  labels: Mapping[str, str], unusable: Mapping[str, str] | None = None) -> dict[str, Any] | None:
     """The report's account of the choice: each candidate's validation error per seed, the seeds they share,
-    their means over those and the row chosen (None until every candidate has a cell at a shared seed);
-    None when no candidate has a cell."""
-    if not candidates or not any(errors_by_seed.get(r) for r in candidates):
+    their means over those and the row chosen (None until every candidate has a cell at a shared seed), and
+    ``unusable`` (``unusable_errors``: the cells left out) where there is one; None when no candidate has a
+    cell."""
+    if not candidates or not (any(errors_by_seed.get(r) for r in candidates) or unusable):
         return None
     c = choose(errors_by_seed, candidates)
     return {"seeds": list(c.seeds), "chosen": c.chosen,
             "candidates": [{"row": r, "label": labels.get(r, r),
                             "val_steer_mae": {str(s): v for s, v in sorted((errors_by_seed.get(r) or {}).items())},
-                            "mean": c.errors.get(r)} for r in candidates]}
+                            "mean": c.errors.get(r)} for r in candidates],
+            **({"unusable": dict(unusable)} if unusable else {})}
 
 
 def choose_in(folder: Path, candidates: Sequence[str]) -> RelationChoice:
@@ -91,11 +124,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"relation_choice: {str(args.folder)!r} is not a folder; give a reproduction's results folder",
               file=sys.stderr)
         return 2
-    c = choose_in(args.folder, args.candidates)
+    cells = finished_cells(args.folder)
+    c = choose(val_errors(cells, args.candidates), args.candidates)
+    unusable = unusable_errors(cells, args.candidates)
+    if c.chosen is None and unusable:
+        seeds = {int(k.split("/seed")[1]) for k in cells if k.split("/seed")[0] in args.candidates}
+        left = {int(k.split("/seed")[1]) for k in unusable}
+        clean = sorted(seeds - left) or [max(seeds) + 1]  # rerunning a left-out seed would diverge again
+        print(f"no seed has a finite validation error for every candidate ({', '.join(args.candidates)}): "
+              f"{unusable_text(unusable)} leaves its candidate out at that seed; run the candidates at seeds "
+              f"without one: python -m cicfw.reproduce 'rows=[{','.join(args.candidates)}]' "
+              f"'seeds=[{','.join(map(str, clean))}]'")
+        return 1
     if c.chosen is None:
         print(f"no seed has a finished cell for every candidate ({', '.join(args.candidates)}); run "
               f"python -m cicfw.reproduce 'rows=[{','.join(args.candidates)}]' 'seeds=[0]' first")
         return 1
+    if unusable:
+        print(f"left out: {unusable_text(unusable)}")
     print(f"validation steering error (mean over seeds {list(c.seeds)}):")
     for r in args.candidates:
         print(f"  {r:12s} {c.errors[r]:.5f}{'  <- chosen' if r == c.chosen else ''}")

@@ -115,10 +115,10 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cicfw.benchmark.evaluation_report import md_row, md_table
-from cicfw.benchmark.plots import _plt, _save
+from cicfw.benchmark.plots import _plt, _save, png_bytes
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
@@ -128,7 +128,8 @@ from cicfw.reproduction.claims import (Claim, check_margin, default_claims, defa
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
-from cicfw.reproduction.relation_choice import relation_data, shipped_candidates, val_errors
+from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
+                                                val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
 from cicfw.sim.render.weather import LEGACY_FAMILY
@@ -246,14 +247,15 @@ def report_data(cells: Sequence[CellResult], failed: Sequence[Mapping[str, Any]]
             "curve": {str(c.seed): c.meta.get("curve", []) for c in cs if c.meta.get("curve")},
         })
     ranked, few = ranking(an, list(catalogue)), apart(an, list(catalogue))
+    named = {f"{c.row}/seed{c.seed}": c.meta for c in cells}  # row/seedK -> cell.json, as relation_choice reads them
     return {"manifest": dict(manifest), "method": _method_text(list(kinds)), "n_boot": n_boot, "level": LEVEL,
             "min_seeds": MIN_SEEDS, "overall": "mean of the four table columns (not pooled episodes)",
             "equivalence_margin": margin, "machines": machine_counts(cells), "cpus": kinds,
             "ranking": ranked, "apart": few, "best": best(an, ranked, margin),
             "forest": forest(an, ranked, paper, margin, few),
             "rows": rows, "claims": judge(an, claims, paper, labels, margin),
-            "relation": relation_data(val_errors({f"{c.row}/seed{c.seed}": c.meta for c in cells}, candidates),
-                                      candidates, labels),
+            "relation": relation_data(val_errors(named, candidates), candidates, labels,
+                                      unusable_errors(named, candidates)),
             "failed": [{"row": f.get("row"), "seed": f.get("seed"), "error": f.get("error")} for f in failed]}
 
 
@@ -630,7 +632,9 @@ def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
     if not rel:
         return []
     seeds = [str(s) for s in rel["seeds"]]
-    every = sorted({s for c in rel["candidates"] for s in c["val_steer_mae"]}, key=int)
+    left = rel.get("unusable") or {}  # row/seedK -> its val_steer_mae that is no finite number
+    every = sorted({s for c in rel["candidates"] for s in c["val_steer_mae"]}
+                   | {k.split("/seed")[1] for k in left}, key=int)
     lines = ["", "## Fine tuning's R, chosen by validation error", "",
              "The paper sets Table 1's relationship matrix R by hand and does not publish it. Each candidate R "
              "trains as a row of its own; the one with the lowest mean validation steering error (the held-out "
@@ -641,10 +645,15 @@ def relation_lines(rel: Mapping[str, Any] | None) -> list[str]:
     for c in rel["candidates"]:
         chosen = c["row"] == rel["chosen"]
         mean = "–" if c["mean"] is None else f"{c['mean']:.5f}" + (" (chosen)" if chosen else "")
-        errors = (f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else "–" for s in every)
+        errors = (f"{c['val_steer_mae'][s]:.5f}" if s in c["val_steer_mae"] else left.get(f"{c['row']}/seed{s}", "–")
+                  for s in every)
         lines.append(md_row(["**" + c["label"] + "**" if chosen else c["label"], *errors, mean]))
+    if left:
+        lines += ["", f"Left out: {unusable_text(left)}; a cell without a finite validation error leaves its "
+                      "candidate out at that seed, so the means are over the seeds where every candidate has one."]
     if rel["chosen"] is None:
-        lines += ["", "Not chosen yet: some candidate has no finished cell at a seed the others have."]
+        lines += ["", "Not chosen yet: no seed has a finite validation error for every candidate." if left else
+                  "Not chosen yet: some candidate has no finished cell at a seed the others have."]
     return lines
 
 
@@ -718,10 +727,11 @@ def _colour(plt: Any, k: int) -> Any:
     return plt.get_cmap("tab20")((2 * k) % 20 + (k // 10) % 2)
 
 
-def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
+def results_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Success per column with 95% t-interval bars (over seeds, widened to the episodes' floor, as the
     table's) for each row; the paper's values as crosses
-    in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``)."""
+    in the row's colour. ``order``: the catalogue's rows, which fix each row's colour (``row_colours``).
+    Returns the figure, not yet saved (``plot_results`` saves it)."""
     plt = _plt()
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(max(7.5, 1.2 * len(rows) + 4), 4.4))
@@ -750,15 +760,15 @@ def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ())
     # the bars are row_estimate's: the t-interval widened to the pooled episodes' interval
     ax.set_title(f"Suite {suite}, budget {data['manifest'].get('budget')}: mean over seeds, 95% t-interval over seeds\n"
                  f"(never narrower than the interval of the episodes pooled over the seeds)", fontsize=10)
-    return _save(fig, Path(path))
+    return fig
 
 
-def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+def forest_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Each row's overall success minus CIL's (``data["forest"]``): the ranked rows best first, with the 95%
     t-interval (thick) and the Bonferroni interval its word is read on (thin), the paper's difference as a
     cross beside it, the numbers and the word at the right; below a line, apart, the rows with too few seeds
-    (not ranked, no word). A hollow point where the comparison pools kinds. None (nothing drawn) without
-    CIL or another row."""
+    (not ranked, no word). A hollow point where the comparison pools kinds. The figure, not yet saved;
+    None (nothing drawn) without CIL or another row."""
     rows = data.get("forest") or []
     if not rows:
         return None
@@ -812,12 +822,12 @@ def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) 
     suite = (data["manifest"].get("suite") or {}).get("name", "?")
     ax.set_title(f"Each row against {by[BASELINE]['label']}, suite {suite}, budget {data['manifest'].get('budget')}",
                  fontsize=10)
-    return _save(fig, Path(path))
+    return fig
 
 
-def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+def curve_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
     """Overall success against training samples seen, per row (mean over seeds, band = min..max), each row
-    in its colour of ``plot_results``."""
+    in its colour of ``plot_results``. The figure, not yet saved; None without a curve."""
     pts = curve_points(data)
     if not pts:
         return None
@@ -838,7 +848,24 @@ def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -
     ax.legend(fontsize=8)
     suite = (data["manifest"].get("suite") or {}).get("name", "?")  # a budget may drive another suite
     ax.set_title(f"Learning curve on suite {suite} (band: min..max over seeds)")
-    return _save(fig, Path(path))
+    return fig
+
+
+def plot_results(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path:
+    """``results_figure`` written to ``path``."""
+    return _save(results_figure(data, order), Path(path))
+
+
+def plot_forest(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """``forest_figure`` written to ``path``; None (nothing written) without one."""
+    fig = forest_figure(data, order)
+    return None if fig is None else _save(fig, Path(path))
+
+
+def plot_curve(data: Mapping[str, Any], path: Path, order: Sequence[str] = ()) -> Path | None:
+    """``curve_figure`` written to ``path``; None (nothing written) without one."""
+    fig = curve_figure(data, order)
+    return None if fig is None else _save(fig, Path(path))
 
 
 def _prefix(pics: Path | str) -> str:
@@ -858,8 +885,9 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
                  claims: Sequence[Claim] | None = None, margin: float | None = None,
                  relation_candidates: Sequence[str] | None = None) -> dict[str, Any]:
     """results.json, results.csv, RESULTS.md and the pictures (success per column, the forest plot, the
-    learning curve) in ``results_dir``; returns the data. ``claims``, the equivalence ``margin`` and
-    ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
+    learning curve) in ``results_dir``, all or none: everything is rendered first, then written together
+    (``write_together``), so a full disk leaves the earlier report whole. Returns the data. ``claims``, the
+    equivalence ``margin`` and ``relation_candidates``: the paper's and conf/reproduce.yaml's when not given."""
     results_dir = Path(results_dir)
     manifest = read_json(results_dir / "reproduce.json", default={}, kind=dict)
     cells, failed = load_cells(results_dir)
@@ -868,13 +896,16 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
                          + (f"; {len(failed)} failed" if failed else ""))
     data = report_data(cells, failed, catalogue, manifest, n_boot=n_boot, claims=claims, margin=margin,
                        relation_candidates=relation_candidates)
-    atomic_write(results_dir / "results.json", json.dumps(data, indent=1))
-    atomic_write(results_dir / "results.csv", results_csv(data))
-    plot_results(data, results_dir / "results.png", order=list(catalogue))
-    plot_forest(data, results_dir / "forest.png", order=list(catalogue))
-    curve = plot_curve(data, results_dir / "learning_curve.png", order=list(catalogue))
-    data["has_curve"] = curve is not None
-    atomic_write(results_dir / "RESULTS.md", _with_pictures(data, ".", data["has_curve"]))
+    order = list(catalogue)
+    files = {"results.json": json.dumps(data, indent=1).encode(), "results.csv": results_csv(data).encode()}
+    for name, figure in (("results.png", results_figure), ("forest.png", forest_figure),
+                         ("learning_curve.png", curve_figure)):
+        fig = figure(data, order)
+        if fig is not None:
+            files[name] = png_bytes(fig)
+    data["has_curve"] = "learning_curve.png" in files  # results.json is written without it, as ever
+    files["RESULTS.md"] = _with_pictures(data, ".", data["has_curve"]).encode()
+    write_together({results_dir / name: content for name, content in files.items()})
     return data
 
 

@@ -75,12 +75,17 @@ def pyplot():
     return plt
 
 
-def save_png(fig, path: Path, fmt: str = "png") -> Path:
-    """``fig`` as a PNG (or ``fmt``) at ``path``, written whole or not at all; the figure is closed."""
+def png_bytes(fig, fmt: str = "png") -> bytes:
+    """``fig`` as PNG (or ``fmt``) bytes, the figure closed: for a caller that writes several files together."""
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=110, bbox_inches="tight")
     pyplot().close(fig)
-    atomic_write(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def save_png(fig, path: Path, fmt: str = "png") -> Path:
+    """``fig`` as a PNG (or ``fmt``) at ``path``, written whole or not at all; the figure is closed."""
+    atomic_write(path, png_bytes(fig, fmt))
     return path
 
 
