@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from scipy import stats
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction import paired_switch as ps
 from cicfw.reproduction.cells import COLUMNS
 
@@ -205,3 +206,99 @@ def test_episodes_files_without_episodes_are_refused(tmp_path, capsys):
         assert ps.main(["--episodes", str(tmp_path / name), cell]) == 2, name
         out, err = capsys.readouterr()
         assert out == "" and err.count("\n") == 1 and str(tmp_path / name) in err, (name, err)
+
+
+def results_folder(root: Path, suite: list[str] | None, rows: dict[str, str | None], seeds: int = 3) -> dict[str, Path]:
+    """A results folder pinned to ``suite`` (None: no reproduce.json) with a row per ``rows`` entry, each cell
+    recording that weather family (None: no record); row -> its cells' folder."""
+    if suite is not None:
+        root.mkdir(parents=True)
+        (root / "reproduce.json").write_text(json.dumps({"pinned": {"suite": suite}}))
+    out = {}
+    for row, family in rows.items():
+        for s in range(seeds):
+            write_cell(root / "cells" / row, row, s, [10, 10, 10, 10])
+            if family:
+                p = root / "cells" / row / f"seed{s}" / "cell.json"
+                p.write_text(json.dumps({**json.loads(p.read_text()), "weather_family": family}))
+        out[row] = root / "cells" / row
+    return out
+
+
+def test_rows_driven_under_different_weather_families_are_refused(tmp_path, capsys):
+    """The families share weather names, so episode keys match: a row of a carla folder against one of a
+    folder pinned before the families (harsh) is refused naming both; so are cells recording the two families
+    without a reproduce.json; one family on both sides is compared."""
+    carla = results_folder(tmp_path / "carla", ["suite=single_turn", "sim.weather_family=carla"], {"cil": None})
+    harsh = results_folder(tmp_path / "harsh", ["suite=single_turn"], {"cil": None})
+    assert ps.main([str(carla["cil"]), str(harsh["cil"])]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "'carla'" in err and "'harsh'" in err, err
+    bare = results_folder(tmp_path / "bare", None, {"a": "harsh", "b": "carla", "c": None})
+    with pytest.raises(CicfwError) as got:
+        ps.check_one_family(ps.load_row(bare["a"]), ps.load_row(bare["b"]), (bare["a"], bare["b"]))
+    assert (got.value.key, got.value.value) == ("weather_family", "carla")
+    # a carla cell copied into the harsh folder: refused on its own record
+    mixed = results_folder(tmp_path / "mixed", ["suite=single_turn"], {"cil": None, "gtu": "carla"})
+    assert ps.main([str(mixed["gtu"]), str(harsh["cil"])]) == 2
+    assert "'carla'" in capsys.readouterr().err
+    assert ps.main([str(bare["c"]), str(harsh["cil"])]) == 0  # no record, no manifest: not known
+    assert ps.main([str(carla["cil"]), str(bare["b"])]) == 0
+    capsys.readouterr()
+
+
+def eval_folder(path: Path, family: str) -> Path:
+    """An evaluation folder (episodes.json with its fingerprint's sim settings, episodes.csv) of column 0."""
+    path.mkdir(parents=True)
+    rows = [{"key": f"{COLUMNS[0]}/{i:02d}", "town_set": "training", "weather_set": "training", "success": i < 10}
+            for i in range(EPISODES)]
+    (path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {"model": path.name, "fingerprint": {
+        "sim": {"weather_family": family, "success_radius_m": 2.0}, "runner": {"off_road_s": 2.0}}}}))
+    (path / "episodes.csv").write_text("key,town_set,weather_set,success\n" + "".join(
+        f"{r['key']},training,training,{r['success']}\n" for r in rows))
+    return path
+
+
+def test_episodes_under_different_sim_settings_are_refused(tmp_path, capsys):
+    """--episodes on two evaluation folders refuses other sim settings as `cicfw report` does (naming the key
+    and both values); a cell against a folder compares their weather families."""
+    carla, harsh = eval_folder(tmp_path / "carla", "carla"), eval_folder(tmp_path / "harsh", "harsh")
+    assert ps.main(["--episodes", str(harsh), str(carla)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "sim.weather_family" in err and "harsh" in err, err
+    assert ps.main(["--episodes", str(carla), str(eval_folder(tmp_path / "carla2", "carla"))]) == 0
+    capsys.readouterr()
+    rows = results_folder(tmp_path / "old", ["suite=single_turn"], {"cil": None}, seeds=1)  # harsh, by its pin
+    assert ps.main(["--episodes", str(carla), str(rows["cil"] / "seed0" / "cell.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'carla'" in err and "'harsh'" in err, err
+    assert ps.main(["--episodes", str(harsh), str(rows["cil"] / "seed0" / "cell.json")]) == 0
+
+
+def test_seeds_that_drove_other_episodes_are_refused(tmp_path, capsys):
+    """A side whose seed 1 lost a column's last 5 episodes (75 against 80) is refused naming the seed and the
+    counts, not compared on other episodes."""
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [10, 10, 10, 10])
+        write_cell(tmp_path / "b", "cil", s, [10, 10, 10, 10])
+    p = tmp_path / "a" / "seed1" / "cell.json"
+    d = json.loads(p.read_text())
+    d["episodes"] = {k: e for k, e in d["episodes"].items() if not (k.startswith(COLUMNS[3]) and int(k[-2:]) >= 15)}
+    p.write_text(json.dumps(d))
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "seed1" in err and "75" in err and "80" in err, err
+
+
+def test_the_header_names_each_sides_cpu_kinds_where_they_differ(tmp_path, capsys):
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [10, 10, 10, 10])
+        write_cell(tmp_path / "b", "cil", s, [10, 10, 10, 10])
+    a, b = ps.load_row(tmp_path / "a"), ps.load_row(tmp_path / "b")
+    for c in a.values():
+        c.meta["machine"] = "2 cores (Intel(R) Xeon(R) CPU @ 2.20GHz), no GPU"
+    for c in b.values():
+        c.meta["machine"] = "2 cores (AMD EPYC 7B13), no GPU"
+    line = ps.lines(a, b, 5.0)[1]
+    assert "CPU kinds differ" in line and "Intel Xeon (3)" in line and "AMD EPYC 7B13 (3)" in line, line
+    assert not any("CPU kinds" in x for x in ps.lines(a, a, 5.0))

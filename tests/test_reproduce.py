@@ -326,7 +326,7 @@ def test_shown_path_is_relative_to_the_clone_that_holds_the_folder(tmp_path):
     assert reproduce.shown_path(outside) == str(outside.resolve())
 
 
-@pytest.mark.parametrize("what", ["manifest", "cell", "recipe"])
+@pytest.mark.parametrize("what", ["manifest", "cell", "recipe", "family"])
 def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cache, one_cell, tmp_path, capsys,
                                                                         monkeypatch):
     import cicfw.train.app
@@ -347,6 +347,10 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
             m["dataset"] = "ffffffffffffffff"
             message = (f"cell cil/seed0 of {str(published)!r} was trained on dataset ffffffffffffffff, this run's "
                        f"is {dataset}")
+        elif what == "family":  # a cell records the weather family it drove; another family's is refused
+            assert m["weather_family"] == "carla"
+            m["weather_family"] = "harsh"
+            message = f"cell cil/seed0 of {str(published)!r} was driven under weather_family=harsh"
         else:
             m["recipe"]["encoder"]["dropout_conv"] = 0.2
             message = (f"cell cil/seed0 of {str(published)!r} was trained with encoder.dropout_conv=0.2, this run "

@@ -4,6 +4,7 @@ rule, Holm's adjustment on a case solved by hand, Fieller's ratio interval, the 
 data, and the secondary two-level bootstrap against hand computations."""
 from __future__ import annotations
 
+import json
 import math
 import re
 from pathlib import Path
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction import report as results
 from cicfw.reproduction import seed_stats
 from cicfw.reproduction.cells import COLUMNS, CellResult
@@ -619,8 +621,38 @@ def test_bootstrap_paired_difference_of_identical_rows_is_exactly_zero():
 def test_cells_on_other_episodes_are_refused():
     a = same_in_every_column("a", 0, [1, 0])
     b = same_in_every_column("b", 0, [1, 0, 1])
-    with pytest.raises(ValueError, match="drove other episodes"):
+    with pytest.raises(ValueError, match="drove other episodes") as err:
         analyse([a, b])
+    assert "(12 episodes against 8" in str(err.value)
+
+
+def _folder(tmp_path: Path, suite: list[str], families: dict[str, str | None]) -> Path:
+    """A results folder pinned to ``suite``, a cell per row recording ``families[row]`` (None: no record)."""
+    folder = tmp_path / "results"
+    (folder / "cells").mkdir(parents=True)
+    (folder / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"suite": suite}}))
+    for seed in range(3):
+        for row, family in families.items():
+            c = at(row, seed, [6 + seed, 5, 4, 3], n=10)
+            path = folder / "cells" / row / f"seed{seed}" / "cell.json"
+            path.parent.mkdir(parents=True)
+            path.write_text(json.dumps({"status": "ok", "row": row, "seed": seed, "episodes": c.episodes,
+                                        **({"weather_family": family} if family else {})}))
+    return folder
+
+
+def test_the_report_refuses_a_cell_driven_under_another_weather_family(tmp_path):
+    """A folder pinned before the families (harsh) holding a cell that records carla: the same episode keys,
+    other weathers; refused naming the cell and both families. A cell without the record is the folder's."""
+    folder = _folder(tmp_path, ["suite=single_turn"], {"cil": None, "gtu": "carla"})
+    with pytest.raises(CicfwError) as err:
+        results.write_report(folder, {"cil": {}, "gtu": {}}, n_boot=20, claims=[], margin=5.0)
+    assert (err.value.key, err.value.value) == ("weather_family", "carla")
+    assert "gtu/seed0" in str(err.value) and "'harsh'" in str(err.value), err.value
+    assert not (folder / "results.json").exists()
+    ok = _folder(tmp_path / "ok", ["suite=single_turn", "sim.weather_family=carla"], {"cil": None, "gtu": "carla"})
+    assert [r["row"] for r in results.write_report(ok, {"cil": {}, "gtu": {}}, n_boot=20, claims=[],
+                                                   margin=5.0)["rows"]] == ["cil", "gtu"]
 
 
 # ------------------------------------------------------------------------------------------------

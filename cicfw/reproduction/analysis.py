@@ -8,8 +8,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import (COLUMNS, MIXED_CPUS, MIXED_MACHINES, SELECTORS, CellResult, episode_terms,
-                                     kind_noun, pooled_counts)
+from cicfw.reproduction.cells import (COLUMNS, MIXED_CPUS, MIXED_MACHINES, SELECTORS, CellResult,
+                                     check_same_episodes, episode_terms, kind_noun, pooled_counts)
 from cicfw.reproduction.seed_stats import (LEVEL, MIN_SEEDS, Estimate, contrast_interval, pooled_clopper_pearson,
                                            t_interval)
 
@@ -206,11 +206,9 @@ def analyse(cells: Sequence[CellResult], n_boot: int = 4000, seed: int = 0) -> A
         raise CicfwError("no finished cell to analyse")
     first = next(iter(rows.values()))[0]
     keys = sorted(first.episodes)
-    for row, cs in rows.items():
+    for cs in rows.values():
         for c in cs:
-            if sorted(c.episodes) != keys:
-                raise CicfwError(f"cell {row}/seed{c.seed} drove other episodes than {first.row}/seed{first.seed}: "
-                                 f"cells of one results folder must share the suite")
+            check_same_episodes(c, first, "cells of one results folder must share the suite")
     columns = [first.episodes[k]["column"] for k in keys]
     rng = np.random.default_rng(seed)
     draws = episode_draws(columns, rng, n_boot)

@@ -64,7 +64,7 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
-from cicfw.reproduction.cells import COLUMNS, finished_cells
+from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import PUBLISHED_FILES, continue_published, published_manifest
@@ -439,11 +439,15 @@ def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: st
     """Every finished cell under ``folder`` was trained on this dataset and as this cicfw trains its row
     (its ``recipe``: a value both give that differs, e.g. another dropout, is refused; a key only one has
     is not, since a new option's default keeps the old behaviour). Cells written before cells recorded
-    them (no ``dataset``/``recipe``) are not checked."""
+    them (no ``dataset``/``recipe``) are not checked; nor is the weather family of a cell that records none."""
+    family = named_weather_family(suite_overrides(cfg))
     for name, d in finished_cells(folder).items():
         if d.get("dataset") and dataset and d["dataset"] != dataset:
             raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
                                  f"{dataset}; {fix}")
+        if d.get(FAMILY_KEY) and d[FAMILY_KEY] != family:
+            raise ReproduceError(f"cell {name} of {where} was driven under weather_family={d[FAMILY_KEY]}, this run "
+                                 f"drives {family}; {fix}")
         row = str(d.get("row"))
         if not d.get("recipe") or row not in cfg.catalogue:
             continue
@@ -759,7 +763,9 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
             curve.append(_curve_point(p, s, batch))
         curve.append(_curve_point(final, summary, batch))
     hp = ck.get("hyper_parameters", {})
-    return {"decoder": (hp.get("head_kwargs") or {}).get("decode"), "head": hp.get("head"), "mixer": hp.get("mixer"),
+    family = named_weather_family(suite_overrides(cfg))  # the report refuses a cell of another family's folder
+    return {**({FAMILY_KEY: family} if family else {}),
+            "decoder": (hp.get("head_kwargs") or {}).get("decode"), "head": hp.get("head"), "mixer": hp.get("mixer"),
             "epochs": int(ck.get("epoch", -1)) + 1, "samples_seen": int(ck.get("global_step", 0)) * batch,
             "val_steer_mae": info.get("val_steer_mae"), "success": summary["success"],
             "cells": {k: v["rate"] for k, v in summary["cells"].items()},

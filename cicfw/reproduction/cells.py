@@ -16,6 +16,9 @@ from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
 
+#: cell.json's key naming the embedded simulator's weather family its suite was driven under (absent in cells
+#: written before it was recorded, and for another simulator: such a cell reads as its folder's)
+FAMILY_KEY = "weather_family"
 COLUMNS = tuple(cell_key(*c) for c in CELLS)  # training_town/training_weathers ... new_town/new_weathers
 COLUMN_NAMES = tuple(cell_name(*c) for c in CELLS)
 #: what a part of a claim compares: one table column, or the mean of several (overall: all four)
@@ -59,6 +62,37 @@ class CellResult:
         v = [bool(e["success"]) for e in self.episodes.values()
              if e["column"] == column and (command is None or e.get("command") == command)]
         return sum(v), len(v)
+
+
+def recorded_family(cell: CellResult, folder_family: str | None) -> str | None:
+    """The weather family a cell drove under: the one its cell.json records, else its folder's."""
+    return cell.meta.get(FAMILY_KEY) or folder_family
+
+
+def check_families(cells: Sequence[CellResult], folder_family: str | None, where: str) -> str | None:
+    """The one weather family ``cells`` drove under (``recorded_family``), else one error line naming the cell
+    and both families: the same weather names mean other weathers in another family, so their episode keys
+    match but their rates do not compare. ``folder_family`` None: not known, the first recorded one counts."""
+    known = folder_family
+    for c in cells:
+        family = recorded_family(c, known)
+        if known is not None and family != known:
+            raise CicfwError(f"cell {c.row}/seed{c.seed} in {where} was driven under the weather family "
+                             f"{family!r}, the folder under {known!r}: their weathers differ under the same names; "
+                             f"keep cells of one family in one folder", key=FAMILY_KEY, value=family)
+        known = family
+    return known
+
+
+def check_same_episodes(cell: CellResult, reference: CellResult, why: str,
+                        names: tuple[str, str] | None = None) -> None:
+    """One error line when ``cell`` drove other episodes than ``reference`` (naming both, ``names`` or their
+    row/seed, and their counts): rates on other episodes do not compare."""
+    if set(cell.episodes) != set(reference.episodes):
+        a, b = names or (f"{cell.row}/seed{cell.seed}", f"{reference.row}/seed{reference.seed}")
+        apart = len(set(cell.episodes) ^ set(reference.episodes))
+        raise CicfwError(f"cell {a} drove other episodes than {b} ({len(cell.episodes)} episodes against "
+                         f"{len(reference.episodes)}, {apart} not in both): {why}", key="episodes", value=a)
 
 
 #: joins a machine kind's CPU kind and its GPU: "Intel Xeon + NVIDIA H100"

@@ -15,10 +15,15 @@ against a margin stated in advance: two one-sided t-tests (TOST,
 lies inside ±margin; the episodes pooled over the seeds must show it too (the same contrast's 90% interval
 inside ±margin: Newcombe's in a column, MOVER's on the mean of the four, ``episode_tost``), as seeds that
 differ by the same number of episodes leave the t-test no spread. Too few seeds or too wide an
-interval reads *not shown*, never *equivalent*. ``--episodes`` compares two models of one seed (a cell's
-``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both drove: per column, the
-episodes one model lost and the other gained, with McNemar's exact test (``statsmodels``). It also prints the cells' training wall time, which
-ran at different hours: a hint, not a speed figure (bench/train_throughput.py measures speed).
+interval reads *not shown*, never *equivalent*. Both sides must drive one suite: the same episodes on every
+paired seed, under one weather family of the embedded simulator (each side's cells' recorded family, else its
+results folder's pinned one), else one error line; sides that ran on different CPU kinds are compared, and
+the header says so (the same seed trains another model on another kind). ``--episodes`` compares two
+models of one seed (a cell's ``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both
+drove: per column, the episodes one model lost and the other gained, with McNemar's exact test
+(``statsmodels``); two evaluation folders driven under different sim settings are refused as ``cicfw
+report`` refuses joining them. It also prints the cells' training wall time, which ran at different hours:
+a hint, not a speed figure (bench/train_throughput.py measures speed).
 """
 from __future__ import annotations
 
@@ -34,9 +39,13 @@ import numpy as np
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.weightstats import ttost_paired
 
-from cicfw.benchmark.finished_run import cell_key
+from cicfw.benchmark.evaluation_report import check_one_episode_rule
+from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import COLUMNS, CellResult, episode_terms, load_cell
+from cicfw.core.json_files import read_json
+from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_families, check_same_episodes,
+                                      cpu_counts, episode_terms, load_cell)
+from cicfw.reproduction.report import folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
                                            with_episode_floor, word)
 
@@ -141,6 +150,42 @@ def check_paired(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names
                          f"give two rows' cells run on the same seeds")
 
 
+def results_family(row_folder: Path) -> str | None:
+    """The weather family a row's results folder (``<results>/cells/<row>``) is pinned to, from
+    ``<results>/reproduce.json``; None where there is none (a copied row folder): not known."""
+    manifest = Path(row_folder).resolve().parent.parent / "reproduce.json"
+    if Path(row_folder).resolve().parent.name != "cells" or not manifest.is_file():
+        return None
+    return folder_weather_family(read_json(manifest, kind=dict))
+
+
+def check_one_family(a: Mapping[int, CellResult], b: Mapping[int, CellResult], folders: tuple[Path, Path]) -> None:
+    """One error line when the two sides drove under two known, different weather families (each side's
+    cells' recorded one, else its results folder's): the same episode keys, other weathers."""
+    fa, fb = (check_families(list(cells.values()), results_family(f), str(f)) for cells, f in zip((a, b), folders))
+    if fa and fb and fa != fb:
+        raise CicfwError(f"{folders[0]} was driven under the weather family {fa!r} and {folders[1]} under {fb!r}: "
+                         f"the same weather names are other weathers, so this is no switch; give two rows driven "
+                         f"under one family", key=FAMILY_KEY, value=fb)
+
+
+def check_same_suite(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
+    """One error line when a paired seed drove other episodes on one side than on the other (its counts)."""
+    for s in sorted(set(a) & set(b)):
+        check_same_episodes(a[s], b[s], "a paired comparison needs both sides to drive the same episodes",
+                            (f"{names[0]}/seed{s}", f"{names[1]}/seed{s}"))
+
+
+def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | None:
+    """A header line naming each side's CPU kinds where a paired seed ran on different kinds; else None."""
+    seeds = sorted(set(a) & set(b))
+    if all(a[s].cpu == b[s].cpu for s in seeds):
+        return None
+    kinds = [", ".join(f"{k} ({n})" for k, n in cpu_counts([side[s] for s in seeds]).items()) for side in (a, b)]
+    return (f"CPU kinds differ: A ran on {kinds[0]}, B on {kinds[1]}; the same seed trains another model on "
+            f"another kind, so A - B is the kinds' difference too")
+
+
 def check_distinct(a: Path, b: Path, what: str) -> None:
     """One error line when a and b are the same folder or file: it would compare a run with itself."""
     if Path(a).resolve() == Path(b).resolve():
@@ -155,6 +200,7 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
     out = [f"A {names[0]} (row {row_names(a)}) vs B {names[1]} (row {row_names(b)}), paired seeds {seeds} "
            f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points; words read "
            + (f"on the Bonferroni interval over {family} comparisons" if family > 1 else "on the 95% interval"),
+           *filter(None, [cpu_line(a, b)]),
            f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95%]':>22s} {'TOST p':>7s}  verdict; word"]
     for e in compare(a, b, margin, family):
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
@@ -193,6 +239,40 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
     if not rows:
         raise CicfwError(f"{path} holds no episodes; give a cell.json or an evaluation's episodes.csv")
     return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
+
+
+def sim_settings(path: Path) -> dict | None:
+    """The sim settings an evaluation folder's fingerprint records (``episodes.json``); None for a cell.json
+    or a folder without them."""
+    path = Path(path)
+    if not (path / "episodes.json").is_file():
+        return None
+    fp = load_run(path).meta.get("fingerprint")
+    sim = fp.get("sim") if isinstance(fp, Mapping) else None
+    return dict(sim) if isinstance(sim, Mapping) else None
+
+
+def episodes_family(path: Path) -> str | None:
+    """The weather family ``--episodes`` reads for ``path``: an evaluation folder's ``sim.weather_family``, a
+    cell's recorded one, else its results folder's; None where not known."""
+    path = Path(path)
+    if path.is_dir():
+        return (sim_settings(path) or {}).get("weather_family")
+    cell = load_cell(path)
+    return check_families([cell], results_family(path.parent.parent), str(path)) \
+        if isinstance(cell, CellResult) else None
+
+
+def check_same_sim(a: Path, b: Path) -> None:
+    """One error line when the two runs of ``--episodes`` drove under different sim settings: two evaluation
+    folders as ``cicfw report`` joins them (``check_one_episode_rule``), else their weather families."""
+    if Path(a).is_dir() and Path(b).is_dir() and sim_settings(a) is not None and sim_settings(b) is not None:
+        check_one_episode_rule([load_run(Path(a)), load_run(Path(b))])
+        return
+    fa, fb = episodes_family(a), episodes_family(b)
+    if fa and fb and fa != fb:
+        raise CicfwError(f"{a} was driven under the weather family {fa!r} and {b} under {fb!r}: the same episode "
+                         f"keys are other weathers; give two runs driven under one family", key=FAMILY_KEY, value=fb)
 
 
 def episodes_file(path: Path) -> Path:
@@ -234,6 +314,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.episodes:
             check_distinct(episodes_file(args.a), episodes_file(args.b), "episodes file")
             ea, eb = load_episodes(Path(args.a)), load_episodes(Path(args.b))
+            check_same_sim(Path(args.a), Path(args.b))
             if not set(ea) & set(eb):
                 raise CicfwError(f"{args.a} and {args.b} share no episode (no key in common); "
                                  f"give two runs of the same evaluation suite")
@@ -247,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))
+        check_one_family(a, b, (Path(args.a), Path(args.b)))
+        check_same_suite(a, b, (args.a, args.b))
         if args.family < 1:
             raise CicfwError(f"--family must be a positive number of comparisons, got {args.family}")
         print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family)))

@@ -122,8 +122,8 @@ from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellResult, cpu_counts,
-                                     kind_noun, load_cells, most_first)
+from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellResult, check_families,
+                                     cpu_counts, kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, publish
@@ -145,6 +145,11 @@ def pinned_weather_family(manifest: Mapping[str, Any]) -> str | None:
     harsh one for a folder pinned before the families were, None for another simulator."""
     suite = (manifest.get("pinned") or {}).get("suite") or []
     return named_weather_family(with_weather_family(suite, default=LEGACY_FAMILY))
+
+
+def folder_weather_family(manifest: Mapping[str, Any]) -> str | None:
+    """``pinned_weather_family`` of a folder with a pinned suite; None (not known) for one without."""
+    return pinned_weather_family(manifest) if (manifest.get("pinned") or {}).get("suite") is not None else None
 
 
 def weathers_said(manifest: Mapping[str, Any]) -> str:
@@ -891,6 +896,7 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     results_dir = Path(results_dir)
     manifest = read_json(results_dir / "reproduce.json", default={}, kind=dict)
     cells, failed = load_cells(results_dir)
+    check_families(cells, folder_weather_family(manifest), str(results_dir))
     if not cells:
         raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
