@@ -9,7 +9,7 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import Run, cell_name, table_rows
 from cicfw.benchmark.suite import CELLS
-from cicfw.sim.mapplot import draw_town, png_bytes, pyplot as _plt, save_png as _save  # the report's too
+from cicfw.sim.mapplot import draw_town, pyplot as _plt, save_png as _save  # the report's too
 from cicfw.sim.town import load_town
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"

@@ -115,7 +115,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cicfw.benchmark.evaluation_report import md_row, md_table
-from cicfw.benchmark.plots import _plt, _save, png_bytes
+from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write, write_together
@@ -132,6 +132,7 @@ from cicfw.reproduction.relation_choice import (relation_data, shipped_candidate
                                                 val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
 from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
+from cicfw.sim.mapplot import png_bytes
 from cicfw.sim.render.weather import LEGACY_FAMILY
 
 #: what resuming a killed training changed, measured once: the report's footnote on resumed cells
