@@ -241,6 +241,14 @@ def test_report_into_the_folder_given_keeps_a_users_file_of_a_tables_name(one_ep
     assert report([str(folder), "--overwrite"]) == 0  # on purpose
     assert report([str(folder)]) == 0  # now the folder's own report of the same runs
     assert report([str(folder / "run")]) == 0  # a run's own tables, which its evaluation wrote
+    (tmp_path / "fake").mkdir()
+    shutil.copytree(one_episode_eval, tmp_path / "fake" / "run")
+    (tmp_path / "fake" / "multirun.yaml").touch()  # the name of a sweep's record, not one
+    (tmp_path / "fake" / "table.md").write_text("mine\n")
+    assert report([str(tmp_path / "fake")]) == 2 and "table.md" in capsys.readouterr().err
+    assert (tmp_path / "fake" / "table.md").read_text() == "mine\n"
+    (tmp_path / "fake" / "multirun.yaml").write_text("hydra:\n  job:\n    name: evaluate\n")  # a sweep's record
+    assert report([str(tmp_path / "fake")]) == 0  # an evaluation sweep's folder: its join is cicfw's to rewrite
     (tmp_path / "notes").mkdir()
     shutil.copytree(one_episode_eval, tmp_path / "notes" / "run")
     (tmp_path / "notes" / "report.json").write_text('{"mine": 1}\n')  # no table, a record of the user's

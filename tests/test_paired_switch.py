@@ -302,3 +302,7 @@ def test_the_header_names_each_sides_cpu_kinds_where_they_differ(tmp_path, capsy
     line = ps.lines(a, b, 5.0)[1]
     assert "CPU kinds differ" in line and "Intel Xeon (3)" in line and "AMD EPYC 7B13 (3)" in line, line
     assert not any("CPU kinds" in x for x in ps.lines(a, a, 5.0))
+    for c in b.values():  # the same processor with a GPU: another machine kind, and said so
+        c.meta["machine"] = "2 cores (Intel(R) Xeon(R) CPU @ 2.20GHz), NVIDIA H100 80GB HBM3, torch 2.13.0+cu126"
+    line = ps.lines(a, b, 5.0)[1]
+    assert "Machine kinds differ" in line and "Intel Xeon + NVIDIA H100 (3)" in line, line

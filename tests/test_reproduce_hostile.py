@@ -322,6 +322,21 @@ def test_publish_dir_inside_the_results_folder_is_refused_up_front(no_collect, t
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
 
 
+def test_the_reports_publish_inside_the_results_folder_is_refused(tmp_path, capsys):
+    """``cicfw report RESULTS --publish RESULTS/pub`` is held to publish_dir's rule: nothing written."""
+    import shutil
+
+    from cicfw.reproduction.report import main as report
+
+    folder = tmp_path / "half"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "docs" / "results" / "converged6_half", folder)
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    assert report([str(folder), "--publish", str(folder / "pub")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--publish" in err[0] and str(folder / "pub") in err[0], err
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
+
+
 @functools.cache
 def _pin(budget: str) -> str:
     """``budget``'s pin as reproduce.json records it, as JSON: composed once per module, the same for every test."""

@@ -235,7 +235,7 @@ def test_a_truncated_cell_json_is_named(tmp_path):
 
 
 @pytest.mark.parametrize("field, value", [("success", 2), ("success", "false"), ("success", None),
-                                          ("column", "town_x/ClearNoon")])
+                                          ("column", "town_x/ClearNoon"), ("command", None), ("command", 3)])
 def test_a_bad_episode_in_a_cell_json_is_named(tmp_path, field, value):
     """A hand-edited episode surfaced as matplotlib's "'yerr' must not contain negative values" or numpy's
     "could not convert string to float": now one error naming the file, the episode and the value."""
@@ -245,11 +245,33 @@ def test_a_bad_episode_in_a_cell_json_is_named(tmp_path, field, value):
     cell.parent.mkdir(parents=True)
     episodes = {f"e{k}": {"success": k % 2 == 0, "column": c, "command": "left"} for k, c in enumerate(COLUMNS)}
     episodes["e1"][field] = value
+    if value is None:
+        del episodes["e1"][field]  # missing altogether (a KeyError traceback for the command)
     cell.write_text(json.dumps({"status": "ok", "row": "cil", "seed": 0, "episodes": episodes}))
     with pytest.raises(CicfwError) as err:
         load_cells(tmp_path)
     assert (err.value.key, err.value.value) == (f"episodes.e1.{field}", value)
     assert str(cell) in str(err.value) and "'e1'" in str(err.value) and json.dumps(value) in str(err.value)
+
+
+@pytest.mark.parametrize("key, value", [("seed", "one"), ("seed", None), ("seed", True), ("row", None), ("row", 3)])
+def test_a_cell_json_without_its_row_or_seed_is_named(tmp_path, key, value):
+    """A finished cell's row and seed name its place: a text seed read as int("one") and a missing row as a
+    KeyError traceback; now one error naming the file and the key."""
+    from cicfw.reproduction.cells import COLUMNS, load_cells
+
+    cell = tmp_path / "cells" / "cil" / "seed0" / "cell.json"
+    cell.parent.mkdir(parents=True)
+    d = {"status": "ok", "row": "cil", "seed": 0,
+         "episodes": {f"e{k}": {"success": True, "column": c, "command": "left"} for k, c in enumerate(COLUMNS)}}
+    if value is None:
+        del d[key]
+    else:
+        d[key] = value
+    cell.write_text(json.dumps(d))
+    with pytest.raises(CicfwError) as err:
+        load_cells(tmp_path)
+    assert (err.value.key, err.value.value) == (key, value) and str(cell) in str(err.value)
 
 
 def test_read_json_names_the_file(tmp_path):

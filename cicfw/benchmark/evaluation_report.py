@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart
-from cicfw.core.run_folder import claim_folder
+from cicfw.core.run_folder import claim_folder, folder_owner
 from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import writable_folder, write_together
@@ -387,9 +387,9 @@ def _joined(runs: Sequence[Run]) -> list[str]:
 
 
 def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], what: str, overwrite: bool) -> None:
-    """The report writes into ``out`` only where it holds none of ``REPORT_FILES``, where those are cicfw's
-    own (``out`` is the one run joined, whose tables its evaluation wrote, or a sweep folder, whose tables
-    the sweep joined), where it holds the report of the same runs (``report.json``), or with
+    """The report writes into ``out`` only where it holds none of ``REPORT_FILES``, where cicfw writes those
+    itself (``out`` is the one run joined, whose tables its evaluation writes, or an evaluation sweep's
+    folder, whose tables the sweep joins), where it holds the report of the same runs (``report.json``), or with
     ``--overwrite``: a user's file of the same name, another run's table or another report is refused in
     one line before anything is written. ``dirs``: the folders given (``out`` defaults to the one given)."""
     held = [n for n in (*REPORT_FILES, REPORT_RECORD) if (Path(out) / n).exists()]
@@ -397,7 +397,8 @@ def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], wha
         return
     given = any(os.path.realpath(out) == os.path.realpath(d) for d in dirs)
     one_run = [os.path.realpath(r.path) for r in runs] == [os.path.realpath(out)]
-    sweep = (Path(out) / "multirun.yaml").is_file() and not (Path(out) / ".hydra").exists()
+    # an evaluation sweep's folder, by Hydra's record there (an empty multirun.yaml names no job)
+    sweep = not (Path(out) / ".hydra").exists() and folder_owner(out) == "evaluate"
     if given and (one_run or sweep):
         return
     try:

@@ -67,7 +67,7 @@ from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, 
 from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
-from cicfw.reproduction.published import PUBLISHED_FILES, continue_published, published_manifest
+from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
 from cicfw.reproduction.report import REPORT_OVERRIDES, report_overrides, write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
@@ -248,12 +248,8 @@ def check_not_results_dir(cfg: DictConfig) -> None:
     A ``publish_dir`` inside it (a cell's folder, say) would put a published copy among the run's own files,
     where a later report reads them as cells: refused too."""
     results = Path(cfg.results_dir).expanduser().resolve()
-    pub = cfg.get("publish_dir")
-    if pub and results in Path(str(pub)).expanduser().resolve().parents:
-        raise ReproduceError(f"publish_dir={str(pub)!r} lies inside the results folder (results_dir="
-                             f"{str(cfg.results_dir)!r}), among the run's own cells and files: give publish_dir="
-                             f"<a folder outside it> (e.g. docs/results/<budget>) or leave it out",
-                             key="publish_dir", value=str(pub))
+    if cfg.get("publish_dir"):
+        check_publish_outside(cfg.results_dir, cfg.publish_dir, "publish_dir")
     why = {"publish_dir": "the report is written there already; give publish_dir=<another folder> "
                           "(e.g. docs/results/<budget>) or leave it out",
            "continue_from": "its finished cells are kept and skipped by a rerun already; give continue_from="

@@ -186,6 +186,10 @@ def check_episodes(path: Path, episodes: Any) -> dict[str, dict[str, Any]]:
             raise CicfwError(f"{path}: episode {k!r} has column {json.dumps(e.get('column'))[:60]}; it must be one "
                              f"of the table's columns, {', '.join(COLUMNS)}", key=f"episodes.{k}.column",
                              value=e.get("column"))
+        if not isinstance(e.get("command"), str):
+            raise CicfwError(f"{path}: episode {k!r} has command {json.dumps(e.get('command'))[:40]}; it must be the "
+                             f"manoeuvre's name as a string (left, right, ...)", key=f"episodes.{k}.command",
+                             value=e.get("command"))
     return episodes
 
 
@@ -194,7 +198,14 @@ def load_cell(path: Path) -> CellResult | dict[str, Any]:
     else the file's dict as it is."""
     d = read_json(path, kind=dict)
     if d.get("status") == "ok":
-        return CellResult(row=d["row"], seed=int(d["seed"]), episodes=check_episodes(path, d.get("episodes")), meta=d)
+        row, seed = d.get("row"), d.get("seed")
+        if not isinstance(row, str) or not row:
+            raise CicfwError(f"{path}: 'row' is {json.dumps(row)[:40]}; a finished cell names its row as a string",
+                             key="row", value=row)
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise CicfwError(f"{path}: 'seed' is {json.dumps(seed)[:40]}; a finished cell's seed is a whole number",
+                             key="seed", value=seed)
+        return CellResult(row=row, seed=seed, episodes=check_episodes(path, d.get("episodes")), meta=d)
     return d
 
 

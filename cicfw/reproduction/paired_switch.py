@@ -44,7 +44,7 @@ from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_families, check_same_episodes,
-                                      cpu_counts, episode_terms, load_cell)
+                                      cpu_counts, episode_terms, kind_noun, load_cell)
 from cicfw.reproduction.report import folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
                                            with_episode_floor, word)
@@ -177,12 +177,15 @@ def check_same_suite(a: Mapping[int, CellResult], b: Mapping[int, CellResult], n
 
 
 def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | None:
-    """A header line naming each side's CPU kinds where a paired seed ran on different kinds; else None."""
+    """A header line naming each side's machine kinds (``cells.machine_kind``: the CPU, and its GPU where it had
+    one) where a paired seed ran on different kinds; else None."""
     seeds = sorted(set(a) & set(b))
     if all(a[s].cpu == b[s].cpu for s in seeds):
         return None
-    kinds = [", ".join(f"{k} ({n})" for k, n in cpu_counts([side[s] for s in seeds]).items()) for side in (a, b)]
-    return (f"CPU kinds differ: A ran on {kinds[0]}, B on {kinds[1]}; the same seed trains another model on "
+    counts = [cpu_counts([side[s] for s in seeds]) for side in (a, b)]
+    kinds = [", ".join(f"{k} ({n})" for k, n in c.items()) for c in counts]
+    noun = kind_noun([*counts[0], *counts[1]])
+    return (f"{noun[:1].upper()}{noun[1:]} kinds differ: A ran on {kinds[0]}, B on {kinds[1]}; the same seed trains another model on "
             f"another kind, so A - B is the kinds' difference too")
 
 

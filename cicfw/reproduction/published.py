@@ -14,6 +14,15 @@ from cicfw.reproduction.cells import cell_files, finished_cells
 PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
                    "reproduce.json")
 
+def check_publish_outside(results_dir: str | Path, dest: str | Path, key: str) -> None:
+    """A publish folder inside the results folder (a cell's folder, say) would put a published copy among
+    the run's own cells and files: refused in one line naming ``key`` (links and ``..`` resolved)."""
+    if Path(results_dir).expanduser().resolve() in Path(str(dest)).expanduser().resolve().parents:
+        raise CicfwError(f"{key}={str(dest)!r} lies inside the results folder ({str(results_dir)!r}), among the run's "
+                         f"own cells and files: give {key}=<a folder outside it> (e.g. docs/results/<budget>) or "
+                         f"leave it out", key=key, value=str(dest))
+
+
 def publish(results_dir: Path, dest: Path) -> list[Path]:
     """Copy a reproduction's small results into ``dest`` (for committing): RESULTS.md, results.json/.csv,
     the pictures, the manifest and every cell's cell.json (never checkpoints or episode logs). All or none

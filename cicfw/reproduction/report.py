@@ -126,7 +126,7 @@ from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_M
                                      cpu_counts, kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
-from cicfw.reproduction.published import PUBLISHED_FILES, publish
+from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
 from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
                                                 val_errors)
@@ -1001,6 +1001,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
         if a.publish:
+            check_publish_outside(a.results_dir, a.publish, "--publish")
             claim_folder(Path(a.publish), "reproduce", "--publish")
         if a.markdown:
             check_markdown_target(Path(a.markdown), [Path(a.results_dir), *([Path(a.publish)] if a.publish else [])])
