@@ -202,6 +202,24 @@ def test_publish_dir_a_run_may_write(tmp_path):
     reproduce.check_publish_dir(cfg)  # growing a published folder
 
 
+def test_publish_dir_at_another_runs_results_folder_is_refused(tmp_path):
+    """``continue_from=res results_dir=new publish_dir=res`` would replace res's reproduce.json, report and
+    cell.json files beside its checkpoints: a folder whose cells hold their runs (train/, evaluate/) is a
+    results folder, never a publication, and is refused before anything is written."""
+    from cicfw.core.errors import CicfwError
+    from cicfw.reproduction import app as reproduce
+
+    res = tmp_path / "res"
+    files = published(res, "smoke", cells=("cil/seed0",))
+    (res / "cells" / "cil" / "seed0" / "train").mkdir()
+    cfg = reproduce.compose_plan(["budget=smoke", f"results_dir={tmp_path / 'new'}", f"publish_dir={res}",
+                                  f"continue_from={res}"])
+    with pytest.raises(CicfwError) as err:
+        reproduce.check_publish_dir(cfg)
+    assert (err.value.key, err.value.value) == ("publish_dir", str(res)) and "cells/cil/seed0/train" in str(err.value)
+    assert {p: p.read_bytes() for p in res.rglob("*") if p.is_file()} == files
+
+
 # ---- report: --out -------------------------------------------------------------------------------
 
 

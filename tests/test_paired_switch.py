@@ -247,11 +247,11 @@ def test_rows_driven_under_different_weather_families_are_refused(tmp_path, caps
     capsys.readouterr()
 
 
-def eval_folder(path: Path, family: str) -> Path:
+def eval_folder(path: Path, family: str, successes: int = 10) -> Path:
     """An evaluation folder (episodes.json with its fingerprint's sim settings, episodes.csv) of column 0."""
     path.mkdir(parents=True)
-    rows = [{"key": f"{COLUMNS[0]}/{i:02d}", "town_set": "training", "weather_set": "training", "success": i < 10}
-            for i in range(EPISODES)]
+    rows = [{"key": f"{COLUMNS[0]}/{i:02d}", "town_set": "training", "weather_set": "training",
+             "success": i < successes} for i in range(EPISODES)]
     (path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {"model": path.name, "fingerprint": {
         "sim": {"weather_family": family, "success_radius_m": 2.0}, "runner": {"off_road_s": 2.0}}}}))
     (path / "episodes.csv").write_text("key,town_set,weather_set,success\n" + "".join(
@@ -266,7 +266,7 @@ def test_episodes_under_different_sim_settings_are_refused(tmp_path, capsys):
     assert ps.main(["--episodes", str(harsh), str(carla)]) == 2
     out, err = capsys.readouterr()
     assert out == "" and err.count("\n") == 1 and "sim.weather_family" in err and "harsh" in err, err
-    assert ps.main(["--episodes", str(carla), str(eval_folder(tmp_path / "carla2", "carla"))]) == 0
+    assert ps.main(["--episodes", str(carla), str(eval_folder(tmp_path / "carla2", "carla", successes=12))]) == 0
     capsys.readouterr()
     rows = results_folder(tmp_path / "old", ["suite=single_turn"], {"cil": None}, seeds=1)  # harsh, by its pin
     assert ps.main(["--episodes", str(carla), str(rows["cil"] / "seed0" / "cell.json")]) == 2
@@ -306,3 +306,21 @@ def test_the_header_names_each_sides_cpu_kinds_where_they_differ(tmp_path, capsy
         c.meta["machine"] = "2 cores (Intel(R) Xeon(R) CPU @ 2.20GHz), NVIDIA H100 80GB HBM3, torch 2.13.0+cu126"
     line = ps.lines(a, b, 5.0)[1]
     assert "Machine kinds differ" in line and "Intel Xeon + NVIDIA H100 (3)" in line, line
+
+
+def test_a_copy_of_a_folder_is_refused_not_equivalent(tmp_path, capsys):
+    """A byte-identical copy of a row's cells read "equivalent within ±5" in every column: no switch at all."""
+    import shutil
+
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [18, 10, 12, 5 + s])
+    shutil.copytree(tmp_path / "a", tmp_path / "copy")
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "copy"), "--margin", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "same cells" in err[0], err
+    cell = tmp_path / "a" / "seed0" / "cell.json"
+    assert ps.main([str(cell), str(tmp_path / "copy" / "seed0" / "cell.json"), "--episodes"]) == 2
+    assert "same episodes file" in capsys.readouterr().err
+    for s in range(3):  # the same cells trained again: another file, compared
+        write_cell(tmp_path / "b", "cil", s, [18, 10, 12, 5 + s], train_s=200.0)
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b"), "--margin", "5"]) == 0

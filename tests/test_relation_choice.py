@@ -78,6 +78,22 @@ def test_unusable_errors_names_each_kind():
              "a/seed3": {"val_steer_mae": "0.1"}, "a/seed4": {"val_steer_mae": 0.1}, "b/seed0": {}}
     assert unusable_errors(cells, ["a"]) == {"a/seed0": "NaN", "a/seed1": "missing", "a/seed2": "inf",
                                              "a/seed3": '"0.1"'}
+    # a mean absolute error below 0 is an edited or broken record: never the smallest error, the chosen R
+    assert unusable_errors({"a/seed0": {"val_steer_mae": -1.0}, "a/seed1": {"val_steer_mae": -2}}, ["a"]) == {
+        "a/seed0": "-1.0", "a/seed1": "-2"}
+
+
+def test_the_advice_names_the_folders_budget_and_the_folder(tmp_path, capsys):
+    """Without them the advised command trained the default budget into another folder."""
+    (tmp_path / "reproduce.json").write_text('{"budget": "smoke"}')
+    _cell(tmp_path, "re_all", 0, 0.05)
+    (tmp_path / "cells" / "re_all" / "seed0" / "train").mkdir()
+    assert main([str(tmp_path), "--candidates", "re_all", "re_pairs"]) == 1
+    out = capsys.readouterr().out
+    assert f"budget=smoke 'rows=[re_all,re_pairs]' 'seeds=[0]' results_dir={tmp_path}" in out, out
+    _cell(tmp_path, "re_pairs", 0, -1.0)  # below 0: left out, so still no seed for both
+    assert main([str(tmp_path), "--candidates", "re_all", "re_pairs"]) == 1
+    assert "re_pairs/seed0 (val_steer_mae -1.0: below 0)" in capsys.readouterr().out
 
 
 # ---- the report's account of the choice

@@ -273,6 +273,13 @@ def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
     if not held:
         return
     where, fix = f"publish_dir={str(pub)!r}", "give another publish_dir (or grow that one with continue_from=<it>)"
+    # a published folder holds each cell's cell.json alone; a results folder's cells also hold their runs
+    ran = sorted(str(d.relative_to(pub)) for name in ("train", "evaluate") for d in pub.glob(f"cells/*/seed*/{name}"))
+    if ran:
+        raise ReproduceError(f"{where} is a reproduction's results folder, not a published one (its cells hold their "
+                             f"runs: {', '.join(ran[:2])}{' ...' if len(ran) > 2 else ''}); publishing would replace its "
+                             f"reproduce.json, report and cell.json files: give another publish_dir, or continue it "
+                             f"with results_dir={str(pub)!r}", key="publish_dir", value=str(pub))
     if not (pub / MANIFEST).is_file():
         raise ReproduceError(f"{where} holds {', '.join(held)} of no reproduction (no {MANIFEST}), which publishing "
                              f"would replace; give another publish_dir")

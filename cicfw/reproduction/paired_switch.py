@@ -189,6 +189,16 @@ def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | 
             f"another kind, so A - B is the kinds' difference too")
 
 
+def check_not_copies(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
+    """One error line when every paired seed's cell.json is the same on both sides: a copy of a folder
+    compared with itself reads "equivalent" at every margin, which says nothing about a switch."""
+    seeds = sorted(set(a) & set(b))
+    if seeds and all(a[s].meta == b[s].meta for s in seeds):
+        raise CicfwError(f"{names[0]} and {names[1]} hold the same cells (cell.json identical at seeds {seeds}): "
+                         f"a copy compared with itself; give the cells of the run with the switch",
+                         key="cells", value=str(names[1]))
+
+
 def check_distinct(a: Path, b: Path, what: str) -> None:
     """One error line when a and b are the same folder or file: it would compare a run with itself."""
     if Path(a).resolve() == Path(b).resolve():
@@ -318,6 +328,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_distinct(episodes_file(args.a), episodes_file(args.b), "episodes file")
             ea, eb = load_episodes(Path(args.a)), load_episodes(Path(args.b))
             check_same_sim(Path(args.a), Path(args.b))
+            if episodes_file(args.a).read_bytes() == episodes_file(args.b).read_bytes():
+                raise CicfwError(f"{args.a} and {args.b} hold the same episodes file, byte for byte: a copy compared "
+                                 f"with itself; give the other model's", key="episodes", value=str(args.b))
             if not set(ea) & set(eb):
                 raise CicfwError(f"{args.a} and {args.b} share no episode (no key in common); "
                                  f"give two runs of the same evaluation suite")
@@ -333,6 +346,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_paired(a, b, (args.a, args.b))
         check_one_family(a, b, (Path(args.a), Path(args.b)))
         check_same_suite(a, b, (args.a, args.b))
+        check_not_copies(a, b, (args.a, args.b))
         if args.family < 1:
             raise CicfwError(f"--family must be a positive number of comparisons, got {args.family}")
         print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family)))

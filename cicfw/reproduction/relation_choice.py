@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from cicfw.core.errors import CicfwError
+from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import finished_cells
 from cicfw.reproduction.claims import shipped_config
 
@@ -35,8 +36,9 @@ class RelationChoice:
 
 
 def _finite(value: Any) -> bool:
-    """Whether a cell's ``val_steer_mae`` is a finite number (not NaN, infinite, missing or text)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    """Whether a cell's ``val_steer_mae`` is a usable error: a finite number >= 0 (not NaN, infinite,
+    negative, missing or text; a mean absolute error below 0 is an edited or broken record)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
 
 
 def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> dict[str, dict[int, float]]:
@@ -53,14 +55,14 @@ def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> d
 
 def unusable_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> dict[str, str]:
     """``row/seedK`` -> what its ``val_steer_mae`` is, for each finished cell of ``rows`` that ``val_errors``
-    leaves out: "NaN" (a diverged training), "inf", "missing" or the JSON value."""
+    leaves out: "NaN" (a diverged training), "inf", "missing" or the JSON value (text, a number below 0)."""
     out = {}
     for key, cell in sorted(cells.items()):
         if key.split("/seed")[0] not in rows or _finite(value := cell.get("val_steer_mae")):
             continue
         if value is None:
             out[key] = "missing"
-        elif isinstance(value, float):
+        elif isinstance(value, float) and not math.isfinite(value):
             out[key] = "NaN" if math.isnan(value) else ("inf" if value > 0 else "-inf")
         else:
             out[key] = json.dumps(value)[:40]
@@ -70,7 +72,19 @@ def unusable_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str])
 def unusable_text(unusable: Mapping[str, str]) -> str:
     """The cells left out, in words: ``re_all/seed0 (val_steer_mae NaN: its training diverged)``."""
     why = {"NaN": ": its training diverged", "missing": ": none recorded"}
-    return ", ".join(f"{k} (val_steer_mae {v}{why.get(v, '')})" for k, v in unusable.items())
+    return ", ".join(f"{k} (val_steer_mae {v}{why.get(v, ': below 0' if v.startswith('-') else '')})"
+                     for k, v in unusable.items())
+
+
+def rerun_command(folder: Path, candidates: Sequence[str], seeds: Sequence[int]) -> str:
+    """The reproduce command that trains ``candidates`` at ``seeds`` into ``folder``'s reproduction: its budget
+    (reproduce.json) and the folder itself as results_dir (a results folder) or as continue_from (a published
+    one, whose cells hold their cell.json alone). Without them it would start the default budget elsewhere."""
+    budget = read_json(Path(folder) / "reproduce.json", default={}, kind=dict).get("budget")
+    ran = any(Path(folder).glob("cells/*/seed*/train")) or any(Path(folder).glob("cells/*/seed*/evaluate"))
+    where = f"results_dir={folder}" if ran else f"continue_from={folder} results_dir=<a new folder>"
+    return (f"python -m cicfw.reproduce{f' budget={budget}' if budget else ''} 'rows=[{','.join(candidates)}]' "
+            f"'seeds=[{','.join(map(str, seeds))}]' {where}")
 
 
 def choose(errors_by_seed: Mapping[str, Mapping[int, float]], candidates: Sequence[str]) -> RelationChoice:
@@ -133,12 +147,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         clean = sorted(seeds - left) or [max(seeds) + 1]  # rerunning a left-out seed would diverge again
         print(f"no seed has a finite validation error for every candidate ({', '.join(args.candidates)}): "
               f"{unusable_text(unusable)} leaves its candidate out at that seed; run the candidates at seeds "
-              f"without one: python -m cicfw.reproduce 'rows=[{','.join(args.candidates)}]' "
-              f"'seeds=[{','.join(map(str, clean))}]'")
+              f"without one: {rerun_command(args.folder, args.candidates, clean)}")
         return 1
     if c.chosen is None:
         print(f"no seed has a finished cell for every candidate ({', '.join(args.candidates)}); run "
-              f"python -m cicfw.reproduce 'rows=[{','.join(args.candidates)}]' 'seeds=[0]' first")
+              f"{rerun_command(args.folder, args.candidates, [0])} first")
         return 1
     if unusable:
         print(f"left out: {unusable_text(unusable)}")
