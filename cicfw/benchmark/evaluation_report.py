@@ -81,7 +81,8 @@ def _marked(runs: Sequence[Run]) -> list[Run]:
 
 
 def _partial_lines(runs: Sequence[Run]) -> list[str]:
-    return [f"**PARTIAL**: {_md_escape(r.label)} has {partial_note(r)} (its evaluation was stopped); the rates "
+    return [f"**PARTIAL**: {_md_escape(r.label)} had {partial_note(r)} when this table was written (its evaluation "
+            f"had not finished); the rates "
             f"cover those only. Run the same evaluate command with the same output folder to finish it."
             for r in runs if not is_complete(r)]
 
