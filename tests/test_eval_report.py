@@ -117,3 +117,28 @@ def test_a_full_disk_while_reporting_leaves_a_folder_the_same_command_finishes(t
     assert line.startswith("cicfw: error:") and "No space left on device" in line and "\n" not in line, line
     assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 0
     assert (out / "success_bars.png").is_file() and (out / "report.json").is_file()
+
+
+def test_a_report_whose_chart_cannot_be_written_leaves_the_folder_as_it_was(tmp_path: Path, monkeypatch, capsys):
+    """The chart fails to write (a full disk at the PNG): one line naming the chart, and the folder as it was,
+    an earlier report whole (no new tables beside the old chart) and a fresh folder without tables."""
+    from conftest import fill_the_disk_for_pictures
+
+    write_run(tmp_path / "runs" / "a", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/a.ckpt"}))
+    out, fresh = tmp_path / "joined", tmp_path / "fresh"
+    assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert {"table.md", "table.tex", "table.csv", "report.json", "success_bars.png"} <= set(before)
+    write_run(tmp_path / "runs" / "a", Run(CIL.label, GTU.rows, {"checkpoint": "/ck/a.ckpt"}))  # new rates
+    capsys.readouterr()
+    with monkeypatch.context() as mp:
+        fill_the_disk_for_pictures(mp)
+        assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and repr(str(out / "success_bars.png")) in err[0], err
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+        assert report.main([str(tmp_path / "runs"), "--out", str(fresh)]) == 2
+        assert not [n for n in (*report.REPORT_FILES, report.REPORT_RECORD) if (fresh / n).exists()]
+    assert not [p for p in (*out.iterdir(), *fresh.iterdir()) if p.name.startswith(".") and p.is_file()]
+    assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 0  # with room again, the new report
+    assert (out / "table.md").read_bytes() != before["table.md"]

@@ -112,7 +112,7 @@ def test_a_crashed_suite_resumes_driving_only_the_missing_episodes(whole, tmp_pa
     s = json.loads((out / "summary.json").read_text())
     assert s["complete"] is False and s["episodes"] == finished and s["episodes_total"] == 4
     assert json.loads((out / "episodes.json").read_text())["meta"]["complete"] is False
-    assert f"**PARTIAL**: half expert has {finished} of 4 episodes" in (out / "table.md").read_text()
+    assert f"**PARTIAL**: half expert had {finished} of 4 episodes" in (out / "table.md").read_text()
     assert f"half expert (PARTIAL {finished}/4)" in (out / "table.md").read_text()
     assert not (out / "trajectories.npz").exists()
     # the rerun drives exactly the missing episodes, and writes the uninterrupted run's report
@@ -126,6 +126,32 @@ def test_a_crashed_suite_resumes_driving_only_the_missing_episodes(whole, tmp_pa
     res = drive(out)
     assert (res.reused, res.driven) == (4, 0) and HalfExpert.seen == set()
     assert_same_report(ref, out)
+
+
+def test_a_run_killed_part_way_leaves_a_table_counting_the_episodes_finished(tmp_path: Path, monkeypatch):
+    """The run folder's own report is rewritten as episodes finish: what a kill (no handler runs) leaves after
+    each episode counts the episodes its log holds, not the none of the run's start."""
+    import cicfw.benchmark.app as app
+
+    monkeypatch.setattr(app, "PARTIAL_REPORT_EVERY_S", 0.0)
+    out, left = tmp_path / "run", []
+    real = app.run
+
+    def run(*args, on_episode, **kw):
+        def finished(row, traj):
+            on_episode(row, traj)  # what a kill right after this episode would leave on disk
+            summary = json.loads((out / "summary.json").read_text())
+            left.append((len(read_log(out, trajectories=False)[1]), summary["episodes"], summary["complete"],
+                         (out / "table.md").read_text()))
+
+        return real(*args, on_episode=finished, **kw)
+
+    monkeypatch.setattr(app, "run", run)
+    drive(out)
+    assert [k for k, *_ in left] == [1, 2, 3, 4]
+    for k, episodes, complete, md in left:
+        assert episodes == k and complete is False
+        assert f"had {k} of 4 episodes" in md and f"(PARTIAL {k}/4)" in md
 
 
 @pytest.mark.parametrize("stopped_in", ["run", "bar_chart"])
@@ -319,7 +345,7 @@ def test_the_report_refuses_a_partial_run_unless_asked(whole, tmp_path: Path, ca
     assert f"{finished} of 4" in err and "--partial" in err, err  # what is finished, and the option that takes it
     assert report.main([str(tmp_path / "sweep"), str(ref), "--partial", "--no-plots", "--out", str(tmp_path / "j")]) == 0
     md = (tmp_path / "j" / "table.md").read_text()
-    assert f"**PARTIAL**: crashed has {finished} of 4 episodes" in md
+    assert f"**PARTIAL**: crashed had {finished} of 4 episodes" in md
     assert f"| crashed (PARTIAL {finished}/4) |" in md and "| half expert |" in md
     csv = (tmp_path / "j" / "table.csv").read_text()
     assert f"\ncrashed (PARTIAL {finished}/4)," in csv and "\nhalf expert," in csv

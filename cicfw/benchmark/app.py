@@ -17,6 +17,7 @@ import hashlib
 import json
 import logging
 import shlex
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +56,11 @@ from cicfw.sim.town import load_town
 from cicfw.sim.render.weather import DEFAULT_FAMILY
 
 log = logging.getLogger("cicfw.evaluate")
+
+#: how often (seconds) a running evaluation rewrites its partial report as episodes finish: a killed run's
+#: table then counts what had finished by then, not the none of its start; rarer, a long suite's rows are
+#: not rewritten after every episode
+PARTIAL_REPORT_EVERY_S = 10.0
 
 
 def policy_spec(cfg: DictConfig) -> dict[str, Any]:
@@ -161,7 +167,9 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
         if missing:
             write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))  # marked partial: not final
             try:
-                res = run(missing, pol, sim, runner_cfg, label=label, on_episode=elog.add)
+                res = run(missing, pol, sim, runner_cfg, label=label,
+                          on_episode=refreshing_report(elog, out_dir, lambda: _report(out_dir, label, elog.rows,
+                                                                                      episodes, meta)))
                 wall = res.wall_s
             except BaseException as stop:
                 try:
@@ -378,6 +386,25 @@ def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapp
     if town_files:
         fp["town_files"] = {t: hashlib.sha256(Path(t).expanduser().read_bytes()).hexdigest()[:16] for t in town_files}
     return fp, info
+
+
+def refreshing_report(elog: EpisodeLog, out_dir: Path, partial: Callable[[], Run]) -> Callable[[dict, dict], None]:
+    """``elog.add``, and the ``partial()`` report rewritten when ``PARTIAL_REPORT_EVERY_S`` have passed since
+    the last: the run folder's own table of a killed run counts the episodes finished by then. A report that
+    cannot be written is logged and driving goes on (the log keeps every episode)."""
+    last = time.monotonic()
+
+    def on_episode(row: dict, traj: dict) -> None:
+        nonlocal last
+        elog.add(row, traj)
+        if time.monotonic() - last >= PARTIAL_REPORT_EVERY_S:
+            try:
+                write_run(out_dir, partial())
+            except OSError as err:
+                log.warning("could not rewrite the partial report: %s", err)
+            last = time.monotonic()
+
+    return on_episode
 
 
 def _report(out_dir: Path, label: str, rows_by_index: Mapping[int, dict], episodes: Sequence[Any],

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
-from cicfw.benchmark.plots import bar_chart
+from cicfw.benchmark.plots import bar_chart_png
 from cicfw.core.run_folder import claim_folder, folder_owner
 from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
@@ -81,7 +81,8 @@ def _marked(runs: Sequence[Run]) -> list[Run]:
 
 
 def _partial_lines(runs: Sequence[Run]) -> list[str]:
-    return [f"**PARTIAL**: {_md_escape(r.label)} has {partial_note(r)} (its evaluation was stopped); the rates "
+    return [f"**PARTIAL**: {_md_escape(r.label)} had {partial_note(r)} when this table was written (its evaluation "
+            f"had not finished); the rates "
             f"cover those only. Run the same evaluate command with the same output folder to finish it."
             for r in runs if not is_complete(r)]
 
@@ -357,20 +358,23 @@ def _unique_labels(runs: list[Run]) -> list[Run]:
 
 def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False) -> str:
     """Write the joined table (md, tex, csv) and its bar chart into ``out_dir`` (with ``record``, ``cicfw
-    report``'s record of the runs it joined there too); return the Markdown."""
+    report``'s record of the runs it joined there too), all or none: the chart is drawn first, so a failure
+    leaves no new table beside an old chart. Return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
-    tables = {out_dir / "table.md": md, out_dir / "table.tex": latex_table(runs),
-              out_dir / "table.csv": table_csv(runs)}
+    files = {out_dir / "table.md": md.encode(), out_dir / "table.tex": latex_table(runs).encode(),
+             out_dir / "table.csv": table_csv(runs).encode()}
     if record:  # with the tables, never without: a folder of tables and no record is refused as no report's
-        tables[out_dir / REPORT_RECORD] = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)}, indent=1)
+        files[out_dir / REPORT_RECORD] = json.dumps({"written_by": "cicfw report", "runs": _joined(runs)},
+                                                    indent=1).encode()
+    if plots:
+        files[out_dir / "success_bars.png"] = bar_chart_png(_marked(runs))
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_together((path, text.encode()) for path, text in tables.items())  # all or none (a full disk)
-        if plots:
-            bar_chart(_marked(runs), out_dir / "success_bars.png")
+        write_together(files)  # all or none (a full disk, a file-size limit)
     except OSError as err:  # e.g. the disk filled up: the same command writes them again
-        raise CicfwError(f"report: cannot write into {out_dir} ({err.strerror or err}); give a writable folder "
+        where = f"{err.filename!r}" if err.filename else f"into {out_dir}"
+        raise CicfwError(f"report: cannot write {where} ({err.strerror or err}); give a writable folder "
                          f"with --out, or free some space and run the same command") from None
     return md
 

@@ -9,7 +9,8 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import Run, cell_name, table_rows
 from cicfw.benchmark.suite import CELLS
-from cicfw.sim.mapplot import draw_town, pyplot as _plt, save_png as _save  # the report's too
+from cicfw.core.files import atomic_write
+from cicfw.sim.mapplot import draw_town, png_bytes, pyplot as _plt, save_png as _save  # the report's too
 from cicfw.sim.town import load_town
 
 SUCCESS, FAILURE = "#1a9850", "#d73027"
@@ -77,7 +78,14 @@ def town_maps(run: Run, trajectories: Mapping[str, Mapping[str, np.ndarray]], ou
 
 
 def bar_chart(runs: Sequence[Run], path: Path) -> Path:
-    """Grouped bars: the paper's four columns, one bar per model, success rate in percent."""
+    """``bar_chart_png`` written at ``path`` (whole or not at all)."""
+    atomic_write(path, bar_chart_png(runs))
+    return Path(path)
+
+
+def bar_chart_png(runs: Sequence[Run]) -> bytes:
+    """Grouped bars as PNG bytes: the paper's four columns, one bar per model, success rate in percent;
+    bytes, so that a report writes them together with its tables."""
     plt = _plt()
     rows = table_rows(runs)
     n = len(rows)
@@ -99,5 +107,5 @@ def bar_chart(runs: Sequence[Run], path: Path) -> Path:
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=min(n, 3), frameon=False)
     suites = sorted({run.suite_name() for run in runs})
     ax.set_title(f"Suite: {', '.join(suites)}" + (" (turns only)" if suites == ["single_turn"] else ""))
-    return _save(fig, Path(path))
+    return png_bytes(fig)
 
