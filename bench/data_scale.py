@@ -65,6 +65,9 @@ def refuse_other_files(folder: Path, pool: list, seed: int) -> None:
     import h5py
     import numpy as np
 
+    if folder.exists() and not folder.is_dir():  # mkdir's FileExistsError would be a traceback
+        raise ConfigError("folder", str(folder), f"a folder, new or one this command filled with --seed {seed} "
+                          f"(this is a file)")
     for p in sorted(folder.iterdir()) if folder.is_dir() else []:
         if p.name.startswith("."):
             continue

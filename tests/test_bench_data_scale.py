@@ -46,3 +46,8 @@ def test_write_refuses_a_folder_holding_files_it_did_not_write(tmp_path, monkeyp
     assert len(list(ours.iterdir())) == 3
     with pytest.raises(ConfigError):
         bench.write(ours, 4, 1)  # another seed's files are not this run's
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    with pytest.raises(ConfigError) as err:  # was mkdir's FileExistsError traceback
+        bench.write(afile, 1, 0)
+    assert (err.value.key, err.value.value) == ("folder", str(afile)) and afile.read_text() == "mine\n"
