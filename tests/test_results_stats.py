@@ -637,7 +637,7 @@ def _folder(tmp_path: Path, suite: list[str], families: dict[str, str | None]) -
             path = folder / "cells" / row / f"seed{seed}" / "cell.json"
             path.parent.mkdir(parents=True)
             path.write_text(json.dumps({"status": "ok", "row": row, "seed": seed, "episodes": c.episodes,
-                                        **({"weather_family": family} if family else {})}))
+                                        **({"weather_family": family} if family is not None else {})}))
     return folder
 
 
@@ -650,6 +650,10 @@ def test_the_report_refuses_a_cell_driven_under_another_weather_family(tmp_path)
     assert (err.value.key, err.value.value) == ("weather_family", "carla")
     assert "gtu/seed0" in str(err.value) and "'harsh'" in str(err.value), err.value
     assert not (folder / "results.json").exists()
+    blank = _folder(tmp_path / "blank", ["suite=single_turn"], {"cil": None, "gtu": ""})  # edited to nothing
+    with pytest.raises(CicfwError) as err:
+        results.write_report(blank, {"cil": {}, "gtu": {}}, n_boot=20, claims=[], margin=5.0)
+    assert (err.value.key, err.value.value) == ("weather_family", "")
     ok = _folder(tmp_path / "ok", ["suite=single_turn", "sim.weather_family=carla"], {"cil": None, "gtu": "carla"})
     assert [r["row"] for r in results.write_report(ok, {"cil": {}, "gtu": {}}, n_boot=20, claims=[],
                                                    margin=5.0)["rows"]] == ["cil", "gtu"]

@@ -448,7 +448,7 @@ def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: st
         if d.get("dataset") and dataset and d["dataset"] != dataset:
             raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
                                  f"{dataset}; {fix}")
-        if d.get(FAMILY_KEY) and d[FAMILY_KEY] != family:
+        if d.get(FAMILY_KEY) is not None and d[FAMILY_KEY] != family:
             raise ReproduceError(f"cell {name} of {where} was driven under weather_family={d[FAMILY_KEY]}, this run "
                                  f"drives {family}; {fix}")
         row = str(d.get("row"))

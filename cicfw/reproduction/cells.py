@@ -65,8 +65,10 @@ class CellResult:
 
 
 def recorded_family(cell: CellResult, folder_family: str | None) -> str | None:
-    """The weather family a cell drove under: the one its cell.json records, else its folder's."""
-    return cell.meta.get(FAMILY_KEY) or folder_family
+    """The weather family a cell drove under: the one its cell.json records (an empty one too, which names no
+    family and so matches none), else, with no record, its folder's."""
+    value = cell.meta.get(FAMILY_KEY)
+    return folder_family if value is None else value
 
 
 def check_families(cells: Sequence[CellResult], folder_family: str | None, where: str) -> str | None:
