@@ -117,7 +117,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     """29 of 192 against 50 of 192 (GTU and CCE+MSE in the new town under new weathers on the Xeon): the
     interval is Newcombe's from Wilson's closed form with z = 1.959964; at the p-value's level
     (z = the normal quantile 1 - p/2) its upper bound is 0. Both rows at 100%: width, p = 1."""
-    lo, hi, p = seed_stats.episode_interval(seed_stats.difference_terms((29, 192), (50, 192)))
+    lo, hi, p = seed_stats.episode_interval([(1.0, 29, 192), (-1.0, 50, 192)])
     assert (lo, hi) == pytest.approx(newcombe((29, 192), (50, 192), 1.959964), abs=1e-3)
     assert lo == pytest.approx(-18.85, abs=0.05) and hi < 0
     z = float(stats.norm.ppf(1 - p / 2))
@@ -125,7 +125,7 @@ def test_episode_interval_is_newcombes_and_its_p_value_is_dual_to_it():
     # the chi-square test of the 2x2 table (uncorrected), a close relative, lands near it
     chi = stats.chi2_contingency([[29, 163], [50, 142]], correction=False).pvalue
     assert 0.5 * chi < p < 2 * chi
-    lo, hi, p = seed_stats.episode_interval(seed_stats.difference_terms((96, 96), (96, 96)))
+    lo, hi, p = seed_stats.episode_interval([(1.0, 96, 96), (-1.0, 96, 96)])
     assert p == 1.0 and (lo, hi) == pytest.approx(newcombe((96, 96), (96, 96), 1.959964), abs=1e-3) and hi > 3.0
 
 
@@ -474,7 +474,7 @@ def test_the_contrast_interval_of_one_difference_is_statsmodels_newcombe():
         for level in (0.95, 0.90):
             lo, hi = confint_proportions_2indep(a[0], a[1], b[0], b[1], method="newcomb", compare="diff",
                                                 alpha=1 - level)
-            got = seed_stats.contrast_interval(seed_stats.difference_terms(a, b), level)
+            got = seed_stats.contrast_interval([(1.0, *a), (-1.0, *b)], level)
             assert got == pytest.approx((100 * lo, 100 * hi), abs=1e-6)
 
 

@@ -64,7 +64,7 @@ from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
-from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, finished_cells
+from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, cell_runs, finished_cells
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
@@ -273,8 +273,7 @@ def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
     if not held:
         return
     where, fix = f"publish_dir={str(pub)!r}", "give another publish_dir (or grow that one with continue_from=<it>)"
-    # a published folder holds each cell's cell.json alone; a results folder's cells also hold their runs
-    ran = sorted(str(d.relative_to(pub)) for name in ("train", "evaluate") for d in pub.glob(f"cells/*/seed*/{name}"))
+    ran = cell_runs(pub)  # a published folder's cells hold their cell.json alone
     if ran:
         raise ReproduceError(f"{where} is a reproduction's results folder, not a published one (its cells hold their "
                              f"runs: {', '.join(ran[:2])}{' ...' if len(ran) > 2 else ''}); publishing would replace its "

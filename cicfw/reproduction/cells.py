@@ -216,6 +216,18 @@ def cell_files(folder: Path) -> list[Path]:
     return sorted(Path(folder).glob("cells/*/seed*/cell.json"))
 
 
+#: what a cell's folder holds beside its cell.json in a results folder (its training and its driving); a
+#: published folder copies the cell.json alone
+CELL_RUNS = ("train", "evaluate")
+
+
+def cell_runs(folder: Path) -> list[str]:
+    """The runs a folder's cells hold (``cells/<row>/seed<k>/train`` ..., relative paths, sorted): some for a
+    results folder, none for a published one."""
+    folder = Path(folder)
+    return sorted(str(d.relative_to(folder)) for name in CELL_RUNS for d in folder.glob(f"cells/*/seed*/{name}"))
+
+
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
     """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
     ok, failed = [], []

@@ -108,10 +108,10 @@ def episode_tost(terms: Sequence[tuple[float, int, int]], margin: float) -> floa
 
 def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
             family: int = 1) -> list[Equivalence]:
-    """Every column and overall, on the seeds both sides ran. Both the interval and the TOST p-value answer to the episodes pooled over those seeds (``with_episode_floor``,
-    ``episode_tost``), so seeds whose differences happen to agree are not *equivalent* by luck. Each entry's
-    ``word`` is read on its interval at the Bonferroni level of ``family`` comparisons (the caller's table:
-    1 for one comparison)."""
+    """Every column and overall, on the seeds both sides ran. Both the interval and the TOST p-value answer to
+    the episodes pooled over those seeds (``with_episode_floor``, ``episode_tost``), so seeds whose differences
+    happen to agree are not *equivalent* by luck. Each entry's ``word`` is read on its interval at the
+    Bonferroni level of ``family`` comparisons (the caller's table: 1 for one comparison)."""
     seeds = sorted(set(a) & set(b))
     out = []
     for col in ON:
@@ -185,8 +185,8 @@ def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | 
     counts = [cpu_counts([side[s] for s in seeds]) for side in (a, b)]
     kinds = [", ".join(f"{k} ({n})" for k, n in c.items()) for c in counts]
     noun = kind_noun([*counts[0], *counts[1]])
-    return (f"{noun[:1].upper()}{noun[1:]} kinds differ: A ran on {kinds[0]}, B on {kinds[1]}; the same seed trains another model on "
-            f"another kind, so A - B is the kinds' difference too")
+    return (f"{noun[:1].upper()}{noun[1:]} kinds differ: A ran on {kinds[0]}, B on {kinds[1]}; the same seed "
+            f"trains another model on another kind, so A - B is the kinds' difference too")
 
 
 def check_not_copies(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:

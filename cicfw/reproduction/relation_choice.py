@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import finished_cells
+from cicfw.reproduction.cells import cell_runs, finished_cells
 from cicfw.reproduction.claims import shipped_config
 
 
@@ -35,7 +35,7 @@ class RelationChoice:
     chosen: str | None  # None while some candidate has no finished cell at a shared seed
 
 
-def _finite(value: Any) -> bool:
+def _usable(value: Any) -> bool:
     """Whether a cell's ``val_steer_mae`` is a usable error: a finite number >= 0 (not NaN, infinite,
     negative, missing or text; a mean absolute error below 0 is an edited or broken record)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
@@ -48,7 +48,7 @@ def val_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str]) -> d
     for key, cell in cells.items():
         row, seed = key.split("/seed")
         value = cell.get("val_steer_mae")
-        if row in out and _finite(value):
+        if row in out and _usable(value):
             out[row][int(seed)] = float(value)
     return out
 
@@ -58,7 +58,7 @@ def unusable_errors(cells: Mapping[str, Mapping[str, Any]], rows: Sequence[str])
     leaves out: "NaN" (a diverged training), "inf", "missing" or the JSON value (text, a number below 0)."""
     out = {}
     for key, cell in sorted(cells.items()):
-        if key.split("/seed")[0] not in rows or _finite(value := cell.get("val_steer_mae")):
+        if key.split("/seed")[0] not in rows or _usable(value := cell.get("val_steer_mae")):
             continue
         if value is None:
             out[key] = "missing"
@@ -81,8 +81,7 @@ def rerun_command(folder: Path, candidates: Sequence[str], seeds: Sequence[int])
     (reproduce.json) and the folder itself as results_dir (a results folder) or as continue_from (a published
     one, whose cells hold their cell.json alone). Without them it would start the default budget elsewhere."""
     budget = read_json(Path(folder) / "reproduce.json", default={}, kind=dict).get("budget")
-    ran = any(Path(folder).glob("cells/*/seed*/train")) or any(Path(folder).glob("cells/*/seed*/evaluate"))
-    where = f"results_dir={folder}" if ran else f"continue_from={folder} results_dir=<a new folder>"
+    where = f"results_dir={folder}" if cell_runs(folder) else f"continue_from={folder} results_dir=<a new folder>"
     return (f"python -m cicfw.reproduce{f' budget={budget}' if budget else ''} 'rows=[{','.join(candidates)}]' "
             f"'seeds=[{','.join(map(str, seeds))}]' {where}")
 

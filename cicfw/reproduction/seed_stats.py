@@ -272,11 +272,6 @@ def contrast_interval(terms: Sequence[tuple[float, int, int]], level: float = LE
     return 100.0 * (value - math.sqrt(np.sum((c * down) ** 2))), 100.0 * (value + math.sqrt(np.sum((c * up) ** 2)))
 
 
-def difference_terms(a: tuple[int, int], b: tuple[int, int]) -> list[tuple[float, int, int]]:
-    """A - B, each ``(successes, episodes)``, as the terms of a contrast (``contrast_interval``)."""
-    return [(1.0, *a), (-1.0, *b)]
-
-
 def with_episode_floor(d: Difference, terms: Sequence[tuple[float, int, int]], level: float = LEVEL,
                        null: float = 0.0) -> Difference:
     """``d`` (a contrast of table columns between rows A and B, its ``terms`` the pooled episodes)
