@@ -28,16 +28,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
 REPORT_VALUE_OPTIONS = ("--out", "--publish", "--markdown")
 
 
-def first_positional(args: list[str]) -> str | None:
-    """The first argument that is not an option or an option's value: the folder ``cicfw report`` is given,
+def positionals(args: list[str]) -> list[str]:
+    """The arguments that are not options or options' values: the folders ``cicfw report`` is given,
     wherever its options stand (``cicfw report --no-plots DIR`` is DIR's report as ``cicfw report DIR`` is)."""
-    args = iter(args)
+    found, args = [], iter(args)
     for a in args:
         if a in REPORT_VALUE_OPTIONS:
             next(args, None)
         elif not a.startswith("-"):
-            return a
-    return None
+            found.append(a)
+    return found
 
 
 def usage() -> str:
@@ -56,9 +56,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"cicfw: unknown command {argv[0]!r}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
         sys.exit(2)
     module, _ = COMMANDS[argv[0]]
-    folder = first_positional(argv[1:])
-    if argv[0] == "report" and folder is not None and (Path(folder) / "reproduce.json").is_file():
+    folders = positionals(argv[1:])
+    if argv[0] == "report" and len(folders) == 1 and (Path(folders[0]) / "reproduce.json").is_file():
         module = "cicfw.reproduction.report"  # a reproduction's folder: its Table 4 with intervals and verdicts
+    # with other folders beside it, the evaluation report refuses it, whichever comes first
     from cicfw.core.hydra_plugins import guard_hydra_plugins
 
     guard_hydra_plugins()  # a plugin whose Hydra module fails to import: one warning, not a stopped app

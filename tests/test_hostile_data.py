@@ -5,6 +5,9 @@ import hashlib
 import json
 import logging
 import shutil
+import socket
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -198,6 +201,53 @@ def test_verify_in_its_dataset_folder_keeps_what_others_write_meanwhile(collecte
     r = run_app_in_process("cicfw.collect", f"out_dir={out}", "--verify", f"hydra.run.dir={out}")
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in out.iterdir()) == sorted([*before, "notes.txt"])
+
+
+def test_a_collector_meeting_a_verify_is_told_the_folder_is_verified_not_written(collected, monkeypatch, caplog):
+    """A verify holds the collection lock while it reads; a collector starting then was told the folder 'is
+    being collected into by another process'. It still waits (or, with lock_wait=0, stops), told a verify
+    reads the folder."""
+    from cicfw.collect import FolderLockedError, integrity
+
+    out, _ = collected
+    refused, real = [], integrity.marker_problems
+
+    def collect_meanwhile(*args, **kwargs):
+        if not refused:
+            with pytest.raises(FolderLockedError) as err:
+                collect_dataset({**TINY, "lock_wait": 0}, out, progress=False)
+            refused.append(err.value)
+            with caplog.at_level(logging.WARNING, logger="cicfw.collect"), pytest.raises(FolderLockedError):
+                collect_dataset({**TINY, "lock_wait": 0.3}, out, progress=False)  # waits, then stops
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(integrity, "marker_problems", collect_meanwhile)
+    assert verify_dataset(out).ok
+    assert (refused[0].key, refused[0].value) == ("out_dir", out)
+    assert "verif" in str(refused[0]) and "collected into" not in str(refused[0]), refused[0]
+    waiting = [r.getMessage() for r in caplog.records if r.getMessage().startswith("waiting for")]
+    assert len(waiting) == 1 and "verif" in waiting[0] and "collecting into" not in waiting[0], waiting
+    assert not (out / ".collect.lock").exists()
+
+
+def test_verify_reads_only_when_no_live_collector_holds_the_folder(collected, caplog):
+    """A live collector's lock: verify stops (lock_wait=0) and reports nothing. A record a dead collector left
+    lies under a free flock: verify takes it over with a warning, reads, and leaves no lock file."""
+    from cicfw.collect import FolderLock, FolderLockedError
+
+    out, _ = collected
+    with FolderLock(out, 0, {"what": "cicfw collect, seed 0"}):
+        with pytest.raises(FolderLockedError) as err:
+            verify_dataset(out, 0)
+    assert (err.value.key, err.value.value) == ("out_dir", out)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (out / ".collect.lock").write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname(),
+                                                   "started": "2000-01-01 00:00:00"}))
+    with caplog.at_level(logging.WARNING, logger="cicfw.collect"):
+        assert verify_dataset(out, 0).ok
+    assert any("stale lock" in r.getMessage() and str(dead.pid) in r.getMessage() for r in caplog.records)
+    assert not (out / ".collect.lock").exists()
 
 
 def test_verify_of_a_folder_without_a_dataset_is_one_line(tmp_path, capsys):

@@ -445,6 +445,31 @@ def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path
             claim_folder(alone, "train", "hydra.run.dir")
 
 
+def test_evaluate_into_a_training_run_of_the_python_api_names_train(tmp_path: Path) -> None:
+    """A run folder trained through the Python API (no .hydra, no train.log: a reproduction's cell, a notebook)
+    given to evaluate as its run folder was refused as holding 'files that no cicfw app wrote'; cicfw train
+    wrote them. A data.json that is no data record is still no proof."""
+    from conftest import compose_train, run_app_in_process, write_tiny_dataset
+
+    from cicfw.core.run_folder import folder_owner
+    from cicfw.train.app import train
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "run"
+    train(compose_train("data=cil_hdf5", f"data.path={data}", "data.batch_size=8", "data.val_batch_size=8",
+                        "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
+                        "trainer.num_sanity_val_steps=0", "progress_bar=false", "speed.compile=false"), run)
+    assert not (run / ".hydra").exists() and not (run / "train.log").exists()
+    before = sorted(str(p.relative_to(run)) for p in run.rglob("*"))
+    res = run_app_in_process("cicfw.evaluate", "policy=expert", f"suite.towns=[{TOWN}]", "suite.weathers=[ClearNoon]",
+                             "suite.limit=1", "runner.workers=1", "maps=false", f"hydra.run.dir={run}")
+    assert res.returncode == 2, (res.returncode, res.stderr)
+    assert "hydra.run.dir" in res.stderr and "cicfw train" in res.stderr, res.stderr
+    assert sorted(str(p.relative_to(run)) for p in run.rglob("*")) == before
+    (run / "data.json").write_text('{"notes": "mine"}')  # any file of that name: no training run's record
+    assert folder_owner(run) is None
+
+
 def test_a_training_run_without_hydra_records_resumes(tmp_path: Path) -> None:
     from conftest import run_app_in_process, write_tiny_dataset
 

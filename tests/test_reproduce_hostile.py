@@ -572,6 +572,39 @@ def test_cicfw_report_reads_a_reproduction_folder_wherever_its_options_stand(tmp
     assert not any((out / n).exists() for n in (*evaluation_report.REPORT_FILES, "report.json"))
 
 
+EPISODE_ROW = {"episode": 0, "key": "town_a/ClearNoon/000", "town": "town_a", "weather": "ClearNoon",
+               "town_set": "training", "weather_set": "training", "pair": 0, "route": "town_a/j/a>b/left",
+               "command": "left", "success": True, "reason": "success", "time_s": 1.0, "timeout_s": 30.0,
+               "distance_m": 50.0, "route_length_m": 50.0, "goal_distance_m": 1.0, "progress": 1.0,
+               "offroad_fraction": 0.0, "opposite_lane_fraction": 0.0, "steps": 10}
+
+
+@pytest.mark.parametrize("reproduction_first", [True, False])
+def test_cicfw_report_refuses_a_reproduction_folder_given_with_evaluations(tmp_path, reproduction_first):
+    """``cicfw report RES E1`` and ``cicfw report E1 RES`` did different things: one joined the reproduction's
+    cells' evaluations as rows beside E1's, the other failed on an argument. Both are one refusal naming RES."""
+    from conftest import run_app_in_process
+
+    from cicfw.benchmark import evaluation_report
+
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    evaluation_report.write_run(out / "cells" / "cil" / "seed0" / "evaluate", evaluation_report.Run("cil", [EPISODE_ROW], {}))
+    other = tmp_path / "e1"
+    evaluation_report.write_run(other, evaluation_report.Run("gtu", [EPISODE_ROW], {}))
+    folders = [str(out), str(other)] if reproduction_first else [str(other), str(out)]
+    before = {p: sorted(q.name for q in p.iterdir()) for p in (tmp_path, out, other)}
+    res = run_app_in_process("cicfw.cli", "report", "--no-plots", *folders, cwd=tmp_path)
+    assert res.returncode == 2, (res.returncode, res.stderr)
+    line = res.stderr.strip()
+    assert line.startswith("cicfw: error:") and "\n" not in line and repr(str(out)) in line, line
+    assert {p: sorted(q.name for q in p.iterdir()) for p in before} == before  # nothing written anywhere
+    with pytest.raises(CicfwError) as err:  # the module itself, as the cicfw script runs it
+        evaluation_report.refuse_reproduction_among([Path(f) for f in folders])
+    assert (err.value.key, err.value.value) == ("dirs", str(out))
+
+
 def test_report_markdown_copy_replaces_only_an_earlier_copy(tmp_path, capsys):
     """``--markdown`` (its help said e.g. docs/RESULTS.md, which is composed from the studies' prose) replaced
     any file with the generated report."""

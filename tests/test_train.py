@@ -76,10 +76,14 @@ def test_seed_gives_the_same_first_epoch_losses(tiny_data, tmp_path):
 def test_resume_from_last_checkpoint(tiny_data, tmp_path):
     base = ["data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.batches_per_epoch=2",
             "data.val_batch_size=16", "progress_bar=false"]
-    train(compose_train(*base, "trainer.max_epochs=1"), tmp_path / "r")
+    train(compose_train(*base, "trainer.max_epochs=1", "keep_epoch_checkpoints=[1]"), tmp_path / "r")
     last = tmp_path / "r" / "checkpoints" / "last.ckpt"
     assert last.exists()
-    assert any(p.name.startswith("epoch000-mae") for p in (tmp_path / "r" / "checkpoints").iterdir())
+    # the best after the first epoch is named as the kept first epoch is: both count whole epochs from 1
+    best = [p for p in last.parent.glob("epoch*-mae*.ckpt")]
+    assert [p.name[:8] for p in best] == ["epoch001"], best
+    kept = torch.load(last.parent / "epoch001.ckpt", weights_only=True)
+    assert torch.load(best[0], weights_only=True)["global_step"] == kept["global_step"] == 2
     train(compose_train(*base, "trainer.max_epochs=2", f"ckpt_path={last}"), tmp_path / "r2")
     assert torch.load(tmp_path / "r2" / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 1
 

@@ -47,8 +47,8 @@ def test_last_ckpt_is_the_latest_epoch_when_the_validation_error_rises_at_the_en
     assert last["epoch"] == len(VAL_ERRORS) - 1, f"last.ckpt holds epoch {last['epoch'] + 1} of {len(VAL_ERRORS)}"
     assert last["global_step"] == len(VAL_ERRORS)  # one batch an epoch
     best_files = [p.name for p in ckpts.glob("epoch*-mae*.ckpt")]
-    assert best_files == ["epoch001-mae0.3000.ckpt"], best_files  # 0-based epoch 1 = the second
-    assert load_checkpoint_safely(ckpts / best_files[0])["epoch"] == 1
+    assert best_files == ["epoch002-mae0.3000.ckpt"], best_files  # the second epoch, counted as the kept ones are
+    assert load_checkpoint_safely(ckpts / best_files[0])["epoch"] == 1  # Lightning's 0-based index
 
 
 def test_resuming_from_last_ckpt_does_not_retrain_finished_epochs(tmp_path, monkeypatch):

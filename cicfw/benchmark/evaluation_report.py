@@ -416,6 +416,19 @@ def check_report_folder(out: Path, runs: Sequence[Run], dirs: Sequence[str], wha
                      f"replace; give another --out, or --overwrite to replace them", key="--out", value=str(out))
 
 
+def refuse_reproduction_among(dirs: Sequence[str | Path]) -> None:
+    """A reproduction's results folder given with other folders, in any order: its report is its Table 4,
+    of it alone, and its cells' evaluations are no rows beside other runs. One ``CicfwError`` naming it."""
+    if len(dirs) < 2:
+        return
+    for d in dirs:
+        if folder_owner(Path(d).expanduser()) == "reproduce":
+            others = ", ".join(repr(str(o)) for o in dirs if o is not d)
+            raise CicfwError(f"report: {str(d)!r} is a reproduction's results folder, given with {others}; give "
+                             f"either one reproduction folder alone (cicfw report {d}: its Table 4) or evaluation "
+                             f"run folders (or folders holding them), not both", key="dirs", value=str(d))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="cicfw report", description="Join evaluation runs (folders written by cicfw evaluate, or folders "
@@ -431,6 +444,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="replace tables in the folder that are not an earlier report of the same runs")
     args = parser.parse_args(argv)
     try:
+        refuse_reproduction_among(args.dirs)
         runs = find_runs(args.dirs, partial="include" if args.partial else "refuse")
     except (FileNotFoundError, ValueError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)

@@ -9,7 +9,7 @@ import os
 from pathlib import Path
 
 from cicfw.collect.errors import CollectError
-from cicfw.collect.lock import FolderLock
+from cicfw.collect.lock import READS_ONLY, FolderLock
 from cicfw.collect.metadata import META_NAME
 from cicfw.collect.writing import write_json
 from cicfw.data.cil_hdf5 import CILFormatError, check_file
@@ -135,8 +135,10 @@ class VerifyReport:
 def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> VerifyReport:
     """Check every file of a collected dataset against its recorded size and SHA-256 (files without a
     recorded checksum: size and CIL layout), changing nothing. Holds the folder's lock while it reads (a
-    collection in progress is waited for as ``lock_wait`` says), unless the folder is read-only (then no
-    one can be writing into it). A folder without ``dataset_metadata.json`` is a CollectError."""
+    collection in progress is waited for as ``lock_wait`` says; a collector starting meanwhile waits, told the
+    folder is being verified; a record left by a dead collector lies under a free flock, which the kernel
+    frees whenever its holder dies, and is taken over), unless the folder is read-only (then no one can be
+    writing into it). A folder without ``dataset_metadata.json`` is a CollectError."""
     out_dir = Path(out_dir).expanduser().resolve()
     meta_path = out_dir / META_NAME
     if not meta_path.is_file():
@@ -145,7 +147,7 @@ def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> Verify
                            f"(out_dir=...)", key="out_dir", value=out_dir)
     lock = None
     if os.access(out_dir, os.W_OK | os.X_OK):
-        lock = FolderLock(out_dir, lock_wait, {"what": "cicfw collect verify=true"}).acquire()
+        lock = FolderLock(out_dir, lock_wait, {"what": "cicfw collect verify=true", READS_ONLY: True}).acquire()
     try:
         try:
             meta = json.loads(meta_path.read_text())

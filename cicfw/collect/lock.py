@@ -9,6 +9,9 @@ from cicfw.collect.errors import CollectError, FolderLockedError
 from cicfw.collect.writing import disk_error
 
 LOCK_NAME = ".collect.lock"
+#: the key a holder that only reads the folder (``cicfw collect --verify``) sets in its record: another
+#: collector waits for it as for a collector, and is told that the folder is being checked, not written
+READS_ONLY = "reads_only"
 
 
 class FolderLock(locks.FolderLock):
@@ -19,9 +22,13 @@ class FolderLock(locks.FolderLock):
     activity = "is collecting into it"
     log = logging.getLogger(__name__)
 
+    def doing(self, holder: Mapping[str, Any]) -> str:
+        return "is verifying it (reading only)" if holder.get(READS_ONLY) else self.activity
+
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
         after = f" after waiting {waited:.0f} s" if self.wait else ""
-        return FolderLockedError(f"{self.folder} is being collected into by another process "
+        what = "being verified (read only)" if holder.get(READS_ONLY) else "being collected into"
+        return FolderLockedError(f"{self.folder} is {what} by another process "
                                  f"({locks.describe_holder(holder)}){after}; wait for it to finish (lock_wait=null "
                                  f"waits), or collect into another folder", key="out_dir", value=self.folder)
 

@@ -89,6 +89,11 @@ class FolderLock:
         """The error when the lock cannot be used at all (``step``: ``open``, ``lock`` or ``record``)."""
         return err
 
+    def doing(self, holder: Mapping[str, Any]) -> str:
+        """What the waiting message says ``holder`` is doing with the folder (``activity``, unless a
+        subclass tells its holders apart by their records)."""
+        return self.activity
+
     # ---- taking and giving back --------------------------------------------------------------------
     def acquire(self) -> "FolderLock":
         """Take the lock (waiting as ``wait`` says) and record this process as its holder."""
@@ -111,7 +116,7 @@ class FolderLock:
                 raise self.busy(holder, waited, certain=True)
             if not said:
                 self.log.log(self.wait_level, "waiting for %s: another process %s (%s)", self.folder,
-                             self.activity, describe_holder(holder))
+                             self.doing(holder), describe_holder(holder))
                 said = True
             time.sleep(POLL_S)
         self._take_over(fd)

@@ -8,6 +8,7 @@ callbacks ``RunFolderCheck`` and ``TrainRunFolderCheck`` apply them before Hydra
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import sys
@@ -411,6 +412,9 @@ DATA_SUFFIXES = (".h5", ".hdf5")
 #: alone is no proof (any tool may write a ``train.log``), nor are the outputs alone (a copy of a checkpoint)
 JOB_OUTPUTS = (("train", ("checkpoints", "csv/metrics.csv", "metrics.json", "data.json")),
                ("diagnose", ("steer_diagnostic.json",)))
+#: a training run through the Python API (``cicfw.train.app.train``: the reproduction's cells, a notebook) has
+#: neither ``.hydra`` nor a log: its record of its data (``data.json``) beside one of these outputs names it
+TRAIN_API_OUTPUTS = ("checkpoints", "csv/metrics.csv", "metrics.json")
 
 
 def _entries(folder: Path) -> list[str]:
@@ -438,11 +442,21 @@ def _hydra_job(folder: Path) -> str | None:
     return None
 
 
+def _holds_data_record(folder: Path) -> bool:
+    """Whether ``folder/data.json`` is a training run's record of its data (its path and its files), not
+    any file of that name."""
+    try:
+        record = json.loads((folder / "data.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and isinstance(record.get("path"), str) and isinstance(record.get("files"), list)
+
+
 def folder_owner(folder: str | Path) -> str | None:
     """The app whose run (or output) ``folder`` is, from the record that app already leaves there: Hydra's
     job name for a Hydra app (train, evaluate, ...) or, without ``.hydra``, its job log beside its outputs
-    (``JOB_OUTPUTS``), the episode log of an evaluation driven through the
-    Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
+    (``JOB_OUTPUTS``), a training run's data record beside its outputs without either (``TRAIN_API_OUTPUTS``),
+    the episode log of an evaluation driven through the Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
     stopped before it wrote the manifest) for a reproduction,
     ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
     their run folder are no run: their episode log stays behind).
@@ -455,6 +469,8 @@ def folder_owner(folder: str | Path) -> str | None:
     for app, outputs in JOB_OUTPUTS:
         if (folder / f"{app}.log").is_file() and any(_exists(folder / name) for name in outputs):
             return app
+    if _holds_data_record(folder) and any(_exists(folder / name) for name in TRAIN_API_OUTPUTS):
+        return "train"
     for name, app in RECORDS:
         if (folder / name).exists():
             return app

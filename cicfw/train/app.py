@@ -228,7 +228,15 @@ class BestCheckpoint(ModelCheckpoint):
     """The best checkpoint by the monitored metric. A run folder moved or copied and resumed there keeps its
     best: Lightning forgets the best seen so far when the folder's path changed, so a worse later epoch was
     saved as a second best and reported as the run's value; the state is re-rooted here when the files it
-    names lie in this folder under their names (another run's checkpoint resumed in a new folder is not)."""
+    names lie in this folder under their names (another run's checkpoint resumed in a new folder is not).
+    Its name's ``{epoch}`` counts the epochs begun (1-based), as the kept ``epochNNN.ckpt`` do, so that
+    ``epoch001-mae...ckpt`` and ``epoch001.ckpt`` are the same epoch's weights (Lightning's is 0-based)."""
+
+    def format_checkpoint_name(self, metrics: dict[str, Any], filename: str | None = None, ver: int | None = None,
+                               prefix: str | None = None) -> str:
+        if "epoch" in metrics:
+            metrics = {**metrics, "epoch": metrics["epoch"] + 1}
+        return super().format_checkpoint_name(metrics, filename=filename, ver=ver, prefix=prefix)
 
     @property
     def state_key(self) -> str:  # ModelCheckpoint's, under which every run's checkpoints keep this state
