@@ -108,6 +108,35 @@ def test_the_printed_interval_says_a_column_is_widened_to_the_episodes(tmp_path)
     assert "95% t]" not in out[1] and any("widened" in line and "Newcombe" in line for line in out), out
 
 
+def test_the_verdict_is_printed_with_the_90_percent_interval_it_is_read_on(tmp_path):
+    """Near the margin the verdict (TOST at 5% each side) and the word (95% interval) can differ: the line
+    shows the verdict's own interval. Columns of 100 episodes whose seeds differ by 2, 6, 1 points: the
+    episodes' floor is wider than the seeds' t-interval, so the 90% interval is Newcombe's, by hand
+    (Wilson with z = 1.645 on the pooled 300 episodes of each side), its verdict from where it lies."""
+    per = [(60, 58), (66, 60), (61, 60)]
+    for s, (k, j) in enumerate(per):
+        for side, n in (("a", k), ("b", j)):
+            eps = {f"{c}/{i:03d}": {"success": i < n, "column": c, "command": "left"} for c in COLUMNS for i in range(100)}
+            (tmp_path / side / f"seed{s}").mkdir(parents=True)
+            (tmp_path / side / f"seed{s}" / "cell.json").write_text(json.dumps(
+                {"row": side, "seed": s, "status": "ok", "episodes": eps}))
+    a, b = ps.load_row(tmp_path / "a"), ps.load_row(tmp_path / "b")
+    ka, kb, z = sum(k for k, _ in per), sum(j for _, j in per), float(stats.norm.ppf(0.95))
+    (l1, u1), (l2, u2) = wilson(ka, 300, z), wilson(kb, 300, z)
+    d = ka / 300 - kb / 300
+    lo = 100 * (d - math.sqrt((ka / 300 - l1) ** 2 + (u2 - kb / 300) ** 2))
+    hi = 100 * (d + math.sqrt((u1 - ka / 300) ** 2 + (kb / 300 - l2) ** 2))
+    diffs = [k - j for k, j in per]
+    half = stats.t.ppf(0.95, 2) * stats.tstd(diffs) / math.sqrt(3)
+    lo, hi = min(lo, sum(diffs) / 3 - half), max(hi, sum(diffs) / 3 + half)
+    for margin in (5.0, 12.0):
+        column = ps.compare(a, b, margin)[0]
+        assert (column.tost_lo, column.tost_hi) == pytest.approx((lo, hi), abs=1e-6)
+        assert (column.verdict == f"equivalent within ±{margin:g}") == (-margin < lo and hi < margin)
+        line = next(x for x in ps.lines(a, b, margin) if x.startswith(COLUMNS[0]))
+        assert f"[90%: {lo:+.1f}, {hi:+.1f}]" in line, line
+
+
 def test_episode_tost_is_dual_to_newcombes_interval_by_hand():
     """192 of 192 against 180 of 192 (+6.25 points), margin 10: the p-value is the alpha at which Newcombe's
     (1 - 2 alpha) interval, from Wilson's closed form with z = the normal quantile 1 - alpha, reaches

@@ -50,6 +50,7 @@ from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference
                                            with_episode_floor, word)
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
+TOST_LEVEL = 1 - 2 * ALPHA
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
 EPISODE_COLUMNS = ("key", "town_set", "weather_set", "success")  # what --episodes reads of an episodes.csv
 
@@ -72,6 +73,10 @@ class Equivalence:
     word: str | None = None
     word_lo: float | None = None
     word_hi: float | None = None
+    #: the interval the verdict is read on: 1 - 2 ALPHA (90%), widened by the same floor; TOST's p < ALPHA
+    #: exactly when it lies inside ±margin, so a verdict and this interval never disagree
+    tost_lo: float | None = None
+    tost_hi: float | None = None
 
 
 def load_row(folder: Path) -> dict[int, CellResult]:
@@ -118,12 +123,14 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
         va = {s: a[s].rate(col) for s in seeds}
         vb = {s: b[s].rate(col) for s in seeds}
         d, dc = difference(va, vb), difference(va, vb, level=family_level(family))
+        dt = difference(va, vb, level=TOST_LEVEL)
         on = col or "overall"
         terms = episode_terms({"a": [a[s] for s in seeds], "b": [b[s] for s in seeds]},
                               [(1.0, "a", on), (-1.0, "b", on)]) if seeds else None
         if terms:
             d = with_episode_floor(d, terms)
             dc = with_episode_floor(dc, terms, level=family_level(family))
+            dt = with_episode_floor(dt, terms, level=TOST_LEVEL)
         w = word(dc.estimate.lo, dc.estimate.hi, margin) if len(seeds) >= MIN_SEEDS else None
         if len(seeds) < MIN_SEEDS:
             p, verdict = None, f"too few seeds ({len(seeds)} paired; {MIN_SEEDS} needed)"
@@ -134,7 +141,8 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
             verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
         out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
                                d.estimate.lo, d.estimate.hi, p, verdict, w, dc.estimate.lo if w else None,
-                               dc.estimate.hi if w else None))
+                               dc.estimate.hi if w else None, dt.estimate.lo if p is not None else None,
+                               dt.estimate.hi if p is not None else None))
     return out
 
 
@@ -219,10 +227,14 @@ def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: floa
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
         p = "–" if e.p_tost is None else f"{e.p_tost:.3f}"
         said = "too few seeds" if e.word is None else f"{e.word} [{e.word_lo:+.1f}, {e.word_hi:+.1f}]"
+        tost = "" if e.tost_lo is None else f" [{TOST_LEVEL:.0%}: {e.tost_lo:+.1f}, {e.tost_hi:+.1f}]"
         out.append(f"{e.on:36s} {' '.join(f'{x:5.1f}' for x in e.a):>22s} {' '.join(f'{x:5.1f}' for x in e.b):>22s} "
-                   f"{ci:>22s} {p:>7s}  {e.verdict}; {said}")
+                   f"{ci:>22s} {p:>7s}  {e.verdict}{tost}; {said}")
     out.append("[95%]: the paired t-interval over seeds, widened to the pooled episodes' interval where that is "
                "wider (Newcombe's in a column, MOVER's overall)")
+    out.append(f"verdict: TOST at {ALPHA:g} each side, read on the {TOST_LEVEL:.0%} interval shown beside it (inside "
+               f"±{margin:g}: equivalent); word: read on the 95% interval (or Bonferroni's), stricter, so near the "
+               "margin a pair can read equivalent and not separated at once")
     ta = [a[s].meta.get("wall_s", {}).get("train") for s in seeds]
     tb = [b[s].meta.get("wall_s", {}).get("train") for s in seeds]
     if all(ta) and all(tb):
