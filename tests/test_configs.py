@@ -62,3 +62,23 @@ def test_logger_options_build(option, tmp_path):
 @pytest.mark.parametrize("option", options("debug"))
 def test_debug_options_compose(option):
     assert compose_train(f"debug={option}").trainer
+
+
+def test_the_suites_parse_cache_reads_an_edited_config_file_anew(tmp_path):
+    """conftest keeps each YAML file's parse for the suite's composes: a file written or edited during the
+    suite (a user's config, a plugin's) must compose as it now reads, and an empty one as Hydra reads it."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    (tmp_path / "app.yaml").write_text("defaults:\n  - part: one\n  - _self_\nlr: 1\n")
+    (tmp_path / "part").mkdir()
+    (tmp_path / "part" / "one.yaml").write_text("")
+
+    def composed() -> dict:
+        with initialize_config_dir(str(tmp_path), version_base="1.3"):
+            return OmegaConf.to_container(compose("app"))
+
+    assert composed() == {"part": {}, "lr": 1}
+    (tmp_path / "app.yaml").write_text("defaults:\n  - part: one\n  - _self_\nlr: 0.25\nname: edited\n")
+    (tmp_path / "part" / "one.yaml").write_text("width: 3\n")
+    assert composed() == {"lr": 0.25, "name": "edited", "part": {"width": 3}}
