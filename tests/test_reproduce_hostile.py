@@ -176,6 +176,21 @@ def test_a_custom_row_with_another_row_s_label_is_refused_up_front(no_collect, t
     assert not out.exists()
 
 
+@pytest.mark.parametrize("arg, key, label", [
+    ("catalogue.cil.label='CIL\nsecond line'", "catalogue.cil.label", "CIL\nsecond line"),
+    ("+catalogue.mine={experiment: paper_gtu, label: 'GTU\r\nx'}", "catalogue.mine.label", "GTU\r\nx"),
+])
+def test_a_label_with_a_line_break_is_refused_up_front(arg, key, label, no_collect, tmp_path, capsys):
+    """A Markdown table row is one line: a label holding a line break would end its row mid-table."""
+    out = tmp_path / "results"
+    args = [arg, "rows=[cil]", "budget=smoke", f"results_dir={out}"]
+    with pytest.raises(reproduce.ConfigError) as err:
+        reproduce.check_plan(reproduce.compose_plan(args))
+    assert (err.value.key, err.value.value) == (key, label)
+    refused(args, capsys)
+    assert not out.exists()
+
+
 def test_the_catalogues_rows_set_nothing_a_budget_sets(no_collect):
     from cicfw.reproduction.catalogue import budget_settings_in_row
 

@@ -81,7 +81,7 @@ def _marked(runs: Sequence[Run]) -> list[Run]:
 
 
 def _partial_lines(runs: Sequence[Run]) -> list[str]:
-    return [f"**PARTIAL**: {_md_escape(r.label)} had {partial_note(r)} when this table was written (its evaluation "
+    return [f"**PARTIAL**: {md_cell(r.label)} had {partial_note(r)} when this table was written (its evaluation "
             f"had not finished); the rates "
             f"cover those only. Run the same evaluate command with the same output folder to finish it."
             for r in runs if not is_complete(r)]
@@ -109,7 +109,7 @@ def markdown_table(runs: Sequence[Run]) -> str:
         "|---|---:|---:|---:|---:|",
         "| | *Training weathers* | *New weathers* | *Training weathers* | *New weathers* |",
     ]
-    lines += [md_row([_md_escape(label), *map(_fmt, rates)]) for label, rates, _ in rows]
+    lines += [md_row([label, *map(_fmt, rates)]) for label, rates, _ in rows]
     counts = {tuple(n) for _, _, n in rows}
     if len(counts) == 1:
         n = next(iter(counts))
@@ -129,18 +129,25 @@ def manoeuvre_table(runs: Sequence[Run]) -> str:
     if not names:
         return ""
     table = md_table(["Model", *(n.capitalize() for n in names)], "l" + "r" * len(names), (
-        [_md_escape(run.label), *(f"{100.0 * m[n][0] / m[n][1]:.2f} ({m[n][0]}/{m[n][1]})" if n in m else "–"
+        [run.label, *(f"{100.0 * m[n][0] / m[n][1]:.2f} ({m[n][0]}/{m[n][1]})" if n in m else "–"
                                   for n in names)] for run in runs for m in [run.manoeuvres()]))
     return "\n".join(["", "**Success by manoeuvre (%, successes/episodes)**", "", *table]) + "\n"
 
 
-def _md_escape(s: str) -> str:
-    return str(s).replace("|", "\\|")
+#: a ``|`` with the backslashes right before it (each doubled and the pipe escaped, both stay literal)
+_PIPE = re.compile(r"(\\*)\|")
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
+
+
+def md_cell(value: Any) -> str:
+    """``value`` as one Markdown table cell: a ``|`` escaped (``\\|``) so it splits no cell, a line break read
+    as a space so it ends no row (a label may hold either)."""
+    return _PIPE.sub(lambda m: m.group(1) * 2 + "\\|", _LINE_BREAK.sub(" ", str(value)))
 
 
 def md_row(cells: Iterable[Any]) -> str:
-    """One row of a Markdown table: ``| a | b |``."""
-    return "| " + " | ".join(map(str, cells)) + " |"
+    """One row of a Markdown table: ``| a | b |``, each cell through ``md_cell``."""
+    return "| " + " | ".join(map(md_cell, cells)) + " |"
 
 
 def md_table(head: Sequence[str], align: str, rows: Iterable[Iterable[Any]] = ()) -> list[str]:

@@ -21,7 +21,7 @@ from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError, ConfigError
-from cicfw.core.files import PROBE_PREFIX, remove_stale_temps, writable_folder
+from cicfw.core.files import PROBE_PREFIX, atomic_write, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.slurm_requeue import is_requeued_run, saved_config
 from cicfw.core.sweeps import is_worker_process
@@ -224,6 +224,27 @@ def hold_train_folder(folder: str | Path, ckpt_path: Any = None, key: str = "hyd
     remove_stale_temps(folder)  # a killed run's half-written checkpoint or record, never renamed
 
 
+#: the records Hydra rewrites in a run's ``.hydra`` at every start, a resumed run's included
+HYDRA_RECORDS = ("config.yaml", "overrides.yaml", "hydra.yaml")
+
+
+def keep_segment_records(folder: str | Path) -> int | None:
+    """Copy the ``HYDRA_RECORDS`` of ``folder``'s earlier segment to ``.hydra/<name>.<k>.yaml`` before Hydra
+    rewrites them for a resume, so the config each segment trained with stays readable. ``k`` is the first
+    number no kept record has (as ``metrics.<k>.csv``: the k-th resume keeps ``.k``); a kept file is never
+    replaced. Returns ``k``, None when there is no record to keep."""
+    hydra = Path(folder) / ".hydra"
+    found = [name for name in HYDRA_RECORDS if (hydra / name).is_file()]
+    if not found:
+        return None
+    k = 1
+    while any(_exists(hydra / f"{Path(name).stem}.{k}.yaml") for name in HYDRA_RECORDS):
+        k += 1
+    for name in found:
+        atomic_write(hydra / f"{Path(name).stem}.{k}.yaml", (hydra / name).read_bytes())
+    return k
+
+
 def forget_failed_run(folder: str | Path) -> list[str]:
     """A training run that stopped before writing any checkpoint leaves nothing to resume from, and its
     error says to run the same command again: the outputs it wrote (``run_outputs``: the metrics it logged
@@ -372,7 +393,8 @@ class TrainRunFolderCheck(RunFolderCheck):
     """Hydra callback (conf/train.yaml): ``RunFolderCheck``'s checks, then the run folder held for this run
     (``hold_train_folder``) before Hydra writes its ``.hydra`` there, and what it held noted for
     ``undo_run_folder``; a folder another run holds or wrote into, or a sweep folder holding another
-    multirun, is one line (exit status 2), the other run's files untouched."""
+    multirun, is one line (exit status 2), the other run's files untouched. A resume keeps the earlier
+    segment's ``.hydra`` records first (``keep_segment_records``)."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         folder = str(config.hydra.run.dir)
@@ -383,6 +405,16 @@ class TrainRunFolderCheck(RunFolderCheck):
         except ValueError as err:
             undo_run_folder(folder)
             print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
+        if is_worker_process() or not run_outputs(folder):  # a rank of rank 0's run, or a fresh run
+            return
+        try:  # held with outputs: this run resumes the folder's, whose records Hydra is about to rewrite
+            keep_segment_records(folder)  # undo_run_folder removes the copies again if the resume is refused
+        except OSError as err:
+            release_run_folder(folder)
+            undo_run_folder(folder)
+            print(f"cicfw: error: cannot keep the earlier segment's config in {folder}/.hydra "
+                  f"({err.strerror or err}); hydra.run.dir must be a run folder you can write", file=sys.stderr)
             sys.exit(2)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:

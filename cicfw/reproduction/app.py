@@ -145,6 +145,9 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
     labels: dict[str, str] = {}  # the report names rows by label: two rows of one label would read as one
     for r, entry in catalogue.items():
         label = str(entry.get("label", r))
+        if "\n" in label or "\r" in label:  # a table row is one line
+            raise ConfigError(f"catalogue.{r}.label", label, "a label on one line: the report's tables name "
+                              "each row by its label")
         if label in labels:
             raise ConfigError(f"catalogue.{r}.label", label, f"a label no other row has (catalogue."
                               f"{labels[label]} has it): the report names each row by its label")
