@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, NoReturn, Sequence
 
+from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import OmegaConf
@@ -307,8 +308,29 @@ def forget_run_folder(folder: str | Path) -> None:
 
 def saved_run_config(checkpoint: str | Path) -> Any | None:
     """The config the training run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``) saved in
-    ``<run>/.hydra/config.yaml`` (``saved_config``)."""
-    return saved_config(Path(checkpoint).parent.parent)
+    ``<run>/.hydra/config.yaml`` (``saved_config``). A Hydra run resuming in that same folder has already
+    rewritten that file with its own command: the earlier segment's record is read then, the newest
+    ``config.<k>.yaml`` ``keep_segment_records`` kept."""
+    run = Path(checkpoint).parent.parent
+    kept = newest_kept_record(run) if _is_this_runs_folder(run) else None
+    return saved_config(run) if kept is None else saved_config(run, kept.name)
+
+
+def newest_kept_record(folder: str | Path) -> Path | None:
+    """The newest earlier segment's config ``keep_segment_records`` kept in ``folder``, or None."""
+    numbered = [(int(p.name.split(".")[1]), p) for p in (Path(folder) / ".hydra").glob("config.*.yaml")
+                if p.name.split(".")[1].isdigit()]
+    return max(numbered)[1] if numbered else None
+
+
+def _is_this_runs_folder(folder: Path) -> bool:
+    """Whether ``folder`` is the output folder of the Hydra run this process is."""
+    if not HydraConfig.initialized():
+        return False
+    try:
+        return Path(os.path.abspath(HydraConfig.get().runtime.output_dir)) == Path(os.path.abspath(folder))
+    except Exception:  # a Hydra config without a runtime folder: not a run
+        return False
 
 
 def undo_run_folder(folder: str | Path, hydra_only: bool = False) -> None:

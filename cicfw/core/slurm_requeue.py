@@ -30,11 +30,11 @@ def saved_values(config: Any) -> dict:
     return OmegaConf.to_container(OmegaConf.create(OmegaConf.to_yaml(OmegaConf.create(values))), resolve=False)
 
 
-def saved_config(folder: str | Path) -> DictConfig | None:
-    """The config the Hydra run in ``folder`` saved (``.hydra/config.yaml``), unresolved; None when there is
-    none, it cannot be read or it holds no mapping."""
+def saved_config(folder: str | Path, name: str = "config.yaml") -> DictConfig | None:
+    """The config the Hydra run in ``folder`` saved (``.hydra/config.yaml``, or an earlier segment's ``name``),
+    unresolved; None when there is none, it cannot be read or it holds no mapping."""
     try:
-        saved = OmegaConf.load(Path(folder) / ".hydra" / "config.yaml")
+        saved = OmegaConf.load(Path(folder) / ".hydra" / name)
     except Exception:  # missing or unreadable: nothing says which run is there
         return None
     return saved if isinstance(saved, DictConfig) else None
