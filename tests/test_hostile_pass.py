@@ -74,6 +74,86 @@ def test_a_reproduction_cell_means_the_weights_its_table_drove(tmp_path: Path) -
     assert resolve_checkpoint(cell / "train").name == "epoch000-mae0.2000.ckpt"  # a run folder: its best
 
 
+def _cell(tmp_path: Path, last: dict | None, **recorded) -> Path:
+    """A finished cell of two epochs whose final epoch002.ckpt is gone; ``last``: its last.ckpt's dict."""
+    import json
+
+    import torch
+
+    cell = tmp_path / "cells" / "gtu" / "seed0"
+    _ckpt(cell / "train" / "checkpoints", "epoch001-mae0.2000.ckpt", "epoch001.ckpt")
+    if last is not None:
+        torch.save(last, cell / "train" / "checkpoints" / "last.ckpt")
+    (cell / "cell.json").write_text(json.dumps({"row": "gtu", "seed": 0, "status": "ok", "epochs": 2, **recorded}))
+    return cell
+
+
+def test_a_cell_without_its_final_epoch_file_means_its_last_checkpoint_of_that_epoch(tmp_path: Path) -> None:
+    """The final epochNNN.ckpt deleted, last.ckpt kept: the cell's folder means last.ckpt (Lightning's 0-based
+    epoch 1 is the second), never the best validation checkpoint."""
+    from cicfw.model.checkpoint import resolve_checkpoint
+
+    cell = _cell(tmp_path, {"epoch": 1, "global_step": 8}, samples_seen=8 * 4, recipe={"data": {"batch_size": 4}})
+    assert resolve_checkpoint(cell) == (cell / "train" / "checkpoints" / "last.ckpt").resolve()
+
+
+@pytest.mark.parametrize("last, recorded", [
+    (None, {}),  # no last.ckpt
+    ({"epoch": 0, "global_step": 4}, {}),  # an earlier epoch's
+    ({"epoch": 2, "global_step": 12}, {}),  # trained on after the cell
+    ({"epoch": 1, "global_step": 7}, {"samples_seen": 32, "recipe": {"data": {"batch_size": 4}}}),  # other steps
+    (None, {"epochs": None, "status": "failed"}),  # a cell that never finished
+])
+def test_a_cell_without_its_final_weights_is_refused(tmp_path: Path, last, recorded) -> None:
+    from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
+
+    cell = _cell(tmp_path, last, **recorded)
+    with pytest.raises(CheckpointError) as err:
+        resolve_checkpoint(cell)
+    assert err.value.key == "checkpoint" and err.value.value == str(cell)
+    if "epochs" not in recorded:
+        assert "epoch002.ckpt" in str(err.value)
+
+
+def test_a_cell_s_last_checkpoint_written_by_lightning_is_its_final_epoch_s(tmp_path: Path) -> None:
+    """Real checkpoints: train's last.ckpt and its kept epoch002.ckpt after two epochs record the same epoch
+    and step, so a cell that lost epoch002.ckpt resolves to that last.ckpt; after a third epoch it is refused."""
+    import json
+
+    import lightning as L
+    import torch
+    from torch.utils.data import DataLoader
+
+    from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
+    from cicfw.model.module import CICModule
+    from cicfw.train.app import EpochCheckpoints, last_checkpoint
+
+    frames = [{"image": torch.full((3, 88, 200), i * 20, dtype=torch.uint8), "speed": torch.tensor(10.0),
+               "command": torch.tensor(i % 4), "steer": torch.tensor(0.0)} for i in range(4)]
+    cell = tmp_path / "cell"
+    ckpts = cell / "train" / "checkpoints"
+
+    def fit(epochs: int, ckpt_path: str | None = None) -> None:
+        L.seed_everything(0)
+        trainer = L.Trainer(max_epochs=epochs, limit_val_batches=0, logger=False, enable_progress_bar=False,
+                            enable_model_summary=False, accelerator="cpu", default_root_dir=tmp_path,
+                            callbacks=[last_checkpoint(ckpts), EpochCheckpoints(ckpts, [epochs], epochs)])
+        trainer.fit(CICModule(), DataLoader(frames, batch_size=2), ckpt_path=ckpt_path)
+
+    fit(2)
+    final = torch.load(ckpts / "epoch002.ckpt", weights_only=True)
+    (cell / "cell.json").write_text(json.dumps({"status": "ok", "epochs": final["epoch"] + 1,
+                                                "samples_seen": final["global_step"] * 2,
+                                                "recipe": {"data": {"batch_size": 2}}}))
+    (ckpts / "epoch002.ckpt").unlink()
+    assert resolve_checkpoint(cell) == (ckpts / "last.ckpt").resolve()
+    fit(3, str(ckpts / "last.ckpt"))  # trained on: last.ckpt is no longer the cell's final weights
+    (ckpts / "epoch003.ckpt").unlink()
+    with pytest.raises(CheckpointError) as err:
+        resolve_checkpoint(cell)
+    assert err.value.key == "checkpoint" and "epoch002.ckpt" in str(err.value)
+
+
 def test_a_folder_above_several_runs_is_refused(tmp_path: Path) -> None:
     from cicfw.model.checkpoint import CheckpointError, resolve_checkpoint
 

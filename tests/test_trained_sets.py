@@ -188,3 +188,75 @@ def test_data_that_says_nothing_leaves_the_default_columns_with_a_warning(tmp_pa
     with caplog.at_level("WARNING", logger="cicfw.benchmark.trained_sets"):  # the user named both: nothing to say
         training_set_overrides(data, ["suite.training_towns=[town_b]", "suite.training_weathers=[ClearNoon]"])
     assert not caplog.records
+
+
+def _columns(out):
+    rows = json.loads((out / "episodes.json").read_text())["episodes"]
+    return sorted((r["town_set"], r["weather_set"]) for r in rows)
+
+
+def test_the_columns_are_the_sets_the_checkpoint_recorded_not_the_metadata_edited_since(tmp_path):
+    """A run trained on town_a / ClearNoon data; its data's metadata then edited to name town_b and MidRainyNoon
+    too (its HDF5 files unchanged, so the checkpoint's data hash still matches): the evaluation still drives one
+    episode in each of the four columns, and says the metadata now names other sets."""
+    from conftest import TINY_TRAIN, run_app_in_process
+
+    from cicfw.data.provenance import SETS_KEY
+    from cicfw.testing import write_tiny_dataset
+    from cicfw.train.app import train
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
+    meta = data / "dataset_metadata.json"
+    meta.write_text(json.dumps({"towns": ["town_a"], "weathers": ["ClearNoon"]}))
+    cfg = compose_train(*TINY_TRAIN, f"data.path={data}")
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+    train(cfg, run, refuse_finished=True)
+    assert json.loads((run / "data.json").read_text())[SETS_KEY] == {"towns": ["town_a"], "weathers": ["ClearNoon"]}
+    evaluate = [f"checkpoint={run}", "suite=single_turn", "suite.limit=1", "suite.weathers=[ClearNoon,MidRainyNoon]",
+                "runner.workers=1", "progress_bar=false", "maps=false"]
+    four = [("new", "new"), ("new", "training"), ("training", "new"), ("training", "training")]
+    res = run_app_in_process("cicfw.evaluate", *evaluate, f"hydra.run.dir={tmp_path / 'before'}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert _columns(tmp_path / "before") == four
+    meta.write_text(json.dumps({"towns": ["town_a", "town_b"], "weathers": ["ClearNoon", "MidRainyNoon"]}))
+    res = run_app_in_process("cicfw.evaluate", *evaluate, f"hydra.run.dir={tmp_path / 'after'}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert _columns(tmp_path / "after") == four
+    logged = "".join(f.read_text() for f in (tmp_path / "after").glob("*.log")).splitlines()
+    said = [line for line in logged if "recorded when its training started" in line]
+    assert said and "town_b" in said[0] and "MidRainyNoon" in said[0] and str(run) in said[0]
+
+
+def test_a_checkpoint_that_recorded_no_sets_falls_back_to_the_metadata_and_says_so(tmp_path, caplog):
+    """A checkpoint written before records held the towns and weathers: its data's metadata now, with a line."""
+    from cicfw.benchmark.trained_sets import checkpoint_run_data, checkpoint_sets
+
+    ckpt = _run_with_checkpoint(tmp_path, ["town_b"], ["ClearNoon"])  # its run's data.collect: the data now
+    assert checkpoint_sets(ckpt) is None
+    with caplog.at_level("INFO", logger="cicfw.benchmark.trained_sets"):
+        found = training_set_overrides(checkpoint_run_data(ckpt), [], checkpoint_sets(ckpt), whose=f"checkpoint {ckpt}")
+    assert found == ["suite.training_towns=[town_b]", "suite.training_weathers=[ClearNoon]"]
+    assert [r for r in caplog.records if str(ckpt) in r.getMessage() and "records no" in r.getMessage()]
+
+
+def test_the_recorded_sets_win_over_the_metadata_and_the_user_s_over_both(tmp_path):
+    """A checkpoint's own record of its sets labels the columns; suite.training_towns on the command line still
+    wins over it, as it does over the metadata."""
+    import torch
+
+    from cicfw.benchmark.trained_sets import checkpoint_run_data, checkpoint_sets
+    from cicfw.data.provenance import CHECKPOINT_KEY, SETS_KEY
+
+    ckpt = _run_with_checkpoint(tmp_path, ["town_a"], ["ClearNoon"])
+    data = _collected_in_town_b(tmp_path)  # its metadata now: town_b, MidRainyNoon
+    torch.save({**torch.load(ckpt, weights_only=True),
+                CHECKPOINT_KEY: {**data, SETS_KEY: {"towns": ["town_a"], "weathers": ["ClearSunset"]}}}, ckpt)
+    recorded = checkpoint_sets(ckpt)
+    assert recorded == (["town_a"], ["ClearSunset"])
+    run_data = checkpoint_run_data(ckpt)
+    assert training_set_overrides(run_data, [], recorded) == [
+        "suite.training_towns=[town_a]", "suite.training_weathers=[ClearSunset]"]
+    assert training_set_overrides(run_data, ["suite.training_towns=[town_b]"], recorded) == [
+        "suite.training_weathers=[ClearSunset]"]

@@ -41,7 +41,7 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
-from cicfw.benchmark.trained_sets import checkpoint_run_data, training_set_overrides
+from cicfw.benchmark.trained_sets import checkpoint_run_data, checkpoint_sets, training_set_overrides
 from cicfw.benchmark.video import film_name_bytes, film_path, run_weather_family, select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
@@ -569,20 +569,22 @@ def _quote(s: str) -> str:
 def with_trained_sets(cfg: DictConfig, overrides: Sequence[str]) -> None:
     """``policy=checkpoint``: the table's training columns set in ``cfg`` to the towns and weathers the
     checkpoint's run collected its data in (``training_set_overrides``, as the evaluation after training
-    does), each unless ``overrides`` give it; nothing for a checkpoint outside a run folder, or data that
-    does not say. A checkpoint that cannot be read is left to the evaluation's own refusal."""
+    does: those it recorded when training started, else its data's metadata now), each unless ``overrides``
+    give it; nothing for a checkpoint outside a run folder, or data that does not say. A checkpoint that cannot
+    be read is left to the evaluation's own refusal."""
     spec = OmegaConf.to_container(cfg.policy, resolve=True)
     path = cfg.get("checkpoint") or spec.get("checkpoint")
     if spec.get("name") != "checkpoint" or not path:
         return
     try:
-        data = checkpoint_run_data(resolve_checkpoint(path))
+        ckpt = resolve_checkpoint(path)
+        data, recorded = checkpoint_run_data(ckpt), checkpoint_sets(ckpt)
     except Exception:  # a bad checkpoint: evaluate names it
         return
-    trained_in = training_set_overrides(data, overrides)
+    trained_in = training_set_overrides(data, overrides, recorded, whose=f"checkpoint {ckpt}")
     if trained_in:
         log.info("the table's training columns are the towns and weathers the checkpoint's data was collected "
-                 "in: %s", " ".join(trained_in))
+                 "in%s: %s", " (as it recorded them)" if recorded is not None else "", " ".join(trained_in))
         for key, value in override_values(trained_in).items():
             OmegaConf.update(cfg, key, value)
 

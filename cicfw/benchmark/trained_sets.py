@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 from cicfw.benchmark.suite import PAPER_WEATHERS, TRAINING_TOWNS, TRAINING_WEATHERS, town_label
 from cicfw.core.run_folder import saved_run_config
 from cicfw.core.sweeps import override_values
-from cicfw.model.checkpoint import recorded_data_paths
+from cicfw.data.provenance import SETS_KEY, folder_record
+from cicfw.model.checkpoint import checkpoint_record, recorded_data_paths
 from cicfw.sim.town import town_names
 
 log = logging.getLogger(__name__)
@@ -44,17 +45,60 @@ def data_sets(data_cfg: Any) -> tuple[list[str], list[str]] | None:
     return [str(t) for t in meta["towns"]], [str(w) for w in meta["weathers"]]
 
 
-def training_set_overrides(data_cfg: Any, overrides: Sequence[str]) -> list[str]:
+def recorded_sets(data_cfg: Any) -> dict[str, list[str]] | None:
+    """What a run records (``SETS_KEY`` of its data record) when training starts: the towns and weathers its data
+    says it was collected in (``data_sets``), so that a later evaluation does not read them from metadata edited
+    since; None when the data says none."""
+    found = data_sets(data_cfg)
+    return None if found is None else {"towns": found[0], "weathers": found[1]}
+
+
+def _sets(value: Any) -> tuple[list[str], list[str]] | None:
+    if isinstance(value, dict) and isinstance(value.get("towns"), list) and isinstance(value.get("weathers"), list):
+        return [str(t) for t in value["towns"]], [str(w) for w in value["weathers"]]
+    return None
+
+
+def checkpoint_sets(checkpoint: Path) -> tuple[list[str], list[str]] | None:
+    """The (towns, weathers) ``checkpoint``'s run recorded its data was collected in when training started: its
+    own data record's, else (a checkpoint without one) its run folder's ``data.json``; an exported model's sidecar
+    (``training_dataset``). None when none records them (a checkpoint written before records held them)."""
+    try:
+        side = json.loads(Path(checkpoint).with_name(Path(checkpoint).name + ".json").read_text())
+        return _sets(side["training_dataset"].get(SETS_KEY))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass
+    record = checkpoint_record(checkpoint)
+    if record is None:
+        record = folder_record(Path(checkpoint).parent.parent)
+    return _sets((record or {}).get(SETS_KEY))
+
+
+def training_set_overrides(data_cfg: Any, overrides: Sequence[str],
+                           recorded: tuple[list[str], list[str]] | None = None, whose: str | None = None) -> list[str]:
     """``suite.training_towns=[...]`` and ``suite.training_weathers=[...]`` from the run's data, each unless
     ``overrides`` give it; only names the suite accepts as training ones (a shipped town or one the overrides
     drive; one of the paper's weathers or one the overrides drive), so that data collected under other
-    weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say."""
+    weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say.
+    ``recorded``: the (towns, weathers) a checkpoint recorded when its training started (``checkpoint_sets``):
+    they win over the data's metadata now, and a line names both where they differ; ``whose`` (the checkpoint)
+    without them: a line says the columns come from the metadata as it is now."""
     given = override_values(overrides)
     if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
         return []
-    found = data_sets(data_cfg)
+    both_given = {"suite.training_towns", "suite.training_weathers"} <= set(given)
+    now = data_sets(data_cfg)
+    found = now if recorded is None else recorded
+    if recorded is not None and now is not None and now != recorded and not both_given:
+        log.warning("%s recorded when its training started that its data was collected in towns %s, weathers %s; "
+                    "the data (%s) says towns %s, weathers %s now: the table's training columns are the recorded "
+                    "ones", whose or "the checkpoint", recorded[0], recorded[1], data_cfg.get("path"), now[0], now[1])
+    elif recorded is None and whose is not None and now is not None and not both_given:
+        log.info("%s records no towns and weathers of its data (written before checkpoints recorded them, or its "
+                 "data said none when it trained): the table's training columns are those the data (%s) says now",
+                 whose, data_cfg.get("path"))
     if found is None:
-        if data_cfg is not None and not {"suite.training_towns", "suite.training_weathers"} <= set(given):
+        if data_cfg is not None and not both_given:
             # a label nobody chose: say so rather than pass it for the data's
             log.warning("the data (%s) says nothing of the towns and weathers it was collected in (no %s): the "
                         "table's training columns are the suite's defaults (%s; %s) unless suite.training_towns / "

@@ -30,6 +30,9 @@ RECORD_FILE = "data.json"
 #: the key of the record in a checkpoint
 CHECKPOINT_KEY = "cicfw_data"
 HASH_OF = "the files' names (relative to root), sizes and SHA-256"
+#: the record's key for the towns and weathers the data was collected in when training started
+#: (``{"towns": [...], "weathers": [...]}``, null when the data said none): the suite's training columns
+SETS_KEY = "collected_in"
 
 
 class OtherData(CicfwError):

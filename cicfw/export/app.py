@@ -43,7 +43,7 @@ from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
-from cicfw.data.provenance import file_sha256
+from cicfw.data.provenance import SETS_KEY, file_sha256
 from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, decoder_info, describe, load_model,
                                     prepare_for_inference, recorded_data_paths, refuse_exported_model,
                                     resolve_checkpoint, run_config_files, where_it_ran)
@@ -326,13 +326,15 @@ def other_run(cfg: dict[str, Any], cfg_path: Path, hp: dict[str, Any], checkpoin
 def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
-    holds now); for a checkpoint written before runs recorded their data, ``dataset_hash`` of its run config."""
+    holds now, and the towns and weathers it was collected in when training started: an evaluation's training
+    columns); for a checkpoint written before runs recorded their data, ``dataset_hash`` of its run config."""
     record = checkpoint_record(checkpoint)
     if record is None:
         return dataset_hash(cfg_path)
     out = {"path": record["path"], "hash": record.get("hash"), "hash_of": record.get("hash_of"),
            "files": record.get("n_files", len(record["files"])), "bytes": record.get("bytes"),
-           "collect_config_hash": record.get("collect_config_hash"), "from": "the checkpoint's record of its data"}
+           "collect_config_hash": record.get("collect_config_hash"), SETS_KEY: record.get(SETS_KEY),
+           "from": "the checkpoint's record of its data"}
     if record.get("before"):  # resumed on other data on purpose: what it trained on before
         out["before"] = [{"path": b.get("path"), "hash": b.get("hash"), "files": b.get("n_files")}
                          for b in record["before"]]

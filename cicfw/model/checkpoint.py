@@ -37,6 +37,8 @@ class CheckpointError(CicfwError):
     """A checkpoint that cannot be used; the message says why and what is accepted."""
 
 
+#: the file that makes a folder a reproduction cell's (its ``epochs``: the final checkpoint's epoch)
+CELL_FILE = "cell.json"
 #: the name of a checkpoint ``keep_epoch_checkpoints`` kept (``epoch001.ckpt``), never a run's best
 KEPT_EPOCH = re.compile(r"epoch\d{3,}\.ckpt")
 
@@ -46,12 +48,12 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
     best checkpoint (``last.ckpt`` and kept ``epochNNN.ckpt`` aside) in its ``checkpoints/``, else its
     ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only. A
     reproduction cell's folder means the final weights its table drove (``train/checkpoints/epochNNN.ckpt`` of
-    its last epoch, as its ``cell.json`` records it), not its best validation checkpoint.
+    its last epoch, as its ``cell.json`` records it, else a ``last.ckpt`` of that epoch: ``cell_final``), never
+    its best validation checkpoint.
     ``accepted``: what the caller takes, for the line refusing a folder that holds no checkpoint."""
     p = Path(str(path)).expanduser()
-    final = _cell_final(p)
-    if final is not None:
-        return final.resolve()
+    if (p / CELL_FILE).is_file():
+        return cell_final(p, path).resolve()
     if p.is_dir():
         own = p / "checkpoints"
         # a run folder: its own checkpoints only, not those of a run trained in a folder inside it
@@ -85,14 +87,45 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
     return p.resolve()
 
 
-def _cell_final(folder: Path) -> Path | None:
-    """The checkpoint a reproduction cell (``folder`` holding ``cell.json``) drove, when it is there."""
+def cell_final(folder: Path, given: str | Path | None = None) -> Path:
+    """The final weights of a reproduction cell (``folder`` holding ``cell.json``): its
+    ``train/checkpoints/epochNNN.ckpt`` of the epochs ``cell.json`` records, else its ``last.ckpt`` when that is the
+    same epoch's (Lightning's ``epoch``, and ``global_step`` where the cell recorded its samples seen and batch size);
+    else one ``CheckpointError`` naming the missing file: the best validation checkpoint is not what the table drove."""
+    given = folder if given is None else given
+    accepted = ("give the cell's folder with its final checkpoint, or a .ckpt file explicitly "
+                "(e.g. one of its train/checkpoints/)")
     try:
-        epochs = json.loads((folder / "cell.json").read_text()).get("epochs")
-    except (OSError, ValueError, AttributeError):
-        return None
-    final = folder / "train" / "checkpoints" / f"epoch{epochs:03d}.ckpt" if isinstance(epochs, int) else None
-    return final if final is not None and final.is_file() else None
+        cell = json.loads((folder / CELL_FILE).read_text())
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"checkpoint={str(given)!r} is a reproduction cell whose {CELL_FILE} cannot be read "
+                              f"({err}); {accepted}", key="checkpoint", value=str(given)) from None
+    cell = cell if isinstance(cell, Mapping) else {}
+    epochs = cell.get("epochs")
+    if not isinstance(epochs, int) or isinstance(epochs, bool) or epochs < 1:
+        raise CheckpointError(f"checkpoint={str(given)!r} is a reproduction cell whose {CELL_FILE} records no final "
+                              f"epoch (epochs={epochs!r}, status={cell.get('status')!r}: a cell that did not finish); "
+                              f"{accepted}", key="checkpoint", value=str(given))
+    ckpts = folder / "train" / "checkpoints"
+    final = ckpts / f"epoch{epochs:03d}.ckpt"
+    if final.is_file():
+        return final
+    last = ckpts / "last.ckpt"
+    why = "there is no last.ckpt either"
+    if last.is_file():
+        ck = _mapped(last)
+        epoch, step = ck.get("epoch"), ck.get("global_step")
+        recipe = cell.get("recipe") if isinstance(cell.get("recipe"), Mapping) else {}
+        batch = recipe.get("data").get("batch_size") if isinstance(recipe.get("data"), Mapping) else None
+        seen = cell.get("samples_seen")
+        steps_known = all(isinstance(v, int) and not isinstance(v, bool) for v in (step, batch, seen))
+        if isinstance(epoch, int) and epoch + 1 == epochs and (not steps_known or step * batch == seen):
+            return last
+        why = (f"its last.ckpt is not that epoch's (epoch {epoch + 1 if isinstance(epoch, int) else None}, "
+               f"global step {step}{f', the cell saw {seen} samples in steps of {batch}' if steps_known else ''})")
+    raise CheckpointError(f"checkpoint={str(given)!r} is a reproduction cell whose final checkpoint {final} (epoch "
+                          f"{epochs}, as its {CELL_FILE} records) is missing and {why}; {accepted}",
+                          key="checkpoint", value=str(given))
 
 
 def is_torchscript(path: Path) -> bool:

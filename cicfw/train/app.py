@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 
 from cicfw import COMMANDS
 from cicfw.benchmark.app import check_evaluation_overrides, evaluate_after_training, saved_checkpoint
+from cicfw.benchmark.trained_sets import recorded_sets
 from cicfw.collect import collect_dataset
 from cicfw.collect.config import CAMERA_IDS, DEFAULTS
 from cicfw.core.command_line import command_line_keys
@@ -44,8 +45,8 @@ from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
 from cicfw.core.sweeps import is_worker_process
-from cicfw.data.provenance import (CHECKPOINT_KEY, check_same_data, folder_record, record_data, same_place, summary,
-                                   with_earlier, write_record)
+from cicfw.data.provenance import (CHECKPOINT_KEY, SETS_KEY, check_same_data, folder_record, record_data, same_place,
+                                   summary, with_earlier, write_record)
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 from cicfw.train.resumed_encoding import check_resumed_encoding
@@ -597,13 +598,16 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
     """The record of the data this run trains on (its absolute path, its files' names, sizes and SHA-256:
     ``cicfw.data.provenance``), written to ``<run_dir>/data.json``. Resuming (``ckpt_path``) compares it with
     the checkpoint's: another file set is refused, naming both, unless ``resume_on_other_data=true``; then,
-    or when the same files lie in another folder, the record keeps the checkpoint's under ``before``."""
+    or when the same files lie in another folder, the record keeps the checkpoint's under ``before``. It holds
+    the towns and weathers the data was collected in (``SETS_KEY``; a resume on the same files keeps the
+    checkpoint's), so that an evaluation labels its table's columns from them, not from the metadata then."""
     ckpt = cfg.get("ckpt_path")
     earlier = None
     if ckpt is not None and str(ckpt) != "":
         earlier = (folder_record(run_dir) if str(ckpt) in LIGHTNING_CKPT_NAMES
                    else checkpoint_record(Path(str(ckpt)).expanduser()))
     record = record_data(data_path, known=earlier)
+    record[SETS_KEY] = recorded_sets(cfg.data)  # the suite's training columns, as the data says now
     if earlier is not None:
         if not cfg.get("resume_on_other_data"):
             check_same_data(earlier, record, "data.path", f"ckpt_path={ckpt}",
@@ -615,6 +619,8 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
             record = with_earlier(record, earlier)
         elif earlier.get("before"):
             record["before"] = earlier["before"]
+        if earlier.get("hash") == record["hash"] and isinstance(earlier.get(SETS_KEY), dict):
+            record[SETS_KEY] = earlier[SETS_KEY]  # the same files: what the data said when training started
     if not is_worker_process():
         write_record(run_dir, record)
     return record
