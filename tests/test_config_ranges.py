@@ -251,6 +251,23 @@ def test_a_multirun_checks_every_job_before_the_first_trains(tiny_data, tmp_path
     assert not sweep.exists()  # no job ran, no sweep folder left
 
 
+@pytest.mark.slow
+def test_a_multirun_checks_every_jobs_data_path_before_the_first_trains(tiny_data, tmp_path):
+    """A data folder without an HDF5 file in the last job failed only after job 0 had trained."""
+    from conftest import run_app_in_process
+
+    empty, sweep = tmp_path / "empty", tmp_path / "sweep"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no episodes here\n")
+    r = run_app_in_process("cicfw.train", "-m", "data=cil_hdf5", f"data.path={tiny_data},{empty}", "data.batch_size=8",
+                           "data.val_batch_size=8", "debug=fast", "progress_bar=false", f"hydra.sweep.dir={sweep}",
+                           env={"HYDRA_FULL_ERROR": "0"})
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "job 1" in lines[0] and f"data.path={str(empty)!r}" in lines[0], r.stderr[-2000:]
+    assert not sweep.exists()  # no job ran, no sweep folder left
+
+
 @pytest.mark.parametrize("swept, key", [("runner.threads=1,0", "runner.threads"),
                                          ("suite.limit=1,0", "suite.limit")])
 def test_an_evaluate_multirun_checks_every_job_before_the_first_drives(tmp_path, swept, key):

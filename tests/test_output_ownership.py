@@ -351,7 +351,7 @@ def test_a_full_disk_at_the_first_checkpoint_leaves_a_folder_the_same_command_ac
 
 # ---- one rule for every app: a folder that is not the app's own is refused -------------------------
 
-from conftest import run_app_in_process, write_tiny_dataset  # noqa: E402
+from conftest import assert_refused, run_app_in_process, write_tiny_dataset  # noqa: E402
 
 IN_PROCESS = {"HYDRA_FULL_ERROR": "0"}  # changes to the environment, for run_app_in_process
 
@@ -605,3 +605,67 @@ def test_a_run_folder_under_a_literal_tilde_is_refused(tmp_path):
                              cwd=tmp_path, env=IN_PROCESS)
     assert_refused(res, "hydra.run.dir", "~/runs/x")
     assert not list(tmp_path.iterdir())
+
+
+# ---- a dataset or a cache inside another app's run ------------------------------------------------
+
+
+def results_folder(folder: Path) -> dict[Path, bytes]:
+    """A reproduction's results folder as a run leaves it: its manifest and one cell with its training run."""
+    folder.mkdir(parents=True)
+    (folder / "reproduce.json").write_text(json.dumps({"budget": "smoke"}))
+    cell = folder / "cells" / "cil" / "seed0"
+    cell.mkdir(parents=True)
+    (cell / "cell.json").write_text(json.dumps({"status": "ok", "row": "cil", "seed": 0}))
+    (cell / "train" / "checkpoints").mkdir(parents=True)
+    (cell / "train" / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    (cell / "train" / "data.json").write_text(json.dumps({"path": "/data", "files": []}))
+    return _files(folder)
+
+
+COLLECT_ONE = ["episodes=1", "seconds=2", "workers=0", "weathers=[ClearNoon]", "cameras=[centre]"]
+
+
+@pytest.mark.parametrize("inside", ["run/checkpoints", "results/cells", "results/cells/cil/seed0/train/checkpoints",
+                                    "run/checkpoints/new/deeper"])
+def test_collect_into_a_folder_inside_another_apps_run_is_refused(tmp_path, inside):
+    """A dataset among a training run's checkpoints or a reproduction's cells: refused before anything is
+    written, the run's files untouched and no collect run folder left."""
+    hydra_run(tmp_path / "run", "train", "checkpoints/last.ckpt")
+    results_folder(tmp_path / "results")
+    kept, paths = _files(tmp_path), sorted(tmp_path.rglob("*"))
+    out = tmp_path / inside
+    res = run_app_in_process("cicfw.collect", f"out_dir={out}", f"hydra.run.dir={tmp_path / 'collect_run'}",
+                             *COLLECT_ONE, cwd=tmp_path, env=IN_PROCESS)
+    assert_refused(res, "out_dir", out)
+    assert _files(tmp_path) == kept and sorted(tmp_path.rglob("*")) == paths  # no folder made, no collect run
+
+
+def test_a_folder_beside_a_stray_dataset_or_a_cells_folder_is_inside_no_run(tmp_path):
+    """What makes a folder a run above another is that app's record: a folder merely named cells, a stray
+    HDF5 file or a dataset above it is none (a dataset may be collected below another)."""
+    from cicfw.core.run_folder import enclosing_run
+
+    (tmp_path / "lab" / "cells" / "notes").mkdir(parents=True)
+    (tmp_path / "lab" / "stray.h5").write_bytes(b"")
+    assert enclosing_run(tmp_path / "lab" / "datasets" / "mine") is None
+    (tmp_path / "lab" / "cells" / "cil" / "seed0").mkdir(parents=True)  # a reproduction's cell tree now
+    assert enclosing_run(tmp_path / "lab" / "datasets" / "mine") == (tmp_path / "lab", "reproduce")
+    hydra_run(tmp_path / "ev", "evaluate", "episodes.jsonl")
+    assert enclosing_run(tmp_path / "ev") is None
+    assert enclosing_run(tmp_path / "ev", include_self=True) == (tmp_path / "ev", "evaluate")
+
+
+@pytest.mark.parametrize("cache", ["results", "results/cells/cil", "run/cache"])
+def test_a_cache_inside_a_run_or_results_folder_is_refused_naming_the_variable(tmp_path, cache):
+    """data=sim_default collects into $CICFW_CACHE/datasets/...: under a reproduction's results or a training
+    run, the dataset would lie among that run's files."""
+    hydra_run(tmp_path / "run", "train", "checkpoints/last.ckpt")
+    results_folder(tmp_path / "results")
+    kept, paths = _files(tmp_path), sorted(tmp_path.rglob("*"))
+    args = ["trainer.fast_dev_run=true", "progress_bar=false", "speed.compile=false", "data.collect.episodes=1",
+            "data.collect.seconds=2", f"hydra.run.dir={tmp_path / 'new_run'}"]
+    res = run_app_in_process("cicfw.train", *args, cwd=tmp_path,
+                             env={**IN_PROCESS, "CICFW_CACHE": str(tmp_path / cache)})
+    assert_refused(res, "CICFW_CACHE", tmp_path / cache)
+    assert _files(tmp_path) == kept and sorted(tmp_path.rglob("*")) == paths  # no dataset, no new run folder

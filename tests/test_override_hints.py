@@ -2,6 +2,7 @@
 needing an optional extra adds a hint."""
 from __future__ import annotations
 
+import shlex
 import sys
 
 import pytest
@@ -60,6 +61,25 @@ def test_a_value_the_shell_split_at_a_space_is_one_line_saying_to_quote_it(tmp_p
     assert len(lines) == 1 and lines[0].startswith("cicfw: error: cannot parse the argument "), r.stderr[-800:]
     assert unparsable in lines[0] and "quoted" in lines[0] and f"'{' '.join(args)}'" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("args, bad, hint", [
+    (["checkpoint=/tmp/run", "ü=1,2/x"], "ü", "checkpoint='/tmp/run ü=1,2/x'"),  # typed unquoted: split at the space
+    (["checkpoint=/tmp/a;b"], ";", "checkpoint='/tmp/a;b'"),
+    (["checkpoint=/tmp/it's_ü"], "'", 'checkpoint="/tmp/it\'s_ü"'),
+])
+def test_a_character_outside_the_grammar_is_named_with_a_quoting_hint(tmp_path, args, bad, hint):
+    """The lexer's refusal named the character but not the way out, which reproduce's says: quote the value."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    r = _app("cicfw.evaluate", *args, f"hydra.run.dir={tmp_path}/run")
+    assert r.returncode == 2, r.stderr[-800:]
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("cicfw: error: cannot parse the argument ") and f"{bad!r} at character" in line, line
+    (example,) = shlex.split(line.rpartition("e.g. ")[2])  # one argument, as the shell passes it on
+    assert "quoted" in line and example == hint, line
+    assert OverridesParser.create().parse_override(hint).value() == hint.split("=", 1)[1][1:-1]  # the hint parses
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("arg, at, hint", [("hydra.run.dir=~/x", 15, "hydra.run.dir=$HOME/x"),

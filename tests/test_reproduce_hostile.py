@@ -14,6 +14,7 @@ import socket
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -716,3 +717,39 @@ def test_a_cell_json_holding_no_object_is_refused_naming_it(no_collect, tmp_path
     assert str(cell) in msg and text in msg, msg
 
 
+
+
+def test_cicfw_report_is_refused_while_a_reproduction_holds_the_folder(tmp_path, capsys):
+    """The running reproduction rewrites the report as its cells finish: a report written beside it would be
+    replaced mid-run. Refused naming the holder's pid; once that holder is gone, its stale lock stops nothing."""
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = sorted(out.rglob("*"))
+        assert results.main([str(out)]) == 2
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith("cicfw: error: ") and f"pid {holder.pid}" in line and "results_dir" in line, line
+        assert sorted(out.rglob("*")) == before  # no report written
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (out / "reproduce.lock").is_file()  # the killed holder's record stays: a stale lock
+    assert results.main([str(out)]) == 0
+    assert (out / "RESULTS.md").is_file()
+
+
+def test_a_lock_files_holder_is_live_only_while_its_pid_runs(tmp_path):
+    from cicfw.core.locks import live_holder
+
+    lock = tmp_path / "reproduce.lock"
+    assert live_holder(lock) is None and not lock.exists()  # no lock file: none made by looking
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started_epoch": 0.0}
+    lock.write_text(json.dumps({**me, "started_epoch": time.time()}))
+    assert live_holder(lock)[0]["pid"] == os.getpid() and live_holder(lock)[1] is True
+    lock.write_text(json.dumps({**me, "pid": dead_pid()}))
+    assert live_holder(lock) is None
+    lock.write_text(json.dumps({**me, "host": "elsewhere.invalid"}))
+    assert live_holder(lock) == ({**me, "host": "elsewhere.invalid"}, False)  # its pid cannot be checked here

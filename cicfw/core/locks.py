@@ -235,3 +235,29 @@ def pid_alive(holder: Mapping[str, Any]) -> bool:
     except (OSError, ValueError, IndexError, StopIteration):
         pass
     return True
+
+
+def live_holder(path: str | Path) -> tuple[dict[str, Any], bool] | None:
+    """The holder of the lock file at ``path`` while it may still run, read without taking the lock or
+    creating the file: (its record, certain), ``certain`` when its pid on this host is alive (or it holds
+    the flock before recording itself), not when the record is another host's, whose pid cannot be checked
+    here; None when there is no lock file or its holder is gone (a stale lock)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return None
+    try:
+        holder = read_record(fd)
+        if not holder:  # opened, not yet recorded: live while its flock is held
+            if fcntl is None:
+                return None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                return None
+            except OSError:
+                return {}, True
+    finally:
+        os.close(fd)
+    if holder.get("host") != socket.gethostname():
+        return holder, False
+    return (holder, True) if pid_alive(holder) else None

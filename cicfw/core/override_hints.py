@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 import sys
 from contextlib import contextmanager
 from importlib.util import find_spec
@@ -96,10 +97,12 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
     lines = message.splitlines()
     said = [ln.strip() for ln in lines[1:] if ln.strip() and not ln.startswith("See https://")]
     reason = said[0] if said else "not in Hydra's override grammar"
+    bad = None  # the character the lexer cannot read
     if reason == "^":  # the lexer's: the argument's first line ends the message's, the caret under what it cannot read
         caret = next(ln for ln in lines[1:] if ln.strip())  # after an argument ending in a line break, a blank line
         at = caret.index("^") - len(lines[0]) + len((override.splitlines() or [""])[0])
-        reason = f"{override[at:at + 1]!r} at character {at + 1} is not in Hydra's override grammar"
+        bad = override[at:at + 1]
+        reason = f"{bad!r} at character {at + 1} is not in Hydra's override grammar"
     line = f"cannot parse the argument {override!r} ({reason})"
     joined = _rejoined(override, args)
     if joined is not None:
@@ -112,7 +115,27 @@ def _unparsable(override: str, message: str, args: list[str]) -> str:
         return f"{line}: its brackets do not close"
     if eq and (value == "~" or value.startswith("~/")):  # ~name is name's home, not $HOME
         return f"{line}: the shell expands '~' only at the start of a word; write $HOME, e.g. {key}=$HOME{value[1:]}"
+    if bad and bad.isprintable():  # a line break or another control character: quoting keeps it, no fix
+        named = key if eq and bad not in key else "key"  # a key itself takes no such character
+        example = _quoted_value(override, args) or f"\"{named}='...'\""
+        return f"{line}: a value holding {bad!r} must be quoted, e.g. {example}"
     return line
+
+
+def _quoted_value(override: str, args: list[str]) -> str | None:
+    """``key=value`` with its value quoted for Hydra (``key='a ü'``), as the shell argument that parses:
+    ``override`` alone, or joined with the argument before it where the shell split the value at a space
+    (``checkpoint=/tmp/run ü=1`` typed unquoted); None when neither parses so."""
+    i = args.index(override) if override in args else -1
+    texts = [override] + ([f"{args[i - 1]} {override}"] if i > 0 else [])
+    for text in texts:
+        key, eq, value = text.partition("=")
+        if not eq:
+            continue
+        for hydra in (f"{key}='{value}'", f'{key}="{value}"'):
+            if _parses(hydra):  # as the shell takes it: in double quotes where they keep it as it is
+                return f'"{hydra}"' if not set(hydra) & set('"$`\\!') else shlex.quote(hydra)
+    return None
 
 
 def _parses(text: str) -> bool:
@@ -279,23 +302,28 @@ class SweepJobsCheck(Callback):
     of a function taking a composed config, e.g. ``cicfw.train.app.check_config``) before the first job
     runs, so a bad value in the last job (``head.W=5,-1,10``) does not wait for the others to train. A
     refusal is one ``cicfw: error:`` line naming the job and its overrides, exit status 2, before the sweep
-    folder is made. With a sweeper that picks its jobs as it goes (Optuna) nothing is checked up front."""
+    folder is made. With a sweeper that picks its jobs as it goes (Optuna) nothing is checked up front.
+    ``data_check`` (optional, the same kind of path): run on every job once every job's config passed, so
+    that a config error is named before a missing input (train's empty data folder)."""
 
-    def __init__(self, check: str) -> None:
-        self.check = check
+    def __init__(self, check: str, data_check: str | None = None) -> None:
+        self.check, self.data_check = check, data_check
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         jobs = sweep_jobs(config) if not is_worker_process() else None
         if not jobs or len(jobs) < 2:
             return  # one job: it checks itself before it trains
         loader = GlobalHydra.instance().config_loader()
-        check = get_method(self.check)
-        for num, job in enumerate(jobs):
-            job_config = loader.load_sweep_config(master_config=config, sweep_overrides=job)
-            try:
-                check(job_config)
-            except CicfwError as err:
-                refuse_before_any_job(f"job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran")
+        checks = [get_method(self.check)] + ([get_method(self.data_check)] if self.data_check else [])
+        configs = []
+        for check in checks:
+            for num, job in enumerate(jobs):
+                if len(configs) == num:
+                    configs.append(loader.load_sweep_config(master_config=config, sweep_overrides=job))
+                try:
+                    check(configs[num])
+                except CicfwError as err:
+                    refuse_before_any_job(f"job {num} ({' '.join(job)}): {' '.join(str(err).split())}; no job ran")
 
 
 class JobFailed(CompactHydraException):

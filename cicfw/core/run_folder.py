@@ -603,3 +603,38 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
         return
     raise RunFolderError(f"{where} holds files that no cicfw app wrote ({_listed(entries)}), which cicfw {app} "
                          f"would write over; {fix}", key=key, value=str(folder))
+
+
+#: the job names of cicfw's apps (``conf/<app>.yaml``) and the records' owners (``RECORDS``): an enclosing
+#: folder of another Hydra program is no cicfw run
+CICFW_APPS = ("train", "evaluate", "collect", "diagnose", "export", "reproduce", "report")
+
+
+def enclosing_run(folder: str | Path, *, include_self: bool = False) -> tuple[Path, str] | None:
+    """The nearest folder above ``folder`` (or ``folder`` itself with ``include_self``), through symlinks,
+    that is the run or results folder of a cicfw app other than a dataset's (``folder_owner``): (that
+    folder, its app), or None. A ``cells/`` entry counts only as a reproduction's cell tree
+    (``cells/<row>/seed<k>``), and a dataset (HDF5 files) is no run: any folder may hold a stray one."""
+    path = Path(os.path.realpath(Path(folder).expanduser()))
+    for p in ([path] if include_self else []) + list(path.parents):
+        owner = folder_owner(p)
+        if owner is None or owner == "collect" or owner.split("_ddp_process_")[0] not in CICFW_APPS:
+            continue
+        if owner == "reproduce" and not (p / "reproduce.json").is_file() and _hydra_job(p) is None \
+                and not any((p / "cells").glob("*/seed*")):
+            continue  # a folder that merely holds something named cells
+        return p, owner
+    return None
+
+
+def claim_outside_runs(folder: str | Path, app: str, key: str) -> None:
+    """One ``RunFolderError`` naming ``key`` when ``folder`` lies inside another cicfw app's run or results
+    folder (``enclosing_run``): what ``app`` writes there would read as part of that run (a dataset among a
+    training run's checkpoints, HDF5 files among a reproduction's cells)."""
+    found = enclosing_run(folder)
+    if found is None or found[1] == app:
+        return
+    run, owner = found
+    raise RunFolderError(f"{key}={str(folder)!r} lies inside {str(run)!r}, a run of cicfw {owner}, whose files cicfw "
+                         f"{app} would write among; give a folder outside it ({key}=<new folder>)",
+                         key=key, value=str(folder))

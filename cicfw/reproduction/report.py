@@ -120,6 +120,7 @@ from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
+from cicfw.core.locks import describe_holder, live_holder
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellResult, check_families,
@@ -128,6 +129,7 @@ from cicfw.reproduction.claims import (Claim, check_margin, default_claims, defa
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
+from cicfw.reproduction.lock import LOCK_FILE
 from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
                                                 val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
@@ -990,6 +992,21 @@ def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> 
     return Path(path)
 
 
+def check_no_live_reproduction(results_dir: Path) -> None:
+    """The report of a folder a running ``reproduce`` holds (``reproduce.lock``, its holder alive) is refused:
+    that run rewrites the report as its cells finish, and a report written beside it would be replaced
+    mid-run. A stale lock (its holder dead) stops nothing."""
+    path = results_dir / LOCK_FILE
+    found = live_holder(path)
+    if found is None:
+        return
+    holder, certain = found
+    tail = "" if certain else f"; if it is no longer running, delete {str(path)!r}"
+    raise CicfwError(f"results_dir={str(results_dir)!r} is in use by a running reproduce ({describe_holder(holder)}), "
+                     f"which writes its report as its cells finish; run cicfw report after that reproduction ends"
+                     f"{tail}", key="results_dir", value=str(results_dir))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m cicfw.reproduction.report RESULTS_DIR [--publish DEST]``: (re)write a reproduction's report."""
     ap = argparse.ArgumentParser(prog="cicfw report", description=main.__doc__)
@@ -1000,6 +1017,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = ap.parse_args(argv)
     try:
         claim_folder(Path(a.results_dir), "reproduce", "results_dir")  # before anything is written
+        check_no_live_reproduction(Path(a.results_dir))
         if a.publish:
             check_publish_outside(a.results_dir, a.publish, "--publish")
             claim_folder(Path(a.publish), "reproduce", "--publish")

@@ -36,6 +36,7 @@ from cicfw.core.config_checks import (CACHE_VARIABLE, checked_seed, forget_empty
                                       same_value)
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.wait import DataWait
+from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write, writable_folder
@@ -43,7 +44,8 @@ from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
-from cicfw.core.run_folder import forget_failed_run, hold_train_folder, release_run_folder, undo_run_folder
+from cicfw.core.run_folder import (enclosing_run, forget_failed_run, hold_train_folder, release_run_folder,
+                                  undo_run_folder)
 from cicfw.core.sweeps import is_worker_process
 from cicfw.data.provenance import (CHECKPOINT_KEY, SETS_KEY, check_same_data, folder_record, record_data, same_place,
                                    summary, with_earlier, write_record)
@@ -152,10 +154,24 @@ def make_collect_folder(path: Path) -> None:
     root = Path(os.path.abspath(os.path.expanduser(cache))) if cache else None
     if root is not None and (root == path.absolute() or root in path.absolute().parents):
         key, value, instead = CACHE_VARIABLE, cache, "give data.path=<a writable folder>"
+        check_cache_outside_runs(cache, root)
     else:
         key, value, instead = "data.path", None, f"set the environment variable {CACHE_VARIABLE} to one for the default"
     writable_folder(path, key, f"a folder you can write, where data=sim_default collects its dataset (or {instead})",
                     "the dataset folder", value=value)
+
+
+def check_cache_outside_runs(cache: str, root: Path) -> None:
+    """The cache folder (``$CICFW_CACHE``) is no cicfw run or results folder, nor inside one: the dataset
+    collected into it would lie among that run's files (``<results>/datasets/smoke``)."""
+    found = enclosing_run(root, include_self=True)
+    if found is not None:
+        run, owner = found
+        where = "is" if str(run) == os.path.realpath(root) else "lies inside"
+        raise ConfigError(CACHE_VARIABLE, cache, "", message=(
+            f"the environment variable {CACHE_VARIABLE}={cache!r} {where} {str(run)!r}, a run of cicfw "
+            f"{owner}, where data=sim_default would collect its dataset among that run's files; set "
+            f"{CACHE_VARIABLE} to a folder outside any run or results folder (or give data.path=<a folder>)"))
 
 
 def check_not_your_own_data(path: Path) -> None:
@@ -533,6 +549,20 @@ def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
     checked_speed(cfg)
     EpochCheckpoints(Path("checkpoints"), cfg.get("keep_epoch_checkpoints") or [], cfg.trainer.get("max_epochs"))
     check_evaluation(cfg)
+
+
+def check_data_path(cfg: DictConfig) -> None:
+    """A multirun job's data path checked before any job trains (conf/train.yaml's ``SweepJobsCheck``), as
+    the run reads it (``find_files``: a folder holding an HDF5 file, or a glob matching one): cheap, where
+    it names the user's own data; data the default collects (``data.collect``) is made when its job runs."""
+    if cfg.data.get("collect") is not None:
+        return
+    path = str(cfg.data.path)
+    try:
+        find_files(path)
+    except FileNotFoundError as err:  # a single run's one line, raised as a user error the sweep check names
+        raise CicfwError(" ".join(str(err.args[0] if err.args else err).split()), key="data.path",
+                         value=path) from None
 
 
 def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
