@@ -656,6 +656,23 @@ def test_a_folder_beside_a_stray_dataset_or_a_cells_folder_is_inside_no_run(tmp_
     assert enclosing_run(tmp_path / "ev", include_self=True) == (tmp_path / "ev", "evaluate")
 
 
+def test_a_project_folder_holding_files_other_tools_name_alike_is_no_run_above(tmp_path):
+    """A project or home folder with some tool's report.json, a train.log beside checkpoints/ or an
+    episodes.jsonl is no cicfw run: a collect or a cache below it goes ahead. Such names make an output
+    folder itself someone's (``folder_owner``), never a folder above it."""
+    from cicfw.core.run_folder import claim_outside_runs, enclosing_run
+
+    proj = tmp_path / "proj"
+    (proj / "checkpoints").mkdir(parents=True)
+    (proj / "train.log").write_text("epoch 1 loss 0.3\n")
+    (proj / "report.json").write_text('{"eslint": []}')
+    (proj / "episodes.jsonl").write_text("{}\n")
+    assert enclosing_run(proj / "data" / "sim") is None
+    claim_outside_runs(proj / "data" / "sim", "collect", "out_dir")  # no refusal
+    hydra_run(proj / "runs" / "a", "train", "checkpoints")  # a real cicfw run below it still counts
+    assert enclosing_run(proj / "runs" / "a" / "checkpoints" / "x") == (proj / "runs" / "a", "train")
+
+
 @pytest.mark.parametrize("cache", ["results", "results/cells/cil", "run/cache"])
 def test_a_cache_inside_a_run_or_results_folder_is_refused_naming_the_variable(tmp_path, cache):
     """data=sim_default collects into $CICFW_CACHE/datasets/...: under a reproduction's results or a training

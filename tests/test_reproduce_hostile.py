@@ -621,6 +621,23 @@ def test_cicfw_report_refuses_a_reproduction_folder_given_with_evaluations(tmp_p
     assert (err.value.key, err.value.value) == ("dirs", str(out))
 
 
+def test_cicfw_report_joins_reproduction_cells_as_evaluation_folders(tmp_path):
+    """A cell folder (``cells/<row>/seed<k>``, Hydra's record names reproduce) holds an evaluation run like
+    any folder holding one: joining two cells is no reproduction folder among evaluations."""
+    from cicfw.benchmark import evaluation_report
+
+    cells = []
+    for row in ("cil", "gtu"):
+        cell = tmp_path / "results" / "cells" / row / "seed0"
+        (cell / ".hydra").mkdir(parents=True)
+        (cell / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: reproduce\n")
+        evaluation_report.write_run(cell / "evaluate", evaluation_report.Run(row, [EPISODE_ROW], {}))
+        cells.append(cell)
+    evaluation_report.refuse_reproduction_among(cells)  # no refusal
+    assert evaluation_report.main([*map(str, cells), "--out", str(tmp_path / "joined"), "--no-plots"]) == 0
+    assert (tmp_path / "joined" / "table.md").is_file()
+
+
 def test_report_markdown_copy_replaces_only_an_earlier_copy(tmp_path, capsys):
     """``--markdown`` (its help said e.g. docs/RESULTS.md, which is composed from the studies' prose) replaced
     any file with the generated report."""

@@ -543,7 +543,8 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
         log.info("training wrote no checkpoint (%s): wrote its final weights to %s for the closed-loop evaluation",
                  why, path)
     overrides, what = after_training_overrides(cfg.get("evaluate_overrides") or [], trainer.fast_dev_run)
-    trained_in = training_set_overrides(cfg.get("data"), overrides)  # the table's training columns: the data's
+    # the table's training columns: the sets the checkpoint recorded when training started, as cicfw evaluate reads them
+    trained_in = training_set_overrides(cfg.get("data"), overrides, checkpoint_sets(Path(path)), path)
     if trained_in:
         log.info("the table's training columns are the data's towns and weathers: %s", " ".join(trained_in))
         overrides = [*overrides, *trained_in]

@@ -429,7 +429,8 @@ def refuse_reproduction_among(dirs: Sequence[str | Path]) -> None:
     if len(dirs) < 2:
         return
     for d in dirs:
-        if folder_owner(Path(d).expanduser()) == "reproduce":
+        folder = Path(d).expanduser()  # its manifest, or the cell tree of a run stopped before writing it (a cell is no such folder)
+        if (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*")):
             others = ", ".join(repr(str(o)) for o in dirs if o is not d)
             raise CicfwError(f"report: {str(d)!r} is a reproduction's results folder, given with {others}; give "
                              f"either one reproduction folder alone (cicfw report {d}: its Table 4) or evaluation "

@@ -327,8 +327,8 @@ def _is_this_runs_folder(folder: Path) -> bool:
     """Whether ``folder`` is the output folder of the Hydra run this process is."""
     if not HydraConfig.initialized():
         return False
-    try:
-        return Path(os.path.abspath(HydraConfig.get().runtime.output_dir)) == Path(os.path.abspath(folder))
+    try:  # realpath: the run folder and the checkpoint's path may name it through a symlink or not
+        return os.path.realpath(HydraConfig.get().runtime.output_dir) == os.path.realpath(folder)
     except Exception:  # a Hydra config without a runtime folder: not a run
         return False
 
@@ -612,18 +612,35 @@ CICFW_APPS = ("train", "evaluate", "collect", "diagnose", "export", "reproduce",
 
 def enclosing_run(folder: str | Path, *, include_self: bool = False) -> tuple[Path, str] | None:
     """The nearest folder above ``folder`` (or ``folder`` itself with ``include_self``), through symlinks,
-    that is the run or results folder of a cicfw app other than a dataset's (``folder_owner``): (that
-    folder, its app), or None. A ``cells/`` entry counts only as a reproduction's cell tree
-    (``cells/<row>/seed<k>``), and a dataset (HDF5 files) is no run: any folder may hold a stray one."""
+    that is the run or results folder of a cicfw app other than a dataset's: (that folder, its app), or None.
+    ``folder`` itself is judged as ``folder_owner`` judges an output folder; a folder above it only by records
+    no other tool leaves (``_run_above``): a project or home folder holding a ``train.log`` beside
+    ``checkpoints/``, or some tool's ``report.json``, is no cicfw run to write around."""
     path = Path(os.path.realpath(Path(folder).expanduser()))
-    for p in ([path] if include_self else []) + list(path.parents):
-        owner = folder_owner(p)
-        if owner is None or owner == "collect" or owner.split("_ddp_process_")[0] not in CICFW_APPS:
-            continue
-        if owner == "reproduce" and not (p / "reproduce.json").is_file() and _hydra_job(p) is None \
-                and not any((p / "cells").glob("*/seed*")):
-            continue  # a folder that merely holds something named cells
-        return p, owner
+    if include_self:
+        owner = folder_owner(path)
+        if owner is not None and owner != "collect" and owner.split("_ddp_process_")[0] in CICFW_APPS \
+                and (owner != "reproduce" or _run_above(path) == "reproduce"):
+            return path, owner
+    for p in path.parents:
+        owner = _run_above(p)
+        if owner is not None:
+            return p, owner
+    return None
+
+
+def _run_above(folder: Path) -> str | None:
+    """The cicfw app ``folder`` is the run of, from a record only cicfw leaves: Hydra's record naming a cicfw
+    app's job, a reproduction's manifest or its cell tree (``cells/<row>/seed<k>``), a training run's data
+    record beside its outputs (``TRAIN_API_OUTPUTS``); None otherwise."""
+    job = _hydra_job(folder)
+    if job is not None:
+        job = job.split("_ddp_process_")[0]
+        return job if job in CICFW_APPS and job != "collect" else None
+    if (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*")):
+        return "reproduce"
+    if _holds_data_record(folder) and any(_exists(folder / o) for o in TRAIN_API_OUTPUTS):
+        return "train"
     return None
 
 
