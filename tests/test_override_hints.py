@@ -122,3 +122,15 @@ def test_an_interrupted_app_gets_no_hints(monkeypatch, capsys, code):
     with pytest.raises(SystemExit):
         run_app(stopped_app, "train")
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("app,arg", [("cicfw.evaluate", "mixer=moe"), ("cicfw.diagnose", "head=hybrid")])
+def test_another_apps_group_is_one_line_without_the_advice_to_append_it(app, arg, tmp_path):
+    """Hydra advised ``+mixer=moe``, which fails again on the option's own keys: two steps to learn that the
+    app takes no model option. One line naming the group, before any work."""
+    from conftest import run_app_in_process
+
+    res = run_app_in_process(app, "checkpoint=/nowhere/last.ckpt", arg, cwd=tmp_path)
+    line = res.stderr.strip()
+    assert res.returncode == 2 and "\n" not in line and line.startswith(f"cicfw: error: {arg}:"), res.stderr
+    assert f"+{arg}" not in line and list(tmp_path.iterdir()) == []

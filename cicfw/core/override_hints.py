@@ -76,11 +76,27 @@ def composition_error(err: BaseException, args: list[str]) -> CicfwError | None:
     refused = config_error(err, f"{where.group(1)}.yaml: " if where else "")
     if refused is not None:
         return refused
+    other = re.match(r"Could not override '([^']+)'\. No match in the defaults list", str(err))
+    if other is not None and _other_apps_group(other.group(1)):
+        group = other.group(1)
+        value = next((a.split("=", 1)[1] for a in args if a.split("=", 1)[0].lstrip("+~") == group and "=" in a), "")
+        return CicfwError(f"{group}={value}: this app reads no config group {group!r} (another cicfw app's option: "
+                          f"a checkpoint's model, for instance, comes from its checkpoint); --help lists this app's "
+                          f"groups", key=group, value=value)
     if isinstance(err, MissingConfigException) and err.options is not None:
         group, _, option = str(err.missing_cfg_file or "").rpartition("/")
         return CicfwError(f"{group}={option}: no option {option!r} in config group {group!r}; options: "
                           f"{', '.join(err.options)}", key=group, value=option)
     return CicfwError(" ".join(str(err).split()))
+
+
+def _other_apps_group(name: str) -> bool:
+    """Whether ``name`` is a config group of cicfw's config tree (which Hydra's advice to append it with
+    ``+name=...`` would only make fail again, its options being another app's)."""
+    try:
+        return bool(GlobalHydra.instance().config_loader().get_group_options(name))
+    except Exception:  # Hydra not initialised, or no such group
+        return False
 
 
 def composition_error_line(err: BaseException, args: list[str]) -> str | None:
