@@ -770,3 +770,20 @@ def test_a_lock_files_holder_is_live_only_while_its_pid_runs(tmp_path):
     assert live_holder(lock) is None
     lock.write_text(json.dumps({**me, "host": "elsewhere.invalid"}))
     assert live_holder(lock) == ({**me, "host": "elsewhere.invalid"}, False)  # its pid cannot be checked here
+
+
+def test_a_lock_recorded_in_the_future_gets_the_advice_to_delete_it(tmp_path, capsys):
+    """A live pid whose record says it started tomorrow (a clock set back, or a record no reproduce wrote):
+    the report's refusal says the holder may be gone and which file to delete, as for another host's."""
+    from cicfw.core.locks import live_holder
+
+    out = tmp_path / "results"
+    write_cells(out, [synthetic(r, s, 10 + s) for r in ("cil", "gtu") for s in range(3)])
+    (out / "reproduce.json").write_text(json.dumps({"budget": "smoke", "pinned": {"hash": "x"}}))
+    lock = out / "reproduce.lock"
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "started_epoch": time.time() + 86400}))
+    assert live_holder(lock)[1] is False
+    assert results.main([str(out)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "results_dir=" in line and f"delete {str(lock)!r}" in line, line
+    assert not (out / "RESULTS.md").exists()

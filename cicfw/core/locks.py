@@ -241,7 +241,8 @@ def live_holder(path: str | Path) -> tuple[dict[str, Any], bool] | None:
     """The holder of the lock file at ``path`` while it may still run, read without taking the lock or
     creating the file: (its record, certain), ``certain`` when its pid on this host is alive (or it holds
     the flock before recording itself), not when the record is another host's, whose pid cannot be checked
-    here; None when there is no lock file or its holder is gone (a stale lock)."""
+    here or whose recorded start lies in the future; None when there is no lock file or its holder is gone (a
+    stale lock)."""
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
     except OSError:
@@ -260,4 +261,7 @@ def live_holder(path: str | Path) -> tuple[dict[str, Any], bool] | None:
         os.close(fd)
     if holder.get("host") != socket.gethostname():
         return holder, False
-    return (holder, True) if pid_alive(holder) else None
+    if not pid_alive(holder):
+        return None
+    started = holder.get("started_epoch")  # a start in the future: a clock set back, or a record not cicfw's
+    return holder, not (isinstance(started, (int, float)) and started > time.time() + 60)
