@@ -50,3 +50,24 @@ def test_an_optuna_search_minimising_the_success_rate_stops_before_its_first_tri
                                 f"hydra.sweep.dir={sweep}")
     assert_refused(result, "hydra.sweeper.direction", "minimize")
     assert not sweep.exists()
+
+
+@pytest.mark.parametrize("override, key, value", [
+    ("hydra.sweeper.n_trials=0", "hydra.sweeper.n_trials", 0),
+    ("hydra.sweeper.n_jobs=-1", "hydra.sweeper.n_jobs", -1),
+    ("model.lr=tag(log, interval(0, 1))", "model.lr", "tag(log, interval(0, 1))"),
+    ("notes", "hydra.sweeper.storage", None),
+])
+def test_optuna_settings_it_would_fail_on_mid_sweep_are_one_line_before_the_first_trial(override, key, value, tmp_path):
+    """n_trials=0 ended in Optuna's 'No trials are completed yet' traceback, a log interval from 0 in its
+    'low value must be larger than 0', a text file as the study's database in an 81-line SQLAlchemy one."""
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    notes = tmp_path / "notes.db"
+    notes.write_text("my notes, not a database\n")
+    if override == "notes":
+        override, value = f"hydra.sweeper.storage=sqlite:///{notes}", f"sqlite:///{notes}"
+    sweep = tmp_path / "sweep"
+    result = run_app_in_process("cicfw.train", "hparams_search=optuna", override, "data=cil_hdf5",
+                                f"data.path={tmp_path / 'none'}", f"hydra.sweep.dir={sweep}")
+    assert_refused(result, key, value)
+    assert not sweep.exists() and notes.read_text() == "my notes, not a database\n"
