@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from conftest import assert_refused, run_app_in_process, write_tiny_dataset
+import pytest
+
+from cicfw.core.run_folder import RunFolderError, claim_sweep_folder
+from conftest import TINY_TRAIN, assert_refused, run_app_in_process, write_tiny_dataset
 
 EXPERT = ["policy=expert", "suite.towns=[town_a]", "suite.weathers=[ClearNoon]", "runner.workers=1",
           "progress_bar=false", "maps=false"]
@@ -78,3 +81,66 @@ def test_an_evaluate_sweep_s_jobs_take_turns_joining(tmp_path, monkeypatch):
     monkeypatch.setattr(bench_app, "write_joined", holding)
     bench_app.join_sweep()
     assert held == [True, True]
+
+
+def _user_folder(folder: Path, files: dict[str, str]) -> dict[str, bytes]:
+    folder.mkdir()
+    for name, text in files.items():
+        (folder / name).write_text(text)
+    return _files(folder)
+
+
+def test_a_sweep_into_a_folder_of_user_files_is_refused_before_any_job(tmp_path, tiny_data):
+    """A sweep writes summary.csv, optimization_results.yaml or the joined table.md/.csv into its folder: one
+    holding files no sweep of that app wrote is refused, as a single run's folder is, leaving them as they were."""
+    train = ["data=cil_hdf5", f"data.path={tiny_data}", *TINY_TRAIN[1:]]
+    ud3 = tmp_path / "ud3"
+    before = _user_folder(ud3, {"summary.csv": "my summary\n"})
+    res = run_app_in_process("cicfw.train", "-m", "mixer=independent", *train, f"hydra.sweep.dir={ud3}")
+    assert_refused(res, "hydra.sweep.dir", ud3)
+    assert "summary.csv" in res.stderr and _files(ud3) == before
+    ud5 = tmp_path / "ud5"
+    before = _user_folder(ud5, {"table.md": "my table\n", "table.csv": "my csv\n"})
+    res = run_app_in_process("cicfw.evaluate", "-m", *EXPERT[1:], "policy=expert,constant", "suite.limit=1",
+                             f"hydra.sweep.dir={ud5}")
+    assert_refused(res, "hydra.sweep.dir", ud5)
+    assert "table.md" in res.stderr and _files(ud5) == before
+    ud6 = tmp_path / "ud6"
+    before = _user_folder(ud6, {"notes.txt": "mine\n"})
+    res = run_app_in_process("cicfw.diagnose", "-m", f"checkpoint={tmp_path}/a.ckpt,{tmp_path}/b.ckpt",
+                             f"hydra.sweep.dir={ud6}")
+    assert_refused(res, "hydra.sweep.dir", ud6)
+    assert "notes.txt" in res.stderr and _files(ud6) == before
+
+
+def test_an_optuna_search_into_a_folder_of_user_files_is_refused(tmp_path, tiny_data):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra: pip install -e .[sweeps]")
+    ud2 = tmp_path / "ud2"
+    before = _user_folder(ud2, {"summary.csv": "mine\n", "optimization_results.yaml": "mine\n"})
+    res = run_app_in_process("cicfw.train", "hparams_search=optuna", "hydra.sweeper.n_trials=1",
+                             "hydra.sweeper.params.mixer='choice(independent)'", "data=cil_hdf5",
+                             f"data.path={tiny_data}", *TINY_TRAIN[1:], f"hydra.sweep.dir={ud2}", cwd=tmp_path)
+    assert_refused(res, "hydra.sweep.dir", ud2)
+    assert "optimization_results.yaml" in res.stderr and _files(ud2) == before
+
+
+def test_which_sweep_folders_a_sweep_may_use(tmp_path):
+    """Only an earlier sweep of the same app may hold what it likes; another app's sweep is refused; cicfw runs
+    or sweeps below the folder, or the rows of a sweep stopped before Hydra wrote its record, are cicfw's."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "multirun.yaml").write_text("hydra:\n  job:\n    name: train\n")
+    (other / "summary.csv").write_text("job\n")
+    claim_sweep_folder(other, app="train")
+    with pytest.raises(RunFolderError) as err:
+        claim_sweep_folder(other, app="diagnose")
+    assert err.value.key == "hydra.sweep.dir" and "multirun.yaml" in str(err.value)
+    below = tmp_path / "below"
+    (below / "old" / ".hydra").mkdir(parents=True)
+    (below / "old" / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: evaluate\n")
+    (below / ".summary").mkdir()
+    (below / ".summary" / "sweep.json").write_text('{"overrides": []}')
+    claim_sweep_folder(below, app="evaluate")
+    (below / "notes").mkdir()  # a folder of no cicfw app
+    with pytest.raises(RunFolderError, match="notes"):
+        claim_sweep_folder(below, app="evaluate")

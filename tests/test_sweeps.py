@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from cicfw.core import errors
 from cicfw.registry import MIXERS
 from cicfw.core.files import atomic_write
-from cicfw.core.sweeps import ROWS_DIR, rebuild_summary, summary_table, write_job_metrics
+from cicfw.core.sweeps import ROWS_DIR, best_trial_elsewhere, rebuild_summary, summary_table, write_job_metrics
 from conftest import AppResult, assert_refused, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -65,6 +65,47 @@ def test_optuna_two_trials_write_the_summary(tmp_path, tiny_data):
         assert 2e-5 <= float(r["model.lr"]) <= 2e-3 and r["head.W"] in {"5", "10", "15"} and r["mixer"] == "independent"
     best = yaml.safe_load((tmp_path / "sweep" / "optimization_results.yaml").read_text())
     assert math.isclose(best["best_value"], min(float(r["value"]) for r in rows))
+
+
+def test_a_shared_study_s_best_trial_from_an_earlier_sweep_is_said(tmp_path, tiny_data):
+    """A study in a database shared by sweeps: optimization_results.yaml names the study's best trial, here an
+    earlier sweep's (planted with a value no training reaches), and the summary says it is none of this sweep's."""
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="needs the sweeps extra: pip install -e .[sweeps]")
+    import optuna
+    from optuna.distributions import LogUniformDistribution
+    from optuna.trial import create_trial
+
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    study = optuna.create_study(study_name="s1", storage=storage, direction="minimize")
+    study.add_trial(create_trial(params={"model.lr": 1e-4}, value=-1.0,
+                                 distributions={"model.lr": LogUniformDistribution(2e-5, 2e-3)}))
+    run, rows = _multirun(tmp_path, tiny_data, "hparams_search=optuna", "hydra.sweeper.n_trials=1",
+                          "hydra.sweeper.params.mixer='choice(independent)'", f"hydra.sweeper.storage={storage}",
+                          "hydra.sweeper.study_name=s1")
+    assert run.returncode == 0 and [r["status"] for r in rows] == ["ok"], run.stderr[-3000:]
+    assert yaml.safe_load((tmp_path / "sweep" / "optimization_results.yaml").read_text())["best_value"] == -1.0
+    said = [line for line in (run.stdout + run.stderr).splitlines() if "optimization_results.yaml" in line]
+    assert len(said) == 1 and "-1.0" in said[0] and "model.lr=0.0001" in said[0], run.stdout[-3000:]
+
+
+def _sweep_with_best(folder: Path, best_value: float, best_params: dict) -> Path:
+    row = {"job": 0, "status": "ok", "value": 0.25, "overrides": ["model.lr=0.0001", "head.W=10", "mixer=gtu"]}
+    atomic_write(folder / ROWS_DIR / "000000.json", json.dumps(row))
+    failed = {"job": 1, "status": "failed", "value": "", "overrides": ["model.lr=0.001", "head.W=5", "mixer=gtu"]}
+    atomic_write(folder / ROWS_DIR / "000001.json", json.dumps(failed))
+    OmegaConf.save(OmegaConf.create({"name": "optuna", "best_params": best_params, "best_value": best_value}),
+                   folder / "optimization_results.yaml")
+    return folder
+
+
+def test_the_best_trial_is_this_sweep_s_only_where_a_job_has_its_value_and_parameters(tmp_path):
+    own = {"model.lr": 1e-4, "head.W": 10, "mixer": "gtu"}
+    assert best_trial_elsewhere(_sweep_with_best(tmp_path / "a", 0.25, own)) is None
+    assert best_trial_elsewhere(tmp_path / "none") is None  # no optimising sweeper, nothing to say
+    assert "0.2," in best_trial_elsewhere(_sweep_with_best(tmp_path / "b", 0.2, own))  # another value
+    other = best_trial_elsewhere(_sweep_with_best(tmp_path / "c", 0.25, {**own, "head.W": 15}))
+    assert "head.W=15" in other  # this sweep's value, another trial's parameters
+    assert "head.W=5" in best_trial_elsewhere(_sweep_with_best(tmp_path / "d", 0.25, {**own, "head.W": 5}))  # failed job
 
 
 def test_an_optuna_search_whose_every_trial_fails_ends_in_one_line(tmp_path, tiny_data):

@@ -25,7 +25,7 @@ from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.core.files import PROBE_PREFIX, atomic_write, remove_stale_temps, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.slurm_requeue import is_requeued_run, saved_config
-from cicfw.core.sweeps import is_worker_process
+from cicfw.core.sweeps import ROWS_DIR, SWEEP_FILE, is_worker_process
 
 
 class RunFolderError(CicfwError):
@@ -111,8 +111,9 @@ class RunFolderCheck(Callback):
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         job = str(config.hydra.job.name)
+        app = None if is_worker_process() else job  # a DDP rank re-running its rank 0's sweep finds it there
         try:
-            claim_sweep_folder(str(config.hydra.sweep.dir), data=_data_path(config))
+            claim_sweep_folder(str(config.hydra.sweep.dir), data=_data_path(config), app=app)
         except RunFolderError as err:
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
@@ -548,25 +549,51 @@ def _refuse_data_folder(folder: Path, data: Sequence[str | Path], key: str, tail
         raise RunFolderError(f"{key}={str(folder)!r} is the data folder (data.path) {tail}", key=key, value=str(folder))
 
 
-def claim_sweep_folder(folder: str | Path, key: str = "hydra.sweep.dir", *, data: Sequence[str | Path] = ()) -> None:
+def claim_sweep_folder(folder: str | Path, key: str = "hydra.sweep.dir", *, data: Sequence[str | Path] = (),
+                       app: str | None = None) -> None:
     """A sweep folder holds the sweep's job folders (``0/``, ``1/`` ...) and what it writes beside them (its
     record, summary, joined table): a folder that is itself one run of any app (its own kind too: an
     evaluation's folder would be joined as the sweep's only row), a dataset or the data folder is refused in
-    one ``RunFolderError`` naming ``key``. A missing or empty folder, an earlier sweep or a folder holding
-    runs below it passes (``check_no_other_sweep`` and the apps' own checks see to those)."""
+    one ``RunFolderError`` naming ``key``. With ``app`` (the sweeping app's job name), so is a folder holding
+    another app's sweep or files no sweep of ``app`` wrote (``summary.csv``, ``table.md`` ... would be
+    written over them): only an earlier sweep of ``app`` (its ``multirun.yaml``) may hold what it likes. A
+    missing or empty folder, an earlier sweep or a folder holding cicfw runs or sweeps below it passes
+    (``check_no_other_sweep`` and the apps' own checks see to those)."""
     folder = Path(folder).expanduser()
     where, fix = f"{key}={str(folder)!r}", f"give a folder of its own ({key}=<new folder>)"
     _refuse_data_folder(folder, data, key, f"the sweep's jobs read; {fix}")
     if not _exists(folder) or not folder.is_dir():
         return
     if (folder / "multirun.yaml").is_file() and not (folder / ".hydra").exists():
-        return  # an earlier sweep: whether this one may go on there is the apps' own check (same overrides)
+        job = _hydra_job(folder)
+        if app is None or job == app:  # an earlier sweep: whether this one may go on there is the app's own check
+            return
+        raise RunFolderError(f"{where} holds a sweep of {_app_named(job)} ({_listed(_entries(folder))}), which this "
+                             f"cicfw {app} sweep would write over; {fix}", key=key, value=str(folder))
     owner = folder_owner(folder)
-    if owner is None:
-        return
-    what = "holds a dataset (HDF5 episodes)" if owner == "collect" else f"is a run of cicfw {owner}"
-    raise RunFolderError(f"{where} {what}, not a sweep folder: the sweep would write its job folders and its "
-                         f"files inside it; {fix}", key=key, value=str(folder))
+    if owner is not None:
+        what = "holds a dataset (HDF5 episodes)" if owner == "collect" else f"is a run of cicfw {owner}"
+        raise RunFolderError(f"{where} {what}, not a sweep folder: the sweep would write its job folders and its "
+                             f"files inside it; {fix}", key=key, value=str(folder))
+    foreign = [] if app is None else [n for n in _entries(folder) if not _cicfw_output(folder / n)]
+    if foreign:
+        raise RunFolderError(f"{where} holds files that no cicfw {app} sweep wrote ({_listed(foreign)}), which the "
+                             f"sweep would write over or beside; {fix}", key=key, value=str(folder))
+
+
+def _app_named(job: str | None) -> str:
+    """``cicfw <app>`` for a cicfw app's job name, else the name as ``_hydra_job`` gave it."""
+    return f"cicfw {job}" if job in CICFW_APPS else str(job)
+
+
+def _cicfw_output(entry: Path) -> bool:
+    """Whether ``entry`` (in a folder with no sweep record) is something cicfw wrote there: a folder that is a
+    run or a sweep of a cicfw app, or the row files of a sweep stopped before Hydra wrote its record."""
+    if not entry.is_dir() or entry.is_symlink():
+        return False
+    if entry.name == ROWS_DIR:
+        return (entry / SWEEP_FILE).is_file()
+    return (entry / "multirun.yaml").is_file() or folder_owner(entry) is not None
 
 
 def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str | Path] = (),

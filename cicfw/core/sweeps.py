@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import logging
+import math
 import os
 from contextlib import nullcontext
 from pathlib import Path
@@ -20,7 +21,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
@@ -194,6 +195,42 @@ def _read_rows(rows_dir: Path, say: bool = False) -> list[dict[str, Any]]:
     return rows
 
 
+#: what an optimising sweeper (Optuna) writes into the sweep folder at its end: the study's best trial
+OPTIMIZATION_RESULTS = "optimization_results.yaml"
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    """Whether two parameter values or results are equal, numbers within float rounding."""
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+    return a == b
+
+
+def best_trial_elsewhere(sweep_dir: str | Path) -> str | None:
+    """One line when ``<sweep_dir>/optimization_results.yaml`` names a best trial (value and parameters) that
+    is none of this sweep's jobs (its row files): the study, shared in a database with earlier sweeps, found
+    it in another sweep, whose fixed overrides may differ. None otherwise (a multi-objective result too)."""
+    sweep_dir = Path(sweep_dir)
+    try:
+        result = OmegaConf.to_container(OmegaConf.load(sweep_dir / OPTIMIZATION_RESULTS))
+    except Exception:  # none written (no optimising sweeper), or unreadable: nothing to say about it
+        return None
+    if not isinstance(result, dict) or not isinstance(result.get("best_params"), dict) \
+            or not isinstance(result.get("best_value"), (int, float)):
+        return None
+    best, params = result["best_value"], result["best_params"]
+    rows = [r for r in _read_rows(sweep_dir / ROWS_DIR) if r.get("status") == "ok"]
+    for r in rows:
+        given = override_values(r.get("overrides", []))
+        if _same_value(r.get("value"), best) and all(_same_value(given.get(k), v) for k, v in params.items()):
+            return None
+    shown = " ".join(f"{k}={v}" for k, v in params.items())
+    return (f"{sweep_dir / OPTIMIZATION_RESULTS} names the study's best trial (value {best}, {shown}), which is "
+            f"none of this sweep's {len(rows)} completed job(s): it came from another sweep of the same study "
+            f"(hydra.sweeper.storage, hydra.sweeper.study_name), whose fixed overrides may differ; this sweep's "
+            f"own jobs are in {sweep_dir / 'summary.csv'}")
+
+
 _running: Path | None = None  # the sweep folder of the sweep this process runs (``SweepSummary``), while it runs
 
 
@@ -258,4 +295,7 @@ class SweepSummary(Callback):
                 rows = list(csv.DictReader(f))
             failed = [r for r in rows if r["status"] == "failed"]
             log.info("sweep summary: %d jobs, %d failed: %s", len(rows), len(failed), target)
+            elsewhere = best_trial_elsewhere(sweep_dir)
+            if elsewhere:
+                log.warning("sweep summary: %s", elsewhere)
 
