@@ -4,6 +4,7 @@ file list (not a relative path read from another directory, nor files added sinc
 names the files the model trained on."""
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -16,6 +17,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import USER_ERRORS
+from cicfw.data.cil_hdf5 import check_file
+from cicfw.data.provenance import OtherData
 from test_diagnose import write_episodes
 
 pytestmark = pytest.mark.slow  # trains, or runs an app
@@ -69,8 +72,6 @@ def test_a_run_records_the_absolute_data_path_and_its_files(trained):
     names = sorted(p.name for p in data.glob("*.h5"))
     assert [f["name"] for f in record["files"]] == names
     assert all(f["bytes"] == (data / f["name"]).stat().st_size for f in record["files"])
-    import hashlib
-
     assert record["files"][0]["sha256"] == hashlib.sha256((data / names[0]).read_bytes()).hexdigest()
     ckpt = torch.load(trained["last"], map_location="cpu", weights_only=True)
     assert ckpt["cicfw_data"]["path"] == str(data) and ckpt["cicfw_data"]["hash"] == record["hash"]
@@ -100,6 +101,75 @@ def test_resuming_on_a_changed_file_set_is_refused(trained, tmp_path):
         train(cfg, tmp_path / "run", refuse_finished=True)
     text = _refusal(err)
     assert getattr(err.value, "key", None) == "data.path" and "ep100.h5" in text
+
+
+def _copy_over(src: Path, dst: Path) -> None:
+    """``src``'s HDF5 files over ``dst``'s of the same names and sizes (other bytes), their times kept, as
+    ``cp -p``, ``rsync -a`` or ``tar x`` leave them: older than ``dst``'s metadata."""
+    for f in sorted(src.glob("*.h5")):
+        assert f.stat().st_size == (dst / f.name).stat().st_size and f.read_bytes() != (dst / f.name).read_bytes()
+        shutil.copy2(f, dst / f.name)
+        assert (dst / f.name).stat().st_mtime_ns < (dst / "dataset_metadata.json").stat().st_mtime_ns
+
+
+def _sha256s(folder: Path) -> dict[str, str]:
+    return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(folder.glob("*.h5"))}
+
+
+def test_a_collection_s_files_replaced_with_their_times_kept_are_hashed(tmp_path, monkeypatch):
+    """The collection's SHA-256s are reused only for files of the size and mtime it recorded with them: another
+    collection's files copied over with their times kept are hashed, and so get another hash; untouched files
+    (also in a copy that keeps times) are not read; metadata that records no mtimes vouches for nothing."""
+    from cicfw.collect import collect_dataset
+    from cicfw.data import provenance
+
+    tiny = {"episodes": 1, "seconds": 2, "weathers": ["ClearNoon"], "cameras": ["centre"], "workers": 0}
+    other, ours = tmp_path / "other", tmp_path / "ours"
+    collect_dataset({**tiny, "seed": 8}, other, progress=False)  # first: its files are the older
+    collect_dataset({**tiny, "seed": 7}, ours, progress=False)
+    swapped = tmp_path / "swapped"
+    shutil.copytree(ours, swapped)
+    _copy_over(other, swapped)
+    record = provenance.record_data(swapped)
+    assert {f["name"]: f["sha256"] for f in record["files"]} == _sha256s(other)
+    assert record["hash"] != provenance.record_data(ours)["hash"]
+
+    read: list[str] = []
+    monkeypatch.setattr(provenance, "file_sha256", lambda f: read.append(Path(f).name) or "0" * 64)
+    kept = tmp_path / "kept"
+    shutil.copytree(ours, kept)  # times kept, bytes the same: the collection's SHA-256s still hold
+    for folder in (ours, kept):
+        assert {f["name"]: f["sha256"] for f in provenance.record_data(folder)["files"]} == _sha256s(ours)
+    assert read == []
+    meta = json.loads((kept / "dataset_metadata.json").read_text())
+    for entry in meta["files"].values():  # as cicfw wrote it before it recorded sizes and mtimes
+        del entry["bytes"], entry["mtime_ns"]
+    (kept / "dataset_metadata.json").write_text(json.dumps(meta))
+    provenance.record_data(kept)
+    assert read == sorted(_sha256s(ours))
+
+
+def test_resuming_on_files_copied_over_with_their_times_kept_is_refused(trained, tmp_path):
+    """A folder whose metadata gives the checkpoint's files' SHA-256s (with their sizes and mtimes) but that
+    holds other files of the same names and sizes, copied in with older times: refused, naming a changed file."""
+    from cicfw.train.app import train
+
+    other = write_episodes(tmp_path / "other", n_files=8, seed=5)  # first: its files are the older
+    data = tmp_path / "swapped"
+    shutil.copytree(trained["data"], data)
+    recorded = json.loads((trained["run"] / "data.json").read_text())["files"]
+    meta = {"files": {f["name"]: {"episode": Path(f["name"]).stem, "samples": check_file(data / f["name"]).n,
+                                  "sha256": f["sha256"], "bytes": f["bytes"],
+                                  "mtime_ns": (data / f["name"]).stat().st_mtime_ns} for f in recorded}}
+    (data / "dataset_metadata.json").write_text(json.dumps(meta))  # as a collection of these files writes it
+    _copy_over(other, data)
+    cfg = compose_train(*SHORT, f"data.path={data}", f"ckpt_path={trained['last']}", "trainer.max_epochs=2")
+    with pytest.raises(Exception) as err:
+        train(cfg, tmp_path / "run", refuse_finished=True)
+    text = _refusal(err)
+    assert isinstance(err.value, OtherData) and (err.value.key, err.value.value) == ("data.path", str(data))
+    assert "changed" in text and "ep000.h5" in text
+    assert not (tmp_path / "run" / "checkpoints").exists()  # refused before training
 
 
 def test_resuming_on_other_data_on_purpose_records_both(trained, tmp_path):

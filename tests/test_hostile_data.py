@@ -267,15 +267,19 @@ def test_a_dataset_collected_before_checksums_gets_them_on_rerun(collected, capl
     for mp in (out / ".episodes").glob("*.json"):  # as cicfw wrote them before this change
         m = json.loads(mp.read_text())
         for f in m["files"]:
-            f.pop("sha256", None)
+            for key in ("sha256", "mtime_ns"):
+                f.pop(key, None)
         mp.write_text(json.dumps(m))
     meta = _meta(out)
     for f in meta["files"].values():
-        f.pop("sha256", None)
+        for key in ("sha256", "bytes", "mtime_ns"):
+            f.pop(key, None)
     (out / "dataset_metadata.json").write_text(json.dumps(meta))
     with caplog.at_level(logging.INFO, logger="cicfw.collect"):
         meta = json.loads(collect_dataset(TINY, out, progress=False).read_text())
     assert meta["complete"]
     assert meta["files"][FIRST]["sha256"] == hashlib.sha256(files[FIRST]).hexdigest()
+    st = (out / FIRST).stat()  # with the size and mtime hashed: a training run reuses the SHA-256 while they hold
+    assert (meta["files"][FIRST]["bytes"], meta["files"][FIRST]["mtime_ns"]) == (st.st_size, st.st_mtime_ns)
     assert any("recorded the checksums of 2 file(s)" in r.getMessage() for r in caplog.records)
     assert {p.name: p.read_bytes() for p in out.glob("*.h5")} == files  # episode files untouched

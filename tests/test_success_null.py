@@ -76,10 +76,10 @@ def test_a_curve_point_without_every_column_has_no_overall(tmp_path):
     ckpt = tmp_path / "epoch001.ckpt"
     torch.save({"epoch": 0, "global_step": 3}, ckpt)
     one = {"cells": {"training_town/training_weathers": {"rate": 80.0}}}
-    point = _curve_point(ckpt, one, batch=8)
+    point = _curve_point(ckpt, one, batch=8, accumulate=1)
     assert point["overall"] is None and point["samples"] == 24  # not 80 / 4 = 20: three columns have no rate
     full = {"cells": {c: {"rate": 40.0} for c in ("training_town/training_weathers", "training_town/new_weathers",
                                                    "new_town/training_weathers", "new_town/new_weathers")}}
-    assert _curve_point(ckpt, full, batch=8)["overall"] == 40.0
+    assert _curve_point(ckpt, full, batch=8, accumulate=1)["overall"] == 40.0
     data = {"rows": [{"label": "CIL", "curve": {"0": [point, {**point, "samples": 48, "overall": 50.0}]}}]}
     assert curve_points(data) == {"CIL": [(48, 50.0, 50.0, 50.0, 1)]}

@@ -136,4 +136,6 @@ def write_episode_files(out_dir: Path, ep_id: str, rgb: np.ndarray, tg: np.ndarr
             raise ParentGone()
 
     write_files(parts(), before_rename=collector_alive)
+    for f in files:  # the file as hashed: a reader may reuse the SHA-256 while size and mtime still match
+        f["mtime_ns"] = (out_dir / f["name"]).stat().st_mtime_ns
     return files

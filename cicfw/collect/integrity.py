@@ -91,7 +91,8 @@ def record_checksums(out_dir: Path, markers: dict[str, dict]) -> int:
         if not legacy:
             continue
         for f in legacy:
-            f["sha256"] = file_sha256(out_dir / f["name"])
+            st = (out_dir / f["name"]).stat()  # before hashing: a change while it is read gives another mtime
+            f.update(bytes=st.st_size, mtime_ns=st.st_mtime_ns, sha256=file_sha256(out_dir / f["name"]))
         write_json(out_dir / ".episodes" / f"{ep_id}.json", m)
         n += len(legacy)
     if n:

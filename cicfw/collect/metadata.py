@@ -40,7 +40,9 @@ def dataset_metadata(cfg: dict, out_dir: Path, plan: list[dict], markers: dict, 
         "episodes": {k: {x: m[x] for x in ("town", "weather", "seed", "samples", "noisy_episode",
                                             "noisy_steps", "route_length_m", "distance_driven_m", "commands")}
                      for k, m in sorted(markers.items())},
-        "files": {f["name"]: {"episode": k, "samples": f["samples"], **({"sha256": f["sha256"]} if "sha256" in f else {})}
+        # a file's SHA-256 with its size and mtime when it was hashed: a reader reuses it only while both match
+        "files": {f["name"]: {"episode": k, "samples": f["samples"],
+                              **{x: f[x] for x in ("sha256", "bytes", "mtime_ns") if x in f}}
                   for k, m in sorted(markers.items()) for f in m["files"]},
         "collection_seconds": round(time.time() - started, 1),
     }

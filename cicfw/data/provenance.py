@@ -7,8 +7,8 @@ that is gone), the root its file names are relative to, and per HDF5 file its na
 time and SHA-256; its ``hash`` is the SHA-256 of the names, sizes and SHA-256s (16 hex digits), so the same
 files in another folder have the same hash. Hashing stays cheap: a file whose name, size and modification
 time match a record given as ``known`` (the checkpoint a run resumes from, the record a diagnosis checks)
-keeps its recorded SHA-256, and a file the collection hashed (``dataset_metadata.json`` written after the
-file) keeps the collection's; only the others are read.
+keeps its recorded SHA-256, and so does a file whose size and modification time (ns) match those
+``dataset_metadata.json`` recorded with the collection's SHA-256; only the others are read.
 """
 from __future__ import annotations
 
@@ -68,25 +68,29 @@ def data_root(path: str | os.PathLike) -> Path:
 
 
 def _collected_hashes(files: Iterable[Path]) -> dict[Path, str]:
-    """SHA-256s the collection recorded (``dataset_metadata.json``'s ``files``) for files not modified
-    since it wrote its metadata."""
+    """SHA-256s the collection recorded (``dataset_metadata.json``'s ``files``) for files that are provably
+    the ones it hashed: the size and modification time (ns) it recorded with the hash match the file's now. A
+    file copied over another with its times kept (``cp -p``, ``rsync -a``, ``tar x``) has the other's mtime,
+    and metadata written before cicfw recorded mtimes vouches for nothing: those files are hashed."""
     out: dict[Path, str] = {}
-    metas: dict[Path, tuple[int, dict]] = {}
+    metas: dict[Path, dict] = {}
     for f in files:
         if f.parent not in metas:
-            meta = f.parent / META_NAME
             try:
-                metas[f.parent] = (meta.stat().st_mtime_ns, json.loads(meta.read_text()).get("files") or {})
+                listed = json.loads((f.parent / META_NAME).read_text()).get("files")
             except (OSError, ValueError, AttributeError):
-                metas[f.parent] = (0, {})
-        when, listed = metas[f.parent]
-        entry = listed.get(f.name) if isinstance(listed, dict) else None
-        if isinstance(entry, dict) and isinstance(entry.get("sha256"), str):
-            try:
-                if f.stat().st_mtime_ns <= when:
-                    out[f] = entry["sha256"]
-            except OSError:
-                continue
+                listed = None
+            metas[f.parent] = listed if isinstance(listed, dict) else {}
+        entry = metas[f.parent].get(f.name)
+        if not (isinstance(entry, dict) and isinstance(entry.get("sha256"), str)
+                and all(type(entry.get(k)) is int for k in ("bytes", "mtime_ns"))):
+            continue
+        try:
+            st = f.stat()
+        except OSError:
+            continue
+        if (st.st_size, st.st_mtime_ns) == (entry["bytes"], entry["mtime_ns"]):
+            out[f] = entry["sha256"]
     return out
 
 

@@ -119,13 +119,39 @@ def cell_final(folder: Path, given: str | Path | None = None) -> Path:
         batch = recipe.get("data").get("batch_size") if isinstance(recipe.get("data"), Mapping) else None
         seen = cell.get("samples_seen")
         steps_known = all(isinstance(v, int) and not isinstance(v, bool) for v in (step, batch, seen))
-        if isinstance(epoch, int) and epoch + 1 == epochs and (not steps_known or step * batch == seen):
+        if isinstance(epoch, int) and epoch + 1 == epochs and (not steps_known or samples_seen(ck, batch) == seen):
             return last
         why = (f"its last.ckpt is not that epoch's (epoch {epoch + 1 if isinstance(epoch, int) else None}, "
-               f"global step {step}{f', the cell saw {seen} samples in steps of {batch}' if steps_known else ''})")
+               f"global step {step}"
+               f"{f', {samples_seen(ck, batch)} samples seen, the cell saw {seen}' if steps_known else ''})")
     raise CheckpointError(f"checkpoint={str(given)!r} is a reproduction cell whose final checkpoint {final} (epoch "
                           f"{epochs}, as its {CELL_FILE} records) is missing and {why}; {accepted}",
                           key="checkpoint", value=str(given))
+
+
+#: the checkpoint key of the number of processes (DDP ranks) that trained it, each on batches of its own
+WORLD_SIZE_KEY = "cicfw_world_size"
+
+
+def batches_trained(ck: Mapping[str, Any], accumulate: int = 1) -> int:
+    """Training batches one process went through until ``ck`` was saved: Lightning's fit-loop progress (every
+    batch counts, whether its step came then or after accumulating); for a checkpoint without it, ``global_step``
+    x ``accumulate`` (the run's ``accumulate_grad_batches``)."""
+    try:
+        n = ck["loops"]["fit_loop"]["epoch_loop.batch_progress"]["total"]["processed"]
+    except (KeyError, TypeError):
+        n = None
+    if isinstance(n, int) and not isinstance(n, bool):
+        return n
+    return int(ck.get("global_step", 0) or 0) * int(accumulate)
+
+
+def samples_seen(ck: Mapping[str, Any], batch_size: int, accumulate: int = 1) -> int:
+    """Training samples a run saw until checkpoint ``ck``: the batches each process went through
+    (``batches_trained``) x ``batch_size`` x the processes (``WORLD_SIZE_KEY``, 1 when not recorded)."""
+    world = ck.get(WORLD_SIZE_KEY)
+    world = world if isinstance(world, int) and not isinstance(world, bool) and world > 0 else 1
+    return batches_trained(ck, accumulate) * int(batch_size) * world
 
 
 def is_torchscript(path: Path) -> bool:

@@ -63,6 +63,7 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
+from cicfw.model.checkpoint import samples_seen
 from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
 from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, cell_runs, finished_cells
 from cicfw.reproduction.claims import load_claims
@@ -757,6 +758,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
     episodes = _episodes(cell_dir / "evaluate")
     ck = torch.load(final, map_location="cpu", weights_only=True)
     batch = int(tcfg.data.batch_size)
+    accumulate = int(OmegaConf.select(tcfg, "trainer.accumulate_grad_batches", default=None) or 1)
     curve, curve_s = [], 0.0
     if seed in [int(s) for s in cfg.budget.get("curve_seeds") or []]:
         for e in cfg.budget.get("curve_epochs") or []:
@@ -765,13 +767,13 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
                 continue
             s, dt = drive(p, cell_dir / "curve" / f"epoch{int(e):03d}")
             curve_s += dt
-            curve.append(_curve_point(p, s, batch))
-        curve.append(_curve_point(final, summary, batch))
+            curve.append(_curve_point(p, s, batch, accumulate))
+        curve.append(_curve_point(final, summary, batch, accumulate))
     hp = ck.get("hyper_parameters", {})
     family = named_weather_family(suite_overrides(cfg))  # the report refuses a cell of another family's folder
     return {**({FAMILY_KEY: family} if family else {}),
             "decoder": (hp.get("head_kwargs") or {}).get("decode"), "head": hp.get("head"), "mixer": hp.get("mixer"),
-            "epochs": int(ck.get("epoch", -1)) + 1, "samples_seen": int(ck.get("global_step", 0)) * batch,
+            "epochs": int(ck.get("epoch", -1)) + 1, "samples_seen": samples_seen(ck, batch, accumulate),
             "val_steer_mae": info.get("val_steer_mae"), "success": summary["success"],
             "cells": {k: v["rate"] for k, v in summary["cells"].items()},
             "wall_s": {"train": info.get("train_s"), "evaluate": round(eval_s, 1), "curve": round(curve_s, 1)},
@@ -779,12 +781,12 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
             "recipe": recipe(tcfg)}
 
 
-def _curve_point(ckpt: Path, summary: dict, batch: int) -> dict[str, Any]:
+def _curve_point(ckpt: Path, summary: dict, batch: int, accumulate: int) -> dict[str, Any]:
     ck = torch.load(ckpt, map_location="cpu", weights_only=True)
     rates = {k: v["rate"] for k, v in summary["cells"].items()}
     # the report's overall: the mean of the four columns; a column the suite lacks has no rate (not 0)
     overall = round(sum(rates[c] for c in COLUMNS) / len(COLUMNS), 2) if all(c in rates for c in COLUMNS) else None
-    return {"epoch": int(ck.get("epoch", -1)) + 1, "samples": int(ck.get("global_step", 0)) * batch,
+    return {"epoch": int(ck.get("epoch", -1)) + 1, "samples": samples_seen(ck, batch, accumulate),
             **rates, "overall": overall}
 
 

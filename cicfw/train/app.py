@@ -40,7 +40,7 @@ from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write, writable_folder
-from cicfw.model.checkpoint import UnloadableCheckpoint, checkpoint_record, load_weights_only
+from cicfw.model.checkpoint import WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record, load_weights_only
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
@@ -614,14 +614,16 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
 
 class RecordInCheckpoints(Callback):
     """The run's records in every checkpoint it saves, each under its key: the data record
-    (``cicfw.data.provenance``), the split settings (``cicfw.train.split_record``) and the run length the
-    learning-rate schedule is spread over (``cicfw.train.schedule_record``)."""
+    (``cicfw.data.provenance``), the split settings (``cicfw.train.split_record``), the run length the
+    learning-rate schedule is spread over (``cicfw.train.schedule_record``), and the number of processes
+    (``WORLD_SIZE_KEY``: each trains on batches of its own, so the samples seen count them all)."""
 
     def __init__(self, records: Mapping[str, Mapping[str, Any]]) -> None:
         self.records = {key: dict(record) for key, record in records.items()}
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         checkpoint.update(self.records)
+        checkpoint[WORLD_SIZE_KEY] = int(trainer.world_size)
 
 
 def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any]:
