@@ -26,7 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-from cicfw.core.errors import ConfigError, report_user_errors
+from cicfw.core.errors import CicfwError, ConfigError, report_user_errors
 
 FRAMES_PER_FILE = 200
 
@@ -50,7 +50,12 @@ def write(folder: Path, files: int, seed: int) -> None:
             continue
         targets = make_targets(FRAMES_PER_FILE, rng)
         targets[rng.random(FRAMES_PER_FILE) < 0.002, 10] = -rng.uniform(0.1, 3.0)  # a car rolling backwards
-        write_file(path, np.roll(pool[i % len(pool)], i, axis=0), targets)
+        try:
+            write_file(path, np.roll(pool[i % len(pool)], i, axis=0), targets)  # atomic: no torn file is left
+        except OSError as err:  # a full disk, a file-size limit (ulimit -f)
+            raise CicfwError(f"bench/data_scale.py write: cannot write {err.filename or path} ({err.strerror or err}) "
+                             f"after {i} of {files} files; free some space or raise the limit, then run the same "
+                             f"command: it keeps the files written so far", key="folder", value=str(folder)) from None
         if (i + 1) % 100 == 0:
             rate = (i + 1) * FRAMES_PER_FILE * 52_800 / (time.perf_counter() - start) / 1e6
             print(f"  {i + 1}/{files} files ({rate:.0f} MB/s)", flush=True)

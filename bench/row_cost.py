@@ -21,6 +21,7 @@ import torch
 from hydra import compose, initialize_config_module
 
 from cicfw.model.speed import SpeedConfig, apply_speed, dummy_batch, time_steps
+from cicfw.reproduction.claims import shipped_config
 from cicfw.train.app import build_model
 
 BATCH = 120
@@ -41,6 +42,20 @@ def build(row: str, keep_memory: bool = False):
     return model, opt, variant, time.perf_counter() - t0
 
 
+def check_args(ap: argparse.ArgumentParser, args: argparse.Namespace, rows: list[str]) -> None:
+    """One line (exit status 2) before anything is compiled: a row that is not in conf/reproduce.yaml's
+    catalogue (naming the known ones), fewer than one round or step, a negative warm-up."""
+    known = list(shipped_config()["catalogue"])
+    unknown = [r for r in rows if r not in known]
+    if unknown:
+        ap.error(f"--rows: unknown row(s) {', '.join(unknown)}; known rows: {', '.join(known)}")
+    if args.rounds < 1 or args.steps < 1:
+        ap.error(f"--rounds and --steps must be >= 1 (got {args.rounds} and {args.steps}): the figure is a median "
+                 f"over rounds of timed steps")
+    if args.warmup < 0:
+        ap.error(f"--warmup must be >= 0, got {args.warmup}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rows", default="cil,moe", help="comma-separated catalogue rows (CIL is always timed)")
@@ -49,6 +64,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     args = ap.parse_args()
     rows = ["cil"] + [r for r in args.rows.split(",") if r and r != "cil"]
+    check_args(ap, args, rows)
     print(f"bench/row_cost.py: batch {BATCH}, {torch.get_num_threads()} threads, torch {torch.__version__}, "
           f"{args.rounds} rounds x {args.steps} steps; load {os.getloadavg()[0]:.2f}", flush=True)
     models = {}

@@ -46,6 +46,15 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False where the system refuses to look it up (a name too long for the filesystem:
+    the command's own check names it in one line)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
 def main(argv: list[str] | None = None) -> None:
     install_app_handlers()  # first, so SIGTERM while the command imports and composes its config is one line
     argv = sys.argv[1:] if argv is None else argv
@@ -57,7 +66,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     module, _ = COMMANDS[argv[0]]
     folders = positionals(argv[1:])
-    if argv[0] == "report" and len(folders) == 1 and (Path(folders[0]) / "reproduce.json").is_file():
+    if argv[0] == "report" and len(folders) == 1 and _is_file(Path(folders[0]) / "reproduce.json"):
         module = "cicfw.reproduction.report"  # a reproduction's folder: its Table 4 with intervals and verdicts
     # with other folders beside it, the evaluation report refuses it, whichever comes first
     from cicfw.core.hydra_plugins import guard_hydra_plugins

@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart_png
-from cicfw.core.run_folder import claim_folder, folder_owner
+from cicfw.core.run_folder import check_name_lengths, claim_folder, folder_owner
 from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import writable_folder, write_together
@@ -117,10 +117,34 @@ def markdown_table(runs: Sequence[Run]) -> str:
     else:
         lines += ["", "Episodes per column differ between rows: "
                   + "; ".join(f"{label}: {', '.join(map(str, n))}" for label, _, n in rows) + "."]
+    lines += routes_note(runs)
     suites = sorted({run.suite_name() for run in runs})
     lines += [f"Suite: {', '.join(suites)}" + (" (the paper's single-turn task: turns only)"
                                                if suites == ["single_turn"] else "") + "."]
     return "\n".join(lines) + "\n" + manoeuvre_table(runs)
+
+
+def routes_note(runs: Sequence[Run]) -> list[str]:
+    """A note line when the rows drove different routes (other ``suite.pairs`` or ``limit``, another town):
+    their rates are over other start/goal pairs even where their episode counts agree. Each group of rows
+    that drove the same routes is named with its pairs per town (``pair``, else the route's name)."""
+    groups: dict[frozenset, list[str]] = {}
+    for run in runs:
+        driven = frozenset((str(r.get("town")), str(r.get("pair", r.get("route")))) for r in run.rows)
+        groups.setdefault(driven, []).append(run.label)
+    if len(groups) < 2:
+        return []
+
+    def pairs(driven: frozenset) -> str:
+        by_town: dict[str, list[str]] = {}
+        for town, pair in sorted(driven, key=lambda tp: (tp[0], _natural(Path(tp[1])))):
+            by_town.setdefault(town, []).append(pair)
+        return " and ".join(f"{town} pairs {', '.join(p[:8])}{f' and {len(p) - 8} more' if len(p) > 8 else ''}"
+                         for town, p in by_town.items()) or "no episode"
+
+    return ["Routes differ between rows (their rates are over other start/goal pairs): "
+            + "; ".join(f"{', '.join(map(md_cell, labels))}: {pairs(driven)}" for driven, labels in groups.items())
+            + "."]
 
 
 def manoeuvre_table(runs: Sequence[Run]) -> str:
@@ -451,7 +475,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace tables in the folder that are not an earlier report of the same runs")
     args = parser.parse_args(argv)
-    try:
+    try:  # before any path is looked up, which a name too long for the filesystem makes a traceback
+        for key, path in [("--out", args.out), *(("dirs", d) for d in args.dirs)]:
+            if path:
+                check_name_lengths(Path(path).expanduser(), key)
         refuse_reproduction_among(args.dirs)
         runs = find_runs(args.dirs, partial="include" if args.partial else "refuse")
     except (FileNotFoundError, ValueError) as err:

@@ -25,7 +25,8 @@ from omegaconf import OmegaConf
 
 from cicfw.core.files import write_all
 from cicfw.core.locks import FolderLock
-from cicfw.core.run_folder import RunFolderCheck, RunFolderError, note_run_folder, undo_run_folder
+from cicfw.core.run_folder import (RunFolderCheck, RunFolderError, check_name_lengths, note_run_folder,
+                                   undo_run_folder)
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"
@@ -197,6 +198,7 @@ class EvaluateRunFolderCheck(RunFolderCheck):
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         folder = Path(str(config.hydra.run.dir))
+        _check_name_lengths(folder, "hydra.run.dir")
         note_run_folder(folder)
         if (folder / LOCK_NAME).exists():  # held, or left by an evaluation that died: take it and give it back
             try:
@@ -209,8 +211,19 @@ class EvaluateRunFolderCheck(RunFolderCheck):
 
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        _check_name_lengths(Path(str(config.hydra.sweep.dir)), "hydra.sweep.dir")
         check_same_sweep(Path(str(config.hydra.sweep.dir)), list(config.hydra.overrides.task))
         super().on_multirun_start(config, **kwargs)
+
+
+def _check_name_lengths(folder: Path, key: str) -> None:
+    """``check_name_lengths`` as one line (exit status 2): before the folder's lock or sweep record is looked
+    up, which a name too long for the filesystem makes a traceback."""
+    try:
+        check_name_lengths(folder, key)
+    except RunFolderError as err:
+        print(f"cicfw: error: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
 def check_same_sweep(folder: Path, task: list[str]) -> None:

@@ -60,6 +60,13 @@ def _check_names(names: Sequence[tuple[str, str]], limit: int) -> None:
                                  f"allows ({limit}); give a shorter one")
 
 
+def check_name_lengths(folder: str | Path, key: str, files: Sequence[tuple[str, str]] = ()) -> None:
+    """A ``RunFolderError`` naming ``key`` when a name in ``folder``'s path (or one of ``files``' (key, name)
+    pairs) is longer than its filesystem takes: checked before the path is looked up, which would fail with
+    a traceback (``File name too long``)."""
+    _check_names([(key, part) for part in Path(folder).parts] + list(files), name_max(Path(folder)))
+
+
 def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequence[tuple[str, str]] = ()) -> None:
     """Create ``folder`` (if needed) and a file in it (``writable_folder``): a ``ConfigError`` naming ``key``
     otherwise, or a ``RunFolderError`` for a name longer than the filesystem takes.
@@ -69,7 +76,7 @@ def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequ
     if folder.parts and folder.parts[0].startswith("~"):  # Hydra does not expand it: "~/runs" is ./~/runs
         raise ConfigError(key, str(folder), "a path without a leading '~', which Hydra does not expand (it would "
                                             "make a folder named '~' here); give the full path, e.g. $HOME/...")
-    _check_names([(key, part) for part in folder.parts] + list(files), name_max(folder))
+    check_name_lengths(folder, key, files)
     writable_folder(folder, key, "a folder you can write", "the run folder")
 
 

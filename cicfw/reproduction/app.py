@@ -60,7 +60,7 @@ from cicfw.core.config_checks import config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging, on_interrupt
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import claim_folder
+from cicfw.core.run_folder import check_name_lengths, claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.model.checkpoint import samples_seen
@@ -103,6 +103,27 @@ def _hydra_line(err: BaseException) -> str:
     return " ".join(ln for ln in lines[:2] if not ln.startswith("See https://")) or type(err).__name__
 
 
+#: Hydra's options that point an app at another config: reproduce composes the shipped conf/ only
+CONFIG_OPTIONS = ("--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn")
+
+
+def refuse_options(args: Sequence[str]) -> None:
+    """An option (``-x``, ``--x``) among the overrides is one line: Hydra's config options (``CONFIG_OPTIONS``)
+    say that reproduce composes the shipped configs only and how a row is added instead; another names the
+    options reproduce takes. Hydra's grammar would call either an override to quote."""
+    for a in args:
+        if not a.startswith("-"):
+            continue
+        name = a.split("=", 1)[0]
+        if name in CONFIG_OPTIONS:
+            raise ReproduceError(f"python -m cicfw.reproduce composes the shipped configs (cicfw/conf) only and takes "
+                                 f"no {name}: add a row on the command line instead, e.g. '+catalogue.mine="
+                                 f"{{experiment: paper_gtu, overrides: [\"head=hybrid\"], label: GTU+hybrid}}' "
+                                 f"rows=[cil,mine] (conf/reproduce.yaml, catalogue)", key=name, value=a)
+        raise ReproduceError(f"python -m cicfw.reproduce takes no option {name!r}: it takes overrides (key=value), "
+                             f"-m, and --help, --cfg job or --info to show its config", key=name, value=a)
+
+
 def _parse(overrides: Sequence[str]) -> None:
     """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
     parser = OverridesParser.create()
@@ -121,6 +142,7 @@ def compose_plan(overrides: Sequence[str]) -> DictConfig:
     its schema (``cicfw.reproduction.schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
     wrong type is one error naming it."""
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
+    refuse_options(plain)
     _parse(plain)
     try:
         with initialize_config_module("cicfw.conf", version_base="1.3"):
@@ -244,6 +266,14 @@ def check_outputs(cfg: DictConfig, data: Sequence[str] = ()) -> None:
         published_manifest(Path(cfg.continue_from))
     if cfg.get("continue_machine") is not None:
         check_continue_machine(cfg)
+
+
+def check_folder_names(cfg: DictConfig) -> None:
+    """results_dir, publish_dir and continue_from with no name longer than their filesystem takes: one line
+    naming the key before any of them is looked up (a traceback, ``File name too long``, otherwise)."""
+    for key in ("results_dir", "publish_dir", "continue_from"):
+        if cfg.get(key):
+            check_name_lengths(Path(str(cfg[key])).expanduser(), key)
 
 
 def check_not_results_dir(cfg: DictConfig) -> None:
@@ -848,6 +878,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with checking_the_plan():
             cfg = compose_plan(args)
+            check_folder_names(cfg)
             rows, seeds = check_plan(cfg)
             check_outputs(cfg, data=check_rows(cfg, rows))
             lock = ResultsLock(Path(cfg.results_dir)).acquire()

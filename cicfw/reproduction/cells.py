@@ -195,9 +195,36 @@ def check_episodes(path: Path, episodes: Any) -> dict[str, dict[str, Any]]:
     return episodes
 
 
+def check_curve(path: Path, curve: Any) -> None:
+    """A finished cell's ``curve`` (absent or null for none): a list of points, each a JSON object whose
+    ``samples`` is a whole number >= 0 and whose ``overall`` is null (a suite that lacks a column) or a
+    success rate, a number from 0 to 100; else one ``CicfwError`` naming the file and the key (the report's
+    learning curve would otherwise fail with numpy's or matplotlib's message, or draw the edit as data)."""
+    if curve is None:
+        return
+    if not isinstance(curve, list):
+        raise CicfwError(f"{path}: 'curve' is {json.dumps(curve)[:40]}; a finished cell's curve must be a JSON list "
+                         f"of points ({{\"samples\": ..., \"overall\": ...}}), or [] for none",
+                         key="curve", value=curve)
+    for i, p in enumerate(curve):
+        if not isinstance(p, dict):
+            raise CicfwError(f"{path}: 'curve[{i}]' is {json.dumps(p)[:40]}; each point must be a JSON object "
+                             f"with 'samples' and 'overall'", key=f"curve.{i}", value=p)
+        samples, overall = p.get("samples"), p.get("overall")
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 0:
+            raise CicfwError(f"{path}: 'curve[{i}].samples' is {json.dumps(samples)[:40]}; it must be the "
+                             f"number of training samples seen, a whole number >= 0", key=f"curve.{i}.samples",
+                             value=samples)
+        if overall is not None and (isinstance(overall, bool) or not isinstance(overall, (int, float))
+                                    or not 0 <= overall <= 100):  # NaN fails the range too
+            raise CicfwError(f"{path}: 'curve[{i}].overall' is {json.dumps(overall)[:40]}; it must be a success "
+                             f"rate in percent, a number from 0 to 100 (or null where the suite lacks a column)",
+                             key=f"curve.{i}.overall", value=overall)
+
+
 def load_cell(path: Path) -> CellResult | dict[str, Any]:
-    """One ``cell.json``: its CellResult when it finished (status ok, its episodes checked: ``check_episodes``),
-    else the file's dict as it is."""
+    """One ``cell.json``: its CellResult when it finished (status ok, its episodes and its learning curve
+    checked: ``check_episodes``, ``check_curve``), else the file's dict as it is."""
     d = read_json(path, kind=dict)
     if d.get("status") == "ok":
         row, seed = d.get("row"), d.get("seed")
@@ -207,6 +234,7 @@ def load_cell(path: Path) -> CellResult | dict[str, Any]:
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise CicfwError(f"{path}: 'seed' is {json.dumps(seed)[:40]}; a finished cell's seed is a whole number",
                              key="seed", value=seed)
+        check_curve(path, d.get("curve"))
         return CellResult(row=row, seed=seed, episodes=check_episodes(path, d.get("episodes")), meta=d)
     return d
 

@@ -125,6 +125,25 @@ def choose_in(folder: Path, candidates: Sequence[str]) -> RelationChoice:
     return choose(val_errors(finished_cells(folder), candidates), candidates)
 
 
+def refusal(folder: Path, candidates: Sequence[str]) -> str | None:
+    """Why ``folder`` and ``candidates`` cannot be read, in one line, or None: a row's or a cell's folder given
+    for the results folder (``cells/<row>``, ``cells/<row>/seed<k>``), or a candidate that is neither a shipped
+    catalogue row nor a row with cells in ``folder`` (the advice would rerun the typo)."""
+    folder = Path(folder)
+    if not (folder / "cells").is_dir() and ((folder / "cell.json").is_file() or any(folder.glob("seed*/cell.json"))):
+        results = next((p.parent for p in (folder, *folder.parents) if p.name == "cells"), None)
+        hint = f" ({results})" if results is not None else ""
+        return (f"{str(folder)!r} is a row's or a cell's folder, not a reproduction's results folder; give the "
+                f"folder that holds cells/{hint}")
+    known = list(shipped_config()["catalogue"])
+    known += sorted({p.name for p in folder.glob("cells/*") if p.is_dir()} - set(known))
+    unknown = [r for r in candidates if r not in known]
+    if unknown:
+        return (f"--candidates: unknown row(s) {', '.join(unknown)}; known rows: {', '.join(known)} (conf/"
+                f"reproduce.yaml's catalogue, and the rows with cells in {str(folder)!r})")
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cicfw.reproduction.relation_choice",
                                 description="The R of the fine-tuning row, chosen by validation error.")
@@ -136,6 +155,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.folder.is_dir():
         print(f"relation_choice: {str(args.folder)!r} is not a folder; give a reproduction's results folder",
               file=sys.stderr)
+        return 2
+    refused = refusal(args.folder, args.candidates)
+    if refused:
+        print(f"relation_choice: {refused}", file=sys.stderr)
         return 2
     cells = finished_cells(args.folder)
     c = choose(val_errors(cells, args.candidates), args.candidates)
