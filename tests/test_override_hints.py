@@ -134,3 +134,12 @@ def test_another_apps_group_is_one_line_without_the_advice_to_append_it(app, arg
     line = res.stderr.strip()
     assert res.returncode == 2 and "\n" not in line and line.startswith(f"cicfw: error: {arg}:"), res.stderr
     assert f"+{arg}" not in line and list(tmp_path.iterdir()) == []
+
+
+def test_a_global_group_such_as_the_launcher_keeps_hydras_advice_to_append_it(tmp_path):
+    """``+launcher=joblib`` works for an evaluate sweep: its one line keeps that advice."""
+    from conftest import run_app_in_process
+
+    res = run_app_in_process("cicfw.evaluate", "-m", "launcher=joblib", "policy=expert", cwd=tmp_path)
+    assert res.returncode == 2 and "+launcher=joblib" in res.stderr, res.stderr
+    assert "reads no config group" not in res.stderr and list(tmp_path.iterdir()) == []

@@ -91,12 +91,17 @@ def composition_error(err: BaseException, args: list[str]) -> CicfwError | None:
 
 
 def _other_apps_group(name: str) -> bool:
-    """Whether ``name`` is a config group of cicfw's config tree (which Hydra's advice to append it with
-    ``+name=...`` would only make fail again, its options being another app's)."""
+    """Whether ``name`` is a config group of cicfw's config tree whose options fill a node of their own
+    (``mixer``, ``head``: another app's settings), where Hydra's advice to append it with ``+name=...`` would
+    only fail again on that node's keys. A group of ``@package _global_`` options (``launcher``,
+    ``experiment``) keeps Hydra's advice: ``+launcher=joblib`` works for any app that sweeps."""
     try:
-        return bool(GlobalHydra.instance().config_loader().get_group_options(name))
+        loader = GlobalHydra.instance().config_loader()
+        options = loader.get_group_options(name)
+        header = loader.repository.load_config(f"{name}/{options[0]}").header if options else None
     except Exception:  # Hydra not initialised, or no such group
         return False
+    return header is not None and header.get("package") != "_global_"
 
 
 def composition_error_line(err: BaseException, args: list[str]) -> str | None:
