@@ -144,3 +144,19 @@ def test_which_sweep_folders_a_sweep_may_use(tmp_path):
     (below / "notes").mkdir()  # a folder of no cicfw app
     with pytest.raises(RunFolderError, match="notes"):
         claim_sweep_folder(below, app="evaluate")
+
+
+def test_a_folder_of_dated_runs_and_sweeps_is_cicfws_at_any_of_hydras_levels(tmp_path):
+    """Hydra's own layout puts runs two levels down (``multirun/<date>/<time>``): sweeping into ``multirun``
+    beside earlier sweeps was refused as "files that no cicfw train sweep wrote (2026-12-07)". A user's file
+    at any of those levels is still refused."""
+    multirun = tmp_path / "multirun"
+    (multirun / "2026-12-07" / "10-00-00").mkdir(parents=True)
+    (multirun / "2026-12-07" / "10-00-00" / "multirun.yaml").write_text("hydra:\n  job:\n    name: train\n")
+    run = multirun / "2026-12-07" / "11-00-00"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: train\n")
+    claim_sweep_folder(multirun, app="train")
+    (multirun / "2026-12-07" / "notes.txt").write_text("mine\n")
+    with pytest.raises(RunFolderError, match="2026-12-07"):
+        claim_sweep_folder(multirun, app="train")

@@ -593,14 +593,23 @@ def _app_named(job: str | None) -> str:
     return f"cicfw {job}" if job in CICFW_APPS else str(job)
 
 
-def _cicfw_output(entry: Path) -> bool:
+#: how deep below a sweep folder's entry a cicfw run may sit for the entry to be cicfw's (Hydra's own layout,
+#: ``multirun/<date>/<time>``, puts it two levels down)
+OUTPUT_DEPTH = 3
+
+
+def _cicfw_output(entry: Path, depth: int = OUTPUT_DEPTH) -> bool:
     """Whether ``entry`` (in a folder with no sweep record) is something cicfw wrote there: a folder that is a
-    run or a sweep of a cicfw app, or the row files of a sweep stopped before Hydra wrote its record."""
+    run or a sweep of a cicfw app, or holds only such folders down to ``depth`` levels (``<date>/<time>``
+    runs, a folder grouping sweeps), or the row files of a sweep stopped before Hydra wrote its record."""
     if not entry.is_dir() or entry.is_symlink():
         return False
     if entry.name == ROWS_DIR:
         return (entry / SWEEP_FILE).is_file()
-    return (entry / "multirun.yaml").is_file() or folder_owner(entry) is not None
+    if (entry / "multirun.yaml").is_file() or folder_owner(entry) is not None:
+        return True
+    inside = [entry / n for n in _entries(entry)]
+    return depth > 1 and bool(inside) and all(_cicfw_output(p, depth - 1) for p in inside)
 
 
 def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str | Path] = (),
