@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from cicfw.benchmark.finished_run import Run, atomic_write, cell_key, cell_name, load_run, table_rows
 from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart_png
-from cicfw.core.run_folder import check_name_lengths, claim_folder, folder_owner
+from cicfw.core.run_folder import check_name_lengths, claim_folder, folder_owner, is_reproduction_results
 from cicfw.benchmark.suite import CELLS, town_label
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import writable_folder, write_together
@@ -453,8 +453,7 @@ def refuse_reproduction_among(dirs: Sequence[str | Path]) -> None:
     if len(dirs) < 2:
         return
     for d in dirs:
-        folder = Path(d).expanduser()  # its manifest, or the cell tree of a run stopped before writing it (a cell is no such folder)
-        if (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*")):
+        if is_reproduction_results(Path(d).expanduser()):
             others = ", ".join(repr(str(o)) for o in dirs if o is not d)
             raise CicfwError(f"report: {str(d)!r} is a reproduction's results folder, given with {others}; give "
                              f"either one reproduction folder alone (cicfw report {d}: its Table 4) or evaluation "

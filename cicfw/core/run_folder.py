@@ -504,6 +504,23 @@ def _hydra_job(folder: Path) -> str | None:
     return None
 
 
+def _trained_through_api(folder: Path) -> bool:
+    """Whether ``folder`` is a training run through the Python API: its data record beside its outputs."""
+    return _holds_data_record(folder) and any(_exists(folder / name) for name in TRAIN_API_OUTPUTS)
+
+
+def is_reproduction_results(folder: str | Path) -> bool:
+    """Whether ``folder`` is a reproduction's results folder: its manifest (``reproduce.json``), or the cell
+    tree (``cells/<row>/seed<k>``) of a run stopped before writing it; a cell itself is none."""
+    folder = Path(folder)
+    return (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*"))
+
+
+def _job_app(job: str) -> str:
+    """The app of a Hydra job name (a DDP rank's job is ``<app>_ddp_process_<k>``)."""
+    return job.split("_ddp_process_")[0]
+
+
 def _holds_data_record(folder: Path) -> bool:
     """Whether ``folder/data.json`` is a training run's record of its data (its path and its files), not
     any file of that name."""
@@ -531,7 +548,7 @@ def folder_owner(folder: str | Path) -> str | None:
     for app, outputs in JOB_OUTPUTS:
         if (folder / f"{app}.log").is_file() and any(_exists(folder / name) for name in outputs):
             return app
-    if _holds_data_record(folder) and any(_exists(folder / name) for name in TRAIN_API_OUTPUTS):
+    if _trained_through_api(folder):
         return "train"
     for name, app in RECORDS:
         if (folder / name).exists():
@@ -662,7 +679,7 @@ def enclosing_run(folder: str | Path, *, include_self: bool = False) -> tuple[Pa
     path = Path(os.path.realpath(Path(folder).expanduser()))
     if include_self:
         owner = folder_owner(path)
-        if owner is not None and owner != "collect" and owner.split("_ddp_process_")[0] in CICFW_APPS \
+        if owner is not None and owner != "collect" and _job_app(owner) in CICFW_APPS \
                 and (owner != "reproduce" or _run_above(path) == "reproduce"):
             return path, owner
     for p in path.parents:
@@ -678,13 +695,11 @@ def _run_above(folder: Path) -> str | None:
     record beside its outputs (``TRAIN_API_OUTPUTS``); None otherwise."""
     job = _hydra_job(folder)
     if job is not None:
-        job = job.split("_ddp_process_")[0]
+        job = _job_app(job)
         return job if job in CICFW_APPS and job != "collect" else None
-    if (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*")):
+    if is_reproduction_results(folder):
         return "reproduce"
-    if _holds_data_record(folder) and any(_exists(folder / o) for o in TRAIN_API_OUTPUTS):
-        return "train"
-    return None
+    return "train" if _trained_through_api(folder) else None
 
 
 def claim_outside_runs(folder: str | Path, app: str, key: str) -> None:
