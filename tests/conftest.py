@@ -75,6 +75,19 @@ def _parse_each_config_file_once() -> None:
 _parse_each_config_file_once()
 
 
+def _share_the_config_store() -> None:
+    """Each compose deep-copies its config repository, and with it the whole ``ConfigStore`` (every registered
+    schema: a tenth of a compose), only so that re-reading the search path cannot change the original. Nothing
+    in a compose writes to the store (a config loaded from it is a copy: ``ConfigStore.load``), so the copy
+    may share it."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.__deepcopy__ = lambda self, memo: self
+
+
+_share_the_config_store()
+
+
 @pytest.fixture(autouse=True)
 def _no_log_handler_outlives_its_test():
     """An app run in-process (Hydra's job logging) hangs a handler on the root logger that writes to this

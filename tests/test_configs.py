@@ -82,3 +82,40 @@ def test_the_suites_parse_cache_reads_an_edited_config_file_anew(tmp_path):
     (tmp_path / "app.yaml").write_text("defaults:\n  - part: one\n  - _self_\nlr: 0.25\nname: edited\n")
     (tmp_path / "part" / "one.yaml").write_text("width: 3\n")
     assert composed() == {"lr": 0.25, "name": "edited", "part": {"width": 3}}
+
+
+def test_the_suites_shared_config_store_is_never_written_by_a_compose(monkeypatch):
+    """conftest lets each compose share the ``ConfigStore`` instead of copying it: composing the apps'
+    configs, with overrides into schema-checked keys, leaves every stored node as it was, and each config
+    composes as it does from a copied store."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    def nodes(tree: dict, prefix: str = "") -> dict:
+        out = {}
+        for name, item in tree.items():
+            if isinstance(item, dict):
+                out.update(nodes(item, f"{prefix}{name}/"))
+            else:
+                out[prefix + name] = (item.group, item.package, OmegaConf.to_yaml(item.node))
+        return out
+
+    overrides = {"train": ["mixer=gtu", "mixer.hidden=64", "head=hybrid", "head.W=5", "trainer.max_epochs=3"],
+                 "evaluate": ["suite=single_turn", "suite.limit=1", "sim=embedded"]}
+
+    def composed() -> dict:
+        with initialize_config_module("cicfw.conf", version_base="1.3"):
+            return {app: OmegaConf.to_yaml(compose(app, overrides=o)) for app, o in overrides.items()}
+
+    from cicfw.benchmark.schema import register as evaluate_schema
+    from cicfw.train.schema import register as train_schema
+
+    train_schema()  # what the first compose would register, registered now: all of it in the snapshot
+    evaluate_schema()
+    before = nodes(ConfigStore.instance().repo)
+    shared = composed()
+    after = nodes(ConfigStore.instance().repo)  # Hydra may add its own plugins' nodes on the way
+    assert {name: after.get(name) for name in before} == before
+    monkeypatch.delattr(ConfigStore, "__deepcopy__")  # Hydra's own copy of the store, as outside the suite
+    assert composed() == shared
