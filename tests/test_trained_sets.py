@@ -93,12 +93,13 @@ def _run_with_checkpoint(tmp_path, towns, weathers):
 
 def test_a_checkpoint_s_evaluation_labels_the_columns_with_its_run_s_data(tmp_path):
     """``cicfw evaluate checkpoint=<run>/checkpoints/last.ckpt``: a model trained in town_b is driven there
-    under its "training town" columns, unless the command names the training towns itself."""
+    under its "training town" columns, unless the command names the training towns itself. Short episodes
+    (6 m before the turn, 2 m off the route): the columns do not depend on how far they drive."""
     from conftest import run_app_in_process
 
     ckpt = _run_with_checkpoint(tmp_path, ["town_b"], ["ClearNoon"])
     common = [f"checkpoint={ckpt}", "suite.towns=[town_b]", "suite.weathers=[ClearNoon]", "suite.limit=1",
-              "progress_bar=false", "maps=false", "runner.threads=1"]
+              "progress_bar=false", "maps=false", "runner.threads=1", "sim.route_before=6", "sim.max_deviation=2"]
     for given, town_set in (([], "training"), (["suite.training_towns=[town_a]"], "new")):
         out = tmp_path / f"eval_{town_set}"
         res = run_app_in_process("cicfw.evaluate", *common, *given, f"hydra.run.dir={out}")
