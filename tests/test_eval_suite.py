@@ -138,10 +138,8 @@ def test_lockstep_one_call_per_chunk_per_step_and_deterministic(backend):
 
 
 def test_worker_processes_give_the_same_rows():
-    """Two worker processes drive what one process drives. The small town: each worker builds it in a
-    fraction of town_b's CPU time, and which town is driven does not change what the workers share."""
     sim = {"name": "embedded"}
-    eps = build_suite(Backend(), [TOWN], ["ClearNoon"], limit=4)
+    eps = build_suite(Backend(), ["town_b"], ["ClearNoon"], limit=6)
     one = run(eps, {"name": "expert"}, sim, FAST)
     two = run(eps, {"name": "expert"}, sim, RunnerConfig(workers=2, progress_bar=False))
     assert two.rows == one.rows and set(two.trajectories) == set(one.trajectories)
