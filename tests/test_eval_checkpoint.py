@@ -209,8 +209,9 @@ def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
     from cicfw.train.app import train
     from conftest import compose_train
 
+    # an untrained model's episode, short: 6 m before its turn, ended 2 m off its route
     overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "suite.pairs=[4]", "progress_bar=false",
-                 "maps=false", "runner.threads=1"]
+                 "maps=false", "runner.threads=1", "sim.route_before=6", "sim.max_deviation=2"]
     cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.val_batch_size=8",
                         "debug=fast", "progress_bar=false", "evaluate_after=true",
                         f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")

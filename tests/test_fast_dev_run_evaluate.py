@@ -62,8 +62,10 @@ def test_debug_fast_with_evaluate_after_drives_the_first_pair(tiny_data: Path, t
     from cicfw.train.app import train
     from conftest import compose_train
 
+    # 36 pairs in this town: the whole suite would drive 36 episodes. The untrained model's episode, short: 6 m
+    # before its turn, ended 2 m off its route
     overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "progress_bar=false", "maps=false",
-                 "runner.threads=1"]  # 36 pairs in this town: the whole suite would drive 36 episodes
+                 "runner.threads=1", "sim.route_before=6", "sim.max_deviation=2"]
     cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "data.val_batch_size=8",
                         "debug=fast", "progress_bar=false", "evaluate_after=true",
                         f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")
@@ -79,7 +81,7 @@ def test_a_training_without_validation_drives_its_last_checkpoint_without_a_copy
     from conftest import compose_train
 
     overrides = [f"suite.towns=[{TOWN}]", "suite.weathers=[MidRainyNoon]", "suite.limit=1", "maps=false",
-                 "runner.threads=1"]
+                 "runner.threads=1", "sim.route_before=6", "sim.max_deviation=2"]  # a short episode
     cfg = compose_train("data=cil_hdf5", f"data.path={tiny_data}", "data.batch_size=8", "progress_bar=false",
                         "trainer.max_steps=1", "trainer.limit_val_batches=0", "evaluate_after=true",
                         f"evaluate_overrides=[{','.join(repr(o) for o in overrides)}]")

@@ -93,12 +93,13 @@ def _run_with_checkpoint(tmp_path, towns, weathers):
 
 def test_a_checkpoint_s_evaluation_labels_the_columns_with_its_run_s_data(tmp_path):
     """``cicfw evaluate checkpoint=<run>/checkpoints/last.ckpt``: a model trained in town_b is driven there
-    under its "training town" columns, unless the command names the training towns itself."""
+    under its "training town" columns, unless the command names the training towns itself. Short episodes
+    (6 m before the turn, 2 m off the route): the columns do not depend on how far they drive."""
     from conftest import run_app_in_process
 
     ckpt = _run_with_checkpoint(tmp_path, ["town_b"], ["ClearNoon"])
     common = [f"checkpoint={ckpt}", "suite.towns=[town_b]", "suite.weathers=[ClearNoon]", "suite.limit=1",
-              "progress_bar=false", "maps=false", "runner.threads=1"]
+              "progress_bar=false", "maps=false", "runner.threads=1", "sim.route_before=6", "sim.max_deviation=2"]
     for given, town_set in (([], "training"), (["suite.training_towns=[town_a]"], "new")):
         out = tmp_path / f"eval_{town_set}"
         res = run_app_in_process("cicfw.evaluate", *common, *given, f"hydra.run.dir={out}")
@@ -198,7 +199,8 @@ def _columns(out):
 def test_the_columns_are_the_sets_the_checkpoint_recorded_not_the_metadata_edited_since(tmp_path):
     """A run trained on town_a / ClearNoon data; its data's metadata then edited to name town_b and MidRainyNoon
     too (its HDF5 files unchanged, so the checkpoint's data hash still matches): the evaluation still drives one
-    episode in each of the four columns, and says the metadata now names other sets."""
+    episode in each of the four columns, and says the metadata now names other sets. One training step, and
+    short episodes (6 m before the turn, 2 m off the route): the columns do not depend on how far they drive."""
     from conftest import TINY_TRAIN, run_app_in_process
 
     from cicfw.data.provenance import SETS_KEY
@@ -208,14 +210,14 @@ def test_the_columns_are_the_sets_the_checkpoint_recorded_not_the_metadata_edite
     data = write_tiny_dataset(tmp_path / "data", n_files=4, n=32)
     meta = data / "dataset_metadata.json"
     meta.write_text(json.dumps({"towns": ["town_a"], "weathers": ["ClearNoon"]}))
-    cfg = compose_train(*TINY_TRAIN, f"data.path={data}")
+    cfg = compose_train(*TINY_TRAIN, f"data.path={data}", "trainer.limit_train_batches=1")
     run = tmp_path / "run"
     (run / ".hydra").mkdir(parents=True)
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
     train(cfg, run, refuse_finished=True)
     assert json.loads((run / "data.json").read_text())[SETS_KEY] == {"towns": ["town_a"], "weathers": ["ClearNoon"]}
     evaluate = [f"checkpoint={run}", "suite=single_turn", "suite.limit=1", "suite.weathers=[ClearNoon,MidRainyNoon]",
-                "runner.workers=1", "progress_bar=false", "maps=false"]
+                "runner.workers=1", "progress_bar=false", "maps=false", "sim.route_before=6", "sim.max_deviation=2"]
     four = [("new", "new"), ("new", "training"), ("training", "new"), ("training", "training")]
     res = run_app_in_process("cicfw.evaluate", *evaluate, f"hydra.run.dir={tmp_path / 'before'}")
     assert res.returncode == 0, res.stderr[-2000:]
