@@ -484,6 +484,31 @@ def test_a_folder_with_other_hdf5_files_is_refused(tmp_path: Path, monkeypatch):
     assert "sub/theirs.h5" in str(err.value)  # names a file it would not mix in
 
 
+def test_hdf5_files_with_the_collection_s_names_but_no_record_of_it_are_refused(tmp_path: Path, monkeypatch):
+    """A collection's files copied without its records (``dataset_metadata.json``, ``.episodes/``) are the
+    user's: refused before anything is written, though their names are the planned episodes' own. Copied with
+    the episodes' markers, they are the collection's: a rerun finds them done and collects nothing."""
+    done = tmp_path / "done"
+    collect_dataset(TINY, done, progress=False)
+    names = sorted(p.name for p in done.glob("*.h5"))
+    assert len(names) == 2
+    monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("simulated"))
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    shutil.copy(done / names[0], mine / names[1])  # another episode's bytes under a planned name
+    (mine / "README.txt").write_text("notes")
+    before = _listing(mine)
+    with pytest.raises(CollectError) as err:
+        collect_dataset(TINY, mine, progress=False)
+    assert (err.value.key, err.value.value) == ("out_dir", mine.resolve())
+    assert names[1] in str(err.value)
+    assert _listing(mine) == before  # no lock file, no metadata, the file as it was
+    copied = tmp_path / "copied"
+    shutil.copytree(done, copied, ignore=shutil.ignore_patterns("dataset_metadata.json", ".collect.lock"))
+    assert json.loads(collect_dataset(TINY, copied, progress=False).read_text())["complete"]
+    assert all((copied / n).read_bytes() == (done / n).read_bytes() for n in names)
+
+
 def _listing(folder: Path) -> dict[str, bytes]:
     """Every file under ``folder`` (hidden ones too) with its bytes."""
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}

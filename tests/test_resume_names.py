@@ -64,6 +64,41 @@ def test_last_names_the_newest_checkpoint_file_and_none_starts_afresh(tmp_path):
     assert cfg.ckpt_path == "last"  # the caller's config is left as it was
 
 
+def _touched(path, step: int, year: int):
+    """A checkpoint recording ``step``, its modification time in ``year``."""
+    import os
+    import time
+
+    torch.save({"global_step": step}, path)
+    t = time.mktime((year, 1, 1, 0, 0, 0, 0, 0, -1))
+    os.utime(path, (t, t))
+    return path
+
+
+def test_last_is_last_ckpt_never_a_newer_modified_file(tmp_path, caplog):
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    last = _touched(ckpts / "last.ckpt", 4, 2020)
+    _touched(ckpts / "last-v1.ckpt", 2, 2030)  # an older state, copied in and touched
+    _touched(tmp_path / "hpc_ckpt_1.ckpt", 3, 2030)  # an HPC checkpoint of an earlier step
+    assert own_checkpoint("last", tmp_path) == last
+    with caplog.at_level("INFO", logger="cicfw.train"):
+        assert with_checkpoint_file(compose_train("ckpt_path=last"), tmp_path).ckpt_path == str(last)
+    assert any(str(last) in r.getMessage() for r in caplog.records)  # one line names the file resumed from
+    hpc = _touched(tmp_path / "hpc_ckpt_2.ckpt", 5, 2000)  # a later step, whatever its time
+    assert own_checkpoint("last", tmp_path) == hpc
+
+
+def test_last_without_last_ckpt_but_other_last_files_is_refused(tmp_path):
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    _touched(ckpts / "last-v1.ckpt", 2, 2030)
+    with pytest.raises(CicfwError) as err:
+        with_checkpoint_file(compose_train("ckpt_path=last"), tmp_path)
+    assert (err.value.key, err.value.value) == ("ckpt_path", "last")
+    assert "last-v1.ckpt" in str(err.value)
+
+
 @pytest.fixture
 def slurm_requeue(run, tmp_path, monkeypatch) -> dict:
     """A copy of ``run`` that holds an HPC checkpoint (what Lightning saves before SLURM requeues a job), in an

@@ -103,3 +103,33 @@ def test_only_slurm_an_hpc_checkpoint_and_the_same_config_make_the_folder_the_ru
     (run / ".hydra" / "config.yaml").unlink()
     _slurm(monkeypatch, True)
     assert not is_requeued_run(run, cfg)  # no record of the run there: nothing says it is this one
+
+
+@pytest.mark.slow  # runs the app
+def test_slurm_variables_without_srun_are_one_line_and_leave_no_run_folder(tmp_path):
+    """An salloc shell: SLURM's variables for two tasks, the command not started by srun. Lightning's Trainer
+    would fail with a traceback (``--ntasks=2 ... not supported``) after the run folder was written."""
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "run"
+    env = {**NO_SLURM, "SLURM_JOB_ID": "4242", "SLURM_NTASKS": "2", "SLURM_JOB_NAME": "train", "SLURM_PROCID": "1",
+           "HYDRA_FULL_ERROR": "0"}
+    r = run_app_in_process("cicfw.train", *COMMAND, f"data.path={data}", f"hydra.run.dir={run}", env=env)
+    assert r.returncode == 2, r.stderr[-3000:]
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "SLURM_NTASKS=2" in lines[0] and "srun" in lines[0], r.stderr[-3000:]
+    assert not run.exists() or not any(run.iterdir())  # nothing of a run that never was
+
+
+def test_a_single_run_s_failure_passes_the_job_failure_callback_as_it_is():
+    """The multirun callback that words a job's failure in one line leaves a single run's error alone (it
+    has no job number: reading one raised inside Hydra's callback)."""
+    from hydra.core.utils import JobReturn, JobStatus
+
+    from cicfw.core.override_hints import OneLineJobFailure
+
+    config = OmegaConf.create({"hydra": {"job": {"num": "???", "name": "train"},
+                                         "runtime": {"output_dir": "/nowhere"}, "sweep": {"dir": "/nowhere"}}})
+    err = RuntimeError("boom")
+    ret = JobReturn(overrides=[], status=JobStatus.FAILED, _return_value=err)
+    OneLineJobFailure().on_job_end(config, ret)
+    assert ret._return_value is err

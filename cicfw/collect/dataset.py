@@ -47,20 +47,42 @@ def _remove_episodes(out_dir: Path, eps: list[dict]) -> None:
             p.unlink()
 
 
-def _foreign_files(out_dir: Path, plan: list[dict]) -> list[Path]:
-    """HDF5 files (suffixes in any case, as the reader finds them) that no planned episode writes."""
-    ids = tuple(ep["id"] + "_" for ep in plan)
+def _marker_names(out_dir: Path, plan: list[dict], chash: str) -> set[str]:
+    """The file names the markers of planned episodes (``.episodes/<id>.json``, this config's) record."""
+    names: set[str] = set()
+    for ep in plan:
+        try:
+            m = json.loads((out_dir / ".episodes" / f"{ep['id']}.json").read_text())
+            if m.get("config_hash", chash) == chash and m.get("seed") == ep["seed"]:
+                names.update(str(f["name"]) for f in m["files"])
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):  # no marker, or not one of ours
+            continue
+    return names
+
+
+def _foreign_files(out_dir: Path, plan: list[dict], chash: str) -> list[Path]:
+    """HDF5 files (suffixes in any case, as the reader finds them) this collection did not write: in a folder
+    with its metadata (written before the first episode), any but the planned episodes' files; without it,
+    any its episode markers do not record (a collection's files copied without its records are the user's)."""
+    if (out_dir / META_NAME).exists():
+        ids = tuple(ep["id"] + "_" for ep in plan)
+        ours = lambda p: p.name.startswith(ids)  # noqa: E731
+    else:
+        recorded = _marker_names(out_dir, plan, chash)
+        ours = lambda p: p.name in recorded  # noqa: E731
     return [p for p in sorted(out_dir.rglob("*")) if is_hdf5_name(p) and p.is_file()
-            and (p.parent != out_dir or not p.name.startswith(ids) or p.suffix != ".h5")]
+            and (p.parent != out_dir or p.suffix != ".h5" or not ours(p))]
 
 
-def _refuse_foreign_files(out_dir: Path, plan: list[dict]) -> None:
-    """Refuse a folder that holds HDF5 files this collection does not write: never mix in the user's own."""
-    foreign = _foreign_files(out_dir, plan)
+def _refuse_foreign_files(out_dir: Path, plan: list[dict], chash: str) -> None:
+    """Refuse a folder that holds HDF5 files this collection did not write: never mix in, nor overwrite, the
+    user's own."""
+    foreign = _foreign_files(out_dir, plan, chash)
     if foreign:
-        raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection does not write "
-                           f"(e.g. {foreign[0].relative_to(out_dir)}); collect into an empty folder",
-                           key="out_dir", value=out_dir)
+        names = ", ".join(str(p.relative_to(out_dir)) for p in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        unrecorded = "" if (out_dir / META_NAME).exists() else f", recorded in no {META_NAME} of it"
+        raise CollectError(f"{out_dir} holds {len(foreign)} HDF5 file(s) this collection did not write{unrecorded} "
+                           f"({names}); collect into an empty folder", key="out_dir", value=out_dir)
 
 
 def _refuse_inside_a_dataset(out_dir: Path) -> None:
@@ -135,7 +157,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
                                  f"file a shorter name", key="collect.towns", value=longest["town"])
     _prepare_folder(out_dir)
     if not (out_dir / META_NAME).exists():  # not a collection's folder: refuse it before the lock file is made
-        _refuse_foreign_files(out_dir, episode_plan(cfg))
+        _refuse_foreign_files(out_dir, episode_plan(cfg), chash)
     what = f"cicfw collect, seed {cfg['seed']}, {cfg['episodes']} episode(s), config {chash}"
     with FolderLock(out_dir, cfg["lock_wait"], {"what": what}) as lock:
         clean_partials(out_dir)
@@ -154,7 +176,7 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
                     key="out_dir", value=out_dir)
         plan = episode_plan(cfg)
         _say_what_the_plan_leaves_out(cfg, plan)
-        _refuse_foreign_files(out_dir, plan)  # again under the lock: a collection's folder, or one changed since
+        _refuse_foreign_files(out_dir, plan, chash)  # again under the lock: a collection's folder, or one changed since
         markers = read_markers(out_dir, plan, chash, say=True)
         record_checksums(out_dir, markers)
         todo = [ep for ep in plan if ep["id"] not in markers]

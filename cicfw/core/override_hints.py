@@ -362,11 +362,14 @@ class OneLineJobFailure(Callback):
     """Hydra callback: a failed multirun job's exception, which the sweeper raises once the batch of jobs
     is done (Hydra would print its traceback), becomes one ``cicfw: error:`` line naming the job, its
     overrides and its log. The job stays failed (the sweep summary, listed after this callback, records
-    its own error; Optuna marks the trial failed); its log keeps the whole story."""
+    its own error; Optuna marks the trial failed); its log keeps the whole story. A single run's failure is
+    left as it is (no job number; the app's own handler words it)."""
 
     def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
         err = getattr(job_return, "_return_value", None)
         if job_return.status != JobStatus.FAILED or not isinstance(err, Exception) or isinstance(err, JobFailed):
+            return
+        if OmegaConf.select(config, "hydra.job.num", default=None) is None:  # a single run, not a multirun's job
             return
         hc = config.hydra
         log_file = Path(str(hc.runtime.output_dir)) / f"{hc.job.name}.log"

@@ -19,6 +19,7 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
+from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, Checkpoint, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
@@ -507,10 +508,28 @@ def fit_kwargs() -> dict[str, Any]:
     return {"weights_only": True} if "weights_only" in inspect.signature(L.Trainer.fit).parameters else {}
 
 
+def check_slurm_tasks() -> None:
+    """SLURM's task count as Lightning reads it: ``SLURM_NTASKS`` > 1 without ``SLURM_NTASKS_PER_NODE`` (an
+    salloc or sbatch shell, the command not started by srun) fails in the Trainer with a traceback; one line
+    naming the variables before any work."""
+    ntasks = os.environ.get("SLURM_NTASKS", "1")
+    if "SLURM_NTASKS_PER_NODE" in os.environ or not SLURMEnvironment.detect():
+        return
+    if ntasks.strip().isdigit() and int(ntasks) <= 1:
+        return
+    named = ", ".join(f"{k}={os.environ[k]}" for k in ("SLURM_JOB_ID", "SLURM_NTASKS", "SLURM_JOB_NAME",
+                                                       "SLURM_PROCID") if k in os.environ)
+    raise CicfwError(f"SLURM variables set ({named}) but not by srun (no SLURM_NTASKS_PER_NODE): Lightning would "
+                     f"take this process for one of {ntasks} SLURM tasks; start the command with srun "
+                     f"(srun --ntasks-per-node=N, with trainer.devices=N), or unset the SLURM_* variables to train "
+                     f"in this process alone", key="SLURM_NTASKS", value=ntasks)
+
+
 def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICModule, str | None, CILDataModule]:
     """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
     config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
     ``data`` node. What ``train`` checks before the Trainer; ``check_config`` checks the same."""
+    check_slurm_tasks()  # SLURM variables without srun: Lightning's Trainer would fail with a traceback
     check_top_level(cfg)  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
@@ -575,6 +594,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     ``on_start`` is called when everything is checked and training starts."""
     run_dir = Path(run_dir)
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
+    check_slurm_tasks()  # first: Lightning's own lines would already take this process for a SLURM task's
     L.seed_everything(checked_seed(cfg.seed), workers=True)
     cfg = with_checkpoint_file(cfg, run_dir)  # ckpt_path=last: the file, checked as any other
     # Everything a user can get wrong in the config fails first, before any image is collected or read:

@@ -15,21 +15,40 @@ from omegaconf import DictConfig, open_dict
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.slurm_requeue import newest_hpc_checkpoint
+from cicfw.model.checkpoint import UnloadableCheckpoint, load_weights_only
 
 log = logging.getLogger("cicfw.train")
 
 
+def recorded_step(path: Path) -> int:
+    """The ``global_step`` the checkpoint at ``path`` records; -1 when it records none or cannot be read
+    (the file chosen is checked in full afterwards)."""
+    try:
+        step = load_weights_only(path).get("global_step")
+    except (UnloadableCheckpoint, AttributeError):
+        return -1
+    return step if isinstance(step, int) else -1
+
+
 def own_checkpoint(name: str, run_dir: Path) -> Path | None:
-    """The file Lightning resumes from for ``name`` in ``run_dir``: for ``last`` the newest checkpoint with
-    "last" in its name under ``checkpoints/`` (or an HPC checkpoint, if newer), for ``hpc`` the highest
-    ``hpc_ckpt_<n>.ckpt``; None when there is none. Hidden files (a checkpoint being written) are not one."""
+    """The file ``name`` resumes from in ``run_dir``: for ``last`` ``checkpoints/last.ckpt`` (the only name
+    cicfw writes it under), or an HPC checkpoint that records a later step; for ``hpc`` the highest
+    ``hpc_ckpt_<n>.ckpt``; None when there is none. Never by modification time, which a copy or a touch
+    changes. Other ``*last*.ckpt`` files without a ``last.ckpt`` are refused: which one is meant is unknown."""
     hpc = newest_hpc_checkpoint(run_dir)
-    newest_hpc = [hpc] if hpc is not None else []
     if name == "hpc":
-        return newest_hpc[0] if newest_hpc else None
-    candidates = [p for p in (run_dir / "checkpoints").glob("*last*.ckpt") if not p.name.startswith(".")]
-    candidates = [p for p in [*candidates, *newest_hpc] if p.is_file()]
-    return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
+        return hpc
+    last = run_dir / "checkpoints" / "last.ckpt"
+    if not last.is_file():
+        others = sorted(p.name for p in (run_dir / "checkpoints").glob("*last*.ckpt")
+                        if not p.name.startswith(".") and p.is_file())
+        if others:
+            raise CicfwError(f"ckpt_path=last: no checkpoints/last.ckpt in {str(run_dir)!r}, but {', '.join(others)}"
+                             f"; give the checkpoint file to resume from", key="ckpt_path", value=name)
+        return hpc
+    if hpc is not None and hpc.is_file() and recorded_step(hpc) > recorded_step(last):
+        return hpc
+    return last
 
 
 def lightning_resume_name(ckpt_path: object, run_dir: Path) -> str | None:
@@ -62,6 +81,8 @@ def with_checkpoint_file(cfg: DictConfig, run_dir: Path) -> DictConfig:
                          f"checkpoint file to resume from", key="ckpt_path", value=name)
     if found is None:
         log.info("ckpt_path=last: no checkpoint in %s yet, so training starts afresh", run_dir / "checkpoints")
+    else:
+        log.info("ckpt_path=%s: resuming from %s", name, found)
     cfg = copy.deepcopy(cfg)
     with open_dict(cfg):
         cfg.ckpt_path = None if found is None else str(found)
