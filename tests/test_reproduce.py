@@ -326,7 +326,7 @@ def test_shown_path_is_relative_to_the_clone_that_holds_the_folder(tmp_path):
     assert reproduce.shown_path(outside) == str(outside.resolve())
 
 
-@pytest.mark.parametrize("what", ["manifest", "cell", "recipe", "family"])
+@pytest.mark.parametrize("what", ["manifest", "cell", "recipe", "family", "epochs"])
 def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cache, one_cell, tmp_path, capsys,
                                                                         monkeypatch):
     import cicfw.train.app
@@ -340,21 +340,23 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
         m["pinned"]["dataset"] = "ffffffffffffffff"
         message = (f"continue_from={str(published)!r} was made with budget=smoke and another dataset "
                    f"(dataset ffffffffffffffff there, {dataset} here)")
-    else:
+    else:  # the cell's file, the key and both values
         p = published / "cells" / "cil" / "seed0" / "cell.json"
         m = json.loads(p.read_text())
         if what == "cell":
             m["dataset"] = "ffffffffffffffff"
-            message = (f"cell cil/seed0 of {str(published)!r} was trained on dataset ffffffffffffffff, this run's "
-                       f"is {dataset}")
+            pair = ("dataset=ffffffffffffffff", f"dataset={dataset}")
         elif what == "family":  # a cell records the weather family it drove; another family's is refused
             assert m["weather_family"] == "carla"
             m["weather_family"] = "harsh"
-            message = f"cell cil/seed0 of {str(published)!r} was driven under weather_family=harsh"
+            pair = ("weather_family=harsh", "weather_family=carla")
+        elif what == "epochs":  # a cell of a budget that trains longer or shorter
+            m["epochs"] += 1
+            pair = (f"epochs={m['epochs']}", f"epochs={m['epochs'] - 1}")
         else:
             m["recipe"]["encoder"]["dropout_conv"] = 0.2
-            message = (f"cell cil/seed0 of {str(published)!r} was trained with encoder.dropout_conv=0.2, this run "
-                       f"trains row cil with encoder.dropout_conv=0.0")
+            pair = ("recipe.encoder.dropout_conv=0.2", "recipe.encoder.dropout_conv=0.0")
+        message = f"cell {str(p)!r} was made with {pair[0]}, this run makes row cil with {pair[1]}"
     p.write_text(json.dumps(m))
     collected = []
     monkeypatch.setattr(cicfw.train.app, "ensure_data", lambda *a, **k: collected.append(1))

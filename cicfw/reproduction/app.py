@@ -17,11 +17,13 @@ holder; a stale lock, whose process on this host is gone, is taken over with a w
 (every row trains on it), makes every cell's train/validation split of it (a seed whose split cannot train is
 refused before any cell trains) and pins the results folder to this budget, suite and dataset
 (``reproduce.json``): a folder made with another dataset is refused, and so is a finished cell trained on
-another dataset or with another model configuration (its ``recipe``). Each (row, seed) cell is one job of
-Hydra's launcher (``cell.row``/``cell.seed`` swept), so ``launcher=joblib|slurm`` spreads cells with no other
-change. A cell trains, drives the suite and writes ``cell.json`` last: a finished cell is skipped, a killed
-one resumes from its last epoch checkpoint (marked ``resumed`` in cell.json and in the report: resuming does
-not restore the data pipeline's random state) and its evaluation from the episodes it kept, a failed one
+another dataset, for other epochs, driven under another weather family or with another model configuration
+(its ``recipe``): ``cells.check_cell_pin``, the check ``cicfw report`` makes against the folder's pin. Each
+(row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed`` swept), so
+``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite and writes
+``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch checkpoint (marked
+``resumed`` in cell.json and in the report: resuming does not restore the data pipeline's random state) and
+its evaluation from the episodes it kept, a failed one
 records its one-line error and the others go on (the app then exits 1, naming the cells that did not finish).
 The report (``cicfw.reproduction.report``) is written at the end, and by ``cicfw report <results_dir>`` at any
 time.
@@ -65,7 +67,8 @@ from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.model.checkpoint import samples_seen
 from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
-from cicfw.reproduction.cells import COLUMNS, FAMILY_KEY, cell_runs, finished_cells
+from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin, cell_runs, check_cell_pin,
+                                     finished_cells, flat)
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
@@ -447,12 +450,6 @@ def refuse_other_pin(where: str, fix: str, theirs: Mapping[str, Any], ours: Mapp
                          f"{fix}")
 
 
-#: the parts of a cell's training config that decide what it learns, kept in its cell.json (``recipe``):
-#: the network, the losses, the optimizer, the data pipeline (not where the data lies or how it is read)
-RECIPE = ("encoder", "mixer", "head", "model", "data")
-RECIPE_DATA_SKIP = ("path", "collect", "num_workers", "in_memory", "val_batch_size", "seed")
-
-
 def recipe(tcfg: DictConfig) -> dict[str, Any]:
     """The cell's ``recipe``: what decides its model besides the seed (a continued cell is checked against it)."""
     out = {k: OmegaConf.to_container(tcfg[k], resolve=True) for k in RECIPE if k in tcfg}
@@ -461,40 +458,22 @@ def recipe(tcfg: DictConfig) -> dict[str, Any]:
     return json.loads(json.dumps(out))
 
 
-def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(d, dict):
-        out = {}
-        for k, v in d.items():
-            out.update(_flat(v, f"{prefix}{k}."))
-        return out
-    return {prefix[:-1]: d}
-
-
-def check_cells(folder: Path, where: str, fix: str, cfg: DictConfig, dataset: str,
-                recipes: dict[str, dict[str, Any]]) -> None:
-    """Every finished cell under ``folder`` was trained on this dataset and as this cicfw trains its row
-    (its ``recipe``: a value both give that differs, e.g. another dropout, is refused; a key only one has
-    is not, since a new option's default keeps the old behaviour). Cells written before cells recorded
-    them (no ``dataset``/``recipe``) are not checked; nor is the weather family of a cell that records none."""
+def check_cells(folder: Path, fix: str, cfg: DictConfig, dataset: str, pins: dict[str, CellPin]) -> None:
+    """Every finished cell under ``folder`` was made as this run makes its row: its dataset, weather family,
+    epochs and recipe (``check_cell_pin``, the check ``cicfw report`` makes against a folder's pin), else one
+    line naming the cell's file, the key and both values. ``pins``: row -> its pin, composed once per row."""
     family = named_weather_family(suite_overrides(cfg))
     for name, d in finished_cells(folder).items():
-        if d.get("dataset") and dataset and d["dataset"] != dataset:
-            raise ReproduceError(f"cell {name} of {where} was trained on dataset {d['dataset']}, this run's is "
-                                 f"{dataset}; {fix}")
-        if d.get(FAMILY_KEY) is not None and d[FAMILY_KEY] != family:
-            raise ReproduceError(f"cell {name} of {where} was driven under weather_family={d[FAMILY_KEY]}, this run "
-                                 f"drives {family}; {fix}")
         row = str(d.get("row"))
-        if not d.get("recipe") or row not in cfg.catalogue:
-            continue
-        if row not in recipes:
-            with initialize_config_module("cicfw.conf", version_base="1.3"):
-                recipes[row] = recipe(compose_train(cfg, row, 0))
-        theirs, ours = _flat(d["recipe"]), _flat(recipes[row])
-        for k in sorted(set(theirs) & set(ours)):
-            if theirs[k] != ours[k]:
-                raise ReproduceError(f"cell {name} of {where} was trained with {k}={theirs[k]}, this run trains row "
-                                     f"{row} with {k}={ours[k]}; {fix}")
+        if row not in pins:
+            if row in cfg.catalogue:
+                with initialize_config_module("cicfw.conf", version_base="1.3"):
+                    tcfg = compose_train(cfg, row, 0)
+                pins[row] = CellPin(dataset=dataset, weather_family=family, family_known=True,
+                                    epochs=int(tcfg.trainer.max_epochs), recipe=flat(recipe(tcfg)))
+            else:  # a row this run does not know: what the whole run pins
+                pins[row] = CellPin(dataset=dataset, weather_family=family, family_known=True)
+        check_cell_pin(folder / "cells" / name / CELL_FILE, d, pins[row], f"this run makes row {row} with", fix)
 
 
 def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
@@ -538,11 +517,10 @@ def prepare(cfg: DictConfig, rows: list[str]) -> dict[str, Any]:
         refuse_other_pin(where, fix, theirs, pinned, cfg, ("budget", "train", "suite", "dataset"))
     if cfg.get("publish_dir"):  # published from another dataset: refused before the first cell too
         check_publish_dir(cfg, pinned["dataset"])
-    recipes: dict[str, dict[str, Any]] = {}
+    pins: dict[str, CellPin] = {}
     for where, fix, _ in folders:
         folder = src if where.startswith("continue_from") else results_dir
-        label = repr(str(folder))
-        check_cells(folder, label, fix, cfg, pinned["dataset"], recipes)
+        check_cells(folder, fix, cfg, pinned["dataset"], pins)
     manifest = old or {
         "budget": pinned["budget"], "pinned": pinned, "suite": OmegaConf.to_container(evcfg.suite, resolve=True),
         "episodes": n_episodes, "dataset": dataset,

@@ -10,6 +10,8 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
 
 from cicfw.benchmark.finished_run import cell_key, cell_name
 from cicfw.benchmark.suite import CELLS
@@ -290,6 +292,99 @@ def episode_terms(cells: Mapping[str, Sequence[CellResult]],
             weights[key] = weights.get(key, 0.0) + c / len(SELECTORS[on])
     terms = [(w, *pooled_counts(cells[row], col)) for (row, col), w in weights.items() if w != 0.0]
     return terms if all(n > 0 for _, _, n in terms) else None
+
+
+#: the parts of a cell's training config that decide what it learns, kept in its cell.json (``recipe``):
+#: the network, the losses, the optimizer, the data pipeline (not where the data lies or how it is read)
+RECIPE = ("encoder", "mixer", "head", "model", "data")
+RECIPE_DATA_SKIP = ("path", "collect", "num_workers", "in_memory", "val_batch_size", "seed")
+
+
+def flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested dict as ``a.b.c`` -> value (a recipe compared key by key)."""
+    if isinstance(d, dict):
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: d}
+
+
+@dataclass(frozen=True)
+class CellPin:
+    """What a finished cell of a reproduction was made with: the dataset's hash, the weather family it drove
+    (``family_known`` False: not known), the epochs it trained and its recipe (flat, ``model.lr`` -> value,
+    all of it or only the keys known). None: not known, not compared."""
+
+    dataset: str | None = None
+    weather_family: str | None = None
+    family_known: bool = False
+    epochs: int | None = None
+    recipe: Mapping[str, Any] | None = None
+
+
+def pinned_recipe(train: Sequence[Any]) -> dict[str, Any]:
+    """The recipe keys (flat) a folder's pinned training overrides set, with their values: the budget's
+    overrides come after every row's, so each holds for every cell. Group choices and deletions set none."""
+    parser, out = OverridesParser.create(), {}
+    for o in train:
+        try:
+            ov = parser.parse_override(str(o))
+        except HydraException:  # a pin this Hydra no longer reads sets nothing known here
+            continue
+        key = ov.key_or_group
+        parts = key.split(".")
+        if (ov.is_delete() or ov.is_sweep_override() or "/" in key or len(parts) < 2 or parts[0] not in RECIPE
+                or (parts[0] == "data" and parts[1] in RECIPE_DATA_SKIP)):
+            continue
+        value = ov.value()
+        if not (isinstance(value, str) and "${" in value):  # an interpolation: resolved where the cell composed
+            out[key] = value
+    return out
+
+
+def pinned_epochs(train: Sequence[Any]) -> int | None:
+    """The epochs a folder's pinned training overrides train (their last ``trainer.max_epochs=``), else None."""
+    epochs = None
+    for o in train:
+        key, _, value = str(o).lstrip("+").partition("=")
+        if key == "trainer.max_epochs" and value.strip().isdigit():
+            epochs = int(value)
+    return epochs
+
+
+def cell_mismatch(cell: Mapping[str, Any], pin: CellPin) -> tuple[str, Any, Any] | None:
+    """The first of ``pin``'s keys a finished cell (its cell.json) records otherwise: (key, the cell's value,
+    the pin's), else None. Only what both sides know is compared: a cell written before it recorded its
+    dataset, family or recipe, and a recipe key only one side has (an option added later, whose default
+    keeps the old behaviour), are no mismatch."""
+    if cell.get("dataset") and pin.dataset and cell["dataset"] != pin.dataset:
+        return "dataset", cell["dataset"], pin.dataset
+    if pin.family_known and cell.get(FAMILY_KEY) is not None and cell[FAMILY_KEY] != pin.weather_family:
+        return FAMILY_KEY, cell[FAMILY_KEY], pin.weather_family
+    if pin.epochs is not None and cell.get("epochs") is not None and cell["epochs"] != pin.epochs:
+        return "epochs", cell["epochs"], pin.epochs
+    if pin.recipe and isinstance(cell.get("recipe"), dict):
+        theirs = flat(cell["recipe"])
+        for k in sorted(set(theirs) & set(pin.recipe)):
+            if theirs[k] != pin.recipe[k]:
+                return f"recipe.{k}", theirs[k], pin.recipe[k]
+    return None
+
+
+def _shown(value: Any) -> str:
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+def check_cell_pin(path: Path, cell: Mapping[str, Any], pin: CellPin, against: str, fix: str) -> None:
+    """One error line naming the cell's file, the key and both values when ``cell_mismatch`` finds one: the
+    one definition of "this cell belongs to this reproduction", for a run's finished cells (skipped) and for
+    a report's (pooled). ``against``: whose value the second is ("this run makes row cil with")."""
+    found = cell_mismatch(cell, pin)
+    if found is not None:
+        key, theirs, ours = found
+        raise CicfwError(f"cell {str(path)!r} was made with {key}={_shown(theirs)}, {against} {key}={_shown(ours)}; "
+                         f"{fix}", key=key, value=theirs)
 
 
 def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:

@@ -123,7 +123,8 @@ from cicfw.core.json_files import read_json
 from cicfw.core.locks import describe_holder, live_holder
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
-from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellResult, check_families,
+from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellPin, CellResult,
+                                     check_cell_pin, check_families, pinned_epochs, pinned_recipe,
                                      cpu_counts, kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
@@ -153,6 +154,16 @@ def pinned_weather_family(manifest: Mapping[str, Any]) -> str | None:
 def folder_weather_family(manifest: Mapping[str, Any]) -> str | None:
     """``pinned_weather_family`` of a folder with a pinned suite; None (not known) for one without."""
     return pinned_weather_family(manifest) if (manifest.get("pinned") or {}).get("suite") is not None else None
+
+
+def folder_pin(manifest: Mapping[str, Any]) -> CellPin:
+    """What a results folder's pin (reproduce.json's ``pinned``) says each of its cells was made with: its
+    dataset, its weather family, the epochs and the recipe keys its training overrides set."""
+    pinned = manifest.get("pinned") or {}
+    train = pinned.get("train") or []
+    return CellPin(dataset=pinned.get("dataset"), weather_family=folder_weather_family(manifest),
+                   family_known=pinned.get("suite") is not None, epochs=pinned_epochs(train),
+                   recipe=pinned_recipe(train))
 
 
 def weathers_said(manifest: Mapping[str, Any]) -> str:
@@ -900,6 +911,10 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     manifest = read_json(results_dir / "reproduce.json", default={}, kind=dict)
     cells, failed = load_cells(results_dir)
     check_families(cells, folder_weather_family(manifest), str(results_dir))
+    pin = folder_pin(manifest)
+    for c in cells:  # a cell of another reproduction would be pooled into its row: the check a run makes
+        check_cell_pin(results_dir / "cells" / c.row / f"seed{c.seed}" / "cell.json", c.meta, pin,
+                       "reproduce.json pins", "keep only this reproduction's cells in its folder")
     if not cells:
         raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))

@@ -1,0 +1,98 @@
+"""``cicfw report`` pools only the cells of its folder's reproduction: a cell whose dataset, epochs, weather
+family or pinned recipe differs from reproduce.json's pin is refused in one line (the check a run makes
+before it skips a finished cell), and nothing is written."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from cicfw.reproduction.cells import CellPin, cell_mismatch, load_cells, pinned_epochs, pinned_recipe
+from cicfw.reproduction.report import folder_pin
+from tests.conftest import assert_refused, run_app_in_process
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+PUBLISHED = sorted(p.parent for p in RESULTS.glob("**/reproduce.json"))
+
+
+def snapshot(folder: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under ``folder``: its bytes and its modification time."""
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def refused(folder: Path, key: str, cell: Path, *values: object) -> None:
+    """``cicfw report folder`` exits 2 with one line naming ``cell``, ``key`` and ``values``, and writes nothing."""
+    before = snapshot(folder)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), key)
+    assert str(cell) in line, line
+    for v in values:
+        assert f"{key}={v}" in line, (v, line)
+    assert snapshot(folder) == before
+
+
+def test_a_cell_of_another_budget_and_recipe_is_refused(tmp_path):
+    folder = tmp_path / "c6e"
+    shutil.copytree(RESULTS / "converged6_carla", folder)
+    cell = folder / "cells" / "cil" / "seed0" / "cell.json"
+    shutil.copy(RESULTS / "converged6_half" / "cells" / "cil" / "seed0" / "cell.json", cell)
+    refused(folder, "epochs", cell, 3, 6)  # converged6_half trains 3 epochs, converged6 pins 6
+
+
+def test_a_cell_of_another_dataset_is_refused(tmp_path):
+    folder = tmp_path / "c6e"
+    shutil.copytree(RESULTS / "converged6_carla", folder)
+    cell = folder / "cells" / "gtu" / "seed1" / "cell.json"
+    d = json.loads(cell.read_text())
+    d.update(dataset="0000000000000000", epochs=2)
+    cell.write_text(json.dumps(d))
+    refused(folder, "dataset", cell, "0000000000000000", "fb489a765fcd8c91")
+
+
+def test_a_recipe_value_the_pin_sets_otherwise_is_refused(tmp_path):
+    folder = tmp_path / "half"
+    shutil.copytree(RESULTS / "converged6_half", folder)
+    cell = folder / "cells" / "cil" / "seed1" / "cell.json"
+    d = json.loads(cell.read_text())
+    d["recipe"]["model"]["lr"] = 0.0002  # converged6's; converged6_half pins model.lr=6e-4
+    cell.write_text(json.dumps(d))
+    refused(folder, "recipe.model.lr", cell, 0.0002, 0.0006)
+
+
+def test_a_recorded_weather_family_other_than_the_pin_is_refused(tmp_path):
+    folder = tmp_path / "half"
+    shutil.copytree(RESULTS / "converged6_half", folder)
+    cell = folder / "cells" / "cil" / "seed2" / "cell.json"
+    d = json.loads(cell.read_text())
+    d["weather_family"] = "carla"  # converged6_half pins sim.weather_family=harsh
+    cell.write_text(json.dumps(d))
+    before = snapshot(folder)
+    assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), "weather_family", "carla")
+    assert snapshot(folder) == before
+
+
+def test_the_pin_is_read_from_the_training_overrides():
+    train = ["data=sim_default", "trainer.max_epochs=6", "model.lr=6e-4", "data.batch_size=60",
+             "data.path=${oc.env:CICFW_CACHE,/tmp}/x", "data.num_workers=4", "~model.ema_decay",
+             "trainer.max_epochs=3", "speed.compile=true"]
+    assert pinned_epochs(train) == 3  # the last one wins, as Hydra's
+    assert pinned_recipe(train) == {"model.lr": 0.0006, "data.batch_size": 60}
+    assert pinned_epochs(["data=sim_default"]) is None
+
+
+def test_only_what_both_sides_know_is_compared():
+    pin = CellPin(dataset="a", weather_family="harsh", family_known=True, epochs=6, recipe={"model.lr": 0.0002})
+    assert cell_mismatch({"epochs": 6, "recipe": {"model": {"lr": 0.0002, "ema_decay": 0.0}}}, pin) is None
+    assert cell_mismatch({"dataset": None, "recipe": {"model": {"betas": [0.7, 0.85]}}}, pin) is None
+    assert cell_mismatch({"recipe": {"model": {"lr": 0.0006}}}, pin) == ("recipe.model.lr", 0.0006, 0.0002)
+    assert cell_mismatch({"weather_family": "carla"}, CellPin()) is None  # no pinned suite: not known
+
+
+@pytest.mark.parametrize("folder", PUBLISHED, ids=lambda p: p.name)
+def test_every_published_cell_belongs_to_its_folders_pin(folder: Path):
+    pin = folder_pin(json.loads((folder / "reproduce.json").read_text()))
+    cells, _ = load_cells(folder)
+    assert cells and pin.dataset and pin.epochs
+    assert [(c.row, c.seed, cell_mismatch(c.meta, pin)) for c in cells if cell_mismatch(c.meta, pin)] == []
