@@ -11,7 +11,7 @@ import pytest
 
 from cicfw.reproduction.cells import CellPin, cell_mismatch, load_cells, pinned_epochs, pinned_recipe
 from cicfw.reproduction.report import folder_pin
-from tests.conftest import assert_refused, run_app_in_process
+from conftest import assert_refused, run_app_in_process
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 PUBLISHED = sorted(p.parent for p in RESULTS.glob("**/reproduce.json"))
@@ -96,3 +96,18 @@ def test_every_published_cell_belongs_to_its_folders_pin(folder: Path):
     cells, _ = load_cells(folder)
     assert cells and pin.dataset and pin.epochs
     assert [(c.row, c.seed, cell_mismatch(c.meta, pin)) for c in cells if cell_mismatch(c.meta, pin)] == []
+
+
+def test_the_paired_switch_refuses_a_cell_its_folder_s_pin_did_not_make(tmp_path):
+    """The paired switch reads a row's cells itself: a cell of another reproduction copied into a results
+    folder would be paired seed by seed. The same check, one line naming the cell, the key and both values;
+    the two folders as published pair as before."""
+    a, b = tmp_path / "converged6", tmp_path / "half"
+    shutil.copytree(RESULTS / "converged6", a)
+    shutil.copytree(RESULTS / "converged6_half", b)
+    rows = [str(a / "cells" / "cil"), str(b / "cells" / "cil"), "--margin", "5"]
+    assert run_app_in_process("cicfw.reproduction.paired_switch", *rows).returncode == 0
+    cell = a / "cells" / "cil" / "seed0" / "cell.json"
+    shutil.copy(RESULTS / "converged6_half" / "cells" / "cil" / "seed0" / "cell.json", cell)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.paired_switch", *rows), "epochs")
+    assert str(cell) in line and "epochs=3" in line and "epochs=6" in line, line

@@ -43,9 +43,9 @@ from cicfw.benchmark.evaluation_report import check_one_episode_rule
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_families, check_same_episodes,
-                                      cpu_counts, episode_terms, kind_noun, load_cell)
-from cicfw.reproduction.report import folder_weather_family
+from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_cell_pin, check_families,
+                                      check_same_episodes, cpu_counts, episode_terms, kind_noun, load_cell)
+from cicfw.reproduction.report import folder_pin, folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
                                            with_episode_floor, word)
 
@@ -84,10 +84,16 @@ def load_row(folder: Path) -> dict[int, CellResult]:
     folder = Path(folder)
     if not folder.is_dir():
         raise CicfwError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
-    cells = (load_cell(p) for p in sorted(folder.glob("seed*/cell.json")))
-    out = {c.seed: c for c in cells if isinstance(c, CellResult)}
+    paths = sorted(folder.glob("seed*/cell.json"))
+    out = {c.seed: c for c in map(load_cell, paths) if isinstance(c, CellResult)}
     if not out:
         raise CicfwError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
+    manifest = results_manifest(folder)
+    if manifest is not None:  # a cell of another reproduction copied in would be paired: the report's check
+        pin = folder_pin(manifest)
+        for cell in out.values():
+            check_cell_pin(folder / f"seed{cell.seed}" / "cell.json", cell.meta, pin, "reproduce.json pins",
+                           "keep only this reproduction's cells in its folder")
     return out
 
 
@@ -158,13 +164,20 @@ def check_paired(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names
                          f"give two rows' cells run on the same seeds")
 
 
-def results_family(row_folder: Path) -> str | None:
-    """The weather family a row's results folder (``<results>/cells/<row>``) is pinned to, from
-    ``<results>/reproduce.json``; None where there is none (a copied row folder): not known."""
+def results_manifest(row_folder: Path) -> dict | None:
+    """``<results>/reproduce.json`` of a row's results folder (``<results>/cells/<row>``); None where there is
+    none (a copied row folder)."""
     manifest = Path(row_folder).resolve().parent.parent / "reproduce.json"
     if Path(row_folder).resolve().parent.name != "cells" or not manifest.is_file():
         return None
-    return folder_weather_family(read_json(manifest, kind=dict))
+    return read_json(manifest, kind=dict)
+
+
+def results_family(row_folder: Path) -> str | None:
+    """The weather family a row's results folder is pinned to (``results_manifest``); None where it is not
+    known."""
+    manifest = results_manifest(row_folder)
+    return None if manifest is None else folder_weather_family(manifest)
 
 
 def check_one_family(a: Mapping[int, CellResult], b: Mapping[int, CellResult], folders: tuple[Path, Path]) -> None:
