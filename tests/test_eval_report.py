@@ -142,3 +142,27 @@ def test_a_report_whose_chart_cannot_be_written_leaves_the_folder_as_it_was(tmp_
     assert not [p for p in (*out.iterdir(), *fresh.iterdir()) if p.name.startswith(".") and p.is_file()]
     assert report.main([str(tmp_path / "runs"), "--out", str(out)]) == 0  # with room again, the new report
     assert (out / "table.md").read_bytes() != before["table.md"]
+
+
+def test_a_report_written_to_the_same_folder_meanwhile_is_never_replaced(tmp_path: Path, monkeypatch, capsys):
+    """Another report fills ``--out`` after this one checked it (both found it empty): this one is one line
+    naming the folder and writes nothing there, the other's tables and record stay byte for byte."""
+    write_run(tmp_path / "runs" / "a", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/a.ckpt"}))
+    write_run(tmp_path / "other" / "b", Run(GTU.label, GTU.rows, {"checkpoint": "/ck/b.ckpt"}))
+    assert report.main([str(tmp_path / "other"), "--out", str(tmp_path / "theirs"), "--no-plots"]) == 0
+    theirs = {p.name: p.read_bytes() for p in (tmp_path / "theirs").iterdir()}
+    out = tmp_path / "joined"
+    original = report.latex_table
+
+    def another_report_finishes(runs):
+        out.mkdir(exist_ok=True)
+        for name, data in theirs.items():
+            (out / name).write_bytes(data)
+        return original(runs)
+
+    monkeypatch.setattr(report, "latex_table", another_report_finishes)
+    capsys.readouterr()
+    assert report.main([str(tmp_path / "runs"), "--out", str(out), "--no-plots"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and str(out) in line and "\n" not in line, line
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == theirs

@@ -532,3 +532,24 @@ def test_an_opset_too_old_for_an_operator_asks_for_a_newer_one(tmp_path):
     assert "opset=17" in str(err.value) and "format=torchscript" in str(err.value)  # the overrides that work
     assert "please report" not in str(err.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "m.ckpt"]
+
+
+def test_an_export_written_to_the_same_out_meanwhile_is_never_replaced(tmp_path, episode, monkeypatch):
+    """Another export writes ``out`` after this one checked it (both found nothing there): this one is one
+    line naming ``out`` and writes nothing, the other's model and sidecar stay byte for byte."""
+    _, episode_file = episode
+    ckpt = tiny_checkpoint(tmp_path / "a.ckpt", "gtu", "hybrid")
+    out = tmp_path / "model.pt"
+    theirs = {out: b"their model", out.with_name("model.pt.json"): b'{"theirs": true}\n'}
+    original = export.parity
+
+    def another_export_finishes(*args, **kwargs):
+        for path, data in theirs.items():
+            path.write_bytes(data)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(export, "parity", another_export_finishes)
+    with pytest.raises(ExportError) as err:
+        export_model(ckpt, "torchscript", out, frames=episode_file, n_frames=2)
+    assert err.value.key == "out" and str(out) in str(err.value), str(err.value)
+    assert {p: p.read_bytes() for p in tmp_path.iterdir() if p != ckpt} == theirs

@@ -47,7 +47,7 @@ from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import temp_name_bytes
 from cicfw.core.override_hints import composition_error
-from cicfw.core.run_folder import claim_folder, name_max, undo_run_folder
+from cicfw.core.run_folder import claim_folder, name_max, release_folder_locks, undo_run_folder
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
@@ -604,7 +604,9 @@ def main(cfg: DictConfig) -> float:
                            on_start=lambda: started.append(True))["success"]
     except USER_ERRORS:  # refused before the folder was this run's (a bad checkpoint, another evaluation's
         if not started and key == "hydra.run.dir":  # episodes): the folder as it was, .hydra and log included
-            undo_run_folder(out)
+            undo_run_folder(out)  # under the folder's lock, which EvaluateRunFolderCheck took
         raise
+    finally:
+        release_folder_locks(out)  # (the episode log lets go of it itself once it has taken it)
     return float("nan") if success is None else float(success)  # null: no episode (a finished suite has some)
 

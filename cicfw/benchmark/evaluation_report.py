@@ -387,10 +387,12 @@ def _unique_labels(runs: list[Run]) -> list[Run]:
     return runs
 
 
-def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False) -> str:
+def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record: bool = False,
+                 new: Iterable[Path] = ()) -> str:
     """Write the joined table (md, tex, csv) and its bar chart into ``out_dir`` (with ``record``, ``cicfw
     report``'s record of the runs it joined there too), all or none: the chart is drawn first, so a failure
-    leaves no new table beside an old chart. Return the Markdown."""
+    leaves no new table beside an old chart. ``new``: names that were free when the folder was checked, only
+    created (another report's file written there meanwhile is one line, left as it is). Return the Markdown."""
     out_dir = Path(out_dir)
     md = markdown_table(runs)
     files = {out_dir / "table.md": md.encode(), out_dir / "table.tex": latex_table(runs).encode(),
@@ -402,7 +404,11 @@ def write_joined(runs: Sequence[Run], out_dir: Path, plots: bool = True, record:
         files[out_dir / "success_bars.png"] = bar_chart_png(_marked(runs))
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_together(files)  # all or none (a full disk, a file-size limit)
+        write_together(files, new=new)  # all or none (a full disk, a file-size limit)
+    except FileExistsError as err:
+        raise CicfwError(f"report: {err.filename!r} was written by another process while this report ran (another "
+                         f"report into the same folder?), and is left as it is; nothing of this report was "
+                         f"written: give another --out", key="--out", value=str(out_dir)) from None
     except OSError as err:  # e.g. the disk filled up: the same command writes them again
         where = f"{err.filename!r}" if err.filename else f"into {out_dir}"
         raise CicfwError(f"report: cannot write {where} ({err.strerror or err}); give a writable folder "
@@ -490,13 +496,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     out = Path(args.out).expanduser() if args.out else (Path(args.dirs[0]) if len(args.dirs) == 1 else Path("report"))
     what = "--out" if args.out else "the report folder (default: the folder given; choose one with --out)"
+    free = [out / n for n in (*REPORT_FILES, REPORT_RECORD) if not os.path.lexists(out / n)]  # only created
     try:
         if args.out or len(args.dirs) > 1:  # not the one folder given: its own tables, joined from what it holds
             claim_folder(out, "report", "--out", inputs=[*args.dirs, *(r.path for r in runs)],
                          foreign_ok=args.overwrite)
         check_report_folder(out, runs, args.dirs, what, args.overwrite)
         writable_folder(out, "--out", REPORT_FOLDER, what)
-        md = write_joined(runs, out, plots=not args.no_plots, record=True)
+        md = write_joined(runs, out, plots=not args.no_plots, record=True, new=free)
     except ValueError as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

@@ -25,8 +25,8 @@ from omegaconf import OmegaConf
 
 from cicfw.core.files import write_all
 from cicfw.core.locks import FolderLock
-from cicfw.core.run_folder import (RunFolderCheck, RunFolderError, check_name_lengths, note_run_folder,
-                                   undo_run_folder)
+from cicfw.core.run_folder import (LockedRunFolderCheck, RunFolderError, check_name_lengths, keep_held_lock,
+                                   take_held_lock)
 
 LOG_NAME = "episodes.jsonl"
 LOCK_NAME = ".evaluate.lock"
@@ -120,7 +120,8 @@ class EpisodeLog:
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         fp = json.loads(json.dumps(fingerprint))  # as it reads back from the file
-        lock = RunFolderLock(run_dir).acquire()
+        held = take_held_lock(run_dir / LOCK_NAME)  # taken by EvaluateRunFolderCheck before Hydra wrote here
+        lock = held or RunFolderLock(run_dir).acquire()
         try:
             header, rows, trajs, good = read_log(run_dir)
             if header is not None and header.get("fingerprint") != fp:
@@ -141,7 +142,10 @@ class EpisodeLog:
                 os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
             return cls(run_dir, header, rows, trajs, lock)
         except BaseException:
-            lock.release()
+            if held is not None:  # the app puts the folder back under it, then lets go (release_folder_locks)
+                keep_held_lock(held)
+            else:
+                lock.release()
             raise
 
     def add(self, row: Mapping[str, Any], traj: Mapping[str, np.ndarray]) -> None:
@@ -190,25 +194,19 @@ def _check_no_foreign_report(run_dir: Path, fp: Mapping[str, Any], hint: str) ->
                              value=run_dir)
 
 
-class EvaluateRunFolderCheck(RunFolderCheck):
-    """Hydra callback (conf/evaluate.yaml): ``RunFolderCheck``'s checks, and before Hydra writes ``.hydra``
-    and the log into the run folder, a folder another evaluation is writing refused in one line naming it
-    (exit status 2); what the folder held is noted, so that the app puts it back as it was
-    (``undo_run_folder``) when it refuses the run later (another evaluation's episodes, a bad checkpoint)."""
+class EvaluateRunFolderCheck(LockedRunFolderCheck):
+    """Hydra callback (conf/evaluate.yaml): ``LockedRunFolderCheck``'s checks, with the evaluation's lock
+    (``.evaluate.lock``, which the episode log then keeps for the run): a folder another evaluation is
+    writing is refused in one line naming it (exit status 2) and left as it is; what the folder held is
+    noted under the lock, so that the app puts it back as it was (``undo_run_folder``) when it refuses the
+    run later (another evaluation's episodes, a bad checkpoint)."""
+
+    def lock(self, folder: str, config: Any) -> FolderLock:
+        return RunFolderLock(folder)
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
-        folder = Path(str(config.hydra.run.dir))
-        _check_name_lengths(folder, "hydra.run.dir")
-        note_run_folder(folder)
-        if (folder / LOCK_NAME).exists():  # held, or left by an evaluation that died: take it and give it back
-            try:
-                RunFolderLock(folder).acquire().release()
-            except RunFolderError as err:
-                undo_run_folder(folder)
-                print(f"cicfw: error: {err}", file=sys.stderr)
-                sys.exit(2)
+        _check_name_lengths(Path(str(config.hydra.run.dir)), "hydra.run.dir")
         super().on_run_start(config, **kwargs)
-
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         _check_name_lengths(Path(str(config.hydra.sweep.dir)), "hydra.sweep.dir")

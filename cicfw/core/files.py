@@ -85,15 +85,38 @@ def _about(path: Path) -> Iterator[None]:
         raise OSError(err.errno, err.strerror or str(err), str(path)) from err
 
 
+def publish_new(tmp: Path, path: Path) -> None:
+    """Give the written file ``tmp`` the name ``path`` only where no file has it: a hard link, which fails
+    with ``FileExistsError`` when another process made ``path`` meanwhile (a rename would replace it), then
+    the temporary name removed. Where the filesystem has no hard links, an exclusive create of ``path``
+    stands for the check before the rename."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise
+    except OSError as err:
+        if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS):
+            raise
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # FileExistsError if it is there
+        os.replace(tmp, path)
+        return
+    tmp.unlink(missing_ok=True)
+
+
 def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Path, bytes | memoryview]], *,
                    fsync: bool = False, suffix: str = ".tmp",
-                   before_rename: Callable[[], None] | None = None) -> None:
+                   before_rename: Callable[[], None] | None = None, new: Iterable[Path] = ()) -> None:
     """Write each file under a temporary name beside it (``temp_beside``), then, all written and
     ``before_rename`` (if given) passed, rename them to their final names in order: on any failure
     before that, every temporary file is removed and no final name touched. ``files`` may be pairs made
     as they are written (one file's bytes in memory at a time). ``fsync``: each file reaches the disk
-    before any is renamed. An OSError while writing or renaming names the final path (``err.filename``)."""
+    before any is renamed. An OSError while writing or renaming names the final path (``err.filename``).
+    ``new``: final names that were free when the caller checked its output: each is only created, never
+    replaced (``publish_new``), so a file another process wrote there since raises ``FileExistsError``,
+    and the names this call gave its files before that are removed again (those it created)."""
     temps: list[tuple[Path, Path]] = []  # (temporary, final)
+    new = {os.path.abspath(p) for p in new}
+    created: list[tuple[Path, tuple[int, int]]] = []  # (final, its file's identity) published by publish_new
     try:
         for path, data in files.items() if isinstance(files, Mapping) else files:
             with _about(path):
@@ -109,10 +132,20 @@ def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Pat
             before_rename()
         for tmp, path in temps:
             with _about(path):
-                os.replace(tmp, path)
+                if os.path.abspath(path) in new:
+                    st = os.stat(tmp)
+                    publish_new(tmp, path)
+                    created.append((path, (st.st_dev, st.st_ino)))
+                else:
+                    os.replace(tmp, path)
     except BaseException:
         for tmp, _ in temps:
             tmp.unlink(missing_ok=True)
+        for path, ident in created:  # all or none: only this call's own files, not one written over them
+            with contextlib.suppress(OSError):
+                st = os.stat(path)
+                if (st.st_dev, st.st_ino) == ident:
+                    path.unlink()
         raise
 
 

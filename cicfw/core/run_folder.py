@@ -4,7 +4,9 @@
 file. ``hold_train_folder``: a training run's folder is its own (its lock, no other run's outputs), and
 a run refused before it trains leaves it as it found it (``note_run_folder``, ``undo_run_folder``).
 ``claim_folder``: the one rule every app applies to the folder it writes (docs/training.md). The Hydra
-callbacks ``RunFolderCheck`` and ``TrainRunFolderCheck`` apply them before Hydra writes ``.hydra``.
+callbacks ``RunFolderCheck``, ``LockedRunFolderCheck`` (the folder locked, then noted) and
+``TrainRunFolderCheck`` apply them before Hydra writes ``.hydra``; a folder is noted for undoing only while
+this run holds its lock, so a refused run never undoes another's files.
 """
 from __future__ import annotations
 
@@ -419,6 +421,113 @@ class NotedRunFolderCheck(RunFolderCheck):
             raise
 
 
+# ---- a run folder held from before Hydra writes there --------------------------------------------------
+class AppFolderLock(FolderLock):
+    """``<run folder>/.<app>.lock``: one run of ``app`` per folder, refused in one line naming the holder."""
+
+    def __init__(self, folder: str | Path, app: str, key: str = "hydra.run.dir") -> None:
+        self.lock_name, self.app, self.key = f".{app}.lock", app, key
+        super().__init__(folder)
+
+    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
+        tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
+        return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another cicfw {self.app} run "
+                          f"({describe_holder(holder)}); give a fresh folder ({self.key}=<new folder>) or wait for "
+                          f"it to finish{tail}", key=self.key, value=self.folder)
+
+    def unusable(self, err: OSError, step: str) -> Exception:
+        return RunFolderError(f"cannot lock the run folder {str(self.folder)!r} ({err.strerror or err}); give a "
+                              f"local folder you can write: {self.key}=<folder>", key=self.key, value=self.folder)
+
+
+_LOCKS: dict[str, FolderLock] = {}  # the run-folder locks this process holds, by the lock file's real path
+
+
+def _lock_key(path: str | Path) -> str:
+    return os.path.realpath(path)
+
+
+def hold_folder_lock(lock: FolderLock) -> FolderLock:
+    """Take ``lock`` (its refusal raised as the lock words it) and keep it for this process until
+    ``release_folder_locks`` (or an app's ``take_held_lock``) takes it."""
+    held = _LOCKS.get(_lock_key(lock.path))
+    if held is not None:
+        return held
+    _LOCKS[_lock_key(lock.path)] = lock.acquire()
+    return lock
+
+
+def take_held_lock(path: str | Path) -> FolderLock | None:
+    """The lock at ``path`` (a lock file) this process holds through ``hold_folder_lock``, handed over to
+    the caller (who releases it, or gives it back with ``keep_held_lock``); None when none is held."""
+    return _LOCKS.pop(_lock_key(path), None)
+
+
+def keep_held_lock(lock: FolderLock) -> None:
+    """Give a lock ``take_held_lock`` handed over back to this process's held locks."""
+    _LOCKS[_lock_key(lock.path)] = lock
+
+
+def release_folder_locks(folder: str | Path) -> None:
+    """Let go of every lock this process holds on ``folder`` (nothing when it holds none)."""
+    folder = os.path.realpath(folder)
+    for key in [k for k in _LOCKS if os.path.dirname(k) == folder]:
+        _LOCKS.pop(key).release()
+
+
+def _renote_held_folder(folder: str | Path) -> None:
+    """Note ``folder`` again once this run holds it: what another run wrote there before it let go is no
+    longer this run's to remove. A folder that was missing at the first note and holds nothing yet (but
+    locks and write probes) stays noted as missing: undone, it goes whole."""
+    before = _BEFORE.get(os.path.abspath(folder))
+    if before is not None and not before.existed and not _entries(Path(folder)):
+        return
+    note_run_folder(folder)
+
+
+class LockedRunFolderCheck(RunFolderCheck):
+    """Hydra callback (conf/diagnose.yaml): ``RunFolderCheck``'s checks, then the run folder locked for this
+    run (``lock``; the job name's ``.<job>.lock``) before Hydra writes ``.hydra`` and the job's log there,
+    and only then what it holds noted, so that the app puts it back (``undo_run_folder``, under the lock)
+    when it refuses the run later. A folder another run of the app holds is one line (exit status 2), its
+    files untouched: noting and undoing happen only while this run holds the folder."""
+
+    def lock(self, folder: str, config: Any) -> FolderLock:
+        """The lock this app's runs take on their folder."""
+        return AppFolderLock(folder, _job_app(str(config.hydra.job.name)))
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        folder = str(config.hydra.run.dir)
+        note_run_folder(folder)  # whether it exists yet: a folder made for this run is removed whole if undone
+        lock, worker = self.lock(folder, config), is_worker_process()  # a DDP rank: its rank 0 holds the folder
+        if not worker and _exists(lock.path):  # another run's (or a dead one's): its holder named before the checks
+            self._hold(folder, lock)
+        try:
+            super().on_run_start(config, **kwargs)
+        except SystemExit:  # refused before Hydra wrote anything: nothing to put back
+            forget_run_folder(folder)
+            release_folder_locks(folder)
+            raise
+        if not worker:
+            self._hold(folder, lock)
+            _renote_held_folder(folder)
+
+    @staticmethod
+    def _hold(folder: str, lock: FolderLock) -> None:
+        """``hold_folder_lock``, or one line (exit status 2) when another run holds the folder: its files are
+        its own, nothing is put back."""
+        try:
+            hold_folder_lock(lock)
+        except CicfwError as err:
+            forget_run_folder(folder)
+            print(f"cicfw: error: {err}", file=sys.stderr)
+            sys.exit(2)
+
+    def on_run_end(self, config: Any, **kwargs: Any) -> None:
+        release_folder_locks(str(config.hydra.run.dir))
+        super().on_run_end(config, **kwargs)
+
+
 class TrainRunFolderCheck(RunFolderCheck):
     """Hydra callback (conf/train.yaml): ``RunFolderCheck``'s checks, then the run folder held for this run
     (``hold_train_folder``) before Hydra writes its ``.hydra`` there, and what it held noted for
@@ -432,10 +541,11 @@ class TrainRunFolderCheck(RunFolderCheck):
         super().on_run_start(config, **kwargs)
         try:
             hold_train_folder(folder, config.get("ckpt_path"), "hydra.run.dir", config)
-        except ValueError as err:
-            undo_run_folder(folder)
+        except ValueError as err:  # another run holds it or wrote into it: its files, nothing to put back
+            forget_run_folder(folder)
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
+        _renote_held_folder(folder)  # held: what another run left there before is no longer this run's to undo
         if is_worker_process() or not run_outputs(folder):  # a rank of rank 0's run, or a fresh run
             return
         try:  # held with outputs: this run resumes the folder's, whose records Hydra is about to rewrite
@@ -463,7 +573,7 @@ class TrainRunFolderCheck(RunFolderCheck):
 
 # ---- every app writes only into a folder of its own -----------------------------------------------
 #: files cicfw itself leaves beside a run's outputs (locks, write probes): they make no folder anyone's
-HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", "reproduce.lock")
+HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", ".diagnose.lock", "reproduce.lock")
 #: the record each non-Hydra output names itself by: (file, app)
 RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduce.json", "reproduce"),
            ("cells", "reproduce"), ("dataset_metadata.json", "collect"))

@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from cicfw.core.config_checks import is_number, same_value
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, report_user_errors
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import undo_run_folder
+from cicfw.core.run_folder import release_folder_locks, undo_run_folder
 from cicfw.data.datamodule import CILDataModule
 from cicfw.data.provenance import data_root, recorded_files, same_place
 from cicfw.diagnose import steer_diagnostic as sd
@@ -275,4 +275,6 @@ def main(cfg: DictConfig) -> None:
     except USER_ERRORS:  # refused before its report: the folder as it was, no .hydra or log of a run that never was
         undo_run_folder(out)  # (a multirun job's folder is not noted: it keeps the log its failure line names)
         raise
+    finally:
+        release_folder_locks(out)  # LockedRunFolderCheck's, held while the folder was put back
 

@@ -27,7 +27,7 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping
 
 import hydra
 import numpy as np
@@ -403,12 +403,18 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
     }
 
 
-def write_files(files: Mapping[Path, bytes]) -> None:
+def write_files(files: Mapping[Path, bytes], new: Iterable[Path] = ()) -> None:
     """Write each file under a temporary name (fsynced), then rename them all, in order
     (``cicfw.core.files.write_together``): a failure while writing (a full disk, a folder that turns out
-    read-only) leaves nothing behind."""
+    read-only) leaves nothing behind. ``new``: names that were free when the export checked ``out``, only
+    created, never replaced: one another process wrote meanwhile (a second export to the same ``out``) is
+    one line, and this export's files are gone again."""
     try:
-        write_together(files, fsync=True)
+        write_together(files, fsync=True, new=new)
+    except FileExistsError as err:
+        raise ExportError(f"out: {err.filename!r} was written by another process while this export ran (another "
+                          f"export to the same out?), and is left as it is; nothing of this export was written: "
+                          f"give out=<another file>", key="out", value=err.filename) from None
     except OSError as err:
         raise ExportError(f"cannot write {err.filename!r}: {err.strerror or err}; "
                           f"nothing was written; give out=<a file in a writable folder with room>", key="out",
@@ -576,6 +582,8 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     path = output_path(str(out) if out else None, ckpt, fmt)
     check_not_the_checkpoint(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)
+    sidecar = path.with_name(path.name + ".json")
+    free = [p for p in (path, sidecar) if not os.path.lexists(p)]  # before the check: only created at the end
     check_own_output(path, ckpt, fmt, bool(overwrite))
     # bad frames= or too many n_frames: refused before the model loads
     real = dataset_frames(frames, n_frames) if frames else rendered_frames(n_frames)
@@ -597,9 +605,8 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
                               f"CICModule.predict_steer",
                       "runtime": "onnxruntime" if fmt == "onnx" else "torch.jit"}
     info["size_bytes"] = len(data)
-    sidecar = path.with_name(path.name + ".json")
     # the model renamed last: once it is there it is whole, its sidecar beside it
-    write_files({sidecar: (json.dumps(info, indent=2) + "\n").encode(), path: data})
+    write_files({sidecar: (json.dumps(info, indent=2) + "\n").encode(), path: data}, new=free)
     log.debug("wrote %s (%.1f MB, %s) and %s; parity %.2g (tolerance %g)", path, len(data) / 1e6, info["label"],
              sidecar.name, worst, tolerance)
     return {**info, "out": str(path), "sidecar": str(sidecar)}

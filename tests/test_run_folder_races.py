@@ -1,0 +1,142 @@
+"""Two runs into one output at once: the run refused leaves the other's files as they are, byte for byte.
+Each race is made certain: the other run takes the folder (its lock, its files) right after this run's
+checks, from a process of its own, before this run would take it."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cicfw.core.files import write_together
+from conftest import assert_refused, run_app_in_process
+
+ENV = {"HYDRA_FULL_ERROR": "0"}
+
+#: the other run: holds ``<run>/.<app>.lock`` (as that app's lock does) and writes its files, then waits
+OTHER = """
+import json, sys, time
+from pathlib import Path
+from cicfw.core.locks import FolderLock
+run, app, files = Path(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+class Lock(FolderLock):
+    lock_name = f".{app}.lock"
+Lock(run).acquire()
+for rel, text in files.items():
+    (run / rel).parent.mkdir(parents=True, exist_ok=True)
+    (run / rel).write_text(text)
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.fixture
+def other_run_after_the_checks(monkeypatch):
+    """``start(run, app, files)``: once this process's run-folder checks pass (``RunFolderCheck``), another
+    process takes ``run`` for ``app`` and writes ``files`` there; returns those files' bytes by path."""
+    from cicfw.core import run_folder
+
+    procs = []
+    started = {}
+
+    def start(run: Path, app: str, files: dict[str, str]) -> dict[Path, bytes]:
+        original = run_folder.RunFolderCheck.on_run_start
+
+        def then_the_other(self, config, **kwargs):
+            original(self, config, **kwargs)
+            p = subprocess.Popen([sys.executable, "-c", OTHER, str(run), app, json.dumps(files)],
+                                 stdout=subprocess.PIPE, text=True)
+            procs.append(p)
+            assert p.stdout.readline().strip() == "held"
+            started["yes"] = True
+
+        monkeypatch.setattr(run_folder.RunFolderCheck, "on_run_start", then_the_other)
+        return {run / rel: text.encode() for rel, text in files.items()}
+
+    yield start
+    for p in procs:
+        p.kill()
+        p.wait()
+    assert started, "the other run never started"
+
+
+def _files(run: Path, lock: str) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != lock}
+
+
+@pytest.mark.slow  # runs the app (in this process)
+def test_an_evaluation_refused_for_a_folder_another_took_after_its_checks_leaves_its_files(
+        tmp_path, other_run_after_the_checks):
+    run = tmp_path / "run"
+    theirs = other_run_after_the_checks(run, "evaluate", {
+        ".hydra/config.yaml": "seed: 0\n", ".hydra/overrides.yaml": "- seed=0\n",
+        ".hydra/hydra.yaml": "hydra:\n  job:\n    name: evaluate\n", "evaluate.log": "their log\n",
+        "episodes.jsonl": '{"format": "cicfw-episode-log/1"}\n'})
+    proc = run_app_in_process("cicfw.evaluate", "policy=expert", "suite.limit=1", "seed=1",
+                              f"hydra.run.dir={run}", env=ENV)
+    assert_refused(proc, str(run))
+    assert _files(run, ".evaluate.lock") == theirs
+
+
+@pytest.mark.slow  # runs the app (in this process)
+def test_a_diagnosis_refused_for_a_folder_another_took_after_its_checks_leaves_its_files(
+        tmp_path, other_run_after_the_checks):
+    run = tmp_path / "run"
+    (tmp_path / "bad.ckpt").write_bytes(b"not a checkpoint")
+    theirs = other_run_after_the_checks(run, "diagnose", {
+        ".hydra/config.yaml": "checkpoint: a.ckpt\n", ".hydra/overrides.yaml": "- checkpoint=a.ckpt\n",
+        ".hydra/hydra.yaml": "hydra:\n  job:\n    name: diagnose\n", "diagnose.log": "their log\n",
+        "steer_diagnostic.json": "{}\n"})
+    proc = run_app_in_process("cicfw.diagnose", f"checkpoint={tmp_path / 'bad.ckpt'}", f"hydra.run.dir={run}",
+                              env=ENV)
+    assert_refused(proc, "hydra.run.dir", str(run))
+    assert _files(run, ".diagnose.lock") == theirs
+
+
+def test_a_training_refused_for_a_folder_another_took_after_its_checks_leaves_its_files(
+        tmp_path, other_run_after_the_checks, capsys):
+    from omegaconf import OmegaConf
+
+    from cicfw.core.run_folder import TrainRunFolderCheck
+
+    run = tmp_path / "run"
+    theirs = other_run_after_the_checks(run, "train", {
+        ".hydra/config.yaml": "seed: 0\n", ".hydra/hydra.yaml": "hydra:\n  job:\n    name: train\n",
+        "train.log": "their log\n"})
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": "train"}}})
+    with pytest.raises(SystemExit) as stop:
+        TrainRunFolderCheck().on_run_start(config)
+    assert stop.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and str(run) in line and "hydra.run.dir" in line, line
+    assert _files(run, ".train.lock") == theirs
+
+
+@pytest.mark.slow  # runs the app twice (in this process)
+def test_a_diagnosis_holds_its_folder_only_while_it_runs(tmp_path):
+    """No lock file is left behind: the same command is refused for the checkpoint, not the folder."""
+    run = tmp_path / "run"
+    (tmp_path / "bad.ckpt").write_bytes(b"not a checkpoint")
+    for _ in range(2):
+        proc = run_app_in_process("cicfw.diagnose", f"checkpoint={tmp_path / 'bad.ckpt'}",
+                                  f"hydra.run.dir={run}", env=ENV)
+        assert_refused(proc, "bad.ckpt")
+        assert not run.exists()  # a folder made for a refused run goes, its lock with it
+
+
+def test_a_name_to_be_created_is_never_replaced_and_the_files_made_before_go_again(tmp_path):
+    first, second = tmp_path / "a.json", tmp_path / "b.bin"
+
+    def another_writes_the_second():
+        second.write_bytes(b"theirs")
+
+    with pytest.raises(FileExistsError) as err:
+        write_together({first: b"mine a", second: b"mine b"}, new=[first, second],
+                       before_rename=another_writes_the_second)
+    assert err.value.filename == str(second)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.bin"]  # no temporary file, no half of this write
+    assert second.read_bytes() == b"theirs"
+    write_together({first: b"mine a", second: b"mine b"}, new=[first])  # a name found at the check: replaced
+    assert (first.read_bytes(), second.read_bytes()) == (b"mine a", b"mine b")
