@@ -140,3 +140,25 @@ def test_a_name_to_be_created_is_never_replaced_and_the_files_made_before_go_aga
     assert second.read_bytes() == b"theirs"
     write_together({first: b"mine a", second: b"mine b"}, new=[first])  # a name found at the check: replaced
     assert (first.read_bytes(), second.read_bytes()) == (b"mine a", b"mine b")
+
+
+@pytest.mark.parametrize("job", ["diagnose", "evaluate"])
+def test_a_run_folder_given_relative_lets_go_of_its_lock_in_the_folder_hydra_moved_into(tmp_path, monkeypatch, job):
+    """hydra.run.dir=rel/run with hydra.job.chdir=true: the app lets go of the lock from inside the run folder
+    (by Hydra's absolute output_dir); the lock file goes, so the next run finds no stale lock there."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.journal import EvaluateRunFolderCheck
+    from cicfw.core.run_folder import LockedRunFolderCheck, release_folder_locks
+
+    monkeypatch.chdir(tmp_path)
+    config = OmegaConf.create({"hydra": {"run": {"dir": "rel/run"}, "job": {"name": job}}})
+    check = EvaluateRunFolderCheck() if job == "evaluate" else LockedRunFolderCheck()
+    check.on_run_start(config)
+    run, lock = tmp_path / "rel" / "run", tmp_path / "rel" / "run" / f".{job}.lock"
+    assert lock.is_file()
+    monkeypatch.chdir(run)  # hydra.job.chdir=true: the job runs inside its folder
+    release_folder_locks(run)  # as the app does when it finishes, with Hydra's runtime.output_dir
+    assert not lock.exists()
+    monkeypatch.chdir(tmp_path)  # Hydra moves back before the run ends
+    check.on_run_end(config)

@@ -499,7 +499,9 @@ class LockedRunFolderCheck(RunFolderCheck):
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         folder = str(config.hydra.run.dir)
         note_run_folder(folder)  # whether it exists yet: a folder made for this run is removed whole if undone
-        lock, worker = self.lock(folder, config), is_worker_process()  # a DDP rank: its rank 0 holds the folder
+        # the lock by its absolute path: hydra.job.chdir=true moves the job into a relative run folder before the
+        # app lets go of it, and a lock file not found by its path then would stay behind as a stale one
+        lock, worker = self.lock(os.path.abspath(folder), config), is_worker_process()  # a DDP rank: rank 0 holds it
         if not worker and _exists(lock.path):  # another run's (or a dead one's): its holder named before the checks
             self._hold(folder, lock)
         try:
