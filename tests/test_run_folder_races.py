@@ -220,3 +220,28 @@ def test_a_folder_another_run_just_made_and_holds_is_left_to_it(tmp_path, monkey
         assert other.path.is_file()
     finally:
         other.release()
+
+
+@pytest.mark.parametrize("job, other, files", [
+    ("diagnose", "train", {".hydra/hydra.yaml": "hydra:\n  job:\n    name: train\n", "train.log": "their log\n"}),
+    ("train", "evaluate", {".hydra/hydra.yaml": "hydra:\n  job:\n    name: evaluate\n",
+                           "episodes.jsonl": '{"format": "cicfw-episode-log/1"}\n'}),
+])
+def test_a_folder_another_app_took_after_the_checks_is_refused_once_held(tmp_path, other_run_after_the_checks,
+                                                                         capsys, job, other, files):
+    """Another app's run (its own lock) takes the folder between this run's checks and its lock: the check
+    is made again under the lock, so this run is refused in one line and Hydra never writes over its files."""
+    from omegaconf import OmegaConf
+
+    from cicfw.core.run_folder import LockedRunFolderCheck, TrainRunFolderCheck
+
+    run = tmp_path / "run"
+    theirs = other_run_after_the_checks(run, other, files)
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": job}}})
+    with pytest.raises(SystemExit) as stop:
+        (TrainRunFolderCheck() if job == "train" else LockedRunFolderCheck()).on_run_start(config)
+    assert stop.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and "hydra.run.dir" in line and str(run) in line, line
+    assert _files(run, f".{other}.lock") == theirs
+    assert not (run / f".{job}.lock").exists()

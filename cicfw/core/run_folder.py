@@ -525,6 +525,11 @@ class LockedRunFolderCheck(RunFolderCheck):
         if not worker:
             self._hold(folder, lock)
             _renote_held_folder(folder)
+            try:  # held: another app's run (its own lock) may have taken the folder since the checks
+                self.claim(config)
+            except SystemExit:
+                release_folder_locks(folder)
+                raise
 
     @staticmethod
     def _hold(folder: str, lock: FolderLock) -> None:
@@ -563,6 +568,11 @@ class TrainRunFolderCheck(RunFolderCheck):
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
         _renote_held_folder(folder)  # held: what another run left there before is no longer this run's to undo
+        try:  # held: another app's run (its own lock) may have taken the folder since the checks
+            self.claim(config)
+        except SystemExit:
+            release_run_folder(folder)
+            raise
         if is_worker_process() or not run_outputs(folder):  # a rank of rank 0's run, or a fresh run
             return
         try:  # held with outputs: this run resumes the folder's, whose records Hydra is about to rewrite
