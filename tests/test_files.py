@@ -172,3 +172,24 @@ def test_a_held_run_folder_loses_only_the_temporaries_of_writers_that_no_longer_
     finally:
         alive.kill()
         alive.wait()
+
+
+def test_a_new_name_published_without_hard_links_is_left_free_when_the_rename_fails(tmp_path, monkeypatch):
+    """A file system without hard links: the name is made exclusively, then the file renamed onto it; a rename
+    that fails (here EIO) leaves no empty file under that name, which a rerun would take for another's."""
+    from cicfw.core import files
+    from cicfw.core.files import write_together
+
+    def no_link(src, dst):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    def failing_replace(src, dst):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(files.os, "link", no_link)
+    monkeypatch.setattr(files.os, "replace", failing_replace)
+    out = tmp_path / "model.onnx"
+    with pytest.raises(OSError) as err:
+        write_together({out: b"model"}, new=[out])
+    assert (err.value.errno, err.value.filename) == (errno.EIO, str(out))
+    assert list(tmp_path.iterdir()) == []

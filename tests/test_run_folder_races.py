@@ -140,3 +140,108 @@ def test_a_name_to_be_created_is_never_replaced_and_the_files_made_before_go_aga
     assert second.read_bytes() == b"theirs"
     write_together({first: b"mine a", second: b"mine b"}, new=[first])  # a name found at the check: replaced
     assert (first.read_bytes(), second.read_bytes()) == (b"mine a", b"mine b")
+
+
+@pytest.mark.parametrize("job", ["diagnose", "evaluate"])
+def test_a_run_folder_given_relative_lets_go_of_its_lock_in_the_folder_hydra_moved_into(tmp_path, monkeypatch, job):
+    """hydra.run.dir=rel/run with hydra.job.chdir=true: the app lets go of the lock from inside the run folder
+    (by Hydra's absolute output_dir); the lock file goes, so the next run finds no stale lock there."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.journal import EvaluateRunFolderCheck
+    from cicfw.core.run_folder import LockedRunFolderCheck, release_folder_locks
+
+    monkeypatch.chdir(tmp_path)
+    config = OmegaConf.create({"hydra": {"run": {"dir": "rel/run"}, "job": {"name": job}}})
+    check = EvaluateRunFolderCheck() if job == "evaluate" else LockedRunFolderCheck()
+    check.on_run_start(config)
+    run, lock = tmp_path / "rel" / "run", tmp_path / "rel" / "run" / f".{job}.lock"
+    assert lock.is_file()
+    monkeypatch.chdir(run)  # hydra.job.chdir=true: the job runs inside its folder
+    release_folder_locks(run)  # as the app does when it finishes, with Hydra's runtime.output_dir
+    assert not lock.exists()
+    monkeypatch.chdir(tmp_path)  # Hydra moves back before the run ends
+    check.on_run_end(config)
+
+
+@pytest.mark.parametrize("job", ["train", "diagnose", "evaluate"])
+def test_a_run_folder_made_for_a_run_whose_lock_cannot_be_used_goes_again(tmp_path, monkeypatch, capsys, job):
+    """A file system without flock: the run is one line naming hydra.run.dir, and the folder made for it (its
+    parents too) is gone, not left holding a lock file."""
+    import errno
+
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.journal import EvaluateRunFolderCheck
+    from cicfw.core import locks
+    from cicfw.core.run_folder import LockedRunFolderCheck, TrainRunFolderCheck
+
+    def no_flock(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(locks.fcntl, "flock", no_flock)
+    run = tmp_path / "made" / "run"
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": job}}})
+    check = {"train": TrainRunFolderCheck, "diagnose": LockedRunFolderCheck, "evaluate": EvaluateRunFolderCheck}[job]
+    with pytest.raises(SystemExit) as stop:
+        check().on_run_start(config)
+    assert stop.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and "hydra.run.dir" in line and str(run) in line, line
+    assert not (tmp_path / "made").exists()
+
+
+@pytest.mark.parametrize("job", ["diagnose", "evaluate"])
+def test_a_folder_another_run_just_made_and_holds_is_left_to_it(tmp_path, monkeypatch, capsys, job):
+    """The other run made the folder and took its lock after this run's checks, before writing anything: this
+    run is refused, and the folder and the other's lock stay."""
+    from omegaconf import OmegaConf
+
+    from cicfw.benchmark.journal import EvaluateRunFolderCheck, RunFolderLock
+    from cicfw.core import run_folder
+    from cicfw.core.run_folder import AppFolderLock, LockedRunFolderCheck
+
+    run = tmp_path / "made" / "run"
+    other = RunFolderLock(run) if job == "evaluate" else AppFolderLock(run, job)
+    original = run_folder.RunFolderCheck.on_run_start
+
+    def then_the_other(self, config, **kwargs):
+        original(self, config, **kwargs)
+        other.acquire()
+
+    monkeypatch.setattr(run_folder.RunFolderCheck, "on_run_start", then_the_other)
+    config = OmegaConf.create({"hydra": {"run": {"dir": str(run)}, "job": {"name": job}}})
+    check = EvaluateRunFolderCheck() if job == "evaluate" else LockedRunFolderCheck()
+    try:
+        with pytest.raises(SystemExit) as stop:
+            check.on_run_start(config)
+        assert stop.value.code == 2
+        assert str(run) in capsys.readouterr().err
+        assert other.path.is_file()
+    finally:
+        other.release()
+
+
+@pytest.mark.parametrize("job, other, files", [
+    ("diagnose", "train", {".hydra/hydra.yaml": "hydra:\n  job:\n    name: train\n", "train.log": "their log\n"}),
+    ("train", "evaluate", {".hydra/hydra.yaml": "hydra:\n  job:\n    name: evaluate\n",
+                           "episodes.jsonl": '{"format": "cicfw-episode-log/1"}\n'}),
+])
+def test_a_folder_another_app_took_after_the_checks_is_refused_once_held(tmp_path, other_run_after_the_checks,
+                                                                         capsys, job, other, files):
+    """Another app's run (its own lock) takes the folder between this run's checks and its lock: the check
+    is made again under the lock, so this run is refused in one line and Hydra never writes over its files."""
+    from omegaconf import OmegaConf
+
+    from cicfw.core.run_folder import LockedRunFolderCheck, TrainRunFolderCheck
+
+    run = tmp_path / "run"
+    theirs = other_run_after_the_checks(run, other, files)
+    config = OmegaConf.create({"ckpt_path": None, "hydra": {"run": {"dir": str(run)}, "job": {"name": job}}})
+    with pytest.raises(SystemExit) as stop:
+        (TrainRunFolderCheck() if job == "train" else LockedRunFolderCheck()).on_run_start(config)
+    assert stop.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("cicfw: error:") and "hydra.run.dir" in line and str(run) in line, line
+    assert _files(run, f".{other}.lock") == theirs
+    assert not (run / f".{job}.lock").exists()

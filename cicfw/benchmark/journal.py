@@ -24,7 +24,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from cicfw.core.files import write_all
-from cicfw.core.locks import FolderLock
+from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.core.run_folder import (LockedRunFolderCheck, RunFolderError, check_name_lengths, keep_held_lock,
                                    take_held_lock)
 
@@ -245,11 +245,15 @@ def check_same_sweep(folder: Path, task: list[str]) -> None:
         sys.exit(2)
 
 
+class EvaluationBusy(RunFolderError, FolderBusy):
+    """Another evaluation holds the run folder (a ``FolderBusy``: its files are left as they are)."""
+
+
 class RunFolderLock(FolderLock):
     """An evaluation's hold on its run folder: a second evaluation into it is refused naming the first."""
 
     lock_name = LOCK_NAME
 
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
-        return RunFolderError(f"another evaluation (pid {holder.get('pid', '?')}) is writing {str(self.folder)!r}; "
+        return EvaluationBusy(f"another evaluation (pid {holder.get('pid', '?')}) is writing {str(self.folder)!r}; "
                               f"wait for it to finish or give another output folder", value=self.folder)

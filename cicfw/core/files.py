@@ -98,7 +98,12 @@ def publish_new(tmp: Path, path: Path) -> None:
         if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS):
             raise
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # FileExistsError if it is there
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except BaseException:  # the empty file made above is no output: left, a rerun would find it in the way
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+            raise
         return
     tmp.unlink(missing_ok=True)
 

@@ -475,6 +475,18 @@ def release_folder_locks(folder: str | Path) -> None:
         _LOCKS.pop(key).release()
 
 
+def let_go_unheld(folder: str | Path, err: Exception) -> None:
+    """A run refused before it held ``folder`` (``err``): another run's folder (it holds it, or wrote into it)
+    is left as it is, but a folder made for this run that holds nothing but cicfw's housekeeping (its lock
+    could not be used: a file system without ``flock``) goes again, as ``undo_run_folder`` removes it."""
+    before = _BEFORE.get(os.path.abspath(folder))
+    if (not isinstance(err, FolderBusy) and before is not None and not before.existed
+            and not _entries(Path(folder))):
+        undo_run_folder(folder)
+    else:
+        forget_run_folder(folder)
+
+
 def _renote_held_folder(folder: str | Path) -> None:
     """Note ``folder`` again once this run holds it: what another run wrote there before it let go is no
     longer this run's to remove. A folder that was missing at the first note and holds nothing yet (but
@@ -499,7 +511,9 @@ class LockedRunFolderCheck(RunFolderCheck):
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         folder = str(config.hydra.run.dir)
         note_run_folder(folder)  # whether it exists yet: a folder made for this run is removed whole if undone
-        lock, worker = self.lock(folder, config), is_worker_process()  # a DDP rank: its rank 0 holds the folder
+        # the lock by its absolute path: hydra.job.chdir=true moves the job into a relative run folder before the
+        # app lets go of it, and a lock file not found by its path then would stay behind as a stale one
+        lock, worker = self.lock(os.path.abspath(folder), config), is_worker_process()  # a DDP rank: rank 0 holds it
         if not worker and _exists(lock.path):  # another run's (or a dead one's): its holder named before the checks
             self._hold(folder, lock)
         try:
@@ -511,15 +525,23 @@ class LockedRunFolderCheck(RunFolderCheck):
         if not worker:
             self._hold(folder, lock)
             _renote_held_folder(folder)
+            try:  # held: another app's run (its own lock) may have taken the folder since the checks
+                self.claim(config)
+            except SystemExit:
+                release_folder_locks(folder)
+                raise
 
     @staticmethod
     def _hold(folder: str, lock: FolderLock) -> None:
-        """``hold_folder_lock``, or one line (exit status 2) when another run holds the folder: its files are
-        its own, nothing is put back."""
+        """``hold_folder_lock``, or one line (exit status 2) when the folder cannot be held: another run's
+        files stay as they are (``let_go_unheld``)."""
         try:
             hold_folder_lock(lock)
-        except CicfwError as err:
-            forget_run_folder(folder)
+        except (CicfwError, OSError) as err:
+            if not isinstance(err, CicfwError):  # a lock that words no error of its own when it cannot be used
+                err = RunFolderError(f"cannot lock the run folder {folder!r} ({err.strerror or err}); give a local "
+                                     f"folder you can write: hydra.run.dir=<folder>", key="hydra.run.dir", value=folder)
+            let_go_unheld(folder, err)
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
 
@@ -542,10 +564,15 @@ class TrainRunFolderCheck(RunFolderCheck):
         try:
             hold_train_folder(folder, config.get("ckpt_path"), "hydra.run.dir", config)
         except ValueError as err:  # another run holds it or wrote into it: its files, nothing to put back
-            forget_run_folder(folder)
+            let_go_unheld(folder, err)  # (a folder made for this run, whose lock could not be used, goes)
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)
         _renote_held_folder(folder)  # held: what another run left there before is no longer this run's to undo
+        try:  # held: another app's run (its own lock) may have taken the folder since the checks
+            self.claim(config)
+        except SystemExit:
+            release_run_folder(folder)
+            raise
         if is_worker_process() or not run_outputs(folder):  # a rank of rank 0's run, or a fresh run
             return
         try:  # held with outputs: this run resumes the folder's, whose records Hydra is about to rewrite
