@@ -190,25 +190,31 @@ def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hy
                          key=key, value=folder)
 
 
-class TrainFolderLock(FolderLock):
-    """``<run folder>/.train.lock``: one training run per folder, held while it runs."""
+class AppFolderLock(FolderLock):
+    """``<run folder>/.<app>.lock``: one run of ``app`` per folder, refused in one line naming the holder."""
 
-    lock_name = ".train.lock"
-    activity = "trains into it"
-
-    def __init__(self, folder: str | Path, key: str = "hydra.run.dir") -> None:
+    def __init__(self, folder: str | Path, app: str, key: str = "hydra.run.dir") -> None:
+        self.lock_name, self.app, self.key = f".{app}.lock", app, key
         super().__init__(folder)
-        self.key = key
 
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
         tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
-        return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another training run "
+        return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another cicfw {self.app} run "
                           f"({describe_holder(holder)}); give a fresh folder ({self.key}=<new folder>) or wait for "
                           f"it to finish{tail}", key=self.key, value=self.folder)
 
     def unusable(self, err: OSError, step: str) -> Exception:
         return RunFolderError(f"cannot lock the run folder {str(self.folder)!r} ({err.strerror or err}); give a "
-                              f"local folder you can write: {self.key}=<folder>")
+                              f"local folder you can write: {self.key}=<folder>", key=self.key, value=self.folder)
+
+
+class TrainFolderLock(AppFolderLock):
+    """``<run folder>/.train.lock``: one training run per folder, held while it runs."""
+
+    activity = "trains into it"
+
+    def __init__(self, folder: str | Path, key: str = "hydra.run.dir") -> None:
+        super().__init__(folder, "train", key)
 
 
 _HELD: dict[str, TrainFolderLock] = {}  # the run folders this process holds, by absolute path
@@ -422,24 +428,6 @@ class NotedRunFolderCheck(RunFolderCheck):
 
 
 # ---- a run folder held from before Hydra writes there --------------------------------------------------
-class AppFolderLock(FolderLock):
-    """``<run folder>/.<app>.lock``: one run of ``app`` per folder, refused in one line naming the holder."""
-
-    def __init__(self, folder: str | Path, app: str, key: str = "hydra.run.dir") -> None:
-        self.lock_name, self.app, self.key = f".{app}.lock", app, key
-        super().__init__(folder)
-
-    def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
-        tail = "" if certain else f"; if it is no longer running, delete {str(self.path)!r}"
-        return FolderBusy(f"the run folder {str(self.folder)!r} is in use by another cicfw {self.app} run "
-                          f"({describe_holder(holder)}); give a fresh folder ({self.key}=<new folder>) or wait for "
-                          f"it to finish{tail}", key=self.key, value=self.folder)
-
-    def unusable(self, err: OSError, step: str) -> Exception:
-        return RunFolderError(f"cannot lock the run folder {str(self.folder)!r} ({err.strerror or err}); give a "
-                              f"local folder you can write: {self.key}=<folder>", key=self.key, value=self.folder)
-
-
 _LOCKS: dict[str, FolderLock] = {}  # the run-folder locks this process holds, by the lock file's real path
 
 
