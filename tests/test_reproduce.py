@@ -172,6 +172,24 @@ def test_killed_run_resumes_and_loses_nothing(cache, smoke_run, tmp_path):
     assert not list(out.rglob("*.tmp"))
 
 
+def test_a_dead_writer_s_temporary_files_go_when_the_folder_is_held_again(cache, one_cell, tmp_path):
+    """A cell killed while saving a checkpoint leaves its half-written temporary file; the next run of the
+    folder removes it once it holds the folder's lock (the cell, finished since, would never meet it again).
+    A temporary file of a process still running is left to it."""
+    out = tmp_path / "results"
+    shutil.copytree(one_cell, out)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    ckpts = out / "cells" / "cil" / "seed0" / "train" / "checkpoints"
+    stale = ckpts / f".epoch001-mae0.1364.ckpt.{dead.pid}-0936f25e.tmp"
+    alive = ckpts / ".last.ckpt.1-80b05758.tmp"  # pid 1: running
+    stale.write_bytes(b"half a checkpoint")
+    alive.write_bytes(b"being written")
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}"]) == 0
+    assert not stale.exists() and alive.read_bytes() == b"being written"
+    assert (ckpts / "last.ckpt").is_file()
+
+
 def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path, monkeypatch):
     """A run of many cells publishes its table after each one, not only at its end: when the second cell
     starts, the first is in publish_dir, in its cells and its report. (Cells stand in for training and

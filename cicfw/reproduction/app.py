@@ -60,7 +60,7 @@ from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.benchmark.suite import build_suite, make_backend, named_weather_family, with_weather_family
 from cicfw.core.config_checks import config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging, on_interrupt
-from cicfw.core.files import atomic_write
+from cicfw.core.files import atomic_write, remove_stale_temps
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import check_name_lengths, claim_folder
 from cicfw.core.override_hints import register_help
@@ -860,6 +860,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             rows, seeds = check_plan(cfg)
             check_outputs(cfg, data=check_rows(cfg, rows))
             lock = ResultsLock(Path(cfg.results_dir)).acquire()
+            # held: a temporary file of a dead writer (a cell killed while saving a checkpoint) is debris that
+            # no cell's own training would meet again once the cell finishes
+            remove_stale_temps(cfg.results_dir)
             manifest = prepare(cfg, rows)
         keep_report_overrides(Path(cfg.results_dir), args)
     except BaseException as err:
