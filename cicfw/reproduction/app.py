@@ -183,9 +183,9 @@ def check_plan(cfg: DictConfig) -> tuple[list[str], list[int]]:
         if clash:
             ours, theirs = clash[0]
             raise ReproduceError(f"catalogue.{r}.overrides sets {ours}, which the cell sets after it ({theirs}, "
-                                 f"budget={cfg.budget.name}), so it would be ignored: every row of a budget trains "
-                                 f"with the budget's settings and seeds; give the row other keys, or a budget of its "
-                                 f"own", key=f"catalogue.{r}.overrides", value=ours)
+                                 f"budget={cfg.budget.name}), so the row's value has no say, equal or not: every row of "
+                                 f"a budget trains with the budget's settings and seeds; give the row other keys, or a "
+                                 f"budget of its own", key=f"catalogue.{r}.overrides", value=ours)
     seeds = seed_list(cfg.seeds)
     load_claims(OmegaConf.to_container(cfg.claims, resolve=True))  # a bad claim: one line, now
     return rows, seeds
