@@ -17,6 +17,7 @@ from cicfw.benchmark.finished_run import cell_key, cell_name
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
+from cicfw.reproduction.catalogue import override_key
 
 #: cell.json's key naming the embedded simulator's weather family its suite was driven under (absent in cells
 #: written before it was recorded, and for another simulator: such a cell reads as its folder's)
@@ -347,8 +348,8 @@ def pinned_epochs(train: Sequence[Any]) -> int | None:
     """The epochs a folder's pinned training overrides train (their last ``trainer.max_epochs=``), else None."""
     epochs = None
     for o in train:
-        key, _, value = str(o).lstrip("+").partition("=")
-        if key == "trainer.max_epochs" and value.strip().isdigit():
+        value = str(o).partition("=")[2]
+        if override_key(o) == "trainer.max_epochs" and value.strip().isdigit():
             epochs = int(value)
     return epochs
 
