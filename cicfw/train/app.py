@@ -529,7 +529,6 @@ def checked_setup(cfg: DictConfig, refuse_finished: bool = False) -> tuple[CICMo
     """The model, the checkpoint to resume from and the datamodule (no file read yet), each checked: the
     config's top-level keys, the encoder/mixer/head/model nodes, ``optimized_metric``, ``ckpt_path`` and the
     ``data`` node. What ``train`` checks before the Trainer; ``check_config`` checks the same."""
-    check_slurm_tasks()  # SLURM variables without srun: Lightning's Trainer would fail with a traceback
     check_top_level(cfg)  # +evaluate_aftr=true would silently skip the evaluation
     model = build_model(cfg)  # names, keys and value types of the encoder/mixer/head/model nodes
     check_optimized_metric(cfg.optimized_metric, model)  # the best checkpoint's monitor, logged by the model
@@ -562,6 +561,7 @@ def check_config(cfg: DictConfig, refuse_finished: bool = True) -> None:
     touching a folder: a multirun checks each job's config with it before its first job trains
     (``cicfw.core.override_hints.SweepJobsCheck``, conf/train.yaml), ``cicfw.testing.fast_dev_run`` before it
     writes its tiny dataset. ``refuse_finished``: as ``train``'s."""
+    check_slurm_tasks()  # SLURM variables without srun: Lightning's Trainer would fail with a traceback
     checked_seed(cfg.seed)
     checked_setup(cfg, refuse_finished=refuse_finished)
     trainer_kwargs(cfg)
