@@ -4,8 +4,7 @@ defaults lists reach), not the other apps' groups nor the schemas' plumbing (``c
 The train app's ``--help`` runs as ``python -m cicfw.train --help`` in a process of its own (a fork of an
 interpreter that has imported torch and Lightning), as a user's shell starts it: Hydra renders the help
 template with the groups the app reads. The other apps' ``--help`` run in this process, each from its entry
-point with the template's resolver unregistered first, and with Hydra's own listing of every group of the tree
-(seconds an app, which the template does not print) left out."""
+point with the template's resolver unregistered first."""
 from __future__ import annotations
 
 import pytest
@@ -43,14 +42,29 @@ def test_the_train_app_s_help_lists_the_groups_it_reads_and_their_options(tmp_pa
 @pytest.mark.parametrize("config_name", [name for name in GROUPS if name != "train"])
 def test_every_app_s_help_lists_the_groups_that_app_reads(config_name, tmp_path, monkeypatch):
     """The app's own ``--help``, in this process: its entry point registers the template's resolver (which the
-    train app's registered here would hide); Hydra's listing of every group, never printed, is left out."""
-    from hydra._internal.hydra import Hydra
+    train app's registered here would hide)."""
     from omegaconf.basecontainer import BaseContainer
 
-    monkeypatch.setattr(Hydra, "format_config_groups", lambda *a, **k: "")
     monkeypatch.delitem(BaseContainer._resolvers, HELP_RESOLVER, raising=False)
     run = run_app_in_process(f"cicfw.{config_name}", "--help", cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     listing = run.stdout.split("== Configuration groups ==", 1)[1].split("== Config ==", 1)[0]
     assert offered(listing) == GROUPS[config_name], listing
     assert "cicfw_schema" not in listing and list(tmp_path.iterdir()) == []
+
+
+def test_an_app_s_help_skips_the_listings_it_does_not_print_and_hydra_help_keeps_them(tmp_path, monkeypatch):
+    """Hydra lists every group of the tree twice for any ``--help`` (most of its seconds); the app's template
+    prints neither listing, so they are skipped there, and ``--hydra-help``, which prints them, keeps them."""
+    from hydra._internal.hydra import Hydra
+    from omegaconf.basecontainer import BaseContainer
+
+    listed = []
+    original = Hydra.format_config_groups
+    monkeypatch.setattr(Hydra, "format_config_groups", lambda self, *a, **k: listed.append(1) or original(self, *a, **k))
+    monkeypatch.delitem(BaseContainer._resolvers, HELP_RESOLVER, raising=False)
+    run = run_app_in_process("cicfw.collect", "--help", cwd=tmp_path)
+    assert run.returncode == 0 and "sim: " in run.stdout and listed == [], (run.stderr[-2000:], listed)
+    run = run_app_in_process("cicfw.collect", "--hydra-help", cwd=tmp_path)
+    assert run.returncode == 0 and "hydra/launcher: " in run.stdout and listed, run.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []

@@ -11,6 +11,7 @@ of the job's traceback.
 """
 from __future__ import annotations
 
+import copy
 import os
 import re
 import shlex
@@ -21,9 +22,11 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import hydra._internal.utils as hydra_utils
+from hydra._internal.hydra import Hydra
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.default_element import GroupDefault
 from hydra.core.global_hydra import GlobalHydra
+from hydra.core.object_type import ObjectType
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobStatus
 from hydra.errors import (CompactHydraException, ConfigCompositionException, MissingConfigException,
@@ -239,12 +242,16 @@ def app_groups(config_name: str) -> str:
     its defaults list and, through its options' defaults lists, the groups they reach (an experiment's
     ``override /mixer``), as Hydra's ``--help`` lists groups; Hydra's own groups and the schemas'
     (``cicfw_schema/...``) left out, and so are the other apps'."""
-    loader = GlobalHydra.instance().config_loader()
+    repo = GlobalHydra.instance().config_loader().repository  # one repository: the loader makes one per call
+
+    def options(group: str) -> list[str]:
+        return repo.get_group_options(group, ObjectType.CONFIG)
+
     groups: set[str] = set()
     todo = [(config_name, "")]  # (config path, the group it is an option of)
     while todo:
         path, parent = todo.pop()
-        found = loader.repository.load_config(path)
+        found = repo.load_config(path)
         for d in (found.defaults_list if found is not None else None) or []:
             if not isinstance(d, GroupDefault):
                 continue
@@ -252,15 +259,30 @@ def app_groups(config_name: str) -> str:
             if group in groups or group.split("/")[0] in ("hydra", "cicfw_schema"):
                 continue
             groups.add(group)
-            todo += [(f"{group}/{option}", group) for option in loader.get_group_options(group)]
-    lines = [f"{g}: {', '.join(sorted(loader.get_group_options(g)))}" for g in sorted(groups)]
+            todo += [(f"{group}/{option}", group) for option in options(group)]
+    lines = [f"{g}: {', '.join(sorted(options(g)))}" for g in sorted(groups)]
     return "\n".join(lines) or "(none: every key is set as key=value)"
 
 
 def register_help() -> None:
-    """The resolver of an app's ``--help`` (``app_groups``), registered by the app's ``main`` (``run_app``)."""
+    """The resolver of an app's ``--help`` (``app_groups``), registered by the app's ``main`` (``run_app``).
+    Hydra's ``get_help`` also lists every group of the tree, twice, whether the template prints the
+    listings or not (most of ``--help``'s 11 s here); where the template prints neither, they are skipped."""
     if not OmegaConf.has_resolver(HELP_RESOLVER):
-        OmegaConf.register_new_resolver(HELP_RESOLVER, app_groups)
+        OmegaConf.register_new_resolver(HELP_RESOLVER, app_groups, use_cache=True)  # the template is read twice
+    if not getattr(Hydra.get_help, "skips_unprinted_groups", False):
+        Hydra.get_help = _without_unprinted_groups(Hydra.get_help)
+
+
+def _without_unprinted_groups(get_help: Callable[..., str]) -> Callable[..., str]:
+    """``Hydra.get_help`` with its group listings empty when the help template prints neither."""
+    def wrapped(self: Hydra, help_cfg: Any, *args: Any, **kwargs: Any) -> str:
+        if "CONFIG_GROUPS" not in str(help_cfg.template):
+            self = copy.copy(self)  # this call only: Hydra's --hydra-help still lists them
+            self.format_config_groups = lambda *a, **k: ""
+        return get_help(self, help_cfg, *args, **kwargs)
+    wrapped.skips_unprinted_groups = True  # type: ignore[attr-defined]
+    return wrapped
 
 
 def run_app(main: Callable[[], Any], config_name: str) -> None:
