@@ -160,8 +160,11 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
         if on_start is not None:
             on_start()
         missing = [e for e in episodes if e.index not in elog.rows]
+        # the checkpoint as typed (relative to where it was run), and the file it named, absolute: a report
+        # read from another directory, or moved, still names it
         meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(seed), "suite": suite,
-                "runner": runner, "sim": sim, "fingerprint": fp}
+                "runner": runner, "sim": sim, "fingerprint": fp,
+                **({"checkpoint_file": info["checkpoint"]} if "checkpoint" in info else {})}
         log.info("evaluating %s on %d episodes (%s x %s)%s", label, len(episodes), ", ".join(map(str, suite["towns"])),
                  ", ".join(suite["weathers"]), f"; {elog.reused} kept from an earlier run, {len(missing)} to drive"
                  if elog.reused else "")
