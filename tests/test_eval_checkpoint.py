@@ -205,6 +205,26 @@ def test_a_two_step_checkpoint_runs_a_two_episode_suite_end_to_end(ckpt: Path, t
     assert video_cli.main([str(out), "7"]) == 2  # no such episode: one error line
 
 
+def test_the_summary_names_a_relative_checkpoint_by_its_absolute_file_too(ckpt: Path, tmp_path: Path, monkeypatch):
+    """summary.json keeps the checkpoint as typed (relative to where the run started) and adds the file it named,
+    absolute, so a summary read from another directory, or moved, still names it."""
+    import shutil
+
+    from cicfw.benchmark.app import evaluate_policy
+
+    here = tmp_path / "work"
+    (here / "runs").mkdir(parents=True)
+    shutil.copy(ckpt, here / "runs" / "m.ckpt")
+    monkeypatch.chdir(here)
+    evaluate_policy({"name": "checkpoint", "checkpoint": "runs/m.ckpt"},
+                    {"towns": [TOWN], "weathers": ["MidRainyNoon"], "training_towns": [], "pairs": [4]},
+                    {"workers": 1, "threads": 1}, "eval", sim={"name": "embedded", "route_before": 6,
+                                                             "max_deviation": 2}, maps=False)
+    summary = json.loads((here / "eval" / "summary.json").read_text())
+    assert summary["checkpoint"] == "runs/m.ckpt"
+    assert summary["checkpoint_file"] == os.path.join(os.path.realpath(tmp_path), "work", "runs", "m.ckpt")
+
+
 def test_train_can_end_with_the_suite(tiny_data: Path, tmp_path: Path):
     from cicfw.train.app import train
     from conftest import compose_train

@@ -56,6 +56,18 @@ def test_agent_load_of_a_folder_without_a_checkpoint_says_what_it_holds_and_what
     assert all(s in text for s in (".ckpt", ".pt", ".onnx", "run folder")), text
 
 
+@pytest.mark.parametrize("name", ["model.pt", "model.onnx", "last.ckpt"])
+def test_agent_load_of_a_missing_file_names_it_and_every_format_it_loads(tmp_path, name):
+    from cicfw.export.agent import Agent
+
+    missing = tmp_path / name
+    with pytest.raises(FileNotFoundError) as err:
+        Agent.load(missing)
+    text = str(err.value)
+    assert str(missing) in text, text
+    assert all(s in text for s in (".ckpt", ".pt", ".onnx", "run folder")), text
+
+
 def test_a_dataset_record_holding_no_object_gives_no_collector_hash(tmp_path: Path):
     """The sidecar's dataset: a dataset_metadata.json holding null (edited by hand) carries no collector hash;
     the files' hash is still given (it used to end in an AttributeError traceback)."""

@@ -76,6 +76,21 @@ def test_unknown_keys_are_refused_in_one_line(arg, kind, key, no_collect, tmp_pa
         assert "did you mean 'publish_dir'?" in msg, msg
 
 
+@pytest.mark.parametrize("arg, key", [("hydra.run.dir={x}", "hydra.run.dir"),
+                                      ("+hydra.sweep.dir={x}", "hydra.sweep.dir"),
+                                      ("hydra.sweep.subdir=mine", "hydra.sweep.subdir")])
+def test_a_hydra_folder_key_is_refused_naming_results_dir(arg, key, no_collect, tmp_path, capsys):
+    """reproduce writes under results_dir only: a Hydra folder key would be ignored or scatter the cells."""
+    out, elsewhere = tmp_path / "results", tmp_path / "elsewhere"
+    given = arg.format(x=elsewhere)
+    with pytest.raises(CicfwError) as err:
+        reproduce.compose_plan(["budget=smoke", given, f"results_dir={out}"])
+    assert err.value.key == key
+    msg = refused(["budget=smoke", given, f"results_dir={out}"], capsys)
+    assert key in msg and "results_dir" in msg, msg
+    assert not out.exists() and not elsewhere.exists()
+
+
 def test_an_unparsable_override_is_one_line(no_collect, tmp_path, capsys):
     out = tmp_path / "results"
     msg = refused(["rows=[cil", f"results_dir={out}"], capsys)

@@ -15,14 +15,14 @@ from conftest import assert_refused, run_app_in_process
 
 ENV = {"HYDRA_FULL_ERROR": "0"}
 
-#: the other run: holds ``<run>/.<app>.lock`` (as that app's lock does) and writes its files, then waits
+#: the other run: holds its app's lock in ``<run>`` (``.<app>.lock`` unless named) and writes its files, then waits
 OTHER = """
 import json, sys, time
 from pathlib import Path
 from cicfw.core.locks import FolderLock
-run, app, files = Path(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+run, lock, files = Path(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
 class Lock(FolderLock):
-    lock_name = f".{app}.lock"
+    lock_name = lock
 Lock(run).acquire()
 for rel, text in files.items():
     (run / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -34,19 +34,20 @@ time.sleep(120)
 
 @pytest.fixture
 def other_run_after_the_checks(monkeypatch):
-    """``start(run, app, files)``: once this process's run-folder checks pass (``RunFolderCheck``), another
-    process takes ``run`` for ``app`` and writes ``files`` there; returns those files' bytes by path."""
+    """``start(run, app, files, lock=None)``: once this process's run-folder checks pass (``RunFolderCheck``),
+    another process takes ``run`` for ``app`` (its lock file ``lock``, else ``.<app>.lock``) and writes ``files``
+    there; returns those files' bytes by path."""
     from cicfw.core import run_folder
 
     procs = []
     started = {}
 
-    def start(run: Path, app: str, files: dict[str, str]) -> dict[Path, bytes]:
+    def start(run: Path, app: str, files: dict[str, str], lock: str | None = None) -> dict[Path, bytes]:
         original = run_folder.RunFolderCheck.on_run_start
 
         def then_the_other(self, config, **kwargs):
             original(self, config, **kwargs)
-            p = subprocess.Popen([sys.executable, "-c", OTHER, str(run), app, json.dumps(files)],
+            p = subprocess.Popen([sys.executable, "-c", OTHER, str(run), lock or f".{app}.lock", json.dumps(files)],
                                  stdout=subprocess.PIPE, text=True)
             procs.append(p)
             assert p.stdout.readline().strip() == "held"
@@ -93,6 +94,25 @@ def test_a_diagnosis_refused_for_a_folder_another_took_after_its_checks_leaves_i
                               env=ENV)
     assert_refused(proc, "hydra.run.dir", str(run))
     assert _files(run, ".diagnose.lock") == theirs
+
+
+@pytest.mark.slow  # runs the app (in this process)
+def test_a_collect_refused_for_a_run_folder_another_collect_took_after_its_checks_leaves_its_files(
+        tmp_path, other_run_after_the_checks):
+    """Two collects into one hydra.run.dir with different out_dirs: the second is refused in one line and
+    writes neither that folder's .hydra record nor its own dataset."""
+    from cicfw.collect.lock import RUN_LOCK_NAME
+
+    run = tmp_path / "run"
+    theirs = other_run_after_the_checks(run, "collect", {
+        ".hydra/config.yaml": "out_dir: a\n", ".hydra/overrides.yaml": "- out_dir=a\n",
+        ".hydra/hydra.yaml": "hydra:\n  job:\n    name: collect\n", "collect.log": "their log\n"},
+        lock=RUN_LOCK_NAME)
+    proc = run_app_in_process("cicfw.collect", f"out_dir={tmp_path / 'b'}", f"hydra.run.dir={run}", "episodes=1",
+                              "seconds=1", "workers=0", "weathers=[ClearNoon]", "cameras=[centre]", env=ENV)
+    assert_refused(proc, "hydra.run.dir", str(run))
+    assert _files(run, RUN_LOCK_NAME) == theirs
+    assert not (tmp_path / "b").exists()
 
 
 def test_a_training_refused_for_a_folder_another_took_after_its_checks_leaves_its_files(

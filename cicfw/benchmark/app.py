@@ -48,6 +48,7 @@ from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted,
 from cicfw.core.files import temp_name_bytes
 from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import claim_folder, name_max, release_folder_locks, undo_run_folder
+from cicfw.core.spawning import check_spawn_safe
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
@@ -148,6 +149,10 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     runner_cfg, episodes = plan_evaluation(spec, suite, runner, sim, seed, progress_bar, filmed, video_max)
     check_town_file_names(out_dir, episodes, maps, bool(filmed))
     pol: Policy | dict = make_policy(spec)  # a bad checkpoint fails here, before any driving
+    # spawned workers import the calling script again: an unguarded one is refused now, before the folder's
+    # lock, on which a worker running the script's evaluation over would wait
+    if runner_cfg.resolve_workers(episodes, bool(pol.cameras)) > 1:
+        check_spawn_safe("evaluate_policy", "runner.workers", runner_cfg.workers)
     label = label or spec.get("label") or pol.label
     fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
     with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
@@ -155,8 +160,11 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
         if on_start is not None:
             on_start()
         missing = [e for e in episodes if e.index not in elog.rows]
+        # the checkpoint as typed (relative to where it was run), and the file it named, absolute: a report
+        # read from another directory, or moved, still names it
         meta = {"policy": spec["name"], "checkpoint": spec.get("checkpoint"), "seed": int(seed), "suite": suite,
-                "runner": runner, "sim": sim, "fingerprint": fp}
+                "runner": runner, "sim": sim, "fingerprint": fp,
+                **({"checkpoint_file": info["checkpoint"]} if "checkpoint" in info else {})}
         log.info("evaluating %s on %d episodes (%s x %s)%s", label, len(episodes), ", ".join(map(str, suite["towns"])),
                  ", ".join(suite["weathers"]), f"; {elog.reused} kept from an earlier run, {len(missing)} to drive"
                  if elog.reused else "")

@@ -53,7 +53,8 @@ def summary(run: Run) -> dict[str, Any]:
                        for m, (ok, n) in run.manoeuvres().items()},
         "suite": run.suite_name(),
         "reasons": dict(sorted(Counter(r["reason"] for r in run.rows).items())),
-        **{k: run.meta[k] for k in ("policy", "checkpoint", "seed", "wall_s", "steps") if k in run.meta},
+        **{k: run.meta[k] for k in ("policy", "checkpoint", "checkpoint_file", "seed", "wall_s", "steps")
+           if k in run.meta},
         "complete": is_complete(run),
         **({"episodes_total": run.meta["episodes_total"]} if "episodes_total" in run.meta else {}),
     }

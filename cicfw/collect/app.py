@@ -24,7 +24,7 @@ from cicfw.collect.errors import CollectError
 from cicfw.collect.integrity import verify_dataset
 from cicfw.core.errors import USER_ERRORS, on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import claim_folder, claim_outside_runs, undo_run_folder
+from cicfw.core.run_folder import claim_folder, claim_outside_runs, release_folder_locks, undo_run_folder
 
 
 def _run(cfg, on_start=None) -> str:
@@ -71,13 +71,16 @@ def _main() -> None:
         out, started = Path(HydraConfig.get().runtime.output_dir), []
         try:
             print(_run(cfg, on_start=lambda: started.append(True)))
-        except USER_ERRORS:  # refused before collecting: the run folder as NotedRunFolderCheck found it (a
+        except USER_ERRORS:  # refused before collecting: the run folder as CollectRunFolderCheck found it (a
             if not started:  # multirun job's keeps its log); once collecting, its log and episodes stay
                 undo_run_folder(out)
             raise
         finally:  # a check writes nothing, so it leaves no run folder either (a file written beside it stays)
-            if cfg.verify:
-                undo_run_folder(out, hydra_only=True)
+            try:
+                if cfg.verify:
+                    undo_run_folder(out, hydra_only=True)
+            finally:
+                release_folder_locks(out)  # CollectRunFolderCheck's, held while the folder was put back
 
     main()
 

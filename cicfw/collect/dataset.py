@@ -21,6 +21,7 @@ from cicfw.collect.writing import check_free_space, write_json
 from cicfw.core.files import temp_name_bytes
 from cicfw.core.progress import ProgressBar
 from cicfw.core.run_folder import name_max
+from cicfw.core.spawning import check_spawn_safe
 from cicfw.data.cil_hdf5 import is_hdf5_name
 
 log = logging.getLogger(__name__)
@@ -145,6 +146,8 @@ def _collect(raw: dict, backend: Any, out_dir: Path, progress: bool, on_start: C
         getattr(backend, "data_version", cfg["sim"].get("name")))
     cfg["_hash"] = chash = config_hash(cfg)
     out_dir = out_dir.expanduser().resolve()
+    if int(cfg["workers"]) > 1:  # before the folder's lock, on which a worker running the script over would wait
+        check_spawn_safe("collect_dataset", "collect.workers", cfg["workers"])
     _refuse_inside_a_dataset(out_dir)
     # an episode's longest file name is its HDF5 part's temporary one (cicfw.core.files): a town file's long
     # stem must be refused now, not after the episode is driven. A worker writes it, whose pid may have more

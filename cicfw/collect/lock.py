@@ -1,4 +1,5 @@
-"""One collector per folder: the project's ``FolderLock`` on ``<folder>/.collect.lock``, in the collection's words."""
+"""One collector per folder: the project's ``FolderLock`` on ``<folder>/.collect.lock``, in the collection's words;
+and one collect run per Hydra run folder (``CollectRunFolderCheck``)."""
 from __future__ import annotations
 
 import logging
@@ -7,6 +8,7 @@ from typing import Any, Mapping
 from cicfw.core import locks
 from cicfw.collect.errors import CollectError, FolderLockedError
 from cicfw.collect.writing import disk_error
+from cicfw.core.run_folder import AppFolderLock, LockedRunFolderCheck
 
 LOCK_NAME = ".collect.lock"
 #: the key a holder that only reads the folder (``cicfw collect --verify``) sets in its record: another
@@ -40,3 +42,17 @@ class FolderLock(locks.FolderLock):
                                 f"does not support flock: collect into a local folder")
         return CollectError(f"cannot write to the output folder {self.folder} ({err.strerror}); give a writable "
                             f"out_dir")
+
+
+#: the lock a collect run holds on its Hydra run folder: not ``LOCK_NAME``, which the engine takes on
+#: ``out_dir``, so that ``out_dir=hydra.run.dir`` does not make the run wait on its own lock
+RUN_LOCK_NAME = ".collect-run.lock"
+
+
+class CollectRunFolderCheck(LockedRunFolderCheck):
+    """Hydra callback (conf/collect.yaml): ``LockedRunFolderCheck`` with the run folder's own lock
+    (``RUN_LOCK_NAME``): two collect runs into one ``hydra.run.dir`` (whatever their ``out_dir``) never both
+    write its ``.hydra`` record; the second is one line naming the first, the folder left as it is."""
+
+    def lock(self, folder: str, config: Any) -> locks.FolderLock:
+        return AppFolderLock(folder, "collect", lock_name=RUN_LOCK_NAME)

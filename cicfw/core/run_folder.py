@@ -191,10 +191,11 @@ def check_no_other_run(folder: str | Path, ckpt_path: Any = None, key: str = "hy
 
 
 class AppFolderLock(FolderLock):
-    """``<run folder>/.<app>.lock``: one run of ``app`` per folder, refused in one line naming the holder."""
+    """``<run folder>/.<app>.lock`` (or ``lock_name``): one run of ``app`` per folder, refused in one line
+    naming the holder."""
 
-    def __init__(self, folder: str | Path, app: str, key: str = "hydra.run.dir") -> None:
-        self.lock_name, self.app, self.key = f".{app}.lock", app, key
+    def __init__(self, folder: str | Path, app: str, key: str = "hydra.run.dir", lock_name: str | None = None) -> None:
+        self.lock_name, self.app, self.key = lock_name or f".{app}.lock", app, key
         super().__init__(folder)
 
     def busy(self, holder: Mapping[str, Any], waited: float, certain: bool) -> Exception:
@@ -413,7 +414,7 @@ def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> No
 
 
 class NotedRunFolderCheck(RunFolderCheck):
-    """Hydra callback (conf/diagnose.yaml, conf/collect.yaml): ``RunFolderCheck``'s checks, and what the run folder held noted
+    """Hydra callback: ``RunFolderCheck``'s checks, and what the run folder held noted
     before Hydra writes ``.hydra`` and the job's log there, so that the app puts it back as it was
     (``undo_run_folder``) when it refuses the run later (a missing checkpoint, an unknown split)."""
 
@@ -486,11 +487,12 @@ def _renote_held_folder(folder: str | Path) -> None:
 
 
 class LockedRunFolderCheck(RunFolderCheck):
-    """Hydra callback (conf/diagnose.yaml): ``RunFolderCheck``'s checks, then the run folder locked for this
-    run (``lock``; the job name's ``.<job>.lock``) before Hydra writes ``.hydra`` and the job's log there,
-    and only then what it holds noted, so that the app puts it back (``undo_run_folder``, under the lock)
-    when it refuses the run later. A folder another run of the app holds is one line (exit status 2), its
-    files untouched: noting and undoing happen only while this run holds the folder."""
+    """Hydra callback (conf/diagnose.yaml; collect's and evaluate's subclass it): ``RunFolderCheck``'s checks,
+    then the run folder locked for this run (``lock``; the job name's ``.<job>.lock``) before Hydra writes
+    ``.hydra`` and the job's log there, and only then what it holds noted, so that the app puts it back
+    (``undo_run_folder``, under the lock) when it refuses the run later. A folder another run of the app
+    holds is one line (exit status 2), its files untouched: noting and undoing happen only while this run
+    holds the folder."""
 
     def lock(self, folder: str, config: Any) -> FolderLock:
         """The lock this app's runs take on their folder."""
@@ -588,7 +590,8 @@ class TrainRunFolderCheck(RunFolderCheck):
 
 # ---- every app writes only into a folder of its own -----------------------------------------------
 #: files cicfw itself leaves beside a run's outputs (locks, write probes): they make no folder anyone's
-HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", ".diagnose.lock", "reproduce.lock")
+HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", ".collect-run.lock", ".diagnose.lock",
+                "reproduce.lock")
 #: the record each non-Hydra output names itself by: (file, app)
 RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduce.json", "reproduce"),
            ("cells", "reproduce"), ("dataset_metadata.json", "collect"))

@@ -50,7 +50,8 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
     reproduction cell's folder means the final weights its table drove (``train/checkpoints/epochNNN.ckpt`` of
     its last epoch, as its ``cell.json`` records it, else a ``last.ckpt`` of that epoch: ``cell_final``), never
     its best validation checkpoint.
-    ``accepted``: what the caller takes, for the line refusing a folder that holds no checkpoint."""
+    ``accepted``: what the caller takes, for the line refusing a missing path or a folder that holds no
+    checkpoint."""
     p = Path(str(path)).expanduser()
     if (p / CELL_FILE).is_file():
         return cell_final(p, path).resolve()
@@ -81,9 +82,9 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
             f"checkpoint={str(path)!r} is a folder with {len(found)} .ckpt files besides last.ckpt and kept "
             f"epochNNN.ckpt ({listing}); "
             f"give one .ckpt file", key="checkpoint", value=path)
-    if not p.is_file():
-        raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give the path to a .ckpt file "
-                                f"written by cicfw train (outputs/<run>/checkpoints/*.ckpt)")
+    if not p.is_file():  # named as given (a .pt, an .onnx ...), with what the caller accepts
+        raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist; give {accepted} "
+                                f"(cicfw train writes outputs/<run>/checkpoints/*.ckpt)")
     return p.resolve()
 
 

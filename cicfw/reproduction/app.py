@@ -127,6 +127,24 @@ def refuse_options(args: Sequence[str]) -> None:
                              f"-m, and --help, --cfg job or --info to show its config", key=name, value=a)
 
 
+#: Hydra's folder keys: reproduce writes its cells (``cells/<row>/seed<k>``), manifest and report under
+#: ``results_dir`` alone, so one of these would scatter cells where no report reads them, or be ignored
+FOLDER_KEYS = ("hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir")
+
+
+def refuse_folder_keys(overrides: Sequence[str]) -> None:
+    """An override of a Hydra folder key (``FOLDER_KEYS``, with or without ``+``/``++``/``~``) is one line
+    naming it and saying that ``results_dir`` is the key that places a reproduction."""
+    for o in overrides:
+        key, _, value = o.lstrip("+~").partition("=")
+        key = key.strip()
+        if key in FOLDER_KEYS:
+            folder = value if value and key != "hydra.sweep.subdir" else "<folder>"
+            raise ReproduceError(f"{key}={value}: python -m cicfw.reproduce writes its cells, manifest and report "
+                                 f"under results_dir only (cells/<row>/seed<k>), so {key} has no say; give "
+                                 f"results_dir={folder} instead", key=key, value=value)
+
+
 def _parse(overrides: Sequence[str]) -> None:
     """Each override parsed by Hydra's grammar; an unparsable one is one line naming it."""
     parser = OverridesParser.create()
@@ -141,9 +159,10 @@ def _parse(overrides: Sequence[str]) -> None:
 
 
 def compose_plan(overrides: Sequence[str]) -> DictConfig:
-    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch), checked by
-    its schema (``cicfw.reproduction.schema``): an unparsable override, an unknown key (``+foo=1`` too) or a
-    wrong type is one error naming it."""
+    """conf/reproduce.yaml with the user's overrides (``hydra.*`` and ``-m`` left to the launch, but Hydra's
+    folder keys, refused), checked by its schema (``cicfw.reproduction.schema``): an unparsable override, an
+    unknown key (``+foo=1`` too) or a wrong type is one error naming it."""
+    refuse_folder_keys(overrides)
     plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra.") and o not in ("-m", "--multirun")]
     refuse_options(plain)
     _parse(plain)
