@@ -413,21 +413,6 @@ def check_no_other_sweep(folder: str | Path, key: str = "hydra.sweep.dir") -> No
                          f"which this one would write over; give a fresh folder ({key}=<new folder>)")
 
 
-class NotedRunFolderCheck(RunFolderCheck):
-    """Hydra callback: ``RunFolderCheck``'s checks, and what the run folder held noted
-    before Hydra writes ``.hydra`` and the job's log there, so that the app puts it back as it was
-    (``undo_run_folder``) when it refuses the run later (a missing checkpoint, an unknown split)."""
-
-    def on_run_start(self, config: Any, **kwargs: Any) -> None:
-        folder = str(config.hydra.run.dir)
-        note_run_folder(folder)
-        try:
-            super().on_run_start(config, **kwargs)
-        except SystemExit:  # refused here, before Hydra wrote anything: nothing to put back
-            forget_run_folder(folder)
-            raise
-
-
 # ---- a run folder held from before Hydra writes there --------------------------------------------------
 _LOCKS: dict[str, FolderLock] = {}  # the run-folder locks this process holds, by the lock file's real path
 
