@@ -262,3 +262,59 @@ def test_a_cuda_device_this_machine_lacks_is_one_line_before_driving(ckpt: Path,
     assert (err.value.key, err.value.value) == ("policy.device", "cuda") and "device=cpu" in str(err.value)  # way out
     assert "\n" not in str(err.value)
     assert not (tmp_path / "run" / LOG_NAME).exists()  # not one episode driven
+
+
+def untrained_checkpoint(path: Path, seed: int) -> Path:
+    """A CIL-size gtu+regression checkpoint of freshly initialised weights (``seed`` decides them)."""
+    torch.manual_seed(seed)
+    model = CICModule(mixer="gtu", head="regression")
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                "pytorch-lightning_version": L.__version__, "epoch": 0, "global_step": 0}, path)
+    return path
+
+
+def test_the_recorded_checkpoint_hash_is_of_the_weights_every_worker_drove(tmp_path: Path, monkeypatch):
+    """A checkpoint file replaced right after the evaluation first read it (a training run rewrites its
+    last.ckpt each epoch): the episode log records the SHA-256 of the bytes read, and worker processes drive
+    those bytes' weights, never the file's new ones (which a rerun would otherwise reuse as the old's)."""
+    import hashlib
+
+    from cicfw.benchmark.app import evaluate_policy
+    from cicfw.benchmark.journal import read_log
+    from cicfw.model import checkpoint as checkpoint_module
+
+    first = untrained_checkpoint(tmp_path / "first.ckpt", seed=0).read_bytes()
+    second = untrained_checkpoint(tmp_path / "second.ckpt", seed=1).read_bytes()
+    assert first != second
+    live = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    live.parent.mkdir(parents=True)
+    suite = {"towns": [TOWN], "weathers": ["MidRainyNoon"], "training_towns": [], "limit": 2}
+    runner = {"batch_size": 1, "threads": 1}  # each episode alone, one thread: the same floats in any process
+
+    def drive(out: Path, workers: int):
+        return evaluate_policy({"name": "checkpoint", "checkpoint": str(live), "device": "cpu"}, suite,
+                               {**runner, "workers": workers}, out, maps=False)
+
+    live.write_bytes(first)
+    drive(tmp_path / "ref", workers=1)  # the first file's episodes, nothing replaced
+    _, ref_rows, ref_trajs, _ = read_log(tmp_path / "ref")
+
+    read = checkpoint_module.load_weights_only
+    replaced = []
+
+    def then_replaced(source):  # the next training epoch lands just after the evaluation read the file
+        ckpt = read(source)
+        if not replaced:
+            live.write_bytes(second)
+            replaced.append(True)
+        return ckpt
+
+    live.write_bytes(first)
+    monkeypatch.setattr(checkpoint_module, "load_weights_only", then_replaced)
+    drive(tmp_path / "eval", workers=2)
+    assert replaced and live.read_bytes() == second
+    header, rows, trajs, _ = read_log(tmp_path / "eval")
+    assert header["fingerprint"]["policy"]["checkpoint_sha256"] == hashlib.sha256(first).hexdigest()
+    assert len(rows) == 2 and rows == ref_rows  # driven by the first file's weights, in both workers
+    assert sorted(trajs) == sorted(ref_trajs)
+    assert all(np.array_equal(trajs[k][c], ref_trajs[k][c]) for k in trajs for c in trajs[k])

@@ -557,3 +557,44 @@ def test_an_export_written_to_the_same_out_meanwhile_is_never_replaced(tmp_path,
         export_model(ckpt, "torchscript", out, frames=episode_file, n_frames=2)
     assert err.value.key == "out" and str(out) in str(err.value), str(err.value)
     assert {p: p.read_bytes() for p in tmp_path.iterdir() if p != ckpt} == theirs
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_the_sidecar_hash_is_of_the_checkpoint_bytes_exported(fmt, tmp_path, episode, monkeypatch):
+    """A checkpoint replaced right after export first read it (a training run rewrites its last.ckpt each
+    epoch): the sidecar's sha256 is of the bytes the exported model was built from, not of the new file;
+    the exported model, read once as bytes, runs as it does from its file."""
+    from cicfw.model import checkpoint as checkpoint_module
+    from cicfw.model.checkpoint import CheckpointBytes
+
+    inputs, episode_file = episode
+    first = tiny_checkpoint(tmp_path / "first.ckpt", "gtu", "regression", seed=0)
+    second = tiny_checkpoint(tmp_path / "second.ckpt", "gtu", "regression", seed=1)
+    live = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    live.parent.mkdir(parents=True)
+    live.write_bytes(first.read_bytes())
+    read = checkpoint_module.load_weights_only
+    replaced = []
+
+    def then_replaced(source):  # the next training epoch lands just after the export read the file
+        ckpt = read(source)
+        if not replaced:
+            live.write_bytes(second.read_bytes())
+            replaced.append(True)
+        return ckpt
+
+    monkeypatch.setattr(checkpoint_module, "load_weights_only", then_replaced)
+    res = export_model(live, fmt, tmp_path / f"model.{'onnx' if fmt == 'onnx' else 'pt'}", frames=episode_file,
+                       n_frames=2)
+    monkeypatch.undo()
+    assert replaced and live.read_bytes() == second.read_bytes()
+    side = json.loads(Path(res["sidecar"]).read_text())
+    assert side["checkpoint"]["sha256"] == hashlib.sha256(first.read_bytes()).hexdigest()
+    steer = Agent.load(res["out"]).act(inputs.images, inputs.speed_kmh, inputs.command)
+    assert np.abs(steer - reference(first, inputs)).max() <= TOL  # the model exported is the hashed bytes'
+    assert np.abs(steer - reference(second, inputs)).max() > 100 * TOL
+    read = CheckpointBytes.read(res["out"])
+    assert read.sha256 == hashlib.sha256(Path(res["out"]).read_bytes()).hexdigest()
+    from_bytes = Agent.load(read)
+    assert from_bytes.info["label"] == "gtu+regression"  # its description, from the model or its sidecar
+    assert np.array_equal(from_bytes.act(inputs.images, inputs.speed_kmh, inputs.command), steer)

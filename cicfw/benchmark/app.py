@@ -52,7 +52,7 @@ from cicfw.core.spawning import check_spawn_safe
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
-from cicfw.model.checkpoint import resolve_checkpoint
+from cicfw.model.checkpoint import CheckpointBytes, resolve_checkpoint
 from cicfw.sim.town import load_town
 from cicfw.sim.render.weather import DEFAULT_FAMILY
 
@@ -154,7 +154,11 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
     if runner_cfg.resolve_workers(episodes, bool(pol.cameras)) > 1:
         check_spawn_safe("evaluate_policy", "runner.workers", runner_cfg.workers)
     label = label or spec.get("label") or pol.label
-    fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes)
+    # a checkpoint policy read its file once: the fingerprint hashes those bytes and each worker builds from them,
+    # so a file replaced meanwhile (a training run's last.ckpt) cannot drive weights other than the recorded ones
+    read = pol.source if isinstance(getattr(pol, "source", None), CheckpointBytes) else None
+    built = {**spec, "checkpoint": read} if read is not None else spec
+    fp, info = run_fingerprint(spec, suite, sim, runner_cfg, episodes, read)
     with EpisodeLog.open(out_dir, fp, info, hint=new_folder_hint or
                          f"give another output folder, or delete {str(out_dir)!r} to start over") as elog:
         if on_start is not None:
@@ -169,8 +173,8 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                  ", ".join(suite["weathers"]), f"; {elog.reused} kept from an earlier run, {len(missing)} to drive"
                  if elog.reused else "")
         if missing and runner_cfg.resolve_workers(missing, bool(pol.cameras)) > 1:
-            del pol  # each worker process builds its own from the spec
-            pol = spec
+            del pol  # each worker process builds its own from the spec, with the bytes hashed here
+            pol = built
         wall = 0.0
         if missing:
             write_run(out_dir, _report(out_dir, label, elog.rows, episodes, meta))  # marked partial: not final
@@ -368,16 +372,19 @@ _SIM_RUNTIME_KEYS = ("host", "port", "ports")
 
 
 def run_fingerprint(spec: Mapping[str, Any], suite: Mapping[str, Any], sim: Mapping[str, Any], runner: Any,
-                    episodes: Sequence[Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+                    episodes: Sequence[Any], read: CheckpointBytes | None = None
+                    ) -> tuple[dict[str, Any], dict[str, Any]]:
     """What decides a run's episodes (a folder resumes only with the same), and readable extras.
 
-    The checkpoint counts by its contents (sha256), not its path, and so does a town given as a file; the
-    runner by its episode rules (off-road limits, target speed) and seed, not its batch size or worker count."""
+    The checkpoint counts by its contents (sha256: of ``read``, the bytes the policy was built from, when
+    given), not its path, and so does a town given as a file; the runner by its episode rules (off-road
+    limits, target speed) and seed, not its batch size or worker count."""
     pol = {k: v for k, v in spec.items() if k not in _POLICY_RUNTIME_KEYS}
     info: dict[str, Any] = {}
     if pol.get("checkpoint"):
-        path = resolve_checkpoint(pol.pop("checkpoint"))
-        pol["checkpoint_sha256"] = file_sha256(path)
+        given = pol.pop("checkpoint")
+        path = read.path if read is not None else resolve_checkpoint(given)
+        pol["checkpoint_sha256"] = read.sha256 if read is not None else file_sha256(path)
         info["checkpoint"] = str(path)
     episode_list = [[e.key, e.route, e.command, e.town_set, e.weather_set] for e in episodes]
     fp = {

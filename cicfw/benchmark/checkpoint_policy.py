@@ -9,7 +9,8 @@ import numpy as np
 
 from cicfw.benchmark.policy import Observations, Policy
 from cicfw.core.errors import CicfwError, ConfigError
-from cicfw.export.agent import Agent
+from cicfw.export.agent import LOADABLE, Agent
+from cicfw.model.checkpoint import CheckpointBytes
 from cicfw.sim.render.camera import CAMERAS
 
 
@@ -21,7 +22,10 @@ class CheckpointPolicy(Policy):
     stack): the CIL command code selects the branch (index = code - 2). ``fuse`` prepares the network for
     inference (``prepare_for_inference``: BatchNorm folded into the convolutions, NHWC layout);
     ``device`` is where it runs (``auto``: a CUDA GPU when there is one, else the CPU). ``checkpoint``
-    may also be a model written by ``cicfw export`` (``.onnx``, TorchScript ``.pt``).
+    may also be a model written by ``cicfw export`` (``.onnx``, TorchScript ``.pt``). The file is read once:
+    ``source`` holds the bytes the policy was built from (the evaluation hashes them, and hands them to its
+    worker processes, which pass them back as ``checkpoint``: annotated ``str`` alone, since the config's
+    schema comes from this signature and a config gives a path).
     """
 
     def __init__(self, checkpoint: str | None = None, camera: str = "centre", threads: int | None = None,
@@ -31,12 +35,15 @@ class CheckpointPolicy(Policy):
         if camera not in CAMERAS:  # else the first step fails, after the run folder holds a partial run
             raise ConfigError("policy.camera", camera, "one of " + ", ".join(CAMERAS))
         try:
-            self.agent = Agent.load(checkpoint, threads=threads, device=device, fuse=fuse)
+            source = checkpoint if isinstance(checkpoint, CheckpointBytes) else CheckpointBytes.read(checkpoint,
+                                                                                                    LOADABLE)
+            self.agent = Agent.load(source, threads=threads, device=device, fuse=fuse)
         except ValueError as err:
             if str(err).startswith("device="):
                 raise CicfwError(f"policy.{err}") from None
             raise
         self.path = str(checkpoint)
+        self.source: CheckpointBytes = source
         self.device = self.agent.device
         self.model = self.agent.model  # the CICModule (None for an exported model)
         self.cameras = (camera,)

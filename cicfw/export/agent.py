@@ -20,9 +20,11 @@ from torch import nn
 
 from cicfw.core.errors import CicfwError
 from cicfw import COMMANDS, MAX_ABS_SPEED_KMH
-from cicfw.model.checkpoint import (decoder_info, describe, is_torchscript, load_model, prepare_for_inference,
-                                    resolve_checkpoint)
+from cicfw.model.checkpoint import (CheckpointBytes, decoder_info, describe, is_torchscript, load_model,
+                                    prepare_for_inference, resolve_checkpoint)
 
+#: what ``Agent.load`` takes, for the line refusing a folder that holds no checkpoint
+LOADABLE = "a .ckpt, a TorchScript .pt or an .onnx file, or a training run folder"
 #: the CIL command codes the agent accepts, in branch order (branch = code - 2)
 COMMAND_CODES = {code: name for code, name in zip(range(2, 2 + len(COMMANDS)), COMMANDS)}
 #: one frame as the cameras deliver it: height, width, RGB
@@ -168,8 +170,10 @@ class Agent:
         self.label = str(self.info.get("label") or "cicfw model")
 
     @classmethod
-    def load(cls, path: str | Path, *, threads: int | None = None, device: str = "cpu", fuse: bool = True) -> "Agent":
-        """An agent for a checkpoint (``.ckpt`` or a run folder), an ``.onnx`` model or a TorchScript file.
+    def load(cls, path: str | Path | CheckpointBytes, *, threads: int | None = None, device: str = "cpu",
+             fuse: bool = True) -> "Agent":
+        """An agent for a checkpoint (``.ckpt`` or a run folder), an ``.onnx`` model or a TorchScript file, or
+        for the ``CheckpointBytes`` read from one (built from those bytes: the file is not read again).
 
         ``threads``: CPU threads (torch's, or the onnxruntime session's); ``device``: where torch runs
         (``auto``, ``cpu``, ``cuda``; onnxruntime runs on the CPU, and refuses ``cuda``); ``fuse``: for a checkpoint, fold
@@ -179,25 +183,27 @@ class Agent:
                                     or threads < 1):
             raise CicfwError(f"threads={threads!r}: give a whole number of CPU threads >= 1, or None for the "
                              f"runtime's default", key="threads", value=threads)
-        p = Path(str(path)).expanduser()
+        read = path if isinstance(path, CheckpointBytes) else None
+        p = read.path if read else Path(str(path)).expanduser()
+        there = read is not None or p.is_file()
         # by the file's name in any case, or the name a link points at (a link named 'model' to 'm.onnx')
-        if p.is_file() and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
+        if there and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
             if device not in ("cpu", "auto"):  # it would run on the CPU while the caller asked for a GPU
                 raise CicfwError(f"device={device!r}: an ONNX model runs on onnxruntime's CPU provider here; use "
                                  f"device=cpu, or load the checkpoint or its TorchScript export to run on a GPU",
                                  key="device", value=device)
-            return cls._load_onnx(p, threads)
-        if p.is_file() and is_torchscript(p):
-            return cls._load_torchscript(p, threads, device)
-        return cls._load_checkpoint(p, threads, device, fuse)
+            return cls._load_onnx(read or p, threads)
+        if there and is_torchscript(read or p):
+            return cls._load_torchscript(read or p, threads, device)
+        return cls._load_checkpoint(read or p, threads, device, fuse)
 
     @classmethod
-    def _load_checkpoint(cls, path: Path, threads: int | None, device: str, fuse: bool) -> "Agent":
+    def _load_checkpoint(cls, path: Path | CheckpointBytes, threads: int | None, device: str, fuse: bool) -> "Agent":
         if threads:
             torch.set_num_threads(int(threads))
         dev = torch_device(device)
-        # a run folder's one best checkpoint: the file named in info
-        path = resolve_checkpoint(path, "a .ckpt, a TorchScript .pt or an .onnx file, or a training run folder")
+        if not isinstance(path, CheckpointBytes):  # a run folder's one best checkpoint: the file named in info
+            path = resolve_checkpoint(path, LOADABLE)
         model = prepare_for_inference(load_model(path), fuse).to(dev)
         hp = dict(model.hparams)  # the decoder too, as an exported model's sidecar gives it (docs/deploy.md)
         info = {"label": describe(hp), "encoder": hp["encoder"], "mixer": hp["mixer"], "head": hp["head"],
@@ -205,22 +211,25 @@ class Agent:
         return cls(torch_runner(DrivingFunction(model).eval(), dev), info, "torch", model=model, device=dev)
 
     @classmethod
-    def _load_torchscript(cls, path: Path, threads: int | None, device: str) -> "Agent":
+    def _load_torchscript(cls, path: Path | CheckpointBytes, threads: int | None, device: str) -> "Agent":
         if threads:
             torch.set_num_threads(int(threads))
         dev = torch_device(device)
         extra = {METADATA_KEY: ""}
         try:
-            module = torch.jit.load(str(path), map_location=dev, _extra_files=extra)
+            source = path.open() if isinstance(path, CheckpointBytes) else str(path)
+            module = torch.jit.load(source, map_location=dev, _extra_files=extra)
         except Exception as err:
             raise CicfwError(f"{str(path)!r} is not a TorchScript model cicfw can run, or it is truncated "
                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
-        info = _metadata(extra[METADATA_KEY], path)
+        info = _metadata(extra[METADATA_KEY], Path(str(path)))
         return cls(torch_runner(module.eval(), dev), info, "torchscript", device=dev)
 
     @classmethod
-    def _load_onnx(cls, path: Path, threads: int | None) -> "Agent":
-        session = onnx_session(path, threads)
+    def _load_onnx(cls, path: Path | CheckpointBytes, threads: int | None) -> "Agent":
+        read = path if isinstance(path, CheckpointBytes) else None
+        session = onnx_session(read.data if read else path, threads, where=str(path))
+        path = Path(str(path))
         names = tuple(i.name for i in session.get_inputs())
         if names != INPUT_NAMES:
             raise CicfwError(f"{str(path)!r} is an ONNX model with inputs {list(names)}, not one written by cicfw "
@@ -256,8 +265,9 @@ def onnx_runner(session: Any) -> Callable[[np.ndarray, np.ndarray, np.ndarray], 
                                                                       "command": command})[0]
 
 
-def onnx_session(model: str | Path | bytes, threads: int | None = None):
-    """An onnxruntime CPU session (``threads`` intra-op threads; onnxruntime's default: all cores)."""
+def onnx_session(model: str | Path | bytes, threads: int | None = None, where: str | None = None):
+    """An onnxruntime CPU session (``threads`` intra-op threads; onnxruntime's default: all cores); ``where``
+    names bytes' file in the error."""
     try:
         import onnxruntime as ort
     except ImportError:
@@ -272,7 +282,7 @@ def onnx_session(model: str | Path | bytes, threads: int | None = None):
     try:
         return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
     except Exception as err:
-        where = "the exported bytes" if isinstance(model, bytes) else repr(str(model))
+        where = repr(where) if where else "the exported bytes" if isinstance(model, bytes) else repr(str(model))
         raise CicfwError(f"{where} is not an ONNX model onnxruntime can run, or it is truncated "
                          f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
 

@@ -44,8 +44,8 @@ from cicfw.core.json_files import read_json
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
 from cicfw.data.provenance import SETS_KEY, file_sha256
-from cicfw.model.checkpoint import (checkpoint_record, config_parts_differ, decoder_info, describe, load_model,
-                                    prepare_for_inference, recorded_data_paths, refuse_exported_model,
+from cicfw.model.checkpoint import (CheckpointBytes, checkpoint_record, config_parts_differ, decoder_info, describe,
+                                    load_model, prepare_for_inference, recorded_data_paths, refuse_exported_model,
                                     resolve_checkpoint, run_config_files, where_it_ran)
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.sim.backends import EmbeddedBackend
@@ -323,7 +323,7 @@ def other_run(cfg: dict[str, Any], cfg_path: Path, hp: dict[str, Any], checkpoin
     return differ or (f"data {theirs}, checkpoint {own}" if own and theirs and own != theirs else None)
 
 
-def training_dataset(checkpoint: Path, cfg_path: Path | None) -> dict[str, Any]:
+def training_dataset(checkpoint: Path | CheckpointBytes, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
     holds now, and the towns and weathers it was collected in when training started: an evaluation's training
@@ -368,8 +368,12 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
             "collect_config_hash": meta.get("config_hash") if isinstance(meta, dict) else None}
 
 
-def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: int | None) -> dict[str, Any]:
-    """The exported model's description: what it is, its inputs and output, its decoder, its provenance."""
+def describe_model(model: torch.nn.Module, checkpoint: Path | CheckpointBytes, fmt: str,
+                   opset: int | None) -> dict[str, Any]:
+    """The exported model's description: what it is, its inputs and output, its decoder, its provenance
+    (``CheckpointBytes``: the bytes ``model`` was built from, hashed and read for its data record)."""
+    read = checkpoint if isinstance(checkpoint, CheckpointBytes) else None
+    checkpoint = read.path if read else checkpoint
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
     if cfg is not None and (differ := other_run(cfg, cfg_path, hp, checkpoint)):  # not this model's folder
@@ -398,8 +402,8 @@ def describe_model(model: torch.nn.Module, checkpoint: Path, fmt: str, opset: in
         "normalisation": {"pixels": "/ 255", "speed": f"speed_kmh / {float(model.speed_norm_kmh):g}"},
         "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
         "decoder": decoder_info(model.head, hp["head"]),
-        "checkpoint": {"path": str(checkpoint), "sha256": file_sha256(checkpoint)},
-        "training_dataset": training_dataset(checkpoint, cfg_path),
+        "checkpoint": {"path": str(checkpoint), "sha256": read.sha256 if read else file_sha256(checkpoint)},
+        "training_dataset": training_dataset(read or checkpoint, cfg_path),
     }
 
 
@@ -463,11 +467,11 @@ def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
                               f"({str(checkpoint)!r}); give out=<another file>", key="out", value=path)
 
 
-def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = False) -> None:
+def check_own_output(path: Path, checkpoint: Path | CheckpointBytes, fmt: str, overwrite: bool = False) -> None:
     """``out`` and its sidecar are written only where nothing is, over this checkpoint's own earlier export
-    (its sidecar names the checkpoint's SHA-256 and the format, and the model has the size the sidecar
-    records), or with ``overwrite=true``: anything else (another run's file, another checkpoint's export,
-    a file edited since) is refused in one line before the model is loaded."""
+    (its sidecar names the checkpoint's SHA-256, of the bytes read for ``CheckpointBytes``, and the format, and
+    the model has the size the sidecar records), or with ``overwrite=true``: anything else (another run's file,
+    another checkpoint's export, a file edited since) is refused in one line before the model is loaded."""
     sidecar = path.with_name(path.name + ".json")
     if overwrite or not (path.exists() or sidecar.exists()):
         return
@@ -480,7 +484,8 @@ def check_own_output(path: Path, checkpoint: Path, fmt: str, overwrite: bool = F
         why = f"it exists and has no sidecar {sidecar.name!r} saying cicfw export wrote it"
     elif not (isinstance(side, dict) and isinstance(side.get("checkpoint"), dict) and "size_bytes" in side):
         why = f"{sidecar.name!r} exists and is not the sidecar of a cicfw export"
-    elif side["checkpoint"].get("sha256") != file_sha256(checkpoint) or side.get("format") != fmt:
+    elif side["checkpoint"].get("sha256") != (checkpoint.sha256 if isinstance(checkpoint, CheckpointBytes)
+                                              else file_sha256(checkpoint)) or side.get("format") != fmt:
         why = (f"it is the {side.get('format')} export of another checkpoint "
                f"({side['checkpoint'].get('path')!r}, or another state of it)")
     elif path.exists() and path.stat().st_size != side["size_bytes"]:
@@ -584,12 +589,15 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     check_out_suffix(str(out) if out else None, fmt)
     sidecar = path.with_name(path.name + ".json")
     free = [p for p in (path, sidecar) if not os.path.lexists(p)]  # before the check: only created at the end
-    check_own_output(path, ckpt, fmt, bool(overwrite))
+    # its bytes read once: the sidecar's sha256 is of the very bytes the model is built from (a training run
+    # replaces its last.ckpt each epoch), and so is the check of an earlier export at out
+    read = CheckpointBytes.read(ckpt)
+    check_own_output(path, read, fmt, bool(overwrite))
     # bad frames= or too many n_frames: refused before the model loads
     real = dataset_frames(frames, n_frames) if frames else rendered_frames(n_frames)
-    model = load_model(ckpt)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
+    model = load_model(read)  # the checkpoint as CICModule.predict_steer runs it: the parity reference
     inputs = real + random_inputs(n_frames)
-    info = describe_model(model, ckpt, fmt, opset if fmt == "onnx" else None)
+    info = describe_model(model, read, fmt, opset if fmt == "onnx" else None)
     module = graph_module(model)
     example = _example(inputs)
     meta = json.dumps(info)

@@ -7,14 +7,17 @@ that every part it names is installed. Each way a checkpoint can be wrong is one
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import math
 import os
 import pickle
 import re
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import IO, Any, Mapping
 
 import torch
 from omegaconf import OmegaConf
@@ -35,6 +38,32 @@ RUN_CONFIG_LEVELS = 3
 
 class CheckpointError(CicfwError):
     """A checkpoint that cannot be used; the message says why and what is accepted."""
+
+
+@dataclass(frozen=True, eq=False)
+class CheckpointBytes:
+    """A checkpoint file's bytes, read once, with their SHA-256: what is hashed is what is loaded, whatever
+    replaces the file meanwhile (a training run rewrites its ``last.ckpt`` each epoch). It pickles with its
+    bytes, so a worker process given it builds the very weights that were hashed. ``str()`` is the path."""
+
+    path: Path
+    data: bytes = field(repr=False)
+    sha256: str
+
+    @classmethod
+    def read(cls, path: str | Path, accepted: str = "a .ckpt file written by cicfw train, or its run folder"
+             ) -> "CheckpointBytes":
+        """The bytes of the file ``resolve_checkpoint(path, accepted)`` names, read in one pass."""
+        p = resolve_checkpoint(path, accepted)
+        data = p.read_bytes()
+        return cls(p, data, hashlib.sha256(data).hexdigest())
+
+    def open(self) -> IO[bytes]:
+        """The bytes as a file object (for ``torch.load``, ``torch.jit.load``, ``zipfile``)."""
+        return io.BytesIO(self.data)
+
+    def __str__(self) -> str:
+        return str(self.path)
 
 
 #: the file that makes a folder a reproduction cell's (its ``epochs``: the final checkpoint's epoch)
@@ -155,21 +184,24 @@ def samples_seen(ck: Mapping[str, Any], batch_size: int, accumulate: int = 1) ->
     return batches_trained(ck, accumulate) * int(batch_size) * world
 
 
-def is_torchscript(path: Path) -> bool:
+def is_torchscript(path: Path | CheckpointBytes) -> bool:
     """A TorchScript archive (``torch.jit.save``) rather than a checkpoint (``torch.save``): it holds code."""
-    if not zipfile.is_zipfile(path):
+    source = path.open() if isinstance(path, CheckpointBytes) else path
+    if not zipfile.is_zipfile(source):
         return False
-    with zipfile.ZipFile(path) as z:
+    with zipfile.ZipFile(source) as z:
         return any(n.split("/", 1)[-1].startswith("code/") for n in z.namelist())
 
 
-def refuse_exported_model(path: Path) -> None:
+def refuse_exported_model(path: Path | CheckpointBytes) -> None:
     """One line for a model ``cicfw export`` wrote (TorchScript, ONNX) given where a training checkpoint is
-    needed (exporting, diagnosing: they rebuild the CICModule), naming the checkpoint its sidecar records."""
-    p = Path(path)
-    if p.is_file() and is_torchscript(p):
+    needed (exporting, diagnosing: they rebuild the CICModule), naming the checkpoint its sidecar records;
+    ``CheckpointBytes`` are judged by those bytes, not by what the file holds now."""
+    read = path if isinstance(path, CheckpointBytes) else None
+    p = Path(read.path if read else path)
+    if (read is not None or p.is_file()) and is_torchscript(read or p):
         what = "an exported TorchScript model (cicfw export format=torchscript)"
-    elif p.is_file() and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
+    elif (read is not None or p.is_file()) and ".onnx" in (p.suffix.lower(), p.resolve().suffix.lower()):
         what = "an exported ONNX model (cicfw export format=onnx)"
     else:
         return
@@ -193,12 +225,13 @@ class UnloadableCheckpoint(Exception):
         self.reason, self.code = reason, code
 
 
-def load_weights_only(path: Path) -> Any:
-    """``torch.load(path, weights_only=True)`` on the CPU: tensors and plain containers only, never an
-    arbitrary class. Every failure (torch raises many types) is one ``UnloadableCheckpoint``; the callers
-    word it for their own argument."""
+def load_weights_only(path: Path | CheckpointBytes) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU (of the bytes already read, for ``CheckpointBytes``):
+    tensors and plain containers only, never an arbitrary class. Every failure (torch raises many types) is one
+    ``UnloadableCheckpoint``; the callers word it for their own argument."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path.open() if isinstance(path, CheckpointBytes) else path, map_location="cpu",
+                          weights_only=True)
     except Exception as err:
         code = re.search(r"GLOBAL ([\w.]+)", str(err)) if isinstance(err, pickle.UnpicklingError) else None
         if code:  # a class or function the safe unpickler will not build
@@ -216,12 +249,14 @@ def _short_reason(err: BaseException) -> str:
     return f"{type(err).__name__}: {found.group(0) if found else text.splitlines()[0].split('. ')[0].rstrip('.')}"
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one."""
-    p = resolve_checkpoint(path)
-    refuse_exported_model(p)
+def read_checkpoint(path: str | Path | CheckpointBytes) -> dict[str, Any]:
+    """The checkpoint's dict, unpickled with ``weights_only=True``; errors for files that are not one.
+    ``CheckpointBytes``: from those bytes, the file not read again."""
+    read = path if isinstance(path, CheckpointBytes) else None
+    p = read.path if read else resolve_checkpoint(path)
+    refuse_exported_model(read or p)
     try:
-        ckpt = load_weights_only(p)
+        ckpt = load_weights_only(read or p)
     except UnloadableCheckpoint as err:
         if err.code:
             raise CheckpointError(
@@ -233,9 +268,10 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return check_cicfw_checkpoint(ckpt, str(p))
 
 
-def checkpoint_record(path: str | os.PathLike) -> dict[str, Any] | None:
+def checkpoint_record(path: str | os.PathLike | CheckpointBytes) -> dict[str, Any] | None:
     """The data record of a checkpoint (None when it has none: written before runs recorded their data, or
-    not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read."""
+    not a cicfw checkpoint). The checkpoint is memory-mapped, so its weights are not read (``CheckpointBytes``:
+    those bytes are unpickled)."""
     record = _mapped(path).get(CHECKPOINT_KEY)
     return dict(record) if is_record(record) else None
 
@@ -279,9 +315,9 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
     return dict(ckpt)
 
 
-def load_model(path: str | Path):
-    """A ``CICModule`` in eval mode rebuilt from a checkpoint, on the CPU (what
-    ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
+def load_model(path: str | Path | CheckpointBytes):
+    """A ``CICModule`` in eval mode rebuilt from a checkpoint (or the ``CheckpointBytes`` read from one), on the
+    CPU (what ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
     keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
     hp = fit_saved_hparams(ckpt["hyper_parameters"])
@@ -399,9 +435,15 @@ def checkpoint_hyper_parameters(path: str | Path) -> dict[str, Any]:
     return dict(hp) if isinstance(hp, Mapping) else {}
 
 
-def _mapped(path: str | os.PathLike) -> dict[str, Any]:
-    """The checkpoint at ``path`` memory-mapped where it can be (its weights not read), loaded otherwise; {}
-    when it is unreadable or not a dict."""
+def _mapped(path: str | os.PathLike | CheckpointBytes) -> dict[str, Any]:
+    """The checkpoint at ``path`` memory-mapped where it can be (its weights not read), loaded otherwise
+    (``CheckpointBytes``: from those bytes); {} when it is unreadable or not a dict."""
+    if isinstance(path, CheckpointBytes):
+        try:
+            ckpt = torch.load(path.open(), map_location="cpu", weights_only=True)
+        except Exception:
+            return {}
+        return ckpt if isinstance(ckpt, dict) else {}
     for mmap in (True, False):
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
