@@ -293,7 +293,8 @@ def test_the_recorded_checkpoint_hash_is_of_the_weights_every_worker_drove(tmp_p
 
     def drive(out: Path, workers: int):
         return evaluate_policy({"name": "checkpoint", "checkpoint": str(live), "device": "cpu"}, suite,
-                               {**runner, "workers": workers}, out, maps=False)
+                               {**runner, "workers": workers}, out, maps=False,
+                               sim={"name": "embedded", "route_before": 6, "max_deviation": 2})  # short episodes
 
     live.write_bytes(first)
     drive(tmp_path / "ref", workers=1)  # the first file's episodes, nothing replaced
