@@ -44,7 +44,7 @@ from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_cell_pin, check_families,
-                                      check_same_episodes, cpu_counts, episode_terms, kind_noun, load_cell)
+                                      check_same_episodes, cpu_counts, episode_terms, is_copy, kind_noun, load_cell)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
                                            with_episode_floor, word)
@@ -211,10 +211,11 @@ def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | 
 
 
 def check_not_copies(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
-    """One error line when every paired seed's cell.json is the same on both sides: a copy of a folder
-    compared with itself reads "equivalent" at every margin, which says nothing about a switch."""
+    """One error line when every paired seed's cell is a copy on the other side (``cells.is_copy``, the check
+    the report makes between a row's seeds): a folder compared with itself reads "equivalent" at every
+    margin, which says nothing about a switch."""
     seeds = sorted(set(a) & set(b))
-    if seeds and all(a[s].meta == b[s].meta for s in seeds):
+    if seeds and all(is_copy(a[s], b[s]) for s in seeds):
         raise CicfwError(f"{names[0]} and {names[1]} hold the same cells (cell.json identical at seeds {seeds}): "
                          f"a copy compared with itself; give the cells of the run with the switch",
                          key="cells", value=str(names[1]))
