@@ -7,10 +7,14 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from cicfw.core import errors
+
+#: two rows of a published folder, for an entry module run by itself (not through the ``cicfw`` script)
+ROWS = [str(Path(__file__).resolve().parents[1] / "docs" / "results" / "converged" / "cells" / r) for r in ("cil", "gtu")]
 
 
 class _Failing:
@@ -50,7 +54,8 @@ def _env() -> dict[str, str]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("args, unbuffered", [(["cicfw.cli", "plugins"], "1"), (["cicfw.cli", "plugins"], ""),
-                                              (["cicfw.train", "--help"], ""), (["cicfw.cli"], "1")])
+                                              (["cicfw.train", "--help"], ""), (["cicfw.cli"], "1"),
+                                              (["cicfw.reproduction.paired_switch", *ROWS], "")])
 def test_a_full_stdout_is_one_line_and_a_failed_status(args, unbuffered):
     env = {**_env(), "PYTHONUNBUFFERED": unbuffered}
     with open("/dev/full", "w") as full:

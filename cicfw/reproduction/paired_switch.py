@@ -41,7 +41,7 @@ from statsmodels.stats.weightstats import ttost_paired
 
 from cicfw.benchmark.evaluation_report import check_one_episode_rule
 from cicfw.benchmark.finished_run import cell_key, load_run
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_cell_pin, check_families,
                                       check_same_episodes, cpu_counts, episode_terms, is_copy, kind_noun, load_cell)
@@ -383,4 +383,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())
