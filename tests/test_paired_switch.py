@@ -13,6 +13,7 @@ from scipy import stats
 from cicfw.core.errors import CicfwError
 from cicfw.reproduction import paired_switch as ps
 from cicfw.reproduction.cells import COLUMNS
+from cicfw.reproduction.seed_stats import difference
 
 from conftest import mover, wilson
 
@@ -354,3 +355,60 @@ def test_a_copy_of_a_folder_is_refused_not_equivalent(tmp_path, capsys):
     for s in range(3):  # the same cells trained again: another file, compared
         write_cell(tmp_path / "b", "cil", s, [18, 10, 12, 5 + s], train_s=200.0)
     assert ps.main([str(tmp_path / "a"), str(tmp_path / "b"), "--margin", "5"]) == 0
+
+
+@pytest.mark.parametrize("margin", ["1e9", "100.5", "0", "-5", "nan", "inf"])
+def test_a_margin_outside_the_success_scale_is_refused(tmp_path, capsys, margin):
+    """A margin past 100 points reads every pair "equivalent" (no two rates are further apart): one line."""
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [18, 10, 12, 5 + s])
+        write_cell(tmp_path / "b", "cil", s, [17, 10, 12, 5], train_s=200.0)
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b"), "--margin", margin]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.splitlines()) == 1 and "--margin" in err and str(float(margin)) in err, err
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b"), "--margin", "100"]) == 0
+
+
+def _cells(row: str, per_seed: list[list[int]]) -> dict:
+    """seed -> a CellResult whose columns hold per_seed[seed][i] successes of EPISODES."""
+    from cicfw.reproduction.cells import CellResult
+
+    out = {}
+    for s, successes in enumerate(per_seed):
+        eps = {f"{col}/{i:02d}": {"success": i < k, "column": col, "command": "left"}
+               for col, k in zip(COLUMNS, successes) for i in range(EPISODES)}
+        out[s] = CellResult(row, s, eps, {"row": row, "seed": s})
+    return out
+
+
+def test_intervals_are_clipped_to_the_scale_of_a_difference():
+    """Seeds that swing from all to none: the t-interval over 3 seeds runs past ±100, which no difference of
+    two rates can reach; it is shown clipped, the verdict read as before."""
+    a = _cells("a", [[20] * 4, [0] * 4, [20] * 4])
+    b = _cells("b", [[0] * 4, [20] * 4, [0] * 4])
+    d = [100.0, -100.0, 100.0]  # per seed, by hand
+    m = sum(d) / 3
+    half = stats.t.ppf(0.975, 2) * math.sqrt(sum((x - m) ** 2 for x in d) / 2) / math.sqrt(3)
+    assert m - half < -100 and m + half > 100  # the unclipped interval, by hand
+    for e in ps.compare(a, b, 5.0):
+        assert e.mean == pytest.approx(m)
+        assert (e.lo, e.hi) == (-100.0, 100.0)
+        assert (e.tost_lo, e.tost_hi) == (-100.0, 100.0) and e.verdict == "not shown"
+        assert (e.word_lo, e.word_hi) == (-100.0, 100.0)
+
+
+def test_differences_equal_up_to_rounding_are_exact_without_a_warning():
+    """Per seed A - B is 40 points overall, one seed's 39.99999999999999 by float rounding of its column rates:
+    scipy's t-test warned of precision loss (and gave an interval 1e-14 wide); it is one value, known exactly."""
+    a = _cells("a", [[8, 8, 8, 8], [8, 19, 19, 19], [8, 8, 8, 8]])
+    b = _cells("b", [[0, 0, 0, 0], [0, 11, 11, 11], [0, 0, 0, 0]])
+    overall = [a[s].rate(None) - b[s].rate(None) for s in range(3)]
+    assert len(set(overall)) == 2 and max(overall) - min(overall) < 1e-12  # the inputs are as said
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = {e.on: e for e in ps.compare(a, b, 5.0)}
+    assert got["overall"].p_tost == 1.0  # 40 apart every seed: outside ±5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        d = difference({s: a[s].rate(None) for s in a}, {s: b[s].rate(None) for s in b})
+    assert d.estimate.lo == d.estimate.hi == d.estimate.mean == pytest.approx(40.0) and d.p == 0.0

@@ -111,3 +111,24 @@ def test_the_paired_switch_refuses_a_cell_its_folder_s_pin_did_not_make(tmp_path
     shutil.copy(RESULTS / "converged6_half" / "cells" / "cil" / "seed0" / "cell.json", cell)
     line = assert_refused(run_app_in_process("cicfw.reproduction.paired_switch", *rows), "epochs")
     assert str(cell) in line and "epochs=3" in line and "epochs=6" in line, line
+
+
+@pytest.mark.parametrize("field", [None, "finished_s"])
+def test_a_seed_that_is_a_copy_of_another_is_refused(tmp_path, field):
+    """seed0's cell.json copied as seed1 with its seed renamed counted one model as two independent seeds (a
+    narrower interval); a field of a seed of its own (when it finished) makes it another model's, reported."""
+    folder = tmp_path / "c6e"
+    shutil.copytree(RESULTS / "converged6_carla", folder)
+    first, copy = (folder / "cells" / "cil" / f"seed{s}" / "cell.json" for s in (0, 1))
+    d = json.loads(first.read_text())
+    d["seed"] = 1
+    if field is not None:
+        d[field] += 1
+        copy.write_text(json.dumps(d))
+        assert len(load_cells(folder)[0]) == len(list(folder.glob("cells/*/seed*/cell.json")))
+        return
+    copy.write_text(json.dumps(d))
+    before = snapshot(folder)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), copy)
+    assert str(first) in line, line
+    assert snapshot(folder) == before

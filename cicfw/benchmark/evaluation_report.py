@@ -24,7 +24,7 @@ from cicfw.benchmark.journal import read_log
 from cicfw.benchmark.plots import bar_chart_png
 from cicfw.core.run_folder import check_name_lengths, claim_folder, folder_owner, is_reproduction_results
 from cicfw.benchmark.suite import CELLS, town_label
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.files import writable_folder, write_together
 
 ROW_FIELDS = (
@@ -514,4 +514,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     sys.exit(main())

@@ -14,7 +14,7 @@ import numpy as np
 
 from cicfw.benchmark.finished_run import load_run, load_trajectories
 from cicfw.benchmark.suite import town_label
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.run_folder import name_max
 from cicfw.sim.env import get_renderer
 from cicfw.sim.render.weather import DEFAULT_FAMILY, LEGACY_FAMILY, get_weather
@@ -171,4 +171,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())

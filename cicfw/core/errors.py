@@ -9,6 +9,7 @@ importing a module.
 from __future__ import annotations
 
 import atexit
+import errno
 import functools
 import logging
 import math
@@ -166,6 +167,7 @@ def install_app_handlers() -> None:
             or signal.getsignal(signal.SIGTERM) is None:
         return
     _installed = True
+    guard_stdout()
     previous = sys.excepthook
 
     def uncaught(kind: type[BaseException], err: BaseException, tb: object) -> None:
@@ -182,9 +184,94 @@ def install_app_handlers() -> None:
     signal.signal(signal.SIGTERM, _interrupting_handler(os.getpid()))
 
 
+class GuardedStdout:
+    """An app's ``sys.stdout``: the first write or flush that fails points the descriptor at the null device
+    and drops what comes after, so the app goes on with its work and its files (the log file holds every
+    line). A closed pipe (``app | head``) ends nothing: the app exits as it would have, quietly (Python's
+    "Note on SIGPIPE"). Any other failure (a full disk) is ``failure``: one line at exit, status 2."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        self.closed_pipe = False
+        self.failure: OSError | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+    def _lost(self, err: OSError) -> None:
+        """Stop writing: the descriptor goes to the null device (Python's own flush at exit then succeeds)."""
+        if err.errno == errno.EPIPE:
+            self.closed_pipe = True
+        else:
+            self.failure = err
+        with suppress(Exception):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        if log.hasHandlers():  # an app's log file: say there why the terminal's part stops (not on stderr)
+            log.warning("stdout %s; the rest goes to the log file only", "was closed" if self.closed_pipe
+                        else f"could not be written ({err.strerror or err})")
+
+    @property
+    def lost(self) -> bool:
+        return self.closed_pipe or self.failure is not None
+
+    def write(self, text: str) -> int:
+        if not self.lost:
+            try:
+                return self._stream.write(text)
+            except OSError as err:
+                self._lost(err)
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.lost:
+            try:
+                self._stream.flush()
+            except OSError as err:
+                self._lost(err)
+
+
+def guard_stdout() -> None:
+    """Put ``GuardedStdout`` in place of ``sys.stdout`` and, at exit, flush it and turn a failed write into
+    ``cicfw: error: could not write to stdout: <why>`` and status 2 (the status an app ended with
+    otherwise, where it was not 0). Called by ``install_app_handlers``."""
+    global _stdout_checked_at_exit
+    if isinstance(sys.stdout, GuardedStdout) or sys.stdout is None:
+        return
+    sys.stdout = GuardedStdout(sys.stdout)
+    if not _stdout_checked_at_exit:
+        _stdout_checked_at_exit = True
+        atexit.register(_report_stdout_failure)
+
+
+_stdout_checked_at_exit = False  # guard_stdout registered _report_stdout_failure
+
+#: the status ``_exit_now`` ends the process with, while its exit handlers run
+_exit_status: int | None = None
+
+
+def _report_stdout_failure() -> None:
+    """At exit: a write to stdout that failed (other than a closed pipe) is one line on stderr and a
+    non-zero status, however the app ended."""
+    out = sys.stdout
+    if not isinstance(out, GuardedStdout):
+        return
+    out.flush()
+    if out.failure is None:
+        return
+    print(f"cicfw: error: could not write to stdout: {out.failure.strerror or out.failure}", file=sys.stderr)
+    with suppress(Exception):
+        sys.stderr.flush()
+    logging.shutdown()  # the handlers registered before this one are skipped by os._exit: flush the log files
+    os._exit(_exit_status or 2)
+
+
 def _exit_now(status: int) -> None:
     """Exit with ``status`` from ``sys.excepthook`` (where ``sys.exit`` would only be reported as an error
     in the hook): the exit handlers run (log files are flushed), then the process ends."""
+    global _exit_status
+    _exit_status = status
     try:
         atexit._run_exitfuncs()
     finally:

@@ -259,9 +259,38 @@ def cell_runs(folder: Path) -> list[str]:
     return sorted(str(d.relative_to(folder)) for name in CELL_RUNS for d in folder.glob(f"cells/*/seed*/{name}"))
 
 
+#: the key of a cell.json that names a cell among its row's rather than records what it measured: a copy of
+#: another seed of the row differs in it alone
+NAMING_KEYS = ("seed",)
+
+
+def measured(cell: CellResult) -> str:
+    """A cell's cell.json but for its seed, as one canonical string: two trained models never share
+    it (their wall times, learning curves and episodes are their own), a copied cell does."""
+    return json.dumps({k: v for k, v in cell.meta.items() if k not in NAMING_KEYS}, sort_keys=True)
+
+
+def is_copy(a: CellResult, b: CellResult) -> bool:
+    """Whether ``a`` and ``b`` are one cell twice: cell.json identical but for its seed (the paired switch
+    refuses such sides, ``load_cells`` such seeds of a row)."""
+    return measured(a) == measured(b)
+
+
+def check_no_copies(cells: Sequence[tuple[Path, CellResult]]) -> None:
+    """One error line naming two cells of one row that are copies (``is_copy``): one model counted as two
+    seeds would narrow the row's interval as an independent seed does."""
+    seen: dict[tuple[str, str], Path] = {}
+    for path, cell in cells:
+        first = seen.setdefault((cell.row, measured(cell)), path)
+        if first != path:
+            raise CicfwError(f"{first} and {path} are copies of one cell (identical but for their seed): one model "
+                             f"counted as two seeds; remove the copy", key="cell", value=str(path))
+
+
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
-    """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``."""
-    ok, failed = [], []
+    """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``; a cell in
+    another's folder or two cells that are copies (``check_no_copies``) are one error line."""
+    ok, failed, where = [], [], []
     for p in cell_files(results_dir):
         c = load_cell(p)
         if isinstance(c, CellResult) and (c.row, f"seed{c.seed}") != (p.parent.parent.name, p.parent.name):
@@ -270,6 +299,9 @@ def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]
                              f"{p.parent.parent.name!r} {p.parent.name}: each cell lies in cells/<row>/seed<k>; "
                              f"move it back or remove the copy", key="cell", value=str(p))
         (ok if isinstance(c, CellResult) else failed).append(c)
+        if isinstance(c, CellResult):
+            where.append((p, c))
+    check_no_copies(where)
     return ok, failed
 
 

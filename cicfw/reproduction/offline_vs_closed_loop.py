@@ -27,7 +27,7 @@ from scipy.stats import spearmanr
 
 from cicfw.benchmark.evaluation_report import md_row, md_table
 from cicfw.benchmark.plots import _plt, _save
-from cicfw.core.errors import CicfwError, report_user_errors
+from cicfw.core.errors import CicfwError, install_app_handlers, report_user_errors
 from cicfw.core.files import atomic_write
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import COLUMN_NAMES, COLUMNS, load_cells, most_first
@@ -478,4 +478,5 @@ def _main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())

@@ -41,12 +41,12 @@ from statsmodels.stats.weightstats import ttost_paired
 
 from cicfw.benchmark.evaluation_report import check_one_episode_rule
 from cicfw.benchmark.finished_run import cell_key, load_run
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError, install_app_handlers
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_cell_pin, check_families,
-                                      check_same_episodes, cpu_counts, episode_terms, kind_noun, load_cell)
+                                      check_same_episodes, cpu_counts, episode_terms, is_copy, kind_noun, load_cell)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
-from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level,
+from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level, no_spread,
                                            with_episode_floor, word)
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
@@ -99,10 +99,10 @@ def load_row(folder: Path) -> dict[int, CellResult]:
 
 def tost_paired(a: Sequence[float], b: Sequence[float], margin: float) -> float:
     """TOST p-value for |mean(a - b)| < margin, paired (statsmodels); 1 when the differences do not vary
-    and lie outside the margin, 0 when they do not vary and lie inside it."""
+    (``seed_stats.no_spread``: up to float rounding) and lie outside the margin, 0 when they lie inside it."""
     d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    if np.ptp(d) == 0:
-        return 0.0 if abs(d[0]) < margin else 1.0
+    if no_spread(d):
+        return 0.0 if abs(float(d.mean())) < margin else 1.0
 
     return float(ttost_paired(np.asarray(a, float), np.asarray(b, float), -margin, margin)[0])
 
@@ -146,10 +146,21 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
                 p = max(p, episode_tost(terms, margin))
             verdict = f"equivalent within ±{margin:g}" if p < ALPHA else "not shown"
         out.append(Equivalence(col or "overall", list(va.values()), list(vb.values()), d.estimate.mean,
-                               d.estimate.lo, d.estimate.hi, p, verdict, w, dc.estimate.lo if w else None,
-                               dc.estimate.hi if w else None, dt.estimate.lo if p is not None else None,
-                               dt.estimate.hi if p is not None else None))
+                               *on_scale(d.estimate.lo, d.estimate.hi), p, verdict, w,
+                               *(on_scale(dc.estimate.lo, dc.estimate.hi) if w else (None, None)),
+                               *(on_scale(dt.estimate.lo, dt.estimate.hi) if p is not None else (None, None))))
     return out
+
+
+#: A - B of two success rates lies in [-100, 100] points: an interval is shown clipped to it
+SCALE = 100.0
+
+
+def on_scale(lo: float | None, hi: float | None) -> tuple[float | None, float | None]:
+    """An interval for A - B clipped to [-SCALE, SCALE]: a t-interval over few, spread seeds can reach past
+    what a difference of two rates can be. The verdict and the word are read before clipping (with a margin
+    of at most SCALE, clipping changes neither)."""
+    return tuple(None if v is None else min(max(float(v), -SCALE), SCALE) for v in (lo, hi))  # type: ignore
 
 
 def row_names(cells: Mapping[int, CellResult]) -> str:
@@ -211,10 +222,11 @@ def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | 
 
 
 def check_not_copies(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
-    """One error line when every paired seed's cell.json is the same on both sides: a copy of a folder
-    compared with itself reads "equivalent" at every margin, which says nothing about a switch."""
+    """One error line when every paired seed's cell is a copy on the other side (``cells.is_copy``, the check
+    the report makes between a row's seeds): a folder compared with itself reads "equivalent" at every
+    margin, which says nothing about a switch."""
     seeds = sorted(set(a) & set(b))
-    if seeds and all(a[s].meta == b[s].meta for s in seeds):
+    if seeds and all(is_copy(a[s], b[s]) for s in seeds):
         raise CicfwError(f"{names[0]} and {names[1]} hold the same cells (cell.json identical at seeds {seeds}): "
                          f"a copy compared with itself; give the cells of the run with the switch",
                          key="cells", value=str(names[1]))
@@ -364,8 +376,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
-        if not (np.isfinite(args.margin) and args.margin > 0):  # inf would read every pair "equivalent"
-            raise CicfwError(f"--margin must be a positive, finite number of points, got {args.margin}")
+        if not (np.isfinite(args.margin) and 0 < args.margin <= SCALE):  # past 100 every pair reads "equivalent"
+            raise ConfigError("--margin", args.margin, f"a number of points in (0, {SCALE:g}] (success runs from 0 "
+                              f"to 100 %)")
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))
@@ -382,4 +395,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())

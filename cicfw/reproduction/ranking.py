@@ -13,7 +13,7 @@ from scipy import stats
 from cicfw.reproduction.analysis import Analysis
 from cicfw.reproduction.cells import CellResult, episode_terms
 from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, LEVEL, MIN_SEEDS, NOT_SEPARATED, Difference,
-                                           contrast_interval, difference, equivalent, family_level,
+                                           contrast_interval, difference, equivalent, family_level, no_spread,
                                            with_episode_floor, word, word_record)
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
@@ -99,7 +99,7 @@ def _t_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float)
         est = float(np.mean(x - y))
         if len(shared) < 2:
             return est, -math.inf, math.inf
-        if np.ptp(x - y) == 0:
+        if no_spread(x - y):  # one difference up to float rounding: known exactly (scipy would warn)
             return est, est, est
         test = lambda alt: stats.ttest_rel(x, y, alternative=alt)  # noqa: E731
     else:
@@ -107,7 +107,7 @@ def _t_bounds(a: Mapping[int, float], b: Mapping[int, float], confidence: float)
         est = float(x.mean() - y.mean())
         if len(x) < 2 or len(y) < 2:
             return est, -math.inf, math.inf
-        if np.ptp(x) == 0 and np.ptp(y) == 0:
+        if no_spread(x) and no_spread(y):
             return est, est, est
         test = lambda alt: stats.ttest_ind(x, y, equal_var=False, alternative=alt)  # noqa: E731
     lo = float(test("greater").confidence_interval(confidence).low)

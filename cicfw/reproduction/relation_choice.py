@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import cell_runs, finished_cells
 from cicfw.reproduction.claims import shipped_config
@@ -184,4 +184,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())

@@ -117,7 +117,7 @@ from omegaconf.errors import OmegaConfBaseException
 from cicfw.benchmark.evaluation_report import md_row, md_table
 from cicfw.benchmark.plots import _plt, _save
 from cicfw.benchmark.suite import named_weather_family, with_weather_family
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
 from cicfw.core.locks import describe_holder, live_holder
@@ -1055,4 +1055,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    install_app_handlers()  # a closed or full stdout: cicfw/core/errors.py, GuardedStdout
     raise SystemExit(main())

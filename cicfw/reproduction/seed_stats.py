@@ -192,6 +192,17 @@ class Difference:
         return min(self.n) >= MIN_SEEDS
 
 
+#: per-seed values closer than this (points) are one value: success rates are ratios of episode counts, so two
+#: that differ by less are the same number apart only by float rounding (58.333... - 8.333... = 50.00000000000001)
+ROUNDING = 1e-9
+
+
+def no_spread(values: np.ndarray) -> bool:
+    """Whether ``values`` are one value up to float rounding (``ROUNDING``): their interval is that value and
+    a t-test's answer is known exactly (scipy's on such data warns of precision loss and is not)."""
+    return bool(np.ptp(values) <= ROUNDING)
+
+
 def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LEVEL, null: float = 0.0) -> Difference:
     """A - B from per-seed values (seed -> value). Rows that share seeds share their splits (a seed sets the
     train/validation split), so they are compared **paired over the seeds both have** (the t-interval over
@@ -211,8 +222,9 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
             method += f" (the seeds both ran; {na - n} of A's and {nb - n} of B's left out)"
         if n < 2:
             return Difference(Estimate(mean, None, None), None, method, True, (n, n))
-        if np.ptp(d) == 0:
-            p = 1.0 if mean == null else 0.0
+        if no_spread(d):  # known exactly: the one difference, and whether it is the null
+            lo = hi = mean
+            p = 1.0 if abs(mean - null) <= ROUNDING else 0.0
         else:
             p = float(stats.ttest_1samp(d, null).pvalue)
         return Difference(Estimate(mean, lo, hi), p, method, True, (n, n))
@@ -221,8 +233,9 @@ def difference(a: Mapping[int, float], b: Mapping[int, float], level: float = LE
     method = f"Welch t, {na} vs {nb} seeds, none shared"
     if na < 2 or nb < 2:
         return Difference(Estimate(mean, None, None), None, method, False, (na, nb))
-    if np.ptp(va) == 0 and np.ptp(vb) == 0:
-        return Difference(Estimate(mean, mean, mean), 1.0 if mean == null else 0.0, method, False, (na, nb))
+    if no_spread(va) and no_spread(vb):
+        return Difference(Estimate(mean, mean, mean), 1.0 if abs(mean - null) <= ROUNDING else 0.0, method, False,
+                          (na, nb))
     _, lo, hi = welch_t_interval(va, vb, level)
     p = float(stats.ttest_ind(va - null, vb, equal_var=False).pvalue)
     return Difference(Estimate(mean, float(lo), float(hi)), p, method, False, (na, nb))
