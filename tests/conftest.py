@@ -171,7 +171,7 @@ def train_tiny_run(root: Path, *overrides: str) -> dict:
     run = root / "run"
     (run / ".hydra").mkdir(parents=True)
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
-    train(cfg, run, refuse_finished=True)
+    train(cfg, run, refuse_finished=True, claim=False)  # as the app, which claimed it before .hydra was written
     return {"data": data, "run": run, "last": run / "checkpoints" / "last.ckpt"}
 
 

@@ -40,7 +40,7 @@ def train_run(cfg, run: Path) -> None:
 
     (run / ".hydra").mkdir(parents=True)
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
-    train(cfg, run, refuse_finished=True)
+    train(cfg, run, refuse_finished=True, claim=False)  # as the app, which claimed it before .hydra was written
 
 
 @pytest.fixture(scope="module")

@@ -21,8 +21,8 @@ def _after_training(tmp_path: Path, monkeypatch, overrides: list[str], fast_dev_
     ``overrides``) and the resume hint it gave."""
     seen = {}
 
-    def drive(path, out, overrides, resume_hint=None):
-        seen.update(path=path, overrides=list(overrides), hint=resume_hint)
+    def drive(path, out, overrides, resume_hint=None, claim=True):
+        seen.update(path=path, overrides=list(overrides), hint=resume_hint, claim=claim)
         return {"success": 50.0, "cells": {}}
 
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", drive)
@@ -31,6 +31,7 @@ def _after_training(tmp_path: Path, monkeypatch, overrides: list[str], fast_dev_
                               save_checkpoint=saved.append)
     evaluate.evaluate_after_training(OmegaConf.create({"evaluate_overrides": overrides}), trainer, tmp_path)
     assert saved == [str(tmp_path / "checkpoints" / "final.ckpt")] == [seen["path"]]
+    assert seen["claim"] is False  # <run>/evaluate lies in the training run's folder, which the run holds
     return seen
 
 

@@ -686,3 +686,132 @@ def test_a_cache_inside_a_run_or_results_folder_is_refused_naming_the_variable(t
                              env={**IN_PROCESS, "CICFW_CACHE": str(tmp_path / cache)})
     assert_refused(res, "CICFW_CACHE", tmp_path / cache)
     assert _files(tmp_path) == kept and sorted(tmp_path.rglob("*")) == paths  # no dataset, no new run folder
+
+
+# ---- the Python API owns its folder as its app does ----------------------------------------------
+from conftest import TINY_TRAIN, compose_train  # noqa: E402
+
+
+def api_train_run(folder: Path) -> dict[Path, bytes]:
+    """A finished training run through the Python API (``train``), of other settings: its data record beside
+    its checkpoint and metrics, no ``.hydra``."""
+    outputs = {"checkpoints/last.ckpt": b"the other run's weights", "csv/metrics.csv": b"epoch,val/steer_mae\n0,0.5\n",
+               "data.json": json.dumps({"path": "/elsewhere/data", "files": []}).encode()}
+    for name, data in outputs.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(data)
+    return _files(folder)
+
+
+def users_files(folder: Path, *names: str) -> dict[Path, bytes]:
+    """A folder holding a user's own files (no cicfw app wrote them)."""
+    folder.mkdir(parents=True)
+    for name in names:
+        (folder / name).write_text(f"the user's own {name}\n")
+    return _files(folder)
+
+
+OTHER_FOLDERS = {
+    "api training run": api_train_run,
+    "app training run": lambda run: hydra_run(run, "train", "checkpoints/last.ckpt", "csv/metrics.csv"),
+    "user's files": lambda run: users_files(run, "notes.md", "results.csv"),
+}
+
+
+def _tiny_train_cfg(data: Path, *extra: str):
+    return compose_train(*TINY_TRAIN, f"data.path={data}", "trainer.limit_train_batches=1", *extra)
+
+
+@pytest.mark.parametrize("other", list(OTHER_FOLDERS))
+def test_train_from_python_into_another_runs_or_a_users_folder_is_refused(tmp_path, other):
+    """``train(cfg, run_dir)`` claims and holds its folder as the app does, before it writes anything: the
+    other run's checkpoint, metrics and data record (or the user's files) stay byte for byte."""
+    from cicfw.core.run_folder import RunFolderError
+    from cicfw.train.app import train
+
+    cfg = _tiny_train_cfg(write_tiny_dataset(tmp_path / "data", n_files=4, n=16))
+    run = tmp_path / "run"
+    kept = OTHER_FOLDERS[other](run)
+    with pytest.raises(RunFolderError) as err:
+        train(cfg, run)
+    assert str(run) in str(err.value) and "\n" not in str(err.value), str(err.value)
+    assert _files(run) == kept and sorted(p.name for p in run.iterdir()) == sorted({p.relative_to(run).parts[0]
+                                                                                      for p in kept})
+
+
+def test_train_from_python_into_a_folder_another_run_holds_is_refused(tmp_path):
+    """A folder another training run holds (its ``.train.lock``): ``FolderBusy`` naming it, nothing written."""
+    from cicfw.core.locks import FolderBusy
+    from cicfw.train.app import train
+
+    cfg = _tiny_train_cfg(write_tiny_dataset(tmp_path / "data", n_files=4, n=16))
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom cicfw.core.run_folder import "
+                               "TrainFolderLock\nTrainFolderLock(sys.argv[1]).acquire()\nprint('held', flush=True)\n"
+                               "time.sleep(120)", str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        kept = _files(run)
+        with pytest.raises(FolderBusy) as err:
+            train(cfg, run)
+        assert str(run) in str(err.value), str(err.value)
+        assert _files(run) == kept and not (run / "checkpoints").exists() and not (run / "data.json").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_train_from_python_resumes_its_own_run_and_a_refused_call_leaves_nothing(tmp_path):
+    """A call refused once its folder is held (a batch larger than the split) leaves no data record there, so
+    the same call with the value fixed trains there; resuming that run in process (``ckpt_path`` inside it)
+    goes on from its checkpoint."""
+    from cicfw.core.errors import ConfigError
+    from cicfw.train.app import train
+
+    data = write_tiny_dataset(tmp_path / "data", n_files=4, n=16)
+    run = tmp_path / "run"
+    with pytest.raises(ConfigError) as err:
+        train(_tiny_train_cfg(data, "data.balanced=false", "data.batch_size=400"), run)
+    assert err.value.key == "data.batch_size"
+    assert not run.exists() or not list(run.iterdir())  # no data.json, no lock left behind
+    train(_tiny_train_cfg(data), run)
+    last = run / "checkpoints" / "last.ckpt"
+    assert torch.load(last, map_location="cpu", weights_only=True)["epoch"] == 0
+    train(_tiny_train_cfg(data, f"ckpt_path={last}", "trainer.max_epochs=2"), run)
+    assert torch.load(last, map_location="cpu", weights_only=True)["epoch"] == 1
+    assert (run / "data.json").is_file()
+
+
+EVAL_OTHER_FOLDERS = {
+    **OTHER_FOLDERS,
+    "user's table and summary": lambda run: users_files(run, "table.md", "summary.json"),
+}
+
+
+@pytest.mark.parametrize("other", list(EVAL_OTHER_FOLDERS))
+def test_evaluate_from_python_into_another_runs_or_a_users_folder_is_refused(tmp_path, other):
+    """``evaluate(cfg, run_dir)`` claims its folder as the app does: a training run's folder or a user's own
+    files (a ``table.md`` and ``summary.json`` it would write over) are refused, left byte for byte."""
+    from cicfw.benchmark.app import compose_config, evaluate
+    from cicfw.core.run_folder import RunFolderError
+
+    run = tmp_path / "run"
+    kept = EVAL_OTHER_FOLDERS[other](run)
+    with pytest.raises(RunFolderError) as err:
+        evaluate(compose_config(ONE_EPISODE), run)
+    assert err.value.key == "run_dir" and str(run) in str(err.value), str(err.value)
+    assert _files(run) == kept
+
+
+def test_evaluate_checkpoint_into_a_users_table_and_summary_is_refused(tmp_path):
+    from cicfw.benchmark.app import evaluate_checkpoint
+    from cicfw.core.run_folder import RunFolderError
+
+    ckpt = save_checkpoint(tmp_path / "model" / "best.ckpt")
+    run = tmp_path / "run"
+    kept = users_files(run, "table.md", "summary.json")
+    with pytest.raises(RunFolderError) as err:
+        evaluate_checkpoint(ckpt, run, ONE_EPISODE[1:])
+    assert err.value.key == "run_dir" and str(run) in str(err.value), str(err.value)
+    assert _files(run) == kept

@@ -121,7 +121,7 @@ def test_lightning_s_own_resume_under_slurm_gets_the_checks_hpc_gets(slurm_reque
     req = slurm_requeue
     cfg = compose_train(*SHORT, f"data.path={req['data']}", "trainer.max_epochs=2", "model.ema_decay=0.0")
     with pytest.raises(CicfwError) as err:
-        train(cfg, req["run"], refuse_finished=True)
+        train(cfg, req["run"], refuse_finished=True, claim=False)  # held as the app holds its requeued folder
     assert (err.value.key, err.value.value) == ("ckpt_path", str(req["hpc"]))
 
 
@@ -133,6 +133,6 @@ def test_lightning_s_own_resume_under_slurm_resumes_the_checked_file(slurm_reque
     steps, step = [], CICModule.training_step
     monkeypatch.setattr(CICModule, "training_step", lambda self, *a, **k: steps.append(1) or step(self, *a, **k))
     cfg = compose_train(*SHORT, f"data.path={req['data']}", "trainer.max_epochs=2")
-    train(cfg, req["run"], refuse_finished=True)
+    train(cfg, req["run"], refuse_finished=True, claim=False)  # held as the app holds its requeued folder
     last = torch.load(req["run"] / "checkpoints" / "last.ckpt", weights_only=True)
     assert (len(steps), last["global_step"]) == (1, 2)  # one step on from the HPC checkpoint's (afresh: 2 and 2)

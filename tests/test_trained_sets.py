@@ -46,7 +46,7 @@ def test_a_collected_folder_s_metadata_says_it_and_other_data_says_nothing(tmp_p
 def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
     seen = {}
 
-    def evaluate_checkpoint(path, out, overrides, resume_hint):
+    def evaluate_checkpoint(path, out, overrides, resume_hint, claim=True):
         seen["overrides"] = list(overrides)
         return {"success": 50.0, "cells": {}}
 
@@ -214,7 +214,7 @@ def test_the_columns_are_the_sets_the_checkpoint_recorded_not_the_metadata_edite
     run = tmp_path / "run"
     (run / ".hydra").mkdir(parents=True)
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
-    train(cfg, run, refuse_finished=True)
+    train(cfg, run, refuse_finished=True, claim=False)  # as the app, which claimed it before .hydra was written
     assert json.loads((run / "data.json").read_text())[SETS_KEY] == {"towns": ["town_a"], "weathers": ["ClearNoon"]}
     evaluate = [f"checkpoint={run}", "suite=single_turn", "suite.limit=1", "suite.weathers=[ClearNoon,MidRainyNoon]",
                 "runner.workers=1", "progress_bar=false", "maps=false", "sim.route_before=6", "sim.max_deviation=2"]

@@ -84,19 +84,26 @@ def policy_spec(cfg: DictConfig) -> dict[str, Any]:
 
 
 def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
-             resume_hint: str | None = None, on_start: Callable[[], Any] | None = None) -> dict[str, Any]:
+             resume_hint: str | None = None, on_start: Callable[[], Any] | None = None, *,
+             claim: bool = True) -> dict[str, Any]:
     """Run the suite described by ``cfg`` (conf/evaluate.yaml), write the report into ``run_dir``,
     return the summary (overall ``success`` % and per-column ``cells``). Resumes in ``run_dir``
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
     ``resume_hint`` its ``Interrupted`` message, ``on_start`` is called once the folder is this run's).
-    ``cfg`` is checked where it was composed: ``compose_config``, or the app's ``SchemaCheck`` callback."""
+    ``cfg`` is checked where it was composed: ``compose_config``, or the app's ``SchemaCheck`` callback.
+    ``run_dir`` holding another app's run or files no cicfw app wrote (a ``table.md`` of your own) is
+    refused before anything is written, in one ``RunFolderError`` naming ``run_dir`` (``claim_folder``, as
+    the app claims its folder); ``claim=False``: the caller claimed it (the app, a training run's
+    ``evaluate/``, a reproduction's cell)."""
+    if claim:
+        claim_folder(run_dir, "evaluate", "run_dir")
     res = evaluate_policy(
         policy_spec(cfg), OmegaConf.to_container(cfg.suite, resolve=True),
         OmegaConf.to_container(cfg.runner, resolve=True), run_dir,
         sim=OmegaConf.to_container(cfg.sim, resolve=True), seed=cfg.seed,
         label=str(cfg.name) if cfg.name else None, progress_bar=cfg.progress_bar, maps=cfg.maps,
         video=list(cfg.video or []), video_max=cfg.video_max, new_folder_hint=new_folder_hint,
-        resume_hint=resume_hint, on_start=on_start, claim=False)  # run_dir was claimed by the app that made it
+        resume_hint=resume_hint, on_start=on_start, claim=False)  # claimed above, or by the caller
     join_sweep()
     return res.summary
 
@@ -507,10 +514,11 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
 
 
 def evaluate_checkpoint(checkpoint: str | Path, run_dir: str | Path, overrides: Sequence[str] = (),
-                        resume_hint: str | None = None) -> dict[str, Any]:
-    """The suite for one checkpoint, configured by conf/evaluate.yaml plus ``overrides``."""
+                        resume_hint: str | None = None, *, claim: bool = True) -> dict[str, Any]:
+    """The suite for one checkpoint, configured by conf/evaluate.yaml plus ``overrides``; ``run_dir`` is
+    claimed as ``evaluate`` claims it (``claim=False``: the caller holds it)."""
     cfg = compose_config([f"checkpoint={_quote(str(checkpoint))}", *overrides])
-    return evaluate(cfg, Path(run_dir), resume_hint=resume_hint)
+    return evaluate(cfg, Path(run_dir), resume_hint=resume_hint, claim=claim)
 
 
 #: what ``evaluate_after=true`` drives after a ``trainer.fast_dev_run`` (one batch: a check that the
@@ -567,7 +575,8 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
     log.info("closed-loop evaluation of %s: %s, into %s", path, what, out)
     command = shlex.join(["python", "-m", "cicfw.evaluate", f"checkpoint={path}", *overrides, f"hydra.run.dir={out}"])
     summary = evaluate_checkpoint(path, out, overrides, resume_hint=f"training finished (checkpoints in "
-                                  f"{Path(path).parent}); drive the rest with {command}")
+                                  f"{Path(path).parent}); drive the rest with {command}",
+                                  claim=False)  # inside the training run's folder, which it holds
     metrics = {**({"closed_loop/success": summary["success"]} if summary["success"] is not None else {}),
                **{f"closed_loop/success/{k}": v["rate"] for k, v in summary["cells"].items()}}
     if trainer.logger is not None and metrics:
@@ -615,8 +624,8 @@ def main(cfg: DictConfig) -> float:
     started = []
     try:
         with_trained_sets(cfg, list(HydraConfig.get().overrides.task))
-        success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume,
-                           on_start=lambda: started.append(True))["success"]
+        success = evaluate(cfg, out, new_folder_hint=hint, resume_hint=resume, on_start=lambda: started.append(True),
+                           claim=False)["success"]  # claimed and locked by EvaluateRunFolderCheck
     except USER_ERRORS:  # refused before the folder was this run's (a bad checkpoint, another evaluation's
         if not started and key == "hydra.run.dir":  # episodes): the folder as it was, .hydra and log included
             undo_run_folder(out)  # under the folder's lock, which EvaluateRunFolderCheck took

@@ -82,8 +82,9 @@ def check_run_folder(folder: str | Path, key: str = "hydra.run.dir", files: Sequ
     writable_folder(folder, key, "a folder you can write", "the run folder")
 
 
-def _data_path(config: Any) -> list[str]:
-    """The app's data folder (``data.path``) as ``claim_folder``'s ``data``: none where it has none."""
+def data_folders(config: Any) -> list[str]:
+    """The app's data folder (``data.path``) as ``claim_folder``'s ``data``: none where it has none (the
+    Hydra callbacks, and ``cicfw.train.app.train`` claiming its folder through the Python API)."""
     try:
         data = OmegaConf.select(config, "data.path", default=None)
     except Exception:  # an interpolation that does not resolve: the app's own checks name it
@@ -107,7 +108,7 @@ class RunFolderCheck(Callback):
         if is_worker_process():  # a DDP rank Lightning re-runs as job 'train_ddp_process_<k>' in its rank 0's folder
             return
         try:
-            claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=_data_path(config))
+            claim_folder(folder, str(config.hydra.job.name), "hydra.run.dir", data=data_folders(config))
         except RunFolderError as err:
             forget_run_folder(folder)  # nothing was written: nothing to put back
             print(f"cicfw: error: {err}", file=sys.stderr)
@@ -122,7 +123,7 @@ class RunFolderCheck(Callback):
         job = str(config.hydra.job.name)
         app = None if is_worker_process() else job  # a DDP rank re-running its rank 0's sweep finds it there
         try:
-            claim_sweep_folder(str(config.hydra.sweep.dir), data=_data_path(config), app=app)
+            claim_sweep_folder(str(config.hydra.sweep.dir), data=data_folders(config), app=app)
         except RunFolderError as err:
             print(f"cicfw: error: {err}", file=sys.stderr)
             sys.exit(2)

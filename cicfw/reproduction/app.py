@@ -765,7 +765,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
             resumed = {"training": {"from_epoch": int(saved[-1].stem[len("epoch"):])}}
         log.info("cell %s seed %d: training (%s)", row, seed, tcfg.experiment if "experiment" in tcfg else row)
         t = time.time()
-        val = train(tcfg, train_dir)
+        val = train(tcfg, train_dir, claim=False)  # the cell is this run's: results_dir is claimed and locked
         atomic_write(trained, json.dumps({"train_s": round(time.time() - t, 1), "val_steer_mae": val,
                                           "resumed": resumed}))
     info = read_json(trained)
@@ -777,7 +777,7 @@ def _train_and_drive(cfg: DictConfig, row: str, seed: int, cell_dir: Path) -> di
     def drive(ckpt: Path, out: Path) -> tuple[dict, float]:
         t = time.time()
         evcfg = compose_eval(cfg, [f"checkpoint='{ckpt}'", f"name={row}"])
-        summary = evaluate(evcfg, out)
+        summary = evaluate(evcfg, out, claim=False)  # inside the cell, as its training
         return summary, time.time() - t
 
     log.info("cell %s seed %d: driving the suite", row, seed)

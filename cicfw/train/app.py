@@ -45,8 +45,8 @@ from cicfw.model.checkpoint import WORLD_SIZE_KEY, UnloadableCheckpoint, checkpo
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
-from cicfw.core.run_folder import (enclosing_run, forget_failed_run, hold_train_folder, release_run_folder,
-                                  undo_run_folder)
+from cicfw.core.run_folder import (claim_folder, data_folders, enclosing_run, forget_failed_run, hold_train_folder,
+                                  release_run_folder, undo_run_folder)
 from cicfw.core.sweeps import is_worker_process
 from cicfw.data.provenance import (CHECKPOINT_KEY, SETS_KEY, check_same_data, folder_record, record_data, same_place,
                                    summary, with_earlier, write_record)
@@ -585,14 +585,34 @@ def check_data_path(cfg: DictConfig) -> None:
 
 
 def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
-          on_start: Callable[[], Any] | None = None) -> float:
+          on_start: Callable[[], Any] | None = None, *, claim: bool = True) -> float:
     """Fit and return the best ``cfg.optimized_metric`` (validation steer MAE by default); with
     ``evaluate_after`` run the closed-loop suite afterwards (and return its success rate, in %, when
     ``return_closed_loop``). Ctrl-C raises ``Interrupted`` saying what is kept and how to go on.
     ``refuse_finished``: refuse a ``ckpt_path`` with no epoch left to train (the app does; a caller that
     resumes whatever it finds, as a reproduce cell does, gets a run that trains nothing and says so).
-    ``on_start`` is called when everything is checked and training starts."""
+    ``on_start`` is called when everything is checked and training starts.
+
+    ``run_dir`` is made this call's own first, as the app's run folder is: ``claim_folder`` (another app's
+    run, the data folder or files no cicfw app wrote are refused), then held (``hold_train_folder``: another
+    run's outputs, unless ``ckpt_path`` resumes from a checkpoint inside it, or a folder another run holds
+    are refused) until it returns; refused, it is one ``RunFolderError`` or ``FolderBusy`` naming
+    ``run_dir``, the folder left as it was. ``claim=False``: the caller claimed and holds it already (the
+    app, a reproduction's cell)."""
     run_dir = Path(run_dir)
+    if not claim or is_worker_process():  # a DDP worker rank trains in the folder its rank 0 claimed
+        return _train(cfg, run_dir, refuse_finished, on_start)
+    claim_folder(run_dir, "train", "run_dir", data=data_folders(cfg))
+    hold_train_folder(run_dir, cfg.get("ckpt_path"), "run_dir", cfg)
+    try:
+        return _train(cfg, run_dir, refuse_finished, on_start)
+    finally:
+        release_run_folder(run_dir)
+
+
+def _train(cfg: DictConfig, run_dir: Path, refuse_finished: bool,
+           on_start: Callable[[], Any] | None) -> float:
+    """``train`` in a folder the caller holds."""
     forget_empty_cache_setting()  # CICFW_CACHE= means the default cache, not the file-system root
     check_slurm_tasks()  # first: Lightning's own lines would already take this process for a SLURM task's
     L.seed_everything(checked_seed(cfg.seed), workers=True)
@@ -614,6 +634,8 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
         apply_speed_from_config(model, speed, cfg.trainer,  # compile (or its one-line fallback),
                                 cfg.data.batch_size, len(datamodule.train_dataloader()))  # channels_last, Adam
     before = checkpoint_files(run_dir)
+    if not is_worker_process():  # written once everything is checked: a refused run leaves the folder's as it was
+        write_record(run_dir, record)
     if on_start is not None:
         on_start()
     fit(trainer, model, datamodule, ckpt_path, run_dir)
@@ -648,9 +670,10 @@ class RecordInCheckpoints(Callback):
 
 def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any]:
     """The record of the data this run trains on (its absolute path, its files' names, sizes and SHA-256:
-    ``cicfw.data.provenance``), written to ``<run_dir>/data.json``. Resuming (``ckpt_path``) compares it with
-    the checkpoint's: another file set is refused, naming both, unless ``resume_on_other_data=true``; then,
-    or when the same files lie in another folder, the record keeps the checkpoint's under ``before``. It holds
+    ``cicfw.data.provenance``), which ``train`` writes to ``<run_dir>/data.json`` once every check passed.
+    Resuming (``ckpt_path``) compares it with the checkpoint's: another file set is refused, naming both,
+    unless ``resume_on_other_data=true``; then, or when the same files lie in another folder, the record keeps
+    the checkpoint's under ``before``. It holds
     the towns and weathers the data was collected in (``SETS_KEY``; a resume on the same files keeps the
     checkpoint's), so that an evaluation labels its table's columns from them, not from the metadata then."""
     ckpt = cfg.get("ckpt_path")
@@ -673,8 +696,6 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
             record["before"] = earlier["before"]
         if earlier.get("hash") == record["hash"] and isinstance(earlier.get(SETS_KEY), dict):
             record[SETS_KEY] = earlier[SETS_KEY]  # the same files: what the data said when training started
-    if not is_worker_process():
-        write_record(run_dir, record)
     return record
 
 
@@ -743,7 +764,7 @@ def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") 
     hold_train_folder(run_dir, cfg.get("ckpt_path"), key, cfg)  # cfg: a requeued SLURM job's folder is its own
     started = []
     try:
-        return train(cfg, run_dir, refuse_finished=True, on_start=lambda: started.append(True))
+        return train(cfg, run_dir, refuse_finished=True, on_start=lambda: started.append(True), claim=False)
     except USER_ERRORS:
         if not started and key == "hydra.run.dir":
             release_run_folder(run_dir)
