@@ -203,13 +203,27 @@ def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path,
         md = published / "RESULTS.md"
         seen[seed] = (sorted(p.parent.name for p in published.glob("cells/cil/seed*/cell.json")),
                       md.read_text() if md.is_file() else None)
-        return result
+        return {**result, "wall_s": {**result["wall_s"], "train": 60.0 + seed}}  # two models' own times
 
     monkeypatch.setattr(reproduce, "_train_and_drive", train_and_drive)
     assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={out}", f"publish_dir={published}"]) == 0
     assert seen[0] == ([], None)
     assert seen[1][0] == ["seed0"] and "| Regression (CIL) | – | 1 † |" in seen[1][1]
     assert "| Regression (CIL) | – | 2 † |" in (published / "RESULTS.md").read_text()  # and after the last
+
+
+def test_a_run_whose_report_refuses_its_cells_exits_1_naming_why(cache, one_cell, tmp_path, monkeypatch, capsys):
+    """Every cell finished, but the report refuses them (here two seeds that are one cell twice): the cells
+    are kept, and the run says in one line that no report was written, with a failed status."""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    monkeypatch.setattr(reproduce, "_train_and_drive", lambda cfg, row, seed, cell_dir: result)
+    out = tmp_path / "results"
+    assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={out}"]) == 1
+    err = capsys.readouterr().err
+    assert "no report" in err and "copies" in err and "seed1" in err, err
+    assert len(list(out.glob("cells/cil/seed*/cell.json"))) == 2
+    assert "| Regression (CIL) | – | 1 † |" in (out / "RESULTS.md").read_text()  # the table as of the last good cell
 
 
 def test_cells_run_in_their_own_folder_still_pin_the_dataset(cache, one_cell, tmp_path, monkeypatch):

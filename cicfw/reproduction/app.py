@@ -919,15 +919,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 data = write_configured(Path(cfg.results_dir), cfg, cfg.get("publish_dir"))
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
-        except ValueError as err:
-            log.error("no report: %s", err)
+        except ValueError as err:  # the cells are kept; the report refused them (copied seeds, another pin)
+            print(f"cicfw: error: no report: {_error_line(err)}", file=sys.stderr)
+            code = 1
         except OSError as err:  # a publish_dir that became unwritable, a full disk: one line, the cells are kept
             print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
             code = 1
         finally:
             lock.release()
     unfinished = unfinished_cells(Path(cfg.results_dir), rows, seeds)
-    if unfinished and not code:
+    if unfinished:
         print(f"cicfw: error: {len(unfinished)} of {len(rows) * len(seeds)} cells did not finish "
               f"({', '.join(unfinished[:6])}{', ...' if len(unfinished) > 6 else ''}): their cell.json or the log "
               f"above says why; a rerun of the same command retries them", file=sys.stderr)
