@@ -72,7 +72,8 @@ def test_an_evaluation_piped_into_head_finishes_complete(tmp_path):
     and exits 0 without a word; its log file says where stdout stopped."""
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "cicfw.evaluate", "policy=expert", "suite.limit=1",
-                             "runner.workers=1", f"hydra.run.dir={out}"], stdout=subprocess.PIPE,
+                             "runner.workers=1", "maps=false", "sim.route_before=6",
+                             "sim.max_deviation=2", f"hydra.run.dir={out}"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**_env(), "CICFW_CACHE": str(tmp_path / "c")})
     assert proc.stdout.readline()
     proc.stdout.close()  # as `| head -1` does
