@@ -319,3 +319,43 @@ def test_the_recorded_checkpoint_hash_is_of_the_weights_every_worker_drove(tmp_p
     assert len(rows) == 2 and rows == ref_rows  # driven by the first file's weights, in both workers
     assert sorted(trajs) == sorted(ref_trajs)
     assert all(np.array_equal(trajs[k][c], ref_trajs[k][c]) for k in trajs for c in trajs[k])
+
+
+def test_a_worker_keeps_no_checkpoint_bytes_once_its_policy_is_built(tmp_path: Path, monkeypatch):
+    """A worker process is given the checkpoint's bytes (the whole file, optimizer state included: 3x the weights
+    for Adam) to build its policy from; while it drives, neither the spec (held by its Process object) nor the
+    policy holds them, so each of ``runner.workers`` processes carries its model only."""
+    import gc
+    import weakref
+
+    from cicfw.benchmark import runner
+    from cicfw.model.checkpoint import CheckpointBytes
+
+    read = CheckpointBytes.read(untrained_checkpoint(tmp_path / "m.ckpt", seed=0))
+    alive = weakref.ref(read)
+    spec = {"name": "checkpoint", "checkpoint": read, "device": "cpu"}
+    del read
+    seen = []
+
+    def drive(episodes, policy, backend, cfg, on_done):
+        gc.collect()
+        seen.append((alive() is not None, type(policy).__name__))
+        return "driven"
+
+    monkeypatch.setattr(runner, "drive", drive)
+    monkeypatch.setattr(runner, "make_backend", lambda spec: None)
+    monkeypatch.setattr(runner, "_exit_with_parent", lambda: None)  # in this process: no parent to watch
+    sent = collections.deque()
+    runner._worker(0, [], spec, {}, {"batch_size": 1, "threads": 1}, 1, SimpleQueue(sent))
+    assert list(sent) == [("result", 0, "driven")], list(sent)
+    assert seen == [(False, "CheckpointPolicy")]
+
+
+class SimpleQueue:
+    """What ``_worker`` puts, kept in order (a worker's queue to its parent)."""
+
+    def __init__(self, items: collections.deque) -> None:
+        self.items = items
+
+    def put(self, item) -> None:
+        self.items.append(item)

@@ -349,6 +349,53 @@ def test_a_full_disk_at_the_first_checkpoint_leaves_a_folder_the_same_command_ac
     assert (run / "checkpoints" / "last.ckpt").is_file()
 
 
+def test_a_full_disk_at_the_first_checkpoint_from_python_leaves_a_folder_the_same_call_accepts(tmp_path, full_disk):
+    """``train(cfg, run_dir)`` stopped before its first checkpoint says to run the same call again: the folder it
+    leaves (its data record, Lightning's csv/hparams.yaml) is its own, not "files no cicfw app wrote"."""
+    from cicfw.testing import write_tiny_dataset
+    from cicfw.train.app import train
+
+    cfg = _tiny_train_cfg(write_tiny_dataset(tmp_path / "data"))  # defined below
+    run = tmp_path / "run"
+    full_disk(run / "checkpoints")
+    with pytest.raises(Exception) as err:
+        train(cfg, run)
+    assert isinstance(err.value, USER_ERRORS) and "run the same command again" in str(err.value), str(err.value)
+    assert (run / "data.json").is_file()  # written once every check passed, before training started
+    full_disk(tmp_path / "elsewhere")  # space freed
+    train(cfg, run)  # the same call, as advised
+    assert torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["epoch"] == 0
+
+
+def test_train_from_python_stopped_in_its_first_batch_leaves_a_folder_the_same_call_accepts(tmp_path, monkeypatch):
+    """Stopped before Lightning made ``checkpoints/`` (an out-of-memory error in the first batch), the folder holds
+    the call's data record and csv/hparams.yaml alone: train's own, which the same call trains into; another app
+    is still refused there."""
+    import lightning as L
+
+    import cicfw.train.app as train_app
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+    from cicfw.testing import write_tiny_dataset
+
+    class OutOfMemory(L.Callback):
+        def on_train_batch_start(self, *args, **kwargs):
+            raise MemoryError("the first batch")
+
+    cfg = _tiny_train_cfg(write_tiny_dataset(tmp_path / "data"))
+    run = tmp_path / "run"
+    callbacks = train_app.build_callbacks
+    monkeypatch.setattr(train_app, "build_callbacks", lambda c, d: [*callbacks(c, d), OutOfMemory()])
+    with pytest.raises(MemoryError):
+        train_app.train(cfg, run)
+    monkeypatch.setattr(train_app, "build_callbacks", callbacks)
+    assert (run / "data.json").is_file() and not (run / "checkpoints").exists()
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(run, "evaluate", "run_dir")
+    assert err.value.key == "run_dir" and "cicfw train" in str(err.value)
+    train_app.train(cfg, run)  # the same call
+    assert torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["epoch"] == 0
+
+
 # ---- one rule for every app: a folder that is not the app's own is refused -------------------------
 
 from conftest import assert_refused, run_app_in_process, write_tiny_dataset  # noqa: E402

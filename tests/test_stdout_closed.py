@@ -83,3 +83,18 @@ def test_an_evaluation_piped_into_head_finishes_complete(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["complete"] is True and summary["episodes"] == 8
     assert "stdout was closed" in (out / "evaluate.log").read_text()
+
+
+@pytest.mark.slow
+def test_a_full_stdout_after_a_traceback_keeps_status_1():
+    """A bug's traceback, with a stdout that could not be written too: the line about stdout is added, the
+    status stays Python's 1 for a traceback, not 2 (a user error's)."""
+    status = 1
+    script = ("from cicfw.core.errors import install_app_handlers\ninstall_app_handlers()\nprint('x' * 100000)\n"
+              "raise RuntimeError('a bug')\n")
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-c", script], stdout=full, stderr=subprocess.PIPE, text=True,
+                             timeout=120, env=_env())
+    assert run.returncode == status, run.stderr[-2000:]
+    assert "RuntimeError: a bug" in run.stderr
+    assert run.stderr.splitlines()[-1] == f"cicfw: error: could not write to stdout: {os.strerror(errno.ENOSPC)}"

@@ -43,7 +43,7 @@ class CheckpointPolicy(Policy):
                 raise CicfwError(f"policy.{err}") from None
             raise
         self.path = str(checkpoint)
-        self.source: CheckpointBytes = source
+        self.source: CheckpointBytes | None = source  # None in a worker process once built (runner._worker)
         self.device = self.agent.device
         self.model = self.agent.model  # the CICModule (None for an exported model)
         self.cameras = (camera,)

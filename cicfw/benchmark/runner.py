@@ -36,6 +36,7 @@ from cicfw.benchmark.suite import Episode, make_backend, suite_routes
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError
 from cicfw.core.progress import ProgressBar
+from cicfw.model.checkpoint import CheckpointBytes
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.vehicle import TOP_SPEED_KMH
 
@@ -429,7 +430,13 @@ def _worker(k: int, episodes: list[Episode], policy_spec: dict, sim_spec: dict, 
         cv2.setNumThreads(1)
         _exit_with_parent()
         rc = RunnerConfig(**{**cfg, "workers": 1, "progress_bar": False})
-        res = drive(episodes, make_policy(policy_spec), make_backend(sim_spec), rc,
+        policy = make_policy(policy_spec)
+        # built: the checkpoint's bytes it was given (CheckpointBytes, the whole file with its optimizer state) are
+        # not kept for the run, by the spec (which the Process object holds) or by the policy (its ``source``)
+        policy_spec.clear()
+        if isinstance(getattr(policy, "source", None), CheckpointBytes):
+            policy.source = None
+        res = drive(episodes, policy, make_backend(sim_spec), rc,
                     on_done=lambda row, traj: q.put(("done", k, row, traj)))
         q.put(("result", k, res))
     except BaseException as err:  # report everything, the parent decides

@@ -171,10 +171,12 @@ def install_app_handlers() -> None:
     previous = sys.excepthook
 
     def uncaught(kind: type[BaseException], err: BaseException, tb: object) -> None:
+        global _exit_status
         if issubclass(kind, CicfwError) and not debugging():
             print(f"cicfw: error: {err}", file=sys.stderr)
             _exit_now(2)
         if not issubclass(kind, KeyboardInterrupt):
+            _exit_status = 1  # Python's status after a traceback, kept if stdout failed too (_report_stdout_failure)
             previous(kind, err, tb)
             return
         _exit_interrupted(err, _exit_now)
@@ -235,7 +237,8 @@ class GuardedStdout:
 def guard_stdout() -> None:
     """Put ``GuardedStdout`` in place of ``sys.stdout`` and, at exit, flush it and turn a failed write into
     ``cicfw: error: could not write to stdout: <why>`` and status 2 (the status an app ended with
-    otherwise, where it was not 0). Called by ``install_app_handlers``."""
+    otherwise, where it was not 0 and the handlers saw it: a user error's, an interruption's, a traceback's 1;
+    a ``SystemExit(n)`` is not seen). Called by ``install_app_handlers``."""
     global _stdout_checked_at_exit
     if isinstance(sys.stdout, GuardedStdout) or sys.stdout is None:
         return

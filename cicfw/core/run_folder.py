@@ -648,7 +648,8 @@ def _holds_data_record(folder: Path) -> bool:
 def folder_owner(folder: str | Path) -> str | None:
     """The app whose run (or output) ``folder`` is, from the record that app already leaves there: Hydra's
     job name for a Hydra app (train, evaluate, ...) or, without ``.hydra``, its job log beside its outputs
-    (``JOB_OUTPUTS``), a training run's data record beside its outputs without either (``TRAIN_API_OUTPUTS``),
+    (``JOB_OUTPUTS``), a training run's data record without either (``data.json``, which only ``train`` writes,
+    once its checks passed: beside its outputs, or alone where the run stopped before its first one),
     the episode log of an evaluation driven through the Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
     stopped before it wrote the manifest) for a reproduction,
     ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
@@ -662,7 +663,7 @@ def folder_owner(folder: str | Path) -> str | None:
     for app, outputs in JOB_OUTPUTS:
         if (folder / f"{app}.log").is_file() and any(_exists(folder / name) for name in outputs):
             return app
-    if _trained_through_api(folder):
+    if _holds_data_record(folder):  # beside its outputs, or alone: a run stopped before its first output
         return "train"
     for name, app in RECORDS:
         if (folder / name).exists():

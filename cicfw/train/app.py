@@ -603,11 +603,7 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     if not claim or is_worker_process():  # a DDP worker rank trains in the folder its rank 0 claimed
         return _train(cfg, run_dir, refuse_finished, on_start)
     claim_folder(run_dir, "train", "run_dir", data=data_folders(cfg))
-    hold_train_folder(run_dir, cfg.get("ckpt_path"), "run_dir", cfg)
-    try:
-        return _train(cfg, run_dir, refuse_finished, on_start)
-    finally:
-        release_run_folder(run_dir)
+    return _train_held(cfg, run_dir, "run_dir", refuse_finished, on_start)
 
 
 def _train(cfg: DictConfig, run_dir: Path, refuse_finished: bool,
@@ -755,16 +751,29 @@ def _forget(run_dir: Path) -> None:
 
 
 def train_in_folder(cfg: DictConfig, run_dir: Path, key: str = "hydra.run.dir") -> float:
-    """The app's ``train``: ``run_dir`` held (``hold_train_folder``) until it ends, and a checkpoint with
-    nothing left to train refused. A run refused before it trains leaves the folder as it found it
-    (``undo_run_folder``: no ``.hydra`` or empty log of a run that never was); a multirun job's folder
-    keeps its log, which the sweep's failure line names. A run that stops before its first checkpoint
-    (a full disk, Ctrl-C) takes back the metrics it logged (``forget_failed_run``), so the same command,
-    which its error advises, runs there again."""
+    """The app's ``train``: ``run_dir`` held until it ends (``_train_held``), and a checkpoint with nothing
+    left to train refused."""
+    return _train_held(cfg, run_dir, key, refuse_finished=True)
+
+
+def _train_held(cfg: DictConfig, run_dir: Path, key: str, refuse_finished: bool,
+                on_start: Callable[[], Any] | None = None) -> float:
+    """``_train`` with ``run_dir`` held (``hold_train_folder``) until it ends. A run refused before it trains
+    leaves the folder as it found it (the app's run folder, ``key`` ``hydra.run.dir``: ``undo_run_folder``,
+    no ``.hydra`` or empty log of a run that never was); a multirun job's folder keeps its log, which the
+    sweep's failure line names. A run that stops before its first checkpoint (a full disk, Ctrl-C) takes
+    back the metrics it logged (``forget_failed_run``), so the same command or call, which its error
+    advises, runs there again."""
     hold_train_folder(run_dir, cfg.get("ckpt_path"), key, cfg)  # cfg: a requeued SLURM job's folder is its own
     started = []
+
+    def start() -> None:
+        started.append(True)
+        if on_start is not None:
+            on_start()
+
     try:
-        return train(cfg, run_dir, refuse_finished=True, on_start=lambda: started.append(True), claim=False)
+        return _train(cfg, run_dir, refuse_finished, start)
     except USER_ERRORS:
         if not started and key == "hydra.run.dir":
             release_run_folder(run_dir)
