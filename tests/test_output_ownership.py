@@ -862,3 +862,71 @@ def test_evaluate_checkpoint_into_a_users_table_and_summary_is_refused(tmp_path)
         evaluate_checkpoint(ckpt, run, ONE_EPISODE[1:])
     assert err.value.key == "run_dir" and str(run) in str(err.value), str(err.value)
     assert _files(run) == kept
+
+
+# ---- a folder inside another app's run ---------------------------------------------------------------
+
+
+def _paths(folder: Path) -> list[Path]:
+    return sorted(folder.rglob("*"))
+
+
+@pytest.mark.parametrize("run_dir", [".", "../csv"])
+def test_evaluate_checkpoint_inside_a_training_run_is_refused_as_inside_it(tmp_path, monkeypatch, run_dir):
+    """An evaluation into a training run's ``checkpoints`` (the working folder) or ``csv``: that run's files,
+    refused as a folder inside it, not as files no cicfw app wrote; the run left byte for byte."""
+    from cicfw.benchmark.app import evaluate_checkpoint
+    from cicfw.core.run_folder import RunFolderError
+
+    run = tmp_path / "run"
+    kept = hydra_run(run, "train", "checkpoints/epoch001-mae0.1364.ckpt", "checkpoints/last.ckpt",
+                     "csv/hparams.yaml", "csv/metrics.csv")
+    paths = _paths(run)
+    monkeypatch.chdir(run / "checkpoints")
+    with pytest.raises(RunFolderError) as err:
+        evaluate_checkpoint("last.ckpt", Path(run_dir), ONE_EPISODE[1:])
+    line = str(err.value)
+    assert err.value.key == "run_dir" and err.value.value == run_dir, line
+    assert "inside" in line and "cicfw train" in line and str(run.resolve()) in line and "no cicfw app" not in line
+    assert _files(run) == kept and _paths(run) == paths
+
+
+@pytest.mark.parametrize("inside", ["ev/again", "results/cells/cil/seed0/mine"])
+def test_train_from_python_inside_another_apps_run_is_refused(tmp_path, inside):
+    """``train(cfg, run_dir)`` claims as the app does: a folder inside an evaluation's run or a reproduction's
+    results is refused naming ``run_dir``, before anything is written there."""
+    from cicfw.core.run_folder import RunFolderError
+    from cicfw.train.app import train
+
+    hydra_run(tmp_path / "ev", "evaluate", "episodes.jsonl")
+    results_folder(tmp_path / "results")
+    kept, paths = _files(tmp_path), _paths(tmp_path)
+    with pytest.raises(RunFolderError) as err:
+        train(compose_train(*TINY_TRAIN, f"data.path={tmp_path / 'data'}"), tmp_path / inside)
+    assert err.value.key == "run_dir" and err.value.value == str(tmp_path / inside), str(err.value)
+    assert "inside" in str(err.value)
+    assert _files(tmp_path) == kept and _paths(tmp_path) == paths
+
+
+def test_the_folders_cicfw_nests_in_a_run_stay_claimable(tmp_path):
+    """The evaluation after training's ``<run>/evaluate`` (its resume: cicfw evaluate there), a sweep's job
+    folder for the sweeping app and a run of the app's own kind are no folder inside another's run; the
+    same folders for another app are."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+
+    run = tmp_path / "run"
+    hydra_run(run, "train", "checkpoints/last.ckpt")
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra:\n  job:\n    name: evaluate\n")
+    for folder, app in [(run / "evaluate", "diagnose"), (run / "checkpoints", "diagnose"), (sweep / "3", "train")]:
+        with pytest.raises(RunFolderError) as err:
+            claim_folder(folder, app, "hydra.run.dir")
+        assert err.value.key == "hydra.run.dir" and err.value.value == str(folder) and "inside" in str(err.value)
+    claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # missing
+    (run / "evaluate").mkdir()
+    claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # empty
+    (run / "evaluate" / "episodes.jsonl").write_text("")
+    claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # the evaluation's
+    claim_folder(run / "more", "train", "run_dir")  # the same app's run around it
+    claim_folder(sweep / "3", "evaluate", "hydra.run.dir")

@@ -170,6 +170,22 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert err.count("\n") == 1 and "--margin" in err and "inf" in err, err
 
 
+def test_a_results_folder_given_for_a_row_names_its_rows(tmp_path, capsys):
+    """Two reproductions' results folders (``<name>/cells/<row>/seed<k>``) given instead of a row's cells: the
+    line says which they are and names the rows to pick from, not that they hold no cell."""
+    for name in ("c6", "ch"):
+        for row in ("gtu", "cil"):
+            write_cell(tmp_path / name / "cells" / row, row, 0, [1, 1, 1, 1])
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    with pytest.raises(CicfwError) as err:
+        ps.load_row(tmp_path / "c6")
+    assert err.value.value == str(tmp_path / "c6") and "rows: cil, gtu" in str(err.value)
+    assert ps.main([str(tmp_path / "c6"), str(tmp_path / "ch")]) == 2
+    line = capsys.readouterr().err
+    assert line.count("\n") == 1 and "results folder" in line and str(tmp_path / "c6" / "cells") in line, line
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
 def exact_mcnemar_by_hand(lost: int, gained: int) -> float:
     """Two-sided exact McNemar: twice the binomial(n, 1/2) tail at the smaller count, at most 1."""
     n, k = lost + gained, min(lost, gained)

@@ -91,10 +91,10 @@ def evaluate(cfg: DictConfig, run_dir: Path, new_folder_hint: str | None = None,
     (see ``evaluate_policy``; ``new_folder_hint`` ends its error for a folder of another evaluation,
     ``resume_hint`` its ``Interrupted`` message, ``on_start`` is called once the folder is this run's).
     ``cfg`` is checked where it was composed: ``compose_config``, or the app's ``SchemaCheck`` callback.
-    ``run_dir`` holding another app's run or files no cicfw app wrote (a ``table.md`` of your own) is
-    refused before anything is written, in one ``RunFolderError`` naming ``run_dir`` (``claim_folder``, as
-    the app claims its folder); ``claim=False``: the caller claimed it (the app, a training run's
-    ``evaluate/``, a reproduction's cell)."""
+    ``run_dir`` holding another app's run or files no cicfw app wrote (a ``table.md`` of your own), or inside
+    another app's run (``<train run>/checkpoints``), is refused before anything is written, in one
+    ``RunFolderError`` naming ``run_dir`` (``claim_folder``, as the app claims its folder); ``claim=False``:
+    the caller claimed it (the app, a training run's ``evaluate/``, a reproduction's cell)."""
     if claim:
         claim_folder(run_dir, "evaluate", "run_dir")
     res = evaluate_policy(

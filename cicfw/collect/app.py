@@ -24,7 +24,7 @@ from cicfw.collect.errors import CollectError
 from cicfw.collect.integrity import verify_dataset
 from cicfw.core.errors import USER_ERRORS, on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import claim_folder, claim_outside_runs, release_folder_locks, undo_run_folder
+from cicfw.core.run_folder import claim_folder, release_folder_locks, undo_run_folder
 
 
 def _run(cfg, on_start=None) -> str:
@@ -35,10 +35,10 @@ def _run(cfg, on_start=None) -> str:
     out_dir = Path(str(raw["out_dir"])).expanduser()
     if verify:
         return _verify(raw, out_dir)
-    # another app's run (a training or evaluation folder) is not a dataset: its episodes would join that
-    # run's files, and the folder would then read as a dataset to every app; other files the engine checks
+    # another app's run (a training or evaluation folder), or a folder inside one (<run>/checkpoints), is not a
+    # dataset: its episodes would join that run's files, and the folder would then read as a dataset to every
+    # app; other files the engine checks
     claim_folder(out_dir, "collect", "out_dir", foreign_ok=True)
-    claim_outside_runs(out_dir, "collect", "out_dir")  # nor is a folder inside one (<run>/checkpoints)
     with on_interrupt(f"finished episodes are kept in {raw['out_dir']}: rerun the same command to resume"):
         meta = collect_dataset(raw, out_dir, on_start=on_start)
     m = read_json(meta)

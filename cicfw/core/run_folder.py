@@ -750,8 +750,9 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
     may write into a folder that is missing, empty (of all but cicfw's locks), or its own kind of run
     (``folder_owner``), where the app's own checks then apply (resume, continue, overwrite). Refused in one
     ``RunFolderError`` naming ``key`` and the folder: the user's data folder (one of ``data``), a folder
-    the app reads (one of ``inputs``), another app's run, or files no cicfw app wrote (unless
-    ``foreign_ok``: an explicit overwrite option)."""
+    the app reads (one of ``inputs``), another app's run, a folder inside another app's run
+    (``claim_outside_runs``, but for the folders cicfw itself nests there, ``NESTED_RUNS``), or files no
+    cicfw app wrote (unless ``foreign_ok``: an explicit overwrite option)."""
     folder = Path(folder).expanduser()
     where = f"{key}={str(folder)!r}"
     fix = f"give a fresh folder ({key}=<new folder>)"
@@ -760,12 +761,8 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
         if _same(folder, src):
             raise RunFolderError(f"{where} is one of the folders cicfw {app} reads ({src}), whose files it would "
                                  f"replace; {fix}", key=key, value=str(folder))
-    if not _exists(folder) or not folder.is_dir():
-        return  # missing, or a file: the app's own check says what is wrong with it
-    entries = _entries(folder)
-    if not entries:
-        return
-    owner = folder_owner(folder)
+    entries = _entries(folder)  # [] for a missing folder or a file: the app's own check says what is wrong
+    owner = folder_owner(folder) if entries else None
     if owner == app:
         return
     if owner == "collect":
@@ -774,7 +771,8 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
     if owner is not None:
         raise RunFolderError(f"{where} holds the outputs of cicfw {owner} ({_listed(entries)}), which cicfw {app} "
                              f"would write over; {fix}", key=key, value=str(folder))
-    if foreign_ok:
+    claim_outside_runs(folder, app, key)  # <train run>/checkpoints: that run's files, not files of no app
+    if not entries or foreign_ok:
         return
     raise RunFolderError(f"{where} holds files that no cicfw app wrote ({_listed(entries)}), which cicfw {app} "
                          f"would write over; {fix}", key=key, value=str(folder))
@@ -817,14 +815,25 @@ def _run_above(folder: Path) -> str | None:
     return "train" if _trained_through_api(folder) else None
 
 
+#: the folders cicfw itself makes inside another app's run, which the app writing them claims again (to resume
+#: them): (the enclosing run's app, the folder's path below it, that app). The evaluation after training's
+#: ``<run>/evaluate``, resumed with ``cicfw evaluate hydra.run.dir=<run>/evaluate``
+NESTED_RUNS = (("train", "evaluate", "evaluate"),)
+
+
 def claim_outside_runs(folder: str | Path, app: str, key: str) -> None:
     """One ``RunFolderError`` naming ``key`` when ``folder`` lies inside another cicfw app's run or results
     folder (``enclosing_run``): what ``app`` writes there would read as part of that run (a dataset among a
-    training run's checkpoints, HDF5 files among a reproduction's cells)."""
+    training run's checkpoints, HDF5 files among a reproduction's cells, an evaluation in ``<run>/csv``).
+    A run of ``app`` itself (a sweep's job folders) and the ``NESTED_RUNS`` pass."""
     found = enclosing_run(folder)
     if found is None or found[1] == app:
         return
     run, owner = found
-    raise RunFolderError(f"{key}={str(folder)!r} lies inside {str(run)!r}, a run of cicfw {owner}, whose files cicfw "
-                         f"{app} would write among; give a folder outside it ({key}=<new folder>)",
+    below = Path(os.path.realpath(Path(folder).expanduser())).relative_to(run).as_posix()
+    if (owner, below, app) in NESTED_RUNS:
+        return
+    what = "results folder" if owner == "reproduce" else "run"
+    raise RunFolderError(f"{key}={str(folder)!r} lies inside the cicfw {owner} {what} {str(run)!r}, among whose files "
+                         f"cicfw {app} would write; give a folder outside it ({key}=<new folder>)",
                          key=key, value=str(folder))

@@ -80,13 +80,18 @@ class Equivalence:
 
 
 def load_row(folder: Path) -> dict[int, CellResult]:
-    """seed -> finished cell under a row's folder (``<row>/seed<k>/cell.json``), or one error line."""
+    """seed -> finished cell under a row's folder (``<row>/seed<k>/cell.json``), or one error line (a results
+    folder given instead names its rows to pick from)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise CicfwError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
     paths = sorted(folder.glob("seed*/cell.json"))
     out = {c.seed: c for c in map(load_cell, paths) if isinstance(c, CellResult)}
     if not out:
+        rows = sorted(p.name for p in (folder / "cells").glob("*") if p.is_dir()) if not paths else []
+        if rows:  # a reproduction's results folder given for one of its rows
+            raise CicfwError(f"{folder} is a reproduction's results folder, not a row's cells; give "
+                             f"{folder / 'cells' / '<row>'} (rows: {', '.join(rows)})", key="folder", value=str(folder))
         raise CicfwError(f"{folder} holds no finished cell (seed*/cell.json with status ok)")
     manifest = results_manifest(folder)
     if manifest is not None:  # a cell of another reproduction copied in would be paired: the report's check

@@ -594,11 +594,11 @@ def train(cfg: DictConfig, run_dir: Path, refuse_finished: bool = False,
     ``on_start`` is called when everything is checked and training starts.
 
     ``run_dir`` is made this call's own first, as the app's run folder is: ``claim_folder`` (another app's
-    run, the data folder or files no cicfw app wrote are refused), then held (``hold_train_folder``: another
-    run's outputs, unless ``ckpt_path`` resumes from a checkpoint inside it, or a folder another run holds
-    are refused) until it returns; refused, it is one ``RunFolderError`` or ``FolderBusy`` naming
-    ``run_dir``, the folder left as it was. ``claim=False``: the caller claimed and holds it already (the
-    app, a reproduction's cell)."""
+    run or a folder inside one, the data folder or files no cicfw app wrote are refused), then held
+    (``hold_train_folder``: another run's outputs, unless ``ckpt_path`` resumes from a checkpoint inside it,
+    or a folder another run holds are refused) until it returns; refused, it is one ``RunFolderError`` or
+    ``FolderBusy`` naming ``run_dir``, the folder left as it was. ``claim=False``: the caller claimed and
+    holds it already (the app, a reproduction's cell)."""
     run_dir = Path(run_dir)
     if not claim or is_worker_process():  # a DDP worker rank trains in the folder its rank 0 claimed
         return _train(cfg, run_dir, refuse_finished, on_start)
