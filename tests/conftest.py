@@ -10,6 +10,7 @@ import json
 import logging
 import math
 import os
+import re
 import runpy
 import signal
 import subprocess
@@ -18,6 +19,7 @@ import traceback
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hydra import compose, initialize_config_module
@@ -447,3 +449,42 @@ def fill_the_disk_for_pictures(mp: pytest.MonkeyPatch) -> None:
         write_all(fd, data)
 
     mp.setattr(cicfw.core.files, "write_all", full_for_pictures)
+
+
+def damaged_checkpoints(folder: Path) -> tuple[Any, dict[str, tuple[Path, tuple[int, int, int], str]]]:
+    """A small ``CICModule`` (independent mixer, hidden 8) and checkpoints of it that Lightning can resume
+    (optimizer and loop state) whose state_dict was edited under the same hyper_parameters: a weight deleted,
+    one added, one of another shape, or a gtu mixer's weights. Each with its (missing, unexpected, reshaped)
+    counts and the key a message names first, counted here by hand."""
+    import torch
+
+    from cicfw.model.module import CICModule
+
+    model = CICModule(mixer_kwargs={"hidden": 8})
+    state = model.state_dict()
+    last = list(state)[-1]  # mixer.branches.3.6.bias
+    extra = "mixer.extra.weight"
+    wide = next(k for k in state if k.endswith(".weight") and state[k].dim() == 2)
+    gtu = CICModule(mixer="gtu", mixer_kwargs={"hidden": 8}).state_dict()
+    gtu_only = [k for k in gtu if k not in state]
+    assert gtu_only and all(k in gtu for k in state)  # gtu adds weights, keeps the rest
+    states = {
+        "missing": ({k: v for k, v in state.items() if k != last}, (1, 0, 0), last),
+        "unexpected": ({**state, extra: torch.zeros(2)}, (0, 1, 0), extra),
+        "reshaped": ({**state, wide: torch.zeros(state[wide].shape[0] + 1, state[wide].shape[1])}, (0, 0, 1), wide),
+        "other_mixer": (gtu, (0, len(gtu_only), 0), gtu_only[0]),
+    }
+    files = {}
+    for name, (weights, counts, key) in states.items():
+        path = Path(folder) / f"{name}.ckpt"
+        torch.save({"state_dict": weights, "optimizer_states": [], "lr_schedulers": [], "loops": {}, "epoch": 0,
+                    "global_step": 0, "hyper_parameters": dict(model.hparams)}, path)
+        files[name] = (path, counts, key)
+    return model, files
+
+
+def misfit_counts(message: str) -> tuple[int, int, int]:
+    """The (missing, unexpected, reshaped) weight counts a refused checkpoint's message gives."""
+    found = re.search(r"(\d+) missing, (\d+) unexpected, (\d+) reshaped", message)
+    assert found, message
+    return tuple(int(n) for n in found.groups())

@@ -14,8 +14,9 @@ from cicfw.benchmark.suite import check_names
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.core.config_checks import SchemaError
 from cicfw.core.errors import CicfwError, ConfigError
+from cicfw.model.module import CICModule
 from cicfw.train.app import build_model, build_trainer, check_resume_checkpoint, train
-from conftest import compose_train, run_app_in_process, write_tiny_dataset
+from conftest import compose_train, damaged_checkpoints, misfit_counts, run_app_in_process, write_tiny_dataset
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -162,6 +163,26 @@ def test_bad_checkpoints_each_say_what_is_wrong(tmp_path, no_data):
             train(_cfg(tmp_path, f"ckpt_path={path}"), tmp_path / "run")
         assert (err.value.key, str(err.value.value)) == ("ckpt_path", str(path)), str(err.value)
         assert all(n in str(err.value) for n in named) and "\n" not in str(err.value), str(err.value)
+
+
+def test_resuming_a_damaged_checkpoint_names_the_weights_not_another_model(tmp_path):
+    """Weights that do not fit the model the checkpoint itself records: no options would resume it."""
+    model, files = damaged_checkpoints(tmp_path)
+    for name, (path, counts, key) in files.items():
+        with pytest.raises(CicfwError) as err:
+            check_resume_checkpoint(path, model)
+        text = str(err.value)
+        assert (err.value.key, err.value.value) == ("ckpt_path", path), name
+        assert misfit_counts(text) == counts and repr(key) in text, text
+        assert "edited" in text and "another model" not in text and "options" not in text, text
+    gtu = CICModule(mixer="gtu", mixer_kwargs={"hidden": 8})  # an intact checkpoint of another model still says so
+    path = tmp_path / "gtu.ckpt"
+    torch.save({"state_dict": gtu.state_dict(), "optimizer_states": [], "loops": {},
+                "hyper_parameters": dict(gtu.hparams)}, path)
+    with pytest.raises(CicfwError) as err:
+        check_resume_checkpoint(path, model)
+    assert err.value.key == "ckpt_path" and misfit_counts(str(err.value)) == files["other_mixer"][1]
+    assert "another model" in str(err.value) and "edited" not in str(err.value)
 
 
 @pytest.mark.parametrize("trained, resumed, key, value", [

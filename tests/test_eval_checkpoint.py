@@ -18,6 +18,7 @@ from cicfw.benchmark.policy import Observations
 from cicfw.core.errors import CicfwError
 from cicfw.model.checkpoint import CheckpointError, load_model, read_checkpoint
 from cicfw.model.module import CICModule
+from conftest import damaged_checkpoints, misfit_counts
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -128,6 +129,22 @@ def test_each_bad_checkpoint_gives_its_message(ckpt: Path, tmp_path: Path):
     with pytest.raises(CheckpointError) as err:
         read_checkpoint(tmp_path / "run")
     assert (err.value.key, err.value.value) == ("checkpoint", tmp_path / "run")
+
+
+def test_weights_that_do_not_fit_their_model_name_the_key_and_the_counts(tmp_path: Path):
+    """A deleted, added or reshaped weight, or another mixer's weights under the first's hyper_parameters:
+    the loader evaluate, export and diagnose share names the weight and counts each kind, one line."""
+    _, files = damaged_checkpoints(tmp_path)
+    for name, (path, counts, key) in files.items():
+        with pytest.raises(CheckpointError) as err:
+            load_model(path)
+        text = str(err.value)
+        assert (err.value.key, err.value.value) == ("checkpoint", str(path)), name
+        assert misfit_counts(text) == counts and repr(key) in text and "\n" not in text, text
+    path, counts, key = files["missing"]
+    with pytest.raises(CheckpointError) as err:  # evaluate's policy builds its model with the same loader
+        CheckpointPolicy(checkpoint=str(path), device="cpu")
+    assert err.value.key == "checkpoint" and misfit_counts(str(err.value)) == counts and repr(key) in str(err.value)
 
 
 def test_evaluate_config_errors(tmp_path: Path):

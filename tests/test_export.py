@@ -35,7 +35,7 @@ from cicfw.model.encoders import Encoder
 from cicfw.model.module import CICModule
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 from cicfw.testing import make_targets, write_tiny_dataset
-from conftest import assert_refused, run_app_in_process
+from conftest import assert_refused, misfit_counts, run_app_in_process
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
 
@@ -334,6 +334,13 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
             assert str(value) in str(err.value), err.value
         else:
             assert (err.value.key, err.value.value) == (key, value), err.value
+    edited = torch.load(ckpt, weights_only=True)  # a weight deleted: the loader names it, not torch's cut line
+    gone = next(iter(edited["state_dict"]))
+    del edited["state_dict"][gone]
+    torch.save(edited, tmp_path / "edited.ckpt")
+    with pytest.raises(CheckpointError) as err:
+        export_model(**{"checkpoint": tmp_path / "edited.ckpt", "fmt": "onnx", "out": tmp_path / "m.onnx", **run})
+    assert err.value.key == "checkpoint" and misfit_counts(str(err.value)) == (1, 0, 0) and repr(gone) in str(err.value)
     with monkeypatch.context() as mp:  # a read-only folder (faked: root writes through chmod)
         mp.setattr(export.os, "access", lambda path, mode: False)
         with pytest.raises(ExportError) as err:
@@ -344,7 +351,7 @@ def test_each_bad_export_gives_one_line_and_writes_nothing(tmp_path, episode, mo
     with pytest.raises(ExportError) as err:
         export_model(ckpt, "onnx", tmp_path / "m.onnx", **run)
     assert err.value.key == "out" and str(err.value.value).endswith("m.onnx.json")  # the file that failed
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ckpt", "m.ckpt", "weights.pt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.ckpt", "edited.ckpt", "m.ckpt", "weights.pt"]
 
 
 def test_more_frames_than_the_rendered_episodes_hold_are_refused_before_the_model_loads(tmp_path, monkeypatch):

@@ -315,27 +315,63 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
     return dict(ckpt)
 
 
+def model_from_hparams(hp: Mapping[str, Any], where: str) -> CICModule:
+    """The ``CICModule`` a checkpoint's ``hyper_parameters`` describe (its weights not loaded); one
+    ``CheckpointError`` when this cicfw's CICModule does not take them."""
+    try:
+        return CICModule(**fit_saved_hparams(hp))
+    except TypeError as err:
+        raise CheckpointError(f"checkpoint {where!r}: its hyper_parameters do not fit this cicfw's "
+                              f"CICModule ({err})", key="checkpoint", value=where) from None
+
+
+def parts_label(hp: Mapping[str, Any]) -> str:
+    """``encoder/mixer/head`` as hyper-parameters name them (``cil/independent/regression``; ``?`` for none)."""
+    return "/".join(str(hp.get(k, "?")) for k in PART_KEYS)
+
+
+def weights_misfit(want: Mapping[str, Any], got: Mapping[str, Any]) -> str | None:
+    """How state_dict ``got`` fails a strict load into a model whose state_dict is ``want``: the counts of
+    missing, unexpected and reshaped weights and the first of them (``1 missing, 0 unexpected, 0 reshaped
+    weights, e.g. missing 'mixer.branches.3.6.bias'``); None when every key and shape fits. Resuming and
+    loading a checkpoint both say it so, rather than torch's multi-line error."""
+    missing = [k for k in want if k not in got]
+    unexpected = [k for k in got if k not in want]
+    reshaped = [k for k in want if k in got and hasattr(got[k], "shape") and hasattr(want[k], "shape")
+                and tuple(got[k].shape) != tuple(want[k].shape)]
+    if not (missing or unexpected or reshaped):
+        return None
+    if missing:
+        example = f"missing {missing[0]!r}"
+    elif unexpected:
+        example = f"unexpected {unexpected[0]!r}"
+    else:
+        k = reshaped[0]
+        example = f"{k!r} of shape {list(got[k].shape)}, the model's {list(want[k].shape)}"
+    return (f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, "
+            f"e.g. {example}")
+
+
 def load_model(path: str | Path | CheckpointBytes):
     """A ``CICModule`` in eval mode rebuilt from a checkpoint (or the ``CheckpointBytes`` read from one), on the
     CPU (what ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
     keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
-    hp = fit_saved_hparams(ckpt["hyper_parameters"])
-    try:
-        model = CICModule(**hp)
-    except TypeError as err:
-        raise CheckpointError(f"checkpoint {str(path)!r}: its hyper_parameters do not fit this cicfw's "
-                              f"CICModule ({err})") from None
+    model = model_from_hparams(ckpt["hyper_parameters"], str(path))
     model.on_load_checkpoint(ckpt)
     # cicfw saves plain keys even from a torch.compile'd run; a module compiled with the
     # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights
     state = {k.replace("_orig_mod.", ""): v for k, v in ckpt["state_dict"].items()}
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as err:
-        first = str(err).splitlines()[0]
-        raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its "
-                              f"hyper_parameters describe ({first})") from None
+    misfit = weights_misfit(model.state_dict(), state)
+    if misfit is None:
+        try:
+            model.load_state_dict(state, strict=True)
+        except RuntimeError as err:  # keys and shapes fit, a value does not (no tensor): torch's words, one line
+            misfit = " ".join(str(err).split())
+    if misfit:
+        raise CheckpointError(f"checkpoint {str(path)!r}: its weights do not fit the model its hyper_parameters "
+                              f"describe (encoder/mixer/head {parts_label(ckpt['hyper_parameters'])}), a damaged "
+                              f"or edited file: {misfit}", key="checkpoint", value=str(path))
     # a diverged run saves NaN weights: refused here, not as a NaN steer in the middle of a suite or export
     bad = next((k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()), None)
     if bad is not None:

@@ -41,7 +41,8 @@ from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write, writable_folder
-from cicfw.model.checkpoint import WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record, load_weights_only
+from cicfw.model.checkpoint import (PART_KEYS, WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record, load_weights_only,
+                                   model_from_hparams, parts_label, weights_misfit)
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
@@ -426,20 +427,14 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
         raise CicfwError(f"ckpt_path={path} holds the weights only (no optimizer or loop state), so training "
                          f"cannot resume from it; resume from <run>/checkpoints/last.ckpt, or evaluate it "
                          f"with cicfw evaluate checkpoint={path}", key="ckpt_path", value=path)
-    want = model.state_dict()
-    got = ckpt["state_dict"]
-    missing = [k for k in want if k not in got]
-    unexpected = [k for k in got if k not in want]
-    reshaped = [k for k in want if k in got and hasattr(got[k], "shape") and tuple(got[k].shape) != tuple(want[k].shape)]
-    if missing or unexpected or reshaped:
-        hp = ckpt.get("hyper_parameters") or {}
-        saved = "/".join(str(hp.get(k, "?")) for k in ("encoder", "mixer", "head"))
-        here = "/".join(str(model.hparams.get(k, "?")) for k in ("encoder", "mixer", "head"))
-        first = (missing or unexpected or reshaped)[0]
+    misfit = weights_misfit(model.state_dict(), ckpt["state_dict"])
+    if misfit:
+        check_weights_fit_their_model(path, ckpt, model)
+        saved = parts_label(ckpt.get("hyper_parameters") or {})
         raise CicfwError(
-            f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: {here}): "
-            f"{len(missing)} missing, {len(unexpected)} unexpected, {len(reshaped)} reshaped weights, e.g. "
-            f"{first!r}; resume with the options the checkpoint was trained with", key="ckpt_path", value=path)
+            f"ckpt_path={path} was saved by another model (encoder/mixer/head {saved}; this run: "
+            f"{parts_label(model.hparams)}): {misfit}; resume with the options the checkpoint was trained with",
+            key="ckpt_path", value=path)
     check_resumed_optimizer(path, ckpt, model)
     check_resumed_encoding(path, ckpt.get("hyper_parameters") or {}, model.hparams)  # speed scale, bins
     if split is not None:
@@ -449,6 +444,30 @@ def check_resume_checkpoint(path: str | Path | None, model: CICModule,
     if trainer_cfg is not None:
         check_epochs_left(path, ckpt, trainer_cfg)
     return str(path)
+
+
+def check_weights_fit_their_model(path: str | Path, ckpt: Mapping[str, Any], model: CICModule) -> None:
+    """A checkpoint whose weights do not fit this run's model: refused as damaged or edited when they do not fit
+    the model its own ``hyper_parameters`` record either (no options would resume it). Returns when they fit it
+    (another model's checkpoint), or when that model cannot be built here and it names other parts than this run."""
+    hp = ckpt.get("hyper_parameters")
+    hp = hp if isinstance(hp, Mapping) else {}
+    saved, here = parts_label(hp), parts_label(model.hparams)
+    theirs = None
+    if all(isinstance(hp.get(k), str) for k in PART_KEYS):
+        try:
+            theirs = model_from_hparams(hp, str(path)).state_dict()
+        except (KeyError, TypeError, ValueError):  # a part not installed here, kwargs it does not take
+            pass
+    if theirs is None and saved != here:
+        return
+    misfit = weights_misfit(theirs if theirs is not None else model.state_dict(), ckpt["state_dict"])
+    if misfit:
+        same = ", this run's too" if saved == here else f"; this run: {here}"
+        raise CicfwError(
+            f"ckpt_path={path}: its weights do not fit the model its own hyper_parameters record (encoder/mixer/head "
+            f"{saved}{same}), a damaged or edited file: "
+            f"{misfit}; resume from an intact checkpoint", key="ckpt_path", value=path)
 
 
 #: ``model.*`` values a resumed run takes from the checkpoint (the optimizer's and its schedule's state)
