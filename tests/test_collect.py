@@ -418,6 +418,8 @@ def test_a_finished_collect_is_never_undone_by_a_later_refusal_in_the_process(tm
     r = run_app_in_process("cicfw.collect", f"out_dir={out}", f"hydra.run.dir={out}", "episodes=1", "seconds=2",
                            "workers=0", "weathers=[ClearNoon]", "cameras=[centre]", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-500:]
+    # the summary line on stdout is in the run folder's log too: a piped or nohup run keeps how it ended
+    assert "dataset: " in r.stdout and "complete=True" in (out / "collect.log").read_text()
     before = sorted(p.name for p in out.iterdir())
     refused = run_app_in_process("cicfw.train", "mixer=nosuch", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert refused.returncode == 2 and "nosuch" in refused.stderr

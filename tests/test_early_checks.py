@@ -92,10 +92,12 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
     sweep = tmp_path / "sweep"
     res = run_app_in_process("cicfw.train", "-m", *BASE, f"data.path={data}", "debug=fast", "speed.compile=false",
                              "data.max_abs_steer=0.8,0.0001", f"hydra.sweep.dir={sweep}", env={"HYDRA_FULL_ERROR": "0"})
-    assert res.returncode != 0
+    assert res.returncode == 1
     assert "Traceback" not in res.stderr, res.stderr[-3000:]
     errors = [line for line in res.stderr.splitlines() if line.startswith("cicfw:")]
     assert len(errors) == 1, res.stderr[-3000:]
+    # a user error: cicfw's line alone, not Hydra's "Error executing job ..." and HYDRA_FULL_ERROR advice
+    assert "Error executing job" not in res.stderr and "HYDRA_FULL_ERROR" not in res.stderr, res.stderr[-3000:]
     assert errors[0].startswith("cicfw: error: ") and "job 1" in errors[0], errors[0]  # the job, its override
     assert "data.max_abs_steer=0.0001" in errors[0] and str(sweep / "summary.csv") in errors[0], errors[0]
     assert str(sweep / "1") in errors[0], errors[0]  # where its log is
@@ -103,6 +105,32 @@ def test_a_multirun_with_a_failing_job_ends_in_one_line_and_the_summary_keeps_it
         rows = {r["job"]: r for r in csv.DictReader(f)}
     assert rows["0"]["status"] == "ok" and rows["1"]["status"] == "failed"
     assert "max_abs_steer" in rows["1"]["error"]  # found once its files are read: composing passes it
+
+
+def test_a_failed_jobs_bug_keeps_hydras_report_and_its_user_error_is_one_line(capsys, monkeypatch):
+    """What the sweeper raises for a failed job: a bug's line comes with Hydra's "Error executing job" report,
+    a user error's (``UserJobFailed``) alone."""
+    from hydra.core.utils import JobReturn, JobStatus
+    from omegaconf import OmegaConf
+
+    from cicfw.core.errors import CicfwError
+    from cicfw.core.override_hints import JobFailed, OneLineJobFailure, UserJobFailed
+
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    config = OmegaConf.create({"hydra": {"job": {"num": 1, "name": "train"}, "runtime": {"output_dir": "/nowhere/1"},
+                                         "sweep": {"dir": "/nowhere"}}})
+    bug = JobReturn(overrides=["x=1"], status=JobStatus.FAILED, _return_value=RuntimeError("boom"))
+    user = JobReturn(overrides=["x=2"], status=JobStatus.FAILED, _return_value=CicfwError("x=2 refused", key="x"))
+    for ret in (bug, user):
+        OneLineJobFailure().on_job_end(config, ret)
+    with pytest.raises(JobFailed) as err:
+        bug.return_value
+    assert not isinstance(err.value, UserJobFailed) and "RuntimeError" in str(err.value)
+    assert "Error executing job" in capsys.readouterr().err
+    with pytest.raises(UserJobFailed) as err:
+        user.return_value
+    assert "job 1 (x=2)" in str(err.value)
+    assert "Error executing job" not in capsys.readouterr().err
 
 
 # ---- a full disk while evaluate writes its pictures ----------------------------------------------

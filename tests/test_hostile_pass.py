@@ -525,6 +525,20 @@ def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path
             claim_folder(alone, "train", "hydra.run.dir")
 
 
+def test_a_results_folder_holding_only_its_reproduce_log_is_the_reproductions(tmp_path: Path) -> None:
+    """A reproduction's results folder keeps its own log (reproduce.log) beside its manifest and cells: with
+    only the log left, the folder is still the reproduction's, so another app does not write over it."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder, folder_owner
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "reproduce.log").write_text("[12:00:00][cicfw.reproduce] 4 cells in 60 s; report: RESULTS.md\n")
+    assert folder_owner(out) == "reproduce"
+    claim_folder(out, "reproduce", "results_dir")
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(out, "train", "hydra.run.dir")
+    assert err.value.key == "hydra.run.dir" and err.value.value == str(out) and "reproduce" in str(err.value)
+
 def test_evaluate_into_a_training_run_of_the_python_api_names_train(tmp_path: Path) -> None:
     """A run folder trained through the Python API (no .hydra, no train.log: a reproduction's cell, a notebook)
     given to evaluate as its run folder was refused as holding 'files that no cicfw app wrote'; cicfw train

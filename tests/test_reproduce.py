@@ -124,6 +124,7 @@ def test_smoke_two_rows_two_seeds_end_to_end(smoke_run):
     assert one["resumed"] is None
     assert one["code"]["version"] == manifest["code"]["version"] == cicfw.__version__  # who made the cell
     assert not (smoke_run / "reproduce.lock").exists()  # the run released its folder
+    assert "4 cells in" in (smoke_run / "reproduce.log").read_text()  # its closing line, in its own log too
 
 
 def test_what_a_run_writes_is_readable_by_others(smoke_run):

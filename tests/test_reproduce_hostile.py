@@ -278,6 +278,11 @@ def test_failed_cells_make_the_app_exit_1(tmp_path, capsys, monkeypatch):
     cell = json.loads((out / "cells" / "cil" / "seed0" / "cell.json").read_text())
     assert cell["status"] == "failed" and cell["error"] == "RuntimeError: out of memory"
     assert not (out / "reproduce.lock").exists()
+    # the results folder's own log ends as stderr does (a piped or nohup run keeps it); a rerun appends
+    assert reproduce.main(["budget=smoke", "rows=[cil,gtu]", "seeds=1", f"results_dir={out}"]) == 1
+    log = (out / "reproduce.log").read_text()
+    assert log.count(err[-1]) == 2 and log.count("cicfw: error: no report") == 2, log
+    assert log.rstrip().endswith(err[-1]), log
 
 
 def test_ctrl_c_in_a_cell_advises_the_same_command(tmp_path, monkeypatch):

@@ -11,6 +11,7 @@ resume; exit status 130, 143 for SIGTERM), after the workers are ended and half-
 """
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
@@ -25,6 +26,8 @@ from cicfw.collect.integrity import verify_dataset
 from cicfw.core.errors import USER_ERRORS, on_interrupt, report_user_errors
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import claim_folder, release_folder_locks, undo_run_folder
+
+log = logging.getLogger("cicfw.collect")
 
 
 def _run(cfg, on_start=None) -> str:
@@ -62,6 +65,15 @@ def _verify(raw: dict, out_dir: Path) -> str:
     return report.summary()
 
 
+def _to_job_log(line: str) -> None:
+    """``line`` into the run's job log too (collect.log: Hydra's file handler), and only there: stdout, which
+    a closed pipe may have gone, gets it as it is; the run folder keeps how the collection ended."""
+    record = log.makeRecord(log.name, logging.INFO, __file__, 0, "%s", (line,), None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
+
+
 def _main() -> None:
     sys.argv = ["verify=true" if a == "--verify" else a for a in sys.argv]  # `cicfw collect --verify`
 
@@ -70,7 +82,9 @@ def _main() -> None:
     def main(cfg: DictConfig) -> None:
         out, started = Path(HydraConfig.get().runtime.output_dir), []
         try:
-            print(_run(cfg, on_start=lambda: started.append(True)))
+            line = _run(cfg, on_start=lambda: started.append(True))
+            _to_job_log(line)
+            print(line)
         except USER_ERRORS:  # refused before collecting: the run folder as CollectRunFolderCheck found it (a
             if not started:  # multirun job's keeps its log); once collecting, its log and episodes stay
                 undo_run_folder(out)

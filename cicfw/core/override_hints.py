@@ -28,7 +28,7 @@ from hydra.core.default_element import GroupDefault
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.object_type import ObjectType
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from hydra.core.utils import JobStatus
+from hydra.core.utils import JobReturn, JobStatus
 from hydra.errors import (CompactHydraException, ConfigCompositionException, MissingConfigException,
                           OverrideParseException)
 from hydra.experimental.callback import Callback
@@ -214,6 +214,9 @@ def one_line_config_errors() -> Iterator[None]:
         except Exception as err:
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
                 raise
+            if isinstance(err, UserJobFailed):  # a job's user error: its one line, not Hydra's report around it
+                print(err, file=sys.stderr)
+                sys.exit(1)
             # Optuna's "no trial is completed" (a ValueError) when every trial failed: not its traceback
             failed = every_job_failed() if isinstance(err, ValueError) and not isinstance(err, JobFailed) else None
             if failed is not None:
@@ -373,6 +376,26 @@ class JobFailed(CompactHydraException):
     """A multirun job's failure as one line: Hydra prints a compact exception without a traceback."""
 
 
+class UserJobFailed(JobFailed):
+    """A multirun job's user error (a ``CicfwError``) as one line: ``one_line_config_errors`` prints it alone,
+    without Hydra's "Error executing job" line and HYDRA_FULL_ERROR advice around it (exit status 1)."""
+
+
+class _QuietJobReturn(JobReturn):
+    """A failed job's return whose error the sweeper raises without Hydra's "Error executing job with
+    overrides" line: the cicfw line (``UserJobFailed``) names the job and its overrides already."""
+
+    @property
+    def return_value(self) -> Any:
+        if self.status == JobStatus.COMPLETED:
+            return self._return_value
+        raise self._return_value
+
+    @return_value.setter
+    def return_value(self, value: Any) -> None:
+        self._return_value = value
+
+
 def failure_line(err: BaseException) -> str:
     """A job's exception in one line: a user error's message, else its type and message."""
     text = err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err
@@ -384,8 +407,9 @@ class OneLineJobFailure(Callback):
     """Hydra callback: a failed multirun job's exception, which the sweeper raises once the batch of jobs
     is done (Hydra would print its traceback), becomes one ``cicfw: error:`` line naming the job, its
     overrides and its log. The job stays failed (the sweep summary, listed after this callback, records
-    its own error; Optuna marks the trial failed); its log keeps the whole story. A single run's failure is
-    left as it is (no job number; the app's own handler words it)."""
+    its own error; Optuna marks the trial failed); its log keeps the whole story. A user error is that line
+    alone (``UserJobFailed``); a bug keeps Hydra's report around it. A single run's failure is left as it
+    is (no job number; the app's own handler words it)."""
 
     def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
         err = getattr(job_return, "_return_value", None)
@@ -398,5 +422,8 @@ class OneLineJobFailure(Callback):
         summary = Path(str(hc.sweep.dir)) / "summary.csv"
         every = f"; every job's status: {summary}" if summary.is_file() else ""
         overrides = " ".join(job_return.overrides or [])
-        job_return._return_value = JobFailed(f"cicfw: error: job {hc.job.num} ({overrides}) failed: "
-                                             f"{failure_line(err)} (its log: {log_file}){every}")
+        user = isinstance(err, USER_ERRORS) and os.environ.get("HYDRA_FULL_ERROR") != "1"
+        job_return._return_value = (UserJobFailed if user else JobFailed)(
+            f"cicfw: error: job {hc.job.num} ({overrides}) failed: {failure_line(err)} (its log: {log_file}){every}")
+        if user:  # a bug keeps Hydra's report around its line
+            job_return.__class__ = _QuietJobReturn

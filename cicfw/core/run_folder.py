@@ -580,7 +580,7 @@ HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", ".col
                 "reproduce.lock")
 #: the record each non-Hydra output names itself by: (file, app)
 RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduce.json", "reproduce"),
-           ("cells", "reproduce"), ("dataset_metadata.json", "collect"))
+           ("cells", "reproduce"), ("reproduce.log", "reproduce"), ("dataset_metadata.json", "collect"))
 #: what a dataset's files end with: a folder holding them is someone's data, whoever collected it
 DATA_SUFFIXES = (".h5", ".hdf5")
 #: a Hydra app's run without ``.hydra`` (``hydra.output_subdir=null``): its job log ``<job>.log`` together with
@@ -651,7 +651,7 @@ def folder_owner(folder: str | Path) -> str | None:
     (``JOB_OUTPUTS``), a training run's data record without either (``data.json``, which only ``train`` writes,
     once its checks passed: beside its outputs, or alone where the run stopped before its first one),
     the episode log of an evaluation driven through the Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
-    stopped before it wrote the manifest) for a reproduction,
+    stopped before it wrote the manifest, or its results folder's own log, ``reproduce.log``) for a reproduction,
     ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
     their run folder are no run: their episode log stays behind).
     Records the apps write anyway, rather than a new marker file, so that folders written before this

@@ -859,6 +859,36 @@ def _error_line(err: BaseException) -> str:
     return str(err.args[0] if isinstance(err, (KeyError, FileNotFoundError)) and err.args else err)
 
 
+#: the run's own log in its results folder, appended per run: its start, each cell's progress logged in this
+#: process, the final summary line and the error lines it ends with (a cell's own log is in its folder)
+LOG_FILE = "reproduce.log"
+LOG_FORMAT = "[%(asctime)s][%(name)s] %(message)s"
+
+
+class _LogFile(logging.FileHandler):
+    """The run's log file: a line it cannot write (a full disk) is lost there alone, never printed as a
+    logging traceback beside the run's own one-line error."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
+
+
+def open_log(results_dir: Path) -> logging.Handler:
+    """A handler appending to ``<results_dir>/reproduce.log``, put on ``cicfw.reproduce``'s logger (not the
+    root's, which Hydra reconfigures for every cell run in this process): a piped or ``nohup`` run keeps how it
+    ended in its results folder."""
+    handler = _LogFile(results_dir / LOG_FILE, mode="a", encoding="utf-8")
+    handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%Y-%m-%d %H:%M:%S"))
+    log.addHandler(handler)
+    return handler
+
+
+def _said(line: str, handler: logging.Handler) -> None:
+    """``line`` on stderr, and in the run's log (``handler``) too."""
+    print(line, file=sys.stderr)
+    handler.handle(log.makeRecord(log.name, logging.ERROR, __file__, 0, "%s", (line,), None))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Check the plan, take the results folder, collect the data, run every cell through Hydra's launcher,
     write the report (and publish it)."""
@@ -870,7 +900,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _cell_job()
         return 0
     args = [a for a in args if a not in ("-m", "--multirun")]
-    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(level=logging.INFO, format=LOG_FORMAT, datefmt="%H:%M:%S")
     lock = None
     try:
         with checking_the_plan():
@@ -893,6 +923,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
         return 2
+    try:  # the plan passed and the folder is this run's (its manifest): from here on, its log is there too
+        handler = open_log(Path(cfg.results_dir))
+    except OSError as err:
+        lock.release()
+        print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
+        return 2
+    try:
+        return _run_cells(cfg, args, rows, seeds, manifest, lock, handler)
+    finally:
+        log.removeHandler(handler)
+        handler.close()
+
+
+def _run_cells(cfg: DictConfig, args: list[str], rows: Sequence[str], seeds: Sequence[int], manifest: Mapping[str, Any],
+               lock: Any, handler: logging.Handler) -> int:
+    """Every cell through Hydra's launcher, then the report; the exit status (1: no report, or a cell that
+    did not finish). ``handler``: the run's log, where the closing lines go too."""
     log.info("%d rows x %d seeds on budget %s (%d episodes per cell) into %s", len(rows), len(seeds),
              manifest["budget"], manifest["episodes"], cfg.results_dir)
     # seeds outermost: cells run seed by seed (cil/0, gtu/0, cil/1 ...), so a run stopped early still
@@ -920,18 +967,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             log.info("%d cells in %.0f s; report: %s", sum(len(r["seeds"]) for r in data["rows"]),
                      time.time() - t0, Path(cfg.results_dir) / "RESULTS.md")
         except ValueError as err:  # the cells are kept; the report refused them (copied seeds, another pin)
-            print(f"cicfw: error: no report: {_error_line(err)}", file=sys.stderr)
+            _said(f"cicfw: error: no report: {_error_line(err)}", handler)
             code = 1
         except OSError as err:  # a publish_dir that became unwritable, a full disk: one line, the cells are kept
-            print(f"cicfw: error: {_error_line(err)}", file=sys.stderr)
+            _said(f"cicfw: error: {_error_line(err)}", handler)
             code = 1
         finally:
             lock.release()
     unfinished = unfinished_cells(Path(cfg.results_dir), rows, seeds)
     if unfinished:
-        print(f"cicfw: error: {len(unfinished)} of {len(rows) * len(seeds)} cells did not finish "
+        _said(f"cicfw: error: {len(unfinished)} of {len(rows) * len(seeds)} cells did not finish "
               f"({', '.join(unfinished[:6])}{', ...' if len(unfinished) > 6 else ''}): their cell.json or the log "
-              f"above says why; a rerun of the same command retries them", file=sys.stderr)
+              f"above says why; a rerun of the same command retries them", handler)
         code = 1
     return code
 
