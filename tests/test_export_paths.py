@@ -31,6 +31,45 @@ def test_export_refuses_to_write_over_its_checkpoint(checkpoint):
     assert checkpoint.read_bytes() == b"checkpoint bytes"
 
 
+def _hydra_run(folder: Path, job: str) -> Path:
+    """A folder as Hydra leaves a run of the cicfw app ``job``."""
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    return folder
+
+
+@pytest.mark.parametrize("inside", ["results", "results/cells", "other", "other/checkpoints", "evaluation"])
+def test_export_refuses_an_out_inside_another_apps_run(checkpoint, tmp_path, inside):
+    """A model written among a reproduction's results, another training run's files or an evaluation's is
+    refused before the checkpoint is read, naming out; nothing is written."""
+    (tmp_path / "results" / "cells" / "cil" / "seed0").mkdir(parents=True)
+    (tmp_path / "results" / "reproduce.json").write_text("{}")
+    (_hydra_run(tmp_path / "other", "train") / "checkpoints").mkdir()
+    _hydra_run(tmp_path / "evaluation", "evaluate")
+    before = sorted(tmp_path.rglob("*"))
+    out = tmp_path / inside / "model.pt"
+    with pytest.raises(ExportError) as err:
+        export_model(checkpoint, "torchscript", out)
+    assert (err.value.key, str(err.value.value)) == ("out", str(out)), str(err.value)
+    assert str(tmp_path / inside.split("/")[0]) in str(err.value), str(err.value)  # the run it lies in
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_export_writes_beside_its_checkpoint_inside_its_own_run(tmp_path):
+    """The default out (beside the checkpoint) and any out inside the checkpoint's own run pass, a
+    reproduction's cell included."""
+    from cicfw.export.app import check_outside_other_runs
+
+    run = _hydra_run(tmp_path / "run", "train")
+    ckpt = run / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir()
+    for out in (ckpt.with_suffix(".pt"), run / "model.pt"):
+        check_outside_other_runs(out, ckpt)
+    cell = _hydra_run(tmp_path / "results" / "cells" / "cil" / "seed0" / "train", "train")
+    (tmp_path / "results" / "reproduce.json").write_text("{}")
+    check_outside_other_runs(cell / "checkpoints" / "best.onnx", cell / "checkpoints" / "best.ckpt")
+
+
 @pytest.mark.parametrize("fmt, out, wants", [("torchscript", "x.onnx", ".pt"), ("onnx", "x.pt", ".onnx"),
                                              ("onnx", "x", ".onnx")])
 def test_export_refuses_an_out_suffix_of_the_other_format(checkpoint, tmp_path, fmt, out, wants):

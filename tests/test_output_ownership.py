@@ -735,6 +735,34 @@ def test_a_cache_inside_a_run_or_results_folder_is_refused_naming_the_variable(t
     assert _files(tmp_path) == kept and sorted(tmp_path.rglob("*")) == paths  # no dataset, no new run folder
 
 
+@pytest.mark.parametrize("inside", ["run/checkpoints", "results/newdata", "run"])
+def test_train_collecting_into_a_data_path_inside_another_apps_run_is_refused(tmp_path, inside):
+    """data=sim_default collects into data.path: a folder inside (or being) a training run or a
+    reproduction's results is refused as collect refuses its out_dir, naming data.path, before anything
+    is collected and with no new run folder left."""
+    hydra_run(tmp_path / "run", "train", "checkpoints/last.ckpt")
+    results_folder(tmp_path / "results")
+    kept, paths = _files(tmp_path), sorted(tmp_path.rglob("*"))
+    data = tmp_path / inside
+    args = ["trainer.fast_dev_run=true", "progress_bar=false", "speed.compile=false", "data.collect.episodes=1",
+            "data.collect.seconds=2", f"data.path={data}", f"hydra.run.dir={tmp_path / 'new_run'}"]
+    res = run_app_in_process("cicfw.train", *args, cwd=tmp_path,
+                             env={**IN_PROCESS, "CICFW_CACHE": str(tmp_path / "cache")})
+    assert_refused(res, "data.path", data)
+    assert _files(tmp_path) == kept and sorted(tmp_path.rglob("*")) == paths  # no dataset, no new run folder
+
+
+def test_a_collected_dataset_inside_a_run_is_still_read_by_train(tmp_path):
+    """Only a folder train would collect into is claimed: a dataset already there (collect's own) passes."""
+    from cicfw.train.app import make_collect_folder
+
+    hydra_run(tmp_path / "run", "train", "checkpoints/last.ckpt")
+    data = tmp_path / "run" / "mine"
+    data.mkdir()
+    (data / "dataset_metadata.json").write_text(json.dumps({"complete": True}))
+    make_collect_folder(data)  # no refusal
+
+
 # ---- the Python API owns its folder as its app does ----------------------------------------------
 from conftest import TINY_TRAIN, compose_train  # noqa: E402
 

@@ -41,6 +41,7 @@ from cicfw.core.config_checks import is_integer, is_number
 from cicfw.core.errors import CicfwError, report_user_errors
 from cicfw.core.files import write_together
 from cicfw.core.json_files import read_json
+from cicfw.core.run_folder import enclosing_run
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
 from cicfw.data.provenance import SETS_KEY, file_sha256
@@ -467,6 +468,20 @@ def check_not_the_checkpoint(path: Path, checkpoint: Path) -> None:
                               f"({str(checkpoint)!r}); give out=<another file>", key="out", value=path)
 
 
+def check_outside_other_runs(path: Path, checkpoint: Path) -> None:
+    """``out``'s folder is no other cicfw app's run nor inside one (``enclosing_run``), as every app's output
+    folder: a model there would read as part of that run. The checkpoint's own run (where the default
+    ``out``, beside the checkpoint, goes) takes one."""
+    found = enclosing_run(path.parent if str(path.parent) else Path("."), include_self=True)
+    if found is None or found == enclosing_run(checkpoint.parent, include_self=True):
+        return
+    run, owner = found
+    what = "results folder" if owner == "reproduce" else "run"
+    raise ExportError(f"out={str(path)!r} lies inside the cicfw {owner} {what} {str(run)!r}, not the checkpoint's own "
+                      f"run, among whose files cicfw export would write; give out=<a file outside it>, or leave out "
+                      f"unset to write beside the checkpoint", key="out", value=str(path))
+
+
 def check_own_output(path: Path, checkpoint: Path | CheckpointBytes, fmt: str, overwrite: bool = False) -> None:
     """``out`` and its sidecar are written only where nothing is, over this checkpoint's own earlier export
     (its sidecar names the checkpoint's SHA-256, of the bytes read for ``CheckpointBytes``, and the format, and
@@ -586,6 +601,7 @@ def export_model(checkpoint: str | Path, fmt: str = "onnx", out: str | Path | No
     refuse_exported_model(ckpt)
     path = output_path(str(out) if out else None, ckpt, fmt)
     check_not_the_checkpoint(path, ckpt)
+    check_outside_other_runs(path, ckpt)
     check_out_suffix(str(out) if out else None, fmt)
     sidecar = path.with_name(path.name + ".json")
     free = [p for p in (path, sidecar) if not os.path.lexists(p)]  # before the check: only created at the end

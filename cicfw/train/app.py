@@ -149,7 +149,9 @@ def ensure_data(data_cfg: DictConfig) -> None:
 
 def make_collect_folder(path: Path) -> None:
     """``data=sim_default`` collects into ``data.path``, by default under the cicfw cache folder
-    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): made here (``writable_folder``), and a folder that cannot be
+    (``$CICFW_CACHE``, else ``~/.cache/cicfw``): claimed as collect claims its ``out_dir`` (``claim_folder``:
+    another app's run or a folder inside one is refused, naming ``data.path``, or ``CICFW_CACHE`` when the
+    cache itself lies in one), then made here (``writable_folder``), and a folder that cannot be
     made or written is one line naming what the user of train changes, ``CICFW_CACHE`` for a folder under it,
     else ``data.path`` (the collector's own error names collect's ``out_dir``)."""
     cache = os.environ.get(CACHE_VARIABLE)
@@ -159,6 +161,9 @@ def make_collect_folder(path: Path) -> None:
         check_cache_outside_runs(cache, root)
     else:
         key, value, instead = "data.path", None, f"set the environment variable {CACHE_VARIABLE} to one for the default"
+    # the rule collect applies to its out_dir: not another app's run nor a folder inside one (an existing
+    # dataset there, which collecting finishes or reads, passes)
+    claim_folder(path, "collect", "data.path", foreign_ok=True)
     writable_folder(path, key, f"a folder you can write, where data=sim_default collects its dataset (or {instead})",
                     "the dataset folder", value=value)
 
@@ -173,7 +178,7 @@ def check_cache_outside_runs(cache: str, root: Path) -> None:
         raise ConfigError(CACHE_VARIABLE, cache, "", message=(
             f"the environment variable {CACHE_VARIABLE}={cache!r} {where} {str(run)!r}, a run of cicfw "
             f"{owner}, where data=sim_default would collect its dataset among that run's files; set "
-            f"{CACHE_VARIABLE} to a folder outside any run or results folder (or give data.path=<a folder>)"))
+            f"{CACHE_VARIABLE} to a folder outside any run or results folder (or give data.path=<a folder outside them>)"))
 
 
 def check_not_your_own_data(path: Path) -> None:
