@@ -364,7 +364,7 @@ def test_a_copy_of_a_folder_is_refused_not_equivalent(tmp_path, capsys):
     shutil.copytree(tmp_path / "a", tmp_path / "copy")
     assert ps.main([str(tmp_path / "a"), str(tmp_path / "copy"), "--margin", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "same cells" in err[0], err
+    assert len(err) == 1 and f"{tmp_path / 'copy'}/seed0" in err[0], err
     cell = tmp_path / "a" / "seed0" / "cell.json"
     assert ps.main([str(cell), str(tmp_path / "copy" / "seed0" / "cell.json"), "--episodes"]) == 2
     assert "same episodes file" in capsys.readouterr().err

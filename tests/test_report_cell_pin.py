@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from cicfw.core.errors import CicfwError
 from cicfw.reproduction.cells import CellPin, cell_mismatch, load_cells, pinned_epochs, pinned_recipe
 from cicfw.reproduction.report import folder_pin
 from conftest import assert_refused, run_app_in_process
@@ -113,22 +114,97 @@ def test_the_paired_switch_refuses_a_cell_its_folder_s_pin_did_not_make(tmp_path
     assert str(cell) in line and "epochs=3" in line and "epochs=6" in line, line
 
 
-@pytest.mark.parametrize("field", [None, "finished_s"])
-def test_a_seed_that_is_a_copy_of_another_is_refused(tmp_path, field):
+@pytest.mark.parametrize("retouch", [None, "finished_s", "wall_s.train"])
+def test_a_seed_that_is_a_copy_of_another_is_refused(tmp_path, retouch):
     """seed0's cell.json copied as seed1 with its seed renamed counted one model as two independent seeds (a
-    narrower interval); a field of a seed of its own (when it finished) makes it another model's, reported."""
+    narrower interval); a retouched field its training does not decide (its wall time) leaves it a copy."""
     folder = tmp_path / "c6e"
     shutil.copytree(RESULTS / "converged6_carla", folder)
     first, copy = (folder / "cells" / "cil" / f"seed{s}" / "cell.json" for s in (0, 1))
     d = json.loads(first.read_text())
     d["seed"] = 1
-    if field is not None:
-        d[field] += 1
-        copy.write_text(json.dumps(d))
-        assert len(load_cells(folder)[0]) == len(list(folder.glob("cells/*/seed*/cell.json")))
-        return
+    if retouch == "wall_s.train":
+        d["wall_s"]["train"] += 7
+    elif retouch is not None:
+        d[retouch] += 1
     copy.write_text(json.dumps(d))
     before = snapshot(folder)
     line = assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), copy)
     assert str(first) in line, line
     assert snapshot(folder) == before
+
+
+def test_the_copy_signature_is_the_validation_error_curve_and_episodes(tmp_path):
+    """Another validation error is another trained model, pooled; a cell that records none is a copy only when
+    identical but for its seed, as before (a retouched field then makes it another cell)."""
+    folder = tmp_path / "c6e"
+    shutil.copytree(RESULTS / "converged6_carla", folder)
+    first, copy = (folder / "cells" / "cil" / f"seed{s}" / "cell.json" for s in (0, 1))
+    d = json.loads(first.read_text())
+    d.update(seed=1, val_steer_mae=d["val_steer_mae"] + 1e-9)
+    copy.write_text(json.dumps(d))
+    n = len(list(folder.glob("cells/*/seed*/cell.json")))
+    assert len(load_cells(folder)[0]) == n
+    for path in (first, copy):  # neither records its validation error: the whole cell.json decides
+        d = json.loads(path.read_text())
+        d.pop("val_steer_mae")
+        d["finished_s"] = 1.0 if path == first else 2.0
+        path.write_text(json.dumps(d))
+    assert len(load_cells(folder)[0]) == n
+    d["finished_s"] = 1.0
+    copy.write_text(json.dumps(d))
+    with pytest.raises(CicfwError) as err:
+        load_cells(folder)
+    assert err.value.value == str(copy)
+
+
+def gtu_as_cil(folder: Path, seed: int, recipe: bool = True) -> Path:
+    """The same seed's GTU cell.json written as ``folder``'s CIL cell (its ``row`` edited): another model."""
+    cell = folder / f"seed{seed}" / "cell.json"
+    d = json.loads((RESULTS / "converged6_xeon" / "cells" / "gtu" / f"seed{seed}" / "cell.json").read_text())
+    d["row"] = "cil"
+    if not recipe:  # a cell written before it recorded its recipe: its own mixer and head fields
+        d.pop("recipe")
+    cell.write_text(json.dumps(d))
+    return cell
+
+
+@pytest.mark.parametrize("recipe", [True, False])
+def test_the_report_refuses_a_row_whose_cells_record_another_model(tmp_path, recipe):
+    folder = tmp_path / "c6x"
+    shutil.copytree(RESULTS / "converged6_xeon", folder)
+    cell = gtu_as_cil(folder / "cells" / "cil", 3, recipe)
+    before = snapshot(folder)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), "recipe.mixer.name=gtu")
+    assert str(cell) in line and "mixer.name=independent" in line, line
+    assert snapshot(folder) == before
+
+
+def copy_row(src: Path, dst: Path) -> Path:
+    """A row's cells copied with ``cp -a``: outside any results folder (no pin read)."""
+    shutil.copytree(src, dst)
+    return dst
+
+
+@pytest.mark.parametrize("side", [0, 1])
+def test_the_paired_switch_refuses_a_side_whose_cells_record_another_model(tmp_path, side):
+    rows = [copy_row(RESULTS / "converged6_xeon" / "cells" / "cil", tmp_path / "a"),
+            copy_row(RESULTS / "converged6" / "cells" / "cil", tmp_path / "b")]
+    cell = gtu_as_cil(rows[side], 2)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.paired_switch", *map(str, rows)),
+                          "recipe.mixer.name=gtu")
+    assert str(cell) in line, line
+
+
+@pytest.mark.parametrize("retouch", [False, True])
+def test_the_paired_switch_refuses_any_seed_whose_two_cells_are_copies(tmp_path, retouch):
+    """B is A's cells (cp -a) but for one seed from another reproduction: four of five seeds compared with
+    themselves. The first copied seed is named; a retouched wall time leaves a copy a copy."""
+    a = copy_row(RESULTS / "converged6_xeon" / "cells" / "cil", tmp_path / "a")
+    b = copy_row(a, tmp_path / "b")
+    shutil.copy(RESULTS / "converged" / "cells" / "cil" / "seed0" / "cell.json", b / "seed0" / "cell.json")
+    if retouch:
+        d = json.loads((b / "seed1" / "cell.json").read_text())
+        d["wall_s"]["train"] += 7
+        (b / "seed1" / "cell.json").write_text(json.dumps(d))
+    assert_refused(run_app_in_process("cicfw.reproduction.paired_switch", str(a), str(b)), f"{b}/seed1")

@@ -260,19 +260,30 @@ def cell_runs(folder: Path) -> list[str]:
 
 
 #: the key of a cell.json that names a cell among its row's rather than records what it measured: a copy of
-#: another seed of the row differs in it alone
+#: another seed of the row differs in it alone (the fallback signature, for a cell that lacks ``SIGNATURE``'s)
 NAMING_KEYS = ("seed",)
+#: what one training run records and no other can repeat: its validation error to every digit and its
+#: learning curve, with the episodes its model drove (one model driven again under another suite is no copy)
+SIGNATURE = ("val_steer_mae", "curve", "episodes")
+#: how an error line says what made two cells one (``measured``)
+COPY_SAID = ("the same val_steer_mae, curve and episodes, or, where it records none, cell.json identical but "
+             "for its seed")
 
 
 def measured(cell: CellResult) -> str:
-    """A cell's cell.json but for its seed, as one canonical string: two trained models never share
-    it (their wall times, learning curves and episodes are their own), a copied cell does."""
-    return json.dumps({k: v for k, v in cell.meta.items() if k not in NAMING_KEYS}, sort_keys=True)
+    """A cell's copy signature, one canonical string: its ``SIGNATURE`` fields where it records a validation
+    error (a float) and a curve, which two trained models never share and a retouched copy (its wall time
+    edited) still does; else its whole cell.json but for its seed."""
+    meta = cell.meta
+    mae = meta.get("val_steer_mae")
+    if isinstance(mae, float) and "curve" in meta:
+        return json.dumps({k: meta.get(k) for k in SIGNATURE}, sort_keys=True)
+    return json.dumps({k: v for k, v in meta.items() if k not in NAMING_KEYS}, sort_keys=True)
 
 
 def is_copy(a: CellResult, b: CellResult) -> bool:
-    """Whether ``a`` and ``b`` are one cell twice: cell.json identical but for its seed (the paired switch
-    refuses such sides, ``load_cells`` such seeds of a row)."""
+    """Whether ``a`` and ``b`` are one cell twice: the same copy signature (``measured``): the paired switch
+    refuses such a paired seed, ``load_cells`` such seeds of a row."""
     return measured(a) == measured(b)
 
 
@@ -283,13 +294,50 @@ def check_no_copies(cells: Sequence[tuple[Path, CellResult]]) -> None:
     for path, cell in cells:
         first = seen.setdefault((cell.row, measured(cell)), path)
         if first != path:
-            raise CicfwError(f"{first} and {path} are copies of one cell (identical but for their seed): one model "
-                             f"counted as two seeds; remove the copy", key="cell", value=str(path))
+            raise CicfwError(f"{first} and {path} are copies of one cell ({COPY_SAID}): one model counted as two "
+                             f"seeds; remove the copy", key="cell", value=str(path))
+
+
+#: the names that say which model a cell trained (its recipe's, else the cell.json's own ``mixer``/``head``)
+MODEL_NAMES = ("encoder", "mixer", "head")
+
+
+def model_names(meta: Mapping[str, Any]) -> dict[str, Any]:
+    """A cell's recorded model as recipe keys, ``mixer.name`` -> ``gtu``: its recipe's encoder, mixer and head
+    names, else (a cell without a recipe) its cell.json's ``mixer`` and ``head``; what it does not record is
+    left out (not compared)."""
+    recipe = meta.get("recipe") if isinstance(meta.get("recipe"), dict) else {}
+    out = {}
+    for part in MODEL_NAMES:
+        section = recipe.get(part)
+        name = section.get("name") if isinstance(section, dict) else meta.get(part)
+        if name is not None:
+            out[f"{part}.name"] = name
+    return out
+
+
+def check_one_model(cells: Sequence[tuple[Path, CellResult]]) -> None:
+    """One error line (``check_cell_pin``'s: the cell's file, the key, both values) when a row's cells record
+    different models (``model_names``): a cell of another row copied in with its ``row`` edited would be
+    averaged in as a seed of this one."""
+    known: dict[str, dict[str, tuple[Any, Path]]] = {}
+    for path, cell in cells:
+        names, row = model_names(cell.meta), known.setdefault(cell.row, {})
+        pin = CellPin(recipe={k: v for k, (v, _) in row.items()})
+        found = cell_mismatch({"recipe": names}, pin)
+        if found is not None:
+            first = row[found[0].removeprefix("recipe.")][1]
+            check_cell_pin(path, {"recipe": names}, pin, f"the cell {str(first)!r} of row {cell.row!r} was made with",
+                           "a row's cells are one model trained on several seeds; move the cell to its own row or "
+                           "remove it")
+        for k, v in names.items():
+            row.setdefault(k, (v, path))
 
 
 def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]]]:
     """The finished cells (status ok) and the failed ones (their cell.json) under ``results_dir``; a cell in
-    another's folder or two cells that are copies (``check_no_copies``) are one error line."""
+    another's folder, a row's cells that record different models (``check_one_model``) or two cells that are
+    copies (``check_no_copies``) are one error line."""
     ok, failed, where = [], [], []
     for p in cell_files(results_dir):
         c = load_cell(p)
@@ -301,6 +349,7 @@ def load_cells(results_dir: Path) -> tuple[list[CellResult], list[dict[str, Any]
         (ok if isinstance(c, CellResult) else failed).append(c)
         if isinstance(c, CellResult):
             where.append((p, c))
+    check_one_model(where)
     check_no_copies(where)
     return ok, failed
 

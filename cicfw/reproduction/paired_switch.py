@@ -43,8 +43,9 @@ from cicfw.benchmark.evaluation_report import check_one_episode_rule
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError, ConfigError, install_app_handlers
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, CellResult, check_cell_pin, check_families,
-                                      check_same_episodes, cpu_counts, episode_terms, is_copy, kind_noun, load_cell)
+from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellResult, check_cell_pin, check_families,
+                                      check_one_model, check_same_episodes, cpu_counts, episode_terms, is_copy,
+                                      kind_noun, load_cell)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level, no_spread,
                                            with_episode_floor, word)
@@ -86,7 +87,9 @@ def load_row(folder: Path) -> dict[int, CellResult]:
     if not folder.is_dir():
         raise CicfwError(f"{folder} is not a folder; give a row's cells, e.g. docs/results/converged/cells/cil")
     paths = sorted(folder.glob("seed*/cell.json"))
-    out = {c.seed: c for c in map(load_cell, paths) if isinstance(c, CellResult)}
+    loaded = [(p, c) for p, c in zip(paths, map(load_cell, paths)) if isinstance(c, CellResult)]
+    check_one_model(loaded)  # a cell of another model copied in as a seed: the report's check
+    out = {c.seed: c for _, c in loaded}
     if not out:
         rows = sorted(p.name for p in (folder / "cells").glob("*") if p.is_dir()) if not paths else []
         if rows:  # a reproduction's results folder given for one of its rows
@@ -227,14 +230,14 @@ def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | 
 
 
 def check_not_copies(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str]) -> None:
-    """One error line when every paired seed's cell is a copy on the other side (``cells.is_copy``, the check
-    the report makes between a row's seeds): a folder compared with itself reads "equivalent" at every
-    margin, which says nothing about a switch."""
-    seeds = sorted(set(a) & set(b))
-    if seeds and all(is_copy(a[s], b[s]) for s in seeds):
-        raise CicfwError(f"{names[0]} and {names[1]} hold the same cells (cell.json identical at seeds {seeds}): "
-                         f"a copy compared with itself; give the cells of the run with the switch",
-                         key="cells", value=str(names[1]))
+    """One error line naming the first paired seed whose two cells are copies (``cells.is_copy``, the check the
+    report makes between a row's seeds): a seed compared with itself differs by nothing and pulls the verdict
+    toward "equivalent", which says nothing about a switch."""
+    for s in sorted(set(a) & set(b)):
+        if is_copy(a[s], b[s]):
+            sa, sb = (str(Path(n) / f"seed{s}") for n in names)
+            raise CicfwError(f"{sa} and {sb} are copies of one cell ({COPY_SAID}): a seed compared with itself; give "
+                             f"the cells of the run with the switch", key="cells", value=sb)
 
 
 def check_distinct(a: Path, b: Path, what: str) -> None:
