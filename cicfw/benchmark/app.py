@@ -48,7 +48,7 @@ from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted,
 from cicfw.core.files import temp_name_bytes
 from cicfw.core.override_hints import composition_error
 from cicfw.core.run_folder import claim_folder, name_max, release_folder_locks, undo_run_folder
-from cicfw.core.spawning import check_spawn_safe
+from cicfw.core.spawning import WorkerRefused, check_spawn_safe
 from cicfw.core.sweeps import override_values, taking_turns, write_job_metrics
 from cicfw.data.provenance import file_sha256
 from cicfw.export.agent import torch_device
@@ -202,7 +202,9 @@ def evaluate_policy(policy: Mapping[str, Any], suite: Mapping[str, Any], runner:
                 if isinstance(stop, OSError) and stop.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
                     raise OutputWriteError(f"could not write the episode log ({stop.strerror}); {kept}: free some "
                                            f"space, then {again}") from None
-                log.error("stopped with %s; run the same command with the same output folder to drive the rest", kept)
+                if not isinstance(stop, WorkerRefused):  # the same command would stop the same way
+                    log.error("stopped with %s; run the same command with the same output folder to drive the rest",
+                              kept)
                 raise
         meta.update(wall_s=round(wall, 2), episodes_driven=len(missing), episodes_reused=elog.reused)
         # the report that says "complete" is written last: a run stopped while its trajectories or pictures

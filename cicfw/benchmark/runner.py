@@ -36,6 +36,7 @@ from cicfw.benchmark.suite import Episode, make_backend, suite_routes
 from cicfw.core.config_checks import is_integer
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError
 from cicfw.core.progress import ProgressBar
+from cicfw.core.spawning import refused_by_worker
 from cicfw.model.checkpoint import CheckpointBytes
 from cicfw.registry import SIM_BACKENDS
 from cicfw.sim.vehicle import TOP_SPEED_KMH
@@ -388,6 +389,10 @@ def _run_processes(episodes: list[Episode], policy_spec: dict, sim_spec: dict, c
             except queue_mod.Empty:
                 dead = [k for k, p in enumerate(procs) if not p.is_alive() and k not in results]
                 if dead and q.empty():
+                    refused = refused_by_worker(procs[dead[0]].exitcode, "evaluate_policy", "runner.workers",
+                                                cfg.workers)
+                    if refused is not None:
+                        raise refused
                     raise RuntimeError(f"evaluation worker {dead[0]} died (exit code "
                                        f"{procs[dead[0]].exitcode}) without a result")
                 continue

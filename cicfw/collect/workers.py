@@ -19,6 +19,7 @@ from cicfw.collect.episode import ParentGone, run_episode
 from cicfw.collect.errors import CollectError
 from cicfw.collect.lock import FolderLock
 from cicfw.core.errors import USER_ERRORS
+from cicfw.core.spawning import refused_by_worker
 from cicfw.registry import SIM_BACKENDS
 
 
@@ -118,9 +119,13 @@ def _raise_worker_error(msg: tuple) -> None:
     raise RuntimeError(f"collect worker {i} failed{where}:\n{tb}")
 
 
-def _check_workers(procs: list, current: dict[int, str | None], left: int) -> None:
+def _check_workers(procs: list, current: dict[int, str | None], left: int, asked: object = None) -> None:
     """A worker that died, or every worker gone with episodes left, is one error naming it."""
     for i, p in enumerate(procs):
+        refused = refused_by_worker(p.exitcode, "collect_dataset", "collect.workers",
+                                    len(procs) if asked is None else asked)
+        if refused is not None:
+            raise refused
         if p.exitcode not in (None, 0):
             raise CollectError(f"collect worker {i} (pid {p.pid}) died with exit code {p.exitcode} "
                                f"while collecting episode {current.get(i)}; rerun to resume")
@@ -175,7 +180,7 @@ def run_workers(cfg: dict, todo: list[dict], out_dir: Path, n: int, on_marker: C
         while left:
             ready = wait(list(open_), timeout=0.5)
             if not ready:
-                _check_workers(procs, current, left)
+                _check_workers(procs, current, left, cfg.get("workers"))
                 continue
             for conn in ready:
                 try:
