@@ -41,7 +41,7 @@ from cicfw.benchmark.plots import bar_chart, town_maps
 from cicfw.benchmark.policy import POLICIES, Policy, make_policy
 from cicfw.benchmark.runner import RunnerConfig, run, server_specs
 from cicfw.benchmark.suite import build_suite, make_backend, town_label
-from cicfw.benchmark.trained_sets import checkpoint_run_data, checkpoint_sets, training_set_overrides
+from cicfw.benchmark.trained_sets import checkpoint_run_data, checkpoint_sets, earlier_data, training_set_overrides
 from cicfw.benchmark.video import film_name_bytes, film_path, run_weather_family, select_episodes, write_video
 from cicfw.core.config_checks import SchemaError, check_kwargs, checked, checked_seed
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
@@ -551,6 +551,12 @@ def saved_checkpoint(trainer: Any) -> str:
                  if p and Path(p).is_file()), "")
 
 
+def trained_on(earlier: int) -> str:
+    """Words for the table's training columns of a run resumed on other data (``earlier`` data sets before)."""
+    return (f" (the union over all {earlier + 1} data sets it trained on: it resumed on other data, and its "
+            f"data.json keeps the earlier ones under 'before')" if earlier else "")
+
+
 def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dict[str, Any]:
     """``cicfw train evaluate_after=true``: the suite on the run's best checkpoint (else its last one,
     else the final weights saved now as ``checkpoints/final.ckpt``: a ``trainer.fast_dev_run`` saves
@@ -569,9 +575,11 @@ def evaluate_after_training(cfg: DictConfig, trainer: Any, run_dir: Path) -> dic
                  why, path)
     overrides, what = after_training_overrides(cfg.get("evaluate_overrides") or [], trainer.fast_dev_run)
     # the table's training columns: the sets the checkpoint recorded when training started, as cicfw evaluate reads them
-    trained_in = training_set_overrides(cfg.get("data"), overrides, checkpoint_sets(Path(path)), path)
+    earlier = earlier_data(Path(path))
+    trained_in = training_set_overrides(cfg.get("data"), overrides, checkpoint_sets(Path(path)), path, earlier)
     if trained_in:
-        log.info("the table's training columns are the data's towns and weathers: %s", " ".join(trained_in))
+        log.info("the table's training columns are the data's towns and weathers%s: %s", trained_on(earlier),
+                 " ".join(trained_in))
         overrides = [*overrides, *trained_in]
     out = run_dir / "evaluate"
     log.info("closed-loop evaluation of %s: %s, into %s", path, what, out)
@@ -605,13 +613,14 @@ def with_trained_sets(cfg: DictConfig, overrides: Sequence[str]) -> None:
         return
     try:
         ckpt = resolve_checkpoint(path)
-        data, recorded = checkpoint_run_data(ckpt), checkpoint_sets(ckpt)
+        data, recorded, earlier = checkpoint_run_data(ckpt), checkpoint_sets(ckpt), earlier_data(ckpt)
     except Exception:  # a bad checkpoint: evaluate names it
         return
-    trained_in = training_set_overrides(data, overrides, recorded, whose=f"checkpoint {ckpt}")
+    trained_in = training_set_overrides(data, overrides, recorded, whose=f"checkpoint {ckpt}", earlier=earlier)
     if trained_in:
         log.info("the table's training columns are the towns and weathers the checkpoint's data was collected "
-                 "in%s: %s", " (as it recorded them)" if recorded is not None else "", " ".join(trained_in))
+                 "in%s%s: %s", " (as it recorded them)" if recorded is not None else "", trained_on(earlier),
+                 " ".join(trained_in))
         for key, value in override_values(trained_in).items():
             OmegaConf.update(cfg, key, value)
 

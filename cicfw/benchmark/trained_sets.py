@@ -62,34 +62,58 @@ def _sets(value: Any) -> tuple[list[str], list[str]] | None:
 def checkpoint_sets(checkpoint: Path) -> tuple[list[str], list[str]] | None:
     """The (towns, weathers) ``checkpoint``'s run recorded its data was collected in when training started: its
     own data record's, else (a checkpoint without one) its run folder's ``data.json``; an exported model's sidecar
-    (``training_dataset``). None when none records them (a checkpoint written before records held them)."""
+    (``training_dataset``). A run resumed on other data (``resume_on_other_data``) trained on all of them: the
+    union over the earlier data its record keeps (``before``) and its current data. None when none records them
+    (a checkpoint written before records held them)."""
     try:
         side = json.loads(Path(checkpoint).with_name(Path(checkpoint).name + ".json").read_text())
         return _sets(side["training_dataset"].get(SETS_KEY))
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         pass
+    found = [s for s in map(_sets, (r.get(SETS_KEY) for r in _trained_records(checkpoint))) if s is not None]
+    if not found:
+        return None
+    return (list(dict.fromkeys(t for towns, _ in found for t in towns)),
+            list(dict.fromkeys(w for _, weathers in found for w in weathers)))
+
+
+def earlier_data(checkpoint: Path) -> int:
+    """How many data sets ``checkpoint``'s run trained on before it resumed on its current data (the records
+    its data record keeps under ``before``); 0 for a run on one data set, or a checkpoint without a record."""
+    return max(len(_trained_records(checkpoint)) - 1, 0)
+
+
+def _trained_records(checkpoint: Path) -> list[dict[str, Any]]:
+    """The data records of every data set ``checkpoint``'s run trained on, earliest first (``before``, then its
+    current data's); [] without a record (the checkpoint's own, else its run folder's ``data.json``)."""
     record = checkpoint_record(checkpoint)
     if record is None:
         record = folder_record(Path(checkpoint).parent.parent)
-    return _sets((record or {}).get(SETS_KEY))
+    if not isinstance(record, dict):
+        return []
+    before = record.get("before")
+    return [*(r for r in (before if isinstance(before, list) else []) if isinstance(r, dict)), record]
 
 
 def training_set_overrides(data_cfg: Any, overrides: Sequence[str],
-                           recorded: tuple[list[str], list[str]] | None = None, whose: str | None = None) -> list[str]:
+                           recorded: tuple[list[str], list[str]] | None = None, whose: str | None = None,
+                           earlier: int = 0) -> list[str]:
     """``suite.training_towns=[...]`` and ``suite.training_weathers=[...]`` from the run's data, each unless
     ``overrides`` give it; only names the suite accepts as training ones (a shipped town or one the overrides
     drive; one of the paper's weathers or one the overrides drive), so that data collected under other
     weathers leaves none "training" rather than refusing the evaluation. Nothing when the data does not say.
     ``recorded``: the (towns, weathers) a checkpoint recorded when its training started (``checkpoint_sets``):
     they win over the data's metadata now, and a line names both where they differ; ``whose`` (the checkpoint)
-    without them: a line says the columns come from the metadata as it is now."""
+    without them: a line says the columns come from the metadata as it is now. ``earlier``: how many data sets
+    the run trained on before its current one (``earlier_data``): then ``recorded`` is the union over all, which
+    differs from the current data's by design, not by an edit of its metadata."""
     given = override_values(overrides)
     if str(given.get("sim", "embedded")) != "embedded":  # another simulator's towns and weathers: its own names
         return []
     both_given = {"suite.training_towns", "suite.training_weathers"} <= set(given)
     now = data_sets(data_cfg)
     found = now if recorded is None else recorded
-    if recorded is not None and now is not None and now != recorded and not both_given:
+    if recorded is not None and now is not None and now != recorded and not both_given and not earlier:
         log.warning("%s recorded when its training started that its data was collected in towns %s, weathers %s; "
                     "the data (%s) says towns %s, weathers %s now: the table's training columns are the recorded "
                     "ones", whose or "the checkpoint", recorded[0], recorded[1], data_cfg.get("path"), now[0], now[1])

@@ -66,6 +66,20 @@ class CheckpointBytes:
         return str(self.path)
 
 
+#: the checkpoint key naming the best checkpoints of a run's earlier segments, on other data than it trains on
+#: since (``resume_on_other_data``): their validation errors are not comparable with this data's, so no
+#: picker of the run's best takes them (``BestCheckpoint`` in cicfw/train/app.py writes it)
+SUPERSEDED_KEY = "cicfw_superseded_best"
+
+
+def superseded_best(folder: Path) -> set[str]:
+    """The names of the best checkpoints ``<folder>/last.ckpt`` says belong to a ranking a resume on other data
+    ended (``SUPERSEDED_KEY``); none when it says none or cannot be read."""
+    last = folder / "last.ckpt"
+    names = _mapped(last).get(SUPERSEDED_KEY) if last.is_file() else None
+    return {str(n) for n in names} if isinstance(names, (list, tuple)) else set()
+
+
 #: the file that makes a folder a reproduction cell's (its ``epochs``: the final checkpoint's epoch)
 CELL_FILE = "cell.json"
 #: the name of a checkpoint ``keep_epoch_checkpoints`` kept (``epoch001.ckpt``), never a run's best
@@ -74,7 +88,8 @@ KEPT_EPOCH = re.compile(r"epoch\d{3,}\.ckpt")
 
 def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written by cicfw train, or its run folder") -> Path:
     """The checkpoint file for ``path``: the file itself, or a training run folder holding exactly one
-    best checkpoint (``last.ckpt`` and kept ``epochNNN.ckpt`` aside) in its ``checkpoints/``, else its
+    best checkpoint (``last.ckpt``, kept ``epochNNN.ckpt`` and the best ones of segments before a resume on
+    other data, which its ``last.ckpt`` names under ``SUPERSEDED_KEY``, aside) in its ``checkpoints/``, else its
     ``last.ckpt``; a folder without ``checkpoints/`` is searched below, and must hold one run's only. A
     reproduction cell's folder means the final weights its table drove (``train/checkpoints/epochNNN.ckpt`` of
     its last epoch, as its ``cell.json`` records it, else a ``last.ckpt`` of that epoch: ``cell_final``), never
@@ -97,6 +112,9 @@ def resolve_checkpoint(path: str | Path, accepted: str = "a .ckpt file written b
         # keep_epoch_checkpoints' epochNNN.ckpt are points on a learning curve, never chosen by validation: a
         # run without a best checkpoint means its last.ckpt, not the weights after some earlier epoch
         found = [f for f in every if f.name != "last.ckpt" and not KEPT_EPOCH.fullmatch(f.name)]
+        if len(found) > 1 and len(runs) == 1:  # the best of segments before a resume on other data: not ranked
+            old = superseded_best(runs[0])
+            found = [f for f in found if f.name not in old] if old else found
         if len(found) == 1:
             return found[0].resolve()
         if not found and runs and (runs[0] / "last.ckpt").is_file():

@@ -41,8 +41,8 @@ from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write, writable_folder
-from cicfw.model.checkpoint import (PART_KEYS, WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record, load_weights_only,
-                                   model_from_hparams, parts_label, weights_misfit)
+from cicfw.model.checkpoint import (PART_KEYS, SUPERSEDED_KEY, WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record,
+                                   load_weights_only, model_from_hparams, parts_label, weights_misfit)
 from cicfw.model.diagnostics import MixerDiagnostics
 from cicfw.model.module import CICModule, fit_saved_hparams
 from cicfw.model.speed import apply_speed_from_config
@@ -254,7 +254,21 @@ class BestCheckpoint(ModelCheckpoint):
     saved as a second best and reported as the run's value; the state is re-rooted here when the files it
     names lie in this folder under their names (another run's checkpoint resumed in a new folder is not).
     Its name's ``{epoch}`` counts the epochs begun (1-based), as the kept ``epochNNN.ckpt`` do, so that
-    ``epoch001-mae...ckpt`` and ``epoch001.ckpt`` are the same epoch's weights (Lightning's is 0-based)."""
+    ``epoch001-mae...ckpt`` and ``epoch001.ckpt`` are the same epoch's weights (Lightning's is 0-based).
+    A resume on other data (``start_new_ranking``) restores no best: that segment's validations are ranked
+    among themselves, and every checkpoint it saves names the earlier best files (``SUPERSEDED_KEY``)."""
+
+    new_ranking = False
+    superseded: tuple[str, ...] = ()
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        if self.superseded:
+            checkpoint[SUPERSEDED_KEY] = list(self.superseded)
+
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        earlier = checkpoint.get(SUPERSEDED_KEY)
+        if isinstance(earlier, (list, tuple)):
+            self.superseded = tuple(dict.fromkeys([*map(str, earlier), *self.superseded]))
 
     def format_checkpoint_name(self, metrics: dict[str, Any], filename: str | None = None, ver: int | None = None,
                                prefix: str | None = None) -> str:
@@ -267,6 +281,12 @@ class BestCheckpoint(ModelCheckpoint):
         return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if self.new_ranking:  # the earlier segment's best, on other data: kept as a file, ranked no more
+            best = [*(state_dict.get("best_k_models") or {}), state_dict.get("best_model_path") or ""]
+            names = [os.path.basename(str(p)) for p in best if p]  # those in this folder: a checkpoint resumed
+            names = [n for n in names if self.dirpath and os.path.isfile(os.path.join(self.dirpath, n))]  # elsewhere
+            self.superseded = tuple(dict.fromkeys([*self.superseded, *names]))
+            return
         old = state_dict.get("dirpath")
         if old and self.dirpath and old != self.dirpath:
             here = lambda p: os.path.join(self.dirpath, os.path.basename(p)) if p else p  # noqa: E731
@@ -275,6 +295,17 @@ class BestCheckpoint(ModelCheckpoint):
                 state_dict = {**state_dict, "dirpath": self.dirpath, "best_k_models": best,
                               **{k: here(state_dict.get(k)) for k in ("best_model_path", "kth_best_model_path")}}
         super().load_state_dict(state_dict)
+
+
+def start_new_ranking(trainer: L.Trainer) -> None:
+    """A resume on other data: its best checkpoint is the best among its own validations (``BestCheckpoint``),
+    as their errors are not comparable with those measured on the earlier data; said in one line."""
+    best = trainer.checkpoint_callback
+    if isinstance(best, BestCheckpoint):
+        best.new_ranking = True
+        log.info("resuming on other data: the best checkpoint by %s is chosen among this run's validations "
+                 "from now on; the earlier best checkpoints stay in %s but are not the run's best", best.monitor,
+                 best.dirpath)
 
 
 def last_checkpoint(dirpath: Path) -> ModelCheckpoint:
@@ -643,7 +674,9 @@ def _train(cfg: DictConfig, run_dir: Path, refuse_finished: bool,
     trainer = build_trainer(cfg, run_dir)  # trainer.* keys and values
     check_evaluation(cfg)
     ensure_data(cfg.data)  # then the data: collected if needed,
-    record = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's: refused),
+    record, other_data = data_record(cfg, datamodule.path, run_dir)  # recorded (other data than a resumed run's:
+    if other_data:  # refused unless resume_on_other_data), and then validation errors start a new ranking
+        start_new_ranking(trainer)
     trainer.callbacks.append(RecordInCheckpoints({CHECKPOINT_KEY: record,  # into every checkpoint too,
                                                   SPLIT_KEY: split_settings(cfg.data),  # with the split
                                                   SCHEDULE_KEY: horizon_settings(cfg)}))  # and run length
@@ -663,8 +696,10 @@ def _train(cfg: DictConfig, run_dir: Path, refuse_finished: bool,
     best = ckpt.best_model_score if ckpt is not None and ckpt.best_model_score is not None else None
     value = best if best is not None else trainer.callback_metrics.get(cfg.optimized_metric)
     metric = float(value) if value is not None else None  # None: no validation ran
+    best_file = Path(ckpt.best_model_path).name if best is not None and ckpt.best_model_path else None
     if trainer.is_global_zero:  # the run's last line, once: not again by each DDP rank
-        log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after"))))
+        log.info("%s", outcome(cfg.optimized_metric, metric, run_dir, before, trainer, bool(cfg.get("evaluate_after")),
+                               best_file))
     # the closed-loop suite on the best checkpoint (docs/evaluation.md), driven once: by rank 0, not by every
     # DDP rank into the same folder (the second refused there, or rank 0 itself)
     if cfg.get("evaluate_after") and not is_worker_process():
@@ -688,14 +723,15 @@ class RecordInCheckpoints(Callback):
         checkpoint[WORLD_SIZE_KEY] = int(trainer.world_size)
 
 
-def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any]:
+def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> tuple[dict[str, Any], bool]:
     """The record of the data this run trains on (its absolute path, its files' names, sizes and SHA-256:
     ``cicfw.data.provenance``), which ``train`` writes to ``<run_dir>/data.json`` once every check passed.
     Resuming (``ckpt_path``) compares it with the checkpoint's: another file set is refused, naming both,
     unless ``resume_on_other_data=true``; then, or when the same files lie in another folder, the record keeps
     the checkpoint's under ``before``. It holds
     the towns and weathers the data was collected in (``SETS_KEY``; a resume on the same files keeps the
-    checkpoint's), so that an evaluation labels its table's columns from them, not from the metadata then."""
+    checkpoint's), so that an evaluation labels its table's columns from them, not from the metadata then.
+    Also whether the run resumes on other files than the checkpoint trained on."""
     ckpt = cfg.get("ckpt_path")
     earlier = None
     if ckpt is not None and str(ckpt) != "":
@@ -716,7 +752,7 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> dict[str, Any
             record["before"] = earlier["before"]
         if earlier.get("hash") == record["hash"] and isinstance(earlier.get(SETS_KEY), dict):
             record[SETS_KEY] = earlier[SETS_KEY]  # the same files: what the data said when training started
-    return record
+    return record, earlier is not None and earlier.get("hash") != record["hash"]
 
 
 def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
@@ -728,11 +764,13 @@ def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
 
 
 def outcome(metric_name: str, metric: float | None, run_dir: Path, before: Mapping[str, tuple[int, int]],
-            trainer: L.Trainer, evaluate_after: bool = False) -> str:
+            trainer: L.Trainer, evaluate_after: bool = False, best_file: str | None = None) -> str:
     """The run's last line, saying what happened: the metric (None: no validation ran; NaN or inf: the
-    validation ran and the model's steering is not finite) and the checkpoints this run wrote (or that it
-    wrote none, and why when Lightning saves none)."""
+    validation ran and the model's steering is not finite), the best checkpoint it is of (``best_file``: it
+    may be one an earlier run of a resumed one wrote) and the checkpoints this run wrote (or that it wrote
+    none, and why when Lightning saves none)."""
     said = (f"{metric_name}: no value (no validation ran)" if metric is None else
+            f"best {metric_name} = {metric:.4f} ({best_file})" if best_file and math.isfinite(metric) else
             f"{metric_name} = {metric:.4f}" if math.isfinite(metric) else
             f"{metric_name} = {metric} (validated, but the model steers NaN or inf: training diverged; lower "
             f"model.lr, or look for NaN or huge values in the data)")
