@@ -19,6 +19,8 @@ import pytest
 
 import cicfw
 from cicfw.reproduction import app as reproduce
+from cicfw.core.locks import FolderBusy
+from cicfw.reproduction.lock import ResultsLock
 from cicfw.reproduction.published import publish
 
 pytestmark = pytest.mark.slow  # trains, collects, drives or runs an app (pytest -m "not slow" skips it)
@@ -211,6 +213,64 @@ def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path,
     assert seen[0] == ([], None)
     assert seen[1][0] == ["seed0"] and "| Regression (CIL) | – | 1 † |" in seen[1][1]
     assert "| Regression (CIL) | – | 2 † |" in (published / "RESULTS.md").read_text()  # and after the last
+
+
+def test_publish_dir_is_held_for_the_whole_run(cache, one_cell, tmp_path, monkeypatch):
+    """A run holds its publish_dir as it holds its results folder, from before its first cell to its last
+    publish: another run taking that folder as its results folder while a cell runs is refused, naming it."""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    out, published = tmp_path / "results", tmp_path / "published"
+    refused = []
+
+    def train_and_drive(cfg, row, seed, cell_dir):  # the other run starts while this one's cell runs
+        try:
+            ResultsLock(published).acquire().release()
+        except FolderBusy as err:
+            refused.append((err.key, f"pid {os.getpid()}" in str(err)))
+        return result
+
+    monkeypatch.setattr(reproduce, "_train_and_drive", train_and_drive)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}", f"publish_dir={published}"]) == 0
+    assert refused == [("results_dir", True)]
+    assert not (published / "reproduce.lock").exists() and (published / "reproduce.json").is_file()
+
+
+def test_a_publish_dir_taken_after_its_check_is_refused_before_any_cell(cache, one_cell, tmp_path, monkeypatch, capsys):
+    """Another run that takes publish_dir as its results folder between this run's checks and its start:
+    this run is refused in one line naming publish_dir, and writes nothing into that folder."""
+    out, published = tmp_path / "results", tmp_path / "published"
+    other = []
+    checked = reproduce.check_outputs
+
+    def check_outputs(cfg, data=()):
+        checked(cfg, data)
+        other.append(ResultsLock(published).acquire())  # the other run claims the folder now
+
+    monkeypatch.setattr(reproduce, "check_outputs", check_outputs)
+    monkeypatch.setattr(reproduce, "_train_and_drive", lambda cfg, row, seed, cell_dir: pytest.fail("a cell ran"))
+    try:
+        assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}",
+                               f"publish_dir={published}"]) == 2
+        err = capsys.readouterr().err
+        assert "publish_dir=<path>" in err and f"pid {os.getpid()}" in err, err
+        assert sorted(p.name for p in published.iterdir()) == ["reproduce.lock"]  # the other run's alone
+    finally:
+        other[0].release()
+
+
+def test_a_rerun_keeps_a_skipped_cells_hydra_records(cache, one_cell, tmp_path):
+    """A rerun that skips a finished cell leaves the cell's .hydra records byte for byte as they were: the
+    command it was trained with, not the rerun's (here with a publish_dir the training never had)."""
+    out = tmp_path / "results"
+    shutil.copytree(one_cell, out)
+    hydra = out / "cells" / "cil" / "seed0" / ".hydra"
+    before = {p.name: p.read_bytes() for p in hydra.iterdir()}
+    assert {"config.yaml", "overrides.yaml", "hydra.yaml"} <= set(before)
+    assert reproduce.main([*SMOKE, "rows=[cil]", "seeds=1", f"results_dir={out}",
+                           f"publish_dir={tmp_path / 'pubX'}"]) == 0
+    assert {p.name: p.read_bytes() for p in hydra.iterdir()} == before
+    assert b"pubX" not in before["overrides.yaml"]
 
 
 def test_a_run_whose_report_refuses_its_cells_exits_1_naming_why(cache, one_cell, tmp_path, monkeypatch, capsys):

@@ -11,14 +11,14 @@ budget, with intervals and verdicts.
 Before anything is collected or trained, the app checks the plan: the config against its schema
 (cicfw/reproduction/schema.py: an unknown key or a wrong type anywhere is refused), the rows (each custom row's
 experiment, head, mixer and overrides compose), the seeds, the budget's curve, the claims, ``publish_dir`` and
-``continue_from``; it takes the results folder's lock (one run per folder: ``reproduce.lock`` names the
-holder; a stale lock, whose process on this host is gone, is taken over with a warning) and checks a folder
-(or a published one to continue) made with another budget or suite. Then it collects the budget's dataset once
-(every row trains on it), makes every cell's train/validation split of it (a seed whose split cannot train is
-refused before any cell trains) and pins the results folder to this budget, suite and dataset
-(``reproduce.json``): a folder made with another dataset is refused, and so is a finished cell trained on
-another dataset, for other epochs, driven under another weather family or with another model configuration
-(its ``recipe``): ``cells.check_cell_pin``, the check ``cicfw report`` makes against the folder's pin. Each
+``continue_from``; it takes the results folder's lock and ``publish_dir``'s, for the whole run (one run per folder:
+``reproduce.lock`` names the holder; a stale lock, whose process on this host is gone, is taken over with a warning)
+and checks a folder (or a published one to continue) made with another budget or suite. Then it collects the
+budget's dataset once (every row trains on it), makes every cell's train/validation split of it (a seed whose split
+cannot train is refused before any cell trains) and pins the results folder to this budget, suite and dataset
+(``reproduce.json``): a folder made with another dataset is refused, and so is a finished cell trained on another
+dataset, for other epochs, driven under another weather family or with another model configuration (its ``recipe``):
+``cells.check_cell_pin``, the check ``cicfw report`` makes against the folder's pin. Each
 (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed`` swept), so
 ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite and writes
 ``cell.json`` last: a finished cell is skipped, a killed one resumes from its last epoch checkpoint (marked
@@ -62,7 +62,7 @@ from cicfw.core.config_checks import config_error
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, debugging, on_interrupt
 from cicfw.core.files import atomic_write, remove_stale_temps
 from cicfw.core.json_files import read_json
-from cicfw.core.run_folder import check_name_lengths, claim_folder
+from cicfw.core.run_folder import HYDRA_RECORDS, check_name_lengths, claim_folder
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.model.checkpoint import samples_seen
@@ -70,7 +70,7 @@ from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, 
 from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin, cell_runs, check_cell_pin,
                                      finished_cells, flat)
 from cicfw.reproduction.claims import load_claims
-from cicfw.reproduction.lock import ResultsLock
+from cicfw.reproduction.lock import RunLocks
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
 from cicfw.reproduction.report import REPORT_OVERRIDES, report_overrides, write_configured
 from cicfw.reproduction.schema import check, seed_list
@@ -836,11 +836,48 @@ def _cell_job(cfg: DictConfig) -> str:
         if cfg.get(key) is not None:  # that hydra.job.chdir=true moves into (its manifest unread, unpinned)
             cfg[key] = to_absolute_path(str(cfg[key]))
     status = run_cell(cfg, Path(hydra_cfg.runtime.output_dir))
+    if status == "skipped":  # Hydra rewrote its records with this run's command before the job began
+        put_back_records(Path(hydra_cfg.runtime.output_dir))
     # cells one after another in this process: the report as it stands after each one. Cells in parallel
     # (joblib, SLURM) would write it side by side; their run's report comes at its end.
     if status != "skipped" and str(hydra_cfg.launcher.get("_target_", "")).endswith("BasicLauncher"):
         report_so_far(cfg)
     return status
+
+
+#: the ``.hydra`` records of the cells finished before this run, by cell folder (None: a record the cell lacks,
+#: a cell continued from a published folder): Hydra rewrites them for every job it launches, a skipped cell's too
+_KEPT_RECORDS: dict[str, dict[str, bytes | None]] = {}
+
+
+def keep_records(results_dir: Path, rows: Sequence[str], seeds: Sequence[int]) -> None:
+    """Note the ``.hydra`` records of the plan's finished cells, which this run skips, before its jobs start."""
+    _KEPT_RECORDS.clear()
+    for seed in seeds:
+        for row in rows:
+            cell = results_dir / "cells" / row / f"seed{seed}"
+            if not unfinished_cells(results_dir, [row], [seed]):
+                hydra = cell / ".hydra"
+                _KEPT_RECORDS[os.path.abspath(cell)] = {n: (hydra / n).read_bytes() if (hydra / n).is_file() else None
+                                                        for n in HYDRA_RECORDS}
+
+
+def put_back_records(cell: Path | None = None) -> None:
+    """A skipped cell's ``.hydra`` records as they were before this run (every noted cell's when ``cell`` is
+    None): they keep the command the cell was trained with, not the one that skipped it."""
+    keys = list(_KEPT_RECORDS) if cell is None else [k for k in [os.path.abspath(cell)] if k in _KEPT_RECORDS]
+    for key in keys:
+        hydra = Path(key) / ".hydra"
+        for name, data in _KEPT_RECORDS[key].items():
+            if data is None:
+                (hydra / name).unlink(missing_ok=True)
+            elif not (hydra / name).is_file() or (hydra / name).read_bytes() != data:
+                atomic_write(hydra / name, data)
+        if all(data is None for data in _KEPT_RECORDS[key].values()):
+            try:  # the folder Hydra made for a cell that had none
+                hydra.rmdir()
+            except OSError:
+                pass
 
 
 def report_so_far(cfg: DictConfig) -> None:
@@ -908,7 +945,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_folder_names(cfg)
             rows, seeds = check_plan(cfg)
             check_outputs(cfg, data=check_rows(cfg, rows))
-            lock = ResultsLock(Path(cfg.results_dir)).acquire()
+            # publish_dir too, for the whole run: another run never takes it between this check and a publish
+            lock = RunLocks(Path(cfg.results_dir), cfg.get("publish_dir")).acquire()
             # held: a temporary file of a dead writer (a cell killed while saving a checkpoint) is debris that
             # no cell's own training would meet again once the cell finishes
             remove_stale_temps(cfg.results_dir)
@@ -947,6 +985,7 @@ def _run_cells(cfg: DictConfig, args: list[str], rows: Sequence[str], seeds: Seq
     sys.argv = [sys.argv[0], "-m", *args, f"cell.seed={','.join(map(str, seeds))}", f"cell.row={','.join(rows)}"]
     t0 = time.time()
     code, stopped = 0, None
+    keep_records(Path(cfg.results_dir), rows, seeds)
     try:
         _cell_job()
     except SystemExit as e:  # Hydra exits on a launcher error; the cells that finished are still reported
@@ -957,6 +996,11 @@ def _run_cells(cfg: DictConfig, args: list[str], rows: Sequence[str], seeds: Seq
                    f"resumes the unfinished cell from its last epoch checkpoint")
         raise Interrupted(stopped) from None
     finally:
+        try:  # cells in other processes (joblib, SLURM) put back none themselves
+            put_back_records()
+        except OSError as err:
+            _said(f"cicfw: error: {_error_line(err)}", handler)
+            code = 1
         try:
             publish = f" --publish {cfg.publish_dir}" if cfg.get("publish_dir") else ""
             report = f"write their report with cicfw report {cfg.results_dir}{publish}"
