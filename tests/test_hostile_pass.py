@@ -353,7 +353,8 @@ def test_collect_into_another_apps_run_folder_is_refused(tmp_path: Path, job: st
 
     run = tmp_path / "run"
     (run / ".hydra").mkdir(parents=True)
-    (run / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (run / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  callbacks:\n    run_folder:\n      _target_: "
+                                               f"cicfw.core.run_folder.RunFolderCheck\n  job:\n    name: {job}\n")
     (run / f"{job}.log").write_text("a line\n")
     before = sorted(p.name for p in run.rglob("*"))
     monkeypatch.setattr(dataset_mod, "run_episode", lambda *a, **k: pytest.fail("collected into a run folder"))
@@ -525,19 +526,83 @@ def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path
             claim_folder(alone, "train", "hydra.run.dir")
 
 
-def test_a_results_folder_holding_only_its_reproduce_log_is_the_reproductions(tmp_path: Path) -> None:
-    """A reproduction's results folder keeps its own log (reproduce.log) beside its manifest and cells: with
-    only the log left, the folder is still the reproduction's, so another app does not write over it."""
+def test_a_results_folder_holding_only_its_reproduce_log_is_claimed_by_reproduce_alone(tmp_path: Path) -> None:
+    """reproduce's own log (or a shell's redirect of its output there) makes no folder the reproduction's, but
+    reproduce itself may go on in a folder holding only it (appending); another app finds a file of no app."""
     from cicfw.core.run_folder import RunFolderError, claim_folder, folder_owner
 
     out = tmp_path / "results"
     out.mkdir()
     (out / "reproduce.log").write_text("[12:00:00][cicfw.reproduce] 4 cells in 60 s; report: RESULTS.md\n")
-    assert folder_owner(out) == "reproduce"
+    assert folder_owner(out) is None
     claim_folder(out, "reproduce", "results_dir")
     with pytest.raises(RunFolderError) as err:
         claim_folder(out, "train", "hydra.run.dir")
-    assert err.value.key == "hydra.run.dir" and err.value.value == str(out) and "reproduce" in str(err.value)
+    assert err.value.key == "hydra.run.dir" and err.value.value == str(out)
+
+
+def _user_folder(folder: Path, files: dict[str, str]) -> dict[str, bytes]:
+    for name, text in files.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text(text)
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+_RESULTS = {"RESULTS.md": "# my study\n", "results.csv": "a,b\n1,2\n", "results.json": '{"mine": 1}'}
+USER_FOLDERS = {
+    "reproduce.log": ("reproduce", "results_dir", {"reproduce.log": "my redirect of reproduce's output\n", **_RESULTS}),
+    "cells": ("reproduce", "results_dir", {"cells/counts.csv": "cell,n\nA,3\n", "RESULTS.md": "# cells\n"}),
+    "episodes-empty": ("evaluate", "hydra.run.dir",
+                       {"episodes.jsonl": "", "table.md": "| mine |\n", "summary.json": '{"n": 1}'}),
+    "episodes-other": ("evaluate", "hydra.run.dir", {"episodes.jsonl": '{"format": "other-tool/2"}\n{"ep": 1}\n',
+                                                     "table.md": "| mine |\n", "summary.json": '{"n": 1}'}),
+    "data.json": ("train", "hydra.run.dir", {"data.json": '{"path": "/data/set", "files": ["a.h5"]}',
+                                             "notes.md": "my manifest\n"}),
+    "hydra-evaluate": ("evaluate", "hydra.run.dir", {
+        ".hydra/hydra.yaml": "hydra:\n  job:\n    name: evaluate\n", ".hydra/config.yaml": "model: mine\n",
+        "evaluate.log": "my script's log\n", "table.md": "| mine |\n", "summary.json": '{"n": 1}'}),
+}
+
+
+@pytest.mark.parametrize("case", sorted(USER_FOLDERS))
+def test_a_users_folder_with_a_file_of_a_records_name_is_not_an_apps(tmp_path: Path, case: str) -> None:
+    """A folder is an app's run only by a record whose content is cicfw's: a user's file that merely bears
+    a record's name (a redirected log, a cells/ folder, an episodes.jsonl or data.json of another shape, a
+    Hydra script of their own named evaluate) leaves the folder the user's, refused before a byte changes."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder, folder_owner
+
+    app, key, files = USER_FOLDERS[case]
+    folder = tmp_path / "study"
+    before = _user_folder(folder, files)
+    assert folder_owner(folder) is None
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(folder, app, key)
+    assert (err.value.key, err.value.value) == (key, str(folder))
+    assert _user_folder(folder, {}) == before
+
+
+def test_cicfw_records_by_content_still_name_their_app(tmp_path: Path) -> None:
+    """The same names holding cicfw's content keep the folder the app's: an interrupted evaluation (its log's
+    header only), a cicfw evaluate run's hydra.yaml (its callbacks), a training run stopped before its first
+    checkpoint (its whole data record), a reproduction stopped before its manifest (cells/<row>/seed<k>)."""
+    import json
+
+    from cicfw.core.run_folder import claim_folder, folder_owner
+
+    cases = {
+        "ev": ("evaluate", {"episodes.jsonl": json.dumps({"format": "cicfw-episode-log/1", "fingerprint": {}}) + "\n"}),
+        "hy": ("evaluate", {".hydra/hydra.yaml": "hydra:\n  callbacks:\n    run_folder:\n      _target_: "
+                                                "cicfw.core.run_folder.LockedRunFolderCheck\n  job:\n    name: evaluate\n",
+                            "evaluate.log": ""}),
+        "tr": ("train", {"data.json": json.dumps({"path": "/d", "root": "/d", "hash": "0" * 16, "hash_of": "names",
+                                                  "n_files": 0, "bytes": 0, "files": []})}),
+        "re": ("reproduce", {"cells/cil/seed0/train/notes.txt": ""}),
+    }
+    for name, (app, files) in cases.items():
+        _user_folder(tmp_path / name, files)
+        assert folder_owner(tmp_path / name) == app, name
+        claim_folder(tmp_path / name, app, "hydra.run.dir")
+
 
 def test_evaluate_into_a_training_run_of_the_python_api_names_train(tmp_path: Path) -> None:
     """A run folder trained through the Python API (no .hydra, no train.log: a reproduction's cell, a notebook)

@@ -430,10 +430,22 @@ def published_results(folder: Path, label: str = "CIL") -> Path:
     return folder
 
 
+#: the first line of an evaluation's episode log (``cicfw.benchmark.journal``), all a run interrupted before its
+#: first episode holds
+EPISODE_LOG_HEADER = '{"format": "cicfw-episode-log/1", "fingerprint": {}, "info": {}}\n'
+
+
+def data_record(path: str) -> dict:
+    """A training run's record of no files at ``path``, with every key ``cicfw.data.provenance`` writes."""
+    return {"path": path, "root": path, "hash": "e3b0c44298fc1c14", "hash_of": "the files' names, sizes and SHA-256",
+            "n_files": 0, "bytes": 0, "collect_config_hash": None, "recorded": "2026-01-01 00:00:00", "files": []}
+
+
 def hydra_run(folder: Path, job: str, *outputs: str) -> dict[Path, bytes]:
     """A run folder as Hydra leaves it for the app ``job`` (its ``.hydra`` records and log), with ``outputs``."""
     (folder / ".hydra").mkdir(parents=True)
-    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  callbacks:\n    run_folder:\n      _target_: "
+                                                  f"cicfw.core.run_folder.RunFolderCheck\n  job:\n    name: {job}\n")
     (folder / ".hydra" / "config.yaml").write_text(f"# the {job} run's config\nseed: 3\n")
     (folder / f"{job}.log").write_text("a line\n")
     for name in outputs:
@@ -591,7 +603,7 @@ def test_the_folders_an_app_may_write(tmp_path):
     hydra_run(tmp_path / "ev", "evaluate", "episodes.jsonl")
     claim_folder(tmp_path / "ev", "evaluate", "hydra.run.dir")
     api = published_results(tmp_path / "api")
-    (api / "episodes.jsonl").write_text("")  # driven through the Python API: its episode log, no .hydra
+    (api / "episodes.jsonl").write_text(EPISODE_LOG_HEADER)  # driven through the Python API: its log, no .hydra
     claim_folder(api, "evaluate", "hydra.run.dir")
     old = tmp_path / "old"
     hydra_run(old, "train", "notes.txt")
@@ -666,7 +678,7 @@ def results_folder(folder: Path) -> dict[Path, bytes]:
     (cell / "cell.json").write_text(json.dumps({"status": "ok", "row": "cil", "seed": 0}))
     (cell / "train" / "checkpoints").mkdir(parents=True)
     (cell / "train" / "checkpoints" / "last.ckpt").write_bytes(b"weights")
-    (cell / "train" / "data.json").write_text(json.dumps({"path": "/data", "files": []}))
+    (cell / "train" / "data.json").write_text(json.dumps(data_record("/data")))
     return _files(folder)
 
 
@@ -771,7 +783,7 @@ def api_train_run(folder: Path) -> dict[Path, bytes]:
     """A finished training run through the Python API (``train``), of other settings: its data record beside
     its checkpoint and metrics, no ``.hydra``."""
     outputs = {"checkpoints/last.ckpt": b"the other run's weights", "csv/metrics.csv": b"epoch,val/steer_mae\n0,0.5\n",
-               "data.json": json.dumps({"path": "/elsewhere/data", "files": []}).encode()}
+               "data.json": json.dumps(data_record("/elsewhere/data")).encode()}
     for name, data in outputs.items():
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_bytes(data)
@@ -954,7 +966,7 @@ def test_the_folders_cicfw_nests_in_a_run_stay_claimable(tmp_path):
     claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # missing
     (run / "evaluate").mkdir()
     claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # empty
-    (run / "evaluate" / "episodes.jsonl").write_text("")
+    (run / "evaluate" / "episodes.jsonl").write_text(EPISODE_LOG_HEADER)
     claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # the evaluation's
     claim_folder(run / "more", "train", "run_dir")  # the same app's run around it
     claim_folder(sweep / "3", "evaluate", "hydra.run.dir")

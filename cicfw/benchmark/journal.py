@@ -25,12 +25,12 @@ from omegaconf import OmegaConf
 
 from cicfw.core.files import write_all
 from cicfw.core.locks import FolderBusy, FolderLock
-from cicfw.core.run_folder import (LockedRunFolderCheck, RunFolderError, check_name_lengths, keep_held_lock,
-                                   take_held_lock)
+from cicfw.core.run_folder import (EPISODE_LOG, EPISODE_LOG_FORMAT, LockedRunFolderCheck, RunFolderError,
+                                   check_name_lengths, keep_held_lock, take_held_lock)
 
-LOG_NAME = "episodes.jsonl"
+LOG_NAME = EPISODE_LOG  # its header's format makes a folder an evaluation's (``folder_owner``)
 LOCK_NAME = ".evaluate.lock"
-FORMAT = "cicfw-episode-log/1"
+FORMAT = EPISODE_LOG_FORMAT
 
 
 def _encode_traj(traj: Mapping[str, np.ndarray]) -> dict[str, list]:

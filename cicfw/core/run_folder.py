@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import sys
 from dataclasses import dataclass, field
@@ -578,13 +579,22 @@ class TrainRunFolderCheck(RunFolderCheck):
 #: files cicfw itself leaves beside a run's outputs (locks, write probes): they make no folder anyone's
 HOUSEKEEPING = (".lock", ".train.lock", ".evaluate.lock", ".collect.lock", ".collect-run.lock", ".diagnose.lock",
                 "reproduce.lock")
-#: the record each non-Hydra output names itself by: (file, app)
-RECORDS = (("episodes.jsonl", "evaluate"), ("report.json", "report"), ("reproduce.json", "reproduce"),
-           ("cells", "reproduce"), ("reproduce.log", "reproduce"), ("dataset_metadata.json", "collect"))
+#: the record each non-Hydra output names itself by: (file, app); an evaluation's by its episode log's header
+#: (``holds_episode_log``), a reproduction stopped before its manifest by its cell tree (``is_reproduction_results``)
+RECORDS = (("report.json", "report"), ("reproduce.json", "reproduce"), ("dataset_metadata.json", "collect"))
+#: an evaluation's episode log and the format its first line (the header) names: the log is evaluate's only
+#: with that header (``cicfw.benchmark.journal``), not any file of that name
+EPISODE_LOG, EPISODE_LOG_FORMAT = "episodes.jsonl", "cicfw-episode-log/1"
+#: the keys (and their types) a training run's data record (``data.json``, ``cicfw.data.provenance``) holds, all
+#: of them: a manifest holding only a ``path`` and ``files`` is no proof
+DATA_RECORD_KEYS = (("path", str), ("root", str), ("files", list), ("hash", str), ("hash_of", str), ("n_files", int))
+#: a reproduction's own log in its results folder: no proof (a shell redirect makes it), but no file of
+#: another's either when ``reproduce`` claims the folder
+REPRODUCE_LOG = "reproduce.log"
 #: what a dataset's files end with: a folder holding them is someone's data, whoever collected it
 DATA_SUFFIXES = (".h5", ".hdf5")
 #: a Hydra app's run without ``.hydra`` (``hydra.output_subdir=null``): its job log ``<job>.log`` together with
-#: one of the outputs only that app writes there (evaluate's episode log is in ``RECORDS`` already). The log
+#: one of the outputs only that app writes there (evaluate's episode log names it already). The log
 #: alone is no proof (any tool may write a ``train.log``), nor are the outputs alone (a copy of a checkpoint)
 JOB_OUTPUTS = (("train", ("checkpoints", "csv/metrics.csv", "metrics.json", "data.json")),
                ("diagnose", ("steer_diagnostic.json",)))
@@ -625,9 +635,33 @@ def _trained_through_api(folder: Path) -> bool:
 
 def is_reproduction_results(folder: str | Path) -> bool:
     """Whether ``folder`` is a reproduction's results folder: its manifest (``reproduce.json``), or the cell
-    tree (``cells/<row>/seed<k>``) of a run stopped before writing it; a cell itself is none."""
+    tree (``cells/<row>/seed<k>`` folders) of a run stopped before writing it; a cell itself is none."""
     folder = Path(folder)
-    return (folder / "reproduce.json").is_file() or any((folder / "cells").glob("*/seed*"))
+    return (folder / "reproduce.json").is_file() or any(
+        p.is_dir() and re.fullmatch(r"seed\d+", p.name) for p in (folder / "cells").glob("*/seed*"))
+
+
+def holds_episode_log(folder: str | Path) -> bool:
+    """Whether ``folder``'s ``episodes.jsonl`` opens with cicfw's episode-log header (its first line, a JSON
+    object naming ``EPISODE_LOG_FORMAT``): an evaluation's log, not any file of that name."""
+    try:
+        with open(Path(folder) / EPISODE_LOG, "rb") as f:
+            first = f.readline(1 << 22)
+        header = json.loads(first)
+    except (OSError, ValueError):
+        return False
+    return isinstance(header, dict) and header.get("format") == EPISODE_LOG_FORMAT
+
+
+def _cicfw_hydra_run(folder: Path) -> bool:
+    """Whether ``folder``'s ``.hydra/hydra.yaml`` is a cicfw app's: its ``hydra.callbacks`` (every cicfw app
+    config names its own) include one of cicfw's classes, which a script of another project does not."""
+    try:
+        callbacks = OmegaConf.select(OmegaConf.load(folder / ".hydra" / "hydra.yaml"), "hydra.callbacks")
+        targets = [str(c.get("_target_", "")) for c in callbacks.values()] if callbacks else []
+    except Exception:  # missing or unreadable: no proof
+        return False
+    return any(t.startswith("cicfw.") for t in targets)
 
 
 def _job_app(job: str) -> str:
@@ -636,38 +670,49 @@ def _job_app(job: str) -> str:
 
 
 def _holds_data_record(folder: Path) -> bool:
-    """Whether ``folder/data.json`` is a training run's record of its data (its path and its files), not
-    any file of that name."""
+    """Whether ``folder/data.json`` is a training run's record of its data (``DATA_RECORD_KEYS``, all of them:
+    its path, its files and their hash), not any file of that name."""
     try:
         record = json.loads((folder / "data.json").read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(record, dict) and isinstance(record.get("path"), str) and isinstance(record.get("files"), list)
+    return isinstance(record, dict) and all(isinstance(record.get(k), t) and not isinstance(record.get(k), bool)
+                                            for k, t in DATA_RECORD_KEYS)
 
 
 def folder_owner(folder: str | Path) -> str | None:
     """The app whose run (or output) ``folder`` is, from the record that app already leaves there: Hydra's
-    job name for a Hydra app (train, evaluate, ...) or, without ``.hydra``, its job log beside its outputs
-    (``JOB_OUTPUTS``), a training run's data record without either (``data.json``, which only ``train`` writes,
-    once its checks passed: beside its outputs, or alone where the run stopped before its first one),
-    the episode log of an evaluation driven through the Python API, ``report.json`` for a report, ``reproduce.json`` (or its ``cells/`` tree, where a run
-    stopped before it wrote the manifest, or its results folder's own log, ``reproduce.log``) for a reproduction,
+    job name for a Hydra app (train, evaluate, ...; an ``evaluate`` job only with cicfw's callbacks in its
+    ``hydra.yaml`` or cicfw's episode log beside it) or, without ``.hydra``, its job log beside its outputs
+    (``JOB_OUTPUTS``), a training run's data record without either (``data.json`` holding every key of
+    cicfw's record, which only ``train`` writes, once its checks passed: beside its outputs, or alone where
+    the run stopped before its first one), the episode log of an evaluation driven through the Python API
+    (``episodes.jsonl`` opening with cicfw's header), ``report.json`` for a report, ``reproduce.json`` (or its
+    ``cells/<row>/seed<k>`` tree, where a run stopped before it wrote the manifest) for a reproduction,
     ``dataset_metadata.json`` or HDF5 files for a dataset ("collect"); None for none (results copied out of
-    their run folder are no run: their episode log stays behind).
+    their run folder are no run: their episode log stays behind). A file's name alone that a user may
+    give their own file (``reproduce.log``, ``cells/``, ``episodes.jsonl``, ``data.json``) proves nothing.
     Records the apps write anyway, rather than a new marker file, so that folders written before this
     check are recognised and no app writes a file more than it did."""
     folder = Path(folder)
     job = _hydra_job(folder)
     if job is not None:
+        if _job_app(job) == "evaluate" and (folder / ".hydra").is_dir() \
+                and not (_cicfw_hydra_run(folder) or holds_episode_log(folder)):
+            return None  # another project's Hydra script named evaluate: its results are no cicfw run's
         return job
     for app, outputs in JOB_OUTPUTS:
         if (folder / f"{app}.log").is_file() and any(_exists(folder / name) for name in outputs):
             return app
     if _holds_data_record(folder):  # beside its outputs, or alone: a run stopped before its first output
         return "train"
+    if holds_episode_log(folder):
+        return "evaluate"
     for name, app in RECORDS:
         if (folder / name).exists():
             return app
+    if is_reproduction_results(folder):  # its cell tree, where a run stopped before it wrote the manifest
+        return "reproduce"
     if any(name.endswith(DATA_SUFFIXES) for name in _entries(folder)):
         return "collect"
     return None
@@ -772,6 +817,8 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
         raise RunFolderError(f"{where} holds the outputs of cicfw {owner} ({_listed(entries)}), which cicfw {app} "
                              f"would write over; {fix}", key=key, value=str(folder))
     claim_outside_runs(folder, app, key)  # <train run>/checkpoints: that run's files, not files of no app
+    if app == "reproduce" and (folder / REPRODUCE_LOG).is_file():
+        entries = [n for n in entries if n != REPRODUCE_LOG]  # its own log, appended to (a run stopped early)
     if not entries or foreign_ok:
         return
     raise RunFolderError(f"{where} holds files that no cicfw app wrote ({_listed(entries)}), which cicfw {app} "
