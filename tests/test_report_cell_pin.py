@@ -1,6 +1,7 @@
 """``cicfw report`` pools only the cells of its folder's reproduction: a cell whose dataset, epochs, weather
-family or pinned recipe differs from reproduce.json's pin is refused in one line (the check a run makes
-before it skips a finished cell), and nothing is written."""
+family or pinned recipe differs from reproduce.json's pin, or whose recorded training overrides differ from
+another seed's of its row, is refused in one line (the check a run makes before it skips a finished cell), and
+nothing is written."""
 from __future__ import annotations
 
 import json
@@ -10,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from cicfw.core.errors import CicfwError
-from cicfw.reproduction.cells import CellPin, cell_mismatch, load_cells, pinned_epochs, pinned_recipe
+from cicfw.reproduction.cells import (DELETED, NOT_SET, CellPin, cell_mismatch, check_rows_agree, load_cells,
+                                      override_values, pinned_epochs, pinned_recipe)
 from cicfw.reproduction.report import folder_pin
 from conftest import assert_refused, run_app_in_process
 
@@ -208,3 +210,40 @@ def test_the_paired_switch_refuses_any_seed_whose_two_cells_are_copies(tmp_path,
         d["wall_s"]["train"] += 7
         (b / "seed1" / "cell.json").write_text(json.dumps(d))
     assert_refused(run_app_in_process("cicfw.reproduction.paired_switch", str(a), str(b)), f"{b}/seed1")
+
+
+def test_the_overrides_a_row_trained_with_are_compared_key_by_key():
+    """A cell records its row's training overrides; a ``trainer.*`` key (no recipe, no epochs) set on one side
+    alone or otherwise is a mismatch, spellings of one setting are not, and a cell that records none is not
+    compared."""
+    pin = CellPin(overrides=override_values(["experiment=paper_gtu", "trainer.max_epochs=2"]))
+    cell = {"overrides": ["experiment=paper_gtu", "+trainer.accumulate_grad_batches=2", "trainer.max_epochs=2"]}
+    assert cell_mismatch(cell, pin) == ("overrides.trainer.accumulate_grad_batches", "2", NOT_SET)
+    assert cell_mismatch({"overrides": ["experiment=paper_gtu", "trainer.max_epochs=3"]}, pin) == (
+        "overrides.trainer.max_epochs", "3", "2")
+    assert cell_mismatch({"overrides": ["experiment=paper_gtu", "+trainer.max_epochs=1", "trainer.max_epochs=2"]},
+                         pin) is None  # the last one wins, as Hydra's
+    assert cell_mismatch({"recipe": {}}, pin) is None  # written before cells recorded their overrides
+    assert override_values(["~model.ema_decay", "trainer.compile=true"]) == {"model.ema_decay": DELETED,
+                                                                            "speed.compile": "true"}
+
+
+def with_overrides(cell: Path, overrides: list[str]) -> None:
+    d = json.loads(cell.read_text())
+    d["overrides"] = overrides
+    cell.write_text(json.dumps(d))
+
+
+def test_cells_of_one_row_trained_with_other_overrides_are_refused(tmp_path):
+    """Two seeds of a row made under two definitions of it (a trainer key changed between runs) are not
+    pooled: the report names the cell, the key and both values, and writes nothing. A cell that records no
+    overrides (written before cells did) is not compared."""
+    folder = tmp_path / "half"
+    shutil.copytree(RESULTS / "converged6_half", folder)
+    cells = folder / "cells" / "cil"
+    with_overrides(cells / "seed0" / "cell.json", ["experiment=paper_cil", "trainer.max_epochs=3"])
+    with_overrides(cells / "seed2" / "cell.json", ["experiment=paper_cil", "trainer.max_epochs=3",
+                                                   "+trainer.gradient_clip_val=0.0001"])
+    refused(folder, "overrides.trainer.gradient_clip_val", cells / "seed2" / "cell.json", "0.0001", NOT_SET)
+    with_overrides(cells / "seed2" / "cell.json", ["experiment=paper_cil", "trainer.max_epochs=3"])
+    check_rows_agree(folder, load_cells(folder)[0])  # seed1 records none: not compared

@@ -206,7 +206,7 @@ def test_the_report_and_publish_dir_follow_every_cell(cache, one_cell, tmp_path,
         md = published / "RESULTS.md"
         seen[seed] = (sorted(p.parent.name for p in published.glob("cells/cil/seed*/cell.json")),
                       md.read_text() if md.is_file() else None)
-        return {**result, "wall_s": {**result["wall_s"], "train": 60.0 + seed}}  # two models' own times
+        return {**result, "val_steer_mae": result["val_steer_mae"] + seed * 1e-3}  # two models' own errors
 
     monkeypatch.setattr(reproduce, "_train_and_drive", train_and_drive)
     assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={out}", f"publish_dir={published}"]) == 0
@@ -462,6 +462,43 @@ def test_continue_from_another_dataset_or_model_is_refused_in_one_line(what, cac
     assert not (out / "reproduce.lock").exists()
     if what == "manifest":
         assert not collected  # the dataset was already there: refused before asking the collector
+
+
+@pytest.mark.parametrize("how", ["skip", "continue_from"])
+def test_a_row_redefined_by_training_only_keys_is_refused(how, cache, one_cell, tmp_path, monkeypatch, capsys):
+    """A cell records the overrides its row trained with; a row given a trainer key since (no recipe, no epochs)
+    trains another model, so its finished cells are neither skipped nor continued as seeds of it: one line
+    naming the cell, the key and both values, before anything is written. (Cells stand in for training.)"""
+    done = json.loads((one_cell / "cells" / "cil" / "seed0" / "cell.json").read_text())
+    result = {k: v for k, v in done.items() if k not in ("row", "seed", "status", "finished_s", "dataset")}
+    monkeypatch.setattr(reproduce, "_train_and_drive", lambda cfg, row, seed, cell_dir:
+                        {**result, "val_steer_mae": result["val_steer_mae"] + seed * 1e-3})  # two models' own errors
+    out = tmp_path / "results"
+    assert reproduce.main([*SMOKE, "rows=[cil]", f"results_dir={out}"]) == 0
+    recorded = cells(out)["cil/seed0"]["overrides"]
+    assert recorded[0] == "experiment=paper_cil" and recorded[-1] == f"data.val_batch_size={BATCH}", recorded
+    assert "trainer.max_epochs=2" in recorded  # the smoke budget's, as written
+    redefined = '+catalogue.cil.overrides=["+trainer.accumulate_grad_batches=2"]'
+    if how == "skip":  # one cell removed: it would retrain under the new definition beside the old one
+        (out / "cells" / "cil" / "seed1" / "cell.json").unlink()
+        cell, folder, args = out / "cells" / "cil" / "seed0" / "cell.json", out, [f"results_dir={out}"]
+    else:
+        folder = tmp_path / "published"
+        publish(out, folder)
+        cell, args = folder / "cells" / "cil" / "seed0" / "cell.json", [f"continue_from={folder}",
+                                                                          f"results_dir={tmp_path / 'clone'}"]
+    before = {p: p.read_bytes() for p in folder.rglob("*.json")}
+    capsys.readouterr()
+    assert reproduce.main([*SMOKE, "rows=[cil]", *args, redefined]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cell) in err[0], err
+    assert "overrides.trainer.accumulate_grad_batches=(not set)" in err[0], err
+    assert "overrides.trainer.accumulate_grad_batches=2" in err[0], err
+    assert {p: p.read_bytes() for p in folder.rglob("*.json")} == before  # report_overrides unchanged too
+    if how == "skip":
+        assert not (out / "cells" / "cil" / "seed1" / "cell.json").exists()  # nothing trained
+    else:
+        assert not list((tmp_path / "clone").glob("cells/*/seed*/cell.json"))  # nothing copied
 
 
 def test_a_failed_cell_is_recorded_and_the_others_go_on(smoke_run, capsys, monkeypatch):

@@ -17,7 +17,8 @@ and checks a folder (or a published one to continue) made with another budget or
 budget's dataset once (every row trains on it), makes every cell's train/validation split of it (a seed whose split
 cannot train is refused before any cell trains) and pins the results folder to this budget, suite and dataset
 (``reproduce.json``): a folder made with another dataset is refused, and so is a finished cell trained on another
-dataset, for other epochs, driven under another weather family or with another model configuration (its ``recipe``):
+dataset, for other epochs, driven under another weather family, with another model configuration (its ``recipe``)
+or with other training overrides of its row (its ``overrides``):
 ``cells.check_cell_pin``, the check ``cicfw report`` makes against the folder's pin. Each
 (row, seed) cell is one job of Hydra's launcher (``cell.row``/``cell.seed`` swept), so
 ``launcher=joblib|slurm`` spreads cells with no other change. A cell trains, drives the suite and writes
@@ -66,9 +67,9 @@ from cicfw.core.run_folder import HYDRA_RECORDS, check_name_lengths, claim_folde
 from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.model.checkpoint import samples_seen
-from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling
-from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin, cell_runs, check_cell_pin,
-                                     finished_cells, flat)
+from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling, trained_overrides
+from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, OVERRIDES_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin, cell_runs,
+                                     check_cell_pin, finished_cells, flat, override_values)
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import RunLocks
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
@@ -479,8 +480,9 @@ def recipe(tcfg: DictConfig) -> dict[str, Any]:
 
 def check_cells(folder: Path, fix: str, cfg: DictConfig, dataset: str, pins: dict[str, CellPin]) -> None:
     """Every finished cell under ``folder`` was made as this run makes its row: its dataset, weather family,
-    epochs and recipe (``check_cell_pin``, the check ``cicfw report`` makes against a folder's pin), else one
-    line naming the cell's file, the key and both values. ``pins``: row -> its pin, composed once per row."""
+    epochs, recipe and its row's training overrides, ``trainer.*`` too (``check_cell_pin``, the check ``cicfw
+    report`` makes against a folder's pin), else one line naming the cell's file, the key and both values.
+    ``pins``: row -> its pin, composed once per row."""
     family = named_weather_family(suite_overrides(cfg))
     for name, d in finished_cells(folder).items():
         row = str(d.get("row"))
@@ -489,7 +491,8 @@ def check_cells(folder: Path, fix: str, cfg: DictConfig, dataset: str, pins: dic
                 with initialize_config_module("cicfw.conf", version_base="1.3"):
                     tcfg = compose_train(cfg, row, 0)
                 pins[row] = CellPin(dataset=dataset, weather_family=family, family_known=True,
-                                    epochs=int(tcfg.trainer.max_epochs), recipe=flat(recipe(tcfg)))
+                                    epochs=int(tcfg.trainer.max_epochs), recipe=flat(recipe(tcfg)),
+                                    overrides=override_values(trained_overrides(cfg, row)))
             else:  # a row this run does not know: what the whole run pins
                 pins[row] = CellPin(dataset=dataset, weather_family=family, family_known=True)
         check_cell_pin(folder / "cells" / name / CELL_FILE, d, pins[row], f"this run makes row {row} with", fix)
@@ -744,7 +747,8 @@ def run_cell(cfg: DictConfig, cell_dir: Path) -> str:
         status = "failed"
         log.error("cell %s seed %d failed: %s\n%s", row, seed, result["error"], result["detail"])
     atomic_write(done, json.dumps({"row": row, "seed": seed, "status": status, "finished_s": round(time.time() - t0, 1),
-                                   "dataset": pinned.get("dataset"), **result}, indent=1))
+                                   "dataset": pinned.get("dataset"), **result,
+                                   OVERRIDES_KEY: trained_overrides(cfg, row)}, indent=1))
     return status
 
 

@@ -1,13 +1,14 @@
 """A row of the reproduction's catalogue (``catalogue.<row>`` in conf/reproduce.yaml): the one place its keys
 and types live. A cell trains the row's ``experiment`` with its ``overrides``; the report shows its ``label``
 beside ``paper``, the paper's Table-4 values. The reproduce config's schema (cicfw/reproduction/schema.py) takes
-a row's keys from ``Row``; ``row_overrides`` makes a cell's training overrides of its row.
+a row's keys from ``Row``; ``row_overrides`` makes a cell's training overrides of its row, ``trained_overrides``
+what its cell.json records of them.
 """
 import re
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from cicfw.model.speed import SPEED_SWITCHES
 
@@ -47,6 +48,16 @@ def row_overrides(cfg: DictConfig, row: str, seed: int) -> list[str]:
     return [f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
             *speed_node_spelling(cfg.budget.train), f"seed={seed}",
             f"progress_bar={str(bool(cfg.progress_bar)).lower()}"]
+
+
+def trained_overrides(cfg: DictConfig, row: str) -> list[str]:
+    """What a cell of ``row`` records it was trained with (cell.json's ``overrides``): the row's experiment and
+    catalogue overrides as resolved, then the budget's training overrides as written (as the folder pins them,
+    so that a cache elsewhere is the same plan); the seed and the progress bar are not the row's definition."""
+    entry = cfg.catalogue[row]
+    budget = OmegaConf.to_container(cfg.budget, resolve=False)["train"]
+    return speed_node_spelling([f"experiment={entry.experiment}", *[str(o) for o in entry.get("overrides") or []],
+                                *[str(o) for o in budget]])
 
 
 def speed_node_spelling(overrides: Sequence[Any]) -> list[str]:

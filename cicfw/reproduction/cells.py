@@ -17,7 +17,7 @@ from cicfw.benchmark.finished_run import cell_key, cell_name
 from cicfw.benchmark.suite import CELLS
 from cicfw.core.errors import CicfwError
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.catalogue import override_key
+from cicfw.reproduction.catalogue import override_key, speed_node_spelling
 
 #: cell.json's key naming the embedded simulator's weather family its suite was driven under (absent in cells
 #: written before it was recorded, and for another simulator: such a cell reads as its folder's)
@@ -392,17 +392,35 @@ def flat(d: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: d}
 
 
+#: cell.json's key listing the overrides its row was trained with (``catalogue.trained_overrides``; absent in
+#: cells written before it was recorded, which are not compared on it)
+OVERRIDES_KEY = "overrides"
+#: an override's value where one side does not set its key, and where it deletes it (``~key``)
+NOT_SET, DELETED = "(not set)", "(deleted)"
+
+
+def override_values(overrides: Sequence[Any]) -> dict[str, str]:
+    """Training overrides as key -> value as written (the last one wins, as Hydra's; ``~key``: ``DELETED``), the
+    speed switches spelled under the ``speed`` node: two rows' definitions compared key by key."""
+    out: dict[str, str] = {}
+    for o in speed_node_spelling(overrides):
+        out[override_key(o)] = DELETED if o.startswith("~") else o.partition("=")[2]
+    return out
+
+
 @dataclass(frozen=True)
 class CellPin:
     """What a finished cell of a reproduction was made with: the dataset's hash, the weather family it drove
-    (``family_known`` False: not known), the epochs it trained and its recipe (flat, ``model.lr`` -> value,
-    all of it or only the keys known). None: not known, not compared."""
+    (``family_known`` False: not known), the epochs it trained, its recipe (flat, ``model.lr`` -> value,
+    all of it or only the keys known) and its row's training overrides (``override_values``: every key,
+    ``trainer.*`` too). None: not known, not compared."""
 
     dataset: str | None = None
     weather_family: str | None = None
     family_known: bool = False
     epochs: int | None = None
     recipe: Mapping[str, Any] | None = None
+    overrides: Mapping[str, str] | None = None
 
 
 def pinned_recipe(train: Sequence[Any]) -> dict[str, Any]:
@@ -438,7 +456,7 @@ def pinned_epochs(train: Sequence[Any]) -> int | None:
 def cell_mismatch(cell: Mapping[str, Any], pin: CellPin) -> tuple[str, Any, Any] | None:
     """The first of ``pin``'s keys a finished cell (its cell.json) records otherwise: (key, the cell's value,
     the pin's), else None. Only what both sides know is compared: a cell written before it recorded its
-    dataset, family or recipe, and a recipe key only one side has (an option added later, whose default
+    dataset, family, recipe or overrides, and a recipe key only one side has (an option added later, whose default
     keeps the old behaviour), are no mismatch."""
     if cell.get("dataset") and pin.dataset and cell["dataset"] != pin.dataset:
         return "dataset", cell["dataset"], pin.dataset
@@ -451,6 +469,11 @@ def cell_mismatch(cell: Mapping[str, Any], pin: CellPin) -> tuple[str, Any, Any]
         for k in sorted(set(theirs) & set(pin.recipe)):
             if theirs[k] != pin.recipe[k]:
                 return f"recipe.{k}", theirs[k], pin.recipe[k]
+    if pin.overrides is not None and isinstance(cell.get(OVERRIDES_KEY), list):
+        theirs = override_values(cell[OVERRIDES_KEY])  # every key either sets: set on one side alone differs
+        for k in sorted(set(theirs) | set(pin.overrides)):
+            if theirs.get(k, NOT_SET) != pin.overrides.get(k, NOT_SET):
+                return f"{OVERRIDES_KEY}.{k}", theirs.get(k, NOT_SET), pin.overrides.get(k, NOT_SET)
     return None
 
 
@@ -467,6 +490,23 @@ def check_cell_pin(path: Path, cell: Mapping[str, Any], pin: CellPin, against: s
         key, theirs, ours = found
         raise CicfwError(f"cell {str(path)!r} was made with {key}={_shown(theirs)}, {against} {key}={_shown(ours)}; "
                          f"{fix}", key=key, value=theirs)
+
+
+def check_rows_agree(results_dir: Path, cells: Sequence[CellResult]) -> None:
+    """The cells of each row were trained with the same overrides (``OVERRIDES_KEY``), else one line naming a
+    cell, the key and both values (``check_cell_pin``): a row redefined between runs would pool two setups
+    as seeds of one. The first cell of a row that records them is the others' reference; cells that record
+    none (written before) are not compared."""
+    first: dict[str, CellResult] = {}
+    for c in cells:
+        if not isinstance(c.meta.get(OVERRIDES_KEY), list):
+            continue
+        ref = first.setdefault(c.row, c)
+        if ref is not c:
+            check_cell_pin(Path(results_dir) / "cells" / c.row / f"seed{c.seed}" / "cell.json", c.meta,
+                           CellPin(overrides=override_values(ref.meta[OVERRIDES_KEY])),
+                           f"cell {ref.row}/seed{ref.seed} of its row was made with",
+                           "a row's cells must share its definition; keep one setup per row in a folder")
 
 
 def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:

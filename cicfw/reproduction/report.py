@@ -124,7 +124,7 @@ from cicfw.core.locks import describe_holder, live_holder
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellPin, CellResult,
-                                     check_cell_pin, check_families, pinned_epochs, pinned_recipe,
+                                     check_cell_pin, check_families, check_rows_agree, pinned_epochs, pinned_recipe,
                                      cpu_counts, kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
@@ -915,6 +915,7 @@ def write_report(results_dir: Path, catalogue: Mapping[str, Mapping[str, Any]], 
     for c in cells:  # a cell of another reproduction would be pooled into its row: the check a run makes
         check_cell_pin(results_dir / "cells" / c.row / f"seed{c.seed}" / "cell.json", c.meta, pin,
                        "reproduce.json pins", "keep only this reproduction's cells in its folder")
+    check_rows_agree(results_dir, cells)  # a row redefined between runs: its cells' overrides differ
     if not cells:
         raise CicfwError(f"no finished cell in {str(results_dir)!r} (cells/<row>/seed<k>/cell.json): nothing to report"
                          + (f"; {len(failed)} failed" if failed else ""))
