@@ -366,7 +366,8 @@ def test_continue_machine_copies_only_that_machines_cells(cache, one_cell, tmp_p
     published = tmp_path / "published"
     publish(one_cell, published)
     ours = json.loads((published / "cells" / "cil" / "seed0" / "cell.json").read_text())
-    other = {**ours, "seed": 1, "machine": "2 cores (Some Other CPU), no GPU"}
+    other = {**ours, "seed": 1, "machine": "2 cores (Some Other CPU), no GPU",
+             "val_steer_mae": ours["val_steer_mae"] + 1e-3}  # another model, not a copy of seed 0
     (published / "cells" / "cil" / "seed1").mkdir()
     (published / "cells" / "cil" / "seed1" / "cell.json").write_text(json.dumps(other))
     assert "Some Other CPU" not in ours["machine"]
