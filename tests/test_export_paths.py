@@ -32,9 +32,10 @@ def test_export_refuses_to_write_over_its_checkpoint(checkpoint):
 
 
 def _hydra_run(folder: Path, job: str) -> Path:
-    """A folder as Hydra leaves a run of the cicfw app ``job``."""
+    """A folder as Hydra leaves a run of the cicfw app ``job`` (its record lists a cicfw callback)."""
     (folder / ".hydra").mkdir(parents=True)
-    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    name: {job}\n")
+    (folder / ".hydra" / "hydra.yaml").write_text("hydra:\n  callbacks:\n    run_folder:\n      _target_: "
+                                                  f"cicfw.core.run_folder.LockedRunFolderCheck\n  job:\n    name: {job}\n")
     return folder
 
 

@@ -4,6 +4,8 @@ read-only folder, ``preview --out <file>``, ``carla-check --port 99999``, and a 
 what was wrong and what is accepted, and nothing is half-written."""
 from __future__ import annotations
 
+import json
+
 import os
 import subprocess
 import time
@@ -244,7 +246,7 @@ def test_a_preview_into_an_evaluations_folder_is_refused_before_rendering(tmp_pa
     monkeypatch.setattr(preview, "contact_sheet", lambda *a, **k: pytest.fail("rendered before checking --out"))
     run = tmp_path / "evaluation"
     run.mkdir()
-    (run / "episodes.jsonl").write_text("{}\n")
+    (run / "episodes.jsonl").write_text((json.dumps({"format": "cicfw-episode-log/1", "fingerprint": {}}) + "\n"))  # an evaluation's log header
     (run / "map_town_a.png").write_bytes(b"the driven paths")
     with pytest.raises(SystemExit) as exc:
         preview.main(["--out", str(run), "--towns", "town_a"])

@@ -137,7 +137,9 @@ def test_which_sweep_folders_a_sweep_may_use(tmp_path):
     assert err.value.key == "hydra.sweep.dir" and "multirun.yaml" in str(err.value)
     below = tmp_path / "below"
     (below / "old" / ".hydra").mkdir(parents=True)
-    (below / "old" / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: evaluate\n")
+    (below / "old" / ".hydra" / "hydra.yaml").write_text("hydra:\n  callbacks:\n    run_folder:\n      _target_: "
+                                                          "cicfw.core.run_folder.LockedRunFolderCheck\n"
+                                                          "  job:\n    name: evaluate\n")  # a cicfw evaluation's
     (below / ".summary").mkdir()
     (below / ".summary" / "sweep.json").write_text('{"overrides": []}')
     claim_sweep_folder(below, app="evaluate")

@@ -2,6 +2,8 @@
 (exit status 2) before any folder is made or image rendered."""
 from __future__ import annotations
 
+import json
+
 from conftest import assert_refused, run_app_in_process
 
 TOOL = "cicfw.sim.weather_sheet"
@@ -40,6 +42,6 @@ def test_an_out_holding_another_app_s_run_is_one_line(tmp_path):
     """Another app's outputs (here an evaluation's episode log) are not a picture folder: refused, untouched."""
     out = tmp_path / "eval_run"
     out.mkdir()
-    (out / "episodes.jsonl").write_text("{}\n")
+    (out / "episodes.jsonl").write_text((json.dumps({"format": "cicfw-episode-log/1", "fingerprint": {}}) + "\n"))  # an evaluation's log header
     assert_refused(run_app_in_process(TOOL, "--out", str(out), *ONE), "--out", out)
     assert sorted(p.name for p in out.iterdir()) == ["episodes.jsonl"]
