@@ -358,6 +358,30 @@ def test_publish_dir_inside_the_results_folder_is_refused_up_front(no_collect, t
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
 
 
+def test_the_reports_publish_into_a_folder_a_running_reproduction_holds_is_refused(tmp_path, capsys):
+    """A reproduce run holds its publish_dir for its whole run: ``cicfw report RESULTS --publish DEST`` into that
+    folder meanwhile is refused naming --publish and the holder, and DEST keeps the run's files."""
+    import shutil
+
+    from cicfw.reproduction.lock import ResultsLock
+    from cicfw.reproduction.report import main as report
+
+    folder, dest = tmp_path / "half", tmp_path / "dest"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "docs" / "results" / "converged6_half", folder)
+    dest.mkdir()
+    running = ResultsLock(dest, key="publish_dir").acquire()  # the other run, between two of its publishes
+    try:
+        before = {p: p.read_bytes() for p in dest.rglob("*") if p.is_file()}
+        assert report([str(folder), "--publish", str(dest)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--publish" in err[0] and str(dest) in err[0] and "pid" in err[0], err
+        assert {p: p.read_bytes() for p in dest.rglob("*") if p.is_file()} == before
+    finally:
+        running.release()
+    assert report([str(folder), "--publish", str(dest)]) == 0  # once that run is done
+    assert (dest / "RESULTS.md").is_file()
+
+
 def test_the_reports_publish_inside_the_results_folder_is_refused(tmp_path, capsys):
     """``cicfw report RESULTS --publish RESULTS/pub`` is held to publish_dir's rule: nothing written."""
     import shutil

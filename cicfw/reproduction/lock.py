@@ -40,10 +40,11 @@ class RunLocks:
     (which every cell's report is copied into), so no other run takes either while it runs. Taken in that
     order (the first refusal gives back what was taken), given back together."""
 
-    def __init__(self, results_dir: str | Path, publish_dir: str | Path | None = None) -> None:
+    def __init__(self, results_dir: str | Path, publish_dir: str | Path | None = None,
+                 publish_key: str = "publish_dir") -> None:
         self.folders = [(Path(results_dir), "results_dir")]
         if publish_dir:
-            self.folders.append((Path(publish_dir), "publish_dir"))
+            self.folders.append((Path(publish_dir), publish_key))  # the option that named it (cicfw report: --publish)
         self.held: list[ResultsLock] = []
 
     def acquire(self) -> "RunLocks":

@@ -130,7 +130,7 @@ from cicfw.reproduction.claims import (Claim, check_margin, default_claims, defa
                                        load_claims)
 from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
-from cicfw.reproduction.lock import LOCK_FILE
+from cicfw.reproduction.lock import LOCK_FILE, RunLocks
 from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
                                                 val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
@@ -1040,8 +1040,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.markdown:
             check_markdown_target(Path(a.markdown), [Path(a.results_dir), *([Path(a.publish)] if a.publish else [])])
 
-        with initialize_config_module("cicfw.conf", version_base="1.3"):
-            data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
+        # held while it writes, as a reproduce run holds them: no run takes either folder meanwhile
+        held = RunLocks(Path(a.results_dir), a.publish, publish_key="--publish").acquire()
+        try:
+            with initialize_config_module("cicfw.conf", version_base="1.3"):
+                data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
+        finally:
+            held.release()
         if a.markdown:
             write_markdown_copy(data, Path(a.markdown), Path(a.publish) if a.publish else Path(a.results_dir))
     except (ValueError, FileNotFoundError) as err:
