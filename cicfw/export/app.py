@@ -44,7 +44,7 @@ from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import enclosing_run
 from cicfw.data.cil_hdf5 import CILFormatError, T, check_file, find_files, read_rgb, read_targets
 from cicfw.data.frames import META_NAME
-from cicfw.data.provenance import SETS_KEY, file_sha256
+from cicfw.data.provenance import SETS_KEY
 from cicfw.model.checkpoint import (CheckpointBytes, checkpoint_record, config_parts_differ, decoder_info, describe,
                                     load_model, prepare_for_inference, recorded_data_paths, refuse_exported_model,
                                     resolve_checkpoint, run_config_files, where_it_ran)
@@ -324,7 +324,7 @@ def other_run(cfg: dict[str, Any], cfg_path: Path, hp: dict[str, Any], checkpoin
     return differ or (f"data {theirs}, checkpoint {own}" if own and theirs and own != theirs else None)
 
 
-def training_dataset(checkpoint: Path | CheckpointBytes, cfg_path: Path | None) -> dict[str, Any]:
+def training_dataset(checkpoint: CheckpointBytes, cfg_path: Path | None) -> dict[str, Any]:
     """The data the model trained on, as its checkpoint recorded it (``cicfw.data.provenance``: the
     absolute path, the number of files and the hash of their names, sizes and SHA-256, whatever the folder
     holds now, and the towns and weathers it was collected in when training started: an evaluation's training
@@ -369,12 +369,10 @@ def dataset_hash(cfg_path: Path | None) -> dict[str, Any]:
             "collect_config_hash": meta.get("config_hash") if isinstance(meta, dict) else None}
 
 
-def describe_model(model: torch.nn.Module, checkpoint: Path | CheckpointBytes, fmt: str,
-                   opset: int | None) -> dict[str, Any]:
+def describe_model(model: torch.nn.Module, read: CheckpointBytes, fmt: str, opset: int | None) -> dict[str, Any]:
     """The exported model's description: what it is, its inputs and output, its decoder, its provenance
-    (``CheckpointBytes``: the bytes ``model`` was built from, hashed and read for its data record)."""
-    read = checkpoint if isinstance(checkpoint, CheckpointBytes) else None
-    checkpoint = read.path if read else checkpoint
+    (``read``: the bytes ``model`` was built from, hashed and read for its data record)."""
+    checkpoint = read.path
     hp = _jsonable(dict(model.hparams))
     cfg, cfg_path = run_config(checkpoint)
     if cfg is not None and (differ := other_run(cfg, cfg_path, hp, checkpoint)):  # not this model's folder
@@ -403,8 +401,8 @@ def describe_model(model: torch.nn.Module, checkpoint: Path | CheckpointBytes, f
         "normalisation": {"pixels": "/ 255", "speed": f"speed_kmh / {float(model.speed_norm_kmh):g}"},
         "command_codes": {str(k): v for k, v in COMMAND_CODES.items()},
         "decoder": decoder_info(model.head, hp["head"]),
-        "checkpoint": {"path": str(checkpoint), "sha256": read.sha256 if read else file_sha256(checkpoint)},
-        "training_dataset": training_dataset(read or checkpoint, cfg_path),
+        "checkpoint": {"path": str(checkpoint), "sha256": read.sha256},
+        "training_dataset": training_dataset(read, cfg_path),
     }
 
 
@@ -482,9 +480,9 @@ def check_outside_other_runs(path: Path, checkpoint: Path) -> None:
                       f"unset to write beside the checkpoint", key="out", value=str(path))
 
 
-def check_own_output(path: Path, checkpoint: Path | CheckpointBytes, fmt: str, overwrite: bool = False) -> None:
+def check_own_output(path: Path, checkpoint: CheckpointBytes, fmt: str, overwrite: bool = False) -> None:
     """``out`` and its sidecar are written only where nothing is, over this checkpoint's own earlier export
-    (its sidecar names the checkpoint's SHA-256, of the bytes read for ``CheckpointBytes``, and the format, and
+    (its sidecar names the SHA-256 of the checkpoint's bytes as read, and the format, and
     the model has the size the sidecar records), or with ``overwrite=true``: anything else (another run's file,
     another checkpoint's export, a file edited since) is refused in one line before the model is loaded."""
     sidecar = path.with_name(path.name + ".json")
@@ -499,8 +497,7 @@ def check_own_output(path: Path, checkpoint: Path | CheckpointBytes, fmt: str, o
         why = f"it exists and has no sidecar {sidecar.name!r} saying cicfw export wrote it"
     elif not (isinstance(side, dict) and isinstance(side.get("checkpoint"), dict) and "size_bytes" in side):
         why = f"{sidecar.name!r} exists and is not the sidecar of a cicfw export"
-    elif side["checkpoint"].get("sha256") != (checkpoint.sha256 if isinstance(checkpoint, CheckpointBytes)
-                                              else file_sha256(checkpoint)) or side.get("format") != fmt:
+    elif side["checkpoint"].get("sha256") != checkpoint.sha256 or side.get("format") != fmt:
         why = (f"it is the {side.get('format')} export of another checkpoint "
                f"({side['checkpoint'].get('path')!r}, or another state of it)")
     elif path.exists() and path.stat().st_size != side["size_bytes"]:

@@ -494,8 +494,8 @@ def _mapped(path: str | os.PathLike | CheckpointBytes) -> dict[str, Any]:
     (``CheckpointBytes``: from those bytes); {} when it is unreadable or not a dict."""
     if isinstance(path, CheckpointBytes):
         try:
-            ckpt = torch.load(path.open(), map_location="cpu", weights_only=True)
-        except Exception:
+            ckpt = load_weights_only(path)
+        except UnloadableCheckpoint:
             return {}
         return ckpt if isinstance(ckpt, dict) else {}
     for mmap in (True, False):
