@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import logging
 import shutil
-from types import SimpleNamespace
 
 import pytest
 import torch
 
-import cicfw.benchmark.app as bench_app
 from conftest import compose_train
 from test_data_provenance import SHORT, trained  # noqa: F401  (the module's trained run, as a fixture)
 from test_diagnose import write_episodes
+from test_trained_sets import overrides_after_training
 
 #: an earlier best no validation on the new data can beat: kept, it would stay the run's best
 UNBEATABLE = 1e-6
@@ -76,25 +75,11 @@ def _record(path: str, towns: list[str], weathers: list[str]) -> dict:
 
 
 def test_the_training_columns_are_the_union_over_the_data_a_resumed_run_trained_on(tmp_path, monkeypatch, caplog):
-    seen = {}
-
-    def evaluate_checkpoint(path, out, overrides, resume_hint, claim=True):
-        seen["overrides"] = list(overrides)
-        return {"success": 50.0, "cells": {}}
-
-    monkeypatch.setattr(bench_app, "evaluate_checkpoint", evaluate_checkpoint)
-    best = tmp_path / "checkpoints" / "best.ckpt"
-    best.parent.mkdir()
     record = {**_record("/data/b", ["town_b"], ["MidRainyNoon"]),
               "before": [_record("/data/a", ["town_a"], ["ClearNoon"])]}
-    torch.save({"cicfw_data": record}, best)
-    trainer = SimpleNamespace(checkpoint_callbacks=[SimpleNamespace(best_model_path=str(best), last_model_path="")],
-                              fast_dev_run=False, logger=None, global_step=1)
-    cfg = compose_train("++data.collect.towns=[town_b]", "++data.collect.weathers=[MidRainyNoon]",
-                        "evaluate_overrides=['suite.limit=1']")
     with caplog.at_level(logging.INFO, logger="cicfw.evaluate"):
-        bench_app.evaluate_after_training(cfg, trainer, tmp_path)
-    assert seen["overrides"] == ["suite.limit=1", "suite.training_towns=[town_a,town_b]",
-                                 "suite.training_weathers=[ClearNoon,MidRainyNoon]"]
+        overrides = overrides_after_training(tmp_path, monkeypatch, lambda best: torch.save({"cicfw_data": record}, best))
+    assert overrides == ["suite.limit=1", "suite.training_towns=[town_a,town_b]",
+                         "suite.training_weathers=[ClearNoon,MidRainyNoon]"]
     named = [r.getMessage() for r in caplog.records if "training columns" in r.getMessage()]
     assert len(named) == 1 and "union over all 2 data sets" in named[0], named

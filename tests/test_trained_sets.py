@@ -43,7 +43,9 @@ def test_a_collected_folder_s_metadata_says_it_and_other_data_says_nothing(tmp_p
                                                 "suite.training_weathers=[MidRainyNoon]"]
 
 
-def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
+def overrides_after_training(tmp_path, monkeypatch, write_best) -> list[str]:
+    """The overrides ``evaluate_after_training`` gives the suite (the evaluation itself stood in for) for a run
+    whose best checkpoint ``write_best(path)`` writes, its config's data collected in town_b under MidRainyNoon."""
     seen = {}
 
     def evaluate_checkpoint(path, out, overrides, resume_hint, claim=True):
@@ -53,14 +55,18 @@ def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
     monkeypatch.setattr(bench_app, "evaluate_checkpoint", evaluate_checkpoint)
     best = tmp_path / "checkpoints" / "best.ckpt"
     best.parent.mkdir()
-    best.write_bytes(b"weights")
+    write_best(best)
     trainer = SimpleNamespace(checkpoint_callbacks=[SimpleNamespace(best_model_path=str(best), last_model_path="")],
                               fast_dev_run=False, logger=None, global_step=1)
     cfg = compose_train("++data.collect.towns=[town_b]", "++data.collect.weathers=[MidRainyNoon]",
                         "evaluate_overrides=['suite.limit=1']")
     bench_app.evaluate_after_training(cfg, trainer, tmp_path)
-    assert seen["overrides"] == ["suite.limit=1", "suite.training_towns=[town_b]",
-                                 "suite.training_weathers=[MidRainyNoon]"]
+    return seen["overrides"]
+
+
+def test_the_evaluation_after_training_drives_with_them(tmp_path, monkeypatch):
+    overrides = overrides_after_training(tmp_path, monkeypatch, lambda best: best.write_bytes(b"weights"))
+    assert overrides == ["suite.limit=1", "suite.training_towns=[town_b]", "suite.training_weathers=[MidRainyNoon]"]
 
 
 def _run_with_checkpoint(tmp_path, towns, weathers):
