@@ -2,8 +2,9 @@
 
 Checkpoints are read with ``torch.load(weights_only=True)``: only tensors and plain containers are
 ever unpickled, never an arbitrary class. The hyper-parameters saved by ``CICModule`` (registry names
-and plain kwargs) rebuild the model exactly as ``CICModule.load_from_checkpoint`` would, after checking
-that every part it names is installed. Each way a checkpoint can be wrong is one clear error.
+and plain kwargs) rebuild its network, a ``SteeringNet``, as ``CICModule.load_from_checkpoint`` would,
+after checking that every part it names is installed. Each way a checkpoint can be wrong is one clear
+error.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from cicfw.core.errors import CicfwError
 from cicfw.data.provenance import CHECKPOINT_KEY, folder_record, is_record
-from cicfw.model.module import CICModule, fit_saved_hparams
+from cicfw.model.net import NET_DEFAULTS, NET_KEYS, SteeringNet
 from cicfw.model.speed import keep_fp32
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
@@ -333,14 +334,45 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
     return dict(ckpt)
 
 
-def model_from_hparams(hp: Mapping[str, Any], where: str) -> CICModule:
-    """The ``CICModule`` a checkpoint's ``hyper_parameters`` describe (its weights not loaded); one
-    ``CheckpointError`` when this cicfw's CICModule does not take them."""
-    try:
-        return CICModule(**fit_saved_hparams(hp))
-    except TypeError as err:
-        raise CheckpointError(f"checkpoint {where!r}: its hyper_parameters do not fit this cicfw's "
-                              f"CICModule ({err})", key="checkpoint", value=where) from None
+#: the hyper-parameters ``CICModule`` saves for training alone, with their defaults: driving reads none of them
+#: (a test holds these and ``NET_KEYS`` to CICModule's signature)
+TRAINING_DEFAULTS: dict[str, Any] = {"lr": 2e-4, "betas": (0.7, 0.85), "weight_decay": 0.0, "lr_schedule": "constant",
+                                     "lr_final_factor": 0.0, "lr_warmup_fraction": 0.0, "ema_decay": 0.0}
+
+
+class SavedHparams(dict):
+    """A checkpoint's hyper-parameters, read as keys or as attributes (``hp.mixer``), as Lightning's ``hparams``."""
+
+    def __getattr__(self, key: str) -> Any:
+        try:
+            return self[key]
+        except KeyError:
+            raise AttributeError(key) from None
+
+
+def saved_hparams(hp: Mapping[str, Any], where: str) -> SavedHparams:
+    """Every ``CICModule`` argument as the checkpoint's ``hyper_parameters`` give it, in the constructor's order:
+    an argument saved before it existed takes its default, as does an ``lr_final_factor`` saved beside the
+    constant schedule, which never read it (and once accepted any). A key ``CICModule`` does not take is one
+    ``CheckpointError``."""
+    unknown = sorted(str(k) for k in hp if k not in NET_KEYS and k not in TRAINING_DEFAULTS)
+    if unknown:
+        raise CheckpointError(f"checkpoint {where!r}: its hyper_parameters do not fit this cicfw's CICModule "
+                              f"(unknown {', '.join(map(repr, unknown))}; it takes "
+                              f"{', '.join([*NET_KEYS, *TRAINING_DEFAULTS])})", key="checkpoint", value=where)
+    hp = dict(hp)
+    if hp.get("lr_schedule", "constant") == "constant":
+        hp.pop("lr_final_factor", None)
+    return SavedHparams({**NET_DEFAULTS, **TRAINING_DEFAULTS, **hp})
+
+
+def model_from_hparams(hp: Mapping[str, Any], where: str) -> SteeringNet:
+    """The ``SteeringNet`` a checkpoint's ``hyper_parameters`` describe (its weights not loaded), holding them all
+    as ``hparams``."""
+    every = saved_hparams(hp, where)
+    model = SteeringNet(**{k: every[k] for k in NET_KEYS})
+    model.hparams = every
+    return model
 
 
 def parts_label(hp: Mapping[str, Any]) -> str:
@@ -370,13 +402,13 @@ def weights_misfit(want: Mapping[str, Any], got: Mapping[str, Any]) -> str | Non
             f"e.g. {example}")
 
 
-def load_model(path: str | Path | CheckpointBytes):
-    """A ``CICModule`` in eval mode rebuilt from a checkpoint (or the ``CheckpointBytes`` read from one), on the
-    CPU (what ``CICModule.load_from_checkpoint(path, weights_only=True)`` does, after the checks above)."""
+def load_model(path: str | Path | CheckpointBytes) -> SteeringNet:
+    """The ``SteeringNet`` in eval mode rebuilt from a checkpoint (or the ``CheckpointBytes`` read from one), on
+    the CPU: the network ``CICModule.load_from_checkpoint(path, weights_only=True)`` holds, after the checks above,
+    without importing Lightning."""
     keep_fp32()  # it drives in the precision it was licensed in: no TF32 on a GPU
     ckpt = read_checkpoint(path)
     model = model_from_hparams(ckpt["hyper_parameters"], str(path))
-    model.on_load_checkpoint(ckpt)
     # cicfw saves plain keys even from a torch.compile'd run; a module compiled with the
     # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights
     state = {k.replace("_orig_mod.", ""): v for k, v in ckpt["state_dict"].items()}

@@ -1,10 +1,8 @@
-"""CICModule: encoder -> branch mixer -> head, as one LightningModule built from registry names.
+"""CICModule: the ``SteeringNet`` (cicfw/model/net.py) with its training, as a thin LightningModule.
 
 Every constructor argument is a name or plain data, so ``save_hyperparameters()`` holds the whole
-model and ``CICModule.load_from_checkpoint(path)`` rebuilds it without Hydra.
-
-Batches are dicts: ``image`` uint8 (B, 3, 88, 200), ``speed`` km/h (B,), ``command`` branch index
-(B,) in 0..3 (= CIL code - 2, order ``cicfw.COMMANDS``), ``steer`` (B,) in [-1, 1].
+model and ``CICModule.load_from_checkpoint(path)`` rebuilds it without Hydra; driving rebuilds only
+the ``SteeringNet`` from the same hyper-parameters and weights (``cicfw.model.checkpoint.load_model``).
 """
 from __future__ import annotations
 
@@ -19,7 +17,7 @@ from torchmetrics.classification import MulticlassAccuracy
 from cicfw import COMMANDS
 from cicfw.core.errors import ConfigError
 from cicfw.core.config_checks import is_number
-from cicfw.registry import ENCODERS, HEADS, MIXERS
+from cicfw.model.net import SteeringNet
 
 
 def cosine_factor(total_steps: int, final: float) -> Callable[[int], float]:
@@ -41,17 +39,8 @@ LR_SCHEDULES: dict[str, Callable[[int, float], Callable[[int], float] | None]] =
 }
 
 
-def fit_saved_hparams(hp: Mapping[str, Any]) -> dict[str, Any]:
-    """A checkpoint's ``hyper_parameters`` as ``CICModule`` takes them now: an ``lr_final_factor`` saved beside
-    the constant schedule, which never read it (and once accepted any), dropped for the default."""
-    hp = dict(hp)
-    if hp.get("lr_schedule", "constant") == "constant":
-        hp.pop("lr_final_factor", None)
-    return hp
-
-
-class CICModule(L.LightningModule):
-    """A thin LightningModule: the agent is ``encoder``, ``mixer``, ``head``; this adds training."""
+class CICModule(SteeringNet, L.LightningModule):
+    """A thin LightningModule: the agent is the ``SteeringNet`` it extends; this adds training."""
 
     def __init__(
         self,
@@ -61,25 +50,22 @@ class CICModule(L.LightningModule):
         mixer_kwargs: Mapping[str, Any] | None = None,
         head: str = "regression",
         head_kwargs: Mapping[str, Any] | None = None,
+        speed_norm_kmh: float = 40.0,
         lr: float = 2e-4,
         betas: tuple[float, float] = (0.7, 0.85),
         weight_decay: float = 0.0,
-        speed_norm_kmh: float = 40.0,
         lr_schedule: str = "constant",
         lr_final_factor: float = 0.0,
         lr_warmup_fraction: float = 0.0,
         ema_decay: float = 0.0,
     ) -> None:
-        super().__init__()
-        self.save_hyperparameters()
         # each number checked here, before any data, not by Adam inside fit (nan too: Adam names no key)
         for key, value, ok, accepted in (
                 ("lr", lr, lambda v: v > 0, "a number > 0"),
                 ("weight_decay", weight_decay, lambda v: v >= 0, "a number >= 0"),
                 ("lr_final_factor", lr_final_factor, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]"),
                 ("lr_warmup_fraction", lr_warmup_fraction, lambda v: 0.0 <= v < 1.0, "a number in [0, 1)"),
-                ("ema_decay", ema_decay, lambda v: 0.0 <= v < 1.0, "a number in [0, 1) (0: no averaging)"),
-                ("speed_norm_kmh", speed_norm_kmh, lambda v: v > 0, "a number > 0")):
+                ("ema_decay", ema_decay, lambda v: 0.0 <= v < 1.0, "a number in [0, 1) (0: no averaging)")):
             if not (is_number(value) and ok(value)):
                 raise ConfigError(f"model.{key}", value, accepted)
         if not (isinstance(betas, (list, tuple)) and len(betas) == 2 and all(is_number(b) and 0.0 <= b < 1.0
@@ -93,13 +79,9 @@ class CICModule(L.LightningModule):
             raise ConfigError("model.lr_final_factor", lr_final_factor, "0.0 with model.lr_schedule=constant",
                               f"model.lr_final_factor={lr_final_factor} is unused by model.lr_schedule=constant; "
                               f"give model.lr_schedule=cosine, or leave model.lr_final_factor at 0.0")
-        self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
-        self.head = HEADS.get(head)(**dict(head_kwargs or {}))
-        self.mixer = MIXERS.get(mixer)(
-            in_dim=self.encoder.out_dim, out_dim=self.head.out_dim, **dict(mixer_kwargs or {})
-        )
-        self.speed_norm_kmh = speed_norm_kmh
-        self.channels_last = False
+        super().__init__(encoder=encoder, encoder_kwargs=encoder_kwargs, mixer=mixer, mixer_kwargs=mixer_kwargs,
+                         head=head, head_kwargs=head_kwargs, speed_norm_kmh=speed_norm_kmh)
+        self.save_hyperparameters()
         self.adam_impl = "for-loop"  # speed switches (cicfw/model/speed.py): not hyper-parameters
         self._compiled_step = None
         for stage in ("train", "val"):
@@ -109,11 +91,6 @@ class CICModule(L.LightningModule):
         self.val_bin_acc = (
             MulticlassAccuracy(num_classes=self.head.bins.n, average="micro") if self.head.bins else None
         )
-
-    def use_channels_last(self) -> "CICModule":
-        """NHWC layout for the encoder's convolutions (a speed switch; outputs are unchanged)."""
-        self.channels_last = True
-        return self.to(memory_format=torch.channels_last)
 
     def enable_compile(self) -> "CICModule":
         """torch.compile the training step (forward + loss, with its backward); validation and
@@ -128,24 +105,6 @@ class CICModule(L.LightningModule):
 
     def __getstate__(self) -> dict:  # a compiled function does not pickle; recompile after unpickling
         return {**super().__getstate__(), "_compiled_step": None}
-
-    # ---- the agent ---------------------------------------------------------------------------
-    def branch_outputs(self, image: torch.Tensor, speed_kmh: torch.Tensor) -> torch.Tensor:
-        """All four branches' outputs (B, 4, K)."""
-        if self.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
-        h = self.encoder(image, speed_kmh.float() / self.speed_norm_kmh)
-        return self.mixer(h)
-
-    def forward(self, image: torch.Tensor, speed_kmh: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
-        """The output (B, K) of each sample's own branch: ``out[b, command[b]]``."""
-        out = self.branch_outputs(image, speed_kmh)
-        return out[torch.arange(out.shape[0], device=out.device), command.long()]
-
-    @torch.no_grad()
-    def predict_steer(self, image: torch.Tensor, speed_kmh: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
-        """Steering (B,) in [-1, 1]; ``command`` is the branch index (CIL code - 2)."""
-        return self.head.decode(self(image, speed_kmh, command))
 
     # ---- training ----------------------------------------------------------------------------
     def _step_outputs(self, image: torch.Tensor, speed: torch.Tensor, command: torch.Tensor,

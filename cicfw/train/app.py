@@ -41,10 +41,11 @@ from cicfw.data.cil_hdf5 import find_files
 from cicfw.data.frames import META_NAME, camera_names
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, Interrupted, on_interrupt, report_user_errors
 from cicfw.core.files import atomic_write, writable_folder
-from cicfw.model.checkpoint import (PART_KEYS, SUPERSEDED_KEY, WORLD_SIZE_KEY, UnloadableCheckpoint, checkpoint_record,
-                                   load_weights_only, model_from_hparams, parts_label, weights_misfit)
+from cicfw.model.checkpoint import (PART_KEYS, SUPERSEDED_KEY, TRAINING_DEFAULTS, WORLD_SIZE_KEY, UnloadableCheckpoint,
+                                   checkpoint_record, load_weights_only, model_from_hparams, parts_label, saved_hparams,
+                                   weights_misfit)
 from cicfw.model.diagnostics import MixerDiagnostics
-from cicfw.model.module import CICModule, fit_saved_hparams
+from cicfw.model.module import CICModule
 from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import (claim_folder, data_folders, enclosing_run, forget_failed_run, hold_train_folder,
                                   release_run_folder, undo_run_folder)
@@ -506,20 +507,14 @@ def check_weights_fit_their_model(path: str | Path, ckpt: Mapping[str, Any], mod
             f"{misfit}; resume from an intact checkpoint", key="ckpt_path", value=path)
 
 
-#: ``model.*`` values a resumed run takes from the checkpoint (the optimizer's and its schedule's state)
-RESTORED_BY_RESUMING = ("lr", "betas", "weight_decay", "lr_schedule", "lr_final_factor", "lr_warmup_fraction",
-                        "ema_decay")
-
-
 def check_resumed_optimizer(path: str | Path, ckpt: Mapping[str, Any], model: CICModule) -> None:
     """Resuming restores the optimizer (its lr, betas, weight decay) and its schedule from the checkpoint, so
     a ``model.*`` value that differs from the checkpoint's would be recorded but not used: refused, naming
     each key and both values."""
-    saved = fit_saved_hparams(ckpt.get("hyper_parameters") or {})
-    defaults = inspect.signature(CICModule.__init__).parameters
+    saved = saved_hparams(ckpt.get("hyper_parameters") or {}, str(path))
     differ = []
-    for key in RESTORED_BY_RESUMING:
-        theirs = saved.get(key, defaults[key].default)
+    for key in TRAINING_DEFAULTS:  # the optimizer's and its schedule's state: what resuming restores
+        theirs = saved[key]
         ours = model.hparams.get(key)
         if not same_value(ours, theirs):
             differ.append(f"model.{key}={_plain(ours)} (the checkpoint's: {_plain(theirs)})")
