@@ -13,6 +13,14 @@ IMAGE_HW = (88, 200)
 CIL_CONVS = ((32, 5, 2), (32, 3, 1), (64, 3, 2), (64, 3, 1), (128, 3, 2), (128, 3, 1), (256, 3, 1), (256, 3, 1))
 
 
+def conv_out_hw(hw: tuple[int, int]) -> tuple[int, int]:
+    """The (height, width) CIL's unpadded convolutions leave of an image of ``hw``: each takes ``(n - k) // s + 1``."""
+    h, w = hw
+    for _, k, s in CIL_CONVS:
+        h, w = (h - k) // s + 1, (w - k) // s + 1
+    return h, w
+
+
 class Encoder(nn.Module):
     """Contract: ``forward(image uint8 (B, 3, 88, 200), speed (B,) normalised) -> h (B, out_dim)``."""
 
@@ -52,8 +60,7 @@ class CILEncoder(Encoder):
                 layers.append(nn.Dropout2d(dropout_conv))
             c_in = c_out
         self.convs = nn.Sequential(*layers)
-        with torch.no_grad():
-            flat = self.convs(torch.zeros(1, 3, *IMAGE_HW)).numel()  # 256 x 2 x 16 = 8192
+        flat = c_in * conv_out_hw(IMAGE_HW)[0] * conv_out_hw(IMAGE_HW)[1]  # 256 x 2 x 16 = 8192
         self.image_fc = nn.Sequential(_fc(flat, 512, dropout_image_fc), _fc(512, 512, dropout_image_fc))
         self.speed_fc = nn.Sequential(_fc(1, 128, dropout_speed_fc), _fc(128, 128, dropout_speed_fc))
         self.join = _fc(512 + 128, out_dim, dropout_join)
