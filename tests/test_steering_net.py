@@ -1,12 +1,16 @@
-"""The driving network apart from its training: what a checkpoint rebuilds without Lightning."""
+"""The driving network apart from its training: what a checkpoint rebuilds, and diagnose's split, without
+Lightning."""
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import subprocess
 import sys
 
 import torch
 
+from cicfw.data.datamodule import CILDataModule
+from cicfw.diagnose.steer_diagnostic import DataSettings
 from cicfw.model.checkpoint import TRAINING_DEFAULTS, load_model
 from cicfw.model.module import CICModule
 from cicfw.model.net import NET_DEFAULTS, SteeringNet
@@ -32,11 +36,18 @@ def test_a_training_checkpoint_drives_as_the_module_that_trained(tmp_path):
     assert torch.equal(net.predict_steer(image, speed, command), module.predict_steer(image, speed, command))
 
 
-#: a fresh process that saves a checkpoint by hand, loads it and drives it through the evaluation and export apps'
-#: code, then prints what it imported
+def test_diagnose_s_data_defaults_are_the_datamodule_s():
+    params = inspect.signature(CILDataModule.__init__).parameters
+    for field in dataclasses.fields(DataSettings):
+        if field.name not in ("path", "seed"):  # diagnose's seed: None is the training run's
+            assert field.default == params[field.name].default, field.name
+
+
+#: a fresh process that saves a checkpoint by hand, loads it and drives it through the evaluation, export and
+#: diagnose apps' code, then prints what it imported
 _DRIVE = r"""
 import sys, tempfile, torch
-import cicfw.benchmark.app, cicfw.export.app
+import cicfw.benchmark.app, cicfw.export.app, cicfw.diagnose.app
 from cicfw.model.checkpoint import load_model
 from cicfw.model.net import SteeringNet
 path = tempfile.mkdtemp() + "/m.ckpt"
@@ -47,9 +58,9 @@ print(sorted({m.split(".")[0] for m in sys.modules} & {"lightning", "pytorch_lig
 """
 
 
-def test_evaluating_and_exporting_import_no_lightning():
-    """Lightning and torchmetrics take seconds to import: every evaluation, export and worker process starts
-    without them."""
+def test_evaluating_exporting_and_diagnosing_import_no_lightning():
+    """Lightning and torchmetrics take seconds to import: every evaluation, export, diagnosis and worker process
+    starts without them."""
     run = subprocess.run([sys.executable, "-c", _DRIVE], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.split() == ["[]"]

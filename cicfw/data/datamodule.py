@@ -6,7 +6,6 @@ command), side cameras with a steering correction, CIL augmentation for training
 from __future__ import annotations
 
 import logging
-import math
 from typing import Any, Mapping, Sequence
 
 import lightning as L
@@ -16,14 +15,13 @@ from lightning.pytorch.accelerators import CUDAAccelerator
 from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, RandomSampler
 
 from cicfw import COMMANDS
-from cicfw.core.errors import CicfwError, ConfigError
+from cicfw.core.errors import ConfigError
 from cicfw.data.augment import AugmentConfig, augment_batch
-from cicfw.core.config_checks import whole_number
-from cicfw.data.cil_hdf5 import KNOWN_CAMERA_IDS
-from cicfw.data.frames import Frames, camera_names, chosen_cameras, load_frames, split_by_episode
+from cicfw.data.frames import Frames
 from cicfw.data.images import ImageStore
 from cicfw.data.residency import decide, in_memory_setting
 from cicfw.data.sampler import CommandBalancedBatchSampler, SeededBatches, batch_rng
+from cicfw.data.split import check_split_settings, split_frames
 
 log = logging.getLogger(__name__)
 
@@ -64,25 +62,6 @@ def _as_batch(batch: Any) -> Any:
     return batch
 
 
-def camera_ids(key: str, cameras: Any) -> tuple[int, ...] | None:
-    """``data.cameras`` / ``data.val_cameras`` as a tuple of camera ids (targets[26]), None for every
-    camera; anything else is one line naming ``key`` (a lone ``5`` is no list to filter by). Ids beyond
-    the known three are allowed: a user's own files may hold them (load_frames names any it drops). An id
-    listed twice is refused: the camera is read once all the same (``np.isin``), not weighted twice."""
-    if cameras is None:
-        return None
-    accepted = (f"null (every camera) or a list of distinct camera ids (targets[26]) such as "
-                f"{list(KNOWN_CAMERA_IDS)} ({camera_names(KNOWN_CAMERA_IDS)})")
-    try:
-        listed = isinstance(cameras, Sequence) and not isinstance(cameras, str)  # a ListConfig too
-        ids = tuple(whole_number(f"data.{key}", c) for c in cameras) if listed else ()
-    except ValueError:
-        ids = ()
-    if not ids or min(ids) < 0 or len(set(ids)) < len(ids):
-        raise ConfigError(f"data.{key}", cameras, accepted)
-    return ids
-
-
 class CILDataModule(L.LightningDataModule):
     def __init__(
         self,
@@ -105,8 +84,6 @@ class CILDataModule(L.LightningDataModule):
         for key, size in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
             if size < 1:
                 raise ConfigError(f"data.{key}", size, ">= 1")
-        if not 0.0 < max_abs_steer <= 1.0:
-            raise ConfigError("data.max_abs_steer", max_abs_steer, "in (0, 1]")
         # checked here, before any file is read (the sampler checks the batch size again)
         if balanced and batch_size % len(COMMANDS):
             raise ConfigError("data.batch_size", batch_size, f"a multiple of {len(COMMANDS)} for balanced batches",
@@ -119,21 +96,12 @@ class CILDataModule(L.LightningDataModule):
             raise ConfigError("data.batches_per_epoch", batches_per_epoch,
                               "null with data.balanced=false (an epoch is one pass over the training samples); "
                               "data.balanced=true sets the epoch's length")
-        if not 0.0 < val_fraction < 1.0:
-            raise ConfigError("data.val_fraction", val_fraction, "in (0, 1)")
-        if not math.isfinite(side_camera_correction):  # NaN would train on NaN labels without a word
-            raise ConfigError("data.side_camera_correction", side_camera_correction, "a finite steering offset")
         self.path = str(path)
         self.batch_size, self.val_batch_size = batch_size, val_batch_size
         self.val_fraction, self.seed = val_fraction, seed
         self.max_abs_steer, self.side_camera_correction = max_abs_steer, side_camera_correction
-        self.cameras, self.val_cameras = camera_ids("cameras", cameras), camera_ids("val_cameras", val_cameras)
-        both = self.cameras is not None and self.val_cameras is not None
-        left_out = sorted(set(self.val_cameras) - set(self.cameras)) if both else []
-        if left_out:  # the loader reads data.cameras only: these would validate on nothing
-            raise CicfwError(f"data.val_cameras={list(self.val_cameras)} is not within data.cameras="
-                             f"{list(self.cameras)}: only data.cameras are read, so camera id(s) {left_out} would "
-                             f"validate on nothing; camera ids: {camera_names(KNOWN_CAMERA_IDS)} (or your files' own)")
+        self.cameras, self.val_cameras = check_split_settings(val_fraction, max_abs_steer, side_camera_correction,
+                                                              cameras, val_cameras)
         self.balanced, self.batches_per_epoch = balanced, batches_per_epoch
         if augment is True or augment is None:
             self.augment = AugmentConfig()
@@ -155,12 +123,8 @@ class CILDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        frames = load_frames(self.path, self.max_abs_steer, self.side_camera_correction, self.cameras)
-        train, val = split_by_episode(frames, self.val_fraction, self.seed)
-        if self.val_cameras is not None:
-            # none left: an error naming the ids the validation episodes hold (else no metric after epoch 1)
-            chosen = chosen_cameras(val.camera, self.val_cameras, "val_cameras", "validation samples: they")
-            val = val.subset(chosen)
+        frames, train, val = split_frames(self.path, self.val_fraction, self.seed, self.max_abs_steer,
+                                          self.side_camera_correction, self.cameras, self.val_cameras)
         rank, world = self._rank()
         if not self.balanced and len(train) < self.batch_size * world:
             # drop_last batches of more samples than the split holds: an epoch of no step, a run that trains nothing

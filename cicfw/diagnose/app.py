@@ -14,7 +14,7 @@ come from the training run's saved config beside the checkpoint (``<run>/.hydra/
 """
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any, Mapping
@@ -30,7 +30,6 @@ from cicfw.core.config_checks import is_number, same_value
 from cicfw.core.errors import USER_ERRORS, CicfwError, ConfigError, report_user_errors
 from cicfw.core.json_files import read_json
 from cicfw.core.run_folder import release_folder_locks, undo_run_folder
-from cicfw.data.datamodule import CILDataModule
 from cicfw.data.provenance import data_root, recorded_files, same_place
 from cicfw.diagnose import steer_diagnostic as sd
 from cicfw.diagnose.steer_diagnostic import DataSettings
@@ -130,8 +129,7 @@ def training_data(checkpoint: Path) -> tuple[dict[str, Any], str] | None:
 def data_settings(cfg: DictConfig, checkpoint: Path, record: Mapping[str, Any] | None = None):
     """The frames' settings: the datamodule's defaults, then the training run's, then ``data.*`` given here.
     ``record``: the checkpoint's record of its data, whose absolute path replaces the saved config's."""
-    params = inspect.signature(CILDataModule.__init__).parameters
-    values = {k: params[k].default for k in SPLIT_KEYS if k != "path"}
+    values = {f.name: f.default for f in dataclasses.fields(DataSettings) if f.name in SPLIT_KEYS and f.name != "path"}
     found = training_data(checkpoint)
     source = "the datamodule's defaults"
     if found is not None:

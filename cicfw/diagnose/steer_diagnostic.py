@@ -32,8 +32,9 @@ from cicfw import COMMANDS, N_COMMANDS
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import write_together
 from cicfw.data.cil_hdf5 import T, read_targets
-from cicfw.data.datamodule import CILDataModule, ImageStore
 from cicfw.data.frames import META_NAME, Frames, episode_groups, load_frames
+from cicfw.data.images import ImageStore
+from cicfw.data.split import check_split_settings, split_frames
 
 log = logging.getLogger(__name__)
 
@@ -266,7 +267,8 @@ def diagnose(expert: np.ndarray, steer: np.ndarray, command: np.ndarray, phase: 
 
 @dataclass
 class DataSettings:
-    """Which frames to measure: the datamodule's arguments that decide the split and the filters."""
+    """Which frames to measure: the datamodule's arguments that decide the split and the filters, with its
+    defaults (a test holds them to ``CILDataModule``'s), but the seed: None is the training run's."""
 
     path: str
     seed: int | None = None
@@ -279,7 +281,7 @@ class DataSettings:
 
 def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Path] | None = None):
     """The frames of ``split`` and an image store for them. ``val``/``train``: the training run's split,
-    made by the same ``CILDataModule`` (same seed, fraction and filters: the same episodes); ``all``: every
+    drawn as ``CILDataModule`` draws it (same seed, fraction and filters: the same episodes); ``all``: every
     file. Every split keeps only ``val_cameras`` (the centre camera: what the car drives with). ``files``:
     the files to read instead of every file under ``data.path`` (the files the run recorded: a file added
     to its folder since would move episodes between the splits)."""
@@ -291,12 +293,11 @@ def load_split(data: DataSettings, split: str = "val", files: Sequence[str | Pat
     else:
         if data.seed is None:
             raise CicfwError("data.seed is needed for the training run's split; give data.seed=<its seed>, or split=all")
-        dm = CILDataModule(data.path, val_fraction=data.val_fraction, seed=int(data.seed),
-                           max_abs_steer=data.max_abs_steer, side_camera_correction=data.side_camera_correction,
-                           cameras=data.cameras, val_cameras=data.val_cameras, augment=False, in_memory=False)
-        dm.path = source  # the recorded files, when given (load_frames takes a list)
-        dm.setup("validate")
-        frames = (dm.val_set if split == "val" else dm.train_set).frames
+        cameras, val_cameras = check_split_settings(data.val_fraction, data.max_abs_steer, data.side_camera_correction,
+                                                    data.cameras, data.val_cameras)
+        _, train, val = split_frames(source, data.val_fraction, int(data.seed), data.max_abs_steer,
+                                     data.side_camera_correction, cameras, val_cameras)
+        frames = val if split == "val" else train
     if cams is not None:
         frames = frames.subset(np.isin(frames.camera, cams))
     return frames, ImageStore(frames, in_memory=False)
