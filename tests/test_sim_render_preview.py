@@ -61,3 +61,28 @@ def test_preview_refuses_a_town_or_weather_listed_twice_before_writing(tmp_path,
         preview._main(["--out", str(tmp_path / "pics"), *args])
     assert (err.value.key, err.value.value) == (option, twice)
     assert not (tmp_path / "pics").exists()
+
+
+def _preview(out, *extra: str) -> int:
+    return preview.main(["--out", str(out), "--towns", "town_b", "--weathers", "ClearNoon", "--scale", "1",
+                         "--routes", "0", *extra])
+
+
+def test_a_user_s_file_of_a_picture_s_name_is_kept_unless_overwrite(tmp_path, capsys):
+    from PIL import Image
+
+    out = tmp_path / "pics"
+    out.mkdir()
+    (out / "turn_sheet.png").write_bytes(b"my own turn sheet")
+    with pytest.raises(SystemExit) as exit_:
+        _preview(out)
+    line = capsys.readouterr().err.strip()
+    assert exit_.value.code == 2 and line.startswith("cicfw: error:") and "--out" in line and "turn_sheet.png" in line
+    assert sorted(p.name for p in out.iterdir()) == ["turn_sheet.png"]
+    assert (out / "turn_sheet.png").read_bytes() == b"my own turn sheet"
+    assert _preview(out, "--overwrite") == 0
+    for name in ("contact_sheet.png", "turn_sheet.png", "map_town_b.png"):
+        with Image.open(out / name) as img:  # PIL reads the mark (and checks its CRC) as a valid PNG's text
+            assert img.info["Software"] == "cicfw preview", name
+            img.load()
+    assert _preview(out) == 0  # a preview's own pictures are replaced without the option

@@ -13,7 +13,9 @@ import argparse
 import io
 import math
 import os
+import struct
 import sys
+import zlib
 from pathlib import Path
 
 import cv2
@@ -47,6 +49,43 @@ def _png(rgb: np.ndarray, colours: int = 0) -> bytes:
     if not ok:
         raise ValueError("the image could not be encoded as PNG")
     return data.tobytes()
+
+
+#: the tEXt chunk's content every preview PNG carries: a file that holds it is preview's own, which the next
+#: preview into the folder replaces; any other file of a picture's name is the user's, kept
+PNG_MARK = b"Software\x00cicfw preview"
+_PNG_HEAD = 33  # the 8-byte signature and the IHDR chunk (13 bytes of data), which every PNG opens with
+
+
+def marked_png(png: bytes) -> bytes:
+    """``png`` with preview's tEXt chunk right after its header."""
+    chunk = b"tEXt" + PNG_MARK
+    return png[:_PNG_HEAD] + struct.pack(">I", len(PNG_MARK)) + chunk + struct.pack(">I", zlib.crc32(chunk)) \
+        + png[_PNG_HEAD:]
+
+
+def is_preview_png(path: Path) -> bool:
+    """Whether ``path`` is a PNG a preview wrote (its mark right after the header)."""
+    want = struct.pack(">I", len(PNG_MARK)) + b"tEXt" + PNG_MARK
+    try:
+        with open(path, "rb") as f:
+            return f.read(_PNG_HEAD + len(want))[_PNG_HEAD:] == want
+    except OSError:  # a folder of that name, an unreadable file: not a picture preview may replace
+        return False
+
+
+def picture_names(prefix: str, towns: list) -> list[str]:
+    """The file names a preview writes: the two sheets and a map per town."""
+    return [f"{prefix}contact_sheet.png", f"{prefix}turn_sheet.png", *(f"{prefix}map_{t.name}.png" for t in towns)]
+
+
+def check_overwrites(out: Path, names: list[str], overwrite: bool) -> None:
+    """A file of a picture's name in ``out`` that no preview wrote (the user's own ``contact_sheet.png``) is
+    refused in one line before anything is rendered, unless ``--overwrite``."""
+    theirs = [n for n in names if os.path.lexists(out / n) and not is_preview_png(out / n)]
+    if theirs and not overwrite:
+        raise CicfwError(f"--out {str(out)!r} already holds {', '.join(theirs)}, which no preview wrote; give another "
+                         f"--out, or --overwrite to replace them", key="--out", value=str(out))
 
 
 #: what ``--out`` must be (``writable_folder`` checks it before anything is rendered)
@@ -226,6 +265,8 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--colours", type=int, default=0,
                     help="quantise the PNGs to this many colours (e.g. 256 for small files; default: full colour)")
     ap.add_argument("--prefix", default="", help="prefix of the file names (e.g. sim_)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace files of the pictures' names that no preview wrote (a preview's own are replaced anyway)")
     a = ap.parse_args(argv)
     check_args(a)
     towns = load_towns(a.towns or town_names())
@@ -235,9 +276,10 @@ def _main(argv: list[str] | None = None) -> int:
     # of its driven paths); a folder of plain files, an earlier preview's among them, is
     claim_folder(out, "preview", "--out", foreign_ok=True)
     writable_folder(out, "--out", OUT_FOLDER, "--out")  # before the seconds of rendering
+    check_overwrites(out, picture_names(a.prefix, towns), a.overwrite)
     try:  # every picture is made, then all are written or none: a late failure leaves no half set of PNGs
         images = _render(a, towns)
-        write_together((out / name, _png(rgb, a.colours)) for name, rgb in images.items())
+        write_together((out / name, marked_png(_png(rgb, a.colours))) for name, rgb in images.items())
     except BaseException as err:
         _remove_empty_folders(out, new_top)
         if isinstance(err, OSError):
@@ -251,13 +293,11 @@ def _main(argv: list[str] | None = None) -> int:
 
 def _render(a: argparse.Namespace, towns: list) -> dict[str, np.ndarray]:
     """The PNGs' file names -> their RGB images: the two sheets and a map per town."""
-    pre = a.prefix
     turn_weathers = [w for w in ("ClearNoon", "WetCloudySunset") if w in a.weathers] or a.weathers[:2]
-    images = {f"{pre}contact_sheet.png": contact_sheet(towns, a.weathers, a.scale, a.seed, family=a.weather_family),
-              f"{pre}turn_sheet.png": turn_sheet(towns, turn_weathers, a.scale, a.seed, a.weather_family)}
-    for town in towns:
-        images[f"{pre}map_{town.name}.png"] = town_map(town, sample_routes(town, a.routes, a.seed))
-    return images
+    pictures = [contact_sheet(towns, a.weathers, a.scale, a.seed, family=a.weather_family),
+                turn_sheet(towns, turn_weathers, a.scale, a.seed, a.weather_family),
+                *(town_map(town, sample_routes(town, a.routes, a.seed)) for town in towns)]
+    return dict(zip(picture_names(a.prefix, towns), pictures))
 
 
 def _first_missing(path: Path) -> Path | None:
