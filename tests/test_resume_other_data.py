@@ -83,3 +83,24 @@ def test_the_training_columns_are_the_union_over_the_data_a_resumed_run_trained_
                          "suite.training_weathers=[ClearNoon,MidRainyNoon]"]
     named = [r.getMessage() for r in caplog.records if "training columns" in r.getMessage()]
     assert len(named) == 1 and "union over all 2 data sets" in named[0], named
+
+
+def test_an_exported_model_of_a_resumed_run_keeps_the_union(tmp_path):
+    """The sidecar of a model exported from a run resumed on other data records the earlier data's towns and
+    weathers too: an evaluation of the exported model labels the same training columns as the checkpoint's."""
+    import json
+
+    from cicfw.benchmark.trained_sets import checkpoint_sets, earlier_data
+    from cicfw.export.app import training_dataset
+    from cicfw.model.checkpoint import CheckpointBytes
+
+    record = {**_record("/data/b", ["town_b"], ["MidRainyNoon"]),
+              "before": [_record("/data/a", ["town_a"], ["ClearNoon"])]}
+    ckpt = tmp_path / "best.ckpt"
+    torch.save({"cicfw_data": record}, ckpt)
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"an exported model")
+    sidecar = {"training_dataset": training_dataset(CheckpointBytes.read(ckpt), None)}
+    model.with_name("model.onnx.json").write_text(json.dumps(sidecar))
+    assert checkpoint_sets(model) == (["town_a", "town_b"], ["ClearNoon", "MidRainyNoon"])
+    assert checkpoint_sets(ckpt) == checkpoint_sets(model) and earlier_data(model) == earlier_data(ckpt) == 1

@@ -65,11 +65,6 @@ def checkpoint_sets(checkpoint: Path) -> tuple[list[str], list[str]] | None:
     (``training_dataset``). A run resumed on other data (``resume_on_other_data``) trained on all of them: the
     union over the earlier data its record keeps (``before``) and its current data. None when none records them
     (a checkpoint written before records held them)."""
-    try:
-        side = json.loads(Path(checkpoint).with_name(Path(checkpoint).name + ".json").read_text())
-        return _sets(side["training_dataset"].get(SETS_KEY))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        pass
     found = [s for s in map(_sets, (r.get(SETS_KEY) for r in _trained_records(checkpoint))) if s is not None]
     if not found:
         return None
@@ -85,14 +80,26 @@ def earlier_data(checkpoint: Path) -> int:
 
 def _trained_records(checkpoint: Path) -> list[dict[str, Any]]:
     """The data records of every data set ``checkpoint``'s run trained on, earliest first (``before``, then its
-    current data's); [] without a record (the checkpoint's own, else its run folder's ``data.json``)."""
-    record = checkpoint_record(checkpoint)
+    current data's): an exported model's sidecar's (``training_dataset``), else the checkpoint's own record,
+    else its run folder's ``data.json``; [] without any."""
+    record = _exported_dataset(checkpoint)
+    if record is None:
+        record = checkpoint_record(checkpoint)
     if record is None:
         record = folder_record(Path(checkpoint).parent.parent)
     if not isinstance(record, dict):
         return []
     before = record.get("before")
     return [*(r for r in (before if isinstance(before, list) else []) if isinstance(r, dict)), record]
+
+
+def _exported_dataset(model: Path) -> dict[str, Any] | None:
+    """The ``training_dataset`` an exported model's sidecar (``<file>.json``) records; None for any other file."""
+    try:
+        data = json.loads(Path(model).with_name(Path(model).name + ".json").read_text())["training_dataset"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return data if isinstance(data, dict) else None
 
 
 def training_set_overrides(data_cfg: Any, overrides: Sequence[str],
@@ -146,10 +153,7 @@ def training_set_overrides(data_cfg: Any, overrides: Sequence[str],
 def exported_model_data(model: Path) -> Any | None:
     """The ``data`` node of a model ``cicfw export`` wrote: the data folder its sidecar (``<file>.json``)
     records it trained on (``training_dataset.path``); None for any other file or a sidecar that names none."""
-    try:
-        path = json.loads(Path(model).with_name(Path(model).name + ".json").read_text())["training_dataset"]["path"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
+    path = (_exported_dataset(model) or {}).get("path")
     return OmegaConf.create({"path": str(path)}) if path else None
 
 

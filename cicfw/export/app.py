@@ -337,8 +337,8 @@ def training_dataset(checkpoint: CheckpointBytes, cfg_path: Path | None) -> dict
            "collect_config_hash": record.get("collect_config_hash"), SETS_KEY: record.get(SETS_KEY),
            "from": "the checkpoint's record of its data"}
     if record.get("before"):  # resumed on other data on purpose: what it trained on before
-        out["before"] = [{"path": b.get("path"), "hash": b.get("hash"), "files": b.get("n_files")}
-                         for b in record["before"]]
+        out["before"] = [{"path": b.get("path"), "hash": b.get("hash"), "files": b.get("n_files"),
+                          SETS_KEY: b.get(SETS_KEY)} for b in record["before"]]
     return out
 
 
