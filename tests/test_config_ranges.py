@@ -126,7 +126,7 @@ def test_report_refuses_runs_of_different_suites(tmp_path, capsys):
         report.find_runs([tmp_path / "a", tmp_path / "b"])
     assert raised.value.key == "suite.name"
     # the same suite joins, each row named apart even where label and checkpoint name are the same
-    report.write_run(tmp_path / "c", _run("independent+regression (last)", single))
+    report.write_run(tmp_path / "c", _run("independent+regression (last)", single, "/runs/y/checkpoints/last.ckpt"))
     labels = [r.label for r in report.find_runs([tmp_path / "a", tmp_path / "c"])]
     assert len(set(labels)) == 2
 

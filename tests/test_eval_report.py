@@ -166,3 +166,19 @@ def test_a_report_written_to_the_same_folder_meanwhile_is_never_replaced(tmp_pat
     line = capsys.readouterr().err.strip()
     assert line.startswith("cicfw: error:") and str(out) in line and "\n" not in line, line
     assert {p.name: p.read_bytes() for p in out.iterdir()} == theirs
+
+
+def test_a_run_and_its_copy_are_refused_as_two_rows(tmp_path: Path):
+    """A run folder copied elsewhere (its episodes.json byte for byte) would be one run reported twice; the same
+    episodes written as two runs of other metadata (another checkpoint) are two runs."""
+    import shutil
+
+    from cicfw.core.errors import CicfwError
+
+    write_run(tmp_path / "a", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/a.ckpt"}))
+    shutil.copytree(tmp_path / "a", tmp_path / "copy")
+    with pytest.raises(CicfwError) as err:
+        find_runs([tmp_path / "a", tmp_path / "copy"])
+    assert err.value.key == "dirs" and str(tmp_path / "copy") in str(err.value)
+    write_run(tmp_path / "b", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/b.ckpt"}))
+    assert len(find_runs([tmp_path / "a", tmp_path / "b"])) == 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import io
 import json
 import os
@@ -261,7 +262,8 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
 
 def check_each_run_once(runs: Sequence[Run]) -> None:
     """A run found twice (the same folder given twice, through a symlink or another spelling, or inside a
-    sweep also given) would be two rows of one run: one ``CicfwError`` naming both paths."""
+    sweep also given), or a folder whose ``episodes.json`` is a byte-for-byte copy of another's (a run copied
+    elsewhere), would be two rows of one run: one ``CicfwError`` naming both paths."""
     seen: dict[str, Path] = {}
     for r in runs:
         real = os.path.realpath(r.path)
@@ -269,6 +271,17 @@ def check_each_run_once(runs: Sequence[Run]) -> None:
             raise CicfwError(f"report: {str(seen[real])!r} and {str(r.path)!r} are the same run folder, which one "
                              f"table would show twice; give each run once", key="dirs", value=str(r.path))
         seen[real] = r.path
+    digests: dict[str, Path] = {}
+    for r in runs:
+        try:
+            digest = hashlib.sha256((Path(r.path) / "episodes.json").read_bytes()).hexdigest()
+        except OSError:  # a partial run, read from its episode log: no report of its own to compare
+            continue
+        if digest in digests:
+            raise CicfwError(f"report: {str(digests[digest])!r} and {str(r.path)!r} hold the same episodes.json, byte "
+                             f"for byte: one run and its copy, which one table would show as two rows; give one of "
+                             f"them", key="dirs", value=str(r.path))
+        digests[digest] = r.path
 
 
 #: the suite settings that say what a table's columns are: runs joined in one table agree on them
