@@ -88,3 +88,29 @@ def test_a_cell_copied_under_another_row_or_seed_is_refused(tmp_path, folder):
     assert err.value.value == str(tmp_path / folder / "cell.json")
     (tmp_path / folder / "cell.json").unlink()
     assert [(c.row, c.seed) for c in load_cells(tmp_path)[0]] == [("cil", 0)]
+
+
+def test_a_row_s_cells_of_two_definitions_are_refused_by_the_key_that_differs(tmp_path):
+    """The row's experiment file edited between two runs into one folder: its cells trained two models under one
+    row name, each recording its recipe; pooled, they would be reported as seeds of one model."""
+    import json
+
+    from cicfw.core.errors import CicfwError
+    from cicfw.reproduction.cells import check_rows_agree, load_cells
+
+    def cell(seed: int, w: int, mae: float) -> None:
+        where = tmp_path / "cells" / "gtu" / f"seed{seed}"
+        where.mkdir(parents=True, exist_ok=True)
+        (where / "cell.json").write_text(json.dumps({
+            "status": "ok", "row": "gtu", "seed": seed, "episodes": {}, "val_steer_mae": mae,
+            "recipe": {"mixer": {"name": "gtu", "W": w}, "model": {"lr": 2e-4}}}))
+
+    cell(0, 5, 0.1)
+    cell(1, 5, 0.2)
+    cells = load_cells(tmp_path)[0]
+    assert [(c.row, c.seed) for c in cells] == [("gtu", 0), ("gtu", 1)]
+    check_rows_agree(tmp_path, cells)
+    cell(1, 10, 0.2)
+    with pytest.raises(CicfwError) as err:
+        check_rows_agree(tmp_path, load_cells(tmp_path)[0])
+    assert err.value.key == "recipe.mixer.W" and err.value.value == 10

@@ -7,7 +7,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -320,9 +320,21 @@ def check_one_model(cells: Sequence[tuple[Path, CellResult]]) -> None:
     """One error line (``check_cell_pin``'s: the cell's file, the key, both values) when a row's cells record
     different models (``model_names``): a cell of another row copied in with its ``row`` edited would be
     averaged in as a seed of this one."""
+    _check_row_values(cells, model_names)
+
+
+def check_one_recipe(cells: Sequence[tuple[Path, CellResult]]) -> None:
+    """As ``check_one_model``, for every recipe key a row's cells both record (``recipe``): a row whose experiment
+    file was edited between the runs that trained its cells would pool two models as seeds of one."""
+    _check_row_values(cells, lambda meta: flat(meta["recipe"]) if isinstance(meta.get("recipe"), dict) else {})
+
+
+def _check_row_values(cells: Sequence[tuple[Path, CellResult]], values: Callable[[Mapping[str, Any]], dict]) -> None:
+    """Each row's cells agree on the keys ``values(cell.json)`` gives that both record (the row's first cell
+    recording a key is the reference), else ``check_cell_pin``'s line naming the cell, the key and both values."""
     known: dict[str, dict[str, tuple[Any, Path]]] = {}
     for path, cell in cells:
-        names, row = model_names(cell.meta), known.setdefault(cell.row, {})
+        names, row = values(cell.meta), known.setdefault(cell.row, {})
         pin = CellPin(recipe={k: v for k, (v, _) in row.items()})
         found = cell_mismatch({"recipe": names}, pin)
         if found is not None:
@@ -493,10 +505,10 @@ def check_cell_pin(path: Path, cell: Mapping[str, Any], pin: CellPin, against: s
 
 
 def check_rows_agree(results_dir: Path, cells: Sequence[CellResult]) -> None:
-    """The cells of each row were trained with the same overrides (``OVERRIDES_KEY``), else one line naming a
-    cell, the key and both values (``check_cell_pin``): a row redefined between runs would pool two setups
-    as seeds of one. The first cell of a row that records them is the others' reference; cells that record
-    none (written before) are not compared."""
+    """The cells of each row were trained with the same overrides (``OVERRIDES_KEY``) and recipe
+    (``check_one_recipe``), else one line naming a cell, the key and both values (``check_cell_pin``): a row
+    redefined between runs would pool two setups as seeds of one. The first cell of a row that records them is
+    the others' reference; cells that record none (written before) are not compared."""
     first: dict[str, CellResult] = {}
     for c in cells:
         if not isinstance(c.meta.get(OVERRIDES_KEY), list):
@@ -507,6 +519,7 @@ def check_rows_agree(results_dir: Path, cells: Sequence[CellResult]) -> None:
                            CellPin(overrides=override_values(ref.meta[OVERRIDES_KEY])),
                            f"cell {ref.row}/seed{ref.seed} of its row was made with",
                            "a row's cells must share its definition; keep one setup per row in a folder")
+    check_one_recipe([(Path(results_dir) / "cells" / c.row / f"seed{c.seed}" / "cell.json", c) for c in cells])
 
 
 def finished_cells(folder: Path) -> dict[str, dict[str, Any]]:

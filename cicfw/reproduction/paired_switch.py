@@ -44,7 +44,7 @@ from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError, ConfigError, install_app_handlers
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellResult, check_cell_pin, check_families,
-                                      check_one_model, check_same_episodes, cpu_counts, episode_terms, is_copy,
+                                      check_one_model, check_one_recipe, check_same_episodes, cpu_counts, episode_terms, is_copy,
                                       kind_noun, load_cell)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level, no_spread,
@@ -102,6 +102,7 @@ def load_row(folder: Path) -> dict[int, CellResult]:
         for cell in out.values():
             check_cell_pin(folder / f"seed{cell.seed}" / "cell.json", cell.meta, pin, "reproduce.json pins",
                            "keep only this reproduction's cells in its folder")
+    check_one_recipe(loaded)  # the row redefined between the runs that trained its cells: the report's check
     return out
 
 
