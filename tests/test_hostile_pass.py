@@ -1,6 +1,7 @@
 """Inputs a new user gets wrong that once gave a silently wrong result: each is now refused or honoured."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -506,7 +507,8 @@ def test_a_run_folder_without_hydra_records_is_still_its_apps_own(tmp_path: Path
     run = tmp_path / "train_run"
     _ckpt(run / "checkpoints", "last.ckpt")
     (run / "train.log").write_text("a line\n")
-    (run / "data.json").write_text("{}")
+    (run / "data.json").write_text(json.dumps({"path": "/data", "root": "/data", "files": [], "hash": "0" * 64,
+                                               "hash_of": "names, sizes and SHA-256", "n_files": 0}))
     assert folder_owner(run) == "train"
     claim_folder(run, "train", "hydra.run.dir")
     with pytest.raises(RunFolderError) as err:

@@ -970,3 +970,54 @@ def test_the_folders_cicfw_nests_in_a_run_stay_claimable(tmp_path):
     claim_folder(run / "evaluate", "evaluate", "hydra.run.dir")  # the evaluation's
     claim_folder(run / "more", "train", "run_dir")  # the same app's run around it
     claim_folder(sweep / "3", "evaluate", "hydra.run.dir")
+
+
+# ---- a run's records copied beside a user's files do not make them the run's ------------------------------
+def test_an_evaluation_s_hydra_copied_beside_a_user_s_tables_does_not_make_them_its_own(tmp_path):
+    """A real evaluation's ``.hydra`` (cicfw's callbacks, job evaluate) copied into a folder of the user's own
+    ``table.md`` and ``summary.json``: without an episode log they are the user's, and the evaluation is refused
+    before it writes anything."""
+    mine = tmp_path / "mine"
+    hydra_run(mine, "evaluate")
+    (mine / "table.md").write_text("# my table\n")
+    (mine / "summary.json").write_text('{"mine": 1}')
+    kept = _files(mine)
+    res = run_app_in_process("cicfw.evaluate", *ONE_EPISODE, f"hydra.run.dir={mine}", env=IN_PROCESS)
+    assert_refused(res, "hydra.run.dir", str(mine))
+    assert "summary.json" in res.stderr and "table.md" in res.stderr
+    assert _files(mine) == kept
+
+
+def test_a_training_run_s_hydra_copied_beside_a_user_s_manifest_does_not_make_it_a_record(tmp_path):
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+
+    mine = tmp_path / "mine"
+    hydra_run(mine, "train")
+    (mine / "data.json").write_text('{"mine": "manifest v1", "files": []}')
+    kept = _files(mine)
+    with pytest.raises(RunFolderError) as err:
+        claim_folder(mine, "train", "hydra.run.dir")
+    assert err.value.key == "hydra.run.dir" and "data.json" in str(err.value)
+    (mine / "data.json").write_text(json.dumps(data_record("/data")))  # its own record: its run, resumed
+    claim_folder(mine, "train", "hydra.run.dir")
+    assert _files(mine) != kept
+
+
+def test_a_reproduction_s_cell_is_no_run_to_train_or_evaluate_into(tmp_path):
+    """A cell's ``train`` and ``evaluate`` folders are its own kind of run, but the reproduction's: training
+    there replaced the weights its table drove, evaluating there rewrote its report."""
+    from cicfw.core.run_folder import RunFolderError, claim_folder
+
+    results = tmp_path / "results"
+    cell = results / "cells" / "cil" / "seed0"
+    (results / "reproduce.json").parent.mkdir(parents=True)
+    (results / "reproduce.json").write_text("{}")
+    api_train_run(cell / "train")
+    (cell / "evaluate").mkdir(parents=True)
+    (cell / "evaluate" / "episodes.jsonl").write_text(json.dumps({"format": "cicfw-episode-log/1"}) + "\n")
+    kept = _files(results)
+    for app in ("train", "evaluate"):
+        with pytest.raises(RunFolderError) as err:
+            claim_folder(cell / app, app, "hydra.run.dir")
+        assert err.value.value == str(cell / app) and str(results) in str(err.value)
+    assert _files(results) == kept

@@ -669,6 +669,21 @@ def _job_app(job: str) -> str:
     return job.split("_ddp_process_")[0]
 
 
+#: the files an app writes over in a run folder of its own (``folder_owner``), and the record that vouches for them
+#: there: without it they are the user's, whatever ``.hydra`` (a copy proves nothing) says of the folder
+OWN_OUTPUTS = {"evaluate": (("episodes.json", "episodes.csv", "summary.json", "table.md", "table.tex"),
+                            "episode log (episodes.jsonl with cicfw's header)"),
+               "train": (("data.json",), "record of its data (data.json holding cicfw's keys)")}
+
+
+def _unvouched_outputs(folder: Path, app: str) -> list[str]:
+    """The files of ``OWN_OUTPUTS[app]`` in ``folder`` without the record that proves ``app`` wrote them."""
+    if app not in OWN_OUTPUTS:
+        return []
+    vouched = holds_episode_log(folder) if app == "evaluate" else _holds_data_record(folder)
+    return [] if vouched else [n for n in OWN_OUTPUTS[app][0] if os.path.lexists(folder / n)]
+
+
 def _holds_data_record(folder: Path) -> bool:
     """Whether ``folder/data.json`` is a training run's record of its data (``DATA_RECORD_KEYS``, all of them:
     its path, its files and their hash), not any file of that name."""
@@ -809,6 +824,14 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
     entries = _entries(folder)  # [] for a missing folder or a file: the app's own check says what is wrong
     owner = folder_owner(folder) if entries else None
     if owner == app:
+        found = enclosing_run(folder)
+        if found is not None and found[1] == "reproduce" != app:  # a reproduction's cell: its runs are its own
+            claim_outside_runs(folder, app, key)
+        unvouched = _unvouched_outputs(folder, app)
+        if unvouched:
+            raise RunFolderError(f"{where} holds {_listed(unvouched)}, which no cicfw {app} run wrote there (its "
+                                 f"{OWN_OUTPUTS[app][1]} is missing), and which cicfw {app} would write over; {fix}",
+                                 key=key, value=str(folder))
         return
     if owner == "collect":
         raise RunFolderError(f"{where} holds a dataset (HDF5 episodes), which cicfw {app} would write beside and "
