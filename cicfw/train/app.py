@@ -23,6 +23,7 @@ from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import Callback, Checkpoint, EMAWeightAveraging, ModelCheckpoint, RichProgressBar
 from lightning.pytorch.loggers import CSVLogger, Logger, TensorBoardLogger
+from lightning.pytorch.loggers.logger import rank_zero_experiment
 from lightning.pytorch.plugins.io import CheckpointIO, TorchCheckpointIO
 from omegaconf import DictConfig
 
@@ -61,17 +62,33 @@ from cicfw.train.split_record import SPLIT_KEY, check_resumed_split, split_setti
 
 log = logging.getLogger("cicfw.train")
 
-def csv_logger(run_dir: Path) -> CSVLogger:
-    """``<run dir>/csv/metrics.csv``. Lightning's CSV logger deletes a metrics.csv it finds there, which a run
-    resumed in its own folder has: that file is kept first as ``metrics.<n>.csv``, and the log says so."""
-    metrics = Path(run_dir) / "csv" / "metrics.csv"
+def keep_earlier_metrics(log_dir: Path) -> None:
+    """``<log_dir>/metrics.csv``, which Lightning's CSV logger deletes when it starts writing there (a run
+    resumed in its own folder has one), kept as ``metrics.<n>.csv`` (the first free n), and the log says so."""
+    metrics = Path(log_dir) / "metrics.csv"
     if metrics.is_file():
         n = 1
         while metrics.with_name(f"metrics.{n}.csv").exists():
             n += 1
         metrics.rename(metrics.with_name(f"metrics.{n}.csv"))
         log.info("the metrics logged before this resume are kept in %s", metrics.with_name(f"metrics.{n}.csv"))
-    return CSVLogger(str(run_dir), name="csv", version="")
+
+
+class KeepingCSVLogger(CSVLogger):
+    """Lightning's CSV logger that keeps the earlier metrics (``keep_earlier_metrics``) when it first writes,
+    inside ``trainer.fit``, not when it is built: a run refused before then finds its folder as it was."""
+
+    @property
+    @rank_zero_experiment
+    def experiment(self) -> Any:
+        if self._experiment is None:
+            keep_earlier_metrics(Path(self.log_dir))
+        return super().experiment
+
+
+def csv_logger(run_dir: Path) -> CSVLogger:
+    """``<run dir>/csv/metrics.csv``, an earlier segment's kept as ``metrics.<n>.csv`` (``KeepingCSVLogger``)."""
+    return KeepingCSVLogger(str(run_dir), name="csv", version="")
 
 
 LOGGERS: dict[str, Callable[[Path], Logger]] = {
