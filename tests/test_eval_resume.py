@@ -444,3 +444,21 @@ def test_worker_processes_end_when_their_evaluation_is_killed(tmp_path: Path):
             os.kill(child, signal.SIGKILL)
 
 
+
+
+def test_a_hard_linked_copy_resumes_into_a_log_of_its_own(tmp_path: Path):
+    """``cp -al`` of a stopped evaluation shares its episode log's file: resuming the copy appended to the
+    original folder's log too, which then held episodes it never drove."""
+    fp = {"policy": {"name": "expert"}}
+    row = {"episode": 0, "key": "town_a/ClearNoon/000"}
+    with EpisodeLog.open(tmp_path / "a", fp) as log:
+        log.add(row, {"x": np.zeros(3)})
+    before = (tmp_path / "a" / "episodes.jsonl").read_bytes()
+    (tmp_path / "b").mkdir()
+    os.link(tmp_path / "a" / "episodes.jsonl", tmp_path / "b" / "episodes.jsonl")
+    with EpisodeLog.open(tmp_path / "b", fp) as log:
+        assert sorted(log.rows) == [0]
+        log.add({"episode": 1, "key": "town_a/ClearNoon/001"}, {"x": np.ones(3)})
+    assert (tmp_path / "a" / "episodes.jsonl").read_bytes() == before
+    assert (tmp_path / "b" / "episodes.jsonl").read_bytes().startswith(before)
+    assert len((tmp_path / "b" / "episodes.jsonl").read_bytes().splitlines()) == 3  # header and two episodes

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 from omegaconf import OmegaConf
 
-from cicfw.core.files import write_all
+from cicfw.core.files import atomic_write, write_all
 from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.core.run_folder import (EPISODE_LOG, EPISODE_LOG_FORMAT, LockedRunFolderCheck, RunFolderError,
                                    check_name_lengths, keep_held_lock, take_held_lock)
@@ -138,8 +138,11 @@ class EpisodeLog:
                     f.write((json.dumps(header) + "\n").encode())
                     f.flush()
                     os.fsync(f.fileno())
-            elif good < (run_dir / LOG_NAME).stat().st_size:
-                os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
+            else:
+                if (run_dir / LOG_NAME).stat().st_nlink > 1:  # a hard-linked copy of another folder (cp -al)
+                    atomic_write(run_dir / LOG_NAME, (run_dir / LOG_NAME).read_bytes())  # append to a file of its own
+                if good < (run_dir / LOG_NAME).stat().st_size:
+                    os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
             return cls(run_dir, header, rows, trajs, lock)
         except BaseException:
             if held is not None:  # the app puts the folder back under it, then lets go (release_folder_locks)
