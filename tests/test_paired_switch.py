@@ -428,3 +428,53 @@ def test_differences_equal_up_to_rounding_are_exact_without_a_warning():
         warnings.simplefilter("error")
         d = difference({s: a[s].rate(None) for s in a}, {s: b[s].rate(None) for s in b})
     assert d.estimate.lo == d.estimate.hi == d.estimate.mean == pytest.approx(40.0) and d.p == 0.0
+
+
+def with_meta(folder: Path, seeds: range, **meta: object) -> None:
+    """Each of ``seeds``' cell.json under ``folder`` given ``meta``'s fields."""
+    for s in seeds:
+        p = folder / f"seed{s}" / "cell.json"
+        p.write_text(json.dumps({**json.loads(p.read_text()), **meta}))
+
+
+def test_sides_trained_on_other_datasets_are_refused_naming_both(tmp_path, capsys):
+    """The seed pairs two cells through the split and batch order it draws from one dataset: a paired seed whose
+    cells trained on two datasets is no pair. A cell without a record reads its results folder's pin."""
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [18, 10, 12, 5 + s])
+        write_cell(tmp_path / "b", "cil", s, [17, 10, 12, 5 + s])
+    with_meta(tmp_path / "a", range(3), dataset="aaaa000000000000")
+    with_meta(tmp_path / "b", range(3), dataset="aaaa000000000000")
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    capsys.readouterr()
+    with_meta(tmp_path / "b", range(1, 2), dataset="bbbb000000000000")
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1, err
+    assert "dataset=aaaa000000000000" in err and "dataset=bbbb000000000000" in err and f"{tmp_path / 'b'}/seed1" in err
+    pinned = results_folder(tmp_path / "pinned", ["suite=single_turn"], {"cil": None})  # cells record no dataset
+    manifest = tmp_path / "pinned" / "reproduce.json"
+    manifest.write_text(json.dumps({"pinned": {"suite": ["suite=single_turn"], "dataset": "cccc000000000000"}}))
+    with pytest.raises(CicfwError) as got:
+        ps.check_one_dataset(ps.load_row(tmp_path / "a"), ps.load_row(pinned["cil"]), ("a", "pinned"),
+                             (ps.side_pin(tmp_path / "a"), ps.side_pin(pinned["cil"])))
+    assert (got.value.key, got.value.value) == ("dataset", "cccc000000000000")
+
+
+def test_sides_trained_for_other_epochs_are_compared_and_said(tmp_path, capsys):
+    """Longer training may be the switch itself: compared, with a header line naming each side's epochs; none
+    where they agree or one side records none."""
+    for s in range(3):
+        write_cell(tmp_path / "a", "cil", s, [18, 10, 12, 5 + s])
+        write_cell(tmp_path / "b", "cil", s, [17, 10, 12, 5 + s])
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert "poch" not in capsys.readouterr().out
+    with_meta(tmp_path / "a", range(3), epochs=6)
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0  # B records none: not compared
+    assert "poch" not in capsys.readouterr().out
+    with_meta(tmp_path / "b", range(3), epochs=6)
+    with_meta(tmp_path / "b", range(2), epochs=4)
+    assert ps.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    header = capsys.readouterr().out.splitlines()[1]
+    assert "Epochs differ" in header and "6 epochs (3 seeds)" in header, header
+    assert "4 epochs (2 seeds), 6 epochs (1 seed)" in header, header

@@ -160,6 +160,29 @@ def test_the_copy_signature_is_the_validation_error_curve_and_episodes(tmp_path)
     assert err.value.value == str(copy)
 
 
+def test_a_cell_copied_into_another_row_is_refused_naming_both_files(tmp_path):
+    """CIL's seed 2 copied in as GTU's seed 2, its row, recipe and overrides edited to GTU's: every check of a
+    row passes, and one model would count in both rows. The copy signature holds whatever the row: refused in
+    one line naming both files, nothing written; another validation error is another model, pooled."""
+    folder = tmp_path / "c6x"
+    shutil.copytree(RESULTS / "converged6_xeon", folder)
+    original, copy = folder / "cells" / "cil" / "seed2" / "cell.json", folder / "cells" / "gtu" / "seed2" / "cell.json"
+    gtu = json.loads(copy.read_text())
+    d = json.loads(original.read_text())
+    d.update({k: gtu[k] for k in ("row", "recipe", "overrides", "mixer", "head") if k in gtu})
+    copy.write_text(json.dumps(d))
+    before = snapshot(folder)
+    line = assert_refused(run_app_in_process("cicfw.reproduction.report", str(folder)), original)
+    assert str(copy) in line, line
+    assert snapshot(folder) == before
+    with pytest.raises(CicfwError) as err:
+        load_cells(folder)
+    assert (err.value.key, err.value.value) == ("cell", str(copy))
+    d["val_steer_mae"] += 1e-9
+    copy.write_text(json.dumps(d))
+    assert ("gtu", 2) in [(c.row, c.seed) for c in load_cells(folder)[0]]
+
+
 def gtu_as_cil(folder: Path, seed: int, recipe: bool = True) -> Path:
     """The same seed's GTU cell.json written as ``folder``'s CIL cell (its ``row`` edited): another model."""
     cell = folder / f"seed{seed}" / "cell.json"

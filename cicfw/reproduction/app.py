@@ -68,11 +68,12 @@ from cicfw.core.override_hints import register_help
 from cicfw.data.frames import chosen_cameras, load_frames, split_by_episode
 from cicfw.model.checkpoint import samples_seen
 from cicfw.reproduction.catalogue import budget_settings_in_row, row_overrides, speed_node_spelling, trained_overrides
-from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, OVERRIDES_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin, cell_runs,
+from cicfw.reproduction.cells import (COLUMNS, FAMILY_KEY, OVERRIDES_KEY, RECIPE, RECIPE_DATA_SKIP, CellPin,
                                      check_cell_pin, finished_cells, flat, override_values)
 from cicfw.reproduction.claims import load_claims
 from cicfw.reproduction.lock import RunLocks
-from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, continue_published, published_manifest
+from cicfw.reproduction.published import (MANIFEST, check_no_other_cells, check_publish_outside, continue_published,
+                                         publish_target_manifest, published_manifest)
 from cicfw.reproduction.report import REPORT_OVERRIDES, report_overrides, write_configured
 from cicfw.reproduction.schema import check, seed_list
 from cicfw.sim.render.weather import LEGACY_FAMILY
@@ -81,7 +82,6 @@ from cicfw.train.schema import check_top_level, checked_speed, without_plus_on_t
 
 log = logging.getLogger("cicfw.reproduce")
 
-MANIFEST = "reproduce.json"
 CELL_FILE = "cell.json"
 
 
@@ -324,37 +324,19 @@ def check_publish_dir(cfg: DictConfig, dataset: str | None = None) -> None:
     once known) whose every finished cell this run holds or continues (``continue_from``). Anything else,
     another reproduction's results, or files of none, is refused in one line before anything is written."""
     pub, results_dir = Path(cfg.publish_dir), Path(cfg.results_dir)
-    if not pub.is_dir():  # (the results folder itself was refused by check_not_results_dir)
-        return
-    held = [n for n in PUBLISHED_FILES if (pub / n).exists()] + (["cells/"] if (pub / "cells").is_dir() else [])
-    if not held:
+    # (the results folder itself was refused by check_not_results_dir)
+    manifest = publish_target_manifest(pub, "publish_dir")
+    if manifest is None:
         return
     where, fix = f"publish_dir={str(pub)!r}", "give another publish_dir (or grow that one with continue_from=<it>)"
-    ran = cell_runs(pub)  # a published folder's cells hold their cell.json alone
-    if ran:
-        raise ReproduceError(f"{where} is a reproduction's results folder, not a published one (its cells hold their "
-                             f"runs: {', '.join(ran[:2])}{' ...' if len(ran) > 2 else ''}); publishing would replace its "
-                             f"reproduce.json, report and cell.json files: give another publish_dir, or continue it "
-                             f"with results_dir={str(pub)!r}", key="publish_dir", value=str(pub))
-    if not (pub / MANIFEST).is_file():
-        raise ReproduceError(f"{where} holds {', '.join(held)} of no reproduction (no {MANIFEST}), which publishing "
-                             f"would replace; give another publish_dir")
-    try:
-        theirs = published_manifest(pub).get("pinned") or {}
-    except ValueError as err:
-        raise ReproduceError(str(err).replace("continue_from=", "publish_dir=", 1)) from None
+    theirs = manifest.get("pinned") or {}
     ours = fingerprint(cfg, None if dataset is None else {"config_hash": dataset})
     refuse_other_pin(where, fix, theirs, ours, cfg, ("budget", "train", "suite") + (("dataset",) if dataset else ()))
     ours_cells = set(finished_cells(results_dir)) if results_dir.is_dir() else set()
     if cfg.get("continue_from"):
         ours_cells |= set(finished_cells(Path(cfg.continue_from)))
-    others = sorted(set(finished_cells(pub)) - ours_cells)
-    if others:
-        raise ReproduceError(f"{where} holds {len(others)} finished cell(s) of another reproduction "
-                             f"({', '.join(others[:4])}{' ...' if len(others) > 4 else ''}) that results_dir="
-                             f"{str(results_dir)!r} does not hold, so its published table would not be theirs; "
-                             f"add to that folder with continue_from={pub} publish_dir={pub}, or give another "
-                             f"publish_dir")
+    check_no_other_cells(pub, results_dir, ours_cells, "publish_dir",
+                         f"add to that folder with continue_from={pub} publish_dir={pub}")
 
 
 def check_continue_machine(cfg: DictConfig) -> None:

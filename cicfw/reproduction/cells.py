@@ -282,20 +282,23 @@ def measured(cell: CellResult) -> str:
 
 
 def is_copy(a: CellResult, b: CellResult) -> bool:
-    """Whether ``a`` and ``b`` are one cell twice: the same copy signature (``measured``): the paired switch
-    refuses such a paired seed, ``load_cells`` such seeds of a row."""
+    """Whether ``a`` and ``b`` are one cell twice: the same copy signature (``measured``), whatever their rows:
+    the paired switch refuses such a paired seed, ``load_cells`` any two such cells of a folder."""
     return measured(a) == measured(b)
 
 
 def check_no_copies(cells: Sequence[tuple[Path, CellResult]]) -> None:
-    """One error line naming two cells of one row that are copies (``is_copy``): one model counted as two
-    seeds would narrow the row's interval as an independent seed does."""
-    seen: dict[tuple[str, str], Path] = {}
+    """One error line naming two cells that are copies (``is_copy``), of one row or of two: one model counted
+    as two seeds would narrow the row's interval as an independent seed does, and one counted in two rows (its
+    row, recipe and overrides edited) would make their difference nothing but the episodes' luck."""
+    seen: dict[str, tuple[Path, CellResult]] = {}
     for path, cell in cells:
-        first = seen.setdefault((cell.row, measured(cell)), path)
+        first, other = seen.setdefault(measured(cell), (path, cell))
         if first != path:
-            raise CicfwError(f"{first} and {path} are copies of one cell ({COPY_SAID}): one model counted as two "
-                             f"seeds; remove the copy", key="cell", value=str(path))
+            what = ("two seeds" if other.row == cell.row
+                    else f"a seed of both row {other.row!r} and row {cell.row!r}")
+            raise CicfwError(f"{first} and {path} are copies of one cell ({COPY_SAID}): one model counted as {what}; "
+                             f"remove the copy", key="cell", value=str(path))
 
 
 #: the names that say which model a cell trained (its recipe's, else the cell.json's own ``mixer``/``head``)

@@ -17,8 +17,11 @@ inside ±margin: Newcombe's in a column, MOVER's on the mean of the four, ``epis
 differ by the same number of episodes leave the t-test no spread. Too few seeds or too wide an
 interval reads *not shown*, never *equivalent*. Both sides must drive one suite: the same episodes on every
 paired seed, under one weather family of the embedded simulator (each side's cells' recorded family, else its
-results folder's pinned one), else one error line; sides that ran on different CPU kinds are compared, and
-the header says so (the same seed trains another model on another kind). ``--episodes`` compares two
+results folder's pinned one), else one error line. Both must train on one dataset (each cell's ``dataset``,
+else its results folder's pin): the seed draws the split and batch order from the dataset, so on two
+datasets it pairs nothing and is refused in one line naming both. Sides trained for other epochs (the switch
+may be the epochs) or on different CPU kinds are compared, and the header says so (the same seed trains
+another model on another kind). ``--episodes`` compares two
 models of one seed (a cell's ``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both
 drove: per column, the episodes one model lost and the other gained, with McNemar's exact test
 (``statsmodels``); two evaluation folders driven under different sim settings are refused as ``cicfw
@@ -33,7 +36,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from statsmodels.stats.contingency_tables import mcnemar
@@ -43,9 +46,9 @@ from cicfw.benchmark.evaluation_report import check_one_episode_rule
 from cicfw.benchmark.finished_run import cell_key, load_run
 from cicfw.core.errors import CicfwError, ConfigError, install_app_handlers
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellResult, check_cell_pin, check_families,
-                                      check_one_model, check_one_recipe, check_same_episodes, cpu_counts, episode_terms, is_copy,
-                                      kind_noun, load_cell)
+from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellPin, CellResult, check_cell_pin,
+                                     check_families, check_one_model, check_one_recipe, check_same_episodes, cpu_counts,
+                                     episode_terms, is_copy, kind_noun, load_cell, most_first)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
 from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level, no_spread,
                                            with_episode_floor, word)
@@ -217,6 +220,50 @@ def check_same_suite(a: Mapping[int, CellResult], b: Mapping[int, CellResult], n
                             (f"{names[0]}/seed{s}", f"{names[1]}/seed{s}"))
 
 
+def side_pin(row_folder: Path) -> CellPin:
+    """What a row's results folder pins its cells to (``results_manifest``): the dataset and epochs a cell that
+    records none was made with; an empty pin (nothing known) for a copied row folder."""
+    manifest = results_manifest(row_folder)
+    return CellPin() if manifest is None else folder_pin(manifest)
+
+
+def trained_with(cell: CellResult, key: str, pin: CellPin) -> Any:
+    """What a cell trained with of ``key`` (``dataset``, ``epochs``): its cell.json's record, else its folder's
+    pin; None where neither says."""
+    value = cell.meta.get(key)
+    return getattr(pin, key) if value is None else value
+
+
+def check_one_dataset(a: Mapping[int, CellResult], b: Mapping[int, CellResult], names: tuple[str, str],
+                      pins: tuple[CellPin, CellPin] = (CellPin(), CellPin())) -> None:
+    """One error line naming the first paired seed whose two cells trained on other datasets (``dataset``, the
+    data's hash) and both values: the seed pairs two cells through the split and batch order it draws from one
+    dataset; on two datasets it draws two, so the cells are no pair and A - B is the data's difference."""
+    for s in sorted(set(a) & set(b)):
+        da, db = (trained_with(side[s], "dataset", pin) for side, pin in zip((a, b), pins))
+        if da and db and da != db:
+            sa, sb = (str(Path(n) / f"seed{s}") for n in names)
+            raise CicfwError(f"{sa} was trained on dataset={da} and {sb} on dataset={db}: a seed pairs two cells "
+                             f"only through one dataset's split and batch order; give two sides trained on one "
+                             f"dataset", key="dataset", value=db)
+
+
+def epochs_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult],
+                pins: tuple[CellPin, CellPin] = (CellPin(), CellPin())) -> str | None:
+    """A header line naming each side's epochs (``epochs``: each cell's record, else its folder's pin) where a
+    paired seed trained for other epochs on its two sides; else None. Longer training may be the switch
+    itself, so it is compared, and said."""
+    seeds = sorted(set(a) & set(b))
+    got = [{s: trained_with(side[s], "epochs", pin) for s in seeds} for side, pin in zip((a, b), pins)]
+    if all(None in (got[0][s], got[1][s]) or got[0][s] == got[1][s] for s in seeds):
+        return None
+    said = [", ".join(f"{k} epochs ({n} seed{'s' if n > 1 else ''})" for k, n in
+                      most_first(str(v) for v in side.values() if v is not None).items()) or "epochs not recorded"
+            for side in got]
+    return (f"Epochs differ: A trained for {said[0]}, B for {said[1]}; the same seed trained for other epochs is "
+            f"another model, so A - B is the epochs' difference too")
+
+
 def cpu_line(a: Mapping[int, CellResult], b: Mapping[int, CellResult]) -> str | None:
     """A header line naming each side's machine kinds (``cells.machine_kind``: the CPU, and its GPU where it had
     one) where a paired seed ran on different kinds; else None."""
@@ -248,14 +295,16 @@ def check_distinct(a: Path, b: Path, what: str) -> None:
 
 
 def lines(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: float,
-          names: tuple[str, str] = ("A", "B"), family: int = 1) -> list[str]:
-    """The printed report: seeds, one line per column (its word read at the Bonferroni level of ``family``
-    comparisons), the cells' training times."""
+          names: tuple[str, str] = ("A", "B"), family: int = 1,
+          pins: tuple[CellPin, CellPin] = (CellPin(), CellPin())) -> list[str]:
+    """The printed report: seeds, what differs besides the switch (epochs, machine kinds), one line per column
+    (its word read at the Bonferroni level of ``family`` comparisons), the cells' training times. ``pins``:
+    each side's folder's (``side_pin``), for cells that record no epochs."""
     seeds = sorted(set(a) & set(b))
     out = [f"A {names[0]} (row {row_names(a)}) vs B {names[1]} (row {row_names(b)}), paired seeds {seeds} "
            f"(only in one: {sorted(set(a) ^ set(b)) or 'none'}); equivalence margin ±{margin:g} points; words read "
            + (f"on the Bonferroni interval over {family} comparisons" if family > 1 else "on the 95% interval"),
-           *filter(None, [cpu_line(a, b)]),
+           *filter(None, [epochs_line(a, b, pins), cpu_line(a, b)]),
            f"{'column':36s} {'A per seed':>22s} {'B per seed':>22s} {'A - B [95%]':>22s} {'TOST p':>7s}  verdict; word"]
     for e in compare(a, b, margin, family):
         ci = f"{e.mean:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]" if e.lo is not None else f"{e.mean:+.1f}"
@@ -393,10 +442,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_paired(a, b, (args.a, args.b))
         check_one_family(a, b, (Path(args.a), Path(args.b)))
         check_same_suite(a, b, (args.a, args.b))
+        pins = side_pin(Path(args.a)), side_pin(Path(args.b))
+        check_one_dataset(a, b, (args.a, args.b), pins)
         check_not_copies(a, b, (args.a, args.b))
         if args.family < 1:
             raise CicfwError(f"--family must be a positive number of comparisons, got {args.family}")
-        print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family)))
+        print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family, pins)))
     except (ValueError, OSError, json.JSONDecodeError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

@@ -8,11 +8,13 @@ from typing import Any
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
-from cicfw.reproduction.cells import cell_files, finished_cells
+from cicfw.reproduction.cells import cell_files, cell_runs, finished_cells
 
+#: a results folder's manifest, and a published folder's
+MANIFEST = "reproduce.json"
 #: what ``publish`` copies into a published folder besides cells/<row>/seed<k>/cell.json
 PUBLISHED_FILES = ("RESULTS.md", "results.json", "results.csv", "results.png", "forest.png", "learning_curve.png",
-                   "reproduce.json")
+                   MANIFEST)
 
 def check_publish_outside(results_dir: str | Path, dest: str | Path, key: str) -> None:
     """A publish folder inside the results folder (a cell's folder, say) would put a published copy among
@@ -21,6 +23,55 @@ def check_publish_outside(results_dir: str | Path, dest: str | Path, key: str) -
         raise CicfwError(f"{key}={str(dest)!r} lies inside the results folder ({str(results_dir)!r}), among the run's "
                          f"own cells and files: give {key}=<a folder outside it> (e.g. docs/results/<budget>) or "
                          f"leave it out", key=key, value=str(dest))
+
+
+def publish_target_manifest(dest: str | Path, key: str) -> dict[str, Any] | None:
+    """The manifest of the folder ``publish`` would write into, or None where it holds none of what ``publish``
+    writes (missing, empty): nothing there to keep. A reproduction's results folder (its cells hold their
+    runs), or files of no reproduction (no manifest), would be replaced: refused in one line naming ``key``."""
+    pub = Path(dest)
+    if not pub.is_dir():
+        return None
+    held = [n for n in PUBLISHED_FILES if (pub / n).exists()] + (["cells/"] if (pub / "cells").is_dir() else [])
+    if not held:
+        return None
+    where = f"{key}={str(pub)!r}"
+    ran = cell_runs(pub)  # a published folder's cells hold their cell.json alone
+    if ran:
+        raise CicfwError(f"{where} is a reproduction's results folder, not a published one (its cells hold their "
+                         f"runs: {', '.join(ran[:2])}{' ...' if len(ran) > 2 else ''}); publishing would replace its "
+                         f"{MANIFEST}, report and cell.json files: give another {key}, or continue it "
+                         f"with results_dir={str(pub)!r}", key=key, value=str(pub))
+    if not (pub / MANIFEST).is_file():
+        raise CicfwError(f"{where} holds {', '.join(held)} of no reproduction (no {MANIFEST}), which publishing "
+                         f"would replace; give another {key}", key=key, value=str(pub))
+    try:
+        return published_manifest(pub)
+    except CicfwError as err:
+        raise CicfwError(str(err).replace("continue_from=", f"{key}=", 1), key=key, value=str(pub)) from None
+
+
+def check_no_other_cells(dest: str | Path, results_dir: str | Path, held: set[str], key: str, fix: str) -> None:
+    """One line naming ``key`` when the published folder ``dest`` holds a finished cell that is not among
+    ``held`` (``row/seedK``: what the results folder holds or continues): publishing would replace its table
+    with one that leaves that cell out, while the cell stays beside it. ``fix``: how to add to that folder."""
+    others = sorted(set(finished_cells(Path(dest))) - set(held))
+    if others:
+        raise CicfwError(f"{key}={str(dest)!r} holds {len(others)} finished cell(s) of another reproduction "
+                         f"({', '.join(others[:4])}{' ...' if len(others) > 4 else ''}) that results_dir="
+                         f"{str(results_dir)!r} does not hold, so its published table would not be theirs; {fix}, "
+                         f"or give another {key}", key=key, value=str(dest))
+
+
+def check_publish_target(results_dir: str | Path, dest: str | Path, key: str, fix: str) -> None:
+    """``dest`` is ``results_dir``'s to publish into (``publish_target_manifest``), and every finished cell it
+    holds is one ``results_dir`` holds (``check_no_other_cells``), else one line naming ``key``, before anything
+    is written. ``dest`` at ``results_dir`` itself replaces nothing and passes. ``fix``: how to add to that folder."""
+    if Path(dest).resolve() == Path(results_dir).resolve():  # published onto itself: nothing is replaced
+        return
+    if publish_target_manifest(dest, key) is not None:
+        held = set(finished_cells(Path(results_dir))) if Path(results_dir).is_dir() else set()
+        check_no_other_cells(dest, results_dir, held, key, fix)
 
 
 def publish(results_dir: Path, dest: Path) -> list[Path]:

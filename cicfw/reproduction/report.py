@@ -128,7 +128,7 @@ from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_M
                                      cpu_counts, kind_noun, load_cells, most_first)
 from cicfw.reproduction.claims import (Claim, check_margin, default_claims, default_margin, holm_families, judge,
                                        load_claims)
-from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, publish
+from cicfw.reproduction.published import PUBLISHED_FILES, check_publish_outside, check_publish_target, publish
 from cicfw.reproduction.ranking import BASELINE, apart, best, forest, in_catalogue_order, ranking
 from cicfw.reproduction.lock import LOCK_FILE, RunLocks
 from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
@@ -1043,6 +1043,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # held while it writes, as a reproduce run holds them: no run takes either folder meanwhile
         held = RunLocks(Path(a.results_dir), a.publish, publish_key="--publish").acquire()
         try:
+            if a.publish:  # a published table without some of its published cells: refused before any write
+                check_publish_target(a.results_dir, a.publish, "--publish",
+                                     f"report a results folder that holds them (python -m cicfw.reproduce "
+                                     f"continue_from={a.publish} copies them into one)")
             with initialize_config_module("cicfw.conf", version_base="1.3"):
                 data = write_configured(Path(a.results_dir), run_report_config(Path(a.results_dir)), a.publish)
         finally:
