@@ -39,15 +39,22 @@ def _collected_with_another_config(tmp_path: Path) -> tuple[str, list[str]]:
     return str(folder), ["data=sim_default", "resume_on_other_data=true"]
 
 
-@pytest.mark.parametrize("other", [_other_data, _collected_with_another_config])
+def _validation_beyond_the_epoch(tmp_path: Path) -> tuple[str, list[str]]:
+    """The run's own data, validated every 1000 batches of a 1-batch epoch: Lightning refuses it only in fit."""
+    return "", ["trainer.val_check_interval=1000"]
+
+
+@pytest.mark.parametrize("other", [_other_data, _collected_with_another_config, _validation_beyond_the_epoch])
 def test_a_refused_resume_leaves_the_run_folder_byte_for_byte(trained, tmp_path, other):
     run = tmp_path / "run"
     shutil.copytree(trained["run"], run)
     assert (run / "csv" / "metrics.csv").is_file()
     before = _files(run)
     path, extra = other(tmp_path)
+    path = path or str(trained["data"])
     proc = run_app_in_process("cicfw.train", *TINY_TRAIN, "trainer.limit_train_batches=1", *extra,
                               f"data.path={path}", "trainer.max_epochs=4", f"hydra.run.dir={run}",
                               f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
-    assert proc.returncode == 2 and path in proc.stderr.splitlines()[-1], proc.stderr[-2000:]  # refused, naming it
+    named = path if "trainer.val_check_interval=1000" not in extra else "trainer.val_check_interval"
+    assert proc.returncode == 2 and named in proc.stderr.splitlines()[-1], proc.stderr[-2000:]  # refused, naming it
     assert _files(run) == before  # names and bytes: csv/metrics.csv still there, no metrics.1.csv

@@ -694,10 +694,12 @@ def _train(cfg: DictConfig, run_dir: Path, refuse_finished: bool,
                                                   SCHEDULE_KEY: horizon_settings(cfg)}))  # and run length
     datamodule.trainer = trainer  # its world size: each rank on a node holding the images in RAM counts
     datamodule.setup("fit")  # read: bad files and empty splits fail here, before training starts
+    train_batches = len(datamodule.train_dataloader())
+    check_validation_interval(trainer, train_batches)
     with on_interrupt("during the compile warm-up, before the first training step: nothing to keep yet (what "
                       "was compiled is cached), run the same command again"):
         apply_speed_from_config(model, speed, cfg.trainer,  # compile (or its one-line fallback),
-                                cfg.data.batch_size, len(datamodule.train_dataloader()))  # channels_last, Adam
+                                cfg.data.batch_size, train_batches)  # channels_last, Adam
     before = checkpoint_files(run_dir)
     if not is_worker_process():  # written once everything is checked: a refused run leaves the folder's as it was
         write_record(run_dir, record)
@@ -793,6 +795,21 @@ def outcome(metric_name: str, metric: float | None, run_dir: Path, before: Mappi
     then = ("; evaluate_after saves the final weights as checkpoints/final.ckpt and drives them"
             if evaluate_after and not saved_checkpoint(trainer) else "")  # else an earlier run's, e.g. last.ckpt
     return f"{said}; no checkpoint written{why}{then}"
+
+
+def check_validation_interval(trainer: L.Trainer, train_batches: int) -> None:
+    """An integer ``trainer.val_check_interval`` beyond an epoch's training batches (after
+    ``limit_train_batches``), refused as Lightning's fit loop refuses it, but before this run's records are
+    written: Lightning checks it only inside ``fit``."""
+    interval, limit = trainer.val_check_interval, trainer.limit_train_batches
+    if not isinstance(interval, int) or isinstance(interval, bool) or trainer.check_val_every_n_epoch is None:
+        return
+    batches = min(train_batches, limit) if isinstance(limit, int) else int(train_batches * limit)
+    if interval > batches:
+        raise CicfwError(f"trainer.val_check_interval={interval} is more than the {batches} training batches of an "
+                         f"epoch; give at most {batches}, a fraction of the epoch (e.g. 0.5), or "
+                         f"trainer.check_val_every_n_epoch=null to count batches across epochs",
+                         key="trainer.val_check_interval", value=interval)
 
 
 def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_path: str | None, run_dir: Path) -> None:
