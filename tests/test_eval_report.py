@@ -182,3 +182,20 @@ def test_a_run_and_its_copy_are_refused_as_two_rows(tmp_path: Path):
     assert err.value.key == "dirs" and str(tmp_path / "copy") in str(err.value)
     write_run(tmp_path / "b", Run(CIL.label, CIL.rows, {"checkpoint": "/ck/b.ckpt"}))
     assert len(find_runs([tmp_path / "a", tmp_path / "b"])) == 2
+
+
+def test_a_copy_run_again_is_still_one_measurement(tmp_path: Path):
+    """Running a copy's evaluate command again rewrites its report's timings (wall_s, episodes reused), so the
+    bytes differ; the same fingerprint and episodes are one measurement. Another fingerprint (the exported model
+    of the same checkpoint, driving the same episodes) is another run."""
+    from cicfw.core.errors import CicfwError
+
+    fp = {"policy": {"name": "checkpoint", "checkpoint_sha256": "ab"}, "suite": {"name": "single_turn"}}
+    write_run(tmp_path / "a", Run(CIL.label, CIL.rows, {"fingerprint": fp, "wall_s": 3.6, "episodes_reused": 0}))
+    write_run(tmp_path / "copy", Run("Copy", CIL.rows, {"fingerprint": fp, "wall_s": 0.0, "episodes_reused": 156}))
+    with pytest.raises(CicfwError) as err:
+        find_runs([tmp_path / "a", tmp_path / "copy"])
+    assert err.value.key == "dirs" and str(tmp_path / "copy") in str(err.value)
+    onnx = {**fp, "policy": {"name": "checkpoint", "checkpoint_sha256": "cd"}}
+    write_run(tmp_path / "onnx", Run("ONNX", CIL.rows, {"fingerprint": onnx}))
+    assert len(find_runs([tmp_path / "a", tmp_path / "onnx"])) == 2

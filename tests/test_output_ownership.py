@@ -1021,3 +1021,29 @@ def test_a_reproduction_s_cell_is_no_run_to_train_or_evaluate_into(tmp_path):
             claim_folder(cell / app, app, "hydra.run.dir")
         assert err.value.value == str(cell / app) and str(results) in str(err.value)
     assert _files(results) == kept
+
+
+def _hard_linked_copy(src: Path, dst: Path) -> None:
+    """``cp -al src dst``: the folders, with every file linked, not copied."""
+    for p in sorted(src.rglob("*")):
+        if p.is_dir():
+            (dst / p.relative_to(src)).mkdir(parents=True, exist_ok=True)
+        else:
+            (dst / p.relative_to(src)).parent.mkdir(parents=True, exist_ok=True)
+            os.link(p, dst / p.relative_to(src))
+
+
+def test_an_evaluation_resumed_in_a_hard_linked_copy_leaves_the_original_as_it_was(one_episode_eval, tmp_path):
+    """A ``cp -al`` copy shares its files' inodes: Hydra rewrote the original's .hydra records and appended to
+    its evaluate.log through the copy's run."""
+    original = tmp_path / "original"
+    _hard_linked_copy(one_episode_eval, original)  # a private original first: the shared fixture stays apart
+    from cicfw.core.files import unshare_links
+
+    unshare_links(original)
+    kept = _files(original)
+    _hard_linked_copy(original, tmp_path / "copy")
+    res = _evaluate(tmp_path / "copy", "name=Copy")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert _files(original) == kept
+    assert b"Copy" in (tmp_path / "copy" / ".hydra" / "overrides.yaml").read_bytes()

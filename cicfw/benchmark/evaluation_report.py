@@ -262,8 +262,9 @@ def find_runs(paths: Sequence[str | Path], partial: str = "refuse") -> list[Run]
 
 def check_each_run_once(runs: Sequence[Run]) -> None:
     """A run found twice (the same folder given twice, through a symlink or another spelling, or inside a
-    sweep also given), or a folder whose ``episodes.json`` is a byte-for-byte copy of another's (a run copied
-    elsewhere), would be two rows of one run: one ``CicfwError`` naming both paths."""
+    sweep also given), or two folders of one measurement (``_measurement``: a run copied elsewhere, even run
+    again there, which rewrites its report's timings), would be two rows of one run: one ``CicfwError`` naming
+    both paths."""
     seen: dict[str, Path] = {}
     for r in runs:
         real = os.path.realpath(r.path)
@@ -273,15 +274,29 @@ def check_each_run_once(runs: Sequence[Run]) -> None:
         seen[real] = r.path
     digests: dict[str, Path] = {}
     for r in runs:
-        try:
-            digest = hashlib.sha256((Path(r.path) / "episodes.json").read_bytes()).hexdigest()
-        except OSError:  # a partial run, read from its episode log: no report of its own to compare
+        digest = _measurement(r)
+        if digest is None:
             continue
         if digest in digests:
-            raise CicfwError(f"report: {str(digests[digest])!r} and {str(r.path)!r} hold the same episodes.json, byte "
-                             f"for byte: one run and its copy, which one table would show as two rows; give one of "
-                             f"them", key="dirs", value=str(r.path))
+            raise CicfwError(f"report: {str(digests[digest])!r} and {str(r.path)!r} hold one measurement: the same "
+                             f"policy, suite and simulator and the same episodes (a run and its copy, or its copy run "
+                             f"again), which one table would show as two rows; give one of them", key="dirs",
+                             value=str(r.path))
         digests[digest] = r.path
+
+
+def _measurement(run: Run) -> str | None:
+    """A digest of what ``run`` measured: its fingerprint (policy, suite, simulator) and its episode rows, the
+    row label aside; a run recorded without a fingerprint is its ``episodes.json``'s bytes. None for a partial
+    run read from its episode log without a report of its own."""
+    fingerprint = run.meta.get("fingerprint")
+    if fingerprint is None:
+        try:
+            return hashlib.sha256((Path(run.path) / "episodes.json").read_bytes()).hexdigest()
+        except (OSError, TypeError):
+            return None
+    rows = [{k: v for k, v in row.items() if k != "model"} for row in run.rows]
+    return hashlib.sha256(json.dumps([fingerprint, rows], sort_keys=True, default=str).encode()).hexdigest()
 
 
 #: the suite settings that say what a table's columns are: runs joined in one table agree on them

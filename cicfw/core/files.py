@@ -13,6 +13,8 @@ import errno
 import os
 import re
 import secrets
+import shutil
+import stat
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping
 
@@ -186,3 +188,25 @@ def atomic_write(path: str | os.PathLike, data: str | bytes | memoryview) -> Non
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_together({path: data.encode() if isinstance(data, str) else data})
+
+
+def unshare_links(folder: str | Path) -> list[Path]:
+    """Give each file under ``folder`` that is hard-linked elsewhere (a ``cp -al`` copy of a run) a copy of its
+    own, so that what an app rewrites or appends to in place there (Hydra's ``.hydra`` records and job log, an
+    episode log, a reproduction's logs) stays out of the other folder. Lock files are left: their lock is on the
+    file, which a copy would not hold. Returns the files copied."""
+    copied = []
+    for dirpath, _, names in os.walk(folder):
+        for name in names:
+            path = Path(dirpath) / name
+            try:
+                info = os.lstat(path)
+            except OSError:  # gone meanwhile: nothing to share
+                continue
+            if stat.S_ISREG(info.st_mode) and info.st_nlink > 1 and not name.endswith(".lock"):
+                tmp = path.with_name(f".{name}.{secrets.token_hex(4)}.tmp")
+                shutil.copy2(path, tmp)
+                os.replace(tmp, path)
+                copied.append(path)
+    return copied
+

@@ -25,7 +25,7 @@ from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from cicfw.core.errors import CicfwError, ConfigError
-from cicfw.core.files import PROBE_PREFIX, atomic_write, remove_stale_temps, writable_folder
+from cicfw.core.files import PROBE_PREFIX, atomic_write, remove_stale_temps, unshare_links, writable_folder
 from cicfw.core.locks import FolderBusy, FolderLock, describe_holder
 from cicfw.core.slurm_requeue import is_requeued_run, saved_config
 from cicfw.core.sweeps import ROWS_DIR, SWEEP_FILE, is_worker_process
@@ -832,6 +832,7 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
             raise RunFolderError(f"{where} holds {_listed(unvouched)}, which no cicfw {app} run wrote there (its "
                                  f"{OWN_OUTPUTS[app][1]} is missing), and which cicfw {app} would write over; {fix}",
                                  key=key, value=str(folder))
+        unshare_links(folder)  # a hard-linked copy of a run (cp -al): what is written here stays here
         return
     if owner == "collect":
         raise RunFolderError(f"{where} holds a dataset (HDF5 episodes), which cicfw {app} would write beside and "
