@@ -322,6 +322,23 @@ def test_an_evaluation_of_a_bad_checkpoint_leaves_no_run_folder(tmp_path):
     assert not run.exists() and not (tmp_path / "outputs").exists()
 
 
+@pytest.mark.parametrize("app", ["cicfw.evaluate", "cicfw.diagnose"])
+def test_a_checkpoint_whose_hyper_parameters_do_not_build_is_one_line_and_no_run_folder(tmp_path, app):
+    """A head kwarg its constructor refuses, edited into the checkpoint: one line naming the key, exit 2, and the
+    run folder Hydra made is gone again."""
+    path = save_checkpoint(tmp_path / "edited.ckpt")
+    ckpt = torch.load(path, weights_only=True)
+    ckpt["hyper_parameters"]["head_kwargs"] = {"loss": "mse", "decode": "argmax"}
+    torch.save(ckpt, path)
+    run = tmp_path / "outputs" / "run"
+    extra = ["suite.limit=1"] if app == "cicfw.evaluate" else []
+    res = run_app_in_process(app, f"checkpoint={path}", *extra, f"hydra.run.dir={run}", env=IN_PROCESS)
+    assert res.returncode == 2, res.stderr[-3000:]
+    errors = _errors(res.stderr)
+    assert len(errors) == 1 and "head_kwargs.decode" in errors[0] and str(path) in errors[0], res.stderr[-3000:]
+    assert not run.exists() and not (tmp_path / "outputs").exists()
+
+
 # ---- train: a failed run leaves a folder the advised rerun accepts ---------------------------------
 
 from test_hostile_train import full_disk  # noqa: E402,F401  (the fixture)

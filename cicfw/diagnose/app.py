@@ -215,6 +215,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
     device = run_device(cfg.get("device"))
     ckpt_path = resolve_checkpoint(cfg.checkpoint)  # a missing file: one line
     ckpt = read_checkpoint(ckpt_path)  # not a checkpoint, not cicfw's, a part not installed: one line
+    model = load_model(ckpt_path)  # hyper-parameters its parts refuse, weights that do not fit: before the data
 
     record = checkpoint_record(ckpt_path)  # the absolute data path and the files the run trained on
     data, source = data_settings(cfg, ckpt_path, record)
@@ -225,7 +226,7 @@ def diagnose(cfg: DictConfig, out_dir: Path) -> dict[str, Path]:
                  data.path, ", ".join(added[:5]) + (" ..." if len(added) > 5 else ""))
     if cfg.get("threads"):
         torch.set_num_threads(cfg.threads)
-    model = prepare_for_inference(load_model(ckpt_path), bool(cfg.get("fuse", True))).to(device)
+    model = prepare_for_inference(model, bool(cfg.get("fuse", True))).to(device)
     approach_m = cfg.phases.approach_m
     approach_from = "phases.approach_m"
     if approach_m is None:

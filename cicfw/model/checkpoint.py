@@ -9,6 +9,7 @@ error.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import io
 import json
 import math
@@ -25,7 +26,7 @@ from omegaconf import OmegaConf
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from cicfw.core.errors import CicfwError
+from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.data.provenance import CHECKPOINT_KEY, folder_record, is_record
 from cicfw.model.net import NET_DEFAULTS, NET_KEYS, SteeringNet
 from cicfw.model.speed import keep_fp32
@@ -366,13 +367,115 @@ def saved_hparams(hp: Mapping[str, Any], where: str) -> SavedHparams:
     return SavedHparams({**NET_DEFAULTS, **TRAINING_DEFAULTS, **hp})
 
 
+#: what a part's constructor raises for a value it refuses (cicfw's ConfigError is a ValueError)
+BUILD_ERRORS = (TypeError, ValueError, RuntimeError)
+#: each part's kwargs key in the hyper-parameters, with its registry
+PART_KWARGS = {"encoder": ENCODERS, "head": HEADS, "mixer": MIXERS}
+
+
 def model_from_hparams(hp: Mapping[str, Any], where: str) -> SteeringNet:
     """The ``SteeringNet`` a checkpoint's ``hyper_parameters`` describe (its weights not loaded), holding them all
-    as ``hparams``."""
+    as ``hparams``. A value a part refuses is one ``CheckpointError`` naming its key (``head_kwargs.decode``)."""
     every = saved_hparams(hp, where)
-    model = SteeringNet(**{k: every[k] for k in NET_KEYS})
+    for part in PART_KEYS:
+        kwargs = every[f"{part}_kwargs"]
+        if kwargs is not None and not (isinstance(kwargs, Mapping) and all(isinstance(k, str) for k in kwargs)):
+            raise CheckpointError(f"checkpoint {where!r}: its hyper_parameters.{part}_kwargs={kwargs!r} is not a "
+                                  f"mapping of keyword names to values, as cicfw train saves it; a damaged or edited "
+                                  f"file", key=f"{part}_kwargs", value=kwargs)
+    try:
+        model = SteeringNet(**{k: every[k] for k in NET_KEYS})
+    except BUILD_ERRORS as err:
+        raise unbuildable(every, where, err) from err
     model.hparams = every
     return model
+
+
+def _keywords(cls: type) -> dict[str, Any]:
+    """The keyword arguments ``cls`` takes, with their defaults (``inspect.Parameter.empty`` for none), following
+    ``**kwargs`` passed on to a base class's ``__init__`` (a hybrid head's bins)."""
+    found: dict[str, Any] = {}
+    for c in cls.__mro__:
+        init = c.__dict__.get("__init__")
+        if init is None or c is object:
+            continue
+        try:
+            params = list(inspect.signature(init).parameters.values())[1:]
+        except (TypeError, ValueError):
+            break
+        for p in params:
+            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+                found.setdefault(p.name, p.default)
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return found
+
+
+def _build_part(part: str, every: Mapping[str, Any], kwargs: Mapping[str, Any], built: dict[str, Any]) -> Any:
+    """One part as ``SteeringNet`` builds it (a mixer between the encoder's and the head's widths)."""
+    cls = PART_KWARGS[part].get(every[part])
+    if part != "mixer":
+        return cls(**kwargs)
+    for given in sorted({"in_dim", "out_dim"} & set(kwargs)):  # as the call SteeringNet makes refuses it
+        raise TypeError(f"{cls.__name__}() got multiple values for keyword argument '{given}'")
+    return cls(in_dim=built["encoder"].out_dim, out_dim=built["head"].out_dim, **kwargs)
+
+
+def unbuildable(every: Mapping[str, Any], where: str, err: BaseException) -> CheckpointError:
+    """The ``CheckpointError`` for hyper-parameters ``SteeringNet`` refused with ``err``: the part that refused is
+    rebuilt alone, and the key of its kwargs that it refused found (by the error's own key or keyword, or as the
+    one whose default lets the part build), so the line names the checkpoint, that key and what it accepts."""
+    cause, culprit = err, None
+    key = getattr(err, "key", None) or ""
+    if isinstance(err, ConfigError) and key.startswith("model."):  # SteeringNet's own argument (speed_norm_kmh)
+        name = key.split(".", 1)[1]
+        return CheckpointError(f"checkpoint {where!r}: its hyper_parameters.{name}={err.value!r} is refused: it "
+                               f"must be {err.accepted}; a damaged or edited file",
+                               key=f"hyper_parameters.{name}", value=err.value)
+    built: dict[str, Any] = {}
+    for part in ("encoder", "head", "mixer"):  # SteeringNet's order: the mixer needs both widths
+        try:
+            built[part] = _build_part(part, every, dict(every[f"{part}_kwargs"] or {}), built)
+        except BUILD_ERRORS as e:
+            culprit, cause = part, e
+            break
+    if culprit is None:  # the parts build alone: SteeringNet's joining of them refused
+        return CheckpointError(f"checkpoint {where!r}: its hyper_parameters do not build a SteeringNet "
+                               f"({type(err).__name__}: {' '.join(str(err).split())}); a damaged or edited file",
+                               key="checkpoint", value=where)
+    kwargs = dict(every[f"{culprit}_kwargs"] or {})
+    label = f"{culprit} {every[culprit]!r}"
+    takes = _keywords(PART_KWARGS[culprit].get(every[culprit]))
+    if culprit == "mixer":  # SteeringNet gives these itself
+        takes.pop("in_dim", None), takes.pop("out_dim", None)
+    ckey = getattr(cause, "key", None) or ""
+    name = None
+    if isinstance(cause, ConfigError) and "." in ckey:
+        name = ckey.split(".", 1)[1]
+    elif isinstance(cause, TypeError):
+        found = re.search(r"argument:? '(\w+)'", str(cause))
+        name = found.group(1) if found else None
+    if name is None:  # the one key whose default lets the part build
+        for k in kwargs:
+            try:
+                _build_part(culprit, every, {n: v for n, v in kwargs.items() if n != k}, built)
+            except BUILD_ERRORS:
+                continue
+            name = k
+            break
+    what = f"{culprit}_kwargs" + (f".{name}" if name else "")
+    value = kwargs.get(name) if name else kwargs
+    given = f"{what}={value!r}" if name is None or name in kwargs else f"{what} (not given)"
+    if isinstance(cause, ConfigError):
+        accepted = f"it must be {cause.accepted}"
+    elif name is not None and name not in takes:
+        accepted = f"a checkpoint gives {label} only {', '.join(takes) or 'no keyword arguments'}"
+    else:
+        default = takes.get(name, inspect.Parameter.empty) if name else inspect.Parameter.empty
+        accepted = (f"{label} refuses it ({type(cause).__name__}: {' '.join(str(cause).split())})"
+                    + (f"; its default is {default!r}" if default is not inspect.Parameter.empty else ""))
+    return CheckpointError(f"checkpoint {where!r}: its hyper_parameters.{given} does not build {label}: {accepted}; "
+                           f"a damaged or edited file", key=f"{what}", value=value)
 
 
 def parts_label(hp: Mapping[str, Any]) -> str:
@@ -410,9 +513,18 @@ def load_model(path: str | Path | CheckpointBytes) -> SteeringNet:
     ckpt = read_checkpoint(path)
     model = model_from_hparams(ckpt["hyper_parameters"], str(path))
     # cicfw saves plain keys even from a torch.compile'd run; a module compiled with the
-    # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights
-    state = {k.replace("_orig_mod.", ""): v for k, v in ckpt["state_dict"].items()}
-    misfit = weights_misfit(model.state_dict(), state)
+    # torch.compile(model) wrapper elsewhere prefixes them with "_orig_mod.": the same weights, so a weight saved
+    # both with and without it is two copies of one, one of which would silently replace the other
+    state: dict[str, Any] = {}
+    saved_as: dict[str, str] = {}
+    twice = None
+    for k, v in ckpt["state_dict"].items():
+        plain = k.replace("_orig_mod.", "")
+        if plain in saved_as and twice is None:
+            twice = f"{plain!r} saved twice, as {saved_as[plain]!r} and {k!r} (with and without '_orig_mod.')"
+        state[plain] = v
+        saved_as.setdefault(plain, k)
+    misfit = twice or weights_misfit(model.state_dict(), state)
     if misfit is None:
         try:
             model.load_state_dict(state, strict=True)
