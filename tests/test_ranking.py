@@ -16,7 +16,7 @@ from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import COLUMNS, CellResult
 from cicfw.reproduction.ranking import _mcb, apart, best, forest, one_sided_bounds, ranking
 from cicfw.reproduction.report import markdown, report_data, write_report
-from cicfw.reproduction.seed_stats import ALPHA
+from cicfw.reproduction.seed_stats import ALPHA, difference
 
 from conftest import mover, wilson
 
@@ -215,3 +215,45 @@ def test_bounds_of_differences_equal_up_to_rounding_are_exact_without_a_warning(
         warnings.simplefilter("error")
         est, lo, hi = one_sided_bounds(a, b, 0.95)
     assert est == pytest.approx(40.0) and lo == est and hi == est
+
+
+def test_a_pair_with_too_few_shared_seeds_gets_no_mcb_bound_as_a_claim_gets_no_verdict():
+    """C shares only seeds 0 and 2 with A and B (as a row whose third seed ran on another CPU kind): a claim
+    on such a pair reads *too few seeds*, and so MCB gives it no bound. A - B is paired on 3 seeds (10, 11, 10:
+    mean 31/3, sd 1/sqrt 3), its one-sided 97.5% bounds (k = 3) by scipy's t with 2 df. A's upper comes from B
+    alone, B is behind; C is unbounded above, so it stays in G, and every lower bound, each needing a pair with
+    C, is none."""
+    values = {"a": {0: 70.0, 1: 72.0, 2: 75.0}, "b": {0: 60.0, 1: 61.0, 2: 65.0},
+              "c": {0: 50.0, 2: 90.0, 3: 55.0, 4: 52.0}}
+    for i, j in (("a", "c"), ("b", "c")):
+        assert not difference(values[i], values[j]).enough_seeds  # the claims' rule: too few seeds
+    got = mcb(values, margin=5.0)
+    rows = {r["row"]: r for r in got["rows"]}
+    half = stats.t.ppf(0.975, 2) * (1 / math.sqrt(3)) / math.sqrt(3)
+    assert rows["a"]["hi"] == pytest.approx(31 / 3 + half) and rows["a"]["lo"] is None
+    assert (rows["b"]["hi"], rows["b"]["word"]) == (0.0, "behind")
+    assert -31 / 3 + half < 0 and rows["b"]["lo"] is None  # B - C, needed with C in G, has no bound either
+    assert got["best"] == ["a", "c"] and rows["c"]["lo"] is None and rows["c"]["hi"] is None
+
+
+def test_the_report_says_too_few_seeds_for_such_a_pair_and_clips_intervals_to_the_scale():
+    """In RESULTS.md a ranked pair with too few shared seeds reads *too few seeds* where MCB's bounds go, and
+    the rows it leaves unbounded say why. X and Y, three seeds of wild spread (X - Y: -90, +90, 0; sd 90): the
+    pair's 95% t-interval, 0 -/+ t(0.975, 2) 90 / sqrt 3 = -/+223.6, and MCB's one-sided bounds reach past
+    what a difference of two rates can be; each is printed clipped to [-100, +100]."""
+    wild = [at(row, s, p) for row, pcts in (("x", (5, 95, 50)), ("y", (95, 5, 50))) for s, p in enumerate(pcts)]
+    few = [at("z", s, 50) for s in (0, 3, 4)]  # shares only seed 0 with X and Y
+    data = report_data(wild + few, [], {"x": {"label": "X"}, "y": {"label": "Y"}, "z": {"label": "Z"}},
+                       {"budget": "smoke"}, n_boot=50, claims=[], margin=5.0)
+    assert 0 - stats.t.ppf(0.975, 2) * 90 / math.sqrt(3) < -100
+    pairs = {(p["a"], p["b"]): p for p in data["best"]["pairs"]}
+    xy = pairs.get(("x", "y")) or pairs[("y", "x")]
+    assert xy["measured"]["lo"] < -100 and xy["lower"] < -100 and xy["upper"] > 100  # kept whole in the data
+    md = markdown(data)
+    pair_table = md.split("## Each pair of ranked rows")[1].split("\n## ")[0].splitlines()
+    xy_line = [line for line in pair_table if line.startswith(("| X | Y |", "| Y | X |"))]
+    cols = xy_line[0].split(" | ")
+    assert cols[2] == "+0.0 [-100.0, +100.0]" and cols[4] == "[-100.0, +100.0]"
+    z_rows = [line for line in pair_table if line.startswith("|") and "Z |" in line]
+    assert len(z_rows) == 2 and all(line.split(" | ")[4] == "too few seeds" for line in z_rows)
+    assert "A bound shown as – rests on a pair with fewer than 3 seeds" in md

@@ -16,11 +16,11 @@ import yaml
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.reproduction.analysis import Analysis, Pairing, boot_value, percentile_interval
 from cicfw.reproduction.cells import SELECTOR_NAMES, SELECTORS, CellResult, episode_terms
-from cicfw.reproduction.seed_stats import (Estimate, difference, family_level, holm, ratio_interval,
+from cicfw.reproduction.seed_stats import (TOO_FEW, Estimate, difference, family_level, holm, ratio_interval,
                                           with_episode_floor, with_ratio_floor, word, word_record)
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE, NOT_RUN = "supported", "contradicted", "inconclusive", "not run"
-TOO_FEW, NOT_SHOWN = "too few seeds", "not shown"
+NOT_SHOWN = "not shown"
 #: greater / less: A beats B / A below B; not_greater / not_less: "A failed to improve on B" / "A is no worse
 #: than B", tested against the equivalence margin (``equivalence_margin`` in conf/reproduce.yaml)
 TESTS = ("greater", "less", "not_greater", "not_less")

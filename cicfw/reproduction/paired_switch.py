@@ -50,8 +50,8 @@ from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellPin, C
                                      check_families, check_one_model, check_one_recipe, check_same_episodes, cpu_counts,
                                      episode_terms, is_copy, kind_noun, load_cell, most_first)
 from cicfw.reproduction.report import folder_pin, folder_weather_family
-from cicfw.reproduction.seed_stats import (MIN_SEEDS, contrast_level, difference, family_level, no_spread,
-                                           with_episode_floor, word)
+from cicfw.reproduction.seed_stats import (MIN_SEEDS, SCALE, contrast_level, difference, family_level, no_spread,
+                                           on_scale, with_episode_floor, word)
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 TOST_LEVEL = 1 - 2 * ALPHA
@@ -162,17 +162,6 @@ def compare(a: Mapping[int, CellResult], b: Mapping[int, CellResult], margin: fl
                                *(on_scale(dc.estimate.lo, dc.estimate.hi) if w else (None, None)),
                                *(on_scale(dt.estimate.lo, dt.estimate.hi) if p is not None else (None, None))))
     return out
-
-
-#: A - B of two success rates lies in [-100, 100] points: an interval is shown clipped to it
-SCALE = 100.0
-
-
-def on_scale(lo: float | None, hi: float | None) -> tuple[float | None, float | None]:
-    """An interval for A - B clipped to [-SCALE, SCALE]: a t-interval over few, spread seeds can reach past
-    what a difference of two rates can be. The verdict and the word are read before clipping (with a margin
-    of at most SCALE, clipping changes neither)."""
-    return tuple(None if v is None else min(max(float(v), -SCALE), SCALE) for v in (lo, hi))  # type: ignore
 
 
 def row_names(cells: Mapping[int, CellResult]) -> str:

@@ -13,12 +13,11 @@ from scipy import stats
 from cicfw.reproduction.analysis import Analysis
 from cicfw.reproduction.cells import CellResult, episode_terms
 from cicfw.reproduction.seed_stats import (AHEAD, ALPHA, BEHIND, LEVEL, MIN_SEEDS, NOT_SEPARATED, Difference,
-                                           contrast_interval, difference, equivalent, family_level, no_spread,
-                                           with_episode_floor, word, word_record)
+                                           compared_seeds, contrast_interval, difference, equivalent, family_level,
+                                           no_spread, seeds_suffice, with_episode_floor, word, word_record)
 
 #: the row every other is drawn against in the forest plot: the paper's baseline
 BASELINE = "cil"
-TOO_FEW = "too few seeds"
 #: one ordered pair's (estimate, lower, upper) one-sided bounds of mu_i - mu_j
 Bounds = tuple[float, float, float]
 
@@ -121,7 +120,8 @@ def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int,
          ) -> tuple[dict[str, Any], dict[tuple[str, str], Bounds]]:
     """MCB from each unordered pair's per-seed values (A's, B's) and, where given, its pooled episodes'
     ``terms`` (the floor, ``one_sided_bounds``): the intervals, the words and G, and the one-sided
-    (estimate, lower, upper) bounds of every ordered pair they were read from."""
+    (estimate, lower, upper) bounds of every ordered pair they were read from. A pair with too few seeds for a
+    claim's verdict (``seed_stats.seeds_suffice``) gets no bounds (-inf, +inf): it bounds no row's interval."""
     k = len(rows)
     if k < 2:
         return {"rows": [], "best": list(rows), "confidence": None, "comparisons": 0}, {}
@@ -129,6 +129,8 @@ def _mcb(pairs: Mapping[tuple[str, str], tuple[Mapping[int, float], Mapping[int,
     bounds = {}
     for (i, j), (va, vb) in pairs.items():
         est, lo, hi = one_sided_bounds(va, vb, q, (terms or {}).get((i, j)))
+        if not seeds_suffice(compared_seeds(va, vb)):
+            lo, hi = -math.inf, math.inf
         bounds[i, j], bounds[j, i] = (est, lo, hi), (-est, -hi, -lo)
     # Hsu's U_i = max(0, min_j up_ij), G = {i : U_i > 0}, L_i = 0 if G = {i} else min(0, min_{j in G} lo_ij)
     upper = {i: max(0.0, min(bounds[i, j][2] for j in rows if j != i)) for i in rows}

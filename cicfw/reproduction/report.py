@@ -134,7 +134,7 @@ from cicfw.reproduction.lock import LOCK_FILE, RunLocks
 from cicfw.reproduction.relation_choice import (relation_data, shipped_candidates, unusable_errors, unusable_text,
                                                 val_errors)
 from cicfw.reproduction.seed_spread import seed_spread
-from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS
+from cicfw.reproduction.seed_stats import LEVEL, MIN_SEEDS, TOO_FEW, on_scale
 from cicfw.sim.mapplot import png_bytes
 from cicfw.sim.render.weather import LEGACY_FAMILY
 
@@ -308,6 +308,12 @@ def _est(e: Mapping[str, Any], sign: str = "") -> str:
     return f"{e['mean']:{sign}.1f} [{e['lo']:{sign}.1f}, {e['hi']:{sign}.1f}]"
 
 
+def _diff(e: Mapping[str, Any]) -> str:
+    """A difference of two success rates with its interval, clipped to [−100, +100] (``seed_stats.on_scale``)."""
+    lo, hi = on_scale(e.get("lo"), e.get("hi"))
+    return _est({**e, "lo": lo, "hi": hi}, "+")
+
+
 def _code(c: Mapping[str, Any] | None) -> str:
     """Which cicfw made a cell (its ``code``): ``0.2.0 @ 1cee6eb``, ``+ changes`` when its files differed from
     the commit; ``–`` for cells made before cells recorded it."""
@@ -401,18 +407,20 @@ def _cpus(counts: Mapping[str, int]) -> str:
     return ", ".join(f"{k} {n}" for k, n in counts.items())
 
 
-def _bounds(lo: float | None, hi: float | None) -> str:
-    """An interval without its point: ``[−12.3, +0.0]`` (``–`` for a missing bound)."""
+def _bounds(lo: float | None, hi: float | None, rates: bool = False) -> str:
+    """An interval without its point: ``[−12.3, +0.0]`` (``–`` for a missing bound); ``rates``: one of a
+    difference of two success rates, clipped to [−100, +100] (``seed_stats.on_scale``)."""
+    lo, hi = on_scale(lo, hi) if rates else (lo, hi)
     f = lambda v: "–" if v is None else f"{v:+.1f}"  # noqa: E731
     return f"[{f(lo)}, {f(hi)}]"
 
 
-def word_text(w: Mapping[str, Any] | None) -> str:
-    """A comparison's word with the corrected interval it is read on: ``not separated [−20.1, +15.3]``;
-    *too few seeds* where it has none."""
+def word_text(w: Mapping[str, Any] | None, rates: bool = False) -> str:
+    """A comparison's word with the corrected interval it is read on: ``not separated [−20.1, +15.3]``
+    (``rates``: clipped as ``_bounds`` clips); *too few seeds* where it has none."""
     if not w or not w.get("word"):
-        return "too few seeds"
-    return f"{w['word']} {_bounds(w.get('lo'), w.get('hi'))}"
+        return TOO_FEW
+    return f"{w['word']} {_bounds(w.get('lo'), w.get('hi'), rates)}"
 
 
 def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
@@ -457,7 +465,10 @@ def answer_lines(data: Mapping[str, Any], pictures: str = "") -> list[str]:
         r, m = by[row], res[row]
         cpus = f"; {_cpus(r['cpus'])}" if r.get("cpus") else ""
         lines.append(f"{n}. **{r['label']}** {_est(r['columns']['overall'])}%, {len(r['seeds'])} seeds{cpus}: "
-                     f"MCB {_bounds(m['lo'], m['hi'])}: {m['word']}.")
+                     f"MCB {_bounds(m['lo'], m['hi'], rates=True)}: {m['word']}.")
+    if any(res[row]["lo"] is None or res[row]["hi"] is None for row in data.get("ranking") or []):
+        lines += ["", f"A bound shown as – rests on a pair with fewer than {min_seeds} seeds to compare on (the "
+                      f"seeds both ran): {TOO_FEW}, no bound (the table of pairs below says which)."]
     if few:
         lines += ["", f"Listed apart (fewer than {min_seeds} seeds: no interval that could rank them), in the "
                       "catalogue's order:", ""]
@@ -489,13 +500,15 @@ def forest_lines(data: Mapping[str, Any]) -> list[str]:
     return lines + md_table(
         ["Row", "Seeds", f"Row − {base} [95% t]", "Method", "Paper", "Word [corrected interval]"], "lrrlrl",
         ([by[r["a"]]["label"], f"{len(by[r['a']]['seeds'])}{'' if not r.get('apart') else ' †'}",
-          _est(r["measured"], "+"), r["method"], "–" if r.get("paper") is None else f"{r['paper']:+.1f}",
-          word_text(r.get("word"))] for r in rows))
+          _diff(r["measured"]), r["method"], "–" if r.get("paper") is None else f"{r['paper']:+.1f}",
+          word_text(r.get("word"), rates=True)] for r in rows))
 
 
 def pair_lines(data: Mapping[str, Any]) -> list[str]:
     """RESULTS.md's table of every pair of ranked rows MCB compares: the difference with its 95% t-interval,
-    which test (paired over the seeds both ran, or Welch), and the one-sided bounds MCB uses."""
+    which test (paired over the seeds both ran, or Welch), and the one-sided bounds MCB uses (*too few seeds*
+    where the pair has none: ``ranking._mcb``), these clipped to [−100, +100] (the word's corrected interval is
+    printed whole: the published reports print it so)."""
     b = data.get("best")
     if not b or not b.get("pairs"):
         return []
@@ -507,8 +520,9 @@ def pair_lines(data: Mapping[str, Any]) -> list[str]:
              f"over all {len(b['pairs'])} pairs.", ""]
     return lines + md_table(
         ["A", "B", "A − B [95% t]", "Method", "MCB's bounds", "Word [corrected interval]"], "llrlrl",
-        ([by[p["a"]]["label"], by[p["b"]]["label"], _est(p["measured"], "+"), p["method"],
-          _bounds(p["lower"], p["upper"]), word_text(p.get("word"))] for p in b["pairs"]))
+        ([by[p["a"]]["label"], by[p["b"]]["label"], _diff(p["measured"]), p["method"],
+          TOO_FEW if p["lower"] is None and p["upper"] is None else _bounds(p["lower"], p["upper"], rates=True),
+          word_text(p.get("word"))] for p in b["pairs"]))
 
 
 def _table4_lines(data: Mapping[str, Any]) -> list[str]:
@@ -813,7 +827,7 @@ def forest_figure(data: Mapping[str, Any], order: Sequence[str] = ()) -> Any:
             ax.plot(m["mean"], y, "o", color=c, mfc=face, ms=7)
         if rec["paper"] is not None:
             ax.plot(rec["paper"], y - 0.25, "x", color=c, ms=8, mew=2)
-        said = f"{_est(m, '+')}" + ("" if rec["paper"] is None else f"  (paper {rec['paper']:+.1f})")
+        said = f"{_diff(m)}" + ("" if rec["paper"] is None else f"  (paper {rec['paper']:+.1f})")
         said += f": {w['word']}" if w.get("word") else (": apart" if rec.get("apart") else "")
         ax.text(1.02, y, said, transform=ax.get_yaxis_transform(), va="center", fontsize=8)
     labels = [by[r["a"]]["label"] + ("" if by[r["a"]]["enough_seeds"] else " †") for r in [*ranked, *few]]

@@ -17,6 +17,10 @@ LEVEL = 0.95
 ALPHA = 1.0 - LEVEL
 #: a row needs this many seeds for a verdict (fewer: reported, "too few seeds")
 MIN_SEEDS = 3
+#: what a comparison with fewer reads, in place of its verdict, word or bound
+TOO_FEW = "too few seeds"
+#: A - B of two success rates lies in [-100, 100] points: an interval is shown clipped to it
+SCALE = 100.0
 #: the words a comparison A - B is read with (``word``); the fourth is ``equivalent(margin)``
 AHEAD, BEHIND, NOT_SEPARATED = "ahead", "behind", "not separated"
 
@@ -49,6 +53,26 @@ def word_record(d_corrected: Difference, margin: float, level: float, correction
     w = word(e.lo, e.hi, margin) if d_corrected.enough_seeds else None
     return {"word": w, "lo": e.lo if w else None, "hi": e.hi if w else None, "level": level,
             "correction": correction}
+
+
+def compared_seeds(a: Mapping[int, float], b: Mapping[int, float]) -> tuple[int, int]:
+    """The seeds a comparison of A and B rests on, each side's: the seeds both ran when they share any
+    (paired, as ``difference`` compares them), else each side's own (Welch's)."""
+    shared = len(set(a) & set(b))
+    return (shared, shared) if shared else (len(a), len(b))
+
+
+def seeds_suffice(n: tuple[int, int]) -> bool:
+    """Whether a comparison on ``n`` seeds (``compared_seeds``) may get a verdict, a word or an MCB bound: at
+    least MIN_SEEDS on each side; fewer read "too few seeds" wherever the report compares rows."""
+    return min(n) >= MIN_SEEDS
+
+
+def on_scale(lo: float | None, hi: float | None) -> tuple[float | None, float | None]:
+    """An interval for A - B clipped to [-SCALE, SCALE]: a t-interval over few, spread seeds can reach past
+    what a difference of two rates can be. The verdict and the word are read before clipping (with a margin
+    of at most SCALE, clipping changes neither)."""
+    return tuple(None if v is None else min(max(float(v), -SCALE), SCALE) for v in (lo, hi))  # type: ignore
 
 
 def family_level(size: int, level: float = LEVEL) -> float:
@@ -188,8 +212,8 @@ class Difference:
 
     @property
     def enough_seeds(self) -> bool:
-        """Both rows have at least MIN_SEEDS seeds: fewer get no verdict ("too few seeds")."""
-        return min(self.n) >= MIN_SEEDS
+        """Both rows have at least MIN_SEEDS seeds (``seeds_suffice``): fewer get no verdict ("too few seeds")."""
+        return seeds_suffice(self.n)
 
 
 #: per-seed values closer than this (points) are one value: success rates are ratios of episode counts, so two
