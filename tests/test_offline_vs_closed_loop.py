@@ -153,3 +153,15 @@ def test_another_weather_family_is_analysed_on_its_own(tmp_path):
     text = (out / "README.md").read_text()
     assert "## Under the `carla` weathers" in text and "`calibrated`" in text.split("## Under")[-1]
     assert "`calibrated`" not in text.split("**Data.**")[1].split("**Method.**")[0]
+
+
+def test_a_cell_whose_validation_error_is_nan_has_no_point(tmp_path):
+    """A diverged run records NaN (json writes it, read_json reads it back): as a cell without a value, it is no
+    point, rather than one that blanks every pooled correlation while the report counts it."""
+    root = results_tree(tmp_path / "results")
+    cell = root / "study" / "cells" / "cil" / "seed3" / "cell.json"
+    cell.write_text(json.dumps({**json.loads(cell.read_text()), "val_steer_mae": float("nan")}))
+    assert "NaN" in cell.read_text()
+    pts = collect_points(root)
+    assert len(pts) == 5 and 3 not in {p.seed for p in pts}
+    assert all(math.isfinite(p.val_mae) for p in pts)

@@ -285,6 +285,19 @@ def test_read_json_names_the_file(tmp_path):
     assert read_json(tmp_path / "missing.json", default={}) == {}
 
 
+def test_read_json_of_a_fifo_is_one_line_not_a_hang(tmp_path):
+    """A FIFO where a cell.json belongs blocked cicfw report forever in its read."""
+    from cicfw.core.json_files import read_json
+
+    import os
+
+    fifo = tmp_path / "cell.json"
+    os.mkfifo(fifo)
+    with pytest.raises(CicfwError) as err:
+        read_json(fifo)
+    assert str(fifo) in str(err.value)
+
+
 # ---- every refusal names its key ----------------------------------------------------------------------------
 
 

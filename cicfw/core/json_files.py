@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,9 @@ def read_json(path: str | os.PathLike, default: Any = _NO_DEFAULT, kind: type | 
     be one, else the same error, so that a record holding ``null`` is not read as a missing one."""
     path = Path(path)
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever, a device never end
+            raise CicfwError(f"{path}: not a regular file, where a JSON record belongs; replace it with the record "
+                             f"or remove it")
         text = path.read_text()
     except FileNotFoundError:
         if default is not _NO_DEFAULT:

@@ -139,14 +139,16 @@ def _fingerprint(cell: Any) -> str:
 
 
 def collect_points(results: Path, skip: Sequence[str] = ()) -> list[Point]:
-    """Every distinct finished cell with a validation error under ``results``/<folder>/cells."""
+    """Every distinct finished cell with a finite validation error under ``results``/<folder>/cells (a cell
+    recording none, or NaN, has no point to rank)."""
     points: dict[str, Point] = {}
     for folder in sorted(p for p in Path(results).iterdir() if p.is_dir() and p.name not in skip):
         path = folder / "reproduce.json"
         manifest = read_json(path, default={})
         budget, family = manifest.get("budget", "?"), pinned_weather_family(manifest) or "another simulator"
         for cell in load_cells(folder)[0]:
-            if cell.meta.get("val_steer_mae") is None:
+            mae = cell.meta.get("val_steer_mae")
+            if not (isinstance(mae, (int, float)) and math.isfinite(mae)):  # none, or NaN (a diverged run's)
                 continue
             key = _fingerprint(cell)
             if key not in points:
