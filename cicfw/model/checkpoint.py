@@ -28,9 +28,8 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from cicfw.core.errors import CicfwError, ConfigError
 from cicfw.data.provenance import CHECKPOINT_KEY, folder_record, is_record
-from cicfw.model.net import NET_DEFAULTS, NET_KEYS, SteeringNet
+from cicfw.model.net import NET_DEFAULTS, NET_KEYS, PART_REGISTRIES, SteeringNet, build_part
 from cicfw.model.speed import keep_fp32
-from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 #: the CICModule arguments that name registered parts, with the registry that must know each
 PART_KEYS = ("encoder", "mixer", "head")
@@ -326,7 +325,8 @@ def check_cicfw_checkpoint(ckpt: Any, where: str) -> dict[str, Any]:
             f"{where!r} is not a cicfw checkpoint: it needs Lightning's 'state_dict' and the CICModule "
             f"'hyper_parameters' naming an encoder, mixer and head (found {what}); checkpoints come from "
             f"cicfw train (outputs/<run>/checkpoints/*.ckpt)", key="checkpoint", value=where)
-    for key, reg in zip(PART_KEYS, (ENCODERS, MIXERS, HEADS)):
+    for key in PART_KEYS:
+        reg = PART_REGISTRIES[key]
         if hp[key] not in reg:
             raise CheckpointError(
                 f"checkpoint {where!r} was trained with {key} {hp[key]!r}, which is not installed here; "
@@ -369,8 +369,6 @@ def saved_hparams(hp: Mapping[str, Any], where: str) -> SavedHparams:
 
 #: what a part's constructor raises for a value it refuses (cicfw's ConfigError is a ValueError)
 BUILD_ERRORS = (TypeError, ValueError, RuntimeError)
-#: each part's kwargs key in the hyper-parameters, with its registry
-PART_KWARGS = {"encoder": ENCODERS, "head": HEADS, "mixer": MIXERS}
 
 
 def model_from_hparams(hp: Mapping[str, Any], where: str) -> SteeringNet:
@@ -411,16 +409,6 @@ def _keywords(cls: type) -> dict[str, Any]:
     return found
 
 
-def _build_part(part: str, every: Mapping[str, Any], kwargs: Mapping[str, Any], built: dict[str, Any]) -> Any:
-    """One part as ``SteeringNet`` builds it (a mixer between the encoder's and the head's widths)."""
-    cls = PART_KWARGS[part].get(every[part])
-    if part != "mixer":
-        return cls(**kwargs)
-    for given in sorted({"in_dim", "out_dim"} & set(kwargs)):  # as the call SteeringNet makes refuses it
-        raise TypeError(f"{cls.__name__}() got multiple values for keyword argument '{given}'")
-    return cls(in_dim=built["encoder"].out_dim, out_dim=built["head"].out_dim, **kwargs)
-
-
 def unbuildable(every: Mapping[str, Any], where: str, err: BaseException) -> CheckpointError:
     """The ``CheckpointError`` for hyper-parameters ``SteeringNet`` refused with ``err``: the part that refused is
     rebuilt alone, and the key of its kwargs that it refused found (by the error's own key or keyword, or as the
@@ -433,9 +421,14 @@ def unbuildable(every: Mapping[str, Any], where: str, err: BaseException) -> Che
                                f"must be {err.accepted}; a damaged or edited file",
                                key=f"hyper_parameters.{name}", value=err.value)
     built: dict[str, Any] = {}
+
+    def build(part: str, kwargs: Mapping[str, Any] | None) -> Any:  # as SteeringNet builds it
+        widths = (built["encoder"].out_dim, built["head"].out_dim) if part == "mixer" else None
+        return build_part(part, every[part], kwargs, widths)
+
     for part in ("encoder", "head", "mixer"):  # SteeringNet's order: the mixer needs both widths
         try:
-            built[part] = _build_part(part, every, dict(every[f"{part}_kwargs"] or {}), built)
+            built[part] = build(part, every[f"{part}_kwargs"])
         except BUILD_ERRORS as e:
             culprit, cause = part, e
             break
@@ -445,7 +438,7 @@ def unbuildable(every: Mapping[str, Any], where: str, err: BaseException) -> Che
                                key="checkpoint", value=where)
     kwargs = dict(every[f"{culprit}_kwargs"] or {})
     label = f"{culprit} {every[culprit]!r}"
-    takes = _keywords(PART_KWARGS[culprit].get(every[culprit]))
+    takes = _keywords(PART_REGISTRIES[culprit].get(every[culprit]))
     if culprit == "mixer":  # SteeringNet gives these itself
         takes.pop("in_dim", None), takes.pop("out_dim", None)
     ckey = getattr(cause, "key", None) or ""
@@ -458,7 +451,7 @@ def unbuildable(every: Mapping[str, Any], where: str, err: BaseException) -> Che
     if name is None:  # the one key whose default lets the part build
         for k in kwargs:
             try:
-                _build_part(culprit, every, {n: v for n, v in kwargs.items() if n != k}, built)
+                build(culprit, {n: v for n, v in kwargs.items() if n != k})
             except BUILD_ERRORS:
                 continue
             name = k

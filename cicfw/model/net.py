@@ -21,6 +21,23 @@ from cicfw.core.errors import ConfigError
 from cicfw.registry import ENCODERS, HEADS, MIXERS
 
 
+#: each part's registry, by its hyper-parameter's name
+PART_REGISTRIES = {"encoder": ENCODERS, "head": HEADS, "mixer": MIXERS}
+
+
+def build_part(part: str, name: str, kwargs: Mapping[str, Any] | None,
+               widths: tuple[int, int] | None = None) -> nn.Module:
+    """The registered ``part`` called ``name``, built with ``kwargs``; a mixer between the encoder's and the head's
+    widths (``widths``: in, out), which ``SteeringNet`` gives it (a kwarg naming them again is a TypeError)."""
+    cls, kwargs = PART_REGISTRIES[part].get(name), dict(kwargs or {})
+    if widths is None:
+        return cls(**kwargs)
+    twice = sorted({"in_dim", "out_dim"} & set(kwargs))
+    if twice:  # said here: the call's own TypeError comes out as a KeyError when built inside an except block
+        raise TypeError(f"{cls.__name__}() got multiple values for keyword argument '{twice[0]}'")
+    return cls(in_dim=widths[0], out_dim=widths[1], **kwargs)
+
+
 class SteeringNet(nn.Module):
     """The agent: one encoder pass, every branch's output through the mixer, decoded by the head."""
 
@@ -37,11 +54,9 @@ class SteeringNet(nn.Module):
         super().__init__()
         if not (is_number(speed_norm_kmh) and speed_norm_kmh > 0):
             raise ConfigError("model.speed_norm_kmh", speed_norm_kmh, "a number > 0")
-        self.encoder = ENCODERS.get(encoder)(**dict(encoder_kwargs or {}))
-        self.head = HEADS.get(head)(**dict(head_kwargs or {}))
-        self.mixer = MIXERS.get(mixer)(
-            in_dim=self.encoder.out_dim, out_dim=self.head.out_dim, **dict(mixer_kwargs or {})
-        )
+        self.encoder = build_part("encoder", encoder, encoder_kwargs)
+        self.head = build_part("head", head, head_kwargs)
+        self.mixer = build_part("mixer", mixer, mixer_kwargs, (self.encoder.out_dim, self.head.out_dim))
         self.speed_norm_kmh = speed_norm_kmh
         self.channels_last = False
 
