@@ -669,19 +669,12 @@ def _job_app(job: str) -> str:
     return job.split("_ddp_process_")[0]
 
 
-#: the files an app writes over in a run folder of its own (``folder_owner``), and the record that vouches for them
-#: there: without it they are the user's, whatever ``.hydra`` (a copy proves nothing) says of the folder
-OWN_OUTPUTS = {"evaluate": (("episodes.json", "episodes.csv", "summary.json", "table.md", "table.tex"),
-                            "episode log (episodes.jsonl with cicfw's header)"),
-               "train": (("data.json",), "record of its data (data.json holding cicfw's keys)")}
-
-
 def _unvouched_outputs(folder: Path, app: str) -> list[str]:
     """The files of ``OWN_OUTPUTS[app]`` in ``folder`` without the record that proves ``app`` wrote them."""
     if app not in OWN_OUTPUTS:
         return []
-    vouched = holds_episode_log(folder) if app == "evaluate" else _holds_data_record(folder)
-    return [] if vouched else [n for n in OWN_OUTPUTS[app][0] if os.path.lexists(folder / n)]
+    outputs, vouches, _ = OWN_OUTPUTS[app]
+    return [] if vouches(folder) else [n for n in outputs if os.path.lexists(folder / n)]
 
 
 def _holds_data_record(folder: Path) -> bool:
@@ -693,6 +686,13 @@ def _holds_data_record(folder: Path) -> bool:
         return False
     return isinstance(record, dict) and all(isinstance(record.get(k), t) and not isinstance(record.get(k), bool)
                                             for k, t in DATA_RECORD_KEYS)
+
+
+#: the files an app writes over in a run folder of its own (``folder_owner``), the check of the record that vouches
+#: for them there, and that record: without it they are the user's, whatever ``.hydra`` (a copy proves nothing) says
+OWN_OUTPUTS = {"evaluate": (("episodes.json", "episodes.csv", "summary.json", "table.md", "table.tex"),
+                            holds_episode_log, "episode log (episodes.jsonl with cicfw's header)"),
+               "train": (("data.json",), _holds_data_record, "record of its data (data.json holding cicfw's keys)")}
 
 
 def folder_owner(folder: str | Path) -> str | None:
@@ -826,11 +826,11 @@ def claim_folder(folder: str | Path, app: str, key: str, *, data: Sequence[str |
     if owner == app:
         found = enclosing_run(folder)
         if found is not None and found[1] == "reproduce" != app:  # a reproduction's cell: its runs are its own
-            claim_outside_runs(folder, app, key)
+            claim_outside_runs(folder, app, key, found)
         unvouched = _unvouched_outputs(folder, app)
         if unvouched:
             raise RunFolderError(f"{where} holds {_listed(unvouched)}, which no cicfw {app} run wrote there (its "
-                                 f"{OWN_OUTPUTS[app][1]} is missing), and which cicfw {app} would write over; {fix}",
+                                 f"{OWN_OUTPUTS[app][2]} is missing), and which cicfw {app} would write over; {fix}",
                                  key=key, value=str(folder))
         unshare_links(folder)  # a hard-linked copy of a run (cp -al): what is written here stays here
         return
@@ -892,12 +892,13 @@ def _run_above(folder: Path) -> str | None:
 NESTED_RUNS = (("train", "evaluate", "evaluate"),)
 
 
-def claim_outside_runs(folder: str | Path, app: str, key: str) -> None:
+def claim_outside_runs(folder: str | Path, app: str, key: str, found: tuple[Path, str] | None = None) -> None:
     """One ``RunFolderError`` naming ``key`` when ``folder`` lies inside another cicfw app's run or results
     folder (``enclosing_run``): what ``app`` writes there would read as part of that run (a dataset among a
     training run's checkpoints, HDF5 files among a reproduction's cells, an evaluation in ``<run>/csv``).
-    A run of ``app`` itself (a sweep's job folders) and the ``NESTED_RUNS`` pass."""
-    found = enclosing_run(folder)
+    A run of ``app`` itself (a sweep's job folders) and the ``NESTED_RUNS`` pass. ``found``: ``enclosing_run``'s
+    answer where the caller has it already."""
+    found = found or enclosing_run(folder)
     if found is None or found[1] == app:
         return
     run, owner = found
