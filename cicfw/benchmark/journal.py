@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 from omegaconf import OmegaConf
 
-from cicfw.core.files import atomic_write, write_all
+from cicfw.core.files import unshare, write_all
 from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.core.run_folder import (EPISODE_LOG, EPISODE_LOG_FORMAT, LockedRunFolderCheck, RunFolderError,
                                    check_name_lengths, keep_held_lock, take_held_lock)
@@ -139,8 +139,7 @@ class EpisodeLog:
                     f.flush()
                     os.fsync(f.fileno())
             else:
-                if (run_dir / LOG_NAME).stat().st_nlink > 1:  # a hard-linked copy of another folder (cp -al)
-                    atomic_write(run_dir / LOG_NAME, (run_dir / LOG_NAME).read_bytes())  # append to a file of its own
+                unshare(run_dir / LOG_NAME)  # a hard-linked copy of another folder's log (cp -al): one of its own
                 if good < (run_dir / LOG_NAME).stat().st_size:
                     os.truncate(run_dir / LOG_NAME, good)  # cut a torn last line before appending
             return cls(run_dir, header, rows, trajs, lock)

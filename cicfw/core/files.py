@@ -190,23 +190,25 @@ def atomic_write(path: str | os.PathLike, data: str | bytes | memoryview) -> Non
     write_together({path: data.encode() if isinstance(data, str) else data})
 
 
-def unshare_links(folder: str | Path) -> list[Path]:
-    """Give each file under ``folder`` that is hard-linked elsewhere (a ``cp -al`` copy of a run) a copy of its
-    own, so that what an app rewrites or appends to in place there (Hydra's ``.hydra`` records and job log, an
-    episode log, a reproduction's logs) stays out of the other folder. Lock files are left: their lock is on the
-    file, which a copy would not hold. Returns the files copied."""
-    copied = []
-    for dirpath, _, names in os.walk(folder):
-        for name in names:
-            path = Path(dirpath) / name
-            try:
-                info = os.lstat(path)
-            except OSError:  # gone meanwhile: nothing to share
-                continue
-            if stat.S_ISREG(info.st_mode) and info.st_nlink > 1 and not name.endswith(".lock"):
-                tmp = path.with_name(f".{name}.{secrets.token_hex(4)}.tmp")
-                shutil.copy2(path, tmp)
-                os.replace(tmp, path)
-                copied.append(path)
-    return copied
+def unshare(path: str | Path) -> bool:
+    """Give ``path``, a regular file hard-linked elsewhere (a ``cp -al`` copy of a run), a copy of its own, so that
+    what is rewritten or appended to in place there stays out of the other folder; whether it did."""
+    path = Path(path)
+    try:
+        info = os.lstat(path)
+    except OSError:  # gone meanwhile: nothing to share
+        return False
+    if not (stat.S_ISREG(info.st_mode) and info.st_nlink > 1):
+        return False
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    shutil.copy2(path, tmp)
+    os.replace(tmp, path)
+    return True
 
+
+def unshare_links(folder: str | Path) -> list[Path]:
+    """``unshare`` each file under ``folder`` (Hydra's ``.hydra`` records and job log, an episode log, a
+    reproduction's logs) but lock files, whose lock is on the file, which a copy would not hold. Returns the files
+    copied."""
+    return [path for dirpath, _, names in os.walk(folder) for name in names if not name.endswith(".lock")
+            for path in [Path(dirpath) / name] if unshare(path)]
