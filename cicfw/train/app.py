@@ -815,13 +815,8 @@ def check_validation_interval(trainer: L.Trainer, train_batches: int) -> None:
 def fit(trainer: L.Trainer, model: CICModule, datamodule: CILDataModule, ckpt_path: str | None, run_dir: Path) -> None:
     """``trainer.fit``; Lightning turns Ctrl-C into ``sys.exit(1)`` after its graceful shutdown, which
     becomes ``Interrupted`` naming the checkpoint to resume from."""
-    try:
+    try:  # trainer.val_check_interval against the epoch's batches: check_validation_interval, before the records
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, **fit_kwargs())
-    except ValueError as err:  # checked by Lightning only against the epoch's batches, once the data is read
-        if "val_check_interval" not in str(err) or isinstance(err, CicfwError):
-            raise
-        raise CicfwError(f"trainer: {' '.join(str(err).split())}", key="trainer.val_check_interval",
-                         value=trainer.val_check_interval) from None
     except SystemExit:
         if not trainer.interrupted:
             raise
