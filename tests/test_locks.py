@@ -21,8 +21,10 @@ from cicfw.benchmark.journal import EpisodeLog, RunFolderError
 from cicfw.collect import LOCK_NAME as COLLECT_LOCK
 from cicfw.collect import FolderLock as CollectLock
 from cicfw.collect import FolderLockedError
+from cicfw.core.errors import CicfwError
 from cicfw.core.locks import FolderBusy, FolderLock
 from cicfw.reproduction.lock import LOCK_FILE, ResultsLock
+from cicfw.reproduction.report import check_no_live_reproduction
 from cicfw.core.sweeps import ROWS_DIR, RowsLock, rebuild_summary
 
 HOLDER = """
@@ -191,6 +193,26 @@ def test_the_results_lock_refuses_a_live_holder_and_leaves_no_file(tmp_path: Pat
         ResultsLock(out).acquire()
     assert str(path) in str(err.value)  # the stale record to delete
     assert path.is_file()
+
+
+def test_the_results_lock_names_the_command_that_holds_it(tmp_path: Path):
+    """A `cicfw report` holding a results folder is named by its record's command, not called a reproduce run;
+    a record without a command is "another process". The report's own check of a live holder says the same."""
+    out = tmp_path / "results"
+    with ResultsLock(out) as held:
+        held.update(command="report.py R1")
+        with pytest.raises(FolderBusy) as err:
+            ResultsLock(out).acquire()
+        assert err.value.key == "results_dir" and "`report.py R1`" in str(err.value), str(err.value)
+        assert "reproduce run" not in str(err.value)
+        with pytest.raises(CicfwError) as err:
+            check_no_live_reproduction(out)
+        assert err.value.key == "results_dir" and "`report.py R1`" in str(err.value), str(err.value)
+        assert "running reproduce" not in str(err.value)
+    path = leave_record(out, LOCK_FILE, pid=1, host="elsewhere", started="2020-01-01 00:00:00")
+    with pytest.raises(FolderBusy) as err:
+        ResultsLock(out).acquire()
+    assert "another process (pid 1" in str(err.value) and str(path) in str(err.value), str(err.value)
 
 
 def test_the_sweep_summary_waits_for_its_rows_and_leaves_no_lock(tmp_path: Path):

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from scipy import stats
 
+from cicfw.benchmark.evaluation_report import episodes_csv
 from cicfw.core.errors import CicfwError
 from cicfw.reproduction import paired_switch as ps
 from cicfw.reproduction.cells import COLUMNS
@@ -294,15 +295,30 @@ def test_rows_driven_under_different_weather_families_are_refused(tmp_path, caps
     capsys.readouterr()
 
 
+#: an evaluation's records as `python -m cicfw.evaluate` writes them (the suite it drove, the simulator and the
+#: runner's episode rules, and its fingerprint of them)
+EVAL_SUITE = {"towns": ["town_a", "town_b"], "weathers": ["ClearNoon", "ClearSunset", "MidRainyNoon", "WetCloudySunset"],
+              "training_towns": ["town_a"], "training_weathers": ["ClearNoon", "ClearSunset"], "pairs": None,
+              "limit": None, "name": "junctions"}
+EVAL_SIM = {"name": "embedded", "command_distance": 12.0, "success_radius": 2.0, "max_deviation": 10.0,
+            "route_before": 30.0, "route_after": 25.0}
+
+
 def eval_folder(path: Path, family: str, successes: int = 10) -> Path:
-    """An evaluation folder (episodes.json with its fingerprint's sim settings, episodes.csv) of column 0."""
+    """An evaluation folder of column 0's episodes: episodes.json with the records an evaluation writes (its
+    suite, sim, runner and fingerprint), episodes.csv as the evaluation writes it."""
     path.mkdir(parents=True)
-    rows = [{"key": f"{COLUMNS[0]}/{i:02d}", "town_set": "training", "weather_set": "training",
-             "success": i < successes} for i in range(EPISODES)]
-    (path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": {"model": path.name, "fingerprint": {
-        "sim": {"weather_family": family, "success_radius_m": 2.0}, "runner": {"off_road_s": 2.0}}}}))
-    (path / "episodes.csv").write_text("key,town_set,weather_set,success\n" + "".join(
-        f"{r['key']},training,training,{r['success']}\n" for r in rows))
+    rows = [{"model": path.name, "episode": i, "key": f"{COLUMNS[0]}/{i:02d}", "town": "town_a", "weather": "ClearNoon",
+             "town_set": "training", "weather_set": "training", "pair": i, "route": f"town_a/r{i}", "command": "left",
+             "success": i < successes, "reason": "success" if i < successes else "timeout"} for i in range(EPISODES)]
+    sim, runner = {**EVAL_SIM, "weather_family": family}, {"off_road_s": 3.0, "off_road_level": 0.5,
+                                                          "target_speed_kmh": None}
+    meta = {"policy": "expert", "checkpoint": None, "seed": 0, "suite": EVAL_SUITE, "runner": runner, "sim": sim,
+            "fingerprint": {"policy": {"name": "expert"}, "suite": EVAL_SUITE, "episodes": "0" * 16, "seed": 0,
+                            "sim": sim, "runner": runner},
+            "complete": True, "episodes_total": EPISODES, "model": path.name}
+    (path / "episodes.json").write_text(json.dumps({"episodes": rows, "meta": meta}))
+    (path / "episodes.csv").write_text(episodes_csv(rows))
     return path
 
 
@@ -318,8 +334,99 @@ def test_episodes_under_different_sim_settings_are_refused(tmp_path, capsys):
     rows = results_folder(tmp_path / "old", ["suite=single_turn"], {"cil": None}, seeds=1)  # harsh, by its pin
     assert ps.main(["--episodes", str(carla), str(rows["cil"] / "seed0" / "cell.json")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "'carla'" in err and "'harsh'" in err, err
+    assert err.count("\n") == 1 and "sim.weather_family" in err and "carla" in err and "harsh" in err, err
     assert ps.main(["--episodes", str(harsh), str(rows["cil"] / "seed0" / "cell.json")]) == 0
+
+
+#: a suite of 8 episodes (one pair per town and weather), driven by the expert in well under a second
+SMALL_SUITE = {**EVAL_SUITE, "limit": 1}
+
+
+def drive(out: Path, sim: dict | None = None, **suite: object) -> Path:
+    """A real evaluation of the expert on ``SMALL_SUITE`` (with ``suite``'s changes) into ``out``, under every
+    sim setting `python -m cicfw.evaluate` passes (with ``sim``'s changes)."""
+    from cicfw.benchmark.app import evaluate_policy
+
+    evaluate_policy({"name": "expert"}, {**SMALL_SUITE, **suite}, {"workers": 1}, out,
+                    sim={**EVAL_SIM, "weather_family": "carla", **(sim or {})}, maps=False)
+    return out
+
+
+def cell_of(evaluation: Path, cell_dir: Path) -> Path:
+    """A finished cell whose evaluation is ``evaluation`` (moved to ``<cell>/evaluate``, where a reproduction
+    drives it): its cell.json's episodes as the reproduction records them."""
+    from cicfw.benchmark.finished_run import cell_key, load_run
+
+    cell_dir.mkdir(parents=True)
+    evaluation.rename(cell_dir / "evaluate")
+    eps = {r["key"]: {"success": bool(r["success"]), "column": cell_key(r["town_set"], r["weather_set"]),
+                      "command": r["command"], "reason": r["reason"]} for r in load_run(cell_dir / "evaluate").rows}
+    (cell_dir / "cell.json").write_text(json.dumps({"row": "cil", "seed": 0, "status": "ok", "episodes": eps}))
+    return cell_dir / "cell.json"
+
+
+@pytest.mark.slow  # drives the suite (three evaluations of 8 episodes)
+def test_episodes_of_evaluations_of_other_suites_or_sim_settings_are_refused(tmp_path, capsys):
+    """Two evaluations of one suite but other training weathers put the same episodes in other table columns:
+    refused in either order, naming the key and both values, as `cicfw report` refuses them. A cell holding its
+    evaluation gets the same check as an evaluation folder: another success radius is refused, not only
+    another weather family."""
+    e1 = drive(tmp_path / "e1")
+    e3 = drive(tmp_path / "e3", training_weathers=["ClearNoon"])
+    for a, b in ((e1, e3), (e3, e1)):
+        assert ps.main(["--episodes", str(a), str(b)]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and "suite.training_weathers" in err, err
+    with pytest.raises(CicfwError) as got:
+        ps.check_same_sim(e1, e3)
+    assert (got.value.key, got.value.value) == ("suite.training_weathers", ["ClearNoon"])
+    wide = drive(tmp_path / "wide", sim={"success_radius": 8.0})
+    cell = cell_of(drive(tmp_path / "e1b"), tmp_path / "cells" / "cil" / "seed0")
+    assert ps.main(["--episodes", str(cell), str(wide)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "sim.success_radius" in err and "8.0" in err, err
+    with pytest.raises(CicfwError) as got:
+        ps.check_same_sim(wide, cell)
+    assert (got.value.key, got.value.value) == ("sim.success_radius", 2.0)
+
+
+def test_shared_episodes_in_other_columns_are_refused(tmp_path, capsys):
+    """Two cells that record nothing of their suite, one counting column 1's episodes in column 0 (another split
+    of the weathers): per column they compare nothing, refused in one line naming an episode and both columns."""
+    write_cell(tmp_path / "a", "cil", 0, [10, 10, 10, 10])
+    write_cell(tmp_path / "b", "cil", 0, [12, 10, 10, 10])
+    p = tmp_path / "b" / "seed0" / "cell.json"
+    d = json.loads(p.read_text())
+    for k, e in d["episodes"].items():
+        if e["column"] == COLUMNS[1]:
+            e["column"] = COLUMNS[0]
+    p.write_text(json.dumps(d))
+    for a, b in (("a", "b"), ("b", "a")):
+        assert ps.main(["--episodes", str(tmp_path / a / "seed0" / "cell.json"),
+                        str(tmp_path / b / "seed0" / "cell.json")]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and f"{COLUMNS[1]}/00" in err, err
+        assert COLUMNS[0] in err and COLUMNS[1] in err.replace(f"{COLUMNS[1]}/00", ""), err
+    ea, eb = (ps.load_episodes(tmp_path / x / "seed0" / "cell.json") for x in ("a", "b"))
+    with pytest.raises(CicfwError) as got:
+        ps.episode_changes(ea, eb)
+    assert (got.value.key, got.value.value) == ("column", COLUMNS[0])
+
+
+@pytest.mark.parametrize("given", [["--margin", "500"], ["--margin", "5"], ["--family", "3"]])
+def test_options_episodes_does_not_read_are_refused(tmp_path, capsys, given):
+    """--episodes prints McNemar's test per column: a margin or a family of comparisons it would not read is
+    refused in one line naming the option and its value, before any file is read."""
+    write_cell(tmp_path / "a", "cil", 0, [10, 10, 10, 10])
+    write_cell(tmp_path / "b", "cil", 0, [12, 10, 10, 10])
+    cells = [str(tmp_path / x / "seed0" / "cell.json") for x in ("a", "b")]
+    assert ps.main(["--episodes", *cells]) == 0
+    capsys.readouterr()
+    assert ps.main(["--episodes", *cells, *given]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and given[0] in err and f"{float(given[1]):g}" in err, err
+    assert ps.main(["--episodes", str(tmp_path / "nowhere.json"), cells[1], *given]) == 2  # before reading
+    assert given[0] in capsys.readouterr().err
 
 
 def test_seeds_that_drove_other_episodes_are_refused(tmp_path, capsys):

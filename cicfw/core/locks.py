@@ -51,6 +51,13 @@ def describe_holder(holder: Mapping[str, Any]) -> str:
     return f"pid {holder['pid']} on {holder.get('host', '?')}, started {holder.get('started', '?')}{what}"
 
 
+def holder_name(holder: Mapping[str, Any]) -> str:
+    """What holds a lock, as its record names it: its command line quoted (``report.py R1``), else "another
+    process" (a record without one, or not written yet), never a guess from the lock's name."""
+    command = str(holder.get("command") or "").strip()
+    return f"`{command}`" if command else "another process"
+
+
 class FolderLock:
     """An exclusive ``flock`` on ``<folder>/<lock_name>`` for one run, its holder recorded in the file.
 

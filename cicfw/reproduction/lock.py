@@ -13,7 +13,8 @@ LOCK_FILE = "reproduce.lock"
 
 class ResultsLock(locks.FolderLock):
     """``<results_dir>/reproduce.lock`` names the holder (pid, host, start time, command) for the run's life.
-    Another run on the folder is refused in one line naming the holder. A record whose holder is gone (its
+    Another run on the folder is refused in one line naming the holder (the command its record names: a
+    reproduce run, or ``cicfw report`` writing the folder). A record whose holder is gone (its
     pid on this host is dead, or younger than the record: a killed run) is taken over with a warning; one
     from another host never is (its pid cannot be checked here): the message says to delete the file."""
 
@@ -30,8 +31,8 @@ class ResultsLock(locks.FolderLock):
                f"{holder.get('started', '?')}")
         tail = ("" if certain else f"; if it is no longer running, delete {str(self.path)!r}")
         what = "results folder" if self.key == "results_dir" else self.key
-        return locks.FolderBusy(f"{what} {str(self.folder)!r} is in use by another reproduce run ({who}): one run per "
-                                f"folder; wait for it to finish, or give another {self.key}=<path>{tail}",
+        return locks.FolderBusy(f"{what} {str(self.folder)!r} is in use by {locks.holder_name(holder)} ({who}): one "
+                                f"run per folder; wait for it to finish, or give another {self.key}=<path>{tail}",
                                 key=self.key, value=self.folder)
 
 

@@ -24,8 +24,10 @@ may be the epochs) or on different CPU kinds are compared, and the header says s
 another model on another kind). ``--episodes`` compares two
 models of one seed (a cell's ``cell.json`` or an evaluation folder's ``episodes.csv``) on the episodes both
 drove: per column, the episodes one model lost and the other gained, with McNemar's exact test
-(``statsmodels``); two evaluation folders driven under different sim settings are refused as ``cicfw
-report`` refuses joining them. It also prints the cells' training wall time, which ran at different hours:
+(``statsmodels``); two runs that drove different suites or under different sim settings are refused as
+``cicfw report`` refuses joining them (a cell read through its evaluation, else its results folder's pin), as is
+an episode the two count in different columns; ``--margin`` and ``--family`` are not read there, so refused. It
+also prints the cells' training wall time, which ran at different hours:
 a hint, not a speed figure (bench/train_throughput.py measures speed).
 """
 from __future__ import annotations
@@ -42,8 +44,8 @@ import numpy as np
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.weightstats import ttost_paired
 
-from cicfw.benchmark.evaluation_report import check_one_episode_rule
-from cicfw.benchmark.finished_run import cell_key, load_run
+from cicfw.benchmark.evaluation_report import check_one_episode_rule, check_one_suite
+from cicfw.benchmark.finished_run import Run, cell_key, load_run
 from cicfw.core.errors import CicfwError, ConfigError, install_app_handlers
 from cicfw.core.json_files import read_json
 from cicfw.reproduction.cells import (COLUMNS, COPY_SAID, FAMILY_KEY, CellPin, CellResult, check_cell_pin,
@@ -55,6 +57,7 @@ from cicfw.reproduction.seed_stats import (MIN_SEEDS, SCALE, contrast_level, dif
 
 ALPHA = 0.05  # each one-sided test of TOST: equivalent when the 90% interval lies inside ±margin
 TOST_LEVEL = 1 - 2 * ALPHA
+DEFAULT_MARGIN = 5.0  # points, where --margin is not given
 ON = [*COLUMNS, None]  # the four table columns, then the mean of them ("overall")
 EPISODE_COLUMNS = ("key", "town_set", "weather_set", "success")  # what --episodes reads of an episodes.csv
 
@@ -338,38 +341,57 @@ def load_episodes(path: Path) -> dict[str, tuple[bool, str]]:
     return {r["key"]: (r["success"] == "True", cell_key(r["town_set"], r["weather_set"])) for r in rows}
 
 
-def sim_settings(path: Path) -> dict | None:
-    """The sim settings an evaluation folder's fingerprint records (``episodes.json``); None for a cell.json
-    or a folder without them."""
+def episodes_run(path: Path) -> Run:
+    """What ``--episodes`` knows of how ``path``'s episodes were driven, as a ``Run`` for the report's checks: an
+    evaluation folder's own record; a cell's evaluation (``<cell>/evaluate``, where the reproduction drove it)
+    while its folder holds it, else its results folder's suite with the cell's weather family (``episodes_family``);
+    nothing for a bare episodes file."""
     path = Path(path)
-    if not (path / "episodes.json").is_file():
-        return None
-    fp = load_run(path).meta.get("fingerprint")
-    sim = fp.get("sim") if isinstance(fp, Mapping) else None
-    return dict(sim) if isinstance(sim, Mapping) else None
+    if path.is_dir():
+        return load_run(path) if (path / "episodes.json").is_file() else Run(path.name, [], {}, path)
+    if path.suffix != ".json":
+        return Run(path.name, [], {}, path)
+    evaluation = path.parent / "evaluate"
+    if (evaluation / "episodes.json").is_file():
+        meta = dict(load_run(evaluation).meta)
+    else:
+        manifest = results_manifest(path.parent.parent)
+        suite = (manifest or {}).get("suite")
+        meta = {"suite": suite} if isinstance(suite, Mapping) else {}
+    family = episodes_family(path)
+    fp = meta.get("fingerprint") if isinstance(meta.get("fingerprint"), Mapping) else {}
+    sim = fp.get("sim") if isinstance(fp.get("sim"), Mapping) else {}
+    meta["fingerprint"] = {**fp, "sim": {**({"weather_family": family} if family else {}), **sim}}
+    return Run(path.name, [], meta, path)
 
 
 def episodes_family(path: Path) -> str | None:
-    """The weather family ``--episodes`` reads for ``path``: an evaluation folder's ``sim.weather_family``, a
-    cell's recorded one, else its results folder's; None where not known."""
-    path = Path(path)
-    if path.is_dir():
-        return (sim_settings(path) or {}).get("weather_family")
+    """The weather family a cell's ``cell.json`` records, else its results folder's pin; None where not known."""
     cell = load_cell(path)
     return check_families([cell], results_family(path.parent.parent), str(path)) \
         if isinstance(cell, CellResult) else None
 
 
 def check_same_sim(a: Path, b: Path) -> None:
-    """One error line when the two runs of ``--episodes`` drove under different sim settings: two evaluation
-    folders as ``cicfw report`` joins them (``check_one_episode_rule``), else their weather families."""
-    if Path(a).is_dir() and Path(b).is_dir() and sim_settings(a) is not None and sim_settings(b) is not None:
-        check_one_episode_rule([load_run(Path(a)), load_run(Path(b))])
-        return
-    fa, fb = episodes_family(a), episodes_family(b)
-    if fa and fb and fa != fb:
-        raise CicfwError(f"{a} was driven under the weather family {fa!r} and {b} under {fb!r}: the same episode "
-                         f"keys are other weathers; give two runs driven under one family", key=FAMILY_KEY, value=fb)
+    """One error line, the key and both values, when the two runs of ``--episodes`` drove different suites or
+    under different sim settings: ``cicfw report``'s check of runs joined in one table (``check_one_suite``) on
+    what each side records (``episodes_run``); with a side's suite not known, its sim settings only."""
+    runs = [episodes_run(a), episodes_run(b)]
+    if all(isinstance(r.meta.get("suite"), Mapping) for r in runs):
+        check_one_suite(runs)
+    else:
+        check_one_episode_rule(runs)
+
+
+def check_same_columns(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]],
+                       names: tuple[str, str] = ("A", "B")) -> None:
+    """One error line naming the first episode both drove that one side counts in another table column than
+    the other (another split into training and new towns or weathers): per column, they compare nothing."""
+    for k in sorted(set(a) & set(b)):
+        if a[k][1] != b[k][1]:
+            raise CicfwError(f"episode {k} is in the column {a[k][1]} in {names[0]} and {b[k][1]} in {names[1]}: the "
+                             f"two runs split the suite into other columns (suite.training_towns or "
+                             f"suite.training_weathers); give two runs of one suite", key="column", value=b[k][1])
 
 
 def episodes_file(path: Path) -> Path:
@@ -380,7 +402,9 @@ def episodes_file(path: Path) -> Path:
 
 def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]]) -> list[dict]:
     """Per column (and all), on the episodes both drove: successes of each, the episodes A lost (B drove
-    them, A did not) and gained, and McNemar's exact two-sided p-value on those discordant episodes."""
+    them, A did not) and gained, and McNemar's exact two-sided p-value on those discordant episodes. Each
+    episode counts in one column on both sides (``check_same_columns``)."""
+    check_same_columns(a, b)
     keys = sorted(set(a) & set(b))
     out = []
     for col in [*COLUMNS, "all"]:
@@ -395,20 +419,32 @@ def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[boo
     return out
 
 
+def check_episodes_options(margin: float | None, family: int | None) -> None:
+    """One error line for ``--margin`` or ``--family`` given with ``--episodes``: McNemar's test per column has
+    no equivalence margin and reads no word, so either would be ignored without a word."""
+    for option, value in (("--margin", margin), ("--family", family)):
+        if value is not None:
+            raise CicfwError(f"{option} {value:g} is not read with --episodes, which prints McNemar's exact test per "
+                             f"column (no equivalence margin, no words); drop {option}, or compare two rows' cells "
+                             f"without --episodes", key=option, value=value)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line: two rows' cells (or, with --episodes, two runs' episodes) -> the table, rc 0."""
     ap = argparse.ArgumentParser(prog="python -m cicfw.reproduction.paired_switch",
                                  description=__doc__.split("\n")[0])
     ap.add_argument("a", help="a row's cells with the switch, e.g. docs/results/converged_bf16/cells/cil_bf16")
     ap.add_argument("b", help="the same row's cells without it, e.g. docs/results/converged/cells/cil")
-    ap.add_argument("--margin", type=float, default=5.0, help="equivalence margin in points (default 5)")
-    ap.add_argument("--family", type=int, default=1,
-                    help="read each word on the Bonferroni interval over this many comparisons (default 1: the 95%%)")
+    ap.add_argument("--margin", type=float, default=None,
+                    help="equivalence margin in points (default 5; not with --episodes)")
+    ap.add_argument("--family", type=int, default=None, help="read each word on the Bonferroni interval over this "
+                    "many comparisons (default 1: the 95%%; not with --episodes)")
     ap.add_argument("--episodes", action="store_true",
                     help="a and b are two models of one seed (cell.json or evaluation folders): McNemar per column")
     args = ap.parse_args(argv)
     try:
         if args.episodes:
+            check_episodes_options(args.margin, args.family)
             check_distinct(episodes_file(args.a), episodes_file(args.b), "episodes file")
             ea, eb = load_episodes(Path(args.a)), load_episodes(Path(args.b))
             check_same_sim(Path(args.a), Path(args.b))
@@ -418,14 +454,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not set(ea) & set(eb):
                 raise CicfwError(f"{args.a} and {args.b} share no episode (no key in common); "
                                  f"give two runs of the same evaluation suite")
+            check_same_columns(ea, eb, (args.a, args.b))
             print(f"A {args.a} vs B {args.b}: the episodes both drove")
             for r in episode_changes(ea, eb):
                 print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
-        if not (np.isfinite(args.margin) and 0 < args.margin <= SCALE):  # past 100 every pair reads "equivalent"
-            raise ConfigError("--margin", args.margin, f"a number of points in (0, {SCALE:g}] (success runs from 0 "
+        margin = DEFAULT_MARGIN if args.margin is None else args.margin
+        family = 1 if args.family is None else args.family
+        if not (np.isfinite(margin) and 0 < margin <= SCALE):  # past 100 every pair reads "equivalent"
+            raise ConfigError("--margin", margin, f"a number of points in (0, {SCALE:g}] (success runs from 0 "
                               f"to 100 %)")
+        if family < 1:
+            raise ConfigError("--family", family, "a positive number of comparisons")
         check_distinct(Path(args.a), Path(args.b), "folder")
         a, b = load_row(Path(args.a)), load_row(Path(args.b))
         check_paired(a, b, (args.a, args.b))
@@ -434,9 +475,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         pins = side_pin(Path(args.a)), side_pin(Path(args.b))
         check_one_dataset(a, b, (args.a, args.b), pins)
         check_not_copies(a, b, (args.a, args.b))
-        if args.family < 1:
-            raise CicfwError(f"--family must be a positive number of comparisons, got {args.family}")
-        print("\n".join(lines(a, b, args.margin, (args.a, args.b), args.family, pins)))
+        print("\n".join(lines(a, b, margin, (args.a, args.b), family, pins)))
     except (ValueError, OSError, json.JSONDecodeError) as err:
         print(f"cicfw: error: {err}", file=sys.stderr)
         return 2

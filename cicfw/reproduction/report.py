@@ -120,7 +120,7 @@ from cicfw.benchmark.suite import named_weather_family, with_weather_family
 from cicfw.core.errors import CicfwError, install_app_handlers
 from cicfw.core.files import atomic_write, write_together
 from cicfw.core.json_files import read_json
-from cicfw.core.locks import describe_holder, live_holder
+from cicfw.core.locks import describe_holder, holder_name, live_holder
 from cicfw.core.run_folder import claim_folder
 from cicfw.reproduction.analysis import analyse
 from cicfw.reproduction.cells import (COLUMN_NAMES, COLUMNS, MIXED_CPUS, MIXED_MACHINES, CellPin, CellResult,
@@ -1023,18 +1023,18 @@ def write_markdown_copy(data: Mapping[str, Any], path: Path, pictures: Path) -> 
 
 
 def check_no_live_reproduction(results_dir: Path) -> None:
-    """The report of a folder a running ``reproduce`` holds (``reproduce.lock``, its holder alive) is refused:
-    that run rewrites the report as its cells finish, and a report written beside it would be replaced
-    mid-run. A stale lock (its holder dead) stops nothing."""
+    """The report of a folder a live process holds (``reproduce.lock``: a running ``reproduce`` or another
+    ``cicfw report``, named from its record) is refused: that run rewrites the report, and a report written
+    beside it would be replaced mid-run. A stale lock (its holder dead) stops nothing."""
     path = results_dir / LOCK_FILE
     found = live_holder(path)
     if found is None:
         return
     holder, certain = found
     tail = "" if certain else f"; if it is no longer running, delete {str(path)!r}"
-    raise CicfwError(f"results_dir={str(results_dir)!r} is in use by a running reproduce ({describe_holder(holder)}), "
-                     f"which writes its report as its cells finish; run cicfw report after that reproduction ends"
-                     f"{tail}", key="results_dir", value=str(results_dir))
+    raise CicfwError(f"results_dir={str(results_dir)!r} is in use by {holder_name(holder)} "
+                     f"({describe_holder(holder)}), which rewrites its report meanwhile; run cicfw report after "
+                     f"it ends{tail}", key="results_dir", value=str(results_dir))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
