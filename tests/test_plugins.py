@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from cicfw.model.mixers import Mixer
 from cicfw.registry import MIXERS, listing, main
@@ -187,3 +188,36 @@ def test_the_contract_checks_refuse_a_size_that_checks_nothing(check, key, value
         (check_mixer if check == "mixer" else check_head)("independent" if check == "mixer" else "softmax",
                                                            **{key: value})
     assert (err.value.key, err.value.value) == (key, value)
+
+
+# ---- a --config-dir file named like a built-in config: refused, naming the file and the config that wins
+SHADOWED = [
+    ("cicfw.train", "mixer/gtu.yaml", "pkg://cicfw.conf/mixer/gtu.yaml", ["mixer=gtu"]),
+    ("cicfw.train", "train.yaml", "pkg://cicfw.conf/train.yaml", []),
+    ("cicfw.train", "mixer/attention.yaml", "pkg://cicfw_attention_mixer.conf/mixer/attention.yaml",
+     ["mixer=attention"]),
+    ("cicfw.evaluate", "suite/junctions.yaml", "pkg://cicfw.conf/suite/junctions.yaml", []),
+    ("cicfw.export", "hydra/job_logging/default.yaml", "pkg://hydra.conf/hydra/job_logging/default.yaml", []),
+]
+
+
+@pytest.mark.parametrize("app, name, winner, args", SHADOWED, ids=[f"{app}:{name}" for app, name, _, _ in SHADOWED])
+def test_a_config_dir_file_a_builtin_would_hide_is_refused(plugin_installed, tmp_path, app, name, winner, args):
+    """Hydra reads the --config-dir folder after the app's configs and the plugins', so such a file was ignored
+    and the run composed the built-in (mixer=gtu trained hidden: 256, not the file's 64) without a word."""
+    (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / name).write_text("name: independent\nhidden: 64\n")
+    result = run_app_in_process(app, "--config-dir", str(tmp_path), *args, "--cfg", "job")
+    assert_refused(result, tmp_path / name, winner)
+    assert result.stdout == ""  # nothing composed
+
+
+def test_a_config_dir_option_of_its_own_name_is_composed(tmp_path):
+    """A new name in the --config-dir folder is the user's option; a folder that is no config group is not read."""
+    (tmp_path / "mixer").mkdir()
+    (tmp_path / "mixer" / "mine.yaml").write_text("name: independent\nhidden: 64\n")
+    (tmp_path / "notes" / "mixer").mkdir(parents=True)
+    (tmp_path / "notes" / "mixer" / "gtu.yaml").write_text("hidden: 1\n")
+    result = run_app_in_process("cicfw.train", "--config-dir", str(tmp_path), "mixer=mine", "--cfg", "job")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert yaml.safe_load(result.stdout)["mixer"] == {"name": "independent", "hidden": 64}

@@ -7,7 +7,8 @@ group each end the app as one ``cicfw: error:`` line, exit status 2, before Hydr
 an option that needs an optional extra (``hparams_search=optuna`` without ``cicfw[sweeps]``) adds a hint.
 ``SchemaCheck`` (a Hydra callback) runs an app's schema check on the composed config before the run
 folder is created; ``OneLineJobFailure`` (another) ends a multirun whose job failed with one line instead
-of the job's traceback.
+of the job's traceback. A ``--config-dir`` file that a built-in config of the same name would hide is refused
+in one line (``refuse_shadowed_config_dir``).
 """
 from __future__ import annotations
 
@@ -22,8 +23,11 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import hydra._internal.utils as hydra_utils
+from hydra._internal.config_repository import ConfigRepository
+from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
 from hydra._internal.hydra import Hydra
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.config_search_path import ConfigSearchPath
 from hydra.core.default_element import GroupDefault
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.object_type import ObjectType
@@ -288,15 +292,90 @@ def _without_unprinted_groups(get_help: Callable[..., str]) -> Callable[..., str
     return wrapped
 
 
+#: the provider of the folder Hydra's ``--config-dir`` (``-cd``) puts on the search path
+CONFIG_DIR_PROVIDER = "command-line"
+
+
+def refuse_shadowed_config_dir(search_path: ConfigSearchPath) -> None:
+    """A ``CicfwError`` naming a ``--config-dir`` file that a config of the same name earlier on Hydra's search
+    path hides: Hydra puts that folder after the app's own configs and the plugins', and the first match wins,
+    so a file named like a built-in option (``mixer/gtu.yaml``) would be ignored without a word."""
+    entries = search_path.get_path()
+    at = next((i for i, e in enumerate(entries) if e.provider == CONFIG_DIR_PROVIDER), None)
+    if at is None or entries[at].path is None or not entries[at].path.startswith("file://"):
+        return
+    folder = Path(entries[at].path[len("file://"):])
+    before = ConfigSearchPathImpl()
+    for entry in entries[:at]:
+        before.append(entry.provider, entry.path)
+    sources = ConfigRepository(before).get_sources()
+    shadowed = []  # (the file's name in the folder, the source whose file of that name wins)
+    groups = [""]  # the folder's subfolders that are a config group earlier too (others hold only new names)
+    while groups:
+        group = groups.pop(0)
+        try:
+            entries = sorted((folder / group).iterdir())
+        except OSError:  # unreadable: Hydra cannot read its files either
+            continue
+        for entry in entries:
+            name = f"{group}/{entry.name}" if group else entry.name
+            if entry.is_dir() and any(s.is_group(name) for s in sources):
+                groups.append(name)
+            elif entry.suffix == ".yaml" and entry.is_file():
+                winner = next((s for s in sources if s.is_config(name[:-5])), None)
+                if winner is not None:
+                    shadowed.append((name[:-5], winner))
+    if not shadowed:
+        return
+    name, winner = shadowed[0]
+    owner = {"main": "cicfw", "hydra": "Hydra"}.get(winner.provider, f"plugin {winner.provider}")
+    group, _, option = name.rpartition("/")
+    what = f"{owner}'s option {group}={option}" if group else f"{owner}'s app config {option!r}"
+    fix = (f"give the file a name of its own ({group}/<name>.yaml, chosen with {group}=<name>)" if group else
+           "give the file a name of its own and choose it with --config-name <name>")
+    package = winner.load_config(name).header.get("package") if group else None
+    if group and package in (None, "_group_", "_global_"):  # where the option's keys land: its group's node, or the top
+        key = "<key>" if package == "_global_" else f"{group.replace('/', '.')}.<key>"
+        fix += f" or set the option's keys on the command line ({key}=<value>)"
+    others = [f"{n}.yaml" for n, _ in shadowed[1:]]  # named as in the folder
+    also = f" (and so would {', '.join(others)})" if others else ""
+    raise CicfwError(f"--config-dir: {folder / name}.yaml would be ignored{also}: Hydra reads {what} "
+                     f"({winner.full_path()}/{name}.yaml) first, as it reads the --config-dir folder after the app's "
+                     f"own configs and the plugins'; {fix}", key="--config-dir", value=str(folder / f"{name}.yaml"))
+
+
+@contextmanager
+def config_dir_checked() -> Iterator[None]:
+    """Inside, an app that Hydra starts with a ``--config-dir`` holding a file a built-in hides
+    (``refuse_shadowed_config_dir``) ends with one ``cicfw: error:`` line, status 2, before it composes
+    anything. Hydra hands the finished search path, the command line's folder included, to
+    ``Hydra.create_main_hydra2``: that is where this looks."""
+    create = Hydra.__dict__["create_main_hydra2"]
+
+    def checked(task_name: str, config_search_path: ConfigSearchPath) -> Hydra:
+        try:
+            refuse_shadowed_config_dir(config_search_path)
+        except CicfwError as err:
+            refuse_before_any_job(str(err))
+        return create.__get__(None, Hydra)(task_name, config_search_path)
+
+    Hydra.create_main_hydra2 = checked  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        Hydra.create_main_hydra2 = create  # type: ignore[method-assign]
+
+
 def run_app(main: Callable[[], Any], config_name: str) -> None:
     """Run a ``@hydra.main`` app: what Hydra refuses is one line (``one_line_config_errors``); a failure
     that names an option needing an optional extra adds a hint. A plugin whose Hydra module fails to
     import is skipped with one warning first (it would stop the app). ``--help`` lists the app's config
-    groups (``register_help``)."""
+    groups (``register_help``). A ``--config-dir`` file named like a config a built-in has is refused
+    (``config_dir_checked``)."""
     guard_hydra_plugins()
     register_help()
     try:
-        with one_line_config_errors():
+        with one_line_config_errors(), config_dir_checked():
             main()
     except SystemExit as exit_:
         if exit_.code not in (None, 0, 130, 143):  # interrupted (Ctrl-C, SIGTERM): no config to hint at
