@@ -122,6 +122,29 @@ def test_a_file_reached_by_two_paths_is_read_once(tmp_path, caplog, link):
     assert len(said) == 1 and "data_00009.h5" in said[0]
 
 
+@pytest.mark.parametrize("link", [os.symlink, os.link])
+def test_a_link_to_one_part_keeps_its_episode_whole_on_one_side_of_the_split(tmp_path, caplog, link):
+    folder = write_tiny_dataset(tmp_path / "data", n_files=8)  # 4 episodes of 2 parts each
+    episode_of = {f"data_{i:05d}.h5": f"ep{i // 2}" for i in range(8)}
+    (folder / "dataset_metadata.json").write_text(json.dumps(
+        {"files": {name: {"episode": ep} for name, ep in episode_of.items()}}))
+    link(folder / "data_00000.h5", folder / "aa.h5")  # sorts first, and the metadata does not list it
+    with caplog.at_level(logging.WARNING, logger="cicfw.data.frames"):
+        frames = load_frames(str(folder), max_abs_steer=1.0)
+    assert [f.name for f in frames.files] == sorted(episode_of)  # the recorded name is kept
+    by_inode = {(folder / name).stat().st_ino: ep for name, ep in episode_of.items()}  # a link's: its file's
+    said = [m for m in _warnings(caplog) if "same file" in m]
+    assert len(said) == 1 and "aa.h5" in said[0] and "data_00000.h5" in said[0]
+    for seed in range(20):
+        train, val = split_by_episode(frames, 0.3, seed)
+        sides = {}
+        for side, part in (("train", train), ("val", val)):
+            for i in np.unique(part.file_idx):
+                sides.setdefault(by_inode[frames.files[i].stat().st_ino], set()).add(side)
+        assert all(len(s) == 1 for s in sides.values()), (seed, sides)
+        assert len(sides) == 4
+
+
 def test_byte_identical_copies_share_one_episode_and_never_straddle_the_split(tmp_path, caplog):
     folder = write_tiny_dataset(tmp_path / "data", n_files=4)
     for i in range(4):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import socket
 import subprocess
@@ -167,6 +168,26 @@ def test_verify_names_each_corrupt_file_in_one_line_and_exits_2(collected, capsy
     assert lines[1].startswith(f"cicfw: missing: {out / 'ep0001_town_a_ClearNoon_000.h5'}")
     assert lines[2].startswith("cicfw: error: ") and str(out) in lines[2] and "2 of 2" in lines[2], lines
     assert (out / FIRST).read_bytes() == flipped  # verify changes nothing
+
+
+def test_verify_calls_files_it_did_not_write_what_collect_does_and_its_advice_works(collected, capsys, tmp_path):
+    out, _ = collected
+    os.link(out / FIRST, out / "aa.h5")
+    shutil.copy(out / FIRST, out / "notes_mine.h5")
+    with pytest.raises(SystemExit) as exc:
+        collect_mod.run(_collect_cfg(out, "verify=true"))
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert [line.split(": ")[1:3] for line in lines[:-1]] == [["foreign", str(out / "aa.h5")],
+                                                              ["foreign", str(out / "notes_mine.h5")]]
+    assert "did not write" in lines[-1] and "without verify" not in lines[-1], lines[-1]
+    with pytest.raises(SystemExit):  # as verify says: collect refuses the folder while they are there
+        collect_mod.run(_collect_cfg(out))
+    (tmp_path / "aside").mkdir()
+    for name in ("aa.h5", "notes_mine.h5"):  # what verify advises: move them out
+        shutil.move(out / name, tmp_path / "aside" / name)
+    assert collect_mod.run(_collect_cfg(out)).startswith(f"dataset: {out} ")
+    assert collect_mod.run(_collect_cfg(out, "verify=true")).startswith(f"verified {out}: ")
 
 
 def test_verify_on_the_real_command_line_with_the_flag(collected):

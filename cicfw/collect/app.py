@@ -1,7 +1,8 @@
 """Collect a CIL HDF5 dataset: ``python -m cicfw.collect [sim=embedded|carla] [key=value ...]``.
 
 ``verify=true`` (or ``--verify``) checks a collected folder instead, changing nothing: every file against
-its recorded size and SHA-256, one line per missing or corrupt file, exit status 2 if any.
+its recorded size and SHA-256, one line per missing or corrupt file and per HDF5 file the collection did not
+write, exit status 2 if any.
 
 A thin Hydra app over the collection engine, its package ``cicfw.collect`` (episodes, workers, files,
 metadata, resume, the folder lock and the other guarantees are documented there and in

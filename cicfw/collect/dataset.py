@@ -13,7 +13,7 @@ from cicfw.collect.config import (close_backend, config_hash, episode_bytes, epi
                                   resolve_config, sim_node, steps_per_episode)
 from cicfw.collect.episode import run_episode
 from cicfw.collect.errors import CollectConfigError, CollectError
-from cicfw.collect.integrity import read_markers, record_checksums
+from cicfw.collect.integrity import foreign_files, read_markers, record_checksums
 from cicfw.collect.lock import FolderLock
 from cicfw.collect.metadata import META_NAME, SIM_VERSION, dataset_metadata, planned_sets
 from cicfw.collect.workers import run_workers
@@ -22,7 +22,6 @@ from cicfw.core.files import temp_name_bytes
 from cicfw.core.progress import ProgressBar
 from cicfw.core.run_folder import name_max
 from cicfw.core.spawning import check_spawn_safe
-from cicfw.data.cil_hdf5 import is_hdf5_name
 
 log = logging.getLogger(__name__)
 
@@ -48,37 +47,10 @@ def _remove_episodes(out_dir: Path, eps: list[dict]) -> None:
             p.unlink()
 
 
-def _marker_names(out_dir: Path, plan: list[dict], chash: str) -> set[str]:
-    """The file names the markers of planned episodes (``.episodes/<id>.json``, this config's) record."""
-    names: set[str] = set()
-    for ep in plan:
-        try:
-            m = json.loads((out_dir / ".episodes" / f"{ep['id']}.json").read_text())
-            if m.get("config_hash", chash) == chash and m.get("seed") == ep["seed"]:
-                names.update(str(f["name"]) for f in m["files"])
-        except (OSError, ValueError, TypeError, KeyError, AttributeError):  # no marker, or not one of ours
-            continue
-    return names
-
-
-def _foreign_files(out_dir: Path, plan: list[dict], chash: str) -> list[Path]:
-    """HDF5 files (suffixes in any case, as the reader finds them) this collection did not write: in a folder
-    with its metadata (written before the first episode), any but the planned episodes' files; without it,
-    any its episode markers do not record (a collection's files copied without its records are the user's)."""
-    if (out_dir / META_NAME).exists():
-        ids = tuple(ep["id"] + "_" for ep in plan)
-        ours = lambda p: p.name.startswith(ids)  # noqa: E731
-    else:
-        recorded = _marker_names(out_dir, plan, chash)
-        ours = lambda p: p.name in recorded  # noqa: E731
-    return [p for p in sorted(out_dir.rglob("*")) if is_hdf5_name(p) and p.is_file()
-            and (p.parent != out_dir or p.suffix != ".h5" or not ours(p))]
-
-
 def _refuse_foreign_files(out_dir: Path, plan: list[dict], chash: str) -> None:
     """Refuse a folder that holds HDF5 files this collection did not write: never mix in, nor overwrite, the
     user's own."""
-    foreign = _foreign_files(out_dir, plan, chash)
+    foreign = foreign_files(out_dir, plan, chash)
     if foreign:
         names = ", ".join(str(p.relative_to(out_dir)) for p in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
         unrecorded = "" if (out_dir / META_NAME).exists() else f", recorded in no {META_NAME} of it"

@@ -8,11 +8,12 @@ import logging
 import os
 from pathlib import Path
 
+from cicfw.collect.config import episode_plan
 from cicfw.collect.errors import CollectError
 from cicfw.collect.lock import READS_ONLY, FolderLock
 from cicfw.collect.metadata import META_NAME
 from cicfw.collect.writing import write_json
-from cicfw.data.cil_hdf5 import CILFormatError, check_file
+from cicfw.data.cil_hdf5 import CILFormatError, check_file, is_hdf5_name
 from cicfw.data.provenance import file_sha256  # noqa: F401  (a training run's record hashes its files the same way)
 
 log = logging.getLogger(__name__)
@@ -101,9 +102,49 @@ def record_checksums(out_dir: Path, markers: dict[str, dict]) -> int:
     return n
 
 
+def _marker_names(out_dir: Path, plan: list[dict], chash: str) -> set[str]:
+    """The file names the markers of planned episodes (``.episodes/<id>.json``, this config's) record."""
+    names: set[str] = set()
+    for ep in plan:
+        try:
+            m = json.loads((out_dir / ".episodes" / f"{ep['id']}.json").read_text())
+            if m.get("config_hash", chash) == chash and m.get("seed") == ep["seed"]:
+                names.update(str(f["name"]) for f in m["files"])
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):  # no marker, or not one of ours
+            continue
+    return names
+
+
+def foreign_files(out_dir: Path, plan: list[dict], chash: str) -> list[Path]:
+    """HDF5 files (suffixes in any case, as the reader finds them) this collection did not write: in a folder
+    with its metadata (written before the first episode), any but the planned episodes' files; without it,
+    any its episode markers do not record (a collection's files copied without its records are the user's)."""
+    if (out_dir / META_NAME).exists():
+        ids = tuple(ep["id"] + "_" for ep in plan)
+        ours = lambda p: p.name.startswith(ids)  # noqa: E731
+    else:
+        recorded = _marker_names(out_dir, plan, chash)
+        ours = lambda p: p.name in recorded  # noqa: E731
+    return [p for p in sorted(out_dir.rglob("*")) if is_hdf5_name(p) and p.is_file()
+            and (p.parent != out_dir or p.suffix != ".h5" or not ours(p))]
+
+
+#: verify's kind for an HDF5 file this collection did not write (``foreign_files``)
+FOREIGN = "foreign"
+
+
+def _planned(meta: dict) -> list[dict] | None:
+    """The episodes a collection's metadata plans (from the config it records); None when it records none."""
+    try:
+        return episode_plan(meta["config"])
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+
+
 class VerifyReport:
     """What ``verify_dataset`` found: ``problems`` as (path, kind, reason), kind one of ``missing``,
-    ``corrupt``, ``unfinished`` (a file of an episode without a marker: a rerun removes it)."""
+    ``corrupt``, ``unfinished`` (a file of an episode without a marker: a rerun removes it), ``foreign`` (an
+    HDF5 file this collection did not write, as collect calls it: it refuses the folder while it is there)."""
 
     def __init__(self, out_dir: Path) -> None:
         self.out_dir = out_dir
@@ -121,9 +162,16 @@ class VerifyReport:
 
     def summary(self) -> str:
         if self.problems:
-            return (f"{len(self.problems)} of {self.files} file(s) of {self.out_dir} are missing, corrupt or "
-                    f"unfinished (listed above); rerun the same collect command (without verify) to collect "
-                    f"their episodes again")
+            foreign = sum(kind == FOREIGN for _, kind, _ in self.problems)
+            ours = len(self.problems) - foreign
+            said = [f"{foreign} HDF5 file(s) in {self.out_dir} this collection did not write (listed above): move "
+                    f"them out of it (collect refuses a folder holding them, and training reads every HDF5 file in it)"
+                    ] if foreign else []
+            if ours:
+                said.append(f"{ours} of {self.files} file(s) of {self.out_dir} are missing, corrupt or unfinished "
+                            f"(listed above); {'then ' if foreign else ''}rerun the same collect command (without "
+                            f"verify) to collect their episodes again")
+            return "; ".join(said)
         if not self.complete:
             return (f"{self.out_dir} is an unfinished dataset ({self.episodes} of {self.planned} episode(s) "
                     f"finished; the files of those are sound); rerun the same collect command to finish it")
@@ -175,8 +223,14 @@ def verify_dataset(out_dir: str | Path, lock_wait: float | None = 0.0) -> Verify
                 if f["name"] in problems:
                     rep.problems.append((out_dir / f["name"], *problems.pop(f["name"])))
             rep.problems += [(out_dir / name, kind, why) for name, (kind, why) in problems.items()]
-        for p in sorted(out_dir.glob("*.h5")):
-            if p.name not in recorded:
+        plan = _planned(meta)
+        foreign = set(foreign_files(out_dir, plan, meta.get("config_hash"))) if plan is not None else set()
+        for p in sorted(set(out_dir.glob("*.h5")) | foreign):
+            if p in foreign:
+                rep.files += 1
+                rep.problems.append((p, FOREIGN, "this collection did not write it (a file of yours, a copy or a "
+                                                 "link): collect refuses the folder while it is there"))
+            elif p.name not in recorded:
                 rep.files += 1
                 rep.problems.append((p, "unfinished", "no finished episode records it (a collection stopped "
                                                       "before its episode's marker was written)"))

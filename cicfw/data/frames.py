@@ -76,6 +76,16 @@ def folder_metadata(folder: Path) -> dict:
 EPISODE_PART = re.compile(r"^(ep\d{4}_.+)_\d{3}\.h5$")
 
 
+def _named_episode(f: Path, listed: dict) -> tuple[str | None, bool]:
+    """The episode a file belongs to by its folder's metadata (``listed``: its ``files``), else by its name
+    (``EPISODE_PART``) in a folder whose metadata lists none (None: neither); and whether the name gave it."""
+    entry = listed.get(f.name)
+    if entry and "episode" in entry:
+        return str(entry["episode"]), False
+    part = None if listed else EPISODE_PART.match(f.name)
+    return (part.group(1), True) if part else (None, False)
+
+
 def episode_groups(files: list[Path]) -> np.ndarray:
     """Episode id per file: from ``dataset_metadata.json`` (key ``files``: name -> {episode}) when a
     folder has one, else each file is its own episode (CoRL-2017 files are separate recordings), but for
@@ -87,15 +97,10 @@ def episode_groups(files: list[Path]) -> np.ndarray:
     for f in files:
         if f.parent not in meta_cache:
             meta_cache[f.parent] = folder_metadata(f.parent).get("files", {})
-        entry = meta_cache[f.parent].get(f.name)
-        part = None if meta_cache[f.parent] else EPISODE_PART.match(f.name)
-        if entry and "episode" in entry:
-            keys.append(f"{f.parent}/episode:{entry['episode']}")
-        elif part:
-            keys.append(f"{f.parent}/episode:{part.group(1)}")
-            by_name.setdefault(f.parent, []).append(part.group(1))
-        else:
-            keys.append(str(f))
+        episode, from_name = _named_episode(f, meta_cache[f.parent])
+        keys.append(str(f) if episode is None else f"{f.parent}/episode:{episode}")
+        if from_name:
+            by_name.setdefault(f.parent, []).append(episode)
     _, groups = np.unique(np.array(keys), return_inverse=True)
     for folder, ids in by_name.items():
         if len(set(ids)) < len(ids):  # some episode has several parts here
@@ -107,18 +112,26 @@ def episode_groups(files: list[Path]) -> np.ndarray:
 
 
 def distinct_files(files: list[Path]) -> tuple[list[Path], list[tuple[Path, Path]]]:
-    """``files`` with each file once: a path that is the same file as an earlier one (a symlink, a hard
-    link) is left out. Also returns the (left out, kept) pairs."""
-    seen: dict[tuple[int, int], Path] = {}
-    kept, same = [], []
-    for f in files:
+    """``files`` with each file once: of the paths that are one file (a symlink, a hard link) the one that
+    names its episode is kept (recorded in its folder's metadata, else named as a collected part, else the
+    first), so a link never takes a part out of its episode. Also returns the (left out, kept) pairs."""
+    paths: dict[tuple[int, int], list[int]] = {}  # (device, inode) -> the indices of its paths
+    for i, f in enumerate(files):
         st = f.stat()
-        key = (st.st_dev, st.st_ino)
-        if key in seen:
-            same.append((f, seen[key]))
-        else:
-            seen[key] = f
-            kept.append(f)
+        paths.setdefault((st.st_dev, st.st_ino), []).append(i)
+    listed: dict[Path, dict] = {}
+
+    def rank(i: int) -> int:  # 0: the metadata names its episode, 1: its name does, 2: neither
+        f = files[i]
+        if f.parent not in listed:
+            listed[f.parent] = folder_metadata(f.parent).get("files", {})
+        episode, from_name = _named_episode(f, listed[f.parent])
+        return 2 if episode is None else int(from_name)
+
+    keep = {ps[0] if len(ps) == 1 else min(ps, key=rank): ps for ps in paths.values()}  # min: the first of a rank
+    kept = [f for i, f in enumerate(files) if i in keep]
+    owner = {j: i for i, ps in keep.items() for j in ps}
+    same = [(files[j], files[owner[j]]) for j in range(len(files)) if owner[j] != j]
     return kept, same
 
 

@@ -5,10 +5,13 @@ resume, a diagnosis or an export is given.
 A record holds the path as an absolute path (``data.path`` as typed may be relative to a working directory
 that is gone), the root its file names are relative to, and per HDF5 file its name, size, modification
 time and SHA-256; its ``hash`` is the SHA-256 of the names, sizes and SHA-256s (16 hex digits), so the same
-files in another folder have the same hash. Hashing stays cheap: a file whose name, size and modification
-time match a record given as ``known`` (the checkpoint a run resumes from, the record a diagnosis checks)
-keeps its recorded SHA-256, and so does a file whose size and modification time (ns) match those
-``dataset_metadata.json`` recorded with the collection's SHA-256; only the others are read.
+files in another folder have the same hash. A file reached by several paths (a symlink, a hard link) is one
+entry, under the name the loader reads it by (``distinct_files``); the other paths are listed under ``links``.
+Records written before then hashed every path (``HASH_OF_EVERY_PATH``): they are compared the way they were
+made. Hashing stays cheap: a file whose name, size and modification time match a record given as ``known``
+(the checkpoint a run resumes from, the record a diagnosis checks) keeps its recorded SHA-256, and so does a
+file whose size and modification time (ns) match those ``dataset_metadata.json`` recorded with the
+collection's SHA-256; only the others are read.
 """
 from __future__ import annotations
 
@@ -23,13 +26,15 @@ from typing import Any, Iterable, Mapping, Sequence
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
 from cicfw.data.cil_hdf5 import find_files
-from cicfw.data.frames import META_NAME
+from cicfw.data.frames import META_NAME, distinct_files
 
 #: the run folder's record of its data
 RECORD_FILE = "data.json"
 #: the key of the record in a checkpoint
 CHECKPOINT_KEY = "cicfw_data"
-HASH_OF = "the files' names (relative to root), sizes and SHA-256"
+HASH_OF = "the distinct files' names (relative to root), sizes and SHA-256 (other paths to them: links)"
+#: what a record written before links were counted once hashed: every path, a link as a file of its own
+HASH_OF_EVERY_PATH = "the files' names (relative to root), sizes and SHA-256"
 #: the record's key for the towns and weathers the data was collected in when training started
 #: (``{"towns": [...], "weathers": [...]}``, null when the data said none): the suite's training columns
 SETS_KEY = "collected_in"
@@ -100,13 +105,17 @@ def files_hash(files: Sequence[Mapping[str, Any]]) -> str:
     return hashlib.sha256(lines.encode()).hexdigest()[:16]
 
 
+def _name(f: Path, root: Path) -> str:
+    return Path(os.path.relpath(f, root)).as_posix()
+
+
 def _entries(files: Sequence[Path], root: Path, known: Mapping[str, Any] | None) -> list[dict[str, Any]]:
     cache = {str(f.get("name")): f for f in (known or {}).get("files") or [] if isinstance(f, Mapping)}
     collected = _collected_hashes(files)
     out = []
     for f in files:
         st = f.stat()
-        name = Path(os.path.relpath(f, root)).as_posix()
+        name = _name(f, root)
         old = cache.get(name)
         if old and old.get("bytes") == st.st_size and old.get("mtime_ns") == st.st_mtime_ns and old.get("sha256"):
             sha = str(old["sha256"])
@@ -117,11 +126,13 @@ def _entries(files: Sequence[Path], root: Path, known: Mapping[str, Any] | None)
 
 
 def record_data(path: str | os.PathLike, known: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The record of the HDF5 files ``path`` (a folder, searched recursively, or a glob) holds now.
-    ``known``: an earlier record whose SHA-256s are reused for files of the same name, size and
-    modification time."""
+    """The record of the HDF5 files ``path`` (a folder, searched recursively, or a glob) holds now, each file
+    once as the loader reads it (a link to one is named under ``links``). ``known``: an earlier record whose
+    SHA-256s are reused for files of the same name, size and modification time."""
     root = data_root(path)
-    entries = _entries(find_files(absolute(path)), root, known)
+    files, same = distinct_files(find_files(absolute(path)))
+    entries = _entries(files, root, known)
+    links = [{"name": _name(link, root), "same_as": _name(kept, root)} for link, kept in same]
     meta = root / META_NAME
     try:
         collect_hash = json.loads(meta.read_text()).get("config_hash") if meta.is_file() else None
@@ -129,7 +140,7 @@ def record_data(path: str | os.PathLike, known: Mapping[str, Any] | None = None)
         collect_hash = None
     return {"path": absolute(path), "root": str(root), "hash": files_hash(entries), "hash_of": HASH_OF,
             "n_files": len(entries), "bytes": sum(f["bytes"] for f in entries), "collect_config_hash": collect_hash,
-            "recorded": time.strftime("%Y-%m-%d %H:%M:%S"), "files": entries}
+            "recorded": time.strftime("%Y-%m-%d %H:%M:%S"), "files": entries, "links": links}
 
 
 def summary(record: Mapping[str, Any], path: bool = True) -> str:
@@ -162,11 +173,29 @@ def is_record(value: Any) -> bool:
     return isinstance(value, Mapping) and isinstance(value.get("path"), str) and isinstance(value.get("files"), list)
 
 
+def every_path_hash(record: Mapping[str, Any]) -> str:
+    """``record``'s fingerprint as records written before links were counted once made it: each link an entry of
+    its own, with its file's size and SHA-256."""
+    by_name = {f["name"]: f for f in record.get("files") or []}
+    links = [{**by_name[link["same_as"]], "name": link["name"]} for link in record.get("links") or []
+             if link.get("same_as") in by_name]
+    return files_hash([*(record.get("files") or []), *links])
+
+
+def same_files(recorded: Mapping[str, Any], now: Mapping[str, Any]) -> bool:
+    """Whether ``now`` holds the files ``recorded`` does, compared the way ``recorded`` was made: a record that
+    hashed every path (``HASH_OF_EVERY_PATH``) against ``now`` with its links counted as files."""
+    if recorded.get("hash") == now.get("hash"):
+        return True
+    every_path = recorded.get("hash_of", HASH_OF_EVERY_PATH) == HASH_OF_EVERY_PATH
+    return every_path and recorded.get("hash") == every_path_hash(now)
+
+
 def check_same_data(recorded: Mapping[str, Any], now: Mapping[str, Any], key: str, whose: str, instead: str) -> None:
     """One ``OtherData`` line when ``now`` holds other files than ``recorded`` (the same files in another
     folder are the same data): both named, with what differs. ``key`` names what gave ``now``
     (``data.path``), ``whose`` the run that recorded the other (``the checkpoint``), ``instead`` what to do."""
-    if recorded.get("hash") == now.get("hash"):
+    if same_files(recorded, now):
         return
     diff = differences(recorded, now) or "other contents"
     raise OtherData(f"{key}={now.get('path')} ({summary(now, path=False)}) is not the data {whose} trained on "
@@ -198,9 +227,10 @@ def recorded_files(recorded: Mapping[str, Any], root: str | os.PathLike | None, 
 
 
 def _hdf5_under(pattern: str | os.PathLike, root: Path) -> set[str]:
-    """The names (relative to ``root``) of the HDF5 files a folder or glob holds; empty when it holds none."""
+    """The names (relative to ``root``) of the HDF5 files a folder or glob holds, each file once as the loader
+    reads it (a link to one is none added); empty when it holds none."""
     try:
-        return {Path(os.path.relpath(f, root)).as_posix() for f in find_files(str(pattern))}
+        return {_name(f, root) for f in distinct_files(find_files(str(pattern)))[0]}
     except FileNotFoundError:
         return set()
 

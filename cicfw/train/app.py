@@ -51,8 +51,8 @@ from cicfw.model.speed import apply_speed_from_config
 from cicfw.core.run_folder import (claim_folder, data_folders, enclosing_run, forget_failed_run, hold_train_folder,
                                   release_run_folder, undo_run_folder)
 from cicfw.core.sweeps import is_worker_process
-from cicfw.data.provenance import (CHECKPOINT_KEY, SETS_KEY, check_same_data, folder_record, record_data, same_place,
-                                   summary, with_earlier, write_record)
+from cicfw.data.provenance import (CHECKPOINT_KEY, SETS_KEY, check_same_data, folder_record, record_data, same_files,
+                                   same_place, summary, with_earlier, write_record)
 from cicfw.train.schema import MODEL, checked_data, checked_node, checked_part, checked_speed, checked_trainer
 from cicfw.train.schema import check_top_level
 from cicfw.train.resumed_encoding import check_resumed_encoding
@@ -758,15 +758,16 @@ def data_record(cfg: DictConfig, data_path: str, run_dir: Path) -> tuple[dict[st
             check_same_data(earlier, record, "data.path", f"ckpt_path={ckpt}",
                             f"resume on the data it trained on (data.path={earlier['path']}), or add "
                             f"resume_on_other_data=true to go on training on this data on purpose")
-        if earlier.get("hash") != record["hash"] or not same_place(earlier["path"], record["path"]):
+        same = same_files(earlier, record)  # a record made before links counted once: compared as it was made
+        if not same or not same_place(earlier["path"], record["path"]):
             log.info("resuming on %s; the checkpoint trained on %s (both are recorded in %s)", summary(record),
                      summary(earlier), run_dir / "data.json")
             record = with_earlier(record, earlier)
         elif earlier.get("before"):
             record["before"] = earlier["before"]
-        if earlier.get("hash") == record["hash"] and isinstance(earlier.get(SETS_KEY), dict):
+        if same and isinstance(earlier.get(SETS_KEY), dict):
             record[SETS_KEY] = earlier[SETS_KEY]  # the same files: what the data said when training started
-    return record, earlier is not None and earlier.get("hash") != record["hash"]
+    return record, earlier is not None and not same_files(earlier, record)
 
 
 def checkpoint_files(run_dir: Path) -> dict[str, tuple[int, int]]:
