@@ -335,3 +335,23 @@ def test_export_of_an_older_run_resolves_a_relative_data_path_where_it_trained(t
     monkeypatch.chdir(elsewhere)
     info = export_model(run / "checkpoints" / "last.ckpt", "torchscript", tmp_path / "m.pt", n_frames=2)
     assert info["training_dataset"]["path"] == str(trained["data"]) and info["training_dataset"]["files"] == 8
+
+
+def test_a_file_that_is_not_hdf5_is_named_before_any_file_is_hashed(tmp_path, monkeypatch):
+    """A large file named ``*.h5`` that is not HDF5 (here 4 GB, sparse) is refused in the loader's one line
+    before the data record reads any file whole: hashing it would take seconds a GB first."""
+    from cicfw.data import provenance
+    from cicfw.data.cil_hdf5 import CILFormatError
+
+    folder = write_episodes(tmp_path / "data", n_files=2)
+    junk = folder / "ep999.h5"
+    with open(junk, "wb") as f:
+        f.truncate(4 << 30)
+    read: list[str] = []
+    monkeypatch.setattr(provenance, "file_sha256", lambda f: read.append(Path(f).name) or "0" * 64)
+    with pytest.raises(CILFormatError) as err:
+        provenance.record_data(folder)
+    assert str(junk) in str(err.value) and read == []
+    junk.unlink()
+    assert sorted(f["name"] for f in provenance.record_data(folder)["files"]) == sorted(read) == ["ep000.h5",
+                                                                                                   "ep001.h5"]

@@ -159,6 +159,17 @@ def _dataset(f: h5py.File, key: str, path: Path) -> h5py.Dataset:
     return obj
 
 
+def check_signature(path: Path) -> None:
+    """A CILFormatError when ``path`` does not start as an HDF5 file does (h5py reads only its superblock):
+    what ``check_file`` would refuse, found before anything reads the whole file (the data record's hash)."""
+    try:
+        ok = h5py.is_hdf5(str(path))
+    except OSError as err:
+        raise CILFormatError(f"{path}: not a readable HDF5 file ({err})") from None
+    if not ok:
+        raise CILFormatError(f"{path}: not a readable HDF5 file (no HDF5 signature)")
+
+
 def check_file(path: Path) -> FileInfo:
     """Open ``path`` and check it is in the CIL layout; raise CILFormatError naming what is wrong."""
     try:

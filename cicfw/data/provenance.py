@@ -25,7 +25,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from cicfw.core.errors import CicfwError
 from cicfw.core.files import atomic_write
-from cicfw.data.cil_hdf5 import find_files
+from cicfw.data.cil_hdf5 import check_signature, find_files
 from cicfw.data.frames import META_NAME, distinct_files
 
 #: the run folder's record of its data
@@ -112,16 +112,20 @@ def _name(f: Path, root: Path) -> str:
 def _entries(files: Sequence[Path], root: Path, known: Mapping[str, Any] | None) -> list[dict[str, Any]]:
     cache = {str(f.get("name")): f for f in (known or {}).get("files") or [] if isinstance(f, Mapping)}
     collected = _collected_hashes(files)
+    known_sha: dict[Path, str] = {}
+    for f in files:
+        st, old = f.stat(), cache.get(_name(f, root))
+        if old and old.get("bytes") == st.st_size and old.get("mtime_ns") == st.st_mtime_ns and old.get("sha256"):
+            known_sha[f] = str(old["sha256"])
+        elif f in collected:
+            known_sha[f] = collected[f]
+        else:
+            check_signature(f)  # a file the loader refuses is named before any file is read whole
     out = []
     for f in files:
         st = f.stat()
-        name = _name(f, root)
-        old = cache.get(name)
-        if old and old.get("bytes") == st.st_size and old.get("mtime_ns") == st.st_mtime_ns and old.get("sha256"):
-            sha = str(old["sha256"])
-        else:
-            sha = collected.get(f) or file_sha256(f)
-        out.append({"name": name, "bytes": int(st.st_size), "mtime_ns": int(st.st_mtime_ns), "sha256": sha})
+        out.append({"name": _name(f, root), "bytes": int(st.st_size), "mtime_ns": int(st.st_mtime_ns),
+                    "sha256": known_sha.get(f) or file_sha256(f)})
     return out
 
 
