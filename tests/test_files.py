@@ -53,6 +53,23 @@ def test_files_get_the_umask_mode_not_owner_only(tmp_path, umask_027, write):
     assert [p.name for p in path.parent.iterdir()] == ["out.bin"], "a temporary file was left behind"
 
 
+@pytest.mark.parametrize("write", [lambda p: atomic_write(p, "text"), _png, _h5], ids=["atomic_write", "save_png", "cil_file"])
+def test_a_file_written_over_keeps_its_mode_under_an_owner_only_umask(tmp_path, write):
+    """A shared report (0664) rewritten by a user whose umask is 077 stays readable by its group; a new file
+    beside it gets the umask's 0600."""
+    kept, new = tmp_path / "out.bin", tmp_path / "new.bin"
+    kept.write_text("old")
+    kept.chmod(0o664)
+    old = os.umask(0o077)
+    try:
+        write(kept)
+        write(new)
+    finally:
+        os.umask(old)
+    assert kept.read_bytes() != b"old"
+    assert (_mode(kept), _mode(new)) == (0o664, 0o600), (oct(_mode(kept)), oct(_mode(new)))
+
+
 def test_a_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     path = tmp_path / "table.md"
     path.write_text("old")

@@ -110,6 +110,16 @@ def publish_new(tmp: Path, path: Path) -> None:
     tmp.unlink(missing_ok=True)
 
 
+def _keep_mode(tmp: Path, path: Path) -> None:
+    """``tmp``, about to replace ``path``, takes ``path``'s permission bits: a report shared as 0664 stays
+    readable by its group when it is rewritten under a umask of 077."""
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        return
+    os.chmod(tmp, mode)
+
+
 def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Path, bytes | memoryview]], *,
                    fsync: bool = False, suffix: str = ".tmp",
                    before_rename: Callable[[], None] | None = None, new: Iterable[Path] = ()) -> None:
@@ -144,6 +154,7 @@ def write_together(files: Mapping[Path, bytes | memoryview] | Iterable[tuple[Pat
                     publish_new(tmp, path)
                     created.append((path, (st.st_dev, st.st_ino)))
                 else:
+                    _keep_mode(tmp, path)
                     os.replace(tmp, path)
     except BaseException:
         for tmp, _ in temps:
