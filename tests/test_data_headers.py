@@ -7,13 +7,14 @@ import json
 import logging
 import os
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
 from cicfw.collect import CollectError, collect_dataset
-from cicfw.data.cil_hdf5 import CILFormatError, T, find_files, write_file
+from cicfw.data.cil_hdf5 import N_TARGETS, CILFormatError, T, find_files, write_file
 from cicfw.data.frames import load_frames, split_by_episode
 from cicfw.testing import make_targets, write_tiny_dataset
 
@@ -177,3 +178,21 @@ def test_two_filters_that_leave_nothing_are_both_counted(tmp_path):
         load_frames(str(tmp_path), max_abs_steer=0.1, cameras=(0,))
     msg = str(err.value)
     assert "4 by data.max_abs_steer=0.1" in msg and "8 by data.cameras=[0]" in msg
+
+
+def test_a_linked_folder_under_the_data_path_is_read_as_a_glob_reads_it(tmp_path):
+    """A folder holding a symlink to another folder of HDF5 files: the folder form finds the linked files, as
+    the ``**`` glob form does, and a link back up the tree is not a loop."""
+    from cicfw.data.cil_hdf5 import find_files
+
+    real = tmp_path / "real"
+    real.mkdir()
+    for name in ("a.h5", "b.h5"):
+        write_file(real / name, np.zeros((2, 88, 200, 3), np.uint8), np.zeros((2, N_TARGETS), np.float32))
+    top = tmp_path / "top"
+    top.mkdir()
+    (top / "linked").symlink_to(real, target_is_directory=True)
+    (real / "up").symlink_to(tmp_path, target_is_directory=True)  # a loop
+    by_folder = sorted(f.relative_to(top).as_posix() for f in find_files(top))
+    by_glob = sorted(Path(f).relative_to(top).as_posix() for f in find_files(str(top / "*" / "*.h5")))
+    assert by_folder == by_glob == ["linked/a.h5", "linked/b.h5"]

@@ -97,8 +97,24 @@ def is_hdf5_name(path: Path) -> bool:
     return path.suffix.lower() in HDF5_SUFFIXES
 
 
+def _walk(folder: Path) -> list[Path]:
+    """Every entry under ``folder``, following linked folders (as a ``**`` glob does; ``Path.rglob`` does not),
+    each real folder once: a link back up the tree is not a loop. A file reached twice is left to
+    ``distinct_files``."""
+    out, seen = [], set()
+    for root, dirs, names in os.walk(folder, followlinks=True):
+        st = os.stat(root)
+        if (st.st_dev, st.st_ino) in seen:
+            dirs[:] = []
+            continue
+        seen.add((st.st_dev, st.st_ino))
+        out += [Path(root) / n for n in [*dirs, *names]]
+    return out
+
+
 def find_files(path: str | os.PathLike | list | tuple) -> list[Path]:
-    """HDF5 files under a folder (recursively; suffixes in any case) or matching a glob, sorted (a
+    """HDF5 files under a folder (recursively, linked folders followed as a ``**`` glob follows them; suffixes
+    in any case) or matching a glob, sorted (a
     folder's ``.h5`` files, then its ``.hdf5`` ones); error if none. A list is the files themselves, in
     its order (the files a run recorded, ``cicfw.data.provenance``): each must exist."""
     if isinstance(path, (list, tuple)):
@@ -111,7 +127,7 @@ def find_files(path: str | os.PathLike | list | tuple) -> list[Path]:
     p = str(path)
     p = os.path.expanduser(p)
     if os.path.isdir(p):
-        named = [f for f in Path(p).rglob("*") if is_hdf5_name(f)]
+        named = [f for f in _walk(Path(p)) if is_hdf5_name(f)]
         found = [f for f in named if f.is_file()]
         dangling = sorted(str(f) for f in named if f.is_symlink() and not f.exists())
         if dangling:  # a link whose file is gone: its episodes are missing from the data, say so
