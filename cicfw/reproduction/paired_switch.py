@@ -400,11 +400,12 @@ def episodes_file(path: Path) -> Path:
     return path / "episodes.csv" if path.is_dir() else path
 
 
-def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]]) -> list[dict]:
+def episode_changes(a: Mapping[str, tuple[bool, str]], b: Mapping[str, tuple[bool, str]],
+                    names: tuple[str, str] = ("A", "B")) -> list[dict]:
     """Per column (and all), on the episodes both drove: successes of each, the episodes A lost (B drove
     them, A did not) and gained, and McNemar's exact two-sided p-value on those discordant episodes. Each
-    episode counts in one column on both sides (``check_same_columns``)."""
-    check_same_columns(a, b)
+    episode counts in one column on both sides (``check_same_columns``, naming the sides by ``names``)."""
+    check_same_columns(a, b, names)
     keys = sorted(set(a) & set(b))
     out = []
     for col in [*COLUMNS, "all"]:
@@ -454,9 +455,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not set(ea) & set(eb):
                 raise CicfwError(f"{args.a} and {args.b} share no episode (no key in common); "
                                  f"give two runs of the same evaluation suite")
-            check_same_columns(ea, eb, (args.a, args.b))
+            changes = episode_changes(ea, eb, (args.a, args.b))
             print(f"A {args.a} vs B {args.b}: the episodes both drove")
-            for r in episode_changes(ea, eb):
+            for r in changes:
                 print(f"{r['column']:34s} A {r['a']:3d} / B {r['b']:3d} of {r['episodes']:3d}; A gained {r['gained']}, "
                       f"lost {r['lost']}; McNemar exact p {r['p']:.3f}")
             return 0
